@@ -1,0 +1,42 @@
+# One entry point for set-up, the demo and the tests. Each target does its own set-up.
+PY ?= python3.11
+VENV ?= .venv
+BIN := $(VENV)/bin
+
+.PHONY: setup system-deps demo test lint bench clean
+
+# Debian packages: libllvm19 for Mitsuba's llvm variants, prosody for the multi-host tests.
+system-deps:
+	@need=""; \
+	[ -e /usr/lib/x86_64-linux-gnu/libLLVM-19.so.1 ] || [ -e /usr/lib/x86_64-linux-gnu/libLLVM.so.19.1 ] || ls /usr/lib/*/libLLVM*19* >/dev/null 2>&1 || need="$$need libllvm19"; \
+	command -v prosody >/dev/null 2>&1 || need="$$need prosody"; \
+	if [ -n "$$need" ]; then \
+	  if [ "$$(id -u)" = 0 ]; then \
+	    echo "installing Debian packages:$$need"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$need >/dev/null; \
+	    systemctl disable --now prosody >/dev/null 2>&1 || service prosody stop >/dev/null 2>&1 || true; \
+	  else \
+	    echo "missing Debian packages:$$need (run 'sudo apt-get install$$need'); Mitsuba falls back to scalar_rgb without libllvm19"; \
+	  fi; \
+	fi
+
+$(BIN)/quekaro: pyproject.toml
+	$(PY) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q -e '.[dev]'
+	@touch $@
+
+setup: system-deps $(BIN)/quekaro
+
+demo: setup
+	$(BIN)/quekaro demo
+
+test: setup
+	$(BIN)/ruff check .
+	$(BIN)/python -m pytest -q
+
+lint: setup
+	$(BIN)/ruff check .
+
+clean:
+	rm -rf $(VENV) out var .pytest_cache .ruff_cache

@@ -1,0 +1,54 @@
+"""Pixel rectangles: the one geometry type that every part of the farm passes around."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True, order=True)
+class Rect:
+    """A pixel rectangle: origin top-left, y down, half-open ([x, x + w) x [y, y + h))."""
+
+    x: int
+    y: int
+    w: int
+    h: int
+
+    def __post_init__(self) -> None:
+        if self.w < 0 or self.h < 0:
+            raise ValueError(f"rectangle with negative size: {self}")
+
+    @property
+    def x1(self) -> int:
+        return self.x + self.w
+
+    @property
+    def y1(self) -> int:
+        return self.y + self.h
+
+    @property
+    def area(self) -> int:
+        return self.w * self.h
+
+    def grow(self, band: int, width: int, height: int) -> Rect:
+        """This rectangle grown by `band` pixels on every side, clipped to a width x height image."""
+        x0, y0 = max(0, self.x - band), max(0, self.y - band)
+        x1, y1 = min(width, self.x1 + band), min(height, self.y1 + band)
+        return Rect(x0, y0, max(0, x1 - x0), max(0, y1 - y0))
+
+    def intersect(self, other: Rect) -> Rect:
+        x0, y0 = max(self.x, other.x), max(self.y, other.y)
+        x1, y1 = min(self.x1, other.x1), min(self.y1, other.y1)
+        return Rect(x0, y0, max(0, x1 - x0), max(0, y1 - y0))
+
+    def slices(self) -> tuple[slice, slice]:
+        """Numpy index (rows, columns) of this rectangle in a full image."""
+        return slice(self.y, self.y1), slice(self.x, self.x1)
+
+    def as_list(self) -> list[int]:
+        return [self.x, self.y, self.w, self.h]
+
+    @classmethod
+    def from_list(cls, values: list[int] | tuple[int, int, int, int]) -> Rect:
+        x, y, w, h = (int(v) for v in values)
+        return cls(x, y, w, h)
