@@ -16,6 +16,7 @@ from core.errors import QuekaroError
 COMMAND_MODULES = (
     "quekaro.cmd_rules",
     "quekaro.cmd_render",
+    "quekaro.cmd_diff",
     "quekaro.cmd_farm",
     "quekaro.cmd_bench",
 )

@@ -1,0 +1,154 @@
+"""Composition: blend the returned tiles (unit core plus interpolation band) into one image.
+
+Every tile gets a separable weight w(x) * w(y) over its rendered rectangle: 1 inside its core, falling
+linearly across the band to a small positive value at the band's outer edge (distance d outside the core
+on a side with band b gets 1 - d / (b + 1)). The composed pixel is the weighted mean of the tiles that
+cover it, so the normalised weights sum to one at every covered pixel, horizontally, vertically and at
+corners alike, and a pixel covered by a single tile takes that tile's value.
+
+Rules for the awkward cases (counted in `ComposeReport`):
+  - a non-finite pixel (any channel NaN or Inf) gets weight 0 in that tile, so it never spreads;
+  - a covered pixel with no finite contribution is filled with the mean of the finite composed pixels
+    in its 3x3 neighbourhood, or 0 when there are none (`filled`);
+  - a pixel no tile covers raises TileError, or with `allow_uncovered=True` is 0 and counted;
+  - duplicate tiles for the same core (a late second delivery) are ignored: the first in the list wins.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from core.errors import TileError
+from core.geometry import Rect
+
+
+class TileLike(Protocol):
+    pixels: np.ndarray
+    rect: Rect
+    core: Rect
+
+
+@dataclass
+class ComposeReport:
+    """What composition had to do beyond plain blending."""
+
+    nonfinite: dict[tuple[int, int, int, int], int] = field(default_factory=dict)  # core -> count
+    filled: int = 0  # covered pixels with no finite contribution, filled from their neighbours
+    uncovered: int = 0  # pixels no tile covers (only with allow_uncovered=True)
+    duplicates_ignored: int = 0
+    tiles_used: int = 0
+
+    def to_dict(self) -> dict:
+        return {
+            "nonfinite": [{"core": list(k), "count": v} for k, v in sorted(self.nonfinite.items())],
+            "nonfinite_total": sum(self.nonfinite.values()),
+            "filled": self.filled,
+            "uncovered": self.uncovered,
+            "duplicates_ignored": self.duplicates_ignored,
+            "tiles_used": self.tiles_used,
+        }
+
+
+def ramp(start: int, stop: int, core_start: int, core_stop: int) -> np.ndarray:
+    """1-D weights over [start, stop): 1 on [core_start, core_stop), linear fall-off across each band."""
+    pos = np.arange(start, stop, dtype=np.float64)
+    before = np.maximum(core_start - pos, 0.0)  # distance outside the core, left/top
+    after = np.maximum(pos - (core_stop - 1), 0.0)  # distance outside the core, right/bottom
+    band_before = max(core_start - start, 0)
+    band_after = max(stop - core_stop, 0)
+    return (1.0 - before / (band_before + 1)) * (1.0 - after / (band_after + 1))
+
+
+def tile_weight(rect: Rect, core: Rect) -> np.ndarray:
+    """Un-normalised weight (h, w) of a tile over its rendered rectangle: > 0 everywhere, 1 on its core."""
+    wx = ramp(rect.x, rect.x1, core.x, core.x1)
+    wy = ramp(rect.y, rect.y1, core.y, core.y1)
+    return np.outer(wy, wx)
+
+
+def blend_weights(geometry: Sequence[tuple[Rect, Rect]], width: int, height: int) -> list[np.ndarray]:
+    """Normalised weights of each (rect, core) tile over its rect; they sum to one at every covered pixel."""
+    total = np.zeros((height, width), dtype=np.float64)
+    raw = [tile_weight(rect, core) for rect, core in geometry]
+    for (rect, _), w in zip(geometry, raw, strict=True):
+        total[rect.slices()] += w
+    return [w / total[rect.slices()] for (rect, _), w in zip(geometry, raw, strict=True)]
+
+
+def compose(
+    tiles: Iterable[TileLike], width: int, height: int, allow_uncovered: bool = False
+) -> tuple[np.ndarray, ComposeReport]:
+    """Blend tiles into a float32 (height, width, 3) image; see the module docstring for the rules."""
+    report = ComposeReport()
+    chosen = _dedupe(tiles, width, height, report)
+    acc = np.zeros((height, width, 3), dtype=np.float64)
+    wsum = np.zeros((height, width), dtype=np.float64)
+    covered = np.zeros((height, width), dtype=bool)
+    for tile in chosen:
+        pixels = np.asarray(tile.pixels, dtype=np.float64)
+        finite = np.all(np.isfinite(pixels), axis=2)
+        bad = int(finite.size - np.count_nonzero(finite))
+        if bad:
+            report.nonfinite[tuple(tile.core.as_list())] = bad
+        w = tile_weight(tile.rect, tile.core) * finite
+        sl = tile.rect.slices()
+        acc[sl] += np.where(finite[..., None], pixels, 0.0) * w[..., None]
+        wsum[sl] += w
+        covered[sl] = True
+    report.tiles_used = len(chosen)
+    _check_coverage(covered, allow_uncovered, report)
+    image = np.zeros((height, width, 3), dtype=np.float64)
+    has = wsum > 0
+    image[has] = acc[has] / wsum[has][:, None]
+    holes = covered & ~has
+    report.filled = int(np.count_nonzero(holes))
+    if report.filled:
+        _fill_holes(image, holes, has)
+    return image.astype(np.float32), report
+
+
+def _dedupe(tiles: Iterable[TileLike], width: int, height: int, report: ComposeReport) -> list[TileLike]:
+    """Validate every tile and keep the first one delivered per core."""
+    seen: set[Rect] = set()
+    chosen = []
+    for tile in tiles:
+        _validate(tile, width, height)
+        if tile.core in seen:
+            report.duplicates_ignored += 1
+            continue
+        seen.add(tile.core)
+        chosen.append(tile)
+    return chosen
+
+
+def _validate(tile: TileLike, width: int, height: int) -> None:
+    rect, core = tile.rect, tile.core
+    where = f"tile for unit {core.as_list()}"
+    if rect.x < 0 or rect.y < 0 or rect.x1 > width or rect.y1 > height:
+        raise TileError(f"{where}: rectangle {rect.as_list()} lies outside the {width}x{height} image")
+    if core.intersect(rect) != core or core.area == 0:
+        raise TileError(f"{where}: core is empty or not inside the rendered rectangle {rect.as_list()}")
+    shape = np.shape(tile.pixels)
+    if shape != (rect.h, rect.w, 3):
+        raise TileError(f"{where}: pixels have shape {shape}, expected {(rect.h, rect.w, 3)}")
+
+
+def _check_coverage(covered: np.ndarray, allow_uncovered: bool, report: ComposeReport) -> None:
+    missing = int(covered.size - np.count_nonzero(covered))
+    if missing and not allow_uncovered:
+        y, x = np.argwhere(~covered)[0]
+        raise TileError(f"{missing} pixel(s) covered by no tile, the first at x={x}, y={y}")
+    report.uncovered = missing
+
+
+def _fill_holes(image: np.ndarray, holes: np.ndarray, good: np.ndarray) -> None:
+    """Set each hole to the mean of the blended (`good`) pixels in its 3x3 neighbourhood (else 0)."""
+    h, w = holes.shape
+    for y, x in np.argwhere(holes):
+        ys, xs = slice(max(0, y - 1), min(h, y + 2)), slice(max(0, x - 1), min(w, x + 2))
+        mask = good[ys, xs]
+        image[y, x] = image[ys, xs][mask].mean(axis=0) if mask.any() else 0.0

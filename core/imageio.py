@@ -1,0 +1,119 @@
+"""Whole-image files: linear float32 RGB EXR in and out, and a tonemapped sRGB PNG for people.
+
+No NaN passes silently: writing an image with non-finite values is an error unless the caller says
+`allow_nonfinite=True` (EXR only; a PNG cannot show them).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from core.errors import QuekaroError
+
+
+class ImageError(QuekaroError):
+    """An image file that cannot be read or written, or an image that is not H x W x 3."""
+
+
+def as_rgb(image: np.ndarray, name: str = "image") -> np.ndarray:
+    """`image` as a contiguous float32 (H, W, 3) array; grey (H, W) and RGBA are converted."""
+    array = np.asarray(image, dtype=np.float32)
+    if array.ndim == 2:
+        array = np.repeat(array[..., None], 3, axis=-1)
+    if array.ndim != 3 or array.shape[-1] not in (1, 3, 4) or array.shape[0] == 0 or array.shape[1] == 0:
+        raise ImageError(f"{name}: expected an H x W x 3 image, got shape {array.shape}")
+    if array.shape[-1] == 1:
+        array = np.repeat(array, 3, axis=-1)
+    return np.ascontiguousarray(array[..., :3])
+
+
+def _check_finite(image: np.ndarray, path: Path) -> None:
+    bad = int((~np.isfinite(image)).any(axis=-1).sum())
+    if bad:
+        raise ImageError(f"{path}: image has {bad} non-finite pixels (NaN or Inf)")
+
+
+def write_exr(path: str | Path, image: np.ndarray, allow_nonfinite: bool = False) -> Path:
+    """Write a linear float32 RGB EXR (ZIP compressed)."""
+    import OpenEXR
+
+    path = Path(path)
+    rgb = as_rgb(image, str(path))
+    if not allow_nonfinite:
+        _check_finite(rgb, path)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    try:
+        with OpenEXR.File(header, {"RGB": rgb}) as exr:
+            exr.write(str(path))
+    except (OSError, RuntimeError) as exc:
+        raise ImageError(f"{path}: cannot write EXR ({exc})") from exc
+    return path
+
+
+def read_exr(path: str | Path) -> np.ndarray:
+    """Read an EXR's R, G, B (or Y) channels as float32 (H, W, 3), whatever their stored precision."""
+    import OpenEXR
+
+    path = Path(path)
+    if not path.is_file():
+        raise ImageError(f"{path}: no such file")
+    if not OpenEXR.isOpenExrFile(str(path)):
+        raise ImageError(f"{path}: not an EXR file")
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as exr:
+            channels = {k: np.array(v.pixels, dtype=np.float32) for k, v in exr.channels().items()}
+    except Exception as exc:  # OpenEXR reports corrupt files as RuntimeError or ValueError
+        raise ImageError(f"{path}: unreadable EXR ({exc})") from exc
+    if all(c in channels for c in "RGB"):
+        return np.stack([channels["R"], channels["G"], channels["B"]], axis=-1)
+    if "Y" in channels:
+        return np.repeat(channels["Y"][..., None], 3, axis=-1)
+    raise ImageError(f"{path}: no R, G, B or Y channels (has {sorted(channels)})")
+
+
+def linear_to_srgb(image: np.ndarray) -> np.ndarray:
+    """The sRGB transfer function (IEC 61966-2-1) of linear values clamped to [0, 1]."""
+    x = np.clip(image, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
+
+
+def tonemap(image: np.ndarray, exposure: float = 1.0) -> np.ndarray:
+    """Display values in [0, 1]: linear x exposure, clamped, sRGB encoded."""
+    return linear_to_srgb(as_rgb(image) * np.float32(exposure))
+
+
+def write_png(path: str | Path, image: np.ndarray, exposure: float = 1.0) -> Path:
+    """Write an 8-bit sRGB PNG of a linear image (x exposure, clamped to [0, 1]); NaN/Inf are an error.
+
+    A grey (H, W) image is written as grey RGB. The encoding is done by Mitsuba's Bitmap.
+    """
+    import mitsuba as mi
+
+    path = Path(path)
+    rgb = as_rgb(image, str(path))
+    _check_finite(rgb, path)
+    if mi.variant() is None:
+        mi.set_variant("scalar_rgb")  # Bitmap needs some variant; scalar starts no JIT
+    scaled = np.clip(rgb * np.float32(exposure), 0.0, 1.0)
+    bitmap = mi.Bitmap(scaled, mi.Bitmap.PixelFormat.RGB)
+    try:
+        bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True).write(str(path))
+    except RuntimeError as exc:
+        raise ImageError(f"{path}: cannot write PNG ({exc})") from exc
+    return path
+
+
+def read_png(path: str | Path) -> np.ndarray:
+    """Read an 8-bit PNG as float32 (H, W, 3) display values in [0, 1] (no sRGB decoding)."""
+    import mitsuba as mi
+
+    path = Path(path)
+    if mi.variant() is None:
+        mi.set_variant("scalar_rgb")
+    try:
+        array = np.array(mi.Bitmap(str(path)), dtype=np.float32) / 255.0
+    except RuntimeError as exc:
+        raise ImageError(f"{path}: unreadable PNG ({exc})") from exc
+    return as_rgb(array, str(path))

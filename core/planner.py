@@ -1,0 +1,102 @@
+"""The unit planner: unit features (C, S, Nd) and the user's level -> per unit depth, spp and band.
+
+Used by the render agents (each with its own rule file) and by the in-process pipeline. Level `off`
+applies no rules at all: every unit renders at the user's depth and spp, with the minimum band.
+Otherwise the fuzzy rule base (rules/pathtracing.xml unless told) weights the user's values, as
+`fuzzy.render_params` documents; the band never drops below `min_band`, the reach of the gaussian
+reconstruction filter (2 px), so that neighbouring tiles always overlap enough to blend.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from fuzzy import Engine, load_rulebase
+from fuzzy.render_params import LEVELS, op_value, to_render_params
+
+FEATURES = ("C", "S", "Nd")
+
+
+def default_rules_path() -> Path:
+    """rules/pathtracing.xml: from $QUEKARO_RULES_DIR, else beside the source tree."""
+    env = os.environ.get("QUEKARO_RULES_DIR")
+    base = Path(env) if env else Path(__file__).resolve().parent.parent / "rules"
+    return base / "pathtracing.xml"
+
+
+@dataclass(frozen=True)
+class UnitParams:
+    """What one unit renders with; `outputs` holds the crisp Rl, Ls, Ibs (empty at level off)."""
+
+    depth: int
+    spp: int
+    band: int
+    outputs: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class Planner:
+    """Compiles one rule file once; `plan` then maps many units at a time."""
+
+    def __init__(
+        self,
+        rules_path: str | os.PathLike[str] | None = None,
+        defuzzifier: str = "centroid",
+        min_band: int = 2,
+    ) -> None:
+        if min_band < 0:
+            raise ValueError(f"min_band must be >= 0, got {min_band}")
+        self.rules_path = Path(rules_path) if rules_path is not None else default_rules_path()
+        self.rulebase = load_rulebase(self.rules_path)
+        self.engine = Engine(self.rulebase, defuzzifier)
+        self.min_band = int(min_band)
+        needed = {*FEATURES, "Op"}
+        if set(self.engine.input_names) != needed:
+            raise ValueError(
+                f"{self.rules_path}: a planner rule base needs inputs {sorted(needed)}, "
+                f"has {sorted(self.engine.input_names)}"
+            )
+
+    def plan(
+        self,
+        features: Mapping[str, np.ndarray],
+        level: str,
+        user_depth: int,
+        user_spp: int,
+        ranges: Mapping[str, tuple[float, float]] | None = None,
+    ) -> list[UnitParams]:
+        """One `UnitParams` per unit; `ranges` defaults to the min/max of the given features."""
+        cols = _feature_columns(features)
+        n = len(cols["C"])
+        if level == "off":
+            return [UnitParams(int(user_depth), int(user_spp), self.min_band) for _ in range(n)]
+        if level not in LEVELS:
+            choices = ", ".join(LEVELS)
+            raise ValueError(f"unknown optimisation level {level!r}; expected off or one of {choices}")
+        if n == 0:
+            return []
+        if ranges is None:
+            ranges = {k: (float(v.min()), float(v.max())) for k, v in cols.items()}
+        inputs = {**cols, "Op": np.full(n, op_value(level))}
+        outputs = self.engine.evaluate(inputs, ranges)
+        depth, spp, band = to_render_params(outputs, user_depth, user_spp)
+        band = np.maximum(band, self.min_band)
+        crisp = [{k: float(outputs[k][i]) for k in ("Rl", "Ls", "Ibs")} for i in range(n)]
+        return [UnitParams(int(depth[i]), int(spp[i]), int(band[i]), crisp[i]) for i in range(n)]
+
+
+def _feature_columns(features: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    missing = [k for k in FEATURES if k not in features]
+    if missing:
+        raise ValueError(f"unit features lack {', '.join(missing)} (need {', '.join(FEATURES)})")
+    cols = {k: np.atleast_1d(np.asarray(features[k], dtype=np.float64)) for k in FEATURES}
+    if len({c.shape for c in cols.values()}) != 1 or cols["C"].ndim != 1:
+        raise ValueError("unit features C, S, Nd must be 1-D arrays of one common length")
+    return cols

@@ -1,0 +1,429 @@
+"""Rendering one work unit: the job description (`UnitJob`), the render itself, and the persistent child
+process (`RenderWorker`) that runs it so that an LLVM abort or a hang costs one unit, never the job.
+
+How a unit renders: the unit's rectangle grown by its band (clipped to the image) is rendered with the
+job's integrator type, depth, spp and seed. For perspective and thin-lens sensors the window is not a
+Mitsuba crop at the window's offset but a crop at (0, 0) of the window's size with the camera's
+principal point shifted by (x / W, y / H): the rays are the same (tested to float precision) while
+Dr.Jit compiles one kernel per window *size* instead of one per window *position* (a crop offset is
+baked into the kernel and costs ~0.45 s to compile; design.md section 3). Other sensors use a crop.
+
+Non-finite pixels (an emitter with infinite or NaN radiance): every non-finite channel value is set to
+0, and the number of pixels that had any is reported as `meta["nonfinite"]`, so they never propagate.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import traceback
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from core.errors import QuekaroError, RenderError, SceneError
+from core.geometry import Rect
+from core.scene import SceneSpec
+from core.tiles import Tile
+
+STARTUP_TIMEOUT_S = 120.0
+_PP_KEYS = ("principal_point_offset_x", "principal_point_offset_y")
+
+
+def unit_seed(job_id: str, unit: int, pass_: int) -> int:
+    """A 32-bit seed distinct for every (job, unit, pass), stable across processes and hosts."""
+    digest = hashlib.blake2b(f"{job_id}\x00{unit}\x00{pass_}".encode(), digest_size=4).digest()
+    return int.from_bytes(digest, "little")
+
+
+@dataclass(frozen=True)
+class UnitJob:
+    """Everything a process needs to render one unit; JSON-serialisable through to_dict/from_dict.
+
+    `integrator=None` keeps the scene's integrator (then `max_depth` must be None too).
+    """
+
+    scene: SceneSpec
+    variant: str
+    integrator: str | None
+    max_depth: int | None
+    spp: int
+    seed: int
+    width: int
+    height: int
+    unit: Rect
+    band: int = 0
+    threads: int | None = None
+    job_id: str = ""
+    unit_index: int = -1
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        _check_job(self)
+
+    @property
+    def window(self) -> Rect:
+        """The rectangle actually rendered: the unit grown by its band, clipped to the image."""
+        return self.unit.grow(self.band, self.width, self.height)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "scene": self.scene.to_dict(), "variant": self.variant, "integrator": self.integrator,
+            "max_depth": self.max_depth, "spp": self.spp, "seed": self.seed, "width": self.width,
+            "height": self.height, "unit": self.unit.as_list(), "band": self.band,
+            "threads": self.threads, "job_id": self.job_id, "unit_index": self.unit_index,
+            "extra": dict(self.extra),
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> UnitJob:
+        try:
+            return cls(
+                scene=SceneSpec.from_dict(data["scene"]), variant=str(data["variant"]),
+                integrator=data.get("integrator"), max_depth=_opt_int(data.get("max_depth")),
+                spp=int(data["spp"]), seed=int(data["seed"]), width=int(data["width"]),
+                height=int(data["height"]), unit=Rect.from_list(data["unit"]),
+                band=int(data.get("band", 0)), threads=_opt_int(data.get("threads")),
+                job_id=str(data.get("job_id", "")), unit_index=int(data.get("unit_index", -1)),
+                extra=dict(data.get("extra") or {}),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise RenderError(f"malformed unit job ({type(exc).__name__}: {exc})") from exc
+
+
+def _opt_int(value: Any) -> int | None:
+    return None if value is None else int(value)
+
+
+def _check_job(job: UnitJob) -> None:
+    problems = []
+    if job.spp < 1:
+        problems.append(f"spp={job.spp} (must be >= 1; Mitsuba reads 0 as 'sampler default')")
+    if job.max_depth is not None and job.max_depth < -1:
+        problems.append(f"max_depth={job.max_depth} (must be >= -1)")
+    if job.integrator is None and job.max_depth is not None:
+        problems.append("max_depth given without an integrator type")
+    if not 0 <= job.seed < 2**32:
+        problems.append(f"seed={job.seed} (must fit 32 bits)")
+    if job.width < 1 or job.height < 1:
+        problems.append(f"image {job.width}x{job.height} (must be at least 1x1)")
+    if job.band < 0:
+        problems.append(f"band={job.band} (must be >= 0)")
+    if job.threads is not None and job.threads < 1:
+        problems.append(f"threads={job.threads} (must be >= 1)")
+    image = Rect(0, 0, job.width, job.height)
+    if job.unit.area == 0 or image.intersect(job.unit) != job.unit:
+        problems.append(f"unit {job.unit.as_list()} is empty or outside the {job.width}x{job.height} image")
+    if problems:
+        raise RenderError("bad unit job: " + "; ".join(problems))
+
+
+# ---- rendering, in whichever process calls it ------------------------------------------------------
+
+
+class _SceneCache:
+    """The last loaded scene and the integrators built for it, so consecutive units reuse them."""
+
+    def __init__(self) -> None:
+        self.key: tuple[Any, ...] | None = None
+        self.scene: Any = None
+        self.base_pp: tuple[float, float] | None = None
+        self.integrators: dict[tuple[str, int | None], Any] = {}
+
+    def scene_for(self, spec: SceneSpec, variant: str, threads: int | None) -> tuple[Any, float]:
+        """(scene, seconds spent loading it now: 0 when cached)."""
+        from core import mitsuba_env, scene
+
+        used = mitsuba_env.init(variant, threads)
+        key = (spec.key(), used)
+        if key == self.key:
+            return self.scene, 0.0
+        start = time.perf_counter()
+        self.scene, self.key = None, None  # free the old scene before loading the next
+        self.scene = scene.load(spec)
+        self.key, self.integrators = key, {}
+        self.base_pp = principal_point(self.scene)
+        return self.scene, time.perf_counter() - start
+
+    def integrator(self, kind: str | None, depth: int | None) -> Any:
+        if kind is None:
+            return None
+        key = (kind, depth)
+        if key not in self.integrators:
+            import mitsuba as mi
+
+            props: dict[str, Any] = {"type": kind}
+            if depth is not None and kind != "direct":  # `direct` has no depth: it is depth 2 by nature
+                props["max_depth"] = depth
+            try:
+                self.integrators[key] = mi.load_dict(props)
+            except RuntimeError as exc:
+                raise RenderError(f"cannot build integrator {props}: {exc}") from exc
+        return self.integrators[key]
+
+
+_local_cache = _SceneCache()
+
+
+def principal_point(scene: Any) -> tuple[float, float] | None:
+    """The first sensor's own principal-point offset, or None when it has none (not perspective)."""
+    import mitsuba as mi
+
+    params = mi.traverse(scene.sensors()[0])
+    if not all(k in params for k in _PP_KEYS):
+        return None
+    return float(params[_PP_KEYS[0]][0]), float(params[_PP_KEYS[1]][0])
+
+
+def set_window(scene: Any, window: Rect, base: tuple[float, float] | None) -> str:
+    """Make the scene's first sensor render `window` of its film; return the method ("shift" or "crop").
+
+    `base` is the sensor's principal point as loaded (from `principal_point`), None for a crop.
+    """
+    import mitsuba as mi
+
+    params = mi.traverse(scene.sensors()[0])
+    width, height = (int(v) for v in params["film.size"])
+    if base is not None:
+        params[_PP_KEYS[0]] = base[0] + window.x / width
+        params[_PP_KEYS[1]] = base[1] + window.y / height
+        params["film.crop_offset"] = [0, 0]
+        method = "shift"
+    else:
+        params["film.crop_offset"] = [window.x, window.y]
+        method = "crop"
+    params["film.crop_size"] = [window.w, window.h]
+    params.update()
+    return method
+
+
+def sanitize(pixels: np.ndarray) -> tuple[np.ndarray, int]:
+    """(pixels with every non-finite value set to 0, number of pixels that had one)."""
+    bad = ~np.isfinite(pixels)
+    count = int(bad.any(axis=-1).sum())
+    if count:
+        pixels = np.where(bad, np.float32(0.0), pixels).astype(np.float32)
+    return pixels, count
+
+
+def _to_rgb(image: Any) -> np.ndarray:
+    array = np.array(image, dtype=np.float32)
+    if array.ndim == 2:
+        array = array[..., None]
+    if array.shape[-1] == 1:
+        return np.repeat(array, 3, axis=-1)
+    return np.ascontiguousarray(array[..., :3])
+
+
+def render_job_here(job: UnitJob, cache: _SceneCache | None = None) -> Tile:
+    """Render the unit in this process (the child calls this; so can a test or a benchmark)."""
+    import mitsuba as mi
+
+    cache = cache or _local_cache
+    scene, load_s = cache.scene_for(job.scene, job.variant, job.threads)
+    film = scene.sensors()[0].film()
+    if tuple(int(v) for v in film.size()) != (job.width, job.height):
+        size = tuple(int(v) for v in film.size())
+        raise RenderError(f"{job.scene.path}: film is {size[0]}x{size[1]}, job says {job.width}x{job.height}")
+    window = job.window
+    method = set_window(scene, window, cache.base_pp)
+    integrator = cache.integrator(job.integrator, job.max_depth)
+    start = time.perf_counter()
+    image = mi.render(scene, integrator=integrator, spp=job.spp, seed=job.seed)
+    pixels, nonfinite = sanitize(_to_rgb(image))
+    seconds = time.perf_counter() - start
+    meta = {
+        "job_id": job.job_id, "unit_index": job.unit_index, "seconds": seconds, "load_seconds": load_s,
+        "nonfinite": nonfinite, "spp": job.spp, "depth": job.max_depth, "integrator": job.integrator,
+        "variant": mi.variant(), "seed": job.seed, "band": job.band, "window_method": method,
+        "pid": os.getpid(),
+    }
+    return Tile(pixels, window, job.unit, meta)
+
+
+def render_full(spec: SceneSpec, variant: str, integrator: str | None, depth: int | None, spp: int,
+                seed: int = 0, threads: int | None = None) -> np.ndarray:
+    """A plain render of the whole image in this process (the reference benchmarks compare against)."""
+    from core import scene as scene_mod
+
+    width, height = scene_mod.image_size(spec)
+    job = UnitJob(spec, variant, integrator, depth, spp, seed, width, height, Rect(0, 0, width, height),
+                  threads=threads)
+    return render_job_here(job).pixels
+
+
+# ---- the child process ------------------------------------------------------------------------------
+
+
+def _child_entry(fd: int) -> None:
+    """Entry point of the render process: fd is its end of the socket pair to the parent."""
+    _child_main(Connection(fd))
+
+
+def _child_main(conn: Any) -> None:
+    """Loop of the render process: receive a job dict, answer ("ok", pixels, rect, meta) or ("error", ...)."""
+    start = time.perf_counter()
+    import mitsuba  # noqa: F401  (imported once here, so each unit pays nothing for it)
+
+    conn.send(("ready", {"import_seconds": time.perf_counter() - start, "pid": os.getpid()}))
+    cache = _SceneCache()
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):
+            return  # the parent went away
+        if message is None:
+            return
+        try:
+            tile = render_job_here(UnitJob.from_dict(message), cache)
+            conn.send(("ok", tile.pixels, tile.rect.as_list(), tile.meta))
+        except Exception as exc:
+            kind = type(exc).__name__ if isinstance(exc, QuekaroError) else "RenderError"
+            conn.send(("error", kind, f"{type(exc).__name__}: {exc}", traceback.format_exc(limit=3)))
+
+
+def _death_reason(exitcode: int | None) -> str:
+    if exitcode is None:
+        return "render process stopped answering"
+    if exitcode < 0:
+        try:
+            return f"render process killed by {signal.Signals(-exitcode).name}"
+        except ValueError:
+            return f"render process killed by signal {-exitcode}"
+    return f"render process exited with status {exitcode}"
+
+
+class RenderWorker:
+    """A persistent child process rendering units one at a time, restarted after a crash or timeout.
+
+    It keeps Mitsuba imported and the last scene loaded, so a unit costs little more than its render.
+    """
+
+    def __init__(self, startup_timeout: float = STARTUP_TIMEOUT_S) -> None:
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._conn: Connection | None = None
+        self.startup_timeout = startup_timeout
+        self.starts = 0
+        self.import_seconds: float | None = None
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid if self._proc is not None else None
+
+    def alive(self) -> bool:
+        return self._proc is not None and self._proc.poll() is None
+
+    def start(self) -> None:
+        """Start the child (if not running) and wait until Mitsuba is imported in it."""
+        if self.alive():
+            return
+        self._discard()
+        # A plain subprocess, not multiprocessing: spawn would re-import the caller's __main__, and
+        # fork would copy a process that may hold Dr.Jit threads.
+        ours, theirs = socket.socketpair()
+        root = str(Path(__file__).resolve().parent.parent)
+        path = os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))
+        env = {**os.environ, "PYTHONPATH": path}
+        code = f"import core.render_unit as r; r._child_entry({theirs.fileno()})"
+        self._proc = subprocess.Popen([sys.executable, "-c", code], pass_fds=(theirs.fileno(),), env=env,
+                                      stdin=subprocess.DEVNULL)
+        theirs.close()
+        self._conn = Connection(ours.detach())
+        self.starts += 1
+        if not self._conn.poll(self.startup_timeout):
+            self._kill()
+            raise RenderError(f"render process did not start within {self.startup_timeout:.0f} s")
+        try:
+            _, info = self._conn.recv()
+        except (EOFError, OSError):
+            reason = _death_reason(self._reap())
+            raise RenderError(f"render process failed to start ({reason})") from None
+        self.import_seconds = float(info["import_seconds"])
+
+    def stop(self) -> None:
+        """Ask the child to exit; kill it if it does not within a few seconds."""
+        if self._proc is None:
+            return
+        with contextlib.suppress(OSError):
+            self._conn.send(None)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self._proc.wait(5)
+        self._kill()
+
+    def __enter__(self) -> RenderWorker:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def render(self, job: UnitJob, timeout: float | None = None) -> Tile:
+        """Render one unit in the child; a crash or timeout is a RenderError, and the next call restarts."""
+        self.start()
+        where = f"unit {job.unit_index} {job.unit.as_list()}"
+        try:
+            self._conn.send(job.to_dict())
+        except (OSError, BrokenPipeError):
+            reason = _death_reason(self._reap())
+            raise RenderError(f"{where}: {reason}") from None
+        if not self._conn.poll(timeout):
+            self._kill()
+            raise RenderError(f"{where}: timed out after {timeout:.1f} s (render process killed)")
+        try:
+            answer = self._conn.recv()
+        except (EOFError, OSError):
+            reason = _death_reason(self._reap())
+            raise RenderError(f"{where}: {reason}") from None
+        return self._tile_from_answer(answer, job, where)
+
+    @staticmethod
+    def _tile_from_answer(answer: tuple[Any, ...], job: UnitJob, where: str) -> Tile:
+        if answer[0] == "ok":
+            _, pixels, rect, meta = answer
+            return Tile(pixels, Rect.from_list(rect), job.unit, meta)
+        _, kind, message, _trace = answer
+        if kind == "SceneError":
+            raise SceneError(message)
+        raise RenderError(f"{where}: {message}")
+
+    def _reap(self) -> int | None:
+        """Wait for a dead child and forget it; its exit code."""
+        proc = self._proc
+        if proc is None:
+            return None
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(5)
+        code = proc.poll()
+        self._kill()
+        return code
+
+    def _kill(self) -> None:
+        if self._proc is not None and self._proc.poll() is None:
+            self._proc.kill()
+            self._proc.wait()
+        self._discard()
+
+    def _discard(self) -> None:
+        if self._conn is not None:
+            self._conn.close()
+        self._proc, self._conn = None, None
+
+
+_default_worker: RenderWorker | None = None
+
+
+def render_unit(job: UnitJob, timeout: float | None = None) -> Tile:
+    """Render a unit in this process's shared RenderWorker (started on first use)."""
+    global _default_worker
+    if _default_worker is None:
+        _default_worker = RenderWorker()
+    return _default_worker.render(job, timeout)

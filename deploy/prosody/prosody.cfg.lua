@@ -1,0 +1,70 @@
+-- Prosody 0.12 for a QUEKARO farm spread over several hosts.
+--
+-- One VirtualHost = the JID domain of the master and the render agents. Registration is closed:
+-- accounts are created by deploy/prosody/make-accounts.sh (prosodyctl register). Client connections
+-- must use TLS (STARTTLS) with the certificate named below. No server-to-server links, no HTTP.
+--
+-- Every site-specific value comes from the environment, so the same file serves a Docker service,
+-- a host install and the tests (core.xmpp_server.ProsodyServer runs it on 127.0.0.1):
+--   QUEKARO_XMPP_DOMAIN      JID domain, also the name clients connect to      (default "xmpp")
+--   QUEKARO_XMPP_PORT        client port                                        (default 5222)
+--   QUEKARO_XMPP_INTERFACE   address to listen on                               (default "*")
+--   QUEKARO_XMPP_CERT/KEY    PEM certificate and key for the domain  (default /etc/prosody/certs/<domain>.crt/.key)
+--   QUEKARO_PROSODY_DATA     data directory (accounts)                          (default /var/lib/prosody)
+--   QUEKARO_PROSODY_PIDFILE  pid file                                           (default /run/prosody/prosody.pid)
+--   QUEKARO_PROSODY_LOG      log file, or "console"                             (default "console")
+--   QUEKARO_PROSODY_USER     user to run as when started as root                (default "prosody")
+--   QUEKARO_XMPP_STANZA_LIMIT  largest stanza accepted, bytes                   (default 262144)
+
+local env = os.getenv
+local domain = env("QUEKARO_XMPP_DOMAIN") or "xmpp"
+
+-- Stanza size limit: 256 KiB (Prosody's default, stated here on purpose). A larger stanza makes
+-- Prosody close the sender's stream, and SPADE raises nothing: the farm keeps XMPP bodies under
+-- 64 KiB (core.xmpp.DEFAULT_MAX_BODY) and moves scenes and tiles over HTTP.
+c2s_stanza_size_limit = tonumber(env("QUEKARO_XMPP_STANZA_LIMIT") or "262144")
+
+c2s_ports = { tonumber(env("QUEKARO_XMPP_PORT") or "5222") }
+c2s_interfaces = { env("QUEKARO_XMPP_INTERFACE") or "*" }
+c2s_direct_tls_ports = {}
+s2s_ports = {}
+http_ports = {}
+https_ports = {}
+
+data_path = env("QUEKARO_PROSODY_DATA") or "/var/lib/prosody"
+pidfile = env("QUEKARO_PROSODY_PIDFILE") or "/run/prosody/prosody.pid"
+-- (options set here cannot be read back in this file: keep values needed twice in locals)
+local user = env("QUEKARO_PROSODY_USER") or "prosody"
+prosody_user = user
+prosody_group = user
+run_as_root = (user == "root")
+
+local log_to = env("QUEKARO_PROSODY_LOG") or "console"
+log = { info = log_to }
+
+modules_enabled = {
+	"roster";      -- SPADE asks for its roster at login
+	"saslauth";
+	"tls";
+	"disco";
+	"ping";        -- SPADE's keepalive (XEP-0199)
+	"offline";     -- messages to an agent that is reconnecting wait for it
+	"posix";       -- pid file
+}
+modules_disabled = { "s2s"; "register"; "http"; "admin_shell" }
+
+-- Closed registration: only accounts made with prosodyctl exist.
+allow_registration = false
+
+-- Clients must encrypt; passwords are stored hashed.
+c2s_require_encryption = true
+s2s_require_encryption = true
+authentication = "internal_hashed"
+storage = "internal"
+
+local cert = env("QUEKARO_XMPP_CERT") or ("/etc/prosody/certs/" .. domain .. ".crt")
+local key = env("QUEKARO_XMPP_KEY") or ("/etc/prosody/certs/" .. domain .. ".key")
+certificates = cert:match("^(.*)/[^/]*$") or "certs"
+
+VirtualHost(domain)
+	ssl = { certificate = cert; key = key; }

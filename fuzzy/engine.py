@@ -1,0 +1,155 @@
+"""Vectorised Mamdani inference: many work units evaluated in one call with numpy.
+
+Per unit: each input is clamped to its universe (or to the observed range of a dynamic variable),
+its memberships computed; an antecedent naming several labels takes their max (OR); a rule's strength
+is the min of its antecedents (AND); each output label's activation is the max of the strengths of the
+rules concluding it (aggregation); each label's set is clipped at its activation (implication) and the
+union is defuzzified (`centroid`, exact) or, for compatibility with MASYRO, each clipped set's centroid
+is averaged weighted by its area (`centre-of-sums`).
+
+Where no rule fires for an output, that output takes the default its variable declares: never NaN and
+never a silent 0. NaN inputs are an error (`FuzzyInputError`, naming the variable and row); infinite
+inputs are clamped like any other out-of-range value. Crisp outputs are clamped into their universe.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from fuzzy.defuzzify import centre_of_sums_t, centroid_t, plan_centroid
+from fuzzy.errors import FuzzyInputError
+from fuzzy.rulebase import RuleBase
+from fuzzy.terms import membership_t
+
+Inputs = np.ndarray | Mapping[str, np.ndarray]
+Ranges = Mapping[str, tuple[float, float]] | None
+DEFUZZIFIERS = ("centroid", "centre-of-sums")
+_ALIASES = {"centroid": "centroid", "centre-of-sums": "centre-of-sums", "center-of-sums": "centre-of-sums"}
+
+
+class Engine:
+    """A compiled rule base; `evaluate` runs it on a batch of units."""
+
+    def __init__(self, rulebase: RuleBase, defuzzifier: str = "centroid") -> None:
+        if defuzzifier not in _ALIASES:
+            choices = ", ".join(DEFUZZIFIERS)
+            raise ValueError(f"unknown defuzzifier {defuzzifier!r}; expected one of {choices}")
+        self.rulebase = rulebase
+        self.defuzzifier = _ALIASES[defuzzifier]
+        self.input_names = tuple(v.name for v in rulebase.inputs)
+        self.output_names = tuple(v.name for v in rulebase.outputs)
+        self._compile()
+
+    def _compile(self) -> None:
+        rb = self.rulebase
+        # each distinct (variable, label subset) used by an antecedent becomes one column
+        self._groups: list[tuple[int, np.ndarray]] = []
+        keys: dict[tuple[str, tuple[str, ...]], int] = {}
+        rule_terms: list[list[int]] = []
+        for rule in rb.rules:
+            terms = []
+            for ante in rule.antecedents:
+                key = (ante.variable, tuple(sorted(set(ante.labels))))
+                if key not in keys:
+                    var = rb.input(ante.variable)
+                    keys[key] = len(self._groups)
+                    idx = np.array([var.labels.index(lb) for lb in key[1]], dtype=np.intp)
+                    self._groups.append((self.input_names.index(ante.variable), idx))
+                terms.append(keys[key])
+            rule_terms.append(terms)
+        width = max(len(t) for t in rule_terms)
+        pad = len(self._groups)  # a column of ones: AND with "true"
+        self._rule_terms = np.array([t + [pad] * (width - len(t)) for t in rule_terms], dtype=np.intp)
+        # per output: activation of label l = max over the rules concluding it (padding = a zero column)
+        self._label_rules = []
+        for out in rb.outputs:
+            per_label = [
+                [r for r, rule in enumerate(rb.rules) if any(c.variable == out.name and c.label == lb
+                                                             for c in rule.consequents)]
+                for lb in out.labels
+            ]
+            width = max(1, *(len(p) for p in per_label))
+            self._label_rules.append(
+                np.array([p + [len(rb.rules)] * (width - len(p)) for p in per_label], dtype=np.intp)
+            )
+        self._plans = [plan_centroid(out.params) for out in rb.outputs]
+
+    def activations(self, inputs: Inputs, ranges: Ranges = None) -> dict[str, np.ndarray]:
+        """Activation (n, L) of every output label: the clip level of each set before defuzzifying."""
+        return {name: h.T for name, h in self._activations_t(inputs, ranges).items()}
+
+    def evaluate(self, inputs: Inputs, ranges: Ranges = None) -> dict[str, np.ndarray]:
+        """Crisp value of every output for every unit: name -> (n,) float64 array.
+
+        `inputs` is (n, len(input_names)) in `input_names` order, one row of that length, or a mapping
+        name -> (n,) array. `ranges` gives the observed (lo, hi) of dynamic input variables; one left out
+        is taken from the inputs themselves (their min and max).
+        """
+        result = {}
+        acts = self._activations_t(inputs, ranges)
+        for out, plan in zip(self.rulebase.outputs, self._plans, strict=True):
+            ht = acts[out.name]
+            if self.defuzzifier == "centroid":
+                crisp = centroid_t(plan, ht)
+            else:
+                crisp = centre_of_sums_t(out.params, ht)
+            crisp = np.where(np.isnan(crisp), out.default, crisp)
+            result[out.name] = np.clip(crisp, *out.universe)
+        return result
+
+    def _activations_t(self, inputs: Inputs, ranges: Ranges) -> dict[str, np.ndarray]:
+        # units on the last axis: numpy's inner loops then run over the units, not over a few rules
+        x = self._as_matrix(inputs)
+        n = x.shape[0]
+        degrees = np.empty((len(self._groups) + 1, n))
+        self._group_degrees(x, dict(ranges or {}), degrees)
+        degrees[-1] = 1.0
+        strengths = np.empty((len(self.rulebase.rules) + 1, n))
+        np.min(degrees[self._rule_terms], axis=1, out=strengths[:-1])  # (R, n)
+        strengths[-1] = 0.0
+        return {
+            out.name: strengths[idx].max(axis=1)
+            for out, idx in zip(self.rulebase.outputs, self._label_rules, strict=True)
+        }
+
+    def _group_degrees(self, x: np.ndarray, ranges: dict[str, tuple[float, float]], out: np.ndarray) -> None:
+        mus = []
+        for i, var in enumerate(self.rulebase.inputs):
+            observed = ranges.get(var.name)
+            if var.dynamic and observed is None and x.shape[0]:
+                observed = (float(x[:, i].min()), float(x[:, i].max()))
+            elif var.dynamic and observed is None:
+                observed = (0.0, 0.0)
+            params, (lo, hi) = var.resolve(observed)
+            mus.append(membership_t(np.clip(x[:, i], lo, hi), params))
+        for g, (var_i, idx) in enumerate(self._groups):
+            np.max(mus[var_i][idx], axis=0, out=out[g])
+
+    def _as_matrix(self, inputs: Inputs) -> np.ndarray:
+        if isinstance(inputs, Mapping):
+            unknown = set(inputs) - set(self.input_names)
+            if unknown:
+                raise FuzzyInputError(f"unknown input variable(s): {', '.join(sorted(unknown))}")
+            missing = [n for n in self.input_names if n not in inputs]
+            if missing:
+                raise FuzzyInputError(f"missing input variable(s): {', '.join(missing)}")
+            cols = [np.atleast_1d(np.asarray(inputs[n], dtype=np.float64)) for n in self.input_names]
+            if len({c.shape for c in cols}) != 1 or cols[0].ndim != 1:
+                raise FuzzyInputError("inputs must be 1-D arrays of one common length")
+            x = np.stack(cols, axis=1)
+        else:
+            x = np.asarray(inputs, dtype=np.float64)
+            if x.ndim == 1 and x.shape[0] == len(self.input_names):
+                x = x[None, :]
+            if x.ndim != 2 or x.shape[1] != len(self.input_names):
+                raise FuzzyInputError(
+                    f"inputs must be shaped (n, {len(self.input_names)}) in the order "
+                    f"{', '.join(self.input_names)}; got {x.shape}"
+                )
+        bad = np.isnan(x)
+        if bad.any():
+            row, col = (int(v) for v in np.argwhere(bad)[0])
+            raise FuzzyInputError(f"input {self.input_names[col]!r} is NaN (row {row})")
+        return x

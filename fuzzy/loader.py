@@ -1,0 +1,291 @@
+"""Read a rule base from XML: secure parsing, schema validation, then consistency checks.
+
+Both dialects are read (see rules/quekaro-rules.xsd): the paper's `<fset>`, `<antecedent name label>`
+and the original MASYRO files' `<fuzzyset>`, `<antecedent varname linguisticlabel>`, with `<system>`
+as the root or as a child of any outer element.
+
+Hostile files are refused before parsing: more than `MAX_BYTES`, or any DOCTYPE / ENTITY declaration
+(entity expansion such as "billion laughs", external entities). The parser itself resolves no entities,
+loads no DTD and never touches the network. Every refusal is a `RuleFileError` naming the file, line,
+variable and label at fault.
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import math
+import os
+import re
+from pathlib import Path
+
+from lxml import etree
+
+from fuzzy.errors import RuleFileError
+from fuzzy.rulebase import Antecedent, Consequent, Rule, RuleBase
+from fuzzy.terms import Trapezoid
+from fuzzy.variables import InputVariable, OutputVariable
+
+MAX_BYTES = 1 << 20  # 1 MiB: a rule base of thousands of rules fits; anything larger is refused
+_SET_TAGS = ("fset", "fuzzyset")
+_CONSEQUENT_TAGS = ("consequent", "consequence")
+_FORBIDDEN = re.compile(rb"<!\s*(DOCTYPE|ENTITY)", re.IGNORECASE)
+
+
+def schema_path() -> Path:
+    """rules/quekaro-rules.xsd: from $QUEKARO_RULES_DIR, else beside the source tree."""
+    env = os.environ.get("QUEKARO_RULES_DIR")
+    base = Path(env) if env else Path(__file__).resolve().parent.parent / "rules"
+    return base / "quekaro-rules.xsd"
+
+
+@functools.lru_cache(maxsize=1)
+def _schema() -> etree.XMLSchema:
+    return etree.XMLSchema(etree.parse(str(schema_path()), _secure_parser()))
+
+
+def _secure_parser() -> etree.XMLParser:
+    return etree.XMLParser(
+        resolve_entities=False, no_network=True, load_dtd=False, dtd_validation=False, huge_tree=False
+    )
+
+
+def load_rulebase(path: str | os.PathLike[str]) -> RuleBase:
+    """Read, validate and check one rule file; raises `RuleFileError`."""
+    name = str(path)
+    data = _read_limited(name)
+    return parse_rulebase(data, name)
+
+
+def parse_rulebase(data: bytes, file: str = "<rules>") -> RuleBase:
+    """Same as `load_rulebase` for bytes already in memory; `file` names them in errors."""
+    if len(data) > MAX_BYTES:
+        raise RuleFileError(f"file is larger than {MAX_BYTES} bytes", file=file)
+    forbidden = _FORBIDDEN.search(data)
+    if forbidden:
+        line = data.count(b"\n", 0, forbidden.start()) + 1
+        raise RuleFileError(
+            "DOCTYPE and ENTITY declarations are not allowed in rule files", file=file, line=line
+        )
+    try:
+        root = etree.fromstring(data, _secure_parser())
+    except etree.XMLSyntaxError as exc:
+        raise RuleFileError(f"not well-formed XML: {exc.msg}", file=file, line=exc.lineno) from None
+    system = _find_system(root, file)
+    _validate(system, file)
+    return _build(system, file)
+
+
+def _read_limited(file: str) -> bytes:
+    try:
+        with open(file, "rb") as fh:
+            data = fh.read(MAX_BYTES + 1)
+    except OSError as exc:
+        raise RuleFileError(f"cannot read: {exc.strerror or exc}", file=file) from None
+    if len(data) > MAX_BYTES:
+        raise RuleFileError(f"file is larger than {MAX_BYTES} bytes", file=file)
+    return data
+
+
+def _find_system(root: etree._Element, file: str) -> etree._Element:
+    if root.tag == "system":
+        return root
+    found = [el for el in root if el.tag == "system"]
+    if len(found) != 1:
+        what = "no <system> element" if not found else f"{len(found)} <system> elements"
+        raise RuleFileError(
+            f"expected <system> as the root or one child of it, found {what}", file=file, line=root.sourceline
+        )
+    return found[0]
+
+
+def _validate(system: etree._Element, file: str) -> None:
+    schema = _schema()
+    doc = etree.ElementTree(copy.deepcopy(system))  # deepcopy keeps source lines
+    if schema.validate(doc):
+        return
+    err = schema.error_log[0]
+    variable, label = _context_at_line(system, err.line)
+    raise RuleFileError(f"schema: {err.message}", file=file, line=err.line, variable=variable, label=label)
+
+
+def _context_at_line(system: etree._Element, line: int) -> tuple[str | None, str | None]:
+    """The variable and label named by the element at `line`, to enrich a schema error."""
+    for el in system.iter():
+        if not isinstance(el.tag, str) or el.sourceline != line:
+            continue
+        if el.tag in _SET_TAGS:
+            return el.getparent().get("name"), el.get("label")
+        if el.tag == "linguisticvar":
+            return el.get("name"), None
+        if el.tag in ("antecedent", *_CONSEQUENT_TAGS):
+            return el.get("name") or el.get("varname"), el.get("label") or el.get("linguisticlabel")
+    return None, None
+
+
+def _build(system: etree._Element, file: str) -> RuleBase:
+    inputs: list[InputVariable] = []
+    outputs: list[OutputVariable] = []
+    seen: set[str] = set()
+    for el in system.iter("linguisticvar"):
+        var = _build_variable(el, file)
+        if var.name in seen:
+            raise RuleFileError("variable declared twice", file=file, line=el.sourceline, variable=var.name)
+        seen.add(var.name)
+        (inputs if isinstance(var, InputVariable) else outputs).append(var)
+    if not inputs or not outputs:
+        raise RuleFileError("a system needs at least one input and one output variable", file=file)
+    ins = {v.name: v for v in inputs}
+    outs = {v.name: v for v in outputs}
+    rules = tuple(_build_rule(el, i, ins, outs, file) for i, el in enumerate(system.iter("rule"), 1))
+    if not rules:
+        raise RuleFileError("the system has no rules", file=file, line=system.sourceline)
+    return RuleBase(system.get("name") or Path(file).stem, tuple(inputs), tuple(outputs), rules, file)
+
+
+def _build_variable(el: etree._Element, file: str) -> InputVariable | OutputVariable:
+    name = el.get("name")
+    is_input = el.get("type") == "in"
+    dynamic = el.get("dynamic") in ("true", "1")
+    set_els = [s for s in el if s.tag in _SET_TAGS]
+    if not set_els:
+        raise RuleFileError("variable has no fuzzy sets", file=file, line=el.sourceline, variable=name)
+    labels: list[str] = []
+    for s in set_els:
+        if s.get("label") in labels:
+            raise RuleFileError(
+                "duplicate label", file=file, line=s.sourceline, variable=name, label=s.get("label")
+            )
+        labels.append(s.get("label"))
+    if dynamic:
+        if not is_input:
+            raise RuleFileError(
+                "only input variables can be dynamic", file=file, line=el.sourceline, variable=name
+            )
+        for s in set_els:
+            if any(s.get(k) is not None for k in "abcd"):
+                raise RuleFileError(
+                    "sets of a dynamic variable take only a label (they are built at run time)",
+                    file=file, line=s.sourceline, variable=name, label=s.get("label"),
+                )
+        return InputVariable(name, tuple(labels), dynamic=True)
+    sets = tuple(_build_set(s, name, file) for s in set_els)
+    universe = _universe(el, sets, file)
+    if is_input:
+        return InputVariable(name, tuple(labels), dynamic=False, sets=sets, universe=universe)
+    return OutputVariable(name, sets, universe, _default(el, universe, file))
+
+
+def _number(
+    el: etree._Element, attr: str, file: str, variable: str | None, label: str | None
+) -> float | None:
+    raw = el.get(attr)
+    if raw is None:
+        return None
+    try:
+        value = float(raw)
+    except ValueError:
+        value = math.nan
+        msg = f"{attr}={raw!r} is not a number"
+    else:
+        msg = f"{attr}={raw!r} is not a finite number"
+    if not math.isfinite(value):
+        raise RuleFileError(msg, file=file, line=el.sourceline, variable=variable, label=label)
+    return value
+
+
+def _build_set(el: etree._Element, variable: str, file: str) -> Trapezoid:
+    label = el.get("label")
+    values = []
+    for k in "abcd":
+        v = _number(el, k, file, variable, label)
+        if v is None:
+            raise RuleFileError(f"set has no {k!r} vertex", file=file, line=el.sourceline,
+                                variable=variable, label=label)
+        values.append(v)
+    for i in range(3):
+        (k1, v1), (k2, v2) = ("abcd"[i], values[i]), ("abcd"[i + 1], values[i + 1])
+        if v1 > v2:
+            raise RuleFileError(
+                f"trapezoid vertices out of order: {k1}={v1:g} > {k2}={v2:g} (need a <= b <= c <= d)",
+                file=file, line=el.sourceline, variable=variable, label=label,
+            )
+    return Trapezoid(label, *values)
+
+
+def _universe(el: etree._Element, sets: tuple[Trapezoid, ...], file: str) -> tuple[float, float]:
+    name = el.get("name")
+    lo = _number(el, "min", file, name, None)
+    hi = _number(el, "max", file, name, None)
+    lo = min(s.a for s in sets) if lo is None else lo
+    hi = max(s.d for s in sets) if hi is None else hi
+    if hi < lo:
+        raise RuleFileError(f"universe max {hi:g} < min {lo:g}", file=file, line=el.sourceline, variable=name)
+    return lo, hi
+
+
+def _default(el: etree._Element, universe: tuple[float, float], file: str) -> float:
+    name = el.get("name")
+    value = _number(el, "default", file, name, None)
+    if value is None:
+        raise RuleFileError(
+            'output variable declares no default (the value it takes when no rule fires): add default="..."',
+            file=file, line=el.sourceline, variable=name,
+        )
+    if not universe[0] <= value <= universe[1]:
+        raise RuleFileError(
+            f"default {value:g} is outside the universe [{universe[0]:g}, {universe[1]:g}]",
+            file=file, line=el.sourceline, variable=name,
+        )
+    return value
+
+
+def _clause(el: etree._Element, file: str) -> tuple[str, tuple[str, ...]]:
+    names = [v for v in (el.get("name"), el.get("varname")) if v is not None]
+    raw_labels = [v for v in (el.get("label"), el.get("linguisticlabel")) if v is not None]
+    if len(names) != 1 or len(raw_labels) != 1:
+        raise RuleFileError(
+            f"<{el.tag}> needs exactly one of name/varname and one of label/linguisticlabel",
+            file=file, line=el.sourceline, variable=names[0] if names else None,
+        )
+    labels = tuple(t for t in re.split(r"[\s,]+", raw_labels[0].strip().strip("{}")) if t)
+    if not labels:
+        raise RuleFileError("empty label", file=file, line=el.sourceline, variable=names[0])
+    return names[0], labels
+
+
+def _build_rule(
+    el: etree._Element,
+    index: int,
+    ins: dict[str, InputVariable],
+    outs: dict[str, OutputVariable],
+    file: str,
+) -> Rule:
+    antecedents: list[Antecedent] = []
+    consequents: list[Consequent] = []
+    for clause in el:
+        if not isinstance(clause.tag, str):
+            continue
+        var, labels = _clause(clause, file)
+        is_ante = clause.tag == "antecedent"
+        table = ins if is_ante else outs
+        kind = "input" if is_ante else "output"
+        if var not in table:
+            raise RuleFileError(f"rule names an unknown {kind} variable", file=file,
+                                line=clause.sourceline, variable=var, label=",".join(labels))
+        for label in labels:
+            if label not in table[var].labels:
+                raise RuleFileError(f"rule names an unknown label of {kind} variable {var!r}",
+                                    file=file, line=clause.sourceline, variable=var, label=label)
+        if is_ante:
+            antecedents.append(Antecedent(var, labels))
+        elif len(labels) != 1:
+            raise RuleFileError("a consequent names exactly one label", file=file,
+                                line=clause.sourceline, variable=var, label=",".join(labels))
+        else:
+            consequents.append(Consequent(var, labels[0]))
+    name = el.get("name") or f"R{index}"
+    if not antecedents or not consequents:
+        raise RuleFileError(f"rule {name!r} needs at least one antecedent and one consequent",
+                            file=file, line=el.sourceline)
+    return Rule(name, tuple(antecedents), tuple(consequents), el.sourceline)

@@ -1,0 +1,49 @@
+"""From crisp rule outputs to render parameters, as the paper says: they weight the user's values.
+
+The path-tracing rule base (rules/pathtracing.xml) has three outputs:
+  Rl   a factor of the user's path depth      depth = max(1, round(user_depth * clip(Rl, 0, 1)))
+  Ls   a factor of the user's samples/pixel   spp   = max(1, round(user_spp * clip(Ls, 0, 1)))
+  Ibs  the interpolation band in pixels       band  = max(0, round(Ibs))
+The factors are clipped to [0, 1]: the user's values are the quality ceiling that the rules lower
+(never raise); the outputs' default (no rule fired) is 1.0, i.e. "keep the user's value". Results are
+clamped to depth >= 1 and spp >= 1 so that a unit always renders something. A planner may impose a
+larger minimum band (core.planner does: the reconstruction filter's reach).
+
+The optimisation level is an input: `op_value(level)` gives the crisp Op for a level name, the peak
+of that label in the rule file's Op variable (VS=0, S=1, N=2, B=3, VB=4).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+LEVELS = ("VS", "S", "N", "B", "VB")
+_OP_VALUES = {level: float(i) for i, level in enumerate(LEVELS)}
+
+
+def op_value(level: str) -> float:
+    """Crisp Op for an optimisation level name (VS, S, N, B, VB); `off` means no rules at all."""
+    try:
+        return _OP_VALUES[level]
+    except KeyError:
+        raise ValueError(
+            f"unknown optimisation level {level!r}; expected one of {', '.join(LEVELS)} (or 'off' upstream)"
+        ) from None
+
+
+def to_render_params(
+    outputs: Mapping[str, np.ndarray], user_depth: int, user_spp: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(depth, spp, band) int64 arrays from the crisp outputs Rl, Ls, Ibs (see the module docstring)."""
+    if user_depth < 0 or user_spp < 0:
+        raise ValueError(f"user depth and spp must be >= 0 to be weighted; got {user_depth}, {user_spp}")
+    rl, ls, ibs = (np.asarray(outputs[k], dtype=np.float64) for k in ("Rl", "Ls", "Ibs"))
+    for name, arr in (("Rl", rl), ("Ls", ls), ("Ibs", ibs)):
+        if not np.isfinite(arr).all():
+            raise ValueError(f"output {name} has a non-finite value")
+    depth = np.maximum(1, np.rint(user_depth * np.clip(rl, 0.0, 1.0))).astype(np.int64)
+    spp = np.maximum(1, np.rint(user_spp * np.clip(ls, 0.0, 1.0))).astype(np.int64)
+    band = np.maximum(0, np.rint(ibs)).astype(np.int64)
+    return depth, spp, band

@@ -1,0 +1,97 @@
+"""Input and output linguistic variables, including inputs whose sets are built at run time.
+
+A *static* variable has its trapezoids written in the rule file and a universe (the interval its
+crisp values live in). A *dynamic* input variable (the paper's C, S and Nd) only names its labels in
+the file; its sets are spread linearly over the range observed in the current scene:
+
+- with n labels over [lo, hi] the label centres are lo + i (hi - lo) / (n - 1); each label is a
+  triangle from the previous centre to the next, the first and last are shoulders. The sets form a
+  partition of unity, so every input in range has memberships summing to 1 and fires some label.
+- a degenerate range (hi == lo, every unit alike) is widened symmetrically around lo, so that the
+  common value sits in the middle label ("normal" relative to the scene) with membership 1 for an odd
+  number of labels, and 0.5 for each of the two middle labels for an even number.
+
+Inputs outside a variable's universe (or outside the observed range of a dynamic variable) are clamped
+to it: a unit just outside the observed range is treated like one at its edge rather than firing nothing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fuzzy.errors import FuzzyInputError
+from fuzzy.terms import Trapezoid
+
+# Relative width under which an observed range counts as degenerate (min == max up to rounding).
+_DEGENERATE_REL = 1e-12
+
+
+def spread_sets(n_labels: int, lo: float, hi: float) -> np.ndarray:
+    """Vertices (n_labels, 4) of labels spread linearly over [lo, hi] (see the module docstring)."""
+    if n_labels == 1:
+        return np.array([[lo, lo, hi, hi]], dtype=np.float64)
+    centres = np.linspace(lo, hi, n_labels)
+    left = np.concatenate(([lo], centres[:-1]))
+    right = np.concatenate((centres[1:], [hi]))
+    params = np.stack([left, centres, centres, right], axis=1)
+    params[0, 0] = params[0, 1] = lo  # left shoulder
+    params[-1, 2] = params[-1, 3] = hi  # right shoulder
+    return params
+
+
+def widen_degenerate(lo: float, hi: float) -> tuple[float, float]:
+    """The range actually used for spreading: [lo, hi], or a symmetric widening when hi == lo."""
+    scale = max(1.0, abs(lo), abs(hi))
+    if hi - lo > _DEGENERATE_REL * scale:
+        return lo, hi
+    half = 0.5 * max(1.0, abs(lo))
+    return lo - half, lo + half
+
+
+@dataclass(frozen=True)
+class InputVariable:
+    """An input: static (sets and universe from the file) or dynamic (labels only)."""
+
+    name: str
+    labels: tuple[str, ...]
+    dynamic: bool
+    sets: tuple[Trapezoid, ...] = ()
+    universe: tuple[float, float] | None = None
+
+    def resolve(self, observed: tuple[float, float] | None) -> tuple[np.ndarray, tuple[float, float]]:
+        """The (L, 4) vertices and the clamping interval to use for one evaluation.
+
+        `observed` is the scene's (lo, hi) for a dynamic variable and is ignored for a static one.
+        """
+        if not self.dynamic:
+            params = np.array([s.vertices for s in self.sets], dtype=np.float64)
+            return params, self.universe  # type: ignore[return-value]
+        if observed is None:
+            raise FuzzyInputError(f"input variable {self.name!r} is dynamic and needs an observed range")
+        lo, hi = (float(v) for v in observed)
+        if not (np.isfinite(lo) and np.isfinite(hi)):
+            raise FuzzyInputError(f"observed range of {self.name!r} is not finite: ({lo}, {hi})")
+        if hi < lo:
+            raise FuzzyInputError(f"observed range of {self.name!r} has max {hi} < min {lo}")
+        wlo, whi = widen_degenerate(lo, hi)
+        return spread_sets(len(self.labels), wlo, whi), (wlo, whi)
+
+
+@dataclass(frozen=True)
+class OutputVariable:
+    """An output: its sets, its universe and the value it takes when no rule fires."""
+
+    name: str
+    sets: tuple[Trapezoid, ...]
+    universe: tuple[float, float]
+    default: float
+
+    @property
+    def labels(self) -> tuple[str, ...]:
+        return tuple(s.label for s in self.sets)
+
+    @property
+    def params(self) -> np.ndarray:
+        return np.array([s.vertices for s in self.sets], dtype=np.float64)

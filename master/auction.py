@@ -1,0 +1,753 @@
+"""The contract net and the life-cycle of work units, as a pure state machine (no I/O, no clock).
+
+Units go PENDING -> ANNOUNCED -> AWARDED -> DONE, or back to PENDING when an auction leaves them
+unsold, an agent fails them, misses their render deadline or is lost; a job whose remaining units no
+live agent may take any more is FAILED with the reason. Every call takes `now` (seconds, any epoch) and
+returns plain commands, `Send(to, message)` for the transport to deliver and `Event(...)` for the job
+store and the logs, so the SPADE layer only delivers messages and the same code runs under the
+simulated clock of `simulate` (the scaling benchmark).
+
+The award rule is MAgArRO's (design.md section 2): every free agent bids on the most costly free units;
+a contested unit goes to the agent with the best record, credits plus recent successes, and an agent
+that finishes within 10 % of its estimate gains a credit, else loses one. Failure handling follows
+Flamenco (design.md section 5): a failed unit is retried on another agent, an agent failing three
+units of a job is blocklisted for that job, and a lost agent's units return to the auction.
+"""
+
+from __future__ import annotations
+
+import heapq
+import hmac
+import math
+import random
+from collections import Counter, deque
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Any
+
+from core import messages as m
+from core.geometry import Rect
+
+
+class UnitStatus(StrEnum):
+    PENDING = "pending"
+    ANNOUNCED = "announced"
+    AWARDED = "awarded"
+    DONE = "done"
+    FAILED = "failed"
+
+
+class JobStatus(StrEnum):
+    RUNNING = "running"
+    DONE = "done"
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+
+
+@dataclass(frozen=True)
+class Config:
+    """Timeouts and rules of the auction. Times in seconds."""
+
+    cfp_timeout_s: float = 2.0  # agents that have not answered a CFP by then are left out of that round
+    heartbeat_timeout_s: float = 15.0  # Flamenco uses 60 s; agents here beat every few seconds
+    award_grace_s: float = 10.0  # an award not listed in the agent's heartbeats by then was lost in transit
+    render_factor: float = 3.0  # render deadline = estimate x factor + slack
+    render_slack_s: float = 30.0
+    blocklist_after: int = 3  # failures of one job's units on one agent
+    max_unit_failures: int = 5  # a unit failing this often fails its job, however many agents remain
+    credit_tolerance: float = 0.10  # finishing within 10 % of the estimate earns a credit
+    recent_window: int = 10  # successes counted in an agent's record
+    # A contested unit is not given to a bidder this many times slower than the fastest bidder: it would
+    # become the job's tail while a faster agent idles.
+    estimate_ratio_cap: float = 2.0
+    max_cfp_units: int = m.MAX_CFP_UNITS
+    upload_url: str = "http://127.0.0.1:8765/jobs/{job}/units/{index}/tile"
+
+
+@dataclass(frozen=True)
+class Send:
+    """Deliver `message` to agent `to` (a JID)."""
+
+    to: str
+    message: m.Message
+
+
+@dataclass(frozen=True)
+class Event:
+    """Something the store or the log should know: kind, where, and details (plain JSON-able data)."""
+
+    kind: str
+    job_id: str | None = None
+    index: int | None = None
+    agent: str | None = None
+    reason: str = ""
+    detail: dict[str, Any] = field(default_factory=dict)
+
+
+Command = Send | Event
+
+
+@dataclass
+class Unit:
+    spec: m.UnitSpec
+    status: UnitStatus = UnitStatus.PENDING
+    attempts: int = 0
+    failures: int = 0
+    failed_on: set[str] = field(default_factory=set)
+    last_reason: str = ""
+    agent: str | None = None
+    token: str | None = None
+    conversation: str | None = None
+    awarded_at: float = 0.0
+    estimate: float = 0.0
+    deadline: float = math.inf
+
+
+@dataclass
+class Agent:
+    name: str
+    last_seen: float
+    credits: int = 0
+    recent: deque[bool] = field(default_factory=lambda: deque(maxlen=10))
+    holding: set[tuple[str, int]] = field(default_factory=set)
+    invited: str | None = None  # conversation id of the open auction round it was called to
+    lost: bool = False
+    speed: float = 1.0
+
+    @property
+    def score(self) -> int:
+        return self.credits + sum(self.recent)
+
+
+@dataclass
+class Job:
+    info: m.JobInfo
+    units: dict[int, Unit]
+    order: int
+    status: JobStatus = JobStatus.RUNNING
+    error: str = ""
+    failures_by_agent: Counter[str] = field(default_factory=Counter)
+    blocklist: set[str] = field(default_factory=set)
+
+
+@dataclass
+class Round:
+    conversation: str
+    job_id: str
+    offered: dict[str, tuple[int, ...]]  # agent -> unit indices it was called to bid on
+    units: frozenset[int]  # every unit this round holds as ANNOUNCED, even if its bidders are lost
+    deadline: float
+    bids: dict[str, dict[int, float]] = field(default_factory=dict)
+    answered: set[str] = field(default_factory=set)
+
+
+class Auction:
+    """The master's state: jobs, units, agents, open auction rounds. See the module docstring."""
+
+    def __init__(
+        self,
+        config: Config | None = None,
+        rng: random.Random | None = None,
+        credits: dict[str, int] | None = None,
+    ) -> None:
+        self.config = config or Config()
+        # Records of agents seen before (from the store): applied when each registers again.
+        self.known_credits = dict(credits or {})
+        # Tokens are secrets: the system source unless a test injects a seeded one.
+        self.rng = rng or random.SystemRandom()
+        self.jobs: dict[str, Job] = {}
+        self.agents: dict[str, Agent] = {}
+        self.rounds: dict[str, Round] = {}
+
+    # --- set-up --------------------------------------------------------------------------------------
+
+    def add_job(
+        self,
+        info: m.JobInfo,
+        units: Sequence[m.UnitSpec],
+        done: Iterable[int] = (),
+        failures: Iterable[tuple[int, str, str]] = (),
+    ) -> list[Command]:
+        """Start auctioning a job's units. A resumed job passes the units already `done` and its past
+        `failures` as (unit index, agent, reason), so retries and blocklists survive a master restart."""
+        if info.job_id in self.jobs:
+            raise ValueError(f"job {info.job_id!r} already known")
+        if len({u.index for u in units}) != len(units) or not units:
+            raise ValueError(f"job {info.job_id!r}: unit indices must be unique and non-empty")
+        job = Job(info, {u.index: Unit(u) for u in units}, order=len(self.jobs))
+        for index in done:
+            job.units[index].status = UnitStatus.DONE
+        for index, agent, reason in failures:
+            unit = job.units[index]
+            unit.failures += 1
+            unit.failed_on.add(agent)
+            unit.last_reason = reason
+            job.failures_by_agent[agent] += 1
+        job.blocklist = {a for a, n in job.failures_by_agent.items() if n >= self.config.blocklist_after}
+        self.jobs[info.job_id] = job
+        return self._finish_if_done(job) + self._fail_if_stuck(job)
+
+    def register(self, agent: str, now: float, speed: float = 1.0, credits: int = 0) -> list[Command]:
+        """An agent announces itself (or comes back); its record (credits) may come from the store."""
+        known = self.agents.get(agent)
+        if known is None:
+            credits = self.known_credits.get(agent, credits)
+            known = self.agents[agent] = Agent(agent, now, credits=credits, speed=speed)
+            known.recent = deque(maxlen=self.config.recent_window)
+            return [Event("agent-registered", agent=agent, detail={"speed": speed})]
+        known.speed = speed
+        return self._seen(known, now)
+
+    # --- messages in ---------------------------------------------------------------------------------
+
+    def on_message(self, sender: str, msg: m.Message, now: float) -> list[Command]:
+        """Dispatch a parsed message from `sender` (a JID the transport has already authenticated)."""
+        match msg:
+            case m.Register():
+                return self.register(sender, now, speed=msg.speed)
+            case m.Heartbeat():
+                return self.on_heartbeat(sender, msg, now)
+            case m.Propose():
+                return self.on_propose(sender, msg, now)
+            case m.Refuse():
+                return self.on_refuse(sender, msg, now)
+            case m.Inform():
+                return self.on_inform(sender, msg, now)
+            case m.Failure():
+                return self.on_failure(sender, msg, now)
+        return [_ignored(sender, f"{msg.performative} is not a message the master accepts")]
+
+    def on_heartbeat(self, agent: str, msg: m.Heartbeat, now: float) -> list[Command]:
+        """Agent alive; units it holds are reconciled with the awards (lost awards, stale work)."""
+        out = self.register(agent, now) if agent not in self.agents else self._seen(self.agents[agent], now)
+        state = self.agents[agent]
+        busy = {(b.job_id, b.index) for b in msg.busy}
+        for key in sorted(state.holding - busy):
+            unit = self.jobs[key[0]].units[key[1]]
+            if now - unit.awarded_at > self.config.award_grace_s:
+                out += self._requeue(key, "award not acknowledged by the agent")
+        for job_id, index in sorted(busy - state.holding):
+            # Work the master did not award to it (revoked, or before a master restart): stop it.
+            cancel = m.Cancel(
+                conversation=self._new_id(), job_id=job_id, index=index, reason="not awarded to you"
+            )
+            out.append(Send(agent, cancel))
+        return out
+
+    def on_propose(self, agent: str, msg: m.Propose, now: float) -> list[Command]:
+        round_, why = self._round_for(agent, msg.conversation, msg.job_id)
+        if round_ is None:
+            return [_ignored(agent, why, msg.job_id)]
+        offered = set(round_.offered[agent])
+        bids = {e.index: e.seconds for e in msg.estimates if e.index in offered}
+        round_.bids[agent] = bids
+        round_.answered.add(agent)
+        return (
+            []
+            if len(bids) == len(msg.estimates)
+            else [_ignored(agent, "bid on units not offered", msg.job_id)]
+        )
+
+    def on_refuse(self, agent: str, msg: m.Refuse, now: float) -> list[Command]:
+        round_, why = self._round_for(agent, msg.conversation, msg.job_id)
+        if round_ is None:
+            return [_ignored(agent, why, msg.job_id)]
+        round_.answered.add(agent)
+        return [Event("refused", msg.job_id, agent=agent, reason=msg.reason)]
+
+    def on_inform(self, agent: str, msg: m.Inform, now: float) -> list[Command]:
+        """A unit finished. Only the current award's holder, token and conversation count."""
+        unit, why = self._award_for(agent, msg.job_id, msg.index, msg.token, msg.conversation)
+        if unit is None:
+            return [_ignored(agent, why, msg.job_id, msg.index)]
+        state = self.agents[agent]
+        state.holding.discard((msg.job_id, msg.index))
+        on_time = msg.seconds <= unit.estimate * (1 + self.config.credit_tolerance)
+        state.credits += 1 if on_time else -1
+        state.recent.append(True)
+        params = {"depth": msg.depth, "spp": msg.spp, "band": msg.band, "nonfinite": msg.nonfinite}
+        detail = {
+            "token": unit.token,
+            "seconds": msg.seconds,
+            "estimate": unit.estimate,
+            "tile_hash": msg.tile_hash,
+            "params": params,
+            "credits": state.credits,
+            "on_time": on_time,
+        }
+        self._clear_award(unit, UnitStatus.DONE)
+        job = self.jobs[msg.job_id]
+        return [Event("unit-done", msg.job_id, msg.index, agent, detail=detail), *self._finish_if_done(job)]
+
+    def on_failure(self, agent: str, msg: m.Failure, now: float) -> list[Command]:
+        unit, why = self._award_for(agent, msg.job_id, msg.index, msg.token, msg.conversation)
+        if unit is None:
+            return [_ignored(agent, why, msg.job_id, msg.index)]
+        return self._fail_unit((msg.job_id, msg.index), f"failed on {agent}: {msg.reason}")
+
+    def upload_allowed(self, job_id: str, index: int, token: str) -> bool:
+        """Whether a tile upload with this token is for the unit's current award (the data plane's check)."""
+        job = self.jobs.get(job_id)
+        unit = job.units.get(index) if job else None
+        if unit is None or unit.status != UnitStatus.AWARDED or unit.token is None:
+            return False
+        return hmac.compare_digest(unit.token.encode(), token.encode())
+
+    # --- time passes ---------------------------------------------------------------------------------
+
+    def tick(self, now: float) -> list[Command]:
+        """Everything due at `now`: timeouts, then auctions to resolve, then new calls for proposals."""
+        return self.expire(now) + self.decide(now) + self.announce(now)
+
+    def expire(self, now: float) -> list[Command]:
+        """Lost agents give their units back; units past their render deadline are failed on their agent."""
+        out: list[Command] = []
+        for state in self.agents.values():
+            if not state.lost and now - state.last_seen > self.config.heartbeat_timeout_s:
+                state.lost = True
+                out.append(Event("agent-lost", agent=state.name, reason="no heartbeat"))
+                for key in sorted(state.holding):
+                    out += self._requeue(key, f"agent {state.name} lost")
+                if state.invited in self.rounds:
+                    self.rounds[state.invited].offered.pop(state.name, None)
+                state.invited = None
+        for job in self._running():
+            for unit in job.units.values():
+                if unit.status == UnitStatus.AWARDED and now > unit.deadline:
+                    holder = unit.agent
+                    out.append(
+                        Send(
+                            holder,
+                            m.Cancel(
+                                conversation=unit.conversation,
+                                job_id=job.info.job_id,
+                                index=unit.spec.index,
+                                reason="render deadline passed",
+                            ),
+                        )
+                    )
+                    out += self._fail_unit(
+                        (job.info.job_id, unit.spec.index), f"render deadline passed on {holder}"
+                    )
+        for job in self._running():
+            out += self._fail_if_stuck(job)
+        return out
+
+    def decide(self, now: float) -> list[Command]:
+        """Resolve rounds whose deadline passed or whose invited agents all answered."""
+        out: list[Command] = []
+        for conv, round_ in list(self.rounds.items()):
+            if now >= round_.deadline or set(round_.offered) <= round_.answered:
+                del self.rounds[conv]
+                out += self._resolve(round_, now)
+        return out
+
+    def announce(self, now: float) -> list[Command]:
+        """Calls for proposals: each free agent is offered the most costly pending units it may take."""
+        out: list[Command] = []
+        free = sorted((a for a in self.agents.values() if self._is_free(a)), key=lambda a: (-a.score, a.name))
+        for job in self._running():
+            agents = [a for a in free if a.name not in job.blocklist and a.invited is None]
+            pending = sorted(
+                (u for u in job.units.values() if u.status == UnitStatus.PENDING),
+                key=lambda u: (-u.spec.cost, u.spec.index),
+            )
+            if not agents or not pending:
+                continue
+            limit = min(self.config.max_cfp_units, len(agents))
+            offered = {}
+            for agent in agents:
+                units = tuple(u.spec.index for u in pending if agent.name not in u.failed_on)[:limit]
+                if units:
+                    offered[agent.name] = units
+            if not offered:
+                continue
+            conv = self._new_id()
+            held = frozenset(i for indices in offered.values() for i in indices)
+            self.rounds[conv] = Round(conv, job.info.job_id, offered, held, now + self.config.cfp_timeout_s)
+            for name, indices in offered.items():
+                self.agents[name].invited = conv
+                for index in indices:
+                    job.units[index].status = UnitStatus.ANNOUNCED
+                specs = tuple(job.units[i].spec for i in indices)
+                cfp = m.CallForProposal(
+                    conversation=conv, job=job.info, units=specs, reply_within_s=self.config.cfp_timeout_s
+                )
+                out.append(Send(name, cfp))
+        return out
+
+    def next_deadline(self) -> float | None:
+        """The earliest time at which `tick` has something to do without a new message (for timers)."""
+        times = [r.deadline for r in self.rounds.values()]
+        times += [a.last_seen + self.config.heartbeat_timeout_s for a in self.agents.values() if not a.lost]
+        for job in self._running():
+            times += [u.deadline for u in job.units.values() if u.status == UnitStatus.AWARDED]
+        finite = [t for t in times if math.isfinite(t)]
+        return min(finite) if finite else None
+
+    def cancel_job(self, job_id: str, reason: str = "cancelled by the user") -> list[Command]:
+        job = self.jobs.get(job_id)
+        if job is None or job.status != JobStatus.RUNNING:
+            return [_ignored(None, "no running job of that id", job_id)]
+        out = self._stop_job(job, JobStatus.CANCELLED, reason)
+        return [*out, Event("job-cancelled", job_id, reason=reason)]
+
+    # --- queries -------------------------------------------------------------------------------------
+
+    def counts(self, job_id: str) -> Counter[str]:
+        return Counter(u.status.value for u in self.jobs[job_id].units.values())
+
+    # --- internals -----------------------------------------------------------------------------------
+
+    def _new_id(self) -> str:
+        return f"{self.rng.getrandbits(64):016x}"
+
+    def _running(self) -> list[Job]:
+        return sorted((j for j in self.jobs.values() if j.status == JobStatus.RUNNING), key=lambda j: j.order)
+
+    def _is_free(self, agent: Agent) -> bool:
+        return not agent.lost and not agent.holding and agent.invited is None
+
+    def _seen(self, agent: Agent, now: float) -> list[Command]:
+        agent.last_seen = max(agent.last_seen, now)
+        if agent.lost:
+            agent.lost = False
+            return [Event("agent-back", agent=agent.name)]
+        return []
+
+    def _round_for(self, agent: str, conversation: str, job_id: str) -> tuple[Round | None, str]:
+        round_ = self.rounds.get(conversation)
+        if round_ is None:
+            return None, "no open auction with that conversation id"
+        if agent not in round_.offered:
+            return None, "agent not called to this auction"
+        if job_id != round_.job_id:
+            return None, "job id does not match the auction"
+        if agent in round_.answered:
+            return None, "already answered this auction"
+        return round_, ""
+
+    def _award_for(
+        self, agent: str, job_id: str, index: int, token: str, conv: str
+    ) -> tuple[Unit | None, str]:
+        job = self.jobs.get(job_id)
+        unit = job.units.get(index) if job else None
+        if unit is None:
+            return None, "unknown job or unit"
+        if unit.status == UnitStatus.DONE:
+            return None, "unit already done"
+        if job.status != JobStatus.RUNNING:
+            return None, f"job is {job.status.value}"
+        if unit.status != UnitStatus.AWARDED or unit.agent != agent:
+            return None, "unit not awarded to this agent"
+        if not hmac.compare_digest(unit.token.encode(), token.encode()):
+            return None, "wrong token"
+        if conv != unit.conversation:
+            return None, "wrong conversation id"
+        return unit, ""
+
+    def _resolve(self, round_: Round, now: float) -> list[Command]:
+        job = self.jobs.get(round_.job_id)
+        for name in round_.offered:
+            if name in self.agents and self.agents[name].invited == round_.conversation:
+                self.agents[name].invited = None
+        if job is None or job.status != JobStatus.RUNNING:
+            return []
+        out: list[Command] = []
+        winners: set[str] = set()
+        units = sorted((job.units[i] for i in round_.units), key=lambda u: (-u.spec.cost, u.spec.index))
+        for unit in units:
+            if unit.status != UnitStatus.ANNOUNCED:
+                continue
+            unit.status = UnitStatus.PENDING
+            winner = self._pick(round_, unit, job, winners)
+            if winner is not None:
+                winners.add(winner)
+                out += self._award(job, unit, winner, round_.bids[winner][unit.spec.index], now)
+        for name in sorted(set(round_.bids) - winners):
+            if name in self.agents and round_.bids[name]:
+                reject = m.Reject(
+                    conversation=round_.conversation,
+                    job_id=job.info.job_id,
+                    reason="units awarded to other agents",
+                )
+                out.append(Send(name, reject))
+        return out
+
+    def _pick(self, round_: Round, unit: Unit, job: Job, taken: set[str]) -> str | None:
+        bids = {
+            name: bids[unit.spec.index]
+            for name, bids in round_.bids.items()
+            if unit.spec.index in bids
+            and name not in taken
+            and name in self.agents
+            and not self.agents[name].lost
+            and name not in job.blocklist
+            and name not in unit.failed_on
+        }
+        if not bids:
+            return None
+        fastest = min(bids.values())
+        near = {n: e for n, e in bids.items() if e <= max(fastest * self.config.estimate_ratio_cap, 1e-9)}
+        # Best record first (MAgArRO), then the lower estimate, then the name for determinism.
+        return min(near, key=lambda n: (-self.agents[n].score, near[n], n))
+
+    def _award(self, job: Job, unit: Unit, agent: str, estimate: float, now: float) -> list[Command]:
+        unit.status = UnitStatus.AWARDED
+        unit.agent, unit.token, unit.conversation = agent, f"{self.rng.getrandbits(128):032x}", self._new_id()
+        unit.attempts += 1
+        unit.awarded_at, unit.estimate = now, estimate
+        unit.deadline = now + estimate * self.config.render_factor + self.config.render_slack_s
+        self.agents[agent].holding.add((job.info.job_id, unit.spec.index))
+        url = self.config.upload_url.format(job=job.info.job_id, index=unit.spec.index)
+        # The seed depends on the unit only, so a retried unit renders the same samples as the first try
+        # and as `quekaro render` of the same job.
+        award = m.Award(
+            conversation=unit.conversation,
+            job=job.info,
+            unit=unit.spec,
+            token=unit.token,
+            upload_url=url,
+            seed=unit.spec.index % (2**31 - 1),
+            estimate_s=estimate,
+        )
+        detail = {
+            "token": unit.token,
+            "estimate": estimate,
+            "attempt": unit.attempts,
+            "deadline": unit.deadline,
+        }
+        return [
+            Send(agent, award),
+            Event("unit-awarded", job.info.job_id, unit.spec.index, agent, detail=detail),
+        ]
+
+    def _clear_award(self, unit: Unit, status: UnitStatus) -> None:
+        unit.status = status
+        unit.agent = unit.token = unit.conversation = None
+        unit.deadline = math.inf
+
+    def _requeue(self, key: tuple[str, int], reason: str) -> list[Command]:
+        """Unit back to the auction without blaming its agent (the agent vanished, not the unit)."""
+        unit = self.jobs[key[0]].units[key[1]]
+        if unit.agent in self.agents:
+            self.agents[unit.agent].holding.discard(key)
+        agent, token = unit.agent, unit.token
+        self._clear_award(unit, UnitStatus.PENDING)
+        return [Event("unit-requeued", key[0], key[1], agent, reason=reason, detail={"token": token})]
+
+    def _fail_unit(self, key: tuple[str, int], reason: str) -> list[Command]:
+        """The unit failed on its agent: retry elsewhere; blocklist the agent after repeated failures."""
+        job = self.jobs[key[0]]
+        unit = job.units[key[1]]
+        agent = unit.agent
+        state = self.agents[agent]
+        state.holding.discard(key)
+        state.credits -= 1
+        state.recent.append(False)
+        unit.failures += 1
+        unit.failed_on.add(agent)
+        unit.last_reason = reason
+        detail = {"token": unit.token, "credits": state.credits}
+        self._clear_award(unit, UnitStatus.PENDING)
+        out: list[Command] = [Event("unit-failed", key[0], key[1], agent, reason=reason, detail=detail)]
+        job.failures_by_agent[agent] += 1
+        if job.failures_by_agent[agent] >= self.config.blocklist_after and agent not in job.blocklist:
+            job.blocklist.add(agent)
+            why = f"{job.failures_by_agent[agent]} failed units of this job"
+            out.append(Event("agent-blocklisted", key[0], agent=agent, reason=why))
+        return out + self._fail_if_stuck(job)
+
+    def _fail_if_stuck(self, job: Job) -> list[Command]:
+        """Fail the job when a remaining unit failed too often or no live agent may take it."""
+        live = {a.name for a in self.agents.values() if not a.lost} - job.blocklist
+        for unit in sorted(job.units.values(), key=lambda u: u.spec.index):
+            if unit.status != UnitStatus.PENDING:
+                continue
+            if unit.failures >= self.config.max_unit_failures:
+                why = f"unit {unit.spec.index} failed {unit.failures} times; last: {unit.last_reason}"
+            elif self.agents and unit.failures and not live - unit.failed_on:
+                blocked = ", ".join(sorted(job.blocklist)) or "none"
+                why = (
+                    f"no agent can take unit {unit.spec.index}: it failed on "
+                    f"{', '.join(sorted(unit.failed_on))} (last: {unit.last_reason}); blocklisted: {blocked}"
+                )
+            else:
+                continue
+            return [
+                *self._stop_job(job, JobStatus.FAILED, why),
+                Event("job-failed", job.info.job_id, reason=why),
+            ]
+        return []
+
+    def _stop_job(self, job: Job, status: JobStatus, reason: str) -> list[Command]:
+        out: list[Command] = []
+        job.status, job.error = status, reason
+        for unit in job.units.values():
+            if unit.status == UnitStatus.AWARDED:
+                self.agents[unit.agent].holding.discard((job.info.job_id, unit.spec.index))
+                out.append(
+                    Send(
+                        unit.agent,
+                        m.Cancel(
+                            conversation=unit.conversation,
+                            job_id=job.info.job_id,
+                            index=unit.spec.index,
+                            reason=reason[:1024],
+                        ),
+                    )
+                )
+            if unit.status != UnitStatus.DONE:
+                self._clear_award(unit, UnitStatus.FAILED)
+        return out
+
+    def _finish_if_done(self, job: Job) -> list[Command]:
+        if job.status == JobStatus.RUNNING and all(u.status == UnitStatus.DONE for u in job.units.values()):
+            job.status = JobStatus.DONE
+            return [Event("job-done", job.info.job_id)]
+        return []
+
+
+def _ignored(agent: str | None, reason: str, job_id: str | None = None, index: int | None = None) -> Event:
+    return Event("ignored", job_id, index, agent, reason=reason)
+
+
+# --- simulated clock: the same state machine, driven by discrete events -----------------------------------
+
+
+@dataclass(frozen=True)
+class SimResult:
+    makespan: float
+    units: int
+    agents: int
+    busy_s: dict[str, float]  # seconds each agent spent rendering
+    messages: int
+
+
+def simulate(
+    costs: Sequence[float],
+    speeds: Sequence[float],
+    latency: float = 0.002,
+    config: Config | None = None,
+    seed: int = 0,
+    heartbeat_s: float = 5.0,
+    jitter: float = 0.0,
+) -> SimResult:
+    """Makespan of one job of units with these costs on agents of these speeds, by discrete-event simulation.
+
+    Each message takes `latency` seconds one way; agents estimate cost / speed and render in that time
+    (times a uniform factor in [1 - jitter, 1 + jitter]); they beat every `heartbeat_s`. The master side is
+    the real `Auction`, so the benchmark measures the award logic that the farm runs.
+    """
+    if not costs or not speeds:
+        raise ValueError("simulate needs at least one unit and one agent")
+    rng = random.Random(seed)
+    auction = Auction(config, rng=random.Random(seed + 1))
+    info = m.JobInfo(
+        job_id="sim",
+        scene_url="http://sim/scene",
+        scene_hash="0" * 64,
+        width=1,
+        height=1,
+        spp=1,
+        depth=1,
+        level="off",
+        ranges={},
+    )
+    specs = [
+        m.UnitSpec(index=i, rect=Rect(0, 0, 1, 1), C=0.0, S=1.0, Nd=0.0, cost=float(c))
+        for i, c in enumerate(costs)
+    ]
+    auction.add_job(info, specs)
+    sim = _Sim(auction, latency, rng, jitter, {f"agent{i}": float(s) for i, s in enumerate(speeds)})
+    for name in sim.speeds:
+        sim.push(
+            latency,
+            "master",
+            name,
+            m.Register(conversation="r", speed=sim.speeds[name], threads=1, rules="r"),
+        )
+        sim.push(heartbeat_s, "beat", name, heartbeat_s)
+    makespan = sim.run()
+    return SimResult(makespan, len(costs), len(speeds), sim.busy, sim.messages)
+
+
+class _Sim:
+    """Event queue of the simulation: messages to the master or an agent, agent heartbeats, timers."""
+
+    def __init__(
+        self, auction: Auction, latency: float, rng: random.Random, jitter: float, speeds: dict[str, float]
+    ) -> None:
+        self.auction, self.latency, self.rng, self.jitter, self.speeds = auction, latency, rng, jitter, speeds
+        self.queue: list[tuple[float, int, str, str, Any]] = []
+        self.seq = 0
+        self.busy = dict.fromkeys(speeds, 0.0)
+        self.holding: dict[str, set[tuple[str, int]]] = {name: set() for name in speeds}
+        self.messages = 0
+        self.timer = math.inf
+
+    def push(self, t: float, kind: str, who: str, payload: Any) -> None:
+        self.seq += 1
+        heapq.heappush(self.queue, (t, self.seq, kind, who, payload))
+
+    def run(self) -> float:
+        job = self.auction.jobs["sim"]
+        while self.queue:
+            now, _, kind, who, payload = heapq.heappop(self.queue)
+            if kind == "master":
+                self.messages += 1
+                self.deliver(self.auction.on_message(who, payload, now) + self.auction.tick(now), now)
+            elif kind == "agent":
+                self.messages += 1
+                self.agent_receives(who, payload, now)
+            elif kind == "beat":
+                busy = tuple(m.BusyUnit(job_id=j, index=i) for j, i in sorted(self.holding[who]))
+                self.push(now + self.latency, "master", who, m.Heartbeat(conversation="hb", busy=busy))
+                if job.status == JobStatus.RUNNING:
+                    self.push(now + payload, "beat", who, payload)
+            elif kind == "release":
+                self.holding[who].discard(payload)
+            elif kind == "timer" and now >= self.timer:
+                self.timer = math.inf
+                self.deliver(self.auction.tick(now), now)
+            if job.status != JobStatus.RUNNING:
+                if job.status != JobStatus.DONE:
+                    raise RuntimeError(f"simulated job ended {job.status.value}: {job.error}")
+                return now
+        raise RuntimeError("simulation ran out of events before the job finished")
+
+    def deliver(self, commands: list[Command], now: float) -> None:
+        for cmd in commands:
+            if isinstance(cmd, Send):
+                self.push(now + self.latency, "agent", cmd.to, cmd.message)
+        due = self.auction.next_deadline()
+        if due is not None and due < self.timer:
+            self.timer = max(due, now)
+            self.push(self.timer + 1e-9, "timer", "", None)
+
+    def agent_receives(self, name: str, msg: m.Message, now: float) -> None:
+        speed = self.speeds[name]
+        if isinstance(msg, m.CallForProposal):
+            est = tuple(m.Estimate(index=u.index, seconds=u.cost / speed) for u in msg.units)
+            reply = m.Propose(conversation=msg.conversation, job_id=msg.job.job_id, estimates=est)
+            self.push(now + self.latency, "master", name, reply)
+        elif isinstance(msg, m.Award):
+            seconds = msg.unit.cost / speed * (1 + self.rng.uniform(-self.jitter, self.jitter))
+            self.busy[name] += seconds
+            self.holding[name].add((msg.job.job_id, msg.unit.index))
+            inform = m.Inform(
+                conversation=msg.conversation,
+                job_id=msg.job.job_id,
+                index=msg.unit.index,
+                token=msg.token,
+                tile_hash="0" * 64,
+                depth=1,
+                spp=1,
+                band=0,
+                seconds=seconds,
+                nonfinite=0,
+            )
+            # The upload and the inform leave when rendering ends; both are modelled as one latency.
+            self.push(now + seconds, "release", name, (msg.job.job_id, msg.unit.index))
+            self.push(now + seconds + self.latency, "master", name, inform)

@@ -1,0 +1,152 @@
+"""Planning a job: from a scene and the user's options to the effects to simulate and the work units.
+
+This is the master's half of the pipeline before any unit renders: effect analysis, the complexity
+pre-pass, and the partition into units with their features (C, S, Nd). The in-process pipeline
+(`quekaro render`) and the farm's master both start from a `JobPlan`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from core.effects import Effects, analyse
+from core.errors import QuekaroError
+from core.scene import SceneSpec, expand, film_info
+from core.units import Unit
+from master.partition import equal_tiles
+
+LEVELS = ("off", "VS", "S", "N", "B", "VB")
+DEFAULT_SPP = 64  # when neither the user nor the scene's sampler says
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """What the user asked for: optimisation level, predefined spp/depth, rules and overrides."""
+
+    level: str = "off"
+    spp: int | None = None
+    depth: int | None = None
+    threads: int | None = None
+    rules: Path | None = None
+    defuzzifier: str = "centroid"
+    variant: str | None = None
+    integrator: str | None = None
+    units: int | None = None  # target number of work units; None: chosen from the image size
+
+    def __post_init__(self) -> None:
+        if self.level not in LEVELS:
+            raise QuekaroError(f"--opt {self.level!r}: expected one of {', '.join(LEVELS)}")
+        if self.spp is not None and self.spp < 1:
+            raise QuekaroError(f"--spp {self.spp}: must be at least 1")
+        if self.depth is not None and self.depth < 1 and self.depth != -1:
+            raise QuekaroError(f"--depth {self.depth}: must be at least 1 (or -1 for unbounded)")
+        if self.units is not None and self.units < 1:
+            raise QuekaroError(f"--units {self.units}: must be at least 1")
+
+    def overrides(self) -> dict[str, Any]:
+        """The effect decisions the user forced (they win over the analysis)."""
+        forced = {"variant": self.variant, "integrator": self.integrator, "max_depth": self.depth}
+        return {k: v for k, v in forced.items() if v is not None}
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"level": self.level, "spp": self.spp, "depth": self.depth, "threads": self.threads,
+                "rules": str(self.rules) if self.rules else None, "defuzzifier": self.defuzzifier,
+                "variant": self.variant, "integrator": self.integrator, "units": self.units}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> RenderOptions:
+        rules = data.get("rules")
+        return cls(level=data.get("level", "off"), spp=data.get("spp"), depth=data.get("depth"),
+                   threads=data.get("threads"), rules=Path(rules) if rules else None,
+                   defuzzifier=data.get("defuzzifier", "centroid"), variant=data.get("variant"),
+                   integrator=data.get("integrator"), units=data.get("units"))
+
+
+@dataclass
+class JobPlan:
+    """A planned job: image size, effects, the user's spp/depth, and the units to render."""
+
+    spec: SceneSpec
+    options: RenderOptions
+    width: int
+    height: int
+    effects: Effects
+    spp: int
+    depth: int
+    units: list[Unit]
+    prepass_seconds: float = 0.0
+    prepass_info: dict[str, Any] = field(default_factory=dict)
+
+    def features(self) -> dict[str, list[float]]:
+        """The fuzzy inputs of every unit, in unit order."""
+        return {"C": [u.C for u in self.units], "S": [float(u.S) for u in self.units],
+                "Nd": [u.Nd for u in self.units]}
+
+    def ranges(self) -> dict[str, tuple[float, float]]:
+        """The observed range of each dynamic input over the whole scene (the paper's dynamic sets)."""
+        return {name: (min(values), max(values)) for name, values in self.features().items()}
+
+
+def scene_spp(spec: SceneSpec) -> int | None:
+    """The sample count the scene's own sampler asks for, read from the XML (None if not stated)."""
+    sensor = expand(spec).root.find("sensor")
+    sampler = sensor.find("sampler") if sensor is not None else None
+    if sampler is None:
+        return None
+    for child in sampler:
+        if child.tag == "integer" and child.get("name") == "sample_count":
+            try:
+                return int(child.get("value", ""))
+            except ValueError:
+                return None
+    return None
+
+
+def default_unit_count(width: int, height: int, level: str) -> int:
+    """Enough units to balance a farm, few enough that kernel compilation (~0.1 s each) stays small."""
+    pixels = width * height
+    if level == "off":
+        return max(1, min(16, pixels // (128 * 128)))
+    return max(1, min(64, pixels // (32 * 32)))
+
+
+def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0) -> JobPlan:
+    """Analyse the scene's effects, run the pre-pass (optimised levels only) and partition the image."""
+    effects = analyse(spec, options.overrides())
+    info = film_info(spec)
+    width, height = info.width, info.height
+    spp = options.spp or scene_spp(spec) or DEFAULT_SPP
+    depth = effects.max_depth
+    target = options.units or default_unit_count(width, height, options.level)
+    if options.level == "off":
+        # The rules need no features at level off, so the pre-pass would be pure overhead.
+        units = _plain_units(width, height, target)
+        return JobPlan(spec, options, width, height, effects, spp, depth, units)
+    return _planned_with_prepass(spec, options, effects, width, height, spp, depth, target, seed)
+
+
+def _planned_with_prepass(spec: SceneSpec, options: RenderOptions, effects: Effects, width: int,
+                          height: int, spp: int, depth: int, target: int, seed: int) -> JobPlan:
+    from core import scene as scene_mod
+    from master.complexity import prepass
+    from master.partition import partition
+
+    start = time.perf_counter()
+    scene = scene_mod.load(spec, effects.variant, options.threads)
+    cmap = prepass(scene, width, height, integrator=effects.integrator, max_depth=depth,
+                   threads=options.threads, full_spp=spp, seed=seed)
+    units = partition(cmap, target_units=target)
+    seconds = time.perf_counter() - start
+    return JobPlan(spec, options, width, height, effects, spp, depth, units, seconds, dict(cmap.info))
+
+
+def _plain_units(width: int, height: int, target: int) -> list[Unit]:
+    rects = equal_tiles(width, height, target)
+    units = []
+    for i, rect in enumerate(rects):
+        units.append(Unit(index=i, rect=rect, C=0.0, S=rect.area, Nd=0.0, cost=float(rect.area),
+                          neighbours=()))
+    return units

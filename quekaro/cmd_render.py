@@ -1,0 +1,58 @@
+"""`quekaro render`: the whole job in one process, exactly as the farm does it unit by unit."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from master.jobplan import LEVELS
+
+
+def add_job_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options a job takes, shared by `render` and `submit`."""
+    parser.add_argument("scene", type=Path, help="Mitsuba 3 scene file (XML)")
+    parser.add_argument("-D", dest="defines", action="append", default=[], metavar="NAME=VALUE",
+                        help="set a scene <default> parameter, as Mitsuba's -D (repeatable)")
+    parser.add_argument("--opt", dest="level", choices=LEVELS, default="off",
+                        help="optimisation level of the fuzzy rules (off: the user's spp/depth everywhere)")
+    parser.add_argument("--spp", type=int, help="predefined samples per pixel (default: the scene's)")
+    parser.add_argument("--depth", type=int, help="predefined path depth (default: from the effect analysis)")
+    parser.add_argument("--rules", type=Path, help="rule file (default: rules/pathtracing.xml)")
+    parser.add_argument("--defuzzifier", choices=("centroid", "centre-of-sums"), default="centroid")
+    parser.add_argument("--variant", help="force the Mitsuba variant (e.g. llvm_ad_spectral)")
+    parser.add_argument("--integrator", choices=("direct", "path", "volpath"), help="force the integrator")
+    parser.add_argument("--units", type=int, help="target number of work units")
+
+
+def options_from_args(args: argparse.Namespace):
+    from master.jobplan import RenderOptions
+
+    return RenderOptions(level=args.level, spp=args.spp, depth=args.depth,
+                         threads=getattr(args, "threads", None), rules=args.rules,
+                         defuzzifier=args.defuzzifier, variant=args.variant,
+                         integrator=args.integrator, units=args.units)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    parser = sub.add_parser("render", help="render a scene in one process (no agents)")
+    add_job_arguments(parser)
+    parser.add_argument("-o", "--out", type=Path, default=Path("out/render.exr"),
+                        help="output EXR; the PNG and the JSON report go beside it")
+    parser.add_argument("--threads", type=int, help="Dr.Jit threads (default: QUEKARO_THREADS or all cores)")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from core.scene import SceneSpec, parse_defines
+    from master.pipeline import render_job
+
+    spec = SceneSpec(args.scene, parse_defines(args.defines))
+    report = render_job(spec, options_from_args(args), args.out)
+    totals, effects = report["totals"], report["effects"]
+    print(f"{report['image']['exr']}  ({report['image']['width']}x{report['image']['height']}, "
+          f"{totals['units']} units, {totals['seconds']:.2f} s, pre-pass {totals['prepass_seconds']:.2f} s)")
+    print(f"effects: {effects['variant']} / {effects['integrator']} / max_depth {effects['max_depth']}")
+    print(f"png: {report['image']['png']}  report: {Path(args.out).with_suffix('.json')}")
+    if totals["nonfinite"]:
+        print(f"warning: {totals['nonfinite']} non-finite pixels were replaced (see the report's units)")
+    return 0

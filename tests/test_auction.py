@@ -1,0 +1,469 @@
+"""The auction state machine: awards, credits, timeouts, failures, ignored results, simulated clock."""
+
+from __future__ import annotations
+
+import dataclasses
+import random
+from collections import Counter
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from core import messages as m
+from core.geometry import Rect
+from master import auction as au
+
+HASH = "cd" * 32
+
+
+def info(job_id: str = "job-1") -> m.JobInfo:
+    return m.JobInfo(
+        job_id=job_id,
+        scene_url="http://127.0.0.1:8765/scene",
+        scene_hash=HASH,
+        width=64,
+        height=64,
+        spp=16,
+        depth=8,
+        level="S",
+        ranges={"C": (0.0, 1.0)},
+    )
+
+
+def specs(costs: list[float]) -> list[m.UnitSpec]:
+    return [
+        m.UnitSpec(index=i, rect=Rect(0, 0, 8, 8), C=c, S=64.0, Nd=0.0, cost=c) for i, c in enumerate(costs)
+    ]
+
+
+def sends(cmds: list[au.Command], kind: type | None = None, to: str | None = None) -> list[au.Send]:
+    out = [c for c in cmds if isinstance(c, au.Send)]
+    for c in out:
+        m.encode(c.message)  # every message the auction emits must pass the schema
+    return [c for c in out if (kind is None or isinstance(c.message, kind)) and (to is None or c.to == to)]
+
+
+def events(cmds: list[au.Command], kind: str | None = None) -> list[au.Event]:
+    return [c for c in cmds if isinstance(c, au.Event) and (kind is None or c.kind == kind)]
+
+
+def make(costs: list[float], agents: list[str], config: au.Config | None = None) -> au.Auction:
+    a = au.Auction(config, rng=random.Random(7))
+    a.add_job(info(), specs(costs))
+    for name in agents:
+        a.register(name, 0.0)
+    return a
+
+
+def bid_all(
+    a: au.Auction, cmds: list[au.Command], now: float, speeds: dict[str, float] | None = None
+) -> None:
+    """Every called agent proposes its speed x cost on every unit it was offered."""
+    for send in sends(cmds, m.CallForProposal):
+        speed = (speeds or {}).get(send.to, 1.0)
+        est = tuple(m.Estimate(index=u.index, seconds=u.cost / speed) for u in send.message.units)
+        out = a.on_propose(
+            send.to, m.Propose(conversation=send.message.conversation, job_id="job-1", estimates=est), now
+        )
+        assert out == []
+
+
+def awards(cmds: list[au.Command]) -> dict[int, au.Send]:
+    return {s.message.unit.index: s for s in sends(cmds, m.Award)}
+
+
+def inform(award: au.Send, seconds: float) -> m.Inform:
+    msg = award.message
+    return m.Inform(
+        conversation=msg.conversation,
+        job_id=msg.job.job_id,
+        index=msg.unit.index,
+        token=msg.token,
+        tile_hash=HASH,
+        depth=4,
+        spp=8,
+        band=2,
+        seconds=seconds,
+        nonfinite=0,
+    )
+
+
+def failure(award: au.Send, reason: str = "boom") -> m.Failure:
+    msg = award.message
+    return m.Failure(
+        conversation=msg.conversation,
+        job_id=msg.job.job_id,
+        index=msg.unit.index,
+        token=msg.token,
+        reason=reason,
+    )
+
+
+def round_trip(a: au.Auction, now: float, speeds: dict[str, float] | None = None) -> dict[int, au.Send]:
+    """announce, every agent bids, decide: the awards made."""
+    bid_all(a, a.announce(now), now, speeds)
+    return awards(a.decide(now))
+
+
+def test_happy_path_most_costly_units_first_and_job_done() -> None:
+    a = make([1.0, 5.0, 3.0], ["A", "B"])
+    cfps = sends(a.announce(0.0), m.CallForProposal)
+    assert {s.to for s in cfps} == {"A", "B"}
+    assert [u.index for u in cfps[0].message.units] == [1, 2]  # the two most costly, costliest first
+    assert a.counts("job-1") == Counter(announced=2, pending=1)
+    bid_all(a, [*cfps], 0.0)
+    got = awards(a.decide(0.0))
+    assert sorted(got) == [1, 2] and {s.to for s in got.values()} == {"A", "B"}
+    done = []
+    for award in got.values():
+        done += a.on_inform(award.to, inform(award, 1.0), 1.0)
+    assert len(events(done, "unit-done")) == 2 and not events(done, "job-done")
+    last = round_trip(a, 1.0)
+    assert list(last) == [0]
+    out = a.on_inform(last[0].to, inform(last[0], 1.0), 2.0)
+    assert events(out, "job-done") and a.jobs["job-1"].status == au.JobStatus.DONE
+    assert a.counts("job-1") == Counter(done=3)
+
+
+def test_contested_unit_goes_to_best_record_and_others_are_rejected() -> None:
+    a = make([2.0], ["A", "B"])
+    a.agents["B"].credits = 3
+    bid_all(a, a.announce(0.0), 0.0)
+    out = a.decide(0.0)
+    assert awards(out)[0].to == "B"
+    assert [s.to for s in sends(out, m.Reject)] == ["A"]
+
+
+def test_record_ties_go_to_the_lower_estimate() -> None:
+    a = make([2.0], ["A", "B"])
+    assert round_trip(a, 0.0, {"A": 1.0, "B": 1.5})[0].to == "B"
+
+
+def test_much_slower_bidder_does_not_get_the_big_unit_despite_its_record() -> None:
+    a = make([8.0, 1.0], ["fast", "slow"])
+    a.agents["slow"].credits = 5
+    got = round_trip(a, 0.0, {"fast": 4.0, "slow": 1.0})
+    assert got[0].to == "fast" and got[1].to == "slow"
+
+
+def test_credits_follow_the_ten_percent_rule() -> None:
+    a = make([1.0, 1.0], ["A"])
+    first = round_trip(a, 0.0)
+    a.on_inform("A", inform(first[0], 1.09), 1.1)  # within 10 % of 1.0
+    assert a.agents["A"].credits == 1
+    second = round_trip(a, 2.0)
+    out = a.on_inform("A", inform(second[1], 1.2), 3.2)  # 20 % over
+    assert a.agents["A"].credits == 0
+    assert events(out, "unit-done")[0].detail["on_time"] is False
+
+
+def test_unanswered_cfp_is_announced_again() -> None:
+    a = make([1.0], ["A"])
+    assert sends(a.announce(0.0), m.CallForProposal)
+    assert a.decide(1.0) == [] and a.announce(1.0) == []  # still waiting for A
+    assert a.decide(a.config.cfp_timeout_s + 0.01) == []  # nobody bid: the unit is free again
+    assert a.counts("job-1") == Counter(pending=1)
+    assert sends(a.announce(3.0), m.CallForProposal, to="A")
+
+
+def test_refusal_resolves_the_round_at_once() -> None:
+    a = make([1.0], ["A"])
+    cfp = sends(a.announce(0.0), m.CallForProposal)[0].message
+    a.on_refuse("A", m.Refuse(conversation=cfp.conversation, job_id="job-1", reason="busy"), 0.1)
+    assert a.decide(0.1) == [] and a.counts("job-1") == Counter(pending=1)
+
+
+def test_lost_agent_gives_its_units_to_another() -> None:
+    a = make([1.0, 1.0], ["A", "B"])
+    got = round_trip(a, 0.0)
+    holder_of_0 = got[0].to
+    other = "B" if holder_of_0 == "A" else "A"
+    a.on_inform(other, inform(got[1], 1.0), 1.0)
+    t = a.config.heartbeat_timeout_s + 0.5
+    a.on_heartbeat(other, m.Heartbeat(conversation="h", busy=()), t)
+    out = a.expire(t)
+    assert [e.agent for e in events(out, "agent-lost")] == [holder_of_0]
+    assert [(e.index, e.reason) for e in events(out, "unit-requeued")] == [(0, f"agent {holder_of_0} lost")]
+    again = round_trip(a, t)
+    assert again[0].to == other
+    # The lost agent's late result is harmless.
+    late = a.on_inform(holder_of_0, inform(got[0], 1.0), t + 1)
+    assert events(late, "ignored")[0].reason == "unit not awarded to this agent"
+    assert a.on_inform(other, inform(again[0], 1.0), t + 1)[-1].kind == "job-done"
+
+
+def test_render_deadline_cancels_and_retries_elsewhere() -> None:
+    a = make([1.0], ["A", "B"])
+    a.agents["A"].credits = 1
+    got = round_trip(a, 0.0)
+    assert got[0].to == "A"
+    deadline = 1.0 * a.config.render_factor + a.config.render_slack_s
+    rendering = (m.BusyUnit(job_id="job-1", index=0),)
+    assert a.on_heartbeat("A", m.Heartbeat(conversation="h", busy=rendering), deadline - 1) == []
+    a.on_heartbeat("B", m.Heartbeat(conversation="h", busy=()), deadline - 1)
+    out = a.expire(deadline + 0.1)
+    assert [s.message.reason for s in sends(out, m.Cancel, to="A")] == ["render deadline passed"]
+    assert events(out, "unit-failed")[0].agent == "A"
+    cfps = sends(a.announce(deadline + 0.1), m.CallForProposal)
+    assert [s.to for s in cfps] == ["B"]  # A is not offered the unit it failed
+
+
+def test_failure_is_retried_on_another_agent_and_blocklists_after_three() -> None:
+    a = make([1.0] * 5, ["bad", "good"])
+    a.agents["bad"].credits = 100  # it wins every contest until it is blocklisted
+    failed_units = []
+    now = 0.0
+    while not a.jobs["job-1"].blocklist:
+        got = round_trip(a, now)
+        for index, award in got.items():
+            if award.to == "bad":
+                out = a.on_failure("bad", failure(award), now)
+                failed_units.append(index)
+            else:
+                out = a.on_inform("good", inform(award, 1.0), now)
+        now += 1
+    assert len(failed_units) == 3
+    assert a.jobs["job-1"].blocklist == {"bad"}
+    assert events(out, "agent-blocklisted")[0].reason == "3 failed units of this job"
+    for _ in range(10):
+        got = round_trip(a, now)
+        assert all(s.to == "good" for s in got.values())
+        for award in got.values():
+            out = a.on_inform("good", inform(award, 1.0), now)
+        now += 1
+        if a.jobs["job-1"].status != au.JobStatus.RUNNING:
+            break
+    assert a.jobs["job-1"].status == au.JobStatus.DONE
+
+
+def test_job_fails_with_a_reason_when_no_agent_can_take_a_unit() -> None:
+    a = make([1.0, 1.0], ["A", "B"])
+    got = round_trip(a, 0.0)
+    a.on_failure(got[0].to, failure(got[0], "scene crashed"), 0.5)
+    a.on_inform(got[1].to, inform(got[1], 1.0), 0.5)
+    retry = round_trip(a, 1.0)
+    assert retry[0].to != got[0].to
+    out = a.on_failure(retry[0].to, failure(retry[0], "scene crashed"), 1.5)
+    failed = events(out, "job-failed")
+    assert failed and "no agent can take unit 0" in failed[0].reason and "scene crashed" in failed[0].reason
+    assert a.jobs["job-1"].status == au.JobStatus.FAILED and a.announce(2.0) == []
+
+
+def test_no_agents_at_all_is_waiting_not_failing() -> None:
+    a = make([1.0], [])
+    assert a.tick(1000.0) == [] and a.jobs["job-1"].status == au.JobStatus.RUNNING
+
+
+def test_duplicate_forged_and_late_results_are_ignored() -> None:
+    a = make([1.0, 1.0], ["A", "B"])
+    got = round_trip(a, 0.0)
+    award = got[0]
+    intruder = "B" if award.to == "A" else "A"
+    good = inform(award, 1.0)
+    forged = dataclasses.replace(good, token="f" * 32)
+    checks = [
+        (a.on_inform(award.to, forged, 0.5), "wrong token"),
+        (a.on_inform(intruder, good, 0.5), "unit not awarded to this agent"),
+        (a.on_failure(intruder, failure(award), 0.5), "unit not awarded to this agent"),
+        (a.on_inform(award.to, dataclasses.replace(good, job_id="nope"), 0.5), "unknown job or unit"),
+        (a.on_inform(award.to, dataclasses.replace(good, conversation="x"), 0.5), "wrong conversation id"),
+    ]
+    for out, reason in checks:
+        assert [e.reason for e in events(out, "ignored")] == [reason]
+    assert events(a.on_inform(award.to, inform(award, 1.0), 1.0), "unit-done")
+    again = a.on_inform(award.to, inform(award, 1.0), 1.1)
+    assert [e.reason for e in again] == ["unit already done"]
+    assert a.counts("job-1")["done"] == 1
+
+
+def test_proposals_outside_the_auction_are_ignored() -> None:
+    a = make([1.0], ["A", "B"])
+    a.agents["B"].holding.add(("other", 0))  # busy: not called
+    cfp = sends(a.announce(0.0), m.CallForProposal)[0].message
+    est = (m.Estimate(index=0, seconds=1.0),)
+    assert events(
+        a.on_propose("B", m.Propose(conversation=cfp.conversation, job_id="job-1", estimates=est), 0)
+    )
+    assert events(a.on_propose("A", m.Propose(conversation="unknown", job_id="job-1", estimates=est), 0))
+    assert a.on_propose("A", m.Propose(conversation=cfp.conversation, job_id="job-1", estimates=est), 0) == []
+    repeat = a.on_propose("A", m.Propose(conversation=cfp.conversation, job_id="job-1", estimates=est), 0)
+    assert events(repeat)[0].reason == "already answered this auction"
+
+
+def test_heartbeat_reconciles_lost_awards_and_stale_work() -> None:
+    a = make([1.0], ["A"])
+    got = round_trip(a, 0.0)
+    assert a.on_heartbeat("A", m.Heartbeat(conversation="h", busy=()), 1.0) == []  # within the grace
+    out = a.on_heartbeat("A", m.Heartbeat(conversation="h", busy=()), a.config.award_grace_s + 1)
+    assert events(out, "unit-requeued")[0].reason == "award not acknowledged by the agent"
+    assert not a.upload_allowed("job-1", 0, got[0].message.token)
+    stale = a.on_heartbeat(
+        "A", m.Heartbeat(conversation="h", busy=(m.BusyUnit(job_id="job-1", index=0),)), 20
+    )
+    assert [s.message.index for s in sends(stale, m.Cancel, to="A")] == [0]
+
+
+def test_upload_allowed_only_for_the_current_token() -> None:
+    a = make([1.0], ["A"])
+    got = round_trip(a, 0.0)
+    token = got[0].message.token
+    assert len(token) == 32 and a.upload_allowed("job-1", 0, token)
+    assert not a.upload_allowed("job-1", 0, "0" * 32)
+    assert not a.upload_allowed("job-1", 1, token) and not a.upload_allowed("nope", 0, token)
+
+
+def test_cancel_job_stops_its_agents() -> None:
+    a = make([1.0, 1.0], ["A", "B"])
+    round_trip(a, 0.0)
+    out = a.cancel_job("job-1")
+    assert {s.to for s in sends(out, m.Cancel)} == {"A", "B"}
+    assert a.counts("job-1") == Counter(failed=2)
+    assert all(not s.holding for s in a.agents.values())
+    assert events(a.cancel_job("job-1"), "ignored")
+
+
+def test_resumed_job_keeps_done_units_and_past_failures() -> None:
+    a = au.Auction(au.Config(blocklist_after=2), rng=random.Random(1))
+    a.add_job(info(), specs([1.0, 1.0, 1.0]), done=[0], failures=[(1, "X", "crash"), (2, "X", "crash")])
+    a.register("X", 0.0)
+    a.register("Y", 0.0)
+    assert a.jobs["job-1"].blocklist == {"X"}
+    assert {s.to for s in sends(a.announce(0.0), m.CallForProposal)} == {"Y"}
+
+
+def test_tokens_and_conversations_are_unique_and_seeded() -> None:
+    def tokens(seed: int) -> list[str]:
+        a = au.Auction(rng=random.Random(seed))
+        a.add_job(info(), specs([1.0] * 20))
+        for i in range(20):
+            a.register(f"a{i}", 0.0)
+        return [s.message.token for s in round_trip(a, 0.0).values()]
+
+    assert tokens(3) == tokens(3) and len(set(tokens(3))) == 20 and tokens(3) != tokens(4)
+
+
+# --- random event sequences: no unit is ever lost or done twice ---------------------------------------------
+
+ops = st.lists(
+    st.tuples(
+        st.sampled_from(["tick", "bid", "refuse", "inform", "inform-late", "fail", "beat", "silence", "dup"]),
+        st.integers(0, 3),  # which agent
+        st.floats(0.0, 20.0),  # time step
+    ),
+    max_size=60,
+)
+
+
+def check_invariants(a: au.Auction) -> None:
+    holders: Counter[tuple[str, int]] = Counter()
+    for agent in a.agents.values():
+        holders.update(agent.holding)
+    for job in a.jobs.values():
+        for unit in job.units.values():
+            key = (job.info.job_id, unit.spec.index)
+            if unit.status == au.UnitStatus.AWARDED:
+                assert holders[key] == 1 and key in a.agents[unit.agent].holding
+            else:
+                assert holders[key] == 0
+            if job.status == au.JobStatus.RUNNING:
+                assert unit.status != au.UnitStatus.FAILED
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(ops, st.integers(1, 8))
+def test_random_event_sequences_never_lose_a_unit(sequence, n_units: int) -> None:
+    a = make([float(1 + i % 3) for i in range(n_units)], [f"a{i}" for i in range(4)])
+    now, outstanding, done_events = 0.0, [], Counter()
+    pending_cfps: list[au.Send] = []
+    old_awards: list[au.Send] = []
+
+    def feed(cmds: list[au.Command]) -> None:
+        pending_cfps.extend(sends(cmds, m.CallForProposal))
+        outstanding.extend(sends(cmds, m.Award))
+        done_events.update(e.index for e in events(cmds, "unit-done"))
+
+    for op, who, step in sequence:
+        now += step
+        name = f"a{who}"
+        if op == "tick":
+            feed(a.tick(now))
+        elif op in ("bid", "refuse") and pending_cfps:
+            cfp = pending_cfps.pop(0)
+            if op == "bid":
+                est = tuple(m.Estimate(index=u.index, seconds=u.cost) for u in cfp.message.units)
+                msg = m.Propose(conversation=cfp.message.conversation, job_id="job-1", estimates=est)
+                feed(a.on_propose(cfp.to, msg, now))
+            else:
+                feed(
+                    a.on_refuse(
+                        cfp.to,
+                        m.Refuse(conversation=cfp.message.conversation, job_id="job-1", reason="no"),
+                        now,
+                    )
+                )
+        elif op in ("inform", "fail", "dup") and outstanding:
+            award = outstanding.pop(0) if op != "dup" else outstanding[0]
+            old_awards.append(award)
+            msg = failure(award) if op == "fail" else inform(award, step)
+            handler = a.on_failure if op == "fail" else a.on_inform
+            feed(handler(award.to, msg, now))
+        elif op == "inform-late" and old_awards:
+            award = old_awards[who % len(old_awards)]
+            feed(a.on_inform(award.to, inform(award, step), now))
+        elif op == "beat":
+            busy = tuple(m.BusyUnit(job_id=j, index=i) for j, i in sorted(a.agents[name].holding))
+            feed(a.on_heartbeat(name, m.Heartbeat(conversation="h", busy=busy), now))
+        check_invariants(a)
+    assert all(n == 1 for n in done_events.values())  # no unit done twice
+    job = a.jobs["job-1"]
+    done = {i for i, u in job.units.items() if u.status == au.UnitStatus.DONE}
+    assert done == set(done_events)
+    # Liveness: with one reliable agent from now on, the job ends (done, or failed with a reason).
+    helper = "reliable"
+    a.register(helper, now)
+    for _ in range(4 * n_units + 10):
+        if job.status != au.JobStatus.RUNNING:
+            break
+        now += a.config.heartbeat_timeout_s + a.config.render_slack_s + 100
+        a.on_heartbeat(helper, m.Heartbeat(conversation="h", busy=()), now)
+        cmds = a.tick(now)
+        bid_all(a, [s for s in sends(cmds, m.CallForProposal) if s.to == helper], now)
+        for award in awards(a.decide(now)).values():
+            a.on_inform(award.to, inform(award, award.message.estimate_s), now)
+        check_invariants(a)
+    assert job.status != au.JobStatus.RUNNING
+    assert job.status == au.JobStatus.DONE or job.error
+
+
+# --- the simulated clock ------------------------------------------------------------------------------------
+
+
+def test_simulated_single_agent_makespan_is_the_sum_of_costs() -> None:
+    costs = [random.Random(1).uniform(0.5, 3.0) for _ in range(40)]
+    result = au.simulate(costs, [1.0], latency=0.002)
+    assert sum(costs) <= result.makespan <= sum(costs) * 1.01
+    assert result.busy_s == {"agent0": pytest.approx(sum(costs))}
+
+
+def test_simulated_equal_agents_are_efficient_with_many_similar_units() -> None:
+    rng = random.Random(2)
+    costs = [rng.uniform(0.9, 1.1) for _ in range(400)]
+    t1 = sum(costs)
+    for n in (2, 8):
+        result = au.simulate(costs, [1.0] * n, latency=0.002, jitter=0.05)
+        efficiency = t1 / (n * result.makespan)
+        assert efficiency >= 0.9, (n, efficiency)
+
+
+def test_simulated_mixed_speeds_give_fast_agents_more_work() -> None:
+    costs = [1.0] * 200
+    result = au.simulate(costs, [2.0, 1.0, 1.0, 0.5], latency=0.002)
+    ideal = 200 / 4.5
+    assert result.makespan <= ideal * 1.1
+    assert result.busy_s["agent0"] > 0 and result.busy_s["agent3"] > 0
+
+
+def test_simulate_needs_units_and_agents() -> None:
+    with pytest.raises(ValueError):
+        au.simulate([], [1.0])

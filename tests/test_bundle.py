@@ -1,0 +1,259 @@
+"""Scene bundles: real scenes round-trip and load in Mitsuba; hostile archives and references are refused."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import tarfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from core.bundle import (
+    MANIFEST_NAME,
+    BundleError,
+    BundleLimits,
+    bundle_hash,
+    extract_bundle,
+    make_bundle,
+    read_manifest,
+)
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "scenes" / "mitsuba-data"
+needs_shared = pytest.mark.skipif(not SHARED.is_dir(), reason="../shared scenes absent")
+
+
+# ---- helpers: hand-made archives -------------------------------------------------------------
+
+
+def _manifest(files: dict[str, bytes], scene: str = "scene.xml") -> bytes:
+    entries = [{"path": n, "size": len(d), "sha256": hashlib.sha256(d).hexdigest()} for n, d in files.items()]
+    return json.dumps({"format": "quekaro-bundle", "version": 1, "scene": scene, "defines": {},
+                       "files": entries}).encode()
+
+
+def _tar(members: list[tuple[tarfile.TarInfo, bytes | None]]) -> bytes:
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w", format=tarfile.PAX_FORMAT) as tar:
+        for info, data in members:
+            tar.addfile(info, io.BytesIO(data) if data is not None else None)
+    return buf.getvalue()
+
+
+def _reg(name: str, data: bytes) -> tuple[tarfile.TarInfo, bytes]:
+    info = tarfile.TarInfo(name)
+    info.size = len(data)
+    return info, data
+
+
+def _special(name: str, kind: bytes, linkname: str = "") -> tuple[tarfile.TarInfo, None]:
+    info = tarfile.TarInfo(name)
+    info.type, info.linkname = kind, linkname
+    return info, None
+
+
+SCENE = b"<scene version='3.0.0'/>"
+
+
+def _bundle(extra: list[tuple[tarfile.TarInfo, bytes | None]], listed: dict[str, bytes] | None = None) -> bytes:
+    listed = {"scene.xml": SCENE, **(listed or {})}
+    return _tar([_reg(MANIFEST_NAME, _manifest(listed)), _reg("scene.xml", SCENE), *extra])
+
+
+def _refused(data: bytes | Path, tmp_path: Path, match: str, limits: BundleLimits | None = None) -> None:
+    dest = tmp_path / "out" / "bundle"
+    with pytest.raises(BundleError, match=match):
+        extract_bundle(data, dest, limits)
+    assert not dest.exists()
+    # Nothing left behind: no half-unpacked folder beside dest, nothing written outside.
+    assert not list((tmp_path / "out").iterdir())
+    assert not (tmp_path / "evil").exists()
+
+
+# ---- real scenes -----------------------------------------------------------------------------
+
+
+def _render(scene: Path, defines: dict[str, str]) -> np.ndarray:
+    import mitsuba as mi
+
+    from core import mitsuba_env
+
+    mitsuba_env.init("llvm_ad_rgb", threads=1)
+    loaded = mi.load_file(str(scene), **defines)
+    return np.array(mi.render(loaded, seed=7))
+
+
+@needs_shared
+@pytest.mark.parametrize(("scene", "defines", "expected"), [
+    ("cbox/cbox-rgb.xml", {"res": "16", "spp": "2"},
+     {"cbox-rgb.xml", "fragments/base.xml", "fragments/shapes.xml", "meshes/cbox_floor.obj"}),
+    ("matpreview/matpreview.xml", {"width": "24", "height": "16", "spp": "2", "max_depth": "4"},
+     {"matpreview.xml", "matpreview.serialized", "envmap.exr"}),
+])
+def test_real_scene_round_trip_renders_identically(tmp_path, scene, defines, expected):
+    src = SHARED / scene
+    info = make_bundle(src, defines, tmp_path / "b.tar")
+    assert expected <= set(info.files)
+    assert info.sha256 == bundle_hash(info.path.read_bytes())
+    out = extract_bundle(info.path, tmp_path / "x")
+    assert out == tmp_path / "x" / src.name
+    assert read_manifest(out.parent)["defines"] == defines
+    for rel in info.files:
+        assert (out.parent / rel).read_bytes() == (src.parent / rel).read_bytes()
+    # The unpacked copy renders exactly as the original (same seed, same variant, one thread).
+    np.testing.assert_array_equal(_render(out, defines), _render(src, defines))
+
+
+@needs_shared
+def test_bundles_are_deterministic(tmp_path):
+    src = SHARED / "cbox" / "cbox-rgb.xml"
+    a = make_bundle(src, {"res": "8"}, tmp_path / "a.tar")
+    b = make_bundle(src, {"res": "8"}, tmp_path / "b.tar")
+    c = make_bundle(src, {"res": "9"}, tmp_path / "c.tar")
+    assert a.sha256 == b.sha256 != c.sha256
+
+
+# ---- making: references --------------------------------------------------------------------
+
+
+def _scene_with(tmp_path: Path, body: str) -> Path:
+    folder = tmp_path / "scene"
+    folder.mkdir(exist_ok=True)
+    path = folder / "scene.xml"
+    path.write_text(f"<scene version='3.0.0'>{body}</scene>")
+    return path
+
+
+def _shape(name: str) -> str:
+    return f"<shape type='obj'><string name='filename' value='{name}'/></shape>"
+
+
+def test_defaults_and_defines_choose_the_file(tmp_path):
+    scene = _scene_with(tmp_path, "<default name='mesh' value='a'/>" + _shape("meshes/$mesh.obj"))
+    (scene.parent / "meshes").mkdir()
+    for n in "ab":
+        (scene.parent / "meshes" / f"{n}.obj").write_text(n)
+    assert set(make_bundle(scene, None, tmp_path / "1.tar").files) == {"scene.xml", "meshes/a.obj"}
+    assert set(make_bundle(scene, {"mesh": "b"}, tmp_path / "2.tar").files) == {"scene.xml", "meshes/b.obj"}
+
+
+@pytest.mark.parametrize(("body", "match"), [
+    (_shape("/etc/passwd"), r"'/etc/passwd' is an absolute path"),
+    (_shape("../evil/x.obj"), r"'../evil/x.obj' escapes the scene's folder"),
+    (_shape("meshes/../../evil/x.obj"), r"escapes the scene's folder"),
+    (_shape("missing.obj"), r"'missing.obj' not found"),
+    (_shape("$nope.obj"), r"undefined parameter"),
+    ("<include filename='../evil/inc.xml'/>", r"escapes the scene's folder"),
+    ("<include filename='link.obj'/>", r"'link.obj' is a link to .*outside"),
+])
+def test_bad_references_are_refused(tmp_path, body, match):
+    (tmp_path / "evil").mkdir()
+    (tmp_path / "evil" / "x.obj").write_text("secret")
+    (tmp_path / "evil" / "inc.xml").write_text("<scene version='3.0.0'/>")
+    scene = _scene_with(tmp_path, body)
+    (scene.parent / "link.obj").symlink_to(tmp_path / "evil" / "x.obj")
+    with pytest.raises(BundleError, match=match) as err:
+        make_bundle(scene, None, tmp_path / "b.tar")
+    assert str(scene) in str(err.value)  # names the file at fault
+    assert not (tmp_path / "b.tar").exists()
+
+
+def test_huge_referenced_file_is_refused_without_reading(tmp_path):
+    scene = _scene_with(tmp_path, _shape("big.obj"))
+    with (scene.parent / "big.obj").open("wb") as fh:
+        fh.truncate(5 << 30)  # sparse: 5 GiB on paper, nothing on disk
+    with pytest.raises(BundleError, match=r"big.obj: 5368709120 bytes, over the per-file limit"):
+        make_bundle(scene, None, tmp_path / "b.tar")
+
+
+def test_include_cycle_is_bounded(tmp_path):
+    scene = _scene_with(tmp_path, "<include filename='a.xml'/>")
+    (scene.parent / "a.xml").write_text("<scene version='3.0.0'><include filename='b.xml'/></scene>")
+    (scene.parent / "b.xml").write_text("<scene version='3.0.0'><include filename='a.xml'/></scene>")
+    # Our walk visits each include once; core.scene's cross-check reports the cycle itself.
+    with pytest.raises(BundleError, match="includes itself"):
+        make_bundle(scene, None, tmp_path / "b.tar")
+
+
+# ---- unpacking: hostile archives -------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("member", "match"), [
+    (_reg("../evil/x", b"pwned"), r"'../evil/x': unsafe path"),
+    (_reg("meshes/../../evil/x", b"pwned"), r"unsafe path"),
+    (_reg("/tmp/evil-abs", b"pwned"), r"'/tmp/evil-abs': unsafe path"),
+    (_reg("./scene2.xml", b"x"), r"unsafe path"),
+    (_special("link", tarfile.SYMTYPE, "../evil"), r"'link': is a link"),
+    (_special("inside-link", tarfile.SYMTYPE, "scene.xml"), r"is a link"),
+    (_special("hard", tarfile.LNKTYPE, "scene.xml"), r"'hard': is a link"),
+    (_special("dev", tarfile.CHRTYPE), r"'dev': is a device or special file"),
+    (_special("fifo", tarfile.FIFOTYPE), r"device or special file"),
+])
+def test_hostile_members_are_refused(tmp_path, member, match):
+    (tmp_path / "out").mkdir()
+    _refused(_bundle([member]), tmp_path, match)
+
+
+def test_member_not_in_manifest_or_tampered_or_missing(tmp_path):
+    (tmp_path / "out").mkdir()
+    _refused(_bundle([_reg("extra.obj", b"x")]), tmp_path, r"'extra.obj': not in the manifest")
+    tampered = _tar([_reg(MANIFEST_NAME, _manifest({"scene.xml": SCENE})), _reg("scene.xml", SCENE[::-1])])
+    _refused(tampered, tmp_path, r"'scene.xml': content does not match the manifest")
+    _refused(_bundle([], listed={"mesh.obj": b"m"}), tmp_path, r"lacks files its manifest lists: mesh.obj")
+    _refused(_bundle([_reg("scene.xml", SCENE)]), tmp_path, r"'scene.xml': appears twice")
+    no_manifest = _tar([_reg("scene.xml", SCENE)])
+    _refused(no_manifest, tmp_path, "does not start with")
+    bad_scene = _tar([_reg(MANIFEST_NAME, _manifest({"scene.xml": SCENE}, scene="other.xml")),
+                      _reg("scene.xml", SCENE)])
+    _refused(bad_scene, tmp_path, r"scene 'other.xml' is not among its files")
+
+
+def test_not_a_tar_compressed_or_garbage(tmp_path):
+    import gzip
+
+    (tmp_path / "out").mkdir()
+    _refused(b"\x00garbage" * 300, tmp_path, "not a readable uncompressed tar|does not start with")
+    _refused(gzip.compress(_bundle([])), tmp_path, "not a readable uncompressed tar")
+
+
+def test_too_many_files(tmp_path):
+    (tmp_path / "out").mkdir()
+    files = {f"m/{i}.obj": b"v" for i in range(60)}
+    data = _bundle([_reg(n, d) for n, d in files.items()], listed=files)
+    _refused(data, tmp_path, "more than 50 members", BundleLimits(max_files=50))
+    assert extract_bundle(data, tmp_path / "ok", BundleLimits(max_files=61)).name == "scene.xml"
+
+
+def test_file_over_per_file_limit_streamed(tmp_path):
+    (tmp_path / "out").mkdir()
+    big = b"\0" * (2 << 20)
+    data = _bundle([_reg("big.exr", big)], listed={"big.exr": big})
+    _refused(data, tmp_path, r"'big.exr': 2097152 bytes, over the per-file limit",
+             BundleLimits(max_file_bytes=1 << 20))
+    _refused(data, tmp_path, r"bundle is \d+ bytes, over the limit", BundleLimits(max_bundle_bytes=1 << 20))
+
+
+def test_huge_member_header_is_refused_before_reading(tmp_path):
+    # A header claiming 100 GiB followed by a few bytes: refused on the header alone, memory stays small.
+    (tmp_path / "out").mkdir()
+    head = _bundle([]).rstrip(b"\0")
+    head += b"\0" * (-len(head) % 512)
+    info = tarfile.TarInfo("huge.bin")
+    info.size = 100 << 30
+    listed = _manifest({"scene.xml": SCENE, "huge.bin": b""}).replace(b'"size": 0', b'"size": 107374182400')
+    data = _tar([_reg(MANIFEST_NAME, listed), _reg("scene.xml", SCENE)]).rstrip(b"\0")
+    data += b"\0" * (-len(data) % 512) + info.tobuf(tarfile.PAX_FORMAT) + b"x" * 4096
+    _refused(data, tmp_path, r"'huge.bin': 107374182400 bytes, over the per-file limit")
+
+
+def test_dest_must_be_new_and_good_bundle_unpacks(tmp_path):
+    data = _bundle([_reg("meshes/a.obj", b"v 0 0 0")], listed={"meshes/a.obj": b"v 0 0 0"})
+    scene = extract_bundle(data, tmp_path / "x")
+    assert scene.read_bytes() == SCENE
+    assert (scene.parent / "meshes" / "a.obj").read_bytes() == b"v 0 0 0"
+    assert oct(os.stat(scene).st_mode & 0o777) == "0o644"
+    with pytest.raises(BundleError, match="already exists"):
+        extract_bundle(data, tmp_path / "x")

@@ -1,0 +1,126 @@
+"""master.complexity: the pre-pass's budget, its maps (cost from rays per sample, noise from moments)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from core.scene import SceneSpec
+from master.complexity import ComplexityError, ComplexityMap, _upsample, choose_downscale, prepass
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "scenes" / "mitsuba-data"
+needs_shared = pytest.mark.skipif(not SHARED.is_dir(), reason="../shared scenes absent")
+
+
+@pytest.fixture(scope="module")
+def mi():
+    from core import mitsuba_env
+
+    mitsuba_env.init("llvm_ad_rgb", 1)
+    import mitsuba
+
+    return mitsuba
+
+
+@pytest.mark.parametrize(("w", "h", "spp"), [(256, 256, 64), (683, 512, 256), (1, 1, 1), (1, 5000, 64),
+                                              (97, 89, 16)])
+def test_downscale_keeps_samples_within_budget(w: int, h: int, spp: int) -> None:
+    k = choose_downscale(w, h, spp, 4, 0.05)
+    low = -(-w // k) * -(-h // k)
+    assert 2 * 4 * low <= 0.05 / 4 * spp * w * h or (k >= w and k >= h)
+    assert k == 1 or 2 * 4 * -(-w // (k - 1)) * -(-h // (k - 1)) > 0.05 / 4 * spp * w * h  # smallest k
+
+
+def test_map_validation_names_the_field() -> None:
+    with pytest.raises(ComplexityError, match="'noise'"):
+        ComplexityMap(np.ones((2, 2)), np.full((2, 2), np.nan))
+    with pytest.raises(ComplexityError, match="'cost'"):
+        ComplexityMap(-np.ones((2, 2)), np.ones((2, 2)))
+    with pytest.raises(ComplexityError, match="shapes"):
+        ComplexityMap(np.ones((2, 2)), np.ones((2, 3)))
+
+
+def test_upsample_covers_any_size() -> None:
+    low = np.arange(12.0).reshape(3, 4)
+    for w, h in [(4, 3), (13, 7), (1, 1), (400, 2)]:
+        up = _upsample(low, w, h)
+        assert up.shape == (h, w)
+        assert up[0, 0] == 0
+        assert set(np.unique(up)) <= set(low.ravel())
+
+
+def sphere_scene(mi, size: int = 32):
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 5], target=[0, 0, 0],
+                                                              up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}}},
+        "sphere": {"type": "sphere", "radius": 0.6, "bsdf": {"type": "diffuse"}},
+        "light": {"type": "point", "position": [2, 2, 3], "intensity": {"type": "rgb", "value": 20}},
+    })
+
+
+def test_pixels_that_hit_nothing_are_nearly_free(mi) -> None:
+    scene = sphere_scene(mi)
+    cmap = prepass(scene, max_depth=8, full_spp=1024)  # k = 1: the low-res grid is the image
+    assert cmap.info["downscale"] == 1 and cmap.cost.shape == (32, 32)
+    corner, centre = cmap.cost[0, 0], cmap.cost[16, 16]
+    assert corner == 1.0  # the camera ray, nothing else
+    assert centre >= 2.0  # camera ray and a shadow ray at least
+    assert cmap.noise[0, 0] == 0.0
+    assert tuple(scene.sensors()[0].film().size()) == (32, 32)
+
+
+def test_nothing_visible_gives_a_flat_cheap_map(mi) -> None:
+    scene = mi.load_dict({"type": "scene", "sensor": {"type": "perspective",
+                          "film": {"type": "hdrfilm", "width": 16, "height": 8}}})
+    cmap = prepass(scene, max_depth=4)
+    assert np.all(cmap.cost == 1.0) and np.all(cmap.noise == 0.0)
+
+
+@needs_shared
+@pytest.mark.slow
+def test_prepass_is_far_cheaper_than_the_render(mi, capsys) -> None:
+    spec = SceneSpec(SHARED / "cbox" / "cbox.xml", {"res": "128"})
+    from core.scene import load
+
+    scene = load(spec)
+    integrator = mi.load_dict({"type": "path", "max_depth": 6})
+
+    def full() -> float:
+        start = time.perf_counter()
+        np.array(mi.render(scene, integrator=integrator, spp=64, seed=1))
+        return time.perf_counter() - start
+
+    cold_pre, cold_full = prepass(scene, max_depth=6, full_spp=64).seconds, full()
+    pre = min(prepass(scene, max_depth=6, full_spp=64, seed=s).seconds for s in range(3))
+    render = min(full() for _ in range(2))
+    with capsys.disabled():
+        print(f"\ncbox 128x128: prepass {pre * 1000:.1f} ms vs 64 spp render {render * 1000:.0f} ms "
+              f"(ratio {pre / render:.3f}); first call in this process {cold_pre * 1000:.0f} ms vs "
+              f"{cold_full * 1000:.0f} ms")
+    assert pre < 0.25 * render
+    assert tuple(scene.sensors()[0].film().size()) == (128, 128)  # the film is restored
+
+
+@needs_shared
+@pytest.mark.slow
+def test_noise_map_predicts_where_the_error_is(mi) -> None:
+    """Block-mean pre-pass noise against the real squared error of an 8 spp render (rank correlation)."""
+    from core.scene import load
+
+    scene = load(SceneSpec(SHARED / "cbox" / "cbox.xml", {"res": "64"}))
+    integrator = mi.load_dict({"type": "path", "max_depth": 6})
+    cmap = prepass(scene, max_depth=6, full_spp=64, spp=8)
+    ref = np.array(mi.render(scene, integrator=integrator, spp=1024, seed=3))[..., :3]
+    low = np.array(mi.render(scene, integrator=integrator, spp=8, seed=4))[..., :3]
+    err = ((low - ref) ** 2).mean(axis=2)
+    blocks = lambda a: a.reshape(8, 8, 8, 8).mean(axis=(1, 3)).ravel()  # noqa: E731
+    rank = lambda a: np.argsort(np.argsort(a))  # noqa: E731
+    rho = np.corrcoef(rank(blocks(cmap.noise)), rank(blocks(err)))[0, 1]
+    print(f"rank correlation of pre-pass noise with the 8 spp error over 8x8 blocks: {rho:.2f}")
+    assert rho > 0.6

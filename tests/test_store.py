@@ -1,0 +1,251 @@
+"""The job store on real SQLite files: jobs and units, the auction's events, crash and resume, readers."""
+
+from __future__ import annotations
+
+import multiprocessing
+import random
+import sqlite3
+import time
+from pathlib import Path
+
+import pytest
+
+from core import messages as m
+from core.geometry import Rect
+from master import auction as au
+from master.store import JobStore, StoreError, restore_auction
+
+HASH = "ef" * 32
+
+
+def specs(n: int) -> list[m.UnitSpec]:
+    return [
+        m.UnitSpec(index=i, rect=Rect(8 * i, 0, 8, 8), C=0.5, S=64.0, Nd=0.1, cost=1.0 + i) for i in range(n)
+    ]
+
+
+def info_of(record) -> m.JobInfo:
+    return m.JobInfo(
+        job_id=record.id, scene_url="http://127.0.0.1:8765/scene", scene_hash=HASH, width=64, height=8,
+        spp=record.options["spp"], depth=8, level="S", ranges={},
+    )  # fmt: skip
+
+
+def new_store(path: Path, n: int = 4, job_id: str = "job-1") -> JobStore:
+    store = JobStore(path)
+    store.create_job(job_id, "scene.xml", {"k": "v"}, {"spp": 16}, specs(n), now=100.0)
+    return store
+
+
+def play(auction: au.Auction, store: JobStore, now: float, finish: int | None = None) -> list[au.Send]:
+    """One auction round where every agent bids; `finish` awards are completed the way the master does it:
+    tile recorded (durably written by the data plane), then the inform applied."""
+    cmds = auction.tick(now)
+    store.apply(cmds, now)
+    for send in [c for c in cmds if isinstance(c, au.Send) and isinstance(c.message, m.CallForProposal)]:
+        est = tuple(m.Estimate(index=u.index, seconds=u.cost) for u in send.message.units)
+        auction.on_propose(
+            send.to, m.Propose(conversation=send.message.conversation, job_id="job-1", estimates=est), now
+        )
+    cmds = auction.decide(now)
+    store.apply(cmds, now)
+    awarded = [c for c in cmds if isinstance(c, au.Send) and isinstance(c.message, m.Award)]
+    for award in awarded[:finish]:
+        msg = award.message
+        store.record_result(
+            msg.job.job_id, msg.unit.index, f"/tiles/{msg.unit.index}.exr", HASH, {"spp": 8}, now
+        )
+        inform = m.Inform(
+            conversation=msg.conversation, job_id=msg.job.job_id, index=msg.unit.index, token=msg.token,
+            tile_hash=HASH, depth=4, spp=8, band=2, seconds=msg.estimate_s, nonfinite=0,
+        )  # fmt: skip
+        store.apply(auction.on_inform(award.to, inform, now + 1), now + 1)
+    return awarded
+
+
+def test_schema_pragmas_and_records(tmp_path: Path) -> None:
+    with new_store(tmp_path / "farm.db") as store:
+        assert store.db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+        assert store.db.execute("PRAGMA foreign_keys").fetchone()[0] == 1
+        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 1
+        job = store.job("job-1")
+        assert (job.scene, job.defines, job.options, job.status) == (
+            "scene.xml",
+            {"k": "v"},
+            {"spp": 16},
+            "running",
+        )
+        units = store.units("job-1")
+        assert [u.spec() for u in units] == specs(4) and {u.status for u in units} == {"pending"}
+        with pytest.raises(StoreError, match="already exists"):
+            store.create_job("job-1", "s", {}, {}, specs(1), now=0)
+        with pytest.raises(StoreError, match="no job 'nope'"):
+            store.job("nope")
+        with pytest.raises(sqlite3.IntegrityError):  # foreign keys hold
+            store.db.execute("INSERT INTO units VALUES ('nope', 0, 0, 0, 1, 1, 0, 0, 0, 1, 'pending', 0)")
+    assert [j.id for j in JobStore(tmp_path / "farm.db").list_jobs()] == ["job-1"]
+
+
+def test_bad_files_are_refused(tmp_path: Path) -> None:
+    junk = tmp_path / "junk.db"
+    junk.write_bytes(b"this is not sqlite" * 100)
+    with pytest.raises(StoreError, match=r"junk\.db"):
+        JobStore(junk)
+    newer = tmp_path / "newer.db"
+    sqlite3.connect(newer).execute("PRAGMA user_version = 99").connection.close()
+    with pytest.raises(StoreError, match="schema version 99"):
+        JobStore(newer)
+
+
+def test_done_needs_a_durable_result_and_happens_once(tmp_path: Path) -> None:
+    store = new_store(tmp_path / "farm.db")
+    with pytest.raises(StoreError, match="no durable result"):
+        store.mark_done("job-1", 0, now=1)
+    assert store.record_result("job-1", 0, "/t/0.exr", HASH, {"spp": 8}, now=1)
+    assert store.has_result("job-1", 0, HASH) and not store.has_result("job-1", 0, "00" * 32)
+    assert store.mark_done("job-1", 0, now=2)
+    assert not store.mark_done("job-1", 0, now=3)
+    assert not store.record_result("job-1", 0, "/t/other.exr", "11" * 32, {}, now=4)  # late duplicate
+    assert store.results("job-1")[0].tile_path == "/t/0.exr"
+
+
+def test_auction_events_are_recorded(tmp_path: Path) -> None:
+    store = new_store(tmp_path / "farm.db", n=3)
+    auction = au.Auction(rng=random.Random(5))
+    auction.add_job(info_of(store.job("job-1")), [u.spec() for u in store.units("job-1")])
+    for name in ("A", "B"):
+        store.apply(auction.register(name, 100.0), 100.0)
+    awarded = play(auction, store, 101.0, finish=1)
+    assert len(awarded) == 2
+    progress = store.progress("job-1")
+    assert (progress.done, progress.total, progress.agents_busy) == (1, 3, 1)
+    # Finished unit took exactly its cost: the ETA is the remaining cost at that rate over one busy agent.
+    remaining = sum(u.cost for u in store.units("job-1") if u.status != "done")
+    assert progress.eta_s == pytest.approx(remaining)
+    # A failure on the other award is recorded and its unit is pending again.
+    other = awarded[1].message
+    fail = m.Failure(
+        conversation=other.conversation, job_id="job-1", index=other.unit.index, token=other.token,
+        reason="child crashed",
+    )  # fmt: skip
+    store.apply(auction.on_failure(awarded[1].to, fail, 103.0), 103.0)
+    rows = store.db.execute("SELECT agent, outcome, reason, params FROM attempts ORDER BY id").fetchall()
+    assert [tuple(r)[:3] for r in rows] == [
+        (awarded[0].to, "done", ""), (awarded[1].to, "failed", f"failed on {awarded[1].to}: child crashed")
+    ]  # fmt: skip
+    assert store.failures("job-1") == [
+        (other.unit.index, awarded[1].to, f"failed on {awarded[1].to}: child crashed")
+    ]
+    assert store.credits() == {awarded[0].to: 1, awarded[1].to: -1}
+    while store.job("job-1").status == "running":
+        for name in ("A", "B"):
+            auction.on_heartbeat(name, m.Heartbeat(conversation="h", busy=()), 104.0)
+        play(auction, store, 104.0)
+    assert store.job("job-1").status == "done"
+    assert {u.status for u in store.units("job-1")} == {"done"}
+    assert store.progress("job-1").eta_s == 0.0
+
+
+def test_cancel_ends_units_and_attempts(tmp_path: Path) -> None:
+    store = new_store(tmp_path / "farm.db", n=2)
+    store.record_award("job-1", 0, "A", "aa" * 16, 101.0, 2.0)
+    assert store.cancel("job-1", now=102.0)
+    assert not store.cancel("job-1", now=103.0)
+    assert {u.status for u in store.units("job-1")} == {"failed"}
+    assert store.db.execute("SELECT outcome FROM attempts").fetchone()[0] == "cancelled"
+    assert store.job("job-1").error == "cancelled by the user"
+
+
+def test_uncommitted_work_is_lost_cleanly_when_the_connection_dies(tmp_path: Path) -> None:
+    store = new_store(tmp_path / "farm.db", n=2)
+    store.db.execute("BEGIN IMMEDIATE")
+    store.db.execute("UPDATE units SET status = 'done' WHERE idx = 0")
+    store.db.close()  # no commit
+    again = JobStore(tmp_path / "farm.db")
+    assert {u.status for u in again.units("job-1")} == {"pending"}
+
+
+def _crashing_master(path: str) -> None:
+    """A master that finishes two units, holds two more as awarded, and dies mid-transaction."""
+    import os
+
+    store = new_store(Path(path), n=5)
+    auction = au.Auction(rng=random.Random(9))
+    auction.add_job(info_of(store.job("job-1")), [u.spec() for u in store.units("job-1")])
+    for name in ("A", "B", "C", "D"):
+        store.apply(auction.register(name, 100.0), 100.0)
+    play(auction, store, 101.0, finish=2)
+    store.db.execute("BEGIN IMMEDIATE")
+    store.db.execute("UPDATE units SET status = 'done'")  # never committed
+    os._exit(3)
+
+
+def test_master_killed_mid_job_resumes_with_done_units_kept(tmp_path: Path) -> None:
+    path = tmp_path / "farm.db"
+    proc = multiprocessing.get_context("spawn").Process(target=_crashing_master, args=(str(path),))
+    proc.start()
+    proc.join(60)
+    assert proc.exitcode == 3
+    store = JobStore(path)
+    before = {u.index: u.status for u in store.units("job-1")}
+    assert sorted(before.values()) == ["awarded", "awarded", "done", "done", "pending"]
+    auction, out = restore_auction(store, info_of, now=200.0, rng=random.Random(1))
+    assert out == []
+    after = {u.index: u.status for u in store.units("job-1")}
+    assert after == {i: "done" if s == "done" else "pending" for i, s in before.items()}
+    interrupted = store.db.execute("SELECT COUNT(*) FROM attempts WHERE outcome = 'interrupted'").fetchone()[
+        0
+    ]
+    assert interrupted == 2
+    state = {i: u.status.value for i, u in auction.jobs["job-1"].units.items()}
+    assert state == after
+    auction.register("A", 200.0)
+    assert auction.agents["A"].credits == store.credits()["A"]
+    # The rebuilt auction finishes the job without rendering a done unit again.
+    for name in ("B", "C"):
+        auction.register(name, 200.0)
+    awarded = []
+    while store.job("job-1").status == "running":
+        awarded += [s.message.unit.index for s in play(auction, store, 201.0)]
+    assert sorted(awarded) == sorted(i for i, s in before.items() if s != "done")
+    done_attempts = store.db.execute("SELECT idx, COUNT(*) FROM attempts WHERE outcome = 'done' GROUP BY idx")
+    assert all(n == 1 for _, n in done_attempts)
+
+
+def test_restored_job_that_was_complete_ends_at_once(tmp_path: Path) -> None:
+    store = new_store(tmp_path / "farm.db", n=1)
+    store.record_result("job-1", 0, "/t/0.exr", HASH, {}, now=101)
+    store.mark_done("job-1", 0, now=101)
+    _, out = restore_auction(store, info_of, now=200.0)
+    assert [e.kind for e in out] == ["job-done"]
+    store.apply(out, 200.0)
+    assert store.job("job-1").status == "done"
+
+
+def _writer(path: str, units: int) -> None:
+    store = JobStore(path)
+    for i in range(units):
+        token = f"{i:032x}"
+        store.record_award("job-1", i, "A", token, 100.0 + i, 1.0)
+        store.record_result("job-1", i, f"/t/{i}.exr", HASH, {}, 100.0 + i)
+        store.finish_attempt(token, "done", 100.5 + i, seconds=1.0, params={"spp": 8})
+        store.mark_done("job-1", i, 100.5 + i)
+
+
+def test_readers_see_progress_while_the_master_writes(tmp_path: Path) -> None:
+    path = tmp_path / "farm.db"
+    new_store(path, n=120).close()
+    proc = multiprocessing.get_context("spawn").Process(target=_writer, args=(str(path), 120))
+    proc.start()
+    reader = JobStore(path, readonly=True)
+    seen = []
+    deadline = time.monotonic() + 60
+    while proc.is_alive() and time.monotonic() < deadline:
+        seen.append(reader.progress("job-1").done)
+    proc.join(60)
+    assert proc.exitcode == 0
+    seen.append(reader.progress("job-1").done)
+    assert seen == sorted(seen) and seen[-1] == 120
+    assert len(set(seen)) > 2  # the reader really overlapped the writer
+    with pytest.raises(sqlite3.OperationalError):
+        reader.db.execute("UPDATE jobs SET status = 'failed'")
