@@ -36,12 +36,15 @@ LEVELS = ("off", "VS", "S", "N", "B", "VB")
 _ID = re.compile(r"[A-Za-z0-9._:@/+-]{1,128}")
 _HEX = re.compile(r"[0-9a-f]{16,128}")
 _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,31}")
+# A relative path inside a scene bundle: no leading '/', no '..' component.
+_SCENE_NAME = re.compile(r"(?!/)(?!.*(^|/)\.\.(/|$))[A-Za-z0-9._/+-]{1,512}")
 
 
 def _spec(**constraints: Any) -> Any:
     """A dataclass field with its validation constraints (lo, hi, max_len, pattern, choices, max_items)."""
     default = constraints.pop("default", dataclasses.MISSING)
-    return field(default=default, metadata=constraints)
+    factory = constraints.pop("default_factory", dataclasses.MISSING)
+    return field(default=default, default_factory=factory, metadata=constraints)
 
 
 # --- message parts -------------------------------------------------------------------------------------
@@ -73,6 +76,13 @@ class JobInfo:
     level: str = _spec(choices=LEVELS)
     # Observed (lo, hi) of the dynamic input variables (C, S, Nd) over the whole scene.
     ranges: dict[str, tuple[float, float]] = _spec(max_items=16, key_pattern=_NAME, lo=-1e12, hi=1e12)  # noqa: RUF009
+    # How to render, as the master's effect analysis decided: the scene file inside the bundle, its -D
+    # parameters, the Mitsuba variant and the integrator. Each agent picks depth/spp/band with its rules.
+    scene_name: str = _spec(max_len=512, pattern=_SCENE_NAME, default="scene.xml")
+    defines: dict[str, str] = _spec(max_items=64, key_pattern=_NAME, max_len=1024, default_factory=dict)  # noqa: RUF009
+    variant: str = _spec(pattern=re.compile(r"(scalar|llvm|cuda)(_ad)?_(rgb|spectral|mono)[a-z_]*"),
+                         default="llvm_ad_rgb")
+    integrator: str = _spec(choices=("direct", "path", "volpath"), default="path")
 
     def check(self) -> None:
         for name, (lo, hi) in self.ranges.items():

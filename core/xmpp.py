@@ -117,7 +117,7 @@ class FarmAgent(Agent):
         verify_security: bool = False,
         ca_file: str | None = None,
         reconnect: bool = True,
-        reconnect_max_delay: float = 2.0,
+        reconnect_max_delay: float = 1.0,
     ) -> None:
         super().__init__(jid, password, port=port, verify_security=verify_security)
         self.server = server or self.jid.host

@@ -10,10 +10,10 @@ Exact centroid. The aggregate mu(x) = max_l min(h_l, T_l(x)) is piecewise linear
   (2) the points where an edge crosses a clip level h_t (they move with h).
 Between consecutive fixed points each set is one straight piece (zero, rising, plateau or falling),
 so only the few sets that are non-zero there ("active") matter; the moving points of (2) are found per
-interval from the active pieces only. Between all these points mu is linear, so the area and the first
-moment follow exactly from the trapezoid formulas. Vertical edges (a == b, c == d) are fixed points, and
-each interval evaluates its pieces as one-sided limits, so jumps are integrated exactly as well.
-No sampling, no division by a set's width.
+interval from the active pieces only. Between all these points mu is linear, so its area and first
+moment follow exactly from its value and slope at each piece's midpoint. Vertical edges (a == b, c == d)
+are fixed points and never a midpoint, so jumps are integrated exactly as well. No sampling, and no
+division by a set's width.
 
 If the aggregate has zero area but some label fired (only singleton sets a == b == c == d fired), the
 result is the activation-weighted mean of the fired sets' plateau midpoints.
@@ -142,25 +142,34 @@ def centroid_t(plan: CentroidPlan, h_t: np.ndarray) -> np.ndarray:
             continue
         cross.extend(np.clip(x0 + (levels[t] - v0) * inv, x0, x1) for t in range(k))
     pts = [np.broadcast_to(x0, (len(x0), n)), *_sorted(cross), np.broadcast_to(x1, (len(x0), n))]
-    area = np.zeros(n)
-    moment = np.zeros(n)
-    y_prev = _aggregate_at(plan, levels, pts[0] - x0)
+    area = np.zeros((len(x0), n))
+    moment = np.zeros((len(x0), n))
     for xl, xr in itertools.pairwise(pts):
-        y = _aggregate_at(plan, levels, xr - x0)
+        # the aggregate is linear on [xl, xr]: integrate it from its value and slope at the midpoint,
+        # which stays exact when a kink computed a rounding error away lands on an end point
         dx = xr - xl
-        area += (dx * (y_prev + y)).sum(axis=0)
-        moment += (dx * (xl * (2 * y_prev + y) + xr * (y_prev + 2 * y))).sum(axis=0)
-        y_prev = y
-    return _fallback(plan.midpoints, h_t, area * 0.5, moment / 6.0)
+        mid = 0.5 * (xl + xr)
+        mu, slope = _aggregate_at(plan, levels, mid - x0)
+        area += dx * mu
+        moment += dx * (mid * mu + slope * dx * dx * (1.0 / 12.0))
+    return _fallback(plan.midpoints, h_t, area.sum(axis=0), moment.sum(axis=0))
 
 
-def _aggregate_at(plan: CentroidPlan, levels: list[np.ndarray], offset: np.ndarray) -> np.ndarray:
-    """max over pieces of min(piece value, its clip level) at x0 + offset, each (J, n)."""
-    mu = None
+def _aggregate_at(
+    plan: CentroidPlan, levels: list[np.ndarray], offset: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Value and slope of max over pieces of min(piece, its clip level) at x0 + offset, each (J, n)."""
+    mu = slope = None
     for s, level in enumerate(levels):
-        v = np.minimum(plan.slot_v0[:, s, None] + plan.slot_slope[:, s, None] * offset, level)
-        mu = v if mu is None else np.maximum(mu, v, out=mu)
-    return mu
+        v = plan.slot_v0[:, s, None] + plan.slot_slope[:, s, None] * offset
+        value = np.minimum(v, level)
+        piece_slope = np.where(v < level, plan.slot_slope[:, s, None], 0.0)
+        if mu is None:
+            mu, slope = value, piece_slope
+            continue
+        slope = np.where(value > mu, piece_slope, slope)
+        mu = np.maximum(mu, value)
+    return mu, slope
 
 
 def _sorted(arrays: list[np.ndarray]) -> list[np.ndarray]:

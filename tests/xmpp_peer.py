@@ -1,7 +1,8 @@
 """A FarmAgent in its own process, driven by tests/test_xmpp.py: echo, ping, stream or send one message.
 
 Agents in one process bypass XMPP (design.md section 4), so every XMPP test runs two of these. Each
-prints JSON lines on stdout: {"event": "online"|"refused"|"reconnected"|"pong"|"result"|"error", ...}.
+prints JSON lines on stdout: {"event": "online"|"refused"|"reconnected"|"pong"|"result"|"error", ...};
+PEER_LOG=DEBUG in the environment shows slixmpp's traffic on stderr.
 
     python tests/xmpp_peer.py --jid echo@localhost --password pw --port 5222 --peers ping@localhost echo
     python tests/xmpp_peer.py --jid ping@localhost ... ping --to echo@localhost --count 200 --burst 1000
@@ -13,6 +14,7 @@ import argparse
 import asyncio
 import json
 import logging
+import os
 import signal
 import sys
 import time
@@ -173,7 +175,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
-    logging.basicConfig(level=getattr(logging, __import__("os").environ.get("PEER_LOG", "WARNING")), stream=sys.stderr,
+    level = getattr(logging, os.environ.get("PEER_LOG", "WARNING"))
+    logging.basicConfig(level=level, stream=sys.stderr,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
     return asyncio.run(amain(parse_args(argv)))
 

@@ -1,0 +1,75 @@
+"""An agent's speed: a tiny reference render timed in its own render process, and the estimates it implies.
+
+Units. The master's unit cost (`UnitSpec.cost`, from `master.complexity` through `master.partition`) is
+the sum over the unit's pixels of the rays one sample traces (camera ray, bounces, shadow rays): rays at
+1 spp. A unit therefore needs about `cost x spp` rays. An agent's speed is measured in mega-rays per
+second of that same kind, on the reference render below, whose rays per sample were counted once with
+`master.complexity.prepass` (REF_RAYS_PER_SAMPLE). So
+
+    estimate [s] = cost x spp / (speed x 1e6)
+
+where spp is the spp the agent's own rules chose for the unit. At level `off` the master (jobplan) sets
+cost to the unit's pixel count, one "ray" per sample: such estimates come out short by the scene's rays
+per sample, which the agent's per-job correction (render_agent.Calibration) absorbs after one unit.
+
+The reference render: the repository's Cornell box (scenes/cbox.xml, only built-in shapes) at 32x32,
+path tracer depth 6, REF_SPP samples, in the agent's RenderWorker with the agent's thread count. One
+render compiles the kernel (~0.6 s); the best of the timed ones gives the speed (~1.5 s in all).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from core.errors import QuekaroError
+from core.geometry import Rect
+from core.mitsuba_env import DEFAULT_VARIANT
+from core.render_unit import RenderWorker, UnitJob
+from core.scene import SceneSpec
+
+REFERENCE_SCENE = Path(__file__).resolve().parent.parent / "scenes" / "cbox.xml"
+REF_RES = 32
+REF_SPP = 128
+REF_DEPTH = 6
+# Mean rays per sample of the reference render, counted by master.complexity.prepass (path, depth 6,
+# 32x32): 6.67. Measured, not derived: it changes only if scenes/cbox.xml or the tracer changes.
+REF_RAYS_PER_SAMPLE = 6.67
+RAYS_PER_SPEED_UNIT = 1e6
+MIN_SPEED = 1e-6  # core.messages.Register's lower bound
+
+
+@dataclass(frozen=True)
+class SpeedSample:
+    """The measured speed (mega-rays/s), the best timed render's seconds and the pixel samples per second."""
+
+    speed: float
+    seconds: float
+    samples_per_s: float
+    variant: str
+
+
+def reference_job(threads: int | None, spp: int = REF_SPP) -> UnitJob:
+    """The reference render as a unit job (the whole 32x32 image)."""
+    if not REFERENCE_SCENE.is_file():
+        raise QuekaroError(f"reference scene for the speed benchmark not found: {REFERENCE_SCENE}")
+    spec = SceneSpec(REFERENCE_SCENE, {"res": str(REF_RES), "spp": str(spp), "max_depth": str(REF_DEPTH)})
+    return UnitJob(spec, DEFAULT_VARIANT, "path", REF_DEPTH, spp, 7, REF_RES, REF_RES,
+                   Rect(0, 0, REF_RES, REF_RES), threads=threads, job_id="speed-benchmark")
+
+
+def measure_speed(worker: RenderWorker, threads: int | None, repeats: int = 2,
+                  timeout: float = 120.0) -> SpeedSample:
+    """Time the reference render in `worker` (blocking): one untimed warm-up, then the best of `repeats`."""
+    job = reference_job(threads)
+    worker.render(job, timeout)  # compiles the kernel; its time is not the agent's speed
+    tiles = [worker.render(job, timeout) for _ in range(max(1, repeats))]
+    seconds = max(min(float(t.meta["seconds"]) for t in tiles), 1e-6)
+    samples = REF_RES * REF_RES * REF_SPP
+    speed = samples * REF_RAYS_PER_SAMPLE / seconds / RAYS_PER_SPEED_UNIT
+    return SpeedSample(max(speed, MIN_SPEED), seconds, samples / seconds, str(tiles[0].meta.get("variant")))
+
+
+def estimate_seconds(cost: float, spp: int, speed: float) -> float:
+    """Seconds to render a unit of master cost `cost` (rays at 1 spp) at `spp` on an agent of `speed`."""
+    return float(cost) * max(int(spp), 1) / (max(speed, MIN_SPEED) * RAYS_PER_SPEED_UNIT)

@@ -1,0 +1,163 @@
+"""The master's job API over HTTP (`quekaro submit/status/watch/result/cancel` talk to it).
+
+Every route needs the farm's admin token (`Authorization: Bearer ...`): anyone who can reach the port
+must not be able to submit or cancel jobs. Routes:
+
+    POST /api/jobs                 body: scene bundle (tar); header X-Quekaro-Job: {"defines", "options"}
+    GET  /api/jobs                 every job with its progress
+    GET  /api/jobs/{job}           one job: status, progress, agents busy, ETA, error
+    GET  /api/jobs/{job}/result    the composed EXR (409 until the job is done)
+    GET  /api/jobs/{job}/report    the JSON report
+    POST /api/jobs/{job}/cancel
+    GET  /api/agents               agents the auction knows, with their records
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import json
+from typing import TYPE_CHECKING, Any
+
+from aiohttp import web
+
+from core.errors import QuekaroError
+from master.jobplan import RenderOptions
+from master.store import StoreError
+
+if TYPE_CHECKING:
+    from master.service import MasterService
+
+MAX_BUNDLE_BYTES = 1 << 30
+SERVICE_KEY = web.AppKey("quekaro_master", object)
+
+
+def add_job_routes(app: web.Application, service: MasterService) -> None:
+    """Mount the job API on the master's aiohttp application."""
+    app[SERVICE_KEY] = service
+    app.router.add_post("/api/jobs", submit)
+    app.router.add_get("/api/jobs", list_jobs)
+    app.router.add_get("/api/jobs/{job}", job_status)
+    app.router.add_get("/api/jobs/{job}/result", job_result)
+    app.router.add_get("/api/jobs/{job}/report", job_report)
+    app.router.add_post("/api/jobs/{job}/cancel", job_cancel)
+    app.router.add_get("/api/agents", agents)
+
+
+def _error(status: int, reason: str) -> web.Response:
+    return web.json_response({"error": reason}, status=status)
+
+
+def _service(request: web.Request) -> MasterService:
+    service = request.app[SERVICE_KEY]
+    header = request.headers.get("Authorization", "")
+    token = header.removeprefix("Bearer ").strip()
+    if not token or not hmac.compare_digest(token.encode(), service.admin_token.encode()):
+        raise web.HTTPUnauthorized(text=json.dumps({"error": "missing or wrong admin token"}),
+                                   content_type="application/json")
+    return service
+
+
+async def _read_limited(request: web.Request, limit: int) -> bytes:
+    if request.content_length is not None and request.content_length > limit:
+        raise web.HTTPRequestEntityTooLarge(max_size=limit, actual_size=request.content_length)
+    chunks, size = [], 0
+    async for chunk in request.content.iter_chunked(1 << 20):
+        size += len(chunk)
+        if size > limit:
+            raise web.HTTPRequestEntityTooLarge(max_size=limit, actual_size=size)
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+async def submit(request: web.Request) -> web.Response:
+    service = _service(request)
+    try:
+        header = json.loads(request.headers.get("X-Quekaro-Job", "{}"))
+        defines = {str(k): str(v) for k, v in dict(header.get("defines", {})).items()}
+        options = RenderOptions.from_dict(dict(header.get("options", {})))
+    except (ValueError, TypeError, AttributeError) as exc:
+        return _error(400, f"header X-Quekaro-Job: {exc}")
+    except QuekaroError as exc:
+        return _error(400, str(exc))
+    bundle = await _read_limited(request, MAX_BUNDLE_BYTES)
+    try:
+        job_id = await service.submit(bundle, defines, options)
+    except QuekaroError as exc:
+        return _error(422, str(exc))
+    return web.json_response({"job_id": job_id}, status=201)
+
+
+def job_summary(service: MasterService, job_id: str) -> dict[str, Any]:
+    """Status and progress of one job, as the CLI shows it."""
+    record = service.store.job(job_id)
+    progress = service.store.progress(job_id)
+    return {
+        "job_id": record.id, "scene": record.scene, "status": record.status, "error": record.error,
+        "created": record.created, "finished": record.finished, "level": record.options["options"]["level"],
+        "units_done": progress.done, "units_total": progress.total, "units_failed": progress.failed,
+        "agents_busy": progress.agents_busy, "eta_s": progress.eta_s,
+        "result_ready": service.result_path(job_id).exists(),
+    }
+
+
+async def list_jobs(request: web.Request) -> web.Response:
+    service = _service(request)
+    return web.json_response({"jobs": [job_summary(service, r.id) for r in service.store.list_jobs()]})
+
+
+async def job_status(request: web.Request) -> web.Response:
+    service = _service(request)
+    try:
+        return web.json_response(job_summary(service, request.match_info["job"]))
+    except StoreError as exc:
+        return _error(404, str(exc))
+
+
+async def _finished_result(request: web.Request) -> tuple[MasterService, str] | web.Response:
+    service = _service(request)
+    job_id = request.match_info["job"]
+    try:
+        record = service.store.job(job_id)
+    except StoreError as exc:
+        return _error(404, str(exc))
+    if record.status != "done":
+        return _error(409, f"job {job_id} is {record.status}" + (f": {record.error}" if record.error else ""))
+    if not service.result_path(job_id).exists():
+        await asyncio.to_thread(service.assemble, job_id)
+    return service, job_id
+
+
+async def job_result(request: web.Request) -> web.StreamResponse:
+    found = await _finished_result(request)
+    if isinstance(found, web.Response):
+        return found
+    service, job_id = found
+    return web.FileResponse(service.result_path(job_id))
+
+
+async def job_report(request: web.Request) -> web.StreamResponse:
+    found = await _finished_result(request)
+    if isinstance(found, web.Response):
+        return found
+    service, job_id = found
+    return web.FileResponse(service.result_path(job_id).with_suffix(".json"))
+
+
+async def job_cancel(request: web.Request) -> web.Response:
+    service = _service(request)
+    job_id = request.match_info["job"]
+    try:
+        cancelled = await service.cancel(job_id)
+    except StoreError as exc:
+        return _error(404, str(exc))
+    return web.json_response({"job_id": job_id, "cancelled": cancelled})
+
+
+async def agents(request: web.Request) -> web.Response:
+    service = _service(request)
+    rows = []
+    for agent in (service.auction.agents.values() if service.auction else ()):
+        rows.append({"jid": agent.name, "lost": agent.lost, "credits": agent.credits,
+                     "speed": agent.speed, "holding": sorted(f"{j}/{i}" for j, i in agent.holding)})
+    return web.json_response({"agents": rows})

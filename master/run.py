@@ -1,0 +1,55 @@
+"""The master as a process: read its options, run `MasterService` until SIGTERM or SIGINT."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import os
+import signal
+from pathlib import Path
+
+from core.errors import QuekaroError
+from master.service import MasterConfig, MasterService
+
+
+def password_from(args: argparse.Namespace) -> str:
+    """--password, else --password-file, else $QUEKARO_PASSWORD: a missing password is an error."""
+    if args.password:
+        return str(args.password)
+    if args.password_file:
+        return Path(args.password_file).read_text().strip()
+    if os.environ.get("QUEKARO_PASSWORD"):
+        return os.environ["QUEKARO_PASSWORD"]
+    raise QuekaroError("no XMPP password: give --password, --password-file or $QUEKARO_PASSWORD")
+
+
+def config_from(args: argparse.Namespace) -> MasterConfig:
+    from quekaro.farm_client import default_home
+
+    return MasterConfig(
+        home=Path(args.home or default_home()), jid=args.jid, password=password_from(args),
+        xmpp_host=args.server, xmpp_port=args.port, auto_register=args.register, ca_file=args.ca_file,
+        http_host=args.http_host, http_port=args.http_port, public_url=args.public_url, threads=args.threads,
+    )
+
+
+async def serve(config: MasterConfig) -> None:
+    """Run the master until a stop signal arrives."""
+    service = MasterService(config)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    await service.start()
+    try:
+        await stop.wait()
+    finally:
+        await service.stop()
+
+
+def main(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO),
+                        format="%(asctime)s master %(levelname)s %(name)s: %(message)s")
+    asyncio.run(serve(config_from(args)))
+    return 0

@@ -1,0 +1,340 @@
+"""The master process: job store, auction, HTTP data plane and XMPP agent, wired together.
+
+Every protocol decision is the auction's (`master.auction`, a pure state machine); this module only
+feeds it messages, tile uploads and the clock, delivers its `Send`s over XMPP, records its `Event`s in
+the job store, and assembles the image when a job is done. It is deliberately thin.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import re
+import secrets
+import shutil
+import time
+import uuid
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+from core import messages as m
+from core.bundle import BundleLimits, bundle_hash, extract_bundle
+from core.errors import MessageError, QuekaroError
+from core.scene import SceneSpec
+from core.tiles import read_tile
+from master import auction as au
+from master.jobplan import JobPlan, RenderOptions, plan_job
+from master.store import JobRecord, JobStore, restore_auction
+
+log = logging.getLogger(__name__)
+
+TICK_S = 0.2
+
+
+@dataclass
+class MasterConfig:
+    """Where the master keeps its state, and how agents and users reach it."""
+
+    home: Path
+    jid: str = "master@localhost"
+    password: str = ""
+    xmpp_host: str | None = None
+    xmpp_port: int = 5222
+    auto_register: bool = False
+    ca_file: str | None = None
+    http_host: str = "127.0.0.1"
+    http_port: int = 8765
+    public_url: str | None = None  # what agents use to reach the HTTP API (default http://host:port)
+    agent_pattern: str = r"^agent[-\w.]*@{domain}$"  # bare JIDs allowed to bid
+    threads: int | None = None  # Dr.Jit threads of the pre-pass
+    auction: au.Config = field(default_factory=au.Config)
+
+    @property
+    def url(self) -> str:
+        return (self.public_url or f"http://{self.http_host}:{self.http_port}").rstrip("/")
+
+    @property
+    def domain(self) -> str:
+        return self.jid.split("@", 1)[1].split("/", 1)[0]
+
+
+def _plan_in_child(scene_path: str, defines: dict[str, str], options: dict[str, Any], seed: int) -> JobPlan:
+    """Plan a job in a child process: the pre-pass renders, and an LLVM abort must not kill the master."""
+    return plan_job(SceneSpec(Path(scene_path), defines), RenderOptions.from_dict(options), seed=seed)
+
+
+class MasterService:
+    """The running master. `await start()`, then it serves until `await stop()`."""
+
+    def __init__(self, config: MasterConfig) -> None:
+        self.config = config
+        self.home = Path(config.home)
+        self.jobs_dir = self.home / "jobs"
+        self.store = JobStore(self.home / "jobs.sqlite")
+        self.admin_token = _admin_token(self.home)
+        self.auction: au.Auction | None = None
+        self.agent = None
+        self._runner = None
+        self._ticker: asyncio.Task | None = None
+        self._planner = ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"))
+        self._lock = asyncio.Lock()
+        self._assembling: set[str] = set()
+        self._agent_re = re.compile(config.agent_pattern.format(domain=re.escape(config.domain)))
+
+    # ---- life-cycle ---------------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        self.jobs_dir.mkdir(parents=True, exist_ok=True)
+        now = time.time()
+        self.auction, events = restore_auction(self.store, self.job_info, now, self.config.auction)
+        self.store.apply(events, now)
+        await self._start_http()
+        await self._start_xmpp()
+        self._ticker = asyncio.create_task(self._tick_forever(), name="master tick")
+        self._write_farm_file()
+        for record in self.store.list_jobs("done"):
+            if not self.result_path(record.id).exists():
+                self._assemble_later(record.id)
+        log.info("master %s up: HTTP %s, %d running job(s)", self.config.jid, self.config.url,
+                 len(self.auction.jobs))
+
+    async def stop(self) -> None:
+        if self._ticker:
+            self._ticker.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._ticker
+        if self.agent is not None:
+            await self.agent.stop()
+        if self._runner is not None:
+            await self._runner.cleanup()
+        self._planner.shutdown(wait=False, cancel_futures=True)
+        self.store.close()
+
+    async def _start_http(self) -> None:
+        from aiohttp import web
+
+        from master.api_jobs import add_job_routes
+        from master.http_api import create_app
+
+        app = create_app(expected=self._expected_upload, bundle=self._bundle_for, on_tile=self._on_tile,
+                         tile_dir=self.jobs_dir)
+        add_job_routes(app, self)
+        self._runner = web.AppRunner(app, access_log=None)
+        await self._runner.setup()
+        await web.TCPSite(self._runner, self.config.http_host, self.config.http_port).start()
+
+    async def _start_xmpp(self) -> None:
+        from core.xmpp import FarmAgent
+
+        self.agent = FarmAgent(
+            self.config.jid, self.config.password, port=self.config.xmpp_port, server=self.config.xmpp_host,
+            accept_sender=lambda jid: bool(self._agent_re.match(jid)), validate=m.parse,
+            ca_file=self.config.ca_file, verify_security=bool(self.config.ca_file),
+        )
+        self.agent.set_handler(self._on_envelope)
+        await self.agent.start(auto_register=self.config.auto_register)
+
+    def _write_farm_file(self) -> None:
+        info = {"url": self.config.url, "jid": self.config.jid, "token_file": str(self.home / "admin.token")}
+        (self.home / "farm.json").write_text(json.dumps(info, indent=2))
+
+    # ---- jobs ---------------------------------------------------------------------------------------
+
+    def job_dir(self, job_id: str) -> Path:
+        return self.jobs_dir / job_id
+
+    def result_path(self, job_id: str) -> Path:
+        return self.job_dir(job_id) / "result.exr"
+
+    def job_info(self, record: JobRecord) -> m.JobInfo:
+        """The job as agents see it in calls for proposals (rebuilt from the store after a restart)."""
+        plan = record.options["plan"]
+        return m.JobInfo(
+            job_id=record.id, scene_url=f"{self.config.url}/jobs/{record.id}/bundle",
+            scene_hash=plan["bundle_sha256"], width=plan["width"], height=plan["height"], spp=plan["spp"],
+            depth=plan["depth"], level=record.options["options"]["level"],
+            ranges={k: tuple(v) for k, v in plan["ranges"].items()}, scene_name=record.scene,
+            defines=dict(record.defines), variant=plan["effects"]["variant"],
+            integrator=plan["effects"]["integrator"],
+        )
+
+    async def submit(self, bundle: bytes, defines: dict[str, str], options: RenderOptions) -> str:
+        """Accept a job: keep its bundle, plan it (pre-pass in a child process), auction its units."""
+        job_id = uuid.uuid4().hex[:12]
+        job_dir = self.job_dir(job_id)
+        job_dir.mkdir(parents=True)
+        try:
+            (job_dir / "bundle.tar").write_bytes(bundle)
+            scene = extract_bundle(bundle, job_dir / "scene", BundleLimits())
+            loop = asyncio.get_running_loop()
+            plan = await loop.run_in_executor(
+                self._planner, _plan_in_child, str(scene), defines, options.to_dict(),
+                int.from_bytes(bytes.fromhex(job_id[:8]), "little"))
+        except BaseException:
+            shutil.rmtree(job_dir, ignore_errors=True)
+            raise
+        scene_name = str(scene.relative_to(job_dir / "scene"))
+        self._create_job(job_id, scene_name, defines, options, plan, bundle_hash(bundle))
+        return job_id
+
+    def _create_job(self, job_id: str, scene_name: str, defines: dict[str, str], options: RenderOptions,
+                    plan: JobPlan, sha256: str) -> None:
+        stored = {"options": options.to_dict(), "plan": {
+            "width": plan.width, "height": plan.height, "spp": plan.spp, "depth": plan.depth,
+            "effects": plan.effects.to_dict(), "ranges": {k: list(v) for k, v in plan.ranges().items()},
+            "prepass_seconds": plan.prepass_seconds, "prepass_info": plan.prepass_info,
+            "bundle_sha256": sha256, "neighbours": {u.index: list(u.neighbours) for u in plan.units},
+        }}
+        specs = [m.UnitSpec(index=u.index, rect=u.rect, C=u.C, S=float(u.S), Nd=u.Nd, cost=u.cost)
+                 for u in plan.units]
+        now = time.time()
+        self.store.create_job(job_id, scene_name, defines, stored, specs, now)
+        events = self.auction.add_job(self.job_info(self.store.job(job_id)), specs)
+        self.store.apply(events, now)
+
+    async def cancel(self, job_id: str) -> bool:
+        async with self._lock:
+            if self.auction is None or job_id not in self.auction.jobs:
+                return self.store.cancel(job_id, time.time())
+            await self._execute(self.auction.cancel_job(job_id))
+            return True
+
+    # ---- the data plane's callbacks -----------------------------------------------------------------
+
+    def _expected_upload(self, job_id: str, index: int) -> tuple[str, Any] | None:
+        job = self.auction.jobs.get(job_id) if self.auction else None
+        unit = job.units.get(index) if job else None
+        if unit is None or unit.status != au.UnitStatus.AWARDED or unit.token is None:
+            return None
+        return unit.token, unit.spec.rect
+
+    def _bundle_for(self, job_id: str) -> tuple[Path, str] | None:
+        path = self.job_dir(job_id) / "bundle.tar"
+        if not path.is_file():
+            return None
+        return path, self.store.job(job_id).options["plan"]["bundle_sha256"]
+
+    async def _on_tile(self, job_id: str, index: int, path: Path, sha256: str, agent: str | None = None) -> None:
+        """A tile is on disk (fsynced): record it, then let the auction count the unit as done."""
+        async with self._lock:
+            job = self.auction.jobs.get(job_id)
+            unit = job.units.get(index) if job else None
+            if unit is None or unit.status != au.UnitStatus.AWARDED:
+                return
+            meta = read_tile(path).meta
+            params = _params_from_meta(meta)
+            self.store.record_result(job_id, index, str(path), sha256, params, time.time())
+            inform = m.Inform(
+                conversation=unit.conversation, job_id=job_id, index=index, token=unit.token,
+                tile_hash=sha256, depth=params["depth"], spp=params["spp"], band=params["band"],
+                seconds=params["seconds"], nonfinite=params["nonfinite"])
+            await self._execute(self.auction.on_inform(unit.agent, inform, time.time()))
+
+    # ---- messages and time --------------------------------------------------------------------------
+
+    async def _on_envelope(self, env: Any) -> None:
+        try:
+            msg = m.parse(env.performative, env.body)
+        except MessageError as exc:
+            log.warning("refused %s from %s: %s", env.performative, env.sender, exc)
+            return
+        async with self._lock:
+            now = time.time()
+            await self._execute(self.auction.on_message(env.sender, msg, now) + self.auction.tick(now))
+
+    async def _tick_forever(self) -> None:
+        while True:
+            await asyncio.sleep(TICK_S)
+            try:
+                async with self._lock:
+                    await self._execute(self.auction.tick(time.time()))
+            except Exception:  # one bad tick must not stop the master
+                log.exception("master tick failed")
+
+    async def _execute(self, commands: list[au.Command]) -> None:
+        """Record events first (the store is the truth after a crash), then send messages."""
+        self.store.apply(commands, time.time())
+        for cmd in commands:
+            if isinstance(cmd, au.Send):
+                performative, body = m.encode(cmd.message)
+                await self.agent.send(cmd.to, performative, body, conversation_id=cmd.message.conversation,
+                                      protocol=m.PROTOCOL, ontology=m.ONTOLOGY)
+            elif cmd.kind == "job-done":
+                self._assemble_later(cmd.job_id)
+            elif cmd.kind != "ignored" or cmd.reason:
+                log.info("%s job=%s unit=%s agent=%s %s", cmd.kind, cmd.job_id, cmd.index, cmd.agent,
+                         cmd.reason)
+
+    # ---- the final image ----------------------------------------------------------------------------
+
+    def _assemble_later(self, job_id: str) -> None:
+        if job_id in self._assembling:
+            return
+        self._assembling.add(job_id)
+
+        async def run() -> None:
+            try:
+                await asyncio.to_thread(self.assemble, job_id)
+            except Exception:
+                log.exception("job %s: assembling the image failed", job_id)
+            finally:
+                self._assembling.discard(job_id)
+
+        asyncio.get_running_loop().create_task(run(), name=f"assemble {job_id}")
+
+    def assemble(self, job_id: str) -> dict[str, Any]:
+        """Compose the job's tiles into result.exr/.png/.json (again, if asked: it is deterministic)."""
+        from master.pipeline import assemble
+
+        with JobStore(self.store.path) as store:  # a connection of this thread's own
+            record = store.job(job_id)
+            results = store.results(job_id)
+            plan = plan_from_record(record, store, self.job_dir(job_id))
+        tiles = [read_tile(r.tile_path) for r in results]
+        params = {r.index: r.params for r in results}
+        report = assemble(plan, tiles, params, self.result_path(job_id), started=time.perf_counter(),
+                          extra={"job_id": job_id, "created": record.created, "finished": record.finished})
+        return report
+
+
+def plan_from_record(record: JobRecord, store: JobStore, job_dir: Path) -> JobPlan:
+    """The JobPlan of a stored job, enough to assemble its image and report."""
+    from core.effects import Effects
+    from core.units import Unit
+
+    plan = record.options["plan"]
+    neighbours = {int(k): tuple(v) for k, v in plan.get("neighbours", {}).items()}
+    units = [Unit(index=u.index, rect=u.rect, C=u.C, S=int(u.S), Nd=u.Nd, cost=u.cost,
+                  neighbours=neighbours.get(u.index, ())) for u in store.units(record.id)]
+    spec = SceneSpec(job_dir / "scene" / record.scene, record.defines)
+    return JobPlan(spec, RenderOptions.from_dict(record.options["options"]), plan["width"], plan["height"],
+                   Effects.from_dict(plan["effects"]), plan["spp"], plan["depth"], units,
+                   plan["prepass_seconds"], plan["prepass_info"])
+
+
+def _params_from_meta(meta: dict[str, Any]) -> dict[str, Any]:
+    """The parameters an agent chose, as its tile's header states them (validated: they enter the report)."""
+    try:
+        params = {"depth": int(meta.get("depth", -1) if meta.get("depth") is not None else -1),
+                  "spp": int(meta["spp"]), "band": int(meta.get("band", 0)),
+                  "seconds": float(meta.get("seconds", 0.0)), "nonfinite": int(meta.get("nonfinite", 0))}
+    except (KeyError, TypeError, ValueError) as exc:
+        raise QuekaroError(f"tile header lacks valid render parameters: {exc}") from exc
+    params["outputs"] = meta.get("outputs") if isinstance(meta.get("outputs"), dict) else {}
+    params["agent"] = meta.get("agent")
+    return params
+
+
+def _admin_token(home: Path) -> str:
+    """The secret that `quekaro submit/cancel` must present: created once, readable by the owner only."""
+    home.mkdir(parents=True, exist_ok=True)
+    path = home / "admin.token"
+    if not path.exists():
+        path.touch(mode=0o600)
+        path.write_text(secrets.token_hex(24))
+    return path.read_text().strip()

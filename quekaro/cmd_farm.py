@@ -1,0 +1,198 @@
+"""`quekaro up | demo | master | agent | submit | status | watch | result | cancel`: running a farm, and
+using one. The processes themselves live in `quekaro.local_farm` (up, demo), `master.service` and
+`agents.render_agent`; this module is argument parsing and printing."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from quekaro.cmd_render import add_job_arguments, options_from_args
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    _register_up(sub)
+    _register_master(sub)
+    agent = sub.add_parser("agent", help="run one render agent against an XMPP server", add_help=False)
+    agent.add_argument("agent_args", nargs=argparse.REMAINDER)
+    agent.set_defaults(func=run_agent)
+    _register_client(sub)
+
+
+def _add_farm_location(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--home", type=Path, help="farm directory (default: $QUEKARO_HOME or ~/.quekaro/farm)")
+    parser.add_argument("--url", help="master URL (default: from HOME/farm.json)")
+    parser.add_argument("--token-file", type=Path, help="admin token file (default: HOME/admin.token)")
+
+
+def _register_up(sub: argparse._SubParsersAction) -> None:
+    for name, text in (("up", "a whole local farm: embedded XMPP server, master and N agents"),
+                       ("demo", "start a local farm, render a sample scene on it, print where the outputs are")):
+        parser = sub.add_parser(name, help=text)
+        parser.add_argument("--agents", type=int, default=2, help="render agents (default 2)")
+        parser.add_argument("--home", type=Path, help="farm directory (default: $QUEKARO_HOME or ~/.quekaro/farm)")
+        parser.add_argument("--http-port", type=int, default=0, help="master HTTP port (default: a free one)")
+        parser.add_argument("--threads", type=int, help="Dr.Jit threads per agent (default: cores / agents)")
+        parser.add_argument("--rules", type=Path, action="append", default=[],
+                            help="rule file for the agents; repeat to give agents different rules")
+        if name == "demo":
+            parser.add_argument("-o", "--out", type=Path, default=Path("out/demo.exr"))
+            parser.add_argument("--opt", dest="level", default="S", help="optimisation level (default S)")
+        parser.set_defaults(func=run_up if name == "up" else run_demo)
+
+
+def _register_master(sub: argparse._SubParsersAction) -> None:
+    parser = sub.add_parser("master", help="run the master against an XMPP server")
+    parser.add_argument("--home", type=Path, help="state directory (default: $QUEKARO_HOME or ~/.quekaro/farm)")
+    parser.add_argument("--jid", default="master@localhost")
+    parser.add_argument("--password", help="XMPP password (or --password-file, or $QUEKARO_PASSWORD)")
+    parser.add_argument("--password-file", type=Path)
+    parser.add_argument("--server", help="XMPP server host (default: the JID's domain)")
+    parser.add_argument("--port", type=int, default=5222, help="XMPP client port")
+    parser.add_argument("--register", action="store_true", help="create the account in-band (embedded server)")
+    parser.add_argument("--ca-file", help="CA certificate to verify the XMPP server's TLS certificate")
+    parser.add_argument("--http-host", default="127.0.0.1", help="address the HTTP API binds to")
+    parser.add_argument("--http-port", type=int, default=8765)
+    parser.add_argument("--public-url", help="URL agents use to reach the HTTP API (default http://HOST:PORT)")
+    parser.add_argument("--threads", type=int, help="Dr.Jit threads of the pre-pass")
+    parser.add_argument("--log-level", default="INFO")
+    parser.set_defaults(func=run_master)
+
+
+def _register_client(sub: argparse._SubParsersAction) -> None:
+    submit = sub.add_parser("submit", help="submit a scene to the farm")
+    add_job_arguments(submit)
+    _add_farm_location(submit)
+    submit.add_argument("--wait", action="store_true", help="watch the job until it ends")
+    submit.set_defaults(func=run_submit)
+    status = sub.add_parser("status", help="jobs and their progress (one job if given)")
+    status.add_argument("job", nargs="?")
+    status.add_argument("--json", action="store_true")
+    _add_farm_location(status)
+    status.set_defaults(func=run_status)
+    watch = sub.add_parser("watch", help="a live progress bar for a job: units done, agents busy, ETA")
+    watch.add_argument("job")
+    _add_farm_location(watch)
+    watch.set_defaults(func=run_watch)
+    result = sub.add_parser("result", help="download a finished job's image (and its report)")
+    result.add_argument("job")
+    result.add_argument("-o", "--out", type=Path, required=True)
+    _add_farm_location(result)
+    result.set_defaults(func=run_result)
+    cancel = sub.add_parser("cancel", help="cancel a job")
+    cancel.add_argument("job")
+    _add_farm_location(cancel)
+    cancel.set_defaults(func=run_cancel)
+
+
+# ---- running processes ---------------------------------------------------------------------------------
+
+
+def run_up(args: argparse.Namespace) -> int:
+    from quekaro.local_farm import LocalFarm
+
+    with LocalFarm(args.home, args.agents, args.threads, args.rules, args.http_port) as farm:
+        print(f"farm up: master {farm.url}, {args.agents} agents, home {farm.home} (Ctrl-C stops it)")
+        farm.wait()
+    return 0
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    from quekaro.local_farm import run_demo as demo
+
+    return demo(args)
+
+
+def run_master(args: argparse.Namespace) -> int:
+    from master.run import main
+
+    return main(args)
+
+
+def run_agent(args: argparse.Namespace) -> int:
+    from agents.render_agent import main
+
+    return int(main(args.agent_args) or 0)
+
+
+# ---- using a farm ----------------------------------------------------------------------------------------
+
+
+def _client(args: argparse.Namespace):
+    from quekaro.farm_client import FarmClient
+
+    return FarmClient.from_home(args.home, args.url, args.token_file)
+
+
+def run_submit(args: argparse.Namespace) -> int:
+    import tempfile
+
+    from core.bundle import make_bundle
+    from core.scene import parse_defines
+
+    defines = parse_defines(args.defines)
+    options = options_from_args(args).to_dict()
+    with tempfile.TemporaryDirectory() as tmp:
+        bundle = Path(make_bundle(args.scene, defines, Path(tmp) / "bundle.tar").path).read_bytes()
+    client = _client(args)
+    job_id = client.submit(bundle, defines, options)
+    print(job_id)
+    if args.wait:
+        return watch(client, job_id)
+    return 0
+
+
+def run_status(args: argparse.Namespace) -> int:
+    client = _client(args)
+    jobs = [client.status(args.job)] if args.job else client.jobs()
+    if args.json:
+        print(json.dumps(jobs, indent=2))
+        return 0
+    for job in jobs:
+        eta = f"{job['eta_s']:.0f} s" if job.get("eta_s") is not None else "-"
+        print(f"{job['job_id']}  {job['status']:<9} {job['units_done']}/{job['units_total']} units  "
+              f"agents busy {job['agents_busy']}  ETA {eta}  {job['scene']}"
+              + (f"  error: {job['error']}" if job.get("error") else ""))
+    return 0
+
+
+def run_watch(args: argparse.Namespace) -> int:
+    return watch(_client(args), args.job)
+
+
+def watch(client, job_id: str, poll_s: float = 0.5) -> int:
+    """A live progress bar until the job ends; exit status 0 only if it is done."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} units"),
+               TextColumn("agents busy {task.fields[busy]}"), TextColumn("ETA {task.fields[eta]}"),
+               TimeElapsedColumn())
+    with Progress(*columns, transient=False) as progress:
+        task = progress.add_task(job_id, total=None, busy=0, eta="-")
+        while True:
+            job = client.status(job_id)
+            eta = f"{job['eta_s']:.0f}s" if job.get("eta_s") is not None else "-"
+            progress.update(task, total=job["units_total"], completed=job["units_done"],
+                            busy=job["agents_busy"], eta=eta, description=f"{job_id} {job['status']}")
+            if job["status"] != "running":
+                break
+            time.sleep(poll_s)
+    if job["status"] != "done":
+        print(f"job {job_id} {job['status']}: {job.get('error', '')}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def run_result(args: argparse.Namespace) -> int:
+    out = _client(args).result(args.job, args.out)
+    print(f"{out}  report: {out.with_suffix('.json')}")
+    return 0
+
+
+def run_cancel(args: argparse.Namespace) -> int:
+    cancelled = _client(args).cancel(args.job)
+    print(f"{args.job}: {'cancelled' if cancelled else 'had already ended'}")
+    return 0

@@ -1,0 +1,166 @@
+"""The rule-file loader: both dialects, and every kind of invalid or hostile file refused clearly."""
+
+from __future__ import annotations
+
+import pytest
+from fuzzy_helpers import DATA, RULES, SIMPLE_IN, SIMPLE_OUT, SIMPLE_RULES, system_xml
+
+from fuzzy import RuleFileError, load_rulebase, parse_rulebase
+from fuzzy.loader import MAX_BYTES
+
+
+def _refuse(text: str | bytes, tmp_path) -> RuleFileError:
+    path = tmp_path / "bad.xml"
+    path.write_bytes(text.encode() if isinstance(text, str) else text)
+    with pytest.raises(RuleFileError) as info:
+        load_rulebase(path)
+    assert info.value.file == str(path)
+    assert str(path) in str(info.value)
+    return info.value
+
+
+def test_paper_dialect_rule_base_loads():
+    rb = load_rulebase(RULES)
+    assert len(rb.rules) == 28
+    assert [v.name for v in rb.inputs] == ["C", "S", "Nd", "Op"]
+    assert [v.name for v in rb.outputs] == ["Ls", "Rl", "Ibs"]
+    assert [v.dynamic for v in rb.inputs] == [True, True, True, False]
+    r1 = rb.rules[0]
+    assert r1.antecedents[0].labels == ("B", "VB")  # "{B, VB}" means OR
+
+
+def test_masyro_dialect_with_wrapper_and_any_attribute_order():
+    rb = load_rulebase(DATA / "masyro_dialect.xml")
+    assert rb.name == "masyro-small"
+    assert rb.input("C").sets[0].vertices == (0.0, 0.0, 0.0, 5.0)
+    assert rb.input("C").sets[1].vertices == (0.0, 5.0, 5.0, 10.0)
+    assert rb.output("Rl").default == 9.0
+    assert rb.rules[0].antecedents[1].variable == "Op"
+    assert rb.rules[0].consequents[0].label == "VS"
+
+
+def test_system_as_root_parses_from_bytes():
+    rb = parse_rulebase(system_xml(SIMPLE_IN, SIMPLE_OUT, SIMPLE_RULES).encode())
+    assert len(rb.rules) == 2 and rb.output("y").universe == (0.0, 10.0)
+
+
+@pytest.mark.parametrize(
+    ("fset", "fault"),
+    [
+        ('a="3" b="2" c="4" d="5"', "a=3 > b=2"),
+        ('a="1" b="5" c="4" d="6"', "b=5 > c=4"),
+        ('a="1" b="2" c="7" d="6"', "c=7 > d=6"),
+        ('a="1" b="x" c="4" d="6"', "schema"),
+        ('a="1" b="NaN" c="4" d="6"', "not a finite number"),
+        ('a="1" b="INF" c="4" d="6"', "not a finite number"),
+        ('a="1" b="2" c="4"', "no 'd' vertex"),
+    ],
+)
+def test_bad_trapezoid_names_file_line_variable_label(tmp_path, fset, fault):
+    out = f'<linguisticvar type="out" name="y" default="5">\n  <fset label="Odd" {fset}/>\n</linguisticvar>'
+    rules = '<rule><antecedent name="x" label="L"/><consequent name="y" label="Odd"/></rule>'
+    err = _refuse(system_xml(SIMPLE_IN, out, rules), tmp_path)
+    assert fault in str(err)
+    assert (err.variable, err.label) == ("y", "Odd")
+    assert err.line == 8
+
+
+def test_masyro_typo_d_smaller_than_c_is_refused():
+    with pytest.raises(RuleFileError) as info:
+        load_rulebase(DATA / "invalid" / "trapezoid_d_lt_c.xml")
+    err = info.value
+    assert (err.variable, err.label, err.line) == ("Ls", "B", 9)
+    assert "c=9 > d=1" in str(err)
+
+
+@pytest.mark.parametrize(
+    ("rules", "variable", "label", "fault"),
+    [
+        ('<rule><antecedent name="z" label="L"/><consequent name="y" label="L"/></rule>', "z", "L",
+         "unknown input variable"),
+        ('<rule><antecedent name="x" label="{L, Q}"/><consequent name="y" label="L"/></rule>', "x", "Q",
+         "unknown label"),
+        ('<rule><antecedent name="x" label="L"/><consequent name="y" label="M"/></rule>', "y", "M",
+         "unknown label"),
+        ('<rule><antecedent name="x" label="L"/><consequent name="x" label="L"/></rule>', "x", "L",
+         "unknown output variable"),
+        ('<rule><antecedent name="x" varname="x" label="L"/><consequent name="y" label="L"/></rule>', "x", None,
+         "exactly one of name/varname"),
+    ],
+)
+def test_bad_rule_references(tmp_path, rules, variable, label, fault):
+    err = _refuse(system_xml(SIMPLE_IN, SIMPLE_OUT, rules), tmp_path)
+    assert fault in str(err)
+    assert (err.variable, err.label) == (variable, label)
+    assert err.line is not None
+
+
+def test_rule_without_consequent(tmp_path):
+    err = _refuse(system_xml(SIMPLE_IN, SIMPLE_OUT, '<rule name="R9"><antecedent name="x" label="L"/></rule>'),
+                  tmp_path)
+    assert "R9" in str(err)
+
+
+@pytest.mark.parametrize(
+    ("outputs", "fault", "label"),
+    [
+        ('<linguisticvar type="out" name="y" default="5"/>', "no fuzzy sets", None),
+        ('<linguisticvar type="out" name="y" default="5"><fset label="L" a="0" b="1" c="1" d="2"/>'
+         '<fset label="L" a="1" b="2" c="2" d="3"/></linguisticvar>', "duplicate label", "L"),
+        ('<linguisticvar type="out" name="y"><fset label="L" a="0" b="1" c="1" d="2"/></linguisticvar>',
+         "declares no default", None),
+        ('<linguisticvar type="out" name="y" default="50"><fset label="L" a="0" b="1" c="1" d="2"/>'
+         "</linguisticvar>", "outside the universe", None),
+        ('<linguisticvar type="out" name="y" default="NaN"><fset label="L" a="0" b="1" c="1" d="2"/>'
+         "</linguisticvar>", "not a finite number", None),
+    ],
+)
+def test_bad_output_variables(tmp_path, outputs, fault, label):
+    rules = '<rule><antecedent name="x" label="L"/><consequent name="y" label="L"/></rule>'
+    err = _refuse(system_xml(SIMPLE_IN, outputs, rules), tmp_path)
+    assert fault in str(err)
+    assert err.variable == "y" and err.label == label
+
+
+def test_dynamic_variable_rejects_vertices_and_outputs_cannot_be_dynamic(tmp_path):
+    dyn = '<linguisticvar type="in" name="x" dynamic="true"><fset label="L" a="0" b="0" c="1" d="2"/>' \
+          "</linguisticvar>"
+    err = _refuse(system_xml(dyn, SIMPLE_OUT, SIMPLE_RULES), tmp_path)
+    assert "only a label" in str(err) and err.variable == "x"
+    out = '<linguisticvar type="out" name="y" dynamic="true" default="1"><fset label="L"/></linguisticvar>'
+    err = _refuse(system_xml(SIMPLE_IN, out, SIMPLE_RULES), tmp_path)
+    assert "only input variables can be dynamic" in str(err)
+
+
+def test_schema_violation_unknown_element(tmp_path):
+    err = _refuse(system_xml(SIMPLE_IN, SIMPLE_OUT, SIMPLE_RULES + "\n<script/>"), tmp_path)
+    assert "schema" in str(err) and err.line is not None
+
+
+def test_wrapper_without_system(tmp_path):
+    err = _refuse("<rules><other/></rules>", tmp_path)
+    assert "<system>" in str(err)
+
+
+@pytest.mark.parametrize("name", ["billion_laughs", "external_entity"])
+def test_entity_declarations_refused_before_parsing(name):
+    with pytest.raises(RuleFileError) as info:
+        load_rulebase(DATA / "invalid" / f"{name}.xml")
+    assert "DOCTYPE" in str(info.value) and info.value.line == 2
+
+
+def test_not_xml_refused_with_line():
+    with pytest.raises(RuleFileError) as info:
+        load_rulebase(DATA / "invalid" / "not_xml.xml")
+    assert "not well-formed XML" in str(info.value) and info.value.line == 1
+
+
+def test_huge_file_refused_without_parsing(tmp_path):
+    filler = b"<!--" + b"x" * (MAX_BYTES + 10) + b"-->"
+    err = _refuse(system_xml(SIMPLE_IN, SIMPLE_OUT, SIMPLE_RULES).encode() + filler, tmp_path)
+    assert "larger than" in str(err)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(RuleFileError, match="cannot read"):
+        load_rulebase(tmp_path / "nope.xml")

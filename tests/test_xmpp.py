@@ -1,0 +1,225 @@
+"""The XMPP layer with real processes: two FarmAgents in separate processes (tests/xmpp_peer.py) talk
+through SPADE's embedded server and through a real Prosody with TLS; refusals; a server restart."""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from core.xmpp_server import EmbeddedXmppServer, ProsodyServer
+
+REPO = Path(__file__).resolve().parent.parent
+PEER = REPO / "tests" / "xmpp_peer.py"
+FIGURES: dict[str, object] = {}
+
+
+class Peer:
+    """A tests/xmpp_peer.py child process and the JSON events it prints."""
+
+    def __init__(self, port: int, jid: str, password: str, mode: str, *extra: str, peers: str = "",
+                 register: bool = False) -> None:
+        cmd = [sys.executable, str(PEER), "--jid", jid, "--password", password, "--port", str(port),
+               "--peers", peers, *(["--register"] if register else []), *extra, mode]
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                     cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO)))
+        self.events: queue.Queue[dict] = queue.Queue()
+        self.seen: list[dict] = []
+        self.stderr: list[str] = []
+        threading.Thread(target=self._read, daemon=True).start()
+        threading.Thread(target=lambda: self.stderr.extend(self.proc.stderr), daemon=True).start()
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            if line.startswith("{"):
+                self.events.put(json.loads(line))
+
+    def wait_for(self, event: str, timeout: float = 30.0, **match: object) -> dict:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                ev = self.events.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            self.seen.append(ev)
+            if ev["event"] == event and all(ev.get(k) == v for k, v in match.items()):
+                return ev
+            if ev["event"] == "error" and event != "error":
+                raise AssertionError(f"peer failed: {ev['reason']}\n{''.join(self.stderr[-20:])}")
+        raise AssertionError(f"no {event!r} event within {timeout} s; saw {self.seen[-5:]}\n"
+                             + "".join(self.stderr[-20:]))
+
+    def drain(self) -> list[dict]:
+        while True:
+            try:
+                self.seen.append(self.events.get_nowait())
+            except queue.Empty:
+                return self.seen
+
+    def stop(self, timeout: float = 15.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+        try:
+            return self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            return self.proc.wait()
+
+
+@pytest.fixture()
+def embedded(tmp_path: Path):
+    server = EmbeddedXmppServer(tmp_path / "xmpp")
+    server.start()
+    yield server
+    server.stop()
+
+
+@pytest.fixture()
+def peers():
+    started: list[Peer] = []
+
+    def spawn(*args: object, **kwargs: object) -> Peer:
+        peer = Peer(*args, **kwargs)
+        started.append(peer)
+        return peer
+
+    yield spawn
+    for peer in started:
+        peer.stop()
+
+
+def listening_sockets(pid: int) -> list[str]:
+    """Local addresses on which process `pid` listens (TCP), read with `ss`."""
+    out = subprocess.run(["ss", "-ltnpH"], capture_output=True, text=True, check=True).stdout
+    return [line.split()[3] for line in out.splitlines() if f"pid={pid}," in line]
+
+
+def ping_figures(server_port: int, spawn, register: bool, passwords: dict[str, str]) -> dict:
+    echo = spawn(server_port, "echo@localhost", passwords["echo"], "echo", peers="ping@localhost",
+                 register=register)
+    echo.wait_for("online")
+    ping = spawn(server_port, "ping@localhost", passwords["ping"], "ping", "--to", "echo@localhost",
+                 "--count", "200", "--burst", "1000", peers="echo@localhost", register=register)
+    online = ping.wait_for("online")
+    result = ping.wait_for("result", timeout=90)
+    assert ping.stop() == 0
+    return {"online": online, "result": result, "echo": echo, "ping": ping}
+
+
+def test_embedded_server_binds_loopback_only_and_keeps_a_file_database(embedded: EmbeddedXmppServer) -> None:
+    addrs = listening_sockets(embedded.pid)
+    assert addrs, "the embedded server listens nowhere"
+    assert all(a.startswith("127.0.0.1:") for a in addrs), addrs
+    assert f"127.0.0.1:{embedded.port}" in addrs
+    assert not any(a.endswith(":9090") for a in addrs)  # pyjabber's admin page is not started
+    assert embedded.database.is_file()
+
+
+def test_two_processes_exchange_messages_through_the_embedded_server(embedded, peers) -> None:
+    out = ping_figures(embedded.port, peers, register=True, passwords={"echo": "pw-e", "ping": "pw-p"})
+    result = out["result"]
+    assert result["count"] == 200
+    assert result["burst_received"] == result["burst"] == 1000
+    assert out["online"]["tls"] is True
+    FIGURES["embedded"] = {k: result[k] for k in ("rtt_median_ms", "rtt_p95_ms", "msgs_per_s")}
+    print("\nembedded server:", FIGURES["embedded"])
+    # SPADE's web interface is never started: the agent listens on no socket at all.
+    assert listening_sockets(out["echo"].proc.pid) == []
+
+
+def test_unknown_senders_oversized_and_malformed_messages_are_refused(embedded, peers) -> None:
+    echo = peers(embedded.port, "echo@localhost", "pw-e", "echo", peers="ping@localhost", register=True)
+    echo.wait_for("online")
+    ping = peers(embedded.port, "ping@localhost", "pw-p", "stream", "--to", "echo@localhost",
+                 "--interval", "0.2", peers="echo@localhost", register=True)
+    ping.wait_for("pong")
+    intruder = peers(embedded.port, "mallory@localhost", "pw-m", "send", "--to", "echo@localhost",
+                     register=True)
+    refusal = echo.wait_for("refused", sender="mallory@localhost")
+    assert refusal["kind"] == "sender"
+    intruder.wait_for("sent")
+    # The agent survived all of it: pongs still come back.
+    seq = max(e["seq"] for e in ping.drain() if e["event"] == "pong")
+    ping.wait_for("pong", seq=seq + 2, timeout=10)
+
+
+def test_known_sender_oversized_and_bad_metadata_refused(embedded, peers) -> None:
+    echo = peers(embedded.port, "echo@localhost", "pw-e", "echo", peers="friend@localhost", register=True)
+    echo.wait_for("online")
+    big = peers(embedded.port, "friend@localhost", "pw-f", "send", "--to", "echo@localhost",
+                "--body-size", "5000", "--linger", "0.5", register=True)
+    assert echo.wait_for("refused", sender="friend@localhost")["kind"] == "size"
+    assert big.stop() == 0
+    bad = peers(embedded.port, "friend@localhost", "pw-f", "send", "--to", "echo@localhost",
+                "--ontology", "", "--linger", "0.5", register=True)
+    refusal = echo.wait_for("refused", sender="friend@localhost")
+    assert refusal["kind"] == "metadata" and "ontology" in refusal["reason"]
+    assert bad.stop() == 0
+    assert echo.proc.poll() is None  # still running
+
+
+@pytest.mark.slow
+def test_both_agents_reconnect_by_themselves_after_a_server_restart(tmp_path, peers) -> None:
+    server = EmbeddedXmppServer(tmp_path / "xmpp")
+    server.start()
+    try:
+        echo = peers(server.port, "echo@localhost", "pw-e", "echo", peers="ping@localhost", register=True)
+        echo.wait_for("online")
+        ping = peers(server.port, "ping@localhost", "pw-p", "stream", "--to", "echo@localhost",
+                     "--interval", "0.1", peers="echo@localhost", register=True)
+        before = ping.wait_for("pong", seq=5)
+        stopped_at = time.time()
+        server.restart(downtime=1.0)
+        up_at = time.time()
+        back_ping = ping.wait_for("reconnected", timeout=30)
+        back_echo = echo.wait_for("reconnected", timeout=30)
+        first_after = ping.wait_for("pong", timeout=30)
+        while first_after["sent"] < up_at:
+            first_after = ping.wait_for("pong", timeout=30)
+        later = ping.wait_for("pong", seq=first_after["seq"] + 10, timeout=30)
+        assert later["rtt_ms"] < 1000
+    finally:
+        server.stop()
+    FIGURES["restart"] = {
+        "outage_ping_s": round(back_ping["outage_s"], 2), "outage_echo_s": round(back_echo["outage_s"], 2),
+        "server_down_s": round(up_at - stopped_at, 2),
+        "first_pong_after_server_up_s": round(first_after["t"] - up_at, 2),
+    }
+    print("\nrestart:", FIGURES["restart"], "last pong before:", before["seq"])
+    assert back_ping["outage_s"] < (up_at - stopped_at) + 10
+
+
+needs_prosody = pytest.mark.skipif(shutil.which("prosody") is None or shutil.which("openssl") is None,
+                                   reason="prosody/openssl not installed (Debian packages prosody, openssl)")
+
+
+@pytest.mark.slow
+@needs_prosody
+def test_two_processes_through_prosody_with_tls_and_closed_registration(tmp_path, peers) -> None:
+    server = ProsodyServer(tmp_path / "prosody")
+    passwords = server.register_all(["echo", "ping"])
+    server.start()
+    try:
+        assert listening_sockets(server.pid) == [f"127.0.0.1:{server.port}"]
+        out = ping_figures(server.port, peers, register=False, passwords=passwords)
+        assert out["online"]["tls"] is True
+        result = out["result"]
+        assert result["burst_received"] == result["burst"] == 1000
+        FIGURES["prosody"] = {k: result[k] for k in ("rtt_median_ms", "rtt_p95_ms", "msgs_per_s")}
+        print("\nprosody:", FIGURES["prosody"])
+        # Registration is closed: a new account cannot be made in-band, so the login fails.
+        stranger = peers(server.port, "stranger@localhost", "whatever", "send", "--to", "echo@localhost",
+                         "--connect-timeout", "3", register=True)
+        assert "login refused" in stranger.wait_for("error", timeout=30)["reason"]
+        wrong = peers(server.port, "echo@localhost", "wrong-password", "echo", "--connect-timeout", "3")
+        assert "login refused" in wrong.wait_for("error", timeout=30)["reason"]
+    finally:
+        server.stop()
