@@ -14,11 +14,11 @@ from typing import Any
 
 from core.effects import Effects, analyse
 from core.errors import QuekaroError
+from core.messages import LEVELS
 from core.scene import SceneSpec, expand, film_info
 from core.units import Unit
 from master.partition import equal_tiles
 
-LEVELS = ("off", "VS", "S", "N", "B", "VB")
 DEFAULT_SPP = 64  # when neither the user nor the scene's sampler says
 
 

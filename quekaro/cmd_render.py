@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from master.jobplan import LEVELS
+from core.messages import LEVELS
 
 
 def add_job_arguments(parser: argparse.ArgumentParser) -> None:

@@ -1,0 +1,119 @@
+"""rules/pathtracing.xml: 28 rules, full coverage, the published rules as printed, the expertise."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from fuzzy_helpers import RULES
+
+from fuzzy import Engine, load_rulebase
+from fuzzy.terms import membership
+from fuzzy.variables import spread_sets
+
+RANGE = (0.0, 1.0)
+RANGES = {"C": RANGE, "S": RANGE, "Nd": RANGE}
+
+
+@pytest.fixture(scope="module")
+def engine() -> Engine:
+    return Engine(load_rulebase(RULES))
+
+
+def _peak(engine: Engine, var: str, label: str) -> float:
+    """The input value where `label` of `var` has membership 1 (its plateau start)."""
+    v = engine.rulebase.input(var)
+    params = spread_sets(len(v.labels), *RANGE) if v.dynamic else np.array([s.vertices for s in v.sets])
+    return float(params[v.labels.index(label), 1])
+
+
+def test_size_and_variables(engine):
+    rb = engine.rulebase
+    assert len(rb.rules) == 28
+    assert engine.input_names == ("C", "S", "Nd", "Op")
+    assert engine.output_names == ("Ls", "Rl", "Ibs")
+
+
+def test_every_label_combination_fires_every_output(engine):
+    rb = engine.rulebase
+    combos = list(itertools.product(*(v.labels for v in rb.inputs)))
+    x = np.array([[_peak(engine, v.name, lb) for v, lb in zip(rb.inputs, combo, strict=True)] for combo in combos])
+    assert len(x) == 5 * 3 * 5 * 5
+    for name, acts in engine.activations(x, RANGES).items():
+        unfired = [combos[i] for i in np.flatnonzero(acts.max(axis=1) == 0)]
+        assert not unfired, f"{name}: no rule fires for {unfired[:5]}"
+
+
+def test_random_units_never_fall_back_to_the_default(engine):
+    rng = np.random.default_rng(7)
+    x = rng.uniform(-0.2, 1.2, size=(5000, 4))
+    x[:, 3] = rng.uniform(0, 4, size=5000)
+    for name, acts in engine.activations(x, RANGES).items():
+        assert (acts.max(axis=1) > 0).all(), name
+
+
+PUBLISHED = [
+    # rule, inputs at label peaks, expected (output, label)
+    ("R1", {"C": "VB", "S": "B", "Op": "VB"}, {"Ls": "VS", "Rl": "VS"}),
+    ("R2", {"C": "VS", "S": "N", "Op": "VB"}, {"Ls": "S", "Rl": "S"}),
+    ("R4", {"C": "B", "S": "S", "Op": "VB"}, {"Ls": "S", "Rl": "N"}),
+    ("R5", {"C": "B", "S": "N", "Op": "B"}, {"Ls": "S", "Rl": "VS"}),
+    ("R7", {"C": "S", "S": "B", "Op": "B"}, {"Ls": "N", "Rl": "S"}),
+    ("R14", {"C": "VS", "S": "S", "Op": "S"}, {"Ls": "B", "Rl": "N"}),
+    ("R22", {"Nd": "VB", "Op": "N"}, {"Ibs": "VB"}),
+]
+
+
+@pytest.mark.parametrize(("rule", "labels", "expected"), PUBLISHED, ids=[p[0] for p in PUBLISHED])
+def test_published_rules_behave_as_printed(engine, rule, labels, expected):
+    labels = {"C": "N", "S": "N", "Nd": "N", "Op": "N", **labels}
+    x = np.array([[_peak(engine, name, labels[name]) for name in engine.input_names]])
+    out = engine.evaluate(x, RANGES)
+    for name, label in expected.items():
+        var = engine.rulebase.output(name)
+        mu = membership(out[name], var.params)[0]
+        assert var.labels[int(np.argmax(mu))] == label, (rule, name, out[name][0])
+
+
+def _mean_outputs(engine, column, values, n=4000):
+    rng = np.random.default_rng(11)
+    base = rng.uniform(0, 1, size=(n, 4))
+    base[:, 3] = rng.uniform(0, 4, size=n)
+    means = []
+    for value in values:
+        x = base.copy()
+        x[:, column] = value
+        means.append({k: float(v.mean()) for k, v in engine.evaluate(x, RANGES).items()})
+    return means
+
+
+def test_higher_optimisation_lowers_samples_and_depth(engine):
+    means = _mean_outputs(engine, 3, [0, 1, 2, 3, 4])
+    for out in ("Ls", "Rl"):
+        series = [m[out] for m in means]
+        assert all(a > b for a, b in itertools.pairwise(series)), (out, series)
+    assert means[0]["Ls"] > 0.9 and means[0]["Rl"] > 0.95  # VS keeps the user's values
+
+
+def test_higher_complexity_lowers_samples_and_depth(engine):
+    means = _mean_outputs(engine, 0, [0.0, 0.5, 1.0])
+    for out in ("Ls", "Rl"):
+        assert means[0][out] > means[1][out] > means[2][out], out
+
+
+def test_neighbour_difference_widens_the_band_and_raises_samples(engine):
+    means = _mean_outputs(engine, 2, [0.0, 0.25, 0.5, 0.75, 1.0])
+    bands = [m["Ibs"] for m in means]
+    assert all(a < b for a, b in itertools.pairwise(bands)), bands
+    assert means[4]["Ls"] > means[2]["Ls"]
+
+
+def test_centre_of_sums_agrees_in_direction(engine):
+    other = Engine(engine.rulebase, "centre-of-sums")
+    rng = np.random.default_rng(5)
+    x = rng.uniform(0, 1, size=(2000, 4))
+    x[:, 3] = rng.uniform(0, 4, size=2000)
+    a, b = engine.evaluate(x, RANGES), other.evaluate(x, RANGES)
+    for name in engine.output_names:
+        assert np.corrcoef(a[name], b[name])[0, 1] > 0.95

@@ -1,0 +1,79 @@
+"""core.planner: unit features + level -> depth, spp, band per unit, with the real rule base."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from fuzzy_helpers import DATA, RULES
+
+from core.planner import Planner, UnitParams, default_rules_path
+from fuzzy import RuleFileError
+
+FEATURES = {"C": np.array([1.0, 5.0, 9.0, 5.0]), "S": np.array([100, 400, 900, 400.0]),
+            "Nd": np.array([0.0, 2.0, 8.0, 0.5])}
+
+
+@pytest.fixture(scope="module")
+def planner() -> Planner:
+    return Planner()
+
+
+def test_default_rules_are_the_repository_file():
+    assert default_rules_path() == RULES
+
+
+def test_level_off_keeps_the_users_values(planner):
+    plans = planner.plan(FEATURES, "off", user_depth=6, user_spp=32)
+    assert plans == [UnitParams(6, 32, 2)] * 4
+
+
+def test_plans_are_bounded_and_banded(planner):
+    for level in ("VS", "S", "N", "B", "VB"):
+        for p in planner.plan(FEATURES, level, user_depth=6, user_spp=32):
+            assert 1 <= p.depth <= 6 and 1 <= p.spp <= 32 and p.band >= 2
+            assert set(p.outputs) == {"Rl", "Ls", "Ibs"}
+
+
+def test_higher_level_renders_less(planner):
+    total = {lv: sum(p.spp * p.depth for p in planner.plan(FEATURES, lv, 8, 64)) for lv in ("VS", "S", "B", "VB")}
+    assert total["VS"] > total["S"] > total["B"] > total["VB"]
+
+
+def test_complex_unit_gets_fewer_samples_and_wider_band_where_neighbours_differ(planner):
+    p = planner.plan(FEATURES, "N", 8, 64)
+    assert p[2].spp < p[0].spp
+    assert p[2].band > p[0].band
+
+
+def test_explicit_ranges_change_the_labels(planner):
+    same = planner.plan(FEATURES, "B", 8, 64)
+    wide = planner.plan(FEATURES, "B", 8, 64, ranges={"C": (0, 100), "S": (0, 1000), "Nd": (0, 100)})
+    assert [p.outputs for p in same] != [p.outputs for p in wide]
+    assert same == planner.plan(FEATURES, "B", 8, 64, ranges={"C": (1, 9), "S": (100, 900), "Nd": (0, 8)})
+
+
+def test_every_unit_alike_is_fine(planner):
+    alike = {k: np.full(5, 3.0) for k in ("C", "S", "Nd")}
+    plans = planner.plan(alike, "S", 8, 64)
+    assert len(set(plans)) == 1 if all(isinstance(p, UnitParams) for p in plans) else False
+
+
+def test_min_band_and_to_dict_is_json():
+    planner = Planner(min_band=5)
+    plans = planner.plan(FEATURES, "VB", 8, 64)
+    assert min(p.band for p in plans) >= 5
+    assert json.loads(json.dumps(plans[0].to_dict()))["depth"] == plans[0].depth
+
+
+def test_bad_calls(planner):
+    with pytest.raises(ValueError, match="lack Nd"):
+        planner.plan({"C": [1.0], "S": [1.0]}, "S", 8, 64)
+    with pytest.raises(ValueError, match="unknown optimisation level"):
+        planner.plan(FEATURES, "max", 8, 64)
+    assert planner.plan({k: [] for k in ("C", "S", "Nd")}, "S", 8, 64) == []
+    with pytest.raises(ValueError, match="needs inputs"):
+        Planner(DATA / "masyro_dialect.xml")
+    with pytest.raises(RuleFileError):
+        Planner(DATA / "invalid" / "billion_laughs.xml")
