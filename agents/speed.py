@@ -41,12 +41,14 @@ MIN_SPEED = 1e-6  # core.messages.Register's lower bound
 
 @dataclass(frozen=True)
 class SpeedSample:
-    """The measured speed (mega-rays/s), the best timed render's seconds and the pixel samples per second."""
+    """The measured speed (mega-rays/s), the best timed render's seconds, the pixel samples per second, and
+    `compile_s`: what the first render of a new kernel (window size, depth) cost on top (the warm-up's extra)."""
 
     speed: float
     seconds: float
     samples_per_s: float
     variant: str
+    compile_s: float = 0.0
 
 
 def reference_job(threads: int | None, spp: int = REF_SPP) -> UnitJob:
@@ -62,12 +64,14 @@ def measure_speed(worker: RenderWorker, threads: int | None, repeats: int = 2,
                   timeout: float = 120.0) -> SpeedSample:
     """Time the reference render in `worker` (blocking): one untimed warm-up, then the best of `repeats`."""
     job = reference_job(threads)
-    worker.render(job, timeout)  # compiles the kernel; its time is not the agent's speed
+    cold = worker.render(job, timeout)  # compiles the kernel; its time is not the agent's speed
     tiles = [worker.render(job, timeout) for _ in range(max(1, repeats))]
     seconds = max(min(float(t.meta["seconds"]) for t in tiles), 1e-6)
     samples = REF_RES * REF_RES * REF_SPP
     speed = samples * REF_RAYS_PER_SAMPLE / seconds / RAYS_PER_SPEED_UNIT
-    return SpeedSample(max(speed, MIN_SPEED), seconds, samples / seconds, str(tiles[0].meta.get("variant")))
+    compile_s = max(float(cold.meta["seconds"]) - seconds, 0.0)
+    return SpeedSample(max(speed, MIN_SPEED), seconds, samples / seconds, str(tiles[0].meta.get("variant")),
+                       compile_s)
 
 
 def estimate_seconds(cost: float, spp: int, speed: float) -> float:

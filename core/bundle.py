@@ -155,7 +155,13 @@ def _cross_check(scene: Path, defines: dict[str, str] | None, members: dict[str,
     from core.scene import SceneSpec, referenced_files
 
     ours = {p.resolve() for p in members.values()}
-    missed = [p for p in referenced_files(SceneSpec(scene, defines or {})) if p.resolve() not in ours]
+    try:
+        needed = referenced_files(SceneSpec(scene, defines or {}))
+    except BundleError:
+        raise
+    except SceneError as exc:
+        raise BundleError(str(exc)) from exc
+    missed = [p for p in needed if p.resolve() not in ours]
     if missed:
         raise BundleError(f"{scene}: references {', '.join(map(str, missed))} that the bundle would not hold")
 

@@ -25,6 +25,8 @@ from fuzzy.terms import membership_t
 
 Inputs = np.ndarray | Mapping[str, np.ndarray]
 Ranges = Mapping[str, tuple[float, float]] | None
+# units per internal batch: keeps temporaries in cache and off the page-faulting mmap path
+CHUNK = 4096
 DEFUZZIFIERS = ("centroid", "centre-of-sums")
 _ALIASES = {"centroid": "centroid", "centre-of-sums": "centre-of-sums", "center-of-sums": "centre-of-sums"}
 
@@ -78,7 +80,8 @@ class Engine:
 
     def activations(self, inputs: Inputs, ranges: Ranges = None) -> dict[str, np.ndarray]:
         """Activation (n, L) of every output label: the clip level of each set before defuzzifying."""
-        return {name: h.T for name, h in self._activations_t(inputs, ranges).items()}
+        x = self._as_matrix(inputs)
+        return {name: h.T for name, h in self._activations_t(x, self._observed_ranges(x, ranges)).items()}
 
     def evaluate(self, inputs: Inputs, ranges: Ranges = None) -> dict[str, np.ndarray]:
         """Crisp value of every output for every unit: name -> (n,) float64 array.
@@ -87,24 +90,35 @@ class Engine:
         name -> (n,) array. `ranges` gives the observed (lo, hi) of dynamic input variables; one left out
         is taken from the inputs themselves (their min and max).
         """
+        x = self._as_matrix(inputs)
+        ranges = self._observed_ranges(x, ranges)
+        parts = [self._evaluate_chunk(x[i : i + CHUNK], ranges) for i in range(0, max(len(x), 1), CHUNK)]
+        return {name: np.concatenate([p[name] for p in parts]) for name in self.output_names}
+
+    def _evaluate_chunk(self, x: np.ndarray, ranges: dict[str, tuple[float, float]]) -> dict[str, np.ndarray]:
         result = {}
-        acts = self._activations_t(inputs, ranges)
+        acts = self._activations_t(x, ranges)
         for out, plan in zip(self.rulebase.outputs, self._plans, strict=True):
-            ht = acts[out.name]
-            if self.defuzzifier == "centroid":
-                crisp = centroid_t(plan, ht)
-            else:
-                crisp = centre_of_sums_t(out.params, ht)
+            h = acts[out.name]
+            exact = self.defuzzifier == "centroid"
+            crisp = centroid_t(plan, h) if exact else centre_of_sums_t(out.params, h)
             crisp = np.where(np.isnan(crisp), out.default, crisp)
             result[out.name] = np.clip(crisp, *out.universe)
         return result
 
-    def _activations_t(self, inputs: Inputs, ranges: Ranges) -> dict[str, np.ndarray]:
+    def _observed_ranges(self, x: np.ndarray, ranges: Ranges) -> dict[str, tuple[float, float]]:
+        """The given ranges, plus the inputs' own min and max for dynamic variables left out."""
+        ranges = dict(ranges or {})
+        for i, var in enumerate(self.rulebase.inputs):
+            if var.dynamic and var.name not in ranges:
+                ranges[var.name] = (float(x[:, i].min()), float(x[:, i].max())) if len(x) else (0.0, 0.0)
+        return ranges
+
+    def _activations_t(self, x: np.ndarray, ranges: dict[str, tuple[float, float]]) -> dict[str, np.ndarray]:
         # units on the last axis: numpy's inner loops then run over the units, not over a few rules
-        x = self._as_matrix(inputs)
         n = x.shape[0]
         degrees = np.empty((len(self._groups) + 1, n))
-        self._group_degrees(x, dict(ranges or {}), degrees)
+        self._group_degrees(x, ranges, degrees)
         degrees[-1] = 1.0
         strengths = np.empty((len(self.rulebase.rules) + 1, n))
         np.min(degrees[self._rule_terms], axis=1, out=strengths[:-1])  # (R, n)
@@ -117,12 +131,7 @@ class Engine:
     def _group_degrees(self, x: np.ndarray, ranges: dict[str, tuple[float, float]], out: np.ndarray) -> None:
         mus = []
         for i, var in enumerate(self.rulebase.inputs):
-            observed = ranges.get(var.name)
-            if var.dynamic and observed is None and x.shape[0]:
-                observed = (float(x[:, i].min()), float(x[:, i].max()))
-            elif var.dynamic and observed is None:
-                observed = (0.0, 0.0)
-            params, (lo, hi) = var.resolve(observed)
+            params, (lo, hi) = var.resolve(ranges.get(var.name))
             mus.append(membership_t(np.clip(x[:, i], lo, hi), params))
         for g, (var_i, idx) in enumerate(self._groups):
             np.max(mus[var_i][idx], axis=0, out=out[g])

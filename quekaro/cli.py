@@ -12,6 +12,7 @@ import importlib
 import sys
 
 from core.errors import QuekaroError
+from fuzzy.errors import FuzzyInputError, RuleFileError
 
 COMMAND_MODULES = (
     "quekaro.cmd_rules",
@@ -44,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except QuekaroError as exc:
+    except (QuekaroError, RuleFileError, FuzzyInputError) as exc:
         print(f"quekaro: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

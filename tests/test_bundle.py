@@ -58,7 +58,8 @@ def _special(name: str, kind: bytes, linkname: str = "") -> tuple[tarfile.TarInf
 SCENE = b"<scene version='3.0.0'/>"
 
 
-def _bundle(extra: list[tuple[tarfile.TarInfo, bytes | None]], listed: dict[str, bytes] | None = None) -> bytes:
+def _bundle(extra: list[tuple[tarfile.TarInfo, bytes | None]],
+            listed: dict[str, bytes] | None = None) -> bytes:
     listed = {"scene.xml": SCENE, **(listed or {})}
     return _tar([_reg(MANIFEST_NAME, _manifest(listed)), _reg("scene.xml", SCENE), *extra])
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import pytest
 from fuzzy_helpers import DATA, RULES, SIMPLE_IN, SIMPLE_OUT, SIMPLE_RULES, system_xml
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from fuzzy import RuleFileError, load_rulebase, parse_rulebase
 from fuzzy.loader import MAX_BYTES
@@ -164,3 +166,18 @@ def test_huge_file_refused_without_parsing(tmp_path):
 def test_missing_file(tmp_path):
     with pytest.raises(RuleFileError, match="cannot read"):
         load_rulebase(tmp_path / "nope.xml")
+
+
+_VALID = RULES.read_bytes()
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.integers(0, len(_VALID)), st.integers(0, 40), st.binary(max_size=40))
+def test_fuzzed_rule_files_load_or_are_refused_never_crash(start, length, junk):
+    data = _VALID[:start] + junk + _VALID[start + length :]
+    try:
+        rb = parse_rulebase(data, "fuzzed.xml")
+    except RuleFileError as exc:
+        assert exc.file == "fuzzed.xml"
+    else:
+        assert rb.rules and rb.outputs

@@ -57,7 +57,8 @@ def test_explicit_ranges_change_the_labels(planner):
 def test_every_unit_alike_is_fine(planner):
     alike = {k: np.full(5, 3.0) for k in ("C", "S", "Nd")}
     plans = planner.plan(alike, "S", 8, 64)
-    assert len(set(plans)) == 1 if all(isinstance(p, UnitParams) for p in plans) else False
+    assert len(plans) == 5 and all(p == plans[0] for p in plans)
+    assert plans[0].outputs["Ibs"] > 0 and plans[0].spp >= 1
 
 
 def test_min_band_and_to_dict_is_json():

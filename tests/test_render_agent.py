@@ -1,0 +1,358 @@
+"""The render agent as a real process (`python -m agents.render_agent`) on SPADE's embedded XMPP server.
+
+This test process plays a scripted master: a FarmAgent of its own, and a real aiohttp server on 127.0.0.1
+that serves scene bundles and takes tile uploads. It drives the contract net by hand (CFP, Award, Cancel)
+and checks what comes back over XMPP and HTTP: the proposal, the uploaded tile (its rectangle with the
+band, finite pixels, the parameters in its header), the Inform; a refusal while busy; a cancelled unit
+that is never delivered; Failures for a broken scene, a bundle with the wrong hash and a refused upload;
+an agent that survives a malformed message and stops cleanly on SIGTERM.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Coroutine
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from core import messages as m
+from core.bundle import make_bundle
+from core.geometry import Rect
+from core.tiles import read_tile_bytes
+from core.xmpp import Envelope, FarmAgent
+from core.xmpp_server import EmbeddedXmppServer
+
+pytestmark = pytest.mark.slow
+
+REPO = Path(__file__).resolve().parent.parent
+CBOX = REPO / "scenes" / "cbox.xml"
+MASTER = "master@localhost"
+AGENT = "agent-t1@localhost"
+PASSWORD = "pw-render-agent-test"
+RANGES = {"C": (0.0, 1.0), "S": (64.0, 1024.0), "Nd": (0.0, 0.5)}
+
+
+class LoopThread:
+    """An asyncio loop in a thread, so that module-scoped async parts outlive one test function."""
+
+    def __init__(self) -> None:
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self.thread.start()
+
+    def run(self, coro: Coroutine[Any, Any, Any], timeout: float = 30.0) -> Any:
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout)
+
+    def close(self) -> None:
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(5)
+
+
+class ScriptedMaster:
+    """A master that sends what the test says and records what the agent sends, over XMPP and HTTP."""
+
+    def __init__(self, port: int) -> None:
+        self.farm = FarmAgent(MASTER, PASSWORD, port=port, ontology=m.ONTOLOGY, peers=[AGENT], validate=m.parse)
+        self.farm.set_handler(self._on_envelope)
+        self.messages: list[tuple[float, m.Message]] = []
+        self.arrived = asyncio.Condition()
+        self.bundles: dict[str, bytes] = {}
+        self.tokens: dict[tuple[str, int], str] = {}
+        self.uploads: list[tuple[str, int, bytes]] = []
+        self.http_port = 0
+        self._runner: Any = None
+
+    async def start(self) -> None:
+        from aiohttp import web
+
+        app = web.Application(client_max_size=64 << 20)
+        app.router.add_get("/bundles/{sha}", self._get_bundle)
+        app.router.add_put("/jobs/{job}/units/{index}/tile", self._put_tile)
+        self._runner = web.AppRunner(app, access_log=None)
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, "127.0.0.1", 0)
+        await site.start()
+        self.http_port = site._server.sockets[0].getsockname()[1]
+        await self.farm.start(auto_register=True)
+
+    async def stop(self) -> None:
+        await self.farm.stop()
+        await self._runner.cleanup()
+
+    # --- HTTP: the data plane -------------------------------------------------------------------
+
+    async def _get_bundle(self, request: Any) -> Any:
+        from aiohttp import web
+
+        data = self.bundles.get(request.match_info["sha"])
+        return web.Response(body=data) if data is not None else web.Response(status=404, text="no bundle")
+
+    async def _put_tile(self, request: Any) -> Any:
+        from aiohttp import web
+
+        key = (request.match_info["job"], int(request.match_info["index"]))
+        if request.headers.get("Authorization") != f"Bearer {self.tokens.get(key)}":
+            return web.Response(status=403, text="wrong token")
+        body = await request.read()
+        if request.headers.get("X-Content-SHA256") != hashlib.sha256(body).hexdigest():
+            return web.Response(status=400, text="hash mismatch")
+        self.uploads.append((*key, body))
+        return web.Response(status=201, text="ok")
+
+    def url(self, path: str) -> str:
+        return f"http://127.0.0.1:{self.http_port}{path}"
+
+    # --- XMPP: the control plane ----------------------------------------------------------------
+
+    async def _on_envelope(self, env: Envelope) -> None:
+        async with self.arrived:
+            self.messages.append((time.monotonic(), m.parse(env.performative, env.body)))
+            self.arrived.notify_all()
+
+    async def send(self, msg: m.Message) -> None:
+        performative, body = m.encode(msg)
+        assert await self.farm.send(AGENT, performative, body, conversation_id=msg.conversation,
+                                    protocol=m.PROTOCOL, ontology=m.ONTOLOGY)
+
+    async def send_raw(self, performative: str, body: str, conversation: str) -> None:
+        """A message past the sender's own checks: the agent's gate must refuse it."""
+        from spade.message import Message
+
+        meta = {"performative": performative, "ontology": m.ONTOLOGY, "protocol": m.PROTOCOL,
+                "conversation-id": conversation}
+        Message(to=AGENT, sender=str(self.farm.jid), body=body, metadata=meta).prepare(self.farm.client).send()
+
+    async def expect(self, kind: type[m.Message], timeout: float = 15.0, since: float = 0.0,
+                     where: Callable[[Any], bool] = lambda _msg: True) -> Any:
+        """The first message of `kind` received after `since` (monotonic) that satisfies `where`."""
+        def found() -> Any:
+            return next((msg for t, msg in self.messages if t >= since and isinstance(msg, kind) and where(msg)),
+                        None)
+
+        async with self.arrived:
+            await asyncio.wait_for(self.arrived.wait_for(lambda: found() is not None), timeout)
+            return found()
+
+    def received(self, kind: type[m.Message], since: float = 0.0) -> list[Any]:
+        return [msg for t, msg in self.messages if t >= since and isinstance(msg, kind)]
+
+
+class Farm:
+    def __init__(self, loop: LoopThread, master: ScriptedMaster, agent: subprocess.Popen, log: Path) -> None:
+        self.loop, self.master, self.agent, self.log = loop, master, agent, log
+
+    def run(self, coro: Coroutine[Any, Any, Any], timeout: float = 30.0) -> Any:
+        try:
+            return self.loop.run(coro, timeout)
+        except BaseException:
+            tail = self.log.read_text(errors="replace").splitlines()[-25:]
+            print("agent log tail:\n" + "\n".join(tail), file=sys.stderr)
+            raise
+
+    def job(self, job_id: str, sha: str, scene: str, spp: int = 16, level: str = "N",
+            scene_hash: str | None = None, defines: dict[str, str] | None = None) -> m.JobInfo:
+        return m.JobInfo(job_id=job_id, scene_url=self.master.url(f"/bundles/{sha}"), scene_hash=scene_hash or sha,
+                         width=32, height=32, spp=spp, depth=6, level=level, ranges=RANGES, scene_name=scene,
+                         defines={"res": "32"} if defines is None else defines, variant="llvm_ad_rgb",
+                         integrator="path")
+
+    def award(self, job: m.JobInfo, unit: m.UnitSpec, conversation: str, token: str | None = None) -> m.Award:
+        token = token or hashlib.sha256(conversation.encode()).hexdigest()[:32]
+        self.master.tokens[(job.job_id, unit.index)] = token
+        return m.Award(conversation=conversation, job=job, unit=unit, token=token,
+                       upload_url=self.master.url(f"/jobs/{job.job_id}/units/{unit.index}/tile"),
+                       seed=unit.index, estimate_s=1.0)
+
+
+def unit(index: int, rect: Rect, C: float = 0.4, Nd: float = 0.1) -> m.UnitSpec:
+    return m.UnitSpec(index=index, rect=rect, C=C, S=float(rect.area), Nd=Nd, cost=rect.area * 6.67)
+
+
+def cfp(job: m.JobInfo, conversation: str, *units: m.UnitSpec) -> m.CallForProposal:
+    return m.CallForProposal(conversation=conversation, job=job, units=units, reply_within_s=5.0)
+
+
+@pytest.fixture(scope="module")
+def bundles(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[str, bytes]]:
+    """name -> (scene file name in the bundle, bundle bytes): the cbox, and a scene Mitsuba cannot load."""
+    if not CBOX.is_file():
+        pytest.skip(f"{CBOX} missing")
+    out = tmp_path_factory.mktemp("bundles")
+    good = make_bundle(CBOX, {"res": "32"}, out / "cbox.tar")
+    broken_dir = out / "broken"
+    broken_dir.mkdir()
+    broken = broken_dir / "broken.xml"
+    broken.write_text('<scene version="3.0.0"><shape type="no_such_plugin_here"/></scene>\n')
+    bad = make_bundle(broken, {}, out / "broken.tar")
+    return {"cbox": (good.scene, good.path.read_bytes()), "broken": (bad.scene, bad.path.read_bytes())}
+
+
+@pytest.fixture(scope="module")
+def farm(tmp_path_factory: pytest.TempPathFactory, bundles: dict[str, tuple[str, bytes]]):
+    tmp = tmp_path_factory.mktemp("farm")
+    server = EmbeddedXmppServer(tmp / "xmpp")
+    server.start()
+    loop = LoopThread()
+    master = ScriptedMaster(server.port)
+    log = tmp / "agent.log"
+    agent = None
+    try:
+        loop.run(master.start())
+        for _, data in bundles.values():
+            master.bundles[hashlib.sha256(data).hexdigest()] = data
+        cmd = [sys.executable, "-m", "agents.render_agent", "--port", str(server.port), "--jid", AGENT,
+               "--password", PASSWORD, "--master", MASTER, "--threads", "1", "--workdir", str(tmp / "agent"),
+               "--register", "--heartbeat", "0.5"]
+        with log.open("w") as sink:
+            agent = subprocess.Popen(cmd, cwd=REPO, stdout=sink, stderr=subprocess.STDOUT,
+                                     env=dict(os.environ, PYTHONPATH=str(REPO)))
+        yield Farm(loop, master, agent, log)
+    finally:
+        if agent is not None and agent.poll() is None:
+            agent.kill()
+            agent.wait()
+        with contextlib.suppress(Exception):
+            loop.run(master.stop(), 10)
+        loop.close()
+        server.stop()
+
+
+def sha_of(bundles: dict[str, tuple[str, bytes]], name: str) -> str:
+    return hashlib.sha256(bundles[name][1]).hexdigest()
+
+
+def test_registers_with_its_speed_and_beats(farm: Farm) -> None:
+    reg = farm.run(farm.master.expect(m.Register, timeout=40.0), 45)
+    assert 0.01 < reg.speed < 1e4 and reg.threads == 1 and reg.rules == "pathtracing.xml"
+    beat = farm.run(farm.master.expect(m.Heartbeat, timeout=5.0))
+    assert beat.busy == ()
+
+
+def test_survives_malformed_and_stray_messages(farm: Farm, bundles: dict) -> None:
+    scene, _ = bundles["cbox"]
+    job = farm.job("job-a", sha_of(bundles, "cbox"), scene)
+    since = time.monotonic()
+    farm.run(farm.master.send_raw("cfp", "{not json", "bad-1"))
+    farm.run(farm.master.send_raw("cfp", '{"v":1,"conversation":"bad-2","job":{}}', "bad-2"))
+    # Valid, but of conversations and jobs the agent never saw: harmless.
+    farm.run(farm.master.send(m.Cancel(conversation="stray-1", job_id="nojob", index=7, reason="old")))
+    farm.run(farm.master.send(m.Reject(conversation="stray-2", job_id="nojob", reason="old")))
+    farm.run(farm.master.send(cfp(job, "alive-1", unit(9, Rect(0, 0, 8, 8)))))
+    prop = farm.run(farm.master.expect(m.Propose, since=since, where=lambda p: p.conversation == "alive-1"))
+    assert [e.index for e in prop.estimates] == [9]
+    assert not farm.master.received(m.Refuse, since) and farm.agent.poll() is None
+
+
+def test_unit_is_planned_rendered_uploaded_and_informed(farm: Farm, bundles: dict) -> None:
+    scene, _ = bundles["cbox"]
+    job = farm.job("job-a", sha_of(bundles, "cbox"), scene)
+    u3, u4 = unit(3, Rect(8, 8, 16, 16)), unit(4, Rect(0, 24, 32, 8), C=0.9, Nd=0.3)
+    since = time.monotonic()
+    farm.run(farm.master.send(cfp(job, "cfp-a", u3, u4)))
+    prop = farm.run(farm.master.expect(m.Propose, since=since, where=lambda p: p.conversation == "cfp-a"))
+    assert prop.job_id == "job-a" and {e.index for e in prop.estimates} == {3, 4}
+    assert all(0 < e.seconds < 60 for e in prop.estimates)
+
+    award = farm.award(job, u3, "award-a3")
+    farm.run(farm.master.send(award))
+    farm.run(farm.master.send(award))  # a duplicate: must not render or upload twice
+    inform = farm.run(farm.master.expect(m.Inform, since=since), 30)
+    time.sleep(1.0)
+    uploads = [u for u in farm.master.uploads if u[:2] == ("job-a", 3)]
+    assert len(uploads) == 1, "the duplicate award was rendered again"
+    assert (inform.conversation, inform.job_id, inform.index, inform.token) == \
+        ("award-a3", "job-a", 3, award.token)
+    data = uploads[0][2]
+    assert inform.tile_hash == hashlib.sha256(data).hexdigest()
+
+    tile = read_tile_bytes(data, "upload")
+    assert tile.core == u3.rect
+    assert inform.band >= 2 and tile.rect == u3.rect.grow(inform.band, 32, 32)
+    assert np.isfinite(tile.pixels).all() and tile.pixels.mean() > 0.01
+    meta = tile.meta
+    assert meta["agent"] == AGENT and meta["job_id"] == "job-a" and meta["unit_index"] == 3
+    assert (meta["spp"], meta["depth"], meta["band"]) == (inform.spp, inform.depth, inform.band)
+    assert meta["nonfinite"] == inform.nonfinite == 0 and meta["seconds"] == pytest.approx(inform.seconds)
+    assert set(meta["outputs"]) == {"Rl", "Ls", "Ibs"} and meta["seed"] == 3
+    assert 1 <= inform.spp <= 16 * 4 and 1 <= inform.depth <= 6 * 4
+    assert not farm.master.received(m.Failure, since)
+    # The unit's real time now corrects the agent's estimates for this job.
+    farm.run(farm.master.send(cfp(job, "cfp-a2", u4)))
+    again = farm.run(farm.master.expect(m.Propose, since=since, where=lambda p: p.conversation == "cfp-a2"))
+    before = next(e.seconds for e in prop.estimates if e.index == 4)
+    assert again.estimates[0].seconds != pytest.approx(before, rel=1e-3)
+
+
+def test_cancelled_unit_is_dropped_and_busy_agent_refuses(farm: Farm, bundles: dict) -> None:
+    scene, _ = bundles["cbox"]
+    # ~2 M samples: long enough (seconds) to cancel it mid-render on one thread.
+    job = farm.job("job-b", sha_of(bundles, "cbox"), scene, spp=2048, level="off")
+    whole = unit(0, Rect(0, 0, 32, 32))
+    since = time.monotonic()
+    farm.run(farm.master.send(farm.award(job, whole, "award-b0")))
+    farm.run(farm.master.expect(m.Heartbeat, since=since, where=lambda h: len(h.busy) == 1
+                                and (h.busy[0].job_id, h.busy[0].index) == ("job-b", 0)))
+    farm.run(farm.master.send(cfp(job, "cfp-busy", unit(1, Rect(0, 0, 8, 8)))))
+    refuse = farm.run(farm.master.expect(m.Refuse, since=since))
+    assert refuse.conversation == "cfp-busy" and "busy" in refuse.reason
+
+    cancelled_at = time.monotonic()
+    farm.run(farm.master.send(m.Cancel(conversation="award-b0", job_id="job-b", index=0, reason="test")))
+    farm.run(farm.master.expect(m.Heartbeat, since=cancelled_at + 0.1, where=lambda h: h.busy == ()))
+    # Free again once the abandoned render ends: it proposes, and never delivered the cancelled unit.
+    deadline = time.monotonic() + 20
+    while True:
+        conv = f"cfp-free-{time.monotonic_ns()}"
+        farm.run(farm.master.send(cfp(job, conv, unit(1, Rect(0, 0, 8, 8)))))
+        answer = farm.run(farm.master.expect(m.Message, since=cancelled_at,
+                                             where=lambda x, c=conv: getattr(x, "conversation", "") == c))
+        if isinstance(answer, m.Propose):
+            break
+        assert time.monotonic() < deadline, "agent still busy 20 s after the cancel"
+        time.sleep(0.5)
+    assert not [u for u in farm.master.uploads if u[0] == "job-b"]
+    assert not [x for x in farm.master.received(m.Inform, since) + farm.master.received(m.Failure, since)
+                if x.job_id == "job-b"]
+
+
+@pytest.mark.parametrize("case", ["broken-scene", "wrong-hash", "upload-refused"])
+def test_failures_are_reported_and_survived(farm: Farm, bundles: dict, case: str) -> None:
+    name = "broken" if case == "broken-scene" else "cbox"
+    scene, _ = bundles[name]
+    job_id = f"job-{case}"
+    wrong = "0" * 64 if case == "wrong-hash" else None
+    job = farm.job(job_id, sha_of(bundles, name), scene, level="off", scene_hash=wrong,
+                   defines={} if name == "broken" else None)
+    u = unit(2, Rect(16, 0, 16, 16))
+    award = farm.award(job, u, f"award-{case}")
+    if case == "upload-refused":
+        farm.master.tokens[(job_id, 2)] = "f" * 32  # the data plane expects another token
+    since = time.monotonic()
+    farm.run(farm.master.send(award))
+    failure = farm.run(farm.master.expect(m.Failure, since=since), 30)
+    assert (failure.conversation, failure.job_id, failure.index, failure.token) == \
+        (award.conversation, job_id, 2, award.token)
+    expected = {"broken-scene": "no_such_plugin_here", "wrong-hash": "sha256", "upload-refused": "403"}[case]
+    assert expected in failure.reason, failure.reason
+    assert not farm.master.received(m.Inform, since)
+    # Still serving: the next call for proposals gets a proposal.
+    farm.run(farm.master.send(cfp(job, f"after-{case}", unit(5, Rect(0, 0, 8, 8)))))
+    farm.run(farm.master.expect(m.Propose, since=since, where=lambda p: p.conversation == f"after-{case}"))
+
+
+def test_stops_cleanly_on_sigterm(farm: Farm) -> None:
+    assert farm.agent.poll() is None
+    farm.agent.send_signal(signal.SIGTERM)
+    assert farm.agent.wait(timeout=20) == 0
+    assert "Traceback" not in farm.log.read_text(errors="replace")
