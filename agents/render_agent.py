@@ -7,7 +7,8 @@ master/auction.py expects it:
   start     measure speed (agents/speed.py) -> Register; Register again after every reconnect;
             Heartbeat every 2 s listing the units it holds (awarded, not yet answered, not cancelled).
   cfp       free (nothing rendering, nothing queued) -> Propose with an estimate per offered unit
-            (cost x the spp its own rules pick / speed, times a per-job correction); else Refuse.
+            (cost x the spp its own rules pick / speed, + a kernel compilation for a new window size,
+            times a per-job correction learnt from its finished units); else Refuse.
   award     fetch the job's scene bundle once (cached by sha256 under the work dir), plan the unit
             with its own rules, render it with the award's seed, write the tile EXR (meta: the unit,
             seconds, non-finite pixels, spp, depth, band, the rules' crisp outputs, the agent's JID),
@@ -102,7 +103,7 @@ class UnitFailed(QuekaroError):
 
 
 class Calibration:
-    """Per job, the ratio of a unit's real wall time to its base estimate (moving average).
+    """Per job, the ratio of a unit's real wall time to its uncorrected estimate (moving average).
 
     The base estimate (agents/speed.py) misses what the reference render cannot know: scene loading,
     kernel compilation, bundle transfer, and a master cost scale that differs from rays (level off).
@@ -267,9 +268,11 @@ class RenderAgent:
 
     def estimate(self, job: m.JobInfo, unit: m.UnitSpec, params: UnitParams) -> float:
         """Seconds this agent expects to spend on the unit (see agents/speed.py for the units): the base
-        estimate times the job's learned correction, plus a kernel compilation if the window is new."""
-        return (self._base_estimate(unit, params) * self.calibration.factor(job.job_id)
-                + self._compile_estimate(job, unit, params))
+        estimate, plus a kernel compilation if the window is new, times the job's learned correction."""
+        return self._uncorrected(job, unit, params) * self.calibration.factor(job.job_id)
+
+    def _uncorrected(self, job: m.JobInfo, unit: m.UnitSpec, params: UnitParams) -> float:
+        return self._base_estimate(unit, params) + self._compile_estimate(job, unit, params)
 
     def _compile_estimate(self, job: m.JobInfo, unit: m.UnitSpec, params: UnitParams) -> float:
         # Dr.Jit bakes the window size and the depth into the kernel (design.md section 3).
@@ -346,13 +349,12 @@ class RenderAgent:
             return
         self.units_done += 1
         self.finished.append((*key, award.token))
-        compile_s = self._compile_estimate(award.job, award.unit, params)
+        predicted = self._uncorrected(award.job, award.unit, params)
         wall = time.monotonic() - started
         log.info("unit %s/%d done: %.3f s in all, render %.3f s, spp %d depth %d band %d (award estimate %.3f s)",
                  *key, wall, tile.meta["seconds"], params.spp, params.depth, params.band, award.estimate_s)
         self.kernels.add(_kernel_key(award.job, award.unit, params))
-        self.calibration.learn(key[0], self._base_estimate(award.unit, params),
-                               wall - compile_s)
+        self.calibration.learn(key[0], predicted, wall)
         await self._send(m.Inform(
             conversation=award.conversation, job_id=key[0], index=key[1], token=award.token,
             tile_hash=sha256, depth=params.depth, spp=params.spp, band=params.band,

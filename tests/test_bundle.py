@@ -82,7 +82,8 @@ def _render(scene: Path, defines: dict[str, str]) -> np.ndarray:
 
     from core import mitsuba_env
 
-    mitsuba_env.init("llvm_ad_rgb", threads=1)
+    # threads=1 deadlocks while loading matpreview (mitsuba 3.9: load_file never returns); 2 works.
+    mitsuba_env.init("llvm_ad_rgb", threads=2)
     loaded = mi.load_file(str(scene), **defines)
     return np.array(mi.render(loaded, seed=7))
 
@@ -104,8 +105,9 @@ def test_real_scene_round_trip_renders_identically(tmp_path, scene, defines, exp
     assert read_manifest(out.parent)["defines"] == defines
     for rel in info.files:
         assert (out.parent / rel).read_bytes() == (src.parent / rel).read_bytes()
-    # The unpacked copy renders exactly as the original (same seed, same variant, one thread).
-    np.testing.assert_array_equal(_render(out, defines), _render(src, defines))
+    # The unpacked copy renders as the original (same seed, variant, threads); two renders of the same
+    # file differ by ~2e-7 from the order of filter splats across threads, hence the tiny tolerance.
+    np.testing.assert_allclose(_render(out, defines), _render(src, defines), rtol=1e-5, atol=1e-5)
 
 
 @needs_shared

@@ -149,8 +149,9 @@ class ScriptedMaster:
 
 
 class Farm:
-    def __init__(self, loop: LoopThread, master: ScriptedMaster, agent: subprocess.Popen, log: Path) -> None:
-        self.loop, self.master, self.agent, self.log = loop, master, agent, log
+    def __init__(self, loop: LoopThread, master: ScriptedMaster, agent: subprocess.Popen, log: Path,
+                 server: EmbeddedXmppServer) -> None:
+        self.loop, self.master, self.agent, self.log, self.server = loop, master, agent, log, server
 
     def run(self, coro: Coroutine[Any, Any, Any], timeout: float = 30.0) -> Any:
         try:
@@ -217,7 +218,7 @@ def farm(tmp_path_factory: pytest.TempPathFactory, bundles: dict[str, tuple[str,
         with log.open("w") as sink:
             agent = subprocess.Popen(cmd, cwd=REPO, stdout=sink, stderr=subprocess.STDOUT,
                                      env=dict(os.environ, PYTHONPATH=str(REPO)))
-        yield Farm(loop, master, agent, log)
+        yield Farm(loop, master, agent, log, server)
     finally:
         if agent is not None and agent.poll() is None:
             agent.kill()
@@ -349,6 +350,17 @@ def test_failures_are_reported_and_survived(farm: Farm, bundles: dict, case: str
     # Still serving: the next call for proposals gets a proposal.
     farm.run(farm.master.send(cfp(job, f"after-{case}", unit(5, Rect(0, 0, 8, 8)))))
     farm.run(farm.master.expect(m.Propose, since=since, where=lambda p: p.conversation == f"after-{case}"))
+
+
+def test_registers_again_after_the_server_restarts(farm: Farm, bundles: dict) -> None:
+    farm.server.restart()
+    restarted = time.monotonic()
+    reg = farm.run(farm.master.expect(m.Register, since=restarted, timeout=30.0), 35)
+    assert reg.speed > 0
+    scene, _ = bundles["cbox"]
+    job = farm.job("job-a", sha_of(bundles, "cbox"), scene)
+    farm.run(farm.master.send(cfp(job, "after-restart", unit(6, Rect(0, 0, 8, 8)))))
+    farm.run(farm.master.expect(m.Propose, since=restarted, where=lambda p: p.conversation == "after-restart"))
 
 
 def test_stops_cleanly_on_sigterm(farm: Farm) -> None:

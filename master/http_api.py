@@ -1,0 +1,358 @@
+"""The master's HTTP data plane (aiohttp): agents fetch scene bundles and upload rendered tiles here.
+
+Routes:
+  GET /jobs/{job}/bundle
+      The job's scene bundle (core.bundle), its sha256 in `X-Content-SHA256`. Open by default: a bundle
+      is content the agents need before they hold any token, and the default bind is 127.0.0.1. Pass
+      `authorize_bundle(job, token) -> bool` to require `X-Quekaro-Token` (do so when binding beyond
+      loopback); a refused token is 403.
+  PUT /jobs/{job}/units/{unit}/tile
+      Headers `X-Quekaro-Token` (or `Authorization: Bearer ..`): the per-unit token of the award;
+      `X-Content-SHA256`: hex sha256 of the body; optional `X-Quekaro-Agent` (informational only).
+      The body streams to a temporary file beside its destination while its size (413 over the
+      limit: the app's `max_tile_bytes`, and what the unit's rectangle can need) and hash (422 on a
+      mismatch) are checked. The EXR header is checked before any pixel is decoded (a small file can
+      declare a huge image): its dataWindow must be the unit's rectangle grown by one band on every
+      side, clipped at the image's top/left edges (422 otherwise); then core.tiles.read_tile
+      validates the whole tile (float32 R, G, B; its core rectangle equal to the unit's).
+      Only then is it fsynced, renamed into `{tile_dir}/{job}/tiles/unit-{unit}.exr`, the folder
+      fsynced, and `on_tile(job, unit, path, sha256, agent)` awaited. If that callback raises, the
+      file is removed again and the answer is 500, so the agent may retry.
+      A duplicate of an accepted tile (same sha256) is answered 200 with status "duplicate" and
+      changes nothing; different content for an accepted unit is 409.
+
+Every refusal is JSON `{"error": reason, "status": code}` and leaves no file behind. The app depends on
+no store: the master supplies the provider callbacks `expected(job, unit) -> (token, rect) | None`
+(the rendered unit's rectangle, band excluded) and `bundle(job) -> (path, sha256) | None`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import hmac
+import inspect
+import logging
+import os
+import re
+import tempfile
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from aiohttp import web
+
+from core.errors import TileError
+from core.geometry import Rect
+
+log = logging.getLogger(__name__)
+
+TOKEN_HEADER = "X-Quekaro-Token"
+HASH_HEADER = "X-Content-SHA256"
+AGENT_HEADER = "X-Quekaro-Agent"
+DEFAULT_HOST = "127.0.0.1"
+DEFAULT_PORT = 8765
+_JOB_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
+_SHA_RE = re.compile(r"^[0-9a-f]{64}$")
+_CHUNK = 1 << 20
+# An EXR's header, offsets and compression overhead on top of the raw float32 RGB pixels.
+_EXR_SLACK = 1 << 20
+
+Expected = Callable[[str, int], Any]
+BundleProvider = Callable[[str], Any]
+OnTile = Callable[[str, int, Path, str, "str | None"], Any]
+
+
+@dataclass
+class DataPlane:
+    """The app's configuration and its small state (per-unit locks, hashes of accepted tiles)."""
+
+    expected: Expected
+    bundle: BundleProvider
+    on_tile: OnTile
+    tile_dir: Path
+    max_tile_bytes: int = 256 << 20
+    max_band: int = 256
+    authorize_bundle: Callable[[str, str], Any] | None = None
+    locks: dict[tuple[str, int], asyncio.Lock] = field(default_factory=dict)
+    accepted: dict[tuple[str, int], str] = field(default_factory=dict)
+
+    def tile_path(self, job: str, unit: int) -> Path:
+        return self.tile_dir / job / "tiles" / f"unit-{unit}.exr"
+
+
+class Refusal(Exception):
+    """An upload or fetch refused with an HTTP status and a reason for the client."""
+
+    def __init__(self, status: int, reason: str) -> None:
+        super().__init__(reason)
+        self.status, self.reason = status, reason
+
+
+KEY: web.AppKey[DataPlane] = web.AppKey("quekaro_data_plane", DataPlane)
+
+
+def create_app(expected: Expected, bundle: BundleProvider, on_tile: OnTile, tile_dir: str | Path, *,
+               max_tile_bytes: int = 256 << 20, max_band: int = 256,
+               authorize_bundle: Callable[[str, str], Any] | None = None) -> web.Application:
+    """The data-plane application; the callbacks may be plain functions or coroutines."""
+    plane = DataPlane(expected, bundle, on_tile, Path(tile_dir), max_tile_bytes, max_band, authorize_bundle)
+    # client_max_size guards request.read()/post(); the tile route streams and enforces its own limit.
+    app = web.Application(client_max_size=1 << 20, middlewares=[_json_errors])
+    app[KEY] = plane
+    app.router.add_get("/jobs/{job}/bundle", get_bundle)
+    app.router.add_put("/jobs/{job}/units/{unit}/tile", put_tile)
+    return app
+
+
+async def serve(app: web.Application, host: str = DEFAULT_HOST,
+                port: int = DEFAULT_PORT) -> tuple[web.AppRunner, int]:
+    """Start `app` on host:port (0 picks a free port); return the runner (cleanup() stops) and the port."""
+    runner = web.AppRunner(app, access_log=None)
+    await runner.setup()
+    site = web.TCPSite(runner, host, port)
+    await site.start()
+    return runner, site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
+
+
+def _error(status: int, reason: str) -> web.Response:
+    return web.json_response({"error": reason, "status": status}, status=status)
+
+
+@web.middleware
+async def _json_errors(request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
+                       ) -> web.StreamResponse:
+    try:
+        return await handler(request)
+    except Refusal as exc:
+        log.info("%s %s refused (%d): %s", request.method, request.path, exc.status, exc.reason)
+        return _error(exc.status, exc.reason)
+    except web.HTTPException as exc:
+        if exc.status >= 400:  # aiohttp's own 404/405/413: same JSON shape as ours
+            return _error(exc.status, exc.reason)
+        raise
+
+
+async def _call(fn: Callable[..., Any], *args: Any) -> Any:
+    value = fn(*args)
+    return await value if inspect.isawaitable(value) else value
+
+
+def _job_and_unit(request: web.Request) -> tuple[str, int]:
+    job, unit = request.match_info["job"], request.match_info.get("unit", "0")
+    if not _JOB_RE.match(job):
+        raise Refusal(404, f"unknown job {job[:80]!r}")
+    if not unit.isdigit() or len(unit) > 9:
+        raise Refusal(404, f"unknown unit {unit[:80]!r} of job {job!r}")
+    return job, int(unit)
+
+
+def _token(request: web.Request) -> str:
+    token = request.headers.get(TOKEN_HEADER, "")
+    auth = request.headers.get("Authorization", "")
+    if not token and auth.lower().startswith("bearer "):
+        token = auth[7:].strip()
+    return token
+
+
+# ---- GET bundle ------------------------------------------------------------------------------
+
+
+async def get_bundle(request: web.Request) -> web.StreamResponse:
+    plane = request.app[KEY]
+    job, _ = _job_and_unit(request)
+    if plane.authorize_bundle is not None and not await _call(plane.authorize_bundle, job, _token(request)):
+        raise Refusal(403, f"missing or wrong {TOKEN_HEADER} for the bundle of job {job!r}")
+    found = await _call(plane.bundle, job)
+    if found is None or not Path(found[0]).is_file():
+        raise Refusal(404, f"no bundle for job {job!r}")
+    path, sha256 = Path(found[0]), str(found[1])
+    return web.FileResponse(path, headers={HASH_HEADER: sha256, "Content-Type": "application/x-tar"})
+
+
+# ---- PUT tile --------------------------------------------------------------------------------
+
+
+def _expected_rect(value: Any, job: str, unit: int) -> tuple[str, Rect]:
+    token, rect = value[0], value[1]
+    rect = rect if isinstance(rect, Rect) else Rect.from_list(rect)
+    if not token:
+        raise Refusal(404, f"unit {unit} of job {job!r} has no award to upload to")
+    return str(token), rect
+
+
+def _size_cap(plane: DataPlane, rect: Rect) -> int:
+    pixels = (rect.w + 2 * plane.max_band) * (rect.h + 2 * plane.max_band)
+    return min(plane.max_tile_bytes, pixels * 12 + _EXR_SLACK)
+
+
+async def put_tile(request: web.Request) -> web.Response:
+    plane = request.app[KEY]
+    job, unit = _job_and_unit(request)
+    declared = request.headers.get(HASH_HEADER, "").strip().lower()
+    if not _SHA_RE.match(declared):
+        raise Refusal(400, f"header {HASH_HEADER} must be the body's sha256 as 64 hex digits")
+    slot = await _call(plane.expected, job, unit)
+    if slot is None:
+        return await _late_upload(plane, job, unit, declared)
+    token, rect = _expected_rect(slot, job, unit)
+    if not hmac.compare_digest(_token(request).encode(), token.encode()):
+        raise Refusal(403, f"wrong or missing {TOKEN_HEADER} for unit {unit} of job {job!r}")
+    cap = _size_cap(plane, rect)
+    if request.content_length is not None and request.content_length > cap:
+        raise Refusal(413, f"tile of {request.content_length} bytes exceeds the limit of {cap} bytes "
+                           f"for unit {unit} ({rect.w}x{rect.h} px)")
+    final = plane.tile_path(job, unit)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = await _receive(request, final, declared, cap)
+    try:
+        return await _accept(request, plane, job, unit, tmp, declared)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+async def _late_upload(plane: DataPlane, job: str, unit: int, declared: str) -> web.Response:
+    # The unit is no longer awarded: a repeat of its accepted tile is harmless, anything else is refused.
+    accepted = await _accepted_hash(plane, job, unit)
+    if accepted is None:
+        raise Refusal(404, f"unit {unit} of job {job!r} is not awaiting a tile")
+    if accepted != declared:
+        raise Refusal(409, f"unit {unit} of job {job!r} already has an accepted tile with another sha256")
+    return web.json_response({"status": "duplicate", "job": job, "unit": unit, "sha256": declared})
+
+
+async def _accepted_hash(plane: DataPlane, job: str, unit: int) -> str | None:
+    key = (job, unit)
+    if key not in plane.accepted:
+        path = plane.tile_path(job, unit)
+        if not path.is_file():
+            return None
+        plane.accepted[key] = await asyncio.to_thread(_sha256_file, path)  # after a master restart
+    return plane.accepted[key]
+
+
+def _sha256_file(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as fh:
+        while chunk := fh.read(_CHUNK):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+async def _receive(request: web.Request, final: Path, declared: str, cap: int) -> Path:
+    """Stream the body to a temp file beside `final`, checking its size as it comes, its hash at the end."""
+    fd, name = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".part", dir=final.parent)
+    tmp, digest, size = Path(name), hashlib.sha256(), 0
+    try:
+        with os.fdopen(fd, "wb") as out:
+            async for chunk in request.content.iter_chunked(_CHUNK):
+                size += len(chunk)
+                if size > cap:
+                    raise Refusal(413, f"tile exceeds the limit of {cap} bytes")
+                digest.update(chunk)
+                out.write(chunk)
+        if size == 0:
+            raise Refusal(400, "empty body: a tile upload needs the EXR file")
+        if digest.hexdigest() != declared:
+            raise Refusal(422, f"body sha256 {digest.hexdigest()} differs from {HASH_HEADER} {declared}")
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return tmp
+
+
+async def _accept(request: web.Request, plane: DataPlane, job: str, unit: int, tmp: Path,
+                  sha256: str) -> web.Response:
+    lock = plane.locks.setdefault((job, unit), asyncio.Lock())
+    async with lock:
+        # Asked again under the lock: a concurrent upload may have completed the unit meanwhile.
+        slot = await _call(plane.expected, job, unit)
+        if slot is None:
+            return await _late_upload(plane, job, unit, sha256)
+        token, rect = _expected_rect(slot, job, unit)
+        if not hmac.compare_digest(_token(request).encode(), token.encode()):
+            raise Refusal(403, f"unit {unit} of job {job!r} was awarded to another token meanwhile")
+        if plane.accepted.get((job, unit)) == sha256:  # a repeat the master has not acted on yet
+            return web.json_response({"status": "duplicate", "job": job, "unit": unit, "sha256": sha256})
+        await asyncio.to_thread(_validate, tmp, rect, plane.max_band, f"unit {unit} of job {job!r}")
+        final = plane.tile_path(job, unit)
+        await asyncio.to_thread(_commit, tmp, final)
+        agent = request.headers.get(AGENT_HEADER, "")[:256] or None
+        try:
+            await _call(plane.on_tile, job, unit, final, sha256, agent)
+        except Exception as exc:
+            final.unlink(missing_ok=True)
+            log.exception("on_tile failed for unit %d of job %s", unit, job)
+            reason = f"the master could not record the tile ({type(exc).__name__}: {exc})"
+            raise Refusal(500, reason) from exc
+        plane.accepted[(job, unit)] = sha256
+    return web.json_response({"status": "accepted", "job": job, "unit": unit, "sha256": sha256,
+                              "bytes": final.stat().st_size})
+
+
+def _validate(path: Path, core: Rect, max_band: int, what: str) -> None:
+    """Header first (no pixel decoded for a wrong window), then the whole tile through core.tiles."""
+    from core.tiles import read_tile
+
+    window = _data_window(path, what)
+    band = _band_of(window, core, max_band, what)
+    try:
+        tile = read_tile(path)
+    except TileError as exc:
+        raise Refusal(422, f"{what}: {exc}") from exc
+    if tile.core != core:
+        raise Refusal(422, f"{what}: tile says its unit is {tile.core}, expected {core}")
+    log.debug("%s: tile %s with band %d valid", what, window, band)
+
+
+def _data_window(path: Path, what: str) -> Rect:
+    import OpenEXR
+
+    with path.open("rb") as fh:
+        if fh.read(4) != b"\x76\x2f\x31\x01":
+            raise Refusal(422, f"{what}: the body is not an EXR file")
+    try:
+        with OpenEXR.File(str(path), header_only=True) as exr:
+            if len(exr.parts) != 1:
+                raise Refusal(422, f"{what}: EXR has {len(exr.parts)} parts, a tile has one")
+            (x0, y0), (x1, y1) = (tuple(int(v) for v in c) for c in exr.header()["dataWindow"])
+    except Refusal:
+        raise
+    except Exception as exc:  # OpenEXR reports corrupt headers as RuntimeError/ValueError/KeyError
+        raise Refusal(422, f"{what}: unreadable EXR header ({exc})") from exc
+    if x1 < x0 or y1 < y0:
+        raise Refusal(422, f"{what}: empty EXR dataWindow")
+    return Rect(x0, y0, x1 - x0 + 1, y1 - y0 + 1)
+
+
+def _band_of(window: Rect, core: Rect, max_band: int, what: str) -> int:
+    """The band a window adds around the unit: equal on every side, less only where the image's
+    top or left edge clips it (the right and bottom edges are not known here, so they may clip too)."""
+    left, top = core.x - window.x, core.y - window.y
+    right, bottom = window.x1 - core.x1, window.y1 - core.y1
+    band = max(left, top, right, bottom)
+    clipped_ok = (left == band or window.x == 0) and (top == band or window.y == 0)
+    if min(left, top, right, bottom) < 0 or band > max_band or not clipped_ok:
+        raise Refusal(422, f"{what}: EXR dataWindow {window.as_list()} is not unit {core.as_list()} "
+                           f"grown by one band of at most {max_band} px")
+    return band
+
+
+def _commit(tmp: Path, final: Path) -> None:
+    """Make the validated temp file the tile, durably: fsync it, rename, fsync the folder."""
+    with tmp.open("rb+") as fh:
+        os.fsync(fh.fileno())
+    os.replace(tmp, final)
+    fd = os.open(final.parent, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+async def close(runner: web.AppRunner) -> None:
+    """Stop a server started with `serve`."""
+    with contextlib.suppress(Exception):
+        await runner.cleanup()

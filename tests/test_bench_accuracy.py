@@ -1,0 +1,69 @@
+"""The accuracy benchmark at its smallest size (in-process pipeline), its grid parsing and CPU timing."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import os
+import time
+
+import pytest
+
+from core.errors import QuekaroError
+from master import bench_accuracy
+
+
+def args_for(tmp_path, *extra: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    bench_accuracy.add_arguments(parser)
+    args = parser.parse_args(["--res", "32", "--spp", "4", "--ref-spp", "32", "--threads", "1",
+                              "--levels", "off,S", "--agents", "1", "--out", str(tmp_path / "out"),
+                              "--cache", str(tmp_path / "cache"), *extra])
+    args.json = True
+    return args
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(importlib.util.find_spec("core.effects") is None,
+                    reason="the in-process pipeline needs core.effects, not landed yet")
+def test_inprocess_grid_json_has_cells_and_baseline(tmp_path):
+    result = bench_accuracy.run(args_for(tmp_path, "--inprocess"))
+    cells = result["cells"]
+    assert [(c["agents"], c["level"]) for c in cells] == [(1, "off"), (1, "S")]
+    for c in cells:
+        assert c["seconds"] > 0 and c["cpu_seconds"] > 0
+        assert 0 < c["mean_pixel_diff_percent"] < 50 and 0 < c["relmse"] < 10 and 0 <= c["flip"] <= 1
+        assert c["uniform_spp"] >= 1 and 0 < c["uniform_relmse"] < 10
+        assert c["spp_min"] >= 1 and c["units"] >= 1
+    off = cells[0]
+    assert off["spp_min"] == off["spp_max"] == 4  # level off applies no rules
+    assert list((tmp_path / "cache" / "references").glob("glass-corner-*.exr"))  # cached for next time
+    assert (tmp_path / "out" / "accuracy-diff" / "glass-corner-S.png").exists()
+    assert "| 1 |" in (tmp_path / "out" / "accuracy.md").read_text()
+
+
+def test_grid_arguments_are_checked(tmp_path):
+    with pytest.raises(QuekaroError, match="unknown level 'XL'"):
+        bench_accuracy.parse_grid(args_for(tmp_path, "--levels", "off,XL"))
+    with pytest.raises(QuekaroError, match="--agents"):
+        bench_accuracy.parse_grid(args_for(tmp_path, "--agents", "1,x"))
+    with pytest.raises(QuekaroError, match="unknown scene"):
+        bench_accuracy.parse_grid(args_for(tmp_path, "--scenes", "nope"))
+    scenes, agents, levels = bench_accuracy.parse_grid(args_for(tmp_path, "--agents", "2,1,2", "--inprocess"))
+    assert (scenes, agents, levels) == (["glass-corner"], [1], ["off", "S"])
+
+
+def test_tree_cpu_seconds_counts_a_busy_child():
+    pid = os.fork()
+    if pid == 0:  # the child burns CPU for a moment, then leaves without cleanup
+        end = time.process_time() + 0.4
+        while time.process_time() < end:
+            pass
+        os._exit(0)
+    try:
+        time.sleep(0.35)
+        child = bench_accuracy.tree_cpu_seconds([pid])
+        assert 0.1 <= child <= 1.0
+        assert bench_accuracy.tree_cpu_seconds([os.getpid()]) >= child + 0.05  # the tree includes the child
+    finally:
+        os.waitpid(pid, 0)

@@ -1,0 +1,47 @@
+"""The scaling benchmark at its smallest size: real unit timings, the real auction simulated, its JSON."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from master import bench_scaling
+
+pytestmark = pytest.mark.slow  # a pre-pass and ~20 real unit renders
+
+
+def small_args(tmp_path) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    bench_scaling.add_arguments(parser)
+    args = parser.parse_args(["--res", "64", "--spp", "64", "--agents-max", "4", "--cell", "16",
+                              "--measure-spp", "4", "--units", "4", "--repeats", "1", "--threads", "1",
+                              "--out", str(tmp_path)])
+    args.json = True
+    return args
+
+
+def test_scaling_json_has_rows_with_sane_efficiencies(tmp_path):
+    result = bench_scaling.run(small_args(tmp_path))
+    rows = result["rows"]
+    assert [(r["speeds"], r["agents"]) for r in rows] == [
+        (s, n) for s in ("equal", "mixed") for n in (1, 2, 4)]
+    for r in rows:
+        for key in ("efficiency", "naive_efficiency", "equal_efficiency", "auction_efficiency"):
+            assert 0.05 < r[key] <= 1.2, (key, r)
+        assert r["makespan_s"] > 0 and r["units"] >= 1 and r["target_units"] >= 4
+    equal = [r for r in rows if r["speeds"] == "equal"]
+    # More agents must finish sooner, and one agent on one tile is the baseline itself.
+    assert equal[0]["makespan_s"] > equal[1]["makespan_s"] >= equal[2]["makespan_s"]
+    assert equal[0]["naive_efficiency"] == pytest.approx(1.0, abs=0.2)
+    assert result["measured"]["cells"] == 16 and result["t1_s"] > 0
+    assert {t["agents"] for t in result["targets"]} == set()  # N=8 and 32 were not simulated
+    assert (tmp_path / "scaling.png").stat().st_size > 1000
+    assert "| equal | 4 |" in (tmp_path / "scaling.md").read_text()
+
+
+def test_agent_counts_and_mixed_speeds():
+    assert bench_scaling.agent_counts(64) == [1, 2, 4, 8, 16, 32, 64]
+    assert bench_scaling.agent_counts(5) == [1, 2, 4]
+    assert bench_scaling.speeds_for(5, mixed=True) == [1.0, 0.5, 1.5, 2.0, 1.0]
+    assert bench_scaling.speeds_for(3, mixed=False) == [1.0, 1.0, 1.0]

@@ -1,0 +1,79 @@
+"""Scene specs, -D parsing, XML reading (includes, defaults, referenced files) and loading."""
+
+from pathlib import Path
+
+import pytest
+
+from core.errors import SceneError
+from core.scene import SceneSpec, film_info, film_info_from_scene, image_size, load, parse_defines, referenced_files
+
+REPO = Path(__file__).resolve().parent.parent
+DATA = REPO / "tests" / "data" / "scenes"
+
+
+def test_parse_defines_and_errors():
+    assert parse_defines(["spp=16", "res=64", "s=a=b"]) == {"spp": "16", "res": "64", "s": "a=b"}
+    for bad, needle in [(["spp"], "NAME=VALUE"), (["=3"], "parameter name"), (["1x=2"], "parameter name"),
+                        (["a=1", "a=2"], "twice")]:
+        with pytest.raises(SceneError, match=needle):
+            parse_defines(bad)
+
+
+def test_spec_round_trip_and_hash():
+    spec = SceneSpec("x.xml", {"spp": 4})
+    again = SceneSpec.from_dict(spec.to_dict())
+    assert again == spec and hash(again) == hash(spec) and again.defines == {"spp": "4"}
+    with pytest.raises(SceneError):
+        SceneSpec.from_dict({"defines": {}})
+
+
+def test_include_defaults_and_overrides(tmp_path):
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "film.xml").write_text(
+        '<scene version="3.0.0"><default name="w" value="40"/><sensor type="perspective">'
+        '<film type="hdrfilm"><integer name="width" value="$w"/><integer name="height" value="$h"/>'
+        '<rfilter type="box"/></film></sensor>'
+        '<shape type="obj"><string name="filename" value="mesh.obj"/></shape></scene>')
+    (tmp_path / "sub" / "mesh.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    main = tmp_path / "main.xml"
+    main.write_text('<scene version="3.0.0"><default name="h" value="10"/>'
+                    '<include filename="sub/film.xml"/></scene>')
+    assert image_size(SceneSpec(main)) == (40, 10)
+    assert image_size(SceneSpec(main, {"w": "7"})) == (7, 10)
+    info = film_info(SceneSpec(main))
+    assert (info.filter_type, info.filter_radius) == ("box", 0.5)
+    assert referenced_files(SceneSpec(main)) == [tmp_path / "sub" / "film.xml", tmp_path / "sub" / "mesh.obj"]
+
+
+def test_missing_reference_and_bad_xml(tmp_path):
+    bad = tmp_path / "bad.xml"
+    bad.write_text("<scene><shape")
+    with pytest.raises(SceneError, match="bad.xml"):
+        image_size(SceneSpec(bad))
+    missing = tmp_path / "m.xml"
+    missing.write_text('<scene version="3.0.0"><shape type="ply"><string name="filename" value="no.ply"/>'
+                       '</shape></scene>')
+    with pytest.raises(SceneError, match="no.ply"):
+        referenced_files(SceneSpec(missing))
+    with pytest.raises(SceneError, match="not found"):
+        load(SceneSpec(tmp_path / "absent.xml"))
+
+
+def test_load_errors_name_the_file():
+    with pytest.raises(SceneError, match="tiny.xml.*unused"):
+        load(SceneSpec(DATA / "tiny.xml", {"nonsense": "1"}), "llvm_ad_rgb", threads=1)
+    with pytest.raises(SceneError, match="tiny.xml"):
+        load(SceneSpec(DATA / "tiny.xml", {"width": "abc"}), "llvm_ad_rgb", threads=1)
+
+
+@pytest.mark.parametrize("name", ["cbox.xml", "glass-corner.xml"])
+def test_xml_film_info_matches_mitsuba(name):
+    spec = SceneSpec(REPO / "scenes" / name, {"res": "24", "spp": "1"})
+    assert film_info(spec) == film_info_from_scene(load(spec, "llvm_ad_rgb", threads=1))
+    assert referenced_files(spec) == []  # built-in shapes only
+
+
+def test_sizes_of_hard_cases():
+    assert image_size(SceneSpec(DATA / "tiny.xml", {"width": "1", "height": "1"})) == (1, 1)
+    assert image_size(SceneSpec(DATA / "tiny.xml", {"width": "1", "height": "9"})) == (1, 9)
+    assert referenced_files(SceneSpec(DATA / "tiny.xml")) == [DATA / "_sensor.xml"]
