@@ -74,7 +74,10 @@ def write_tile(path: str | Path, tile: Tile) -> Path:
     if tile.rect.area == 0:
         raise TileError(f"{path}: refusing to write an empty tile ({tile.rect})")
     header = _header(tile)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise TileError(f"{path}: cannot write tile ({exc})") from exc
     os.close(fd)
     try:
         with OpenEXR.File(header, {"RGB": tile.pixels}) as exr:

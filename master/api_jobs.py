@@ -14,7 +14,6 @@ must not be able to submit or cancel jobs. Routes:
 
 from __future__ import annotations
 
-import asyncio
 import hmac
 import json
 from typing import TYPE_CHECKING, Any
@@ -97,7 +96,7 @@ def job_summary(service: MasterService, job_id: str) -> dict[str, Any]:
         "created": record.created, "finished": record.finished, "level": record.options["options"]["level"],
         "units_done": progress.done, "units_total": progress.total, "units_failed": progress.failed,
         "agents_busy": progress.agents_busy, "eta_s": progress.eta_s,
-        "result_ready": service.result_path(job_id).exists(),
+        "result_ready": service.result_path(job_id).with_suffix(".json").exists(),
     }
 
 
@@ -123,8 +122,7 @@ async def _finished_result(request: web.Request) -> tuple[MasterService, str] | 
         return _error(404, str(exc))
     if record.status != "done":
         return _error(409, f"job {job_id} is {record.status}" + (f": {record.error}" if record.error else ""))
-    if not service.result_path(job_id).exists():
-        await asyncio.to_thread(service.assemble, job_id)
+    await service.ensure_assembled(job_id)
     return service, job_id
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import json
 import logging
 import re
@@ -83,7 +84,7 @@ class MasterService:
         self._ticker: asyncio.Task | None = None
         self._planner = ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"))
         self._lock = asyncio.Lock()
-        self._assembling: set[str] = set()
+        self._assembling: dict[str, asyncio.Task] = {}
         self._agent_re = re.compile(config.agent_pattern.format(domain=re.escape(config.domain)))
 
     # ---- life-cycle ---------------------------------------------------------------------------------
@@ -91,14 +92,16 @@ class MasterService:
     async def start(self) -> None:
         self.jobs_dir.mkdir(parents=True, exist_ok=True)
         now = time.time()
-        self.auction, events = restore_auction(self.store, self.job_info, now, self.config.auction)
+        upload = f"{self.config.url}/jobs/{{job}}/units/{{index}}/tile"
+        auction_config = dataclasses.replace(self.config.auction, upload_url=upload)
+        self.auction, events = restore_auction(self.store, self.job_info, now, auction_config)
         self.store.apply(events, now)
         await self._start_http()
         await self._start_xmpp()
         self._ticker = asyncio.create_task(self._tick_forever(), name="master tick")
         self._write_farm_file()
         for record in self.store.list_jobs("done"):
-            if not self.result_path(record.id).exists():
+            if not self.result_path(record.id).with_suffix(".json").exists():
                 self._assemble_later(record.id)
         log.info("master %s up: HTTP %s, %d running job(s)", self.config.jid, self.config.url,
                  len(self.auction.jobs))
@@ -133,7 +136,7 @@ class MasterService:
 
         self.agent = FarmAgent(
             self.config.jid, self.config.password, port=self.config.xmpp_port, server=self.config.xmpp_host,
-            accept_sender=lambda jid: bool(self._agent_re.match(jid)), validate=m.parse,
+            ontology=m.ONTOLOGY, accept_sender=lambda jid: bool(self._agent_re.match(jid)), validate=m.parse,
             ca_file=self.config.ca_file, verify_security=bool(self.config.ca_file),
         )
         self.agent.set_handler(self._on_envelope)
@@ -272,20 +275,26 @@ class MasterService:
 
     # ---- the final image ----------------------------------------------------------------------------
 
-    def _assemble_later(self, job_id: str) -> None:
-        if job_id in self._assembling:
-            return
-        self._assembling.add(job_id)
+    def _assemble_later(self, job_id: str) -> asyncio.Task:
+        """Assemble the job's image in a thread, once at a time per job."""
+        task = self._assembling.get(job_id)
+        if task is None or task.done():
+            task = asyncio.get_running_loop().create_task(asyncio.to_thread(self.assemble, job_id),
+                                                          name=f"assemble {job_id}")
+            task.add_done_callback(lambda t: t.cancelled() or t.exception() is None
+                                   or log.error("job %s: assembling the image failed: %s", job_id, t.exception()))
+            self._assembling[job_id] = task
+        return task
 
-        async def run() -> None:
-            try:
-                await asyncio.to_thread(self.assemble, job_id)
-            except Exception:
-                log.exception("job %s: assembling the image failed", job_id)
-            finally:
-                self._assembling.discard(job_id)
-
-        asyncio.get_running_loop().create_task(run(), name=f"assemble {job_id}")
+    async def ensure_assembled(self, job_id: str) -> Path:
+        """The job's report path, once its image and report are written (assembling them if needed)."""
+        report = self.result_path(job_id).with_suffix(".json")
+        task = self._assembling.get(job_id)
+        if task is not None and not task.done():
+            await asyncio.shield(task)
+        if not report.exists():
+            await self._assemble_later(job_id)
+        return report
 
     def assemble(self, job_id: str) -> dict[str, Any]:
         """Compose the job's tiles into result.exr/.png/.json (again, if asked: it is deterministic)."""

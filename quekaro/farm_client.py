@@ -75,11 +75,14 @@ class FarmClient:
         return list(self._json("GET", "/api/agents")["agents"])
 
     def result(self, job_id: str, out: Path) -> Path:
-        """Download the composed EXR (and the report beside it)."""
+        """Download the composed EXR and its report, and write the tonemapped PNG beside them."""
+        from core.imageio import read_exr, write_png
+
         out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_bytes(self._request("GET", f"/api/jobs/{job_id}/result"))
         out.with_suffix(".json").write_bytes(self._request("GET", f"/api/jobs/{job_id}/report"))
+        write_png(out.with_suffix(".png"), read_exr(out))
         return out
 
     def cancel(self, job_id: str) -> bool:

@@ -176,8 +176,8 @@ def run_demo(args: argparse.Namespace) -> int:
         out = client.result(job_id, args.out)
         report = json.loads(out.with_suffix(".json").read_text())
     totals = report["totals"]
-    print(f"image:  {out.resolve()}\npng:    {out.with_suffix('.png').resolve()} (tonemapped copy: "
-          f"{report['image']['png']})\nreport: {out.with_suffix('.json').resolve()}")
+    print(f"image:  {out.resolve()}\npng:    {out.with_suffix('.png').resolve()}\n"
+          f"report: {out.with_suffix('.json').resolve()}")
     print(f"{totals['units']} units, {totals['seconds']:.1f} s to compose, render seconds on agents "
           f"{totals['render_seconds']:.1f}, pre-pass {totals['prepass_seconds']:.2f} s")
     return 0

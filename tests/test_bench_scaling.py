@@ -14,7 +14,7 @@ pytestmark = pytest.mark.slow  # a pre-pass and ~20 real unit renders
 def small_args(tmp_path) -> argparse.Namespace:
     parser = argparse.ArgumentParser()
     bench_scaling.add_arguments(parser)
-    args = parser.parse_args(["--res", "64", "--spp", "64", "--agents-max", "4", "--cell", "16",
+    args = parser.parse_args(["--res", "128", "--spp", "64", "--agents-max", "4", "--cell", "32",
                               "--measure-spp", "4", "--units", "4", "--repeats", "1", "--threads", "1",
                               "--out", str(tmp_path)])
     args.json = True

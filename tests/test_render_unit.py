@@ -1,0 +1,156 @@
+"""Unit rendering: jobs, seeds, the shifted-camera window, and the crash-proof child process."""
+
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from core.errors import RenderError, SceneError
+from core.geometry import Rect
+from core.render_unit import (
+    RenderWorker,
+    UnitJob,
+    _SceneCache,
+    render_full,
+    render_job_here,
+    set_window,
+    unit_seed,
+)
+from core.scene import SceneSpec
+
+REPO = Path(__file__).resolve().parent.parent
+CBOX = SceneSpec(REPO / "scenes" / "cbox.xml", {"res": "48", "spp": "4"})
+DATA = REPO / "tests" / "data" / "scenes"
+VARIANT = "llvm_ad_rgb"
+
+
+def job(unit=Rect(8, 16, 16, 16), spp=16, seed=1, spec=CBOX, size=(48, 48), band=2, **kw):
+    return UnitJob(spec, VARIANT, "path", 4, spp, seed, size[0], size[1], unit, band=band, threads=1, **kw)
+
+
+@pytest.fixture(scope="module")
+def worker():
+    with RenderWorker() as w:
+        yield w
+
+
+def test_unit_seeds_are_distinct_and_stable():
+    seeds = {unit_seed("job", u, p) for u in range(200) for p in range(3)}
+    assert len(seeds) == 600 and all(0 <= s < 2**32 for s in seeds)
+    assert unit_seed("job", 3, 1) == unit_seed("job", 3, 1) != unit_seed("job2", 3, 1)
+
+
+def test_job_round_trip_and_refusals():
+    j = job(job_id="abc", unit_index=5)
+    assert UnitJob.from_dict(j.to_dict()) == j
+    assert j.window == Rect(6, 14, 20, 20)
+    assert job(unit=Rect(0, 0, 4, 4), band=10).window == Rect(0, 0, 14, 14)  # band clipped to the image
+    with pytest.raises(RenderError, match="spp=0"):
+        job(spp=0)
+    with pytest.raises(RenderError, match="outside"):
+        job(unit=Rect(40, 40, 16, 16))
+    with pytest.raises(RenderError, match="malformed"):
+        UnitJob.from_dict({"scene": {"path": "x"}})
+
+
+def test_shifted_camera_renders_the_same_pixels_as_a_crop():
+    """Same seed, same window: the kernel-friendly shift and Mitsuba's crop give the same image."""
+    import mitsuba as mi
+
+    cache = _SceneCache()
+    j = job(unit=Rect(20, 8, 16, 24), spp=8, size=(48, 48))
+    shifted = render_job_here(j, cache)
+    assert shifted.meta["window_method"] == "shift"
+    scene, _ = cache.scene_for(j.scene, VARIANT, 1)
+    params = mi.traverse(scene.sensors()[0])
+    params["principal_point_offset_x"], params["principal_point_offset_y"] = cache.base_pp
+    params.update()
+    set_window(scene, j.window, None)  # a real crop at the window's offset, camera as loaded
+    cropped = np.array(mi.render(scene, integrator=cache.integrator("path", 4), spp=8, seed=j.seed))
+    assert np.allclose(shifted.pixels, cropped[..., :3], rtol=1e-4, atol=1e-5)
+
+
+def test_unit_matches_the_same_region_of_a_full_render():
+    """With a band of the filter's reach (2 px, gaussian) the unit's core is the full render's region."""
+    full = render_full(CBOX, VARIANT, "path", 4, 128, seed=11, threads=1)
+    unit = Rect(8, 8, 24, 24)  # takes in the light's edge, where a band-less crop is visibly biased
+    region = full[unit.slices()]
+    core = render_job_here(job(unit=unit, spp=128, seed=12, band=2)).core_pixels()
+    diff = (core - region).mean(axis=-1).ravel()
+    stderr = diff.std() / np.sqrt(diff.size)
+    assert abs(diff.mean()) < 4 * stderr
+    assert abs(core.mean() / region.mean() - 1) < 0.03
+
+
+def test_seeds_make_the_noise():
+    a = render_job_here(job(seed=1)).pixels
+    b = render_job_here(job(seed=1)).pixels
+    c = render_job_here(job(seed=2)).pixels
+    assert np.array_equal(a, b)
+    assert not np.allclose(a, c)
+    assert np.corrcoef((a - c).ravel(), (b - c).ravel())[0, 1] > 0.99  # same noise, not merely close
+
+
+def test_worker_renders_and_caches_the_scene(worker):
+    first = worker.render(job(unit_index=0, job_id="j"), timeout=120)
+    start = time.perf_counter()
+    second = worker.render(job(seed=2), timeout=120)
+    elapsed = time.perf_counter() - start
+    assert first.rect == Rect(6, 14, 20, 20) and first.core == Rect(8, 16, 16, 16)
+    assert first.meta["unit_index"] == 0 and first.meta["nonfinite"] == 0
+    assert second.meta["load_seconds"] == 0.0 and second.meta["pid"] == first.meta["pid"] == worker.pid
+    assert elapsed < 2.0
+    assert np.isfinite(first.pixels).all() and first.pixels.mean() > 0
+
+
+def test_broken_scene_is_a_scene_error_and_the_worker_survives(worker, tmp_path):
+    bad = tmp_path / "broken.xml"
+    bad.write_text('<scene version="3.0.0"><shape type="nosuchplugin"/></scene>')
+    pid = worker.pid
+    with pytest.raises(SceneError, match="broken.xml"):
+        worker.render(job(spec=SceneSpec(bad), size=(768, 576)), timeout=60)
+    assert worker.pid == pid
+    assert worker.render(job(), timeout=60).pixels.shape == (20, 20, 3)
+
+
+def test_killed_child_is_a_render_error_and_the_worker_restarts():
+    with RenderWorker() as w:
+        w.render(job(), timeout=60)
+        pid = w.pid
+        killer = threading.Timer(0.3, os.kill, (pid, signal.SIGKILL))
+        killer.start()
+        with pytest.raises(RenderError, match="SIGKILL"):
+            w.render(job(unit=Rect(0, 0, 48, 48), spp=20000, band=0), timeout=60)
+        killer.join()
+        tile = w.render(job(), timeout=60)
+        assert tile.meta["pid"] != pid and w.starts == 2
+
+
+def test_timeout_kills_and_recovers():
+    with RenderWorker() as w:
+        with pytest.raises(RenderError, match="timed out"):
+            w.render(job(unit=Rect(0, 0, 48, 48), spp=50000, band=0), timeout=0.5)
+        assert w.render(job(), timeout=60).pixels.shape == (20, 20, 3)
+
+
+def test_infinite_radiance_gives_a_finite_tile_and_a_count():
+    spec = SceneSpec(DATA / "inf_emitter.xml", {"width": "16", "height": "16"})
+    tile = render_job_here(job(spec=spec, size=(16, 16), unit=Rect(0, 0, 16, 16), spp=4, band=0))
+    assert np.isfinite(tile.pixels).all()
+    assert tile.meta["nonfinite"] > 0
+
+
+@pytest.mark.parametrize("size", [(1, 1), (1, 7), (9, 1)])
+def test_degenerate_image_sizes(size):
+    spec = SceneSpec(DATA / "tiny.xml", {"width": str(size[0]), "height": str(size[1])})
+    tile = render_job_here(job(spec=spec, size=size, unit=Rect(0, 0, size[0], size[1]), spp=4, band=3))
+    assert tile.pixels.shape == (size[1], size[0], 3) and tile.pixels.mean() > 0
+
+
+def test_film_size_mismatch_is_refused():
+    with pytest.raises(RenderError, match="film is 48x48"):
+        render_job_here(job(size=(64, 64)))
