@@ -76,6 +76,7 @@ class MasterService:
         self.config = config
         self.home = Path(config.home)
         self.jobs_dir = self.home / "jobs"
+        self.home.mkdir(parents=True, exist_ok=True)
         self.store = JobStore(self.home / "jobs.sqlite")
         self.admin_token = _admin_token(self.home)
         self.auction: au.Auction | None = None

@@ -41,6 +41,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["agent"]:
+        # The render agent owns its options (python -m agents.render_agent takes the same ones).
+        from agents.render_agent import main as agent_main
+
+        return int(agent_main(argv[1:]) or 0)
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

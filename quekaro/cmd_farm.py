@@ -16,9 +16,9 @@ from quekaro.cmd_render import add_job_arguments, options_from_args
 def register(sub: argparse._SubParsersAction) -> None:
     _register_up(sub)
     _register_master(sub)
-    agent = sub.add_parser("agent", help="run one render agent against an XMPP server", add_help=False)
-    agent.add_argument("agent_args", nargs=argparse.REMAINDER)
-    agent.set_defaults(func=run_agent)
+    # `quekaro agent ...` is dispatched to agents.render_agent before parsing (see quekaro.cli.main);
+    # this entry is for `quekaro --help`.
+    sub.add_parser("agent", help="run one render agent against an XMPP server (quekaro agent --help)")
     _register_client(sub)
 
 
@@ -110,12 +110,6 @@ def run_master(args: argparse.Namespace) -> int:
     from master.run import main
 
     return main(args)
-
-
-def run_agent(args: argparse.Namespace) -> int:
-    from agents.render_agent import main
-
-    return int(main(args.agent_args) or 0)
 
 
 # ---- using a farm ----------------------------------------------------------------------------------------

@@ -1,0 +1,102 @@
+"""The multi-host set-up on one machine: a real Prosody (TLS required, registration closed, accounts made
+with prosodyctl), the master and two agents as separate processes started with their own commands
+(`quekaro master`, `quekaro agent`), verifying Prosody's certificate, and a job rendered through them."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from core.bundle import make_bundle
+from core.imageio import read_exr
+from core.xmpp_server import ProsodyServer, free_port
+from quekaro.farm_client import FarmClient
+
+REPO = Path(__file__).resolve().parent.parent
+SCENE = REPO / "scenes" / "cbox.xml"
+
+# CI sets QUEKARO_REQUIRE_PROSODY=1 so that a missing install fails instead of skipping.
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(
+        (shutil.which("prosody") is None or shutil.which("openssl") is None)
+        and not os.environ.get("QUEKARO_REQUIRE_PROSODY"),
+        reason="prosody/openssl not installed (Debian packages prosody, openssl)"),
+]
+
+
+def _spawn(cmd: list[str], log: Path) -> subprocess.Popen:
+    return subprocess.Popen(cmd, cwd=REPO, stdout=log.open("ab"), stderr=subprocess.STDOUT)
+
+
+def test_master_and_two_agents_render_through_prosody(tmp_path):
+    server = ProsodyServer(tmp_path / "prosody", domain="localhost")
+    passwords = server.register_all(["master", "agent-1", "agent-2"])
+    ca = server.cert_dir / "localhost_cert.pem"
+    home, logs = tmp_path / "master", tmp_path / "logs"
+    logs.mkdir()
+    http_port = free_port()
+    procs: list[subprocess.Popen] = []
+    with server:
+        try:
+            (tmp_path / "master.pw").write_text(passwords["master"])
+            procs.append(_spawn([sys.executable, "-m", "quekaro", "master", "--home", str(home), "--jid",
+                                 "master@localhost", "--password-file", str(tmp_path / "master.pw"),
+                                 "--server", "127.0.0.1", "--port", str(server.port), "--ca-file", str(ca),
+                                 "--http-port", str(http_port), "--threads", "1"], logs / "master.log"))
+            for name in ("agent-1", "agent-2"):
+                procs.append(_spawn([sys.executable, "-m", "quekaro", "agent", "--server", "127.0.0.1",
+                                     "--port", str(server.port), "--jid", f"{name}@localhost",
+                                     "--password", passwords[name], "--master", "master@localhost",
+                                     "--ca-file", str(ca), "--threads", "1",
+                                     "--workdir", str(tmp_path / name)], logs / f"{name}.log"))
+            client = _wait_for_farm(home, procs, logs)
+            defines = {"res": "48", "spp": "16"}
+            with tempfile.TemporaryDirectory() as tmp:
+                bundle = make_bundle(SCENE, defines, Path(tmp) / "b.tar").path.read_bytes()
+            job_id = client.submit(bundle, defines, {"level": "S", "units": 6})
+            deadline = time.monotonic() + 240
+            while (job := client.status(job_id))["status"] == "running" and time.monotonic() < deadline:
+                time.sleep(0.3)
+            assert job["status"] == "done", (job, _tails(logs))
+            out = client.result(job_id, tmp_path / "out.exr")
+            image = read_exr(out)
+            assert image.shape == (48, 48, 3) and np.isfinite(image).all() and image.mean() > 0.05
+            master_log = (logs / "master.log").read_text()
+            assert "agent-1@localhost" in master_log or "agent-2@localhost" in master_log
+        finally:
+            for proc in procs:
+                proc.terminate()
+            for proc in procs:
+                try:
+                    proc.wait(timeout=15)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+
+
+def _wait_for_farm(home: Path, procs: list[subprocess.Popen], logs: Path) -> FarmClient:
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        for proc in procs:
+            assert proc.poll() is None, f"a farm process exited early: {_tails(logs)}"
+        if (home / "farm.json").exists():
+            try:
+                client = FarmClient.from_home(home)
+                if sum(not a["lost"] for a in client.agents()) >= 2:
+                    return client
+            except Exception:
+                pass
+        time.sleep(0.3)
+    raise AssertionError(f"farm did not come up: {_tails(logs)}")
+
+
+def _tails(logs: Path) -> str:
+    return "\n".join(f"--- {p.name}\n" + "\n".join(p.read_text().splitlines()[-15:]) for p in sorted(logs.glob("*")))
