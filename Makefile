@@ -5,11 +5,13 @@ BIN := $(VENV)/bin
 
 .PHONY: setup system-deps demo test lint bench clean
 
-# Debian packages: libllvm19 for Mitsuba's llvm variants, prosody for the multi-host tests.
+# Debian packages: libllvm19 for Mitsuba's llvm variants, prosody (+ openssl for its certificates) for the
+# multi-host XMPP server and its tests.
 system-deps:
 	@need=""; \
 	[ -e /usr/lib/x86_64-linux-gnu/libLLVM-19.so.1 ] || [ -e /usr/lib/x86_64-linux-gnu/libLLVM.so.19.1 ] || ls /usr/lib/*/libLLVM*19* >/dev/null 2>&1 || need="$$need libllvm19"; \
 	command -v prosody >/dev/null 2>&1 || need="$$need prosody"; \
+	command -v openssl >/dev/null 2>&1 || need="$$need openssl"; \
 	if [ -n "$$need" ]; then \
 	  if [ "$$(id -u)" = 0 ]; then \
 	    echo "installing Debian packages:$$need"; \

@@ -14,14 +14,14 @@ from master.service import MasterConfig, MasterService
 
 
 def password_from(args: argparse.Namespace) -> str:
-    """--password, else --password-file, else $QUEKARO_PASSWORD: a missing password is an error."""
+    """--password, else --password-file, else $QUEKARO_XMPP_PASSWORD: a missing password is an error."""
     if args.password:
         return str(args.password)
     if args.password_file:
         return Path(args.password_file).read_text().strip()
-    if os.environ.get("QUEKARO_PASSWORD"):
-        return os.environ["QUEKARO_PASSWORD"]
-    raise QuekaroError("no XMPP password: give --password, --password-file or $QUEKARO_PASSWORD")
+    if os.environ.get("QUEKARO_XMPP_PASSWORD"):
+        return os.environ["QUEKARO_XMPP_PASSWORD"]
+    raise QuekaroError("no XMPP password: give --password, --password-file or $QUEKARO_XMPP_PASSWORD")
 
 
 def config_from(args: argparse.Namespace) -> MasterConfig:

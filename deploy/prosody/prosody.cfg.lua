@@ -15,6 +15,7 @@
 --   QUEKARO_PROSODY_LOG      log file, or "console"                             (default "console")
 --   QUEKARO_PROSODY_USER     user to run as when started as root                (default "prosody")
 --   QUEKARO_XMPP_STANZA_LIMIT  largest stanza accepted, bytes                   (default 262144)
+--   QUEKARO_REGISTRATION_ALLOWLIST  addresses/CIDRs allowed to register in-band (default: none, closed)
 
 local env = os.getenv
 local domain = env("QUEKARO_XMPP_DOMAIN") or "xmpp"
@@ -42,7 +43,7 @@ run_as_root = (user == "root")
 local log_to = env("QUEKARO_PROSODY_LOG") or "console"
 log = { info = log_to }
 
-modules_enabled = {
+local enabled = {
 	"roster";      -- SPADE asks for its roster at login
 	"saslauth";
 	"tls";
@@ -51,10 +52,25 @@ modules_enabled = {
 	"offline";     -- messages to an agent that is reconnecting wait for it
 	"posix";       -- pid file
 }
-modules_disabled = { "s2s"; "register"; "http"; "admin_shell" }
-
--- Closed registration: only accounts made with prosodyctl exist.
-allow_registration = false
+-- Registration is closed: only accounts made with prosodyctl exist. The one exception is
+-- QUEKARO_REGISTRATION_ALLOWLIST (comma-separated addresses or CIDR ranges): clients from there, and
+-- only from there, may register in-band. docker-compose.yml sets it to its own private network so that
+-- `--scale agent=N` works without pre-made accounts; never set it to a network strangers can reach.
+local allowlist = env("QUEKARO_REGISTRATION_ALLOWLIST")
+if allowlist and allowlist ~= "" then
+	local nets = {}
+	for net in allowlist:gmatch("[^,%s]+") do nets[#nets + 1] = net end
+	modules_disabled = { "s2s"; "http"; "admin_shell" }
+	enabled[#enabled + 1] = "register"
+	allow_registration = true
+	allowlist_registration_only = true
+	registration_allowlist = nets
+	min_seconds_between_registrations = 0
+else
+	modules_disabled = { "s2s"; "register"; "http"; "admin_shell" }
+	allow_registration = false
+end
+modules_enabled = enabled
 
 -- Clients must encrypt; passwords are stored hashed.
 c2s_require_encryption = true

@@ -1,0 +1,42 @@
+#!/bin/sh
+# Entry point of the farm's image: one role per container (xmpp | master | agent), configured by
+# environment variables (see docker-compose.yml). Anything else runs `quekaro "$@"`.
+set -eu
+domain=${QUEKARO_XMPP_DOMAIN:-xmpp}
+server=${QUEKARO_XMPP_SERVER:-$domain}
+port=${QUEKARO_XMPP_PORT:-5222}
+here=$(cd "$(dirname "$0")" && pwd)
+role=${1:-}
+[ $# -gt 0 ] && shift
+
+case "$role" in
+xmpp)
+    data=${QUEKARO_PROSODY_DATA:-$HOME/prosody}
+    mkdir -p "$data/data" "$data/certs"
+    cert="$data/certs/$domain.crt"; key="$data/certs/$domain.key"
+    if [ ! -f "$cert" ]; then
+        openssl req -x509 -newkey rsa:2048 -nodes -days 3650 -subj "/CN=$domain" \
+            -addext "subjectAltName=DNS:$domain" -keyout "$key" -out "$cert" 2>/dev/null
+    fi
+    export QUEKARO_XMPP_DOMAIN="$domain" QUEKARO_XMPP_CERT="$cert" QUEKARO_XMPP_KEY="$key" \
+           QUEKARO_PROSODY_DATA="$data/data" QUEKARO_PROSODY_PIDFILE="$data/prosody.pid" \
+           QUEKARO_PROSODY_LOG=console QUEKARO_PROSODY_USER="$(id -un)"
+    exec prosody --config "$here/prosody/prosody.cfg.lua" -F
+    ;;
+master)
+    exec quekaro master --home "${QUEKARO_HOME:-$HOME/farm}" --jid "master@$domain" --server "$server" \
+        --port "$port" --register --http-host "${QUEKARO_HTTP_HOST:-0.0.0.0}" \
+        --http-port "${QUEKARO_HTTP_PORT:-8765}" \
+        --public-url "${QUEKARO_PUBLIC_URL:-http://master:8765}" "$@"
+    ;;
+agent)
+    # Every replica gets its own JID (its container's host name) and registers it in-band: Prosody
+    # allows that only from the compose network (QUEKARO_REGISTRATION_ALLOWLIST on the xmpp service).
+    exec quekaro agent --server "$server" --port "$port" --jid "agent-${QUEKARO_AGENT_NAME:-$(hostname)}@$domain" \
+        --master "master@$domain" \
+        --register --threads "${QUEKARO_THREADS:-2}" --workdir "$HOME/agent" "$@"
+    ;;
+*)
+    exec quekaro "$role" "$@"
+    ;;
+esac
