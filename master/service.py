@@ -237,7 +237,9 @@ class MasterService:
                 conversation=unit.conversation, job_id=job_id, index=index, token=unit.token,
                 tile_hash=sha256, depth=params["depth"], spp=params["spp"], band=params["band"],
                 seconds=params["seconds"], nonfinite=params["nonfinite"])
-            await self._execute(self.auction.on_inform(unit.agent, inform, time.time()))
+            now = time.time()
+            # Tick at once: the agent that just finished is free, and waiting for the timer would idle it.
+            await self._execute(self.auction.on_inform(unit.agent, inform, now) + self.auction.tick(now))
 
     # ---- messages and time --------------------------------------------------------------------------
 

@@ -6,13 +6,13 @@ machine, so this is as close to `docker compose up --scale agent=2` as the tests
 from __future__ import annotations
 
 import os
-import shutil
 import subprocess
 import tempfile
 import time
 from pathlib import Path
 
 import pytest
+from prosody_support import needs_prosody
 
 from core.bundle import make_bundle
 from core.xmpp_server import free_port, port_accepts
@@ -23,10 +23,7 @@ ENTRY = REPO / "deploy" / "entrypoint.sh"
 
 pytestmark = [
     pytest.mark.slow,
-    pytest.mark.skipif(
-        (shutil.which("prosody") is None or shutil.which("openssl") is None)
-        and not os.environ.get("QUEKARO_REQUIRE_PROSODY"),
-        reason="prosody/openssl not installed (Debian packages prosody, openssl)"),
+    needs_prosody,
 ]
 
 

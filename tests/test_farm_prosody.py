@@ -4,8 +4,6 @@ with prosodyctl), the master and two agents as separate processes started with t
 
 from __future__ import annotations
 
-import os
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -14,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from prosody_support import needs_prosody
 
 from core.bundle import make_bundle
 from core.imageio import read_exr
@@ -26,10 +25,7 @@ SCENE = REPO / "scenes" / "cbox.xml"
 # CI sets QUEKARO_REQUIRE_PROSODY=1 so that a missing install fails instead of skipping.
 pytestmark = [
     pytest.mark.slow,
-    pytest.mark.skipif(
-        (shutil.which("prosody") is None or shutil.which("openssl") is None)
-        and not os.environ.get("QUEKARO_REQUIRE_PROSODY"),
-        reason="prosody/openssl not installed (Debian packages prosody, openssl)"),
+    needs_prosody,
 ]
 
 

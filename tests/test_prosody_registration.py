@@ -4,20 +4,16 @@ docker-compose lets `--scale agent=N` agents create their own accounts on its pr
 from __future__ import annotations
 
 import asyncio
-import os
-import shutil
 
 import pytest
+from prosody_support import needs_prosody
 
 from core.xmpp import FarmAgent, XmppError
 from core.xmpp_server import ProsodyServer
 
 pytestmark = [
     pytest.mark.slow,
-    pytest.mark.skipif(
-        (shutil.which("prosody") is None or shutil.which("openssl") is None)
-        and not os.environ.get("QUEKARO_REQUIRE_PROSODY"),
-        reason="prosody/openssl not installed (Debian packages prosody, openssl)"),
+    needs_prosody,
 ]
 
 

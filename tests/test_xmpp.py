@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import os
 import queue
-import shutil
 import subprocess
 import sys
 import threading
@@ -14,6 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
+from prosody_support import needs_prosody
 
 from core.xmpp_server import EmbeddedXmppServer, ProsodyServer
 
@@ -197,8 +197,6 @@ def test_both_agents_reconnect_by_themselves_after_a_server_restart(tmp_path, pe
     assert back_ping["outage_s"] < (up_at - stopped_at) + 10
 
 
-needs_prosody = pytest.mark.skipif(shutil.which("prosody") is None or shutil.which("openssl") is None,
-                                   reason="prosody/openssl not installed (Debian packages prosody, openssl)")
 
 
 @pytest.mark.slow
