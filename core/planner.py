@@ -5,6 +5,14 @@ applies no rules at all: every unit renders at the user's depth and spp, with th
 Otherwise the fuzzy rule base (rules/pathtracing.xml unless told) weights the user's values, as
 `fuzzy.render_params` documents; the band never drops below `min_band`, the reach of the gaussian
 reconstruction filter (2 px), so that neighbouring tiles always overlap enough to blend.
+
+Depth is quantised: the crisp Rl is rounded to the nearest of DEPTH_STEPS (1, 3/4, 1/2 of the user's
+depth) before it weights the user's depth. Dr.Jit bakes max_depth into the kernel, so every distinct
+depth costs a compilation per window size (~0.1-0.5 s); three steps keep that bounded.
+
+No budget normalisation across units: a render agent plans the units it is offered one job-context at a
+time (the unit's features and the scene's ranges), so a unit's parameters depend only on those, the
+same in the farm as in `quekaro render`. How many samples a level spends overall is the rules' doing.
 """
 
 from __future__ import annotations
@@ -20,6 +28,14 @@ from fuzzy import Engine, load_rulebase
 from fuzzy.render_params import LEVELS, op_value, to_render_params
 
 FEATURES = ("C", "S", "Nd")
+DEPTH_STEPS = (1.0, 0.75, 0.5)  # the fractions of the user's depth a unit may render with
+
+
+def quantise_depth_factor(rl: np.ndarray) -> np.ndarray:
+    """Each Rl rounded to the nearest of DEPTH_STEPS (ties go to the deeper step)."""
+    steps = np.asarray(DEPTH_STEPS)
+    rl = np.asarray(rl, dtype=np.float64)
+    return steps[np.argmin(np.abs(rl[:, None] - steps[None, :]), axis=1)]
 
 
 def default_rules_path() -> Path:
@@ -86,7 +102,8 @@ class Planner:
             ranges = {k: (float(v.min()), float(v.max())) for k, v in cols.items()}
         inputs = {**cols, "Op": np.full(n, op_value(level))}
         outputs = self.engine.evaluate(inputs, ranges)
-        depth, spp, band = to_render_params(outputs, user_depth, user_spp)
+        quantised = {**outputs, "Rl": quantise_depth_factor(outputs["Rl"])}
+        depth, spp, band = to_render_params(quantised, user_depth, user_spp)
         band = np.maximum(band, self.min_band)
         crisp = [{k: float(outputs[k][i]) for k in ("Rl", "Ls", "Ibs")} for i in range(n)]
         return [UnitParams(int(depth[i]), int(spp[i]), int(band[i]), crisp[i]) for i in range(n)]

@@ -15,7 +15,6 @@ Non-finite pixels (an emitter with infinite or NaN radiance): every non-finite c
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import os
 import signal
 import socket
@@ -37,12 +36,6 @@ from core.tiles import Tile
 
 STARTUP_TIMEOUT_S = 120.0
 _PP_KEYS = ("principal_point_offset_x", "principal_point_offset_y")
-
-
-def unit_seed(job_id: str, unit: int, pass_: int) -> int:
-    """A 32-bit seed distinct for every (job, unit, pass), stable across processes and hosts."""
-    digest = hashlib.blake2b(f"{job_id}\x00{unit}\x00{pass_}".encode(), digest_size=4).digest()
-    return int.from_bytes(digest, "little")
 
 
 @dataclass(frozen=True)

@@ -106,10 +106,20 @@ def load(spec: SceneSpec, variant: str | None = None, threads: int | None = None
     path = spec.path
     if not path.is_file():
         raise SceneError(f"{path}: scene file not found")
+    import drjit as dr
+
+    # Loading deadlocks when Dr.Jit's pool has one thread (seen with matpreview's envmap, serial or
+    # parallel loader alike): load with two threads, then give the caller back its thread count.
+    threads_before = dr.thread_count()
+    if threads_before < 2:
+        dr.set_thread_count(2)
     try:
         return mi.load_file(str(path), **spec.defines)
     except RuntimeError as exc:
         raise SceneError(f"{path}: {exc}") from exc
+    finally:
+        if threads_before < 2:
+            dr.set_thread_count(threads_before)
 
 
 # ---- reading the XML -------------------------------------------------------------------------

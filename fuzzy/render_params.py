@@ -2,12 +2,15 @@
 
 The path-tracing rule base (rules/pathtracing.xml) has three outputs:
   Rl   a factor of the user's path depth      depth = max(1, round(user_depth * clip(Rl, 0, 1)))
-  Ls   a factor of the user's samples/pixel   spp   = max(1, round(user_spp * clip(Ls, 0, 1)))
+  Ls   a factor of the user's samples/pixel   spp   = max(1, round(user_spp * clip(Ls, 0, LS_MAX)))
   Ibs  the interpolation band in pixels       band  = max(0, round(Ibs))
-The factors are clipped to [0, 1]: the user's values are the quality ceiling that the rules lower
-(never raise); the outputs' default (no rule fired) is 1.0, i.e. "keep the user's value". Results are
-clamped to depth >= 1 and spp >= 1 so that a unit always renders something. A planner may impose a
-larger minimum band (core.planner does: the reconstruction filter's reach).
+Depth is clipped to [0, 1] of the user's: the user's depth bounds the light paths the image may have,
+and deeper paths only cost. Samples may go up to LS_MAX (3) times the user's: the rules move samples
+from simple units to the noisy ones, which needs factors above 1 (at a fixed time a unit's error is
+least when its spp grows with its noise); the cap bounds what one unit can cost. The outputs' default
+(no rule fired) is 1.0, i.e. "keep the user's value". Results are clamped to depth >= 1 and spp >= 1
+so that a unit always renders something. A planner may impose a larger minimum band (core.planner
+does: the reconstruction filter's reach) and quantise depth.
 
 The optimisation level is an input: `op_value(level)` gives the crisp Op for a level name, the peak
 of that label in the rule file's Op variable (VS=0, S=1, N=2, B=3, VB=4).
@@ -21,6 +24,7 @@ import numpy as np
 
 LEVELS = ("VS", "S", "N", "B", "VB")
 _OP_VALUES = {level: float(i) for i, level in enumerate(LEVELS)}
+LS_MAX = 3.0  # most a unit's spp may grow over the user's (see the module docstring)
 
 
 def op_value(level: str) -> float:
@@ -44,6 +48,6 @@ def to_render_params(
         if not np.isfinite(arr).all():
             raise ValueError(f"output {name} has a non-finite value")
     depth = np.maximum(1, np.rint(user_depth * np.clip(rl, 0.0, 1.0))).astype(np.int64)
-    spp = np.maximum(1, np.rint(user_spp * np.clip(ls, 0.0, 1.0))).astype(np.int64)
+    spp = np.maximum(1, np.rint(user_spp * np.clip(ls, 0.0, LS_MAX))).astype(np.int64)
     band = np.maximum(0, np.rint(ibs)).astype(np.int64)
     return depth, spp, band

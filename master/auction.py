@@ -28,6 +28,7 @@ from typing import Any
 
 from core import messages as m
 from core.geometry import Rect
+from core.seeds import unit_seed
 
 
 class UnitStatus(StrEnum):
@@ -509,7 +510,7 @@ class Auction:
             unit=unit.spec,
             token=unit.token,
             upload_url=url,
-            seed=unit.spec.index % (2**31 - 1),
+            seed=unit_seed(job.info.job_id, unit.spec.index, 0),
             estimate_s=estimate,
         )
         detail = {

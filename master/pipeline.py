@@ -18,8 +18,9 @@ from typing import Any
 from core.compose import compose
 from core.imageio import write_exr, write_png
 from core.planner import Planner, UnitParams
-from core.render_unit import RenderWorker, UnitJob, unit_seed
+from core.render_unit import RenderWorker, UnitJob
 from core.scene import SceneSpec
+from core.seeds import unit_seed
 from core.tiles import Tile
 from master.jobplan import JobPlan, RenderOptions, plan_job
 

@@ -40,7 +40,8 @@ def test_eval_with_set_and_ranges():
     header, row = res.stdout.strip().splitlines()
     assert header == "Ls,Rl,Ibs"
     ls, rl, ibs = (float(v) for v in row.split(","))
-    assert ls < 0.35 and rl < 0.35 and 0 <= ibs <= 16  # complex, big unit at Op VB: very small
+    # complex, big unit at Op VB: few samples (the simple ones get fewer still), depth halved at most
+    assert 0.2 < ls < 0.45 and 0.5 <= rl <= 0.7 and 2 <= ibs <= 4
 
 
 def test_eval_csv_both_defuzzifiers(tmp_path):

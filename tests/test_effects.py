@@ -3,7 +3,6 @@ where it would change it (media, dielectrics, an envmap seen through glass)."""
 
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from core.effects import analyse, depth_cap

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fuzzy.render_params import LEVELS, op_value, to_render_params
+from fuzzy.render_params import LEVELS, LS_MAX, op_value, to_render_params
 
 
 def test_op_values_are_the_label_peaks():
@@ -22,14 +22,20 @@ def test_factors_weight_the_users_values():
     assert band.tolist() == [4, 5, 13]
 
 
-def test_clamps_depth_spp_at_one_and_factor_at_one():
+def test_clamps_depth_at_one_and_the_users_depth_spp_at_ls_max():
     outputs = {"Rl": np.array([0.0, 1.2]), "Ls": np.array([0.01, 1.2]), "Ibs": np.array([-3.0, 0.4])}
     depth, spp, band = to_render_params(outputs, user_depth=3, user_spp=10)
-    assert depth.tolist() == [1, 3]  # never below 1, never above the user's value
-    assert spp.tolist() == [1, 10]
+    assert depth.tolist() == [1, 3]  # never below 1, never above the user's depth
+    assert spp.tolist() == [1, 12]  # samples may rise above the user's: the rules move them to the noise
     assert band.tolist() == [0, 0]
     depth, spp, _ = to_render_params(outputs, user_depth=0, user_spp=0)
     assert depth.tolist() == [1, 1] and spp.tolist() == [1, 1]
+
+
+def test_samples_are_capped_at_ls_max_times_the_users():
+    outputs = {"Rl": np.array([1.0, 1.0]), "Ls": np.array([LS_MAX, 50.0]), "Ibs": np.array([2.0, 2.0])}
+    _, spp, _ = to_render_params(outputs, user_depth=8, user_spp=64)
+    assert LS_MAX == 3.0 and spp.tolist() == [192, 192]
 
 
 def test_bad_values_are_refused():

@@ -49,10 +49,10 @@ def check_sizes_bounded(units: list, width: int, height: int, sizes: tuple[int, 
 
 
 def check_features(units: list, cmap: ComplexityMap) -> None:
-    c = cmap.complexity()
     for u in units:
         assert u.rect.area == u.S
-        assert pytest.approx(c[u.rect.slices()].mean(), rel=1e-6, abs=1e-9) == u.C
+        # C: the unit's mean cost per sample (rays per sample), not its noise
+        assert pytest.approx(cmap.cost[u.rect.slices()].mean(), rel=1e-6, abs=1e-9) == u.C
         assert u.cost == pytest.approx(cmap.cost[u.rect.slices()].sum(), rel=1e-6, abs=1e-9)
         for j in u.neighbours:
             assert u.index in units[j].neighbours
@@ -115,14 +115,26 @@ def test_costly_region_gets_small_units_and_balance_beats_equal_tiles() -> None:
     cold = [u.S for u in units if not u.rect.intersect(Rect(150, 40, 70, 50)).area]
     assert max(hot) < max(cold)
     assert max(u.Nd for u in units) > 1.0  # units at the patch's edge see the jump in complexity
+    assert max(u.C for u in units if u.rect.intersect(Rect(150, 40, 70, 50)).area) > 10 * min(u.C for u in units)
+
+
+def test_complexity_is_cost_per_sample_not_brightness_driven_noise() -> None:
+    """A bright, noisy but cheap zone (a lit wall) is not complex; a deep-path zone (glass) is."""
+    cost = np.full((64, 64), 2.0)
+    cost[:, 32:] = 6.0  # glass: three times the rays per sample
+    noise = np.full((64, 64), 0.01)
+    noise[:, :32] = 9.0  # bright wall: large absolute variance
+    units = units_from_rects(ComplexityMap(cost, noise), [Rect(0, 0, 32, 64), Rect(32, 0, 32, 64)])
+    assert pytest.approx(2.0) == units[0].C and pytest.approx(6.0) == units[1].C
+    assert units[0].Nd == units[1].Nd == pytest.approx(4.0)
 
 
 def test_equal_complexity_everywhere_gives_zero_nd_and_equal_units() -> None:
-    cmap = ComplexityMap(np.ones((128, 128)), np.full((128, 128), 0.25))
+    cmap = ComplexityMap(np.full((128, 128), 3.0), np.full((128, 128), 0.25))
     units = partition(cmap, 16)
     check_cover(units, 128, 128)
     assert {u.Nd for u in units} == {0.0}
-    assert all(pytest.approx(0.5) == u.C for u in units)
+    assert all(pytest.approx(3.0) == u.C for u in units)  # rays per sample, whatever the noise
     assert len({u.rect.area for u in units}) == 1
 
 

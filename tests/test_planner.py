@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from fuzzy_helpers import DATA, RULES
 
-from core.planner import Planner, UnitParams, default_rules_path
+from core.planner import DEPTH_STEPS, Planner, UnitParams, default_rules_path, quantise_depth_factor
 from fuzzy import RuleFileError
+from fuzzy.render_params import LS_MAX
 
 FEATURES = {"C": np.array([1.0, 5.0, 9.0, 5.0]), "S": np.array([100, 400, 900, 400.0]),
             "Nd": np.array([0.0, 2.0, 8.0, 0.5])}
@@ -31,9 +32,16 @@ def test_level_off_keeps_the_users_values(planner):
 
 def test_plans_are_bounded_and_banded(planner):
     for level in ("VS", "S", "N", "B", "VB"):
-        for p in planner.plan(FEATURES, level, user_depth=6, user_spp=32):
-            assert 1 <= p.depth <= 6 and 1 <= p.spp <= 32 and p.band >= 2
+        for p in planner.plan(FEATURES, level, user_depth=8, user_spp=32):
+            assert p.depth in (8, 6, 4)  # quantised to 1, 3/4, 1/2 of the user's depth
+            assert 1 <= p.spp <= LS_MAX * 32 and p.band >= 2
             assert set(p.outputs) == {"Rl", "Ls", "Ibs"}
+
+
+def test_depth_is_quantised_to_few_steps():
+    assert DEPTH_STEPS == (1.0, 0.75, 0.5)
+    rl = np.array([1.2, 1.0, 0.875, 0.8, 0.7, 0.62, 0.2, 0.0])
+    assert quantise_depth_factor(rl).tolist() == [1.0, 1.0, 1.0, 0.75, 0.75, 0.5, 0.5, 0.5]
 
 
 def test_higher_level_renders_less(planner):
@@ -41,10 +49,18 @@ def test_higher_level_renders_less(planner):
     assert total["VS"] > total["S"] > total["B"] > total["VB"]
 
 
-def test_complex_unit_gets_fewer_samples_and_wider_band_where_neighbours_differ(planner):
-    p = planner.plan(FEATURES, "N", 8, 64)
-    assert p[2].spp < p[0].spp
-    assert p[2].band > p[0].band
+def test_complex_unit_gets_more_samples_and_wider_band_where_neighbours_differ(planner):
+    """C is cost per sample, which predicts relative noise: the rules move samples there."""
+    for level in ("VS", "S", "N", "B"):
+        p = planner.plan(FEATURES, level, 8, 64)
+        assert p[2].spp > p[0].spp, level
+        assert p[2].band > p[0].band, level
+
+
+def test_simple_units_pay_for_the_complex_ones_at_level_vs(planner):
+    p = planner.plan(FEATURES, "VS", 8, 64)
+    assert p[0].spp < 64 < p[2].spp  # the budget moves, the user's depth stays
+    assert {x.depth for x in p} == {8}
 
 
 def test_explicit_ranges_change_the_labels(planner):

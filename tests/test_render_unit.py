@@ -28,7 +28,10 @@ DATA = REPO / "tests" / "data" / "scenes"
 VARIANT = "llvm_ad_rgb"
 
 
-def job(unit=Rect(8, 16, 16, 16), spp=16, seed=1, spec=CBOX, size=(48, 48), band=2, **kw):
+UNIT = Rect(8, 16, 16, 16)
+
+
+def job(unit=UNIT, spp=16, seed=1, spec=CBOX, size=(48, 48), band=2, **kw):
     return UnitJob(spec, VARIANT, "path", 4, spp, seed, size[0], size[1], unit, band=band, threads=1, **kw)
 
 
@@ -111,7 +114,7 @@ def test_broken_scene_is_a_scene_error_and_the_worker_survives(worker, tmp_path)
     bad = tmp_path / "broken.xml"
     bad.write_text('<scene version="3.0.0"><shape type="nosuchplugin"/></scene>')
     pid = worker.pid
-    with pytest.raises(SceneError, match="broken.xml"):
+    with pytest.raises(SceneError, match=r"broken.xml"):
         worker.render(job(spec=SceneSpec(bad), size=(768, 576)), timeout=60)
     assert worker.pid == pid
     assert worker.render(job(), timeout=60).pixels.shape == (20, 20, 3)

@@ -48,21 +48,21 @@ def test_include_defaults_and_overrides(tmp_path):
 def test_missing_reference_and_bad_xml(tmp_path):
     bad = tmp_path / "bad.xml"
     bad.write_text("<scene><shape")
-    with pytest.raises(SceneError, match="bad.xml"):
+    with pytest.raises(SceneError, match=r"bad.xml"):
         image_size(SceneSpec(bad))
     missing = tmp_path / "m.xml"
     missing.write_text('<scene version="3.0.0"><shape type="ply"><string name="filename" value="no.ply"/>'
                        '</shape></scene>')
-    with pytest.raises(SceneError, match="no.ply"):
+    with pytest.raises(SceneError, match=r"no.ply"):
         referenced_files(SceneSpec(missing))
     with pytest.raises(SceneError, match="not found"):
         load(SceneSpec(tmp_path / "absent.xml"))
 
 
 def test_load_errors_name_the_file():
-    with pytest.raises(SceneError, match="tiny.xml.*unused"):
+    with pytest.raises(SceneError, match=r"tiny.xml.*unused"):
         load(SceneSpec(DATA / "tiny.xml", {"nonsense": "1"}), "llvm_ad_rgb", threads=1)
-    with pytest.raises(SceneError, match="tiny.xml"):
+    with pytest.raises(SceneError, match=r"tiny.xml"):
         load(SceneSpec(DATA / "tiny.xml", {"width": "abc"}), "llvm_ad_rgb", threads=1)
 
 

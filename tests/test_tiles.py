@@ -35,12 +35,12 @@ def test_tile_checks_its_own_shape():
 def test_bad_files_are_named(tmp_path):
     junk = tmp_path / "junk.exr"
     junk.write_bytes(b"not an exr at all")
-    with pytest.raises(TileError, match="junk.exr: not an EXR"):
+    with pytest.raises(TileError, match=r"junk.exr: not an EXR"):
         read_tile(junk)
     good = write_tile(tmp_path / "g.exr", _tile()).read_bytes()
-    with pytest.raises(TileError, match="cut.exr"):
+    with pytest.raises(TileError, match=r"cut.exr"):
         read_tile_bytes(good[: len(good) // 2], "cut.exr")
-    with pytest.raises(TileError, match="missing.exr"):
+    with pytest.raises(TileError, match=r"missing.exr"):
         read_tile(tmp_path / "missing.exr")
 
 
@@ -48,7 +48,7 @@ def test_wrong_channels_and_missing_position(tmp_path):
     grey = tmp_path / "grey.exr"
     with OpenEXR.File({"dataWindow": ((0, 0), (3, 2))}, {"Y": np.zeros((3, 4), np.float32)}) as exr:
         exr.write(str(grey))
-    with pytest.raises(TileError, match="grey.exr: channels"):
+    with pytest.raises(TileError, match=r"grey.exr: channels"):
         read_tile(grey)
     half = tmp_path / "half.exr"
     header = {"dataWindow": ((0, 0), (3, 2)), "quekaro_core": "0 0 1 1"}
