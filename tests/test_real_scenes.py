@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from core.geometry import Rect
-from core.render_unit import UnitJob, render_job_here
+from core.render_unit import RenderWorker, UnitJob
 from core.scene import SceneSpec, image_size, referenced_files
 
 REPO = Path(__file__).resolve().parent.parent
@@ -21,12 +21,21 @@ CASES = [
 ]
 
 
+@pytest.fixture(scope="module")
+def worker():
+    # Rendered in a child, as the farm does: Mitsuba in the test process itself can deadlock after
+    # many variant and thread-count changes (seen loading matpreview there).
+    with RenderWorker() as w:
+        yield w
+
+
 @pytest.mark.parametrize("name, defines, variant", CASES)
-def test_real_scene_renders_as_units(name, defines, variant):
+def test_real_scene_renders_as_units(worker, name, defines, variant):
     spec = SceneSpec(SHARED / name, defines)
     width, height = image_size(spec)
     assert all(path.is_file() for path in referenced_files(spec))
     unit = Rect(width // 4, height // 4, width // 2, height // 2)
-    tile = render_job_here(UnitJob(spec, variant, "path", 4, 4, 1, width, height, unit, band=2, threads=1))
+    tile = worker.render(UnitJob(spec, variant, "path", 4, 4, 1, width, height, unit, band=2, threads=1),
+                         timeout=120)
     assert tile.pixels.shape == (unit.h + 4, unit.w + 4, 3)
     assert np.isfinite(tile.pixels).all() and tile.pixels.mean() > 0
