@@ -269,7 +269,7 @@ def scene_cells(name: str, agents: list[int], levels: list[str], args: argparse.
     uniform = uniform_baseline(spec, cells, agents[0], args, (t0, k), ref)
     for cell in cells:
         cell.update(uniform[cell["level"]])
-    write_diff_images(name, diffs, uniform, Path(args.out))
+    write_diff_images(name, diffs, Path(args.out))
     return cells
 
 
@@ -288,8 +288,6 @@ def uniform_baseline(spec: Any, cells: list[dict[str, Any]], n: int, args: argpa
             metrics = all_metrics(pixels, ref)
             entry.update({f"{prefix}_spp": spp, f"{prefix}_seconds": secs,
                           **{f"{prefix}_{m}": v for m, v in metrics.items()}})
-            if prefix == "uniform":
-                entry["_uniform_pixels"] = pixels
         out[cell["level"]] = entry
     return out
 
@@ -297,8 +295,7 @@ def uniform_baseline(spec: Any, cells: list[dict[str, Any]], n: int, args: argpa
 # ---- outputs ---------------------------------------------------------------------------------------
 
 
-def write_diff_images(name: str, diffs: dict[str, np.ndarray], uniform: dict[str, dict[str, Any]],
-                      out: Path) -> None:
+def write_diff_images(name: str, diffs: dict[str, np.ndarray], out: Path) -> None:
     """Grey difference images against the reference, one per level (white = DIFF_WHITE or more)."""
     import matplotlib
 
@@ -309,8 +306,6 @@ def write_diff_images(name: str, diffs: dict[str, np.ndarray], uniform: dict[str
     folder.mkdir(parents=True, exist_ok=True)
     for level, diff in diffs.items():
         plt.imsave(folder / f"{name}-{level}.png", np.clip(diff / DIFF_WHITE, 0, 1), cmap="gray", vmin=0, vmax=1)
-    for entry in uniform.values():
-        entry.pop("_uniform_pixels", None)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:

@@ -18,9 +18,9 @@ from core.render_unit import (
     render_full,
     render_job_here,
     set_window,
-    unit_seed,
 )
 from core.scene import SceneSpec
+from core.seeds import unit_seed
 
 REPO = Path(__file__).resolve().parent.parent
 CBOX = SceneSpec(REPO / "scenes" / "cbox.xml", {"res": "48", "spp": "4"})

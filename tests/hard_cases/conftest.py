@@ -22,8 +22,9 @@ import pytest
 
 from core.compose import compose
 from core.planner import Planner
-from core.render_unit import RenderWorker, UnitJob, unit_seed
+from core.render_unit import RenderWorker, UnitJob
 from core.scene import SceneSpec, film_info
+from core.seeds import unit_seed
 
 HERE = Path(__file__).resolve().parent
 SCENES = HERE / "scenes"
