@@ -29,9 +29,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import hashlib
-import importlib
-import inspect
 import logging
 import os
 import re
@@ -45,9 +42,11 @@ from pathlib import Path
 from typing import Any
 
 from agents.speed import SpeedSample, estimate_seconds, measure_speed
+from agents.transfer import fetch_bundle, upload_tile
 from core import messages as m
-from core.bundle import BundleLimits, extract_bundle, read_manifest
+from core.bundle import BundleLimits, read_manifest
 from core.errors import QuekaroError
+from core.hashing import sha256_file
 from core.planner import Planner, UnitParams
 from core.render_unit import RenderWorker, UnitJob
 from core.scene import SceneSpec
@@ -60,8 +59,6 @@ log = logging.getLogger(__name__)
 HEARTBEAT_S = 2.0
 POLL_S = 0.25  # how often the beat loop looks for a reconnect (to Register again at once)
 ACCEPTED = frozenset({"cfp", "accept-proposal", "reject-proposal", "cancel"})
-MAX_TILE_BYTES = 512 << 20
-HTTP_TIMEOUT_S = 300.0
 FINISHED_MEMORY = 4096  # (job, unit, token) of finished awards remembered to ignore their duplicates
 
 
@@ -334,7 +331,7 @@ class RenderAgent:
             if work.cancelled:
                 log.info("unit %s/%d rendered after its cancellation: discarded", *key)
                 return
-            sha256 = await asyncio.to_thread(_sha256_file, tile_path)
+            sha256 = await asyncio.to_thread(sha256_file, tile_path)
             award = work.award  # the latest award: a re-award during the render changes the token
             await self._upload(award, tile_path, sha256)
         except Exception as exc:
@@ -372,7 +369,7 @@ class RenderAgent:
     async def _render(self, work: Work) -> tuple[Tile, UnitParams, Path]:
         award = work.award
         job, unit = award.job, award.unit
-        spec = await self._scene_for(job)
+        spec = await self._scene_for(job, award.token)
         (params,) = self._plan(job, (unit,))
         integrator = getattr(job, "integrator", "path")
         unit_job = UnitJob(
@@ -397,15 +394,15 @@ class RenderAgent:
 
     # ---- the data plane -----------------------------------------------------------------------------
 
-    async def _scene_for(self, job: m.JobInfo) -> SceneSpec:
-        """The job's scene, unpacked from its bundle (fetched once per bundle hash)."""
+    async def _scene_for(self, job: m.JobInfo, token: str) -> SceneSpec:
+        """The job's scene, unpacked from its bundle (fetched once per bundle hash, with an award's token)."""
         digest = job.scene_hash
         folder = self.workdir / "bundles" / digest
         lock = self._bundle_locks.setdefault(digest, asyncio.Lock())
         async with lock:
             if not (folder / "QUEKARO-MANIFEST.json").is_file():
                 try:
-                    await _fetch_bundle(job.scene_url, digest, folder, self.config.bundle_limits)
+                    await fetch_bundle(job.scene_url, digest, folder, self.config.bundle_limits, token=token)
                 except Exception as exc:
                     raise UnitFailed(f"scene bundle {job.scene_url} refused: {_why(exc)}") from exc
         manifest = read_manifest(folder)
@@ -420,75 +417,9 @@ class RenderAgent:
 
     async def _upload(self, award: m.Award, path: Path, sha256: str) -> None:
         try:
-            await _upload_tile(award.upload_url, award.token, path, sha256)
+            await upload_tile(award.upload_url, award.token, path, sha256, agent=self.jid)
         except Exception as exc:
             raise UnitFailed(f"tile upload to {award.upload_url} refused: {_why(exc)}") from exc
-
-
-# ---- HTTP: agents/transfer.py when present, else a minimal aiohttp client of the same contract ---------
-
-
-def _transfer() -> Any:
-    try:
-        return importlib.import_module("agents.transfer")
-    except ModuleNotFoundError:
-        return None
-
-
-async def _maybe_await(value: Any) -> Any:
-    return await value if inspect.isawaitable(value) else value
-
-
-async def _fetch_bundle(url: str, sha256: str, dest: Path, limits: BundleLimits) -> None:
-    """Download the bundle, check its size and sha256, unpack it into `dest` (created only on success)."""
-    transfer = _transfer()
-    if transfer is not None and hasattr(transfer, "fetch_bundle"):
-        fetch = transfer.fetch_bundle
-        if inspect.iscoroutinefunction(fetch):
-            await fetch(url, sha256, dest, limits)
-        else:
-            await asyncio.to_thread(fetch, url, sha256, dest, limits)
-        return
-    import aiohttp
-
-    timeout = aiohttp.ClientTimeout(total=HTTP_TIMEOUT_S)
-    async with aiohttp.ClientSession(timeout=timeout) as session, session.get(url) as resp:
-        if resp.status != 200:
-            raise QuekaroError(f"HTTP {resp.status}: {(await resp.text())[:200]}")
-        data = bytearray()
-        digest = hashlib.sha256()
-        async for chunk in resp.content.iter_chunked(1 << 20):
-            data += chunk
-            digest.update(chunk)
-            if len(data) > limits.max_bundle_bytes:
-                raise QuekaroError(f"bundle larger than the limit of {limits.max_bundle_bytes} bytes")
-    if digest.hexdigest() != sha256:
-        raise QuekaroError(f"sha256 {digest.hexdigest()} differs from the job's {sha256}")
-    await asyncio.to_thread(extract_bundle, bytes(data), dest, limits)
-
-
-async def _upload_tile(url: str, token: str, path: Path, sha256: str) -> None:
-    """PUT the tile with the award's token (Authorization: Bearer) and its sha256 (X-Content-SHA256)."""
-    transfer = _transfer()
-    if transfer is not None and hasattr(transfer, "upload_tile"):
-        upload = transfer.upload_tile
-        if inspect.iscoroutinefunction(upload):
-            await upload(url, token, path)
-        else:
-            await asyncio.to_thread(upload, url, token, path)
-        return
-    import aiohttp
-
-    data = await asyncio.to_thread(path.read_bytes)
-    if len(data) > MAX_TILE_BYTES:
-        raise QuekaroError(f"tile of {len(data)} bytes exceeds {MAX_TILE_BYTES}")
-    headers = {"Authorization": f"Bearer {token}", "X-Content-SHA256": sha256,
-               "Content-Type": "image/x-exr"}
-    timeout = aiohttp.ClientTimeout(total=HTTP_TIMEOUT_S)
-    async with aiohttp.ClientSession(timeout=timeout) as session, \
-            session.put(url, data=data, headers=headers) as resp:
-        if resp.status not in (200, 201, 204):
-            raise QuekaroError(f"HTTP {resp.status}: {(await resp.text())[:200]}")
 
 
 # ---- small helpers ---------------------------------------------------------------------------------
@@ -499,12 +430,6 @@ def _kernel_key(job: m.JobInfo, unit: m.UnitSpec, params: UnitParams) -> tuple[A
     return job.scene_hash, window.w, window.h, params.depth, getattr(job, "integrator", "path")
 
 
-def _sha256_file(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def _safe(name: str) -> str:

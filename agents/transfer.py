@@ -24,6 +24,7 @@ import aiohttp
 
 from core.bundle import MANIFEST_NAME, BundleLimits, extract_bundle, read_manifest
 from core.errors import QuekaroError
+from core.hashing import sha256_file
 
 log = logging.getLogger(__name__)
 
@@ -50,12 +51,6 @@ async def _reason(resp: aiohttp.ClientResponse) -> str:
         return (await resp.text(errors="replace"))[:500]
 
 
-def _sha256_file(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as fh:
-        while chunk := fh.read(_CHUNK):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 async def fetch_bundle(url: str, expected_sha256: str, dest: str | Path, limits: BundleLimits | None = None,
@@ -107,7 +102,7 @@ async def upload_tile(url: str, token: str, path: str | Path, sha256: str | None
                       timeout_s: float = 300.0) -> dict[str, Any]:
     """PUT the tile at `path` to `url`; return the server's JSON answer ("accepted" or "duplicate")."""
     path = Path(path)
-    sha256 = sha256 or await asyncio.to_thread(_sha256_file, path)
+    sha256 = sha256 or await asyncio.to_thread(sha256_file, path)
     headers = {TOKEN_HEADER: token, HASH_HEADER: sha256, "Content-Type": "image/x-exr"}
     if agent:
         headers[AGENT_HEADER] = agent

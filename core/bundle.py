@@ -38,6 +38,7 @@ from typing import IO
 from lxml import etree
 
 from core.errors import SceneError
+from core.hashing import sha256_file
 
 MANIFEST_NAME = "QUEKARO-MANIFEST.json"
 FORMAT = "quekaro-bundle"
@@ -169,12 +170,6 @@ def _cross_check(scene: Path, defines: dict[str, str] | None, members: dict[str,
 # ---- making ----------------------------------------------------------------------------------
 
 
-def _sha256_file(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as fh:
-        while chunk := fh.read(_CHUNK):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def _tarinfo(name: str, size: int) -> tarfile.TarInfo:
@@ -198,7 +193,7 @@ def make_bundle(scene_path: str | Path, defines: dict[str, str] | None, out: str
         if size > limits.max_file_bytes:
             raise BundleError(f"{members[rel]}: {size} bytes, over the per-file limit "
                               f"{limits.max_file_bytes}")
-        entries.append({"path": rel, "size": size, "sha256": _sha256_file(members[rel])})
+        entries.append({"path": rel, "size": size, "sha256": sha256_file(members[rel])})
     manifest = {"format": FORMAT, "version": VERSION, "scene": Path(scene_path).name,
                 "defines": {str(k): str(v) for k, v in (defines or {}).items()}, "files": entries}
     blob = json.dumps(manifest, sort_keys=True, indent=1).encode()
@@ -224,7 +219,7 @@ def bundle_hash(data: bytes | str | Path) -> str:
     """Hex sha256 of a bundle given as bytes or as a file."""
     if isinstance(data, bytes | bytearray | memoryview):
         return hashlib.sha256(data).hexdigest()
-    return _sha256_file(Path(data))
+    return sha256_file(Path(data))
 
 
 # ---- unpacking -------------------------------------------------------------------------------

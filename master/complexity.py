@@ -9,7 +9,9 @@ cost one ray, so they come out nearly free, and glass costs only the bounces it 
 
 Noise: the per-sample variance of each pixel, from Mitsuba's `moment` integrator wrapping the render's
 own integrator at the same reduced resolution (0.99 correlation with the error at fixed spp). This is
-what makes caustic-lit diffuse surfaces complex while plain glass is not.
+what makes caustic-lit diffuse surfaces complex while plain glass is not. The same pass keeps each
+pixel's mean, so that the noise can be taken relative to the brightness (`relative_noise`): the
+benchmark's error, relative MSE, weighs a pixel's squared error by 1 / (reference^2 + 0.01).
 
 Budget: both passes run at 1/k of the resolution per axis with a few samples, k chosen so that their
 samples are at most `budget` / 4 of the full render's (the rest of the 5 % goes to fixed overhead); see
@@ -31,6 +33,7 @@ from core.errors import QuekaroError
 
 MAX_TRACE_DEPTH = 16  # cap for max_depth=-1 (unbounded) in the ray-count tracer
 RR_DEPTH = 5  # Mitsuba's path integrator default
+RELATIVE_EPSILON = 0.01  # as core.metrics.relmse: keeps black pixels from dividing by zero
 
 
 class ComplexityError(QuekaroError):
@@ -42,13 +45,16 @@ class ComplexityMap:
     """Per-pixel estimates at full image resolution (H, W).
 
     `cost`: relative time per sample (rays per sample); `noise`: per-sample variance (mean over RGB);
-    `seconds`: what the pre-pass took; `info`: how it was made (downscale, spp, sample counts).
+    `seconds`: what the pre-pass took; `info`: how it was made (downscale, spp, sample counts);
+    `mean`: the per-pixel mean radiance (mean over RGB), optional (None: brightness unknown, and
+    `relative_noise` falls back to the absolute noise).
     """
 
     cost: np.ndarray
     noise: np.ndarray
     seconds: float = 0.0
     info: dict[str, Any] = field(default_factory=dict)
+    mean: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.cost = np.asarray(self.cost, dtype=np.float64)
@@ -56,8 +62,14 @@ class ComplexityMap:
         if self.cost.ndim != 2 or self.cost.shape != self.noise.shape or self.cost.size == 0:
             raise ComplexityError(
                 f"cost {self.cost.shape} and noise {self.noise.shape} must be equal, non-empty 2-D shapes")
-        for name in ("cost", "noise"):
+        if self.mean is not None:
+            self.mean = np.asarray(self.mean, dtype=np.float64)
+            if self.mean.shape != self.cost.shape:
+                raise ComplexityError(f"mean {self.mean.shape} must have the shape of cost {self.cost.shape}")
+        for name in ("cost", "noise", "mean"):
             arr = getattr(self, name)
+            if arr is None:
+                continue
             if not np.all(np.isfinite(arr)) or np.any(arr < 0):
                 raise ComplexityError(f"complexity map field {name!r} has negative or non-finite values")
 
@@ -72,6 +84,13 @@ class ComplexityMap:
     def complexity(self) -> np.ndarray:
         """Per-pixel complexity: the per-sample standard deviation (the expected error at 1 spp)."""
         return np.sqrt(self.noise)
+
+    def relative_noise(self, epsilon: float = RELATIVE_EPSILON) -> np.ndarray:
+        """Per-pixel per-sample relative variance, noise / (mean^2 + epsilon): a pixel's relative MSE at 1
+        spp (core.metrics.relmse's epsilon). Without a mean, the absolute noise."""
+        if self.mean is None:
+            return self.noise
+        return self.noise / (self.mean * self.mean + epsilon)
 
 
 def choose_downscale(width: int, height: int, full_spp: int, spp: int, budget: float) -> int:
@@ -113,6 +132,7 @@ def prepass(
     cmap = ComplexityMap(
         cost=_upsample(cost_low, width, height),
         noise=_upsample(noise_low, width, height),
+        mean=_upsample(_finite_mean(mean_low), width, height),
         info={"downscale": k, "low_size": [lw, lh], "spp": spp, "full_spp": full_spp,
               "nonfinite_noise": int(np.count_nonzero(~np.isfinite(mean_low)))},
     )
@@ -171,6 +191,12 @@ def _moment_pass(scene: Any, integrator: str, max_depth: int, spp: int, seed: in
     finite = np.isfinite(var)
     var[~finite] = var[finite].max() if finite.any() else 0.0
     return var, mean
+
+
+def _finite_mean(mean_rgb: np.ndarray) -> np.ndarray:
+    """Mean over RGB, with non-finite or negative pixels set to 0 (their noise is already the largest)."""
+    m = np.asarray(mean_rgb, dtype=np.float64).mean(axis=2)
+    return np.where(np.isfinite(m) & (m > 0), m, 0.0)
 
 
 def _ray_count_pass(scene: Any, w: int, h: int, max_depth: int, spp: int, seed: int) -> np.ndarray:

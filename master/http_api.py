@@ -46,6 +46,7 @@ from aiohttp import web
 
 from core.errors import TileError
 from core.geometry import Rect
+from core.hashing import sha256_file
 
 log = logging.getLogger(__name__)
 
@@ -229,16 +230,10 @@ async def _accepted_hash(plane: DataPlane, job: str, unit: int) -> str | None:
         path = plane.tile_path(job, unit)
         if not path.is_file():
             return None
-        plane.accepted[key] = await asyncio.to_thread(_sha256_file, path)  # after a master restart
+        plane.accepted[key] = await asyncio.to_thread(sha256_file, path)  # after a master restart
     return plane.accepted[key]
 
 
-def _sha256_file(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as fh:
-        while chunk := fh.read(_CHUNK):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 async def _receive(request: web.Request, final: Path, declared: str, cap: int) -> Path:

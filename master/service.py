@@ -126,7 +126,7 @@ class MasterService:
         from master.http_api import create_app
 
         app = create_app(expected=self._expected_upload, bundle=self._bundle_for, on_tile=self._on_tile,
-                         tile_dir=self.jobs_dir)
+                         tile_dir=self.jobs_dir, authorize_bundle=self._bundle_allowed)
         add_job_routes(app, self)
         self._runner = web.AppRunner(app, access_log=None)
         await self._runner.setup()
@@ -216,6 +216,11 @@ class MasterService:
         if unit is None or unit.status != au.UnitStatus.AWARDED or unit.token is None:
             return None
         return unit.token, unit.spec.rect
+
+    def _bundle_allowed(self, job_id: str, token: str) -> bool:
+        """A scene goes only to an agent holding a current award of its job (the award's token)."""
+        job = self.auction.jobs.get(job_id) if self.auction else None
+        return job is not None and any(self.auction.upload_allowed(job_id, i, token) for i in job.units)
 
     def _bundle_for(self, job_id: str) -> tuple[Path, str] | None:
         path = self.job_dir(job_id) / "bundle.tar"

@@ -17,6 +17,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Coroutine
@@ -70,45 +71,45 @@ class ScriptedMaster:
         self.bundles: dict[str, bytes] = {}
         self.tokens: dict[tuple[str, int], str] = {}
         self.uploads: list[tuple[str, int, bytes]] = []
+        self.rects: dict[tuple[str, int], Rect] = {}
+        self.job_bundles: dict[str, str] = {}  # job -> bundle sha256
+        self.tile_dir = Path(tempfile.mkdtemp(prefix="scripted-master-"))
         self.http_port = 0
         self._runner: Any = None
 
     async def start(self) -> None:
-        from aiohttp import web
+        from master.http_api import create_app, serve
 
-        app = web.Application(client_max_size=64 << 20)
-        app.router.add_get("/bundles/{sha}", self._get_bundle)
-        app.router.add_put("/jobs/{job}/units/{index}/tile", self._put_tile)
-        self._runner = web.AppRunner(app, access_log=None)
-        await self._runner.setup()
-        site = web.TCPSite(self._runner, "127.0.0.1", 0)
-        await site.start()
-        self.http_port = site._server.sockets[0].getsockname()[1]
+        # The master's real data plane, fed by this scripted master's tokens, rectangles and bundles.
+        app = create_app(expected=self._expected, bundle=self._bundle, on_tile=self._on_tile,
+                         tile_dir=self.tile_dir, authorize_bundle=self._bundle_ok)
+        self._runner, self.http_port = await serve(app, "127.0.0.1", 0)
         await self.farm.start(auto_register=True)
 
     async def stop(self) -> None:
         await self.farm.stop()
         await self._runner.cleanup()
 
-    # --- HTTP: the data plane -------------------------------------------------------------------
+    # --- HTTP: the data plane's callbacks ---------------------------------------------------------
 
-    async def _get_bundle(self, request: Any) -> Any:
-        from aiohttp import web
+    def _expected(self, job: str, index: int) -> tuple[str, Rect] | None:
+        key = (job, index)
+        return (self.tokens[key], self.rects[key]) if key in self.tokens else None
 
-        data = self.bundles.get(request.match_info["sha"])
-        return web.Response(body=data) if data is not None else web.Response(status=404, text="no bundle")
+    def _bundle(self, job: str) -> tuple[Path, str] | None:
+        sha = self.job_bundles.get(job)
+        if sha not in self.bundles:
+            return None
+        path = self.tile_dir / "bundles" / f"{sha}.tar"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(self.bundles[sha])
+        return path, sha
 
-    async def _put_tile(self, request: Any) -> Any:
-        from aiohttp import web
+    def _bundle_ok(self, job: str, token: str) -> bool:
+        return any(t == token for (j, _), t in self.tokens.items() if j == job)
 
-        key = (request.match_info["job"], int(request.match_info["index"]))
-        if request.headers.get("Authorization") != f"Bearer {self.tokens.get(key)}":
-            return web.Response(status=403, text="wrong token")
-        body = await request.read()
-        if request.headers.get("X-Content-SHA256") != hashlib.sha256(body).hexdigest():
-            return web.Response(status=400, text="hash mismatch")
-        self.uploads.append((*key, body))
-        return web.Response(status=201, text="ok")
+    def _on_tile(self, job: str, index: int, path: Path, sha256: str, agent: str | None) -> None:
+        self.uploads.append((job, index, path.read_bytes()))
 
     def url(self, path: str) -> str:
         return f"http://127.0.0.1:{self.http_port}{path}"
@@ -163,7 +164,9 @@ class Farm:
 
     def job(self, job_id: str, sha: str, scene: str, spp: int = 16, level: str = "N",
             scene_hash: str | None = None, defines: dict[str, str] | None = None) -> m.JobInfo:
-        return m.JobInfo(job_id=job_id, scene_url=self.master.url(f"/bundles/{sha}"), scene_hash=scene_hash or sha,
+        self.master.job_bundles[job_id] = sha
+        return m.JobInfo(job_id=job_id, scene_url=self.master.url(f"/jobs/{job_id}/bundle"),
+                         scene_hash=scene_hash or sha,
                          width=32, height=32, spp=spp, depth=6, level=level, ranges=RANGES, scene_name=scene,
                          defines={"res": "32"} if defines is None else defines, variant="llvm_ad_rgb",
                          integrator="path")
@@ -171,6 +174,7 @@ class Farm:
     def award(self, job: m.JobInfo, unit: m.UnitSpec, conversation: str, token: str | None = None) -> m.Award:
         token = token or hashlib.sha256(conversation.encode()).hexdigest()[:32]
         self.master.tokens[(job.job_id, unit.index)] = token
+        self.master.rects[(job.job_id, unit.index)] = unit.rect
         return m.Award(conversation=conversation, job=job, unit=unit, token=token,
                        upload_url=self.master.url(f"/jobs/{job.job_id}/units/{unit.index}/tile"),
                        seed=unit.index, estimate_s=1.0)
