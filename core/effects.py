@@ -75,6 +75,11 @@ def _scene_integrator(root: Any) -> tuple[str, int]:
                 depth = int(child.get("value", "-1"))
             except ValueError as exc:
                 raise SceneError(f"{elem.get(scene_mod.SRC_ATTR)}: max_depth {child.get('value')!r}") from exc
+    if depth == 0 or depth < -1:
+        # Mitsuba renders nothing at max_depth 0 (1 shows only the emitters): refuse rather than
+        # deliver a black image without a word.
+        raise SceneError(f"{elem.get(scene_mod.SRC_ATTR)}: integrator max_depth {depth} renders nothing; "
+                         "use 1 or more, or -1 for unbounded")
     return elem.get("type", "path"), depth
 
 

@@ -30,6 +30,7 @@ MAX_BYTES = 1 << 20  # 1 MiB: a rule base of thousands of rules fits; anything l
 _SET_TAGS = ("fset", "fuzzyset")
 _CONSEQUENT_TAGS = ("consequent", "consequence")
 _FORBIDDEN = re.compile(rb"<!\s*(DOCTYPE|ENTITY)", re.IGNORECASE)
+_FORBIDDEN_TEXT = re.compile(r"<!\s*(DOCTYPE|ENTITY)", re.IGNORECASE)
 
 
 def schema_path() -> Path:
@@ -57,13 +58,29 @@ def load_rulebase(path: str | os.PathLike[str]) -> RuleBase:
     return parse_rulebase(data, name)
 
 
+def _declaration_line(data: bytes) -> int | None:
+    """The line of a DOCTYPE/ENTITY declaration, looked for in the bytes and in the text they decode to
+    (a UTF-16 or UTF-32 file hides the declaration from a byte search); None if there is none."""
+    found = _FORBIDDEN.search(data)
+    if found:
+        return data.count(b"\n", 0, found.start()) + 1
+    for codec in ("utf-16", "utf-32"):
+        try:
+            text = data.decode(codec)
+        except UnicodeDecodeError:
+            continue
+        found = _FORBIDDEN_TEXT.search(text)
+        if found:
+            return text.count("\n", 0, found.start()) + 1
+    return None
+
+
 def parse_rulebase(data: bytes, file: str = "<rules>") -> RuleBase:
     """Same as `load_rulebase` for bytes already in memory; `file` names them in errors."""
     if len(data) > MAX_BYTES:
         raise RuleFileError(f"file is larger than {MAX_BYTES} bytes", file=file)
-    forbidden = _FORBIDDEN.search(data)
-    if forbidden:
-        line = data.count(b"\n", 0, forbidden.start()) + 1
+    line = _declaration_line(data)
+    if line is not None:
         raise RuleFileError(
             "DOCTYPE and ENTITY declarations are not allowed in rule files", file=file, line=line
         )

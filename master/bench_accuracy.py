@@ -36,8 +36,9 @@ from core.errors import QuekaroError
 from core.geometry import Rect
 
 REPO = Path(__file__).resolve().parent.parent
-SCENES = {"glass-corner": REPO / "scenes" / "glass-corner.xml", "cbox": REPO / "scenes" / "cbox.xml"}
-HETEROGENEOUS = "glass-corner"
+SCENES = {"caustic-corner": REPO / "scenes" / "caustic-corner.xml",
+          "glass-corner": REPO / "scenes" / "glass-corner.xml", "cbox": REPO / "scenes" / "cbox.xml"}
+HETEROGENEOUS = "caustic-corner"
 DEFAULT_OUT = REPO / "docs" / "benchmarks"
 VARIANT = "llvm_ad_rgb"
 JOB_TIMEOUT_S = 900.0

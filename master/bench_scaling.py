@@ -36,7 +36,7 @@ import numpy as np
 from core.geometry import Rect
 
 REPO = Path(__file__).resolve().parent.parent
-DEFAULT_SCENE = REPO / "scenes" / "glass-corner.xml"
+DEFAULT_SCENE = REPO / "scenes" / "caustic-corner.xml"
 DEFAULT_OUT = REPO / "docs" / "benchmarks"
 MIXED_SPEEDS = (1.0, 0.5, 1.5, 2.0)  # cycled: agent i has speed MIXED_SPEEDS[i % 4]
 BAND = 2  # every unit renders this many extra pixels on each side (the gaussian filter's reach)

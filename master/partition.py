@@ -37,10 +37,13 @@ class PartitionError(QuekaroError):
 
 
 class _Stats:
-    """Summed-area tables of cost, complexity and complexity squared: O(1) sums over any rectangle."""
+    """Summed-area tables of cost, complexity and complexity squared: O(1) sums over any rectangle.
+
+    Complexity here is the per-pixel relative std per sample (absolute without the map's mean)."""
 
     def __init__(self, cmap: ComplexityMap) -> None:
-        c = cmap.complexity()
+        c = np.sqrt(cmap.relative_noise())
+        self.relative = cmap.mean is not None
         self.tables = [self._table(a) for a in (cmap.cost, c, c * c)]
         self.mean_c = float(c.mean())
 
@@ -179,16 +182,20 @@ def partition(
 def units_from_rects(cmap: ComplexityMap, rects: Sequence[Rect]) -> list[Unit]:
     """Units for the given rectangles (which must tile the image): C, S, Nd, cost and neighbours.
 
-    C is the unit's mean cost per sample (the pre-pass's rays per sample: camera ray, bounces, shadow
-    rays), i.e. how deep its specular paths go, as MASYRO's grey pre-render measured complexity. It is
-    the pre-pass feature that best predicts a unit's *relative* noise, which is what the rules should
-    spend samples on (correlation 0.6-0.73 on glass-corner's units; the absolute per-pixel std, the
-    former C, -0.07: it follows brightness). Nd is the largest |C - C_neighbour|, S the area.
+    C is the unit's mean per-pixel *relative* std per sample, sqrt(noise / (mean^2 + 0.01)) from the
+    pre-pass: at a given spp a unit's relative MSE (the benchmark's error) is C^2 / spp, so C says
+    where samples buy the most error (at a fixed time a unit's spp should grow with it: Neyman
+    allocation). It correlates 0.57-0.73 with the measured relative noise of caustic-corner's units,
+    and allocating by it reaches 0.77x the uniform error where rays per sample (the former C) reaches
+    0.93x. The mean of the per-pixel std, not the rms, so that one firefly of the few-sample pre-pass
+    does not make a unit complex. Without the map's mean (old callers), C is the rays per sample.
+    Nd is the largest |C - C_neighbour|, S the area.
     """
     stats = _Stats(cmap)
     labels = label_image(rects, cmap.width, cmap.height)
     neighbours = _neighbours(labels, len(rects))
-    cs = [stats.cost(r) / r.area for r in rects]
+    per_sample = (lambda r: stats.complexity(r)[0]) if stats.relative else (lambda r: stats.cost(r) / r.area)
+    cs = [per_sample(r) for r in rects]
     units = []
     for i, r in enumerate(rects):
         nd = max((abs(cs[i] - cs[j]) for j in neighbours[i]), default=0.0)

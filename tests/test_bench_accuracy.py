@@ -37,8 +37,8 @@ def test_inprocess_grid_json_has_cells_and_baseline(tmp_path):
         assert c["spp_min"] >= 1 and c["units"] >= 1
     off = cells[0]
     assert off["spp_min"] == off["spp_max"] == 4  # level off applies no rules
-    assert list((tmp_path / "cache" / "references").glob("glass-corner-*.exr"))  # cached for next time
-    assert (tmp_path / "out" / "accuracy-diff" / "glass-corner-S.png").exists()
+    assert list((tmp_path / "cache" / "references").glob("caustic-corner-*.exr"))  # cached for next time
+    assert (tmp_path / "out" / "accuracy-diff" / "caustic-corner-S.png").exists()
     assert "| 1 |" in (tmp_path / "out" / "accuracy.md").read_text()
 
 
@@ -50,7 +50,7 @@ def test_grid_arguments_are_checked(tmp_path):
     with pytest.raises(QuekaroError, match="unknown scene"):
         bench_accuracy.parse_grid(args_for(tmp_path, "--scenes", "nope"))
     scenes, agents, levels = bench_accuracy.parse_grid(args_for(tmp_path, "--agents", "2,1,2", "--inprocess"))
-    assert (scenes, agents, levels) == (["glass-corner"], [1], ["off", "S"])
+    assert (scenes, agents, levels) == (["caustic-corner"], [1], ["off", "S"])
 
 
 def test_tree_cpu_seconds_counts_a_busy_child():

@@ -47,8 +47,6 @@ def test_hostile_rule_files_are_refused_and_leak_nothing(path):
     assert len(text) < 400  # no expanded entity text in the reason
 
 
-@pytest.mark.xfail(strict=True, reason="fuzzy/loader.py checks for DOCTYPE/ENTITY on the raw bytes; in a "
-                   "UTF-16 file the declaration reaches libxml2 and is refused later, for another reason")
 @pytest.mark.parametrize("name", ["billion_laughs_utf16", "external_entity_utf16", "internal_entity_utf16"])
 def test_utf16_doctype_is_refused_before_parsing_as_documented(name):
     with pytest.raises(RuleFileError, match="DOCTYPE and ENTITY declarations are not allowed"):

@@ -93,13 +93,7 @@ def test_depth_zero_from_the_user_is_refused_naming_the_option():
         RenderOptions(level="S", depth=0)
 
 
-DEPTH_ZERO_BUG = ("core/effects.py analyse() passes a scene's own max_depth=0 through: at level off every "
-                  "unit renders at depth 0 (an all-black image, silently) while level S maps it to 1 and "
-                  "RenderOptions refuses --depth 0")
-
-
-@pytest.mark.parametrize("level", [pytest.param("off", marks=pytest.mark.xfail(strict=True, reason=DEPTH_ZERO_BUG)),
-                                   "S"])
+@pytest.mark.parametrize("level", ["off", "S"])
 def test_scene_asking_for_depth_zero_renders_finite_with_depth_at_least_one(level, tmp_path):
     """A scene whose own integrator says max_depth 0 (renders nothing in Mitsuba): the job maps it to
     depth >= 1 at every level, as the rules do, or refuses it naming the depth."""
