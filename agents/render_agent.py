@@ -45,6 +45,7 @@ from agents.speed import SpeedSample, estimate_seconds, measure_speed
 from agents.transfer import fetch_bundle, upload_tile
 from core import messages as m
 from core.bundle import BundleLimits, read_manifest
+from core.credentials import xmpp_password
 from core.errors import QuekaroError
 from core.hashing import sha256_file
 from core.planner import Planner, UnitParams
@@ -463,8 +464,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--server", default=None, help="XMPP server host (default: the JID's domain)")
     p.add_argument("--port", type=int, default=5222, help="XMPP client port (default 5222)")
     p.add_argument("--jid", required=True, help="this agent's JID, e.g. agent-1@localhost (unique per process)")
-    p.add_argument("--password", default=os.environ.get("QUEKARO_XMPP_PASSWORD"),
-                   help="XMPP password (default: $QUEKARO_XMPP_PASSWORD)")
+    p.add_argument("--password", help="XMPP password (better: --password-file or $QUEKARO_XMPP_PASSWORD)")
+    p.add_argument("--password-file", help="file holding the XMPP password")
     p.add_argument("--master", required=True, help="the master's JID (only its messages are accepted)")
     p.add_argument("--threads", type=int, default=1, help="Dr.Jit threads of the render process (default 1)")
     p.add_argument("--rules", type=Path, default=None, help="rule file (default rules/pathtracing.xml)")
@@ -478,12 +479,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def config_from_args(args: argparse.Namespace) -> AgentConfig:
-    if not args.password:
-        raise QuekaroError("no XMPP password: give --password or set QUEKARO_XMPP_PASSWORD")
+    password = xmpp_password(args.password, args.password_file)
     if args.threads < 1:
         raise QuekaroError(f"--threads {args.threads}: must be at least 1")
     workdir = args.workdir or Path(tempfile.gettempdir()) / "quekaro-agent" / _safe(args.jid)
-    return AgentConfig(jid=args.jid, password=args.password, master=args.master, server=args.server,
+    return AgentConfig(jid=args.jid, password=password, master=args.master, server=args.server,
                        port=args.port, threads=args.threads, rules=args.rules, defuzzifier=args.defuzzifier,
                        workdir=workdir, auto_register=args.register, ca_file=args.ca_file,
                        verify_security=bool(args.ca_file), heartbeat_s=args.heartbeat)

@@ -5,30 +5,18 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
-import os
 import signal
 from pathlib import Path
 
-from core.errors import QuekaroError
+from core.credentials import xmpp_password
 from master.service import MasterConfig, MasterService
-
-
-def password_from(args: argparse.Namespace) -> str:
-    """--password, else --password-file, else $QUEKARO_XMPP_PASSWORD: a missing password is an error."""
-    if args.password:
-        return str(args.password)
-    if args.password_file:
-        return Path(args.password_file).read_text().strip()
-    if os.environ.get("QUEKARO_XMPP_PASSWORD"):
-        return os.environ["QUEKARO_XMPP_PASSWORD"]
-    raise QuekaroError("no XMPP password: give --password, --password-file or $QUEKARO_XMPP_PASSWORD")
 
 
 def config_from(args: argparse.Namespace) -> MasterConfig:
     from quekaro.farm_client import default_home
 
     return MasterConfig(
-        home=Path(args.home or default_home()), jid=args.jid, password=password_from(args),
+        home=Path(args.home or default_home()), jid=args.jid, password=xmpp_password(args.password, args.password_file),
         xmpp_host=args.server, xmpp_port=args.port, auto_register=args.register, ca_file=args.ca_file,
         http_host=args.http_host, http_port=args.http_port, public_url=args.public_url, threads=args.threads,
     )

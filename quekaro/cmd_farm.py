@@ -48,7 +48,7 @@ def _register_master(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser("master", help="run the master against an XMPP server")
     parser.add_argument("--home", type=Path, help="state directory (default: $QUEKARO_HOME or ~/.quekaro/farm)")
     parser.add_argument("--jid", default="master@localhost")
-    parser.add_argument("--password", help="XMPP password (or --password-file, or $QUEKARO_PASSWORD)")
+    parser.add_argument("--password", help="XMPP password (better: --password-file or $QUEKARO_XMPP_PASSWORD)")
     parser.add_argument("--password-file", type=Path)
     parser.add_argument("--server", help="XMPP server host (default: the JID's domain)")
     parser.add_argument("--port", type=int, default=5222, help="XMPP client port")

@@ -62,7 +62,9 @@ class LocalFarm:
         self._spawn("master", self._master_command())
         self._wait_for_master()
         for i in range(self.n_agents):
-            self._spawn(f"agent-{i}", self._agent_command(i))
+            # The password travels in the environment: not in `ps`, and never parsed as an option.
+            password = self._secret_file(f"agent-{i}.pw").read_text()
+            self._spawn(f"agent-{i}", self._agent_command(i), QUEKARO_XMPP_PASSWORD=password)
 
     def _secret_file(self, name: str) -> Path:
         path = self.home / "secrets" / name
@@ -81,17 +83,17 @@ class LocalFarm:
         # A JID that reconnects may never receive again on the embedded server: unique per process.
         jid = f"agent-{i}-{secrets.token_hex(3)}@{DOMAIN}"
         cmd = [sys.executable, "-m", "agents.render_agent", "--server", "127.0.0.1",
-               "--port", str(self.server.port), "--jid", jid,
-               "--password", self._secret_file(f"agent-{i}.pw").read_text(), "--master", MASTER_JID,
+               "--port", str(self.server.port), "--jid", jid, "--master", MASTER_JID,
                "--threads", str(self.threads), "--workdir", str(self.home / "agents" / f"agent-{i}"),
                "--register"]
         if self.rules:
             cmd += ["--rules", str(self.rules[i % len(self.rules)])]
         return cmd
 
-    def _spawn(self, name: str, cmd: list[str]) -> None:
+    def _spawn(self, name: str, cmd: list[str], **env_extra: str) -> None:
         log = (self.home / "logs" / f"{name}.log").open("ab")
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
+        env = dict(os.environ, **env_extra,
+                   PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=REPO)
         self.procs.append((name, proc))
 

@@ -34,9 +34,20 @@ def test_downscale_keeps_samples_within_budget(w: int, h: int, spp: int) -> None
     assert k == 1 or 2 * 4 * -(-w // (k - 1)) * -(-h // (k - 1)) > 0.05 / 4 * spp * w * h  # smallest k
 
 
+def test_relative_noise_divides_by_brightness_like_relmse() -> None:
+    noise = np.array([[4.0, 4.0, 0.0]])
+    cmap = ComplexityMap(np.ones((1, 3)), noise, mean=np.array([[10.0, 1.0, 0.0]]))
+    assert cmap.relative_noise()[0] == pytest.approx([4.0 / 100.01, 4.0 / 1.01, 0.0])
+    assert np.array_equal(ComplexityMap(np.ones((1, 3)), noise).relative_noise(), noise)  # no mean: absolute
+
+
 def test_map_validation_names_the_field() -> None:
     with pytest.raises(ComplexityError, match="'noise'"):
         ComplexityMap(np.ones((2, 2)), np.full((2, 2), np.nan))
+    with pytest.raises(ComplexityError, match="'mean'"):
+        ComplexityMap(np.ones((2, 2)), np.ones((2, 2)), mean=-np.ones((2, 2)))
+    with pytest.raises(ComplexityError, match="mean"):
+        ComplexityMap(np.ones((2, 2)), np.ones((2, 2)), mean=np.ones((3, 2)))
     with pytest.raises(ComplexityError, match="'cost'"):
         ComplexityMap(-np.ones((2, 2)), np.ones((2, 2)))
     with pytest.raises(ComplexityError, match="shapes"):
@@ -72,6 +83,7 @@ def test_pixels_that_hit_nothing_are_nearly_free(mi) -> None:
     assert corner == 1.0  # the camera ray, nothing else
     assert centre >= 2.0  # camera ray and a shadow ray at least
     assert cmap.noise[0, 0] == 0.0
+    assert cmap.mean is not None and cmap.mean[0, 0] == 0.0 and cmap.mean[16, 16] > 0.0  # lit sphere
     assert tuple(scene.sensors()[0].film().size()) == (32, 32)
 
 

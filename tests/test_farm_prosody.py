@@ -51,7 +51,7 @@ def test_master_and_two_agents_render_through_prosody(tmp_path):
             for name in ("agent-1", "agent-2"):
                 procs.append(_spawn([sys.executable, "-m", "quekaro", "agent", "--server", "127.0.0.1",
                                      "--port", str(server.port), "--jid", f"{name}@localhost",
-                                     "--password", passwords[name], "--master", "master@localhost",
+                                     f"--password={passwords[name]}", "--master", "master@localhost",
                                      "--ca-file", str(ca), "--threads", "1",
                                      "--workdir", str(tmp_path / name)], logs / f"{name}.log"))
             client = _wait_for_farm(home, procs, logs)

@@ -129,6 +129,23 @@ def test_complexity_is_cost_per_sample_not_brightness_driven_noise() -> None:
     assert units[0].Nd == units[1].Nd == pytest.approx(4.0)
 
 
+def test_with_a_mean_c_is_the_relative_std_so_a_dim_noisy_caustic_beats_a_bright_wall() -> None:
+    """relMSE weighs error by 1 / brightness^2: a bright wall with a large absolute variance is simple, a
+    dim caustic-lit patch with a smaller one is complex; C = mean sqrt(noise / (mean^2 + 0.01))."""
+    cost = np.full((64, 64), 3.0)
+    noise = np.full((64, 64), 1.0)
+    noise[:, 32:] = 0.25
+    mean = np.full((64, 64), 10.0)
+    mean[:, 32:] = 0.2
+    units = units_from_rects(ComplexityMap(cost, noise, mean=mean),
+                             [Rect(0, 0, 32, 64), Rect(32, 0, 32, 64)])
+    assert pytest.approx(1.0 / np.sqrt(100.01)) == units[0].C
+    assert pytest.approx(0.5 / np.sqrt(0.05)) == units[1].C
+    assert units[1].C > 20 * units[0].C
+    assert units[0].Nd == units[1].Nd == pytest.approx(units[1].C - units[0].C)
+    assert units[0].cost == pytest.approx(3.0 * 32 * 64)  # cost stays the rays: it is what balances time
+
+
 def test_equal_complexity_everywhere_gives_zero_nd_and_equal_units() -> None:
     cmap = ComplexityMap(np.full((128, 128), 3.0), np.full((128, 128), 0.25))
     units = partition(cmap, 16)
