@@ -35,10 +35,9 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import IO
 
-from lxml import etree
-
 from core.errors import SceneError
 from core.hashing import sha256_file
+from core.scene import parse_xml
 
 MANIFEST_NAME = "QUEKARO-MANIFEST.json"
 FORMAT = "quekaro-bundle"
@@ -76,22 +75,11 @@ class BundleInfo:
 # ---- finding what a scene references ---------------------------------------------------------
 
 
-def _parse_xml(path: Path) -> etree._Element:
-    # No entities, no DTD, no network: the same scene file is parsed again on every agent.
-    parser = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False)
-    try:
-        return etree.parse(str(path), parser).getroot()
-    except OSError as exc:
-        raise BundleError(f"{path}: cannot read ({exc})") from exc
-    except etree.XMLSyntaxError as exc:
-        raise BundleError(f"{path}: not well-formed XML ({exc})") from exc
-
-
 def _references(path: Path, params: dict[str, str], depth: int) -> Iterator[tuple[Path, str, bool]]:
     """(referring file, file name as written after `$` substitution, is-include) in document order."""
     if depth > MAX_INCLUDE_DEPTH:
         raise BundleError(f"{path}: includes nested deeper than {MAX_INCLUDE_DEPTH} levels")
-    for elem in _parse_xml(path).iter():
+    for elem in parse_xml(path, BundleError).iter():
         if not isinstance(elem.tag, str):
             continue
         if elem.tag == "default":

@@ -125,15 +125,17 @@ def load(spec: SceneSpec, variant: str | None = None, threads: int | None = None
 # ---- reading the XML -------------------------------------------------------------------------
 
 
-def _parse_file(path: Path) -> etree._Element:
-    # No entity expansion, no network: scene files may come from strangers (bundles).
-    parser = etree.XMLParser(resolve_entities=False, no_network=True, remove_comments=True)
+def parse_xml(path: Path, error: type[SceneError] = SceneError) -> etree._Element:
+    """One scene XML file, parsed safely: scene files may come from strangers (bundles), so no entity
+    expansion, no DTD, no network, no huge trees. Failures raise `error` naming the file."""
+    parser = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False,
+                             remove_comments=True)
     try:
         return etree.parse(str(path), parser).getroot()
     except OSError as exc:
-        raise SceneError(f"{path}: cannot read ({exc})") from exc
+        raise error(f"{path}: cannot read ({exc})") from exc
     except etree.XMLSyntaxError as exc:
-        raise SceneError(f"{path}: not well-formed XML ({exc})") from exc
+        raise error(f"{path}: not well-formed XML ({exc})") from exc
 
 
 def _substitute(text: str, params: dict[str, str]) -> str:
@@ -177,7 +179,7 @@ def _expand_file(path: Path, main: Path, params: dict[str, str], includes: list[
         raise SceneError(f"{path}: includes nested deeper than {MAX_INCLUDE_DEPTH} levels")
     if path in stack:
         raise SceneError(f"{path}: includes itself (through {' -> '.join(map(str, stack))})")
-    root = _parse_file(path)
+    root = parse_xml(path)
     for elem in list(root.iter()):
         if not isinstance(elem.tag, str):
             continue

@@ -26,9 +26,10 @@ from core.geometry import Rect
 from core.units import Unit
 from master.complexity import ComplexityMap
 
-DEFAULT_SIZES = (16, 32, 64, 128)
+DEFAULT_SIZES = (32, 64, 128)
 HALVE_FACTOR = 2.0  # after reaching the unit count, still split units costing this many target costs
 VARIATION = 1.0  # a cell whose complexity std exceeds this many image-mean complexities splits early
+WORK_WEIGHTED = True  # balance units by rays x relative noise (the samples the rules will give), not rays
 MERGE_TOLERANCE = 0.25  # merge cheap siblings whose mean complexities differ by less than this (relative)
 
 
@@ -44,8 +45,11 @@ class _Stats:
     def __init__(self, cmap: ComplexityMap) -> None:
         c = np.sqrt(cmap.relative_noise())
         self.relative = cmap.mean is not None
-        self.tables = [self._table(a) for a in (cmap.cost, c, c * c)]
         self.mean_c = float(c.mean())
+        # Work: rays per sample times the samples the rules will give the pixel, which grow with its
+        # relative noise (see units_from_rects); without a mean, just the rays.
+        work = cmap.cost * c / max(self.mean_c, 1e-12) if self.relative and WORK_WEIGHTED else cmap.cost
+        self.tables = [self._table(a) for a in (cmap.cost, c, c * c, work)]
 
     @staticmethod
     def _table(a: np.ndarray) -> np.ndarray:
@@ -61,9 +65,12 @@ class _Stats:
     def cost(self, r: Rect) -> float:
         return self.sums(r)[0]
 
+    def work(self, r: Rect) -> float:
+        return self.sums(r)[3]
+
     def complexity(self, r: Rect) -> tuple[float, float]:
         """Mean and standard deviation of the per-pixel complexity over r."""
-        _, s, s2 = self.sums(r)
+        _, s, s2, _ = self.sums(r)
         mean = s / r.area
         return mean, math.sqrt(max(s2 / r.area - mean * mean, 0.0))
 
@@ -124,10 +131,10 @@ class _Tree:
     def _priority(self, r: Rect) -> float:
         # A cell whose complexity varies strongly is split as if it cost twice as much (MAgArRO's std test).
         varied = self.stats.complexity(r)[1] > VARIATION * max(self.stats.mean_c, 1e-12)
-        return self.stats.cost(r) * (2.0 if varied else 1.0)
+        return self.stats.work(r) * (2.0 if varied else 1.0)
 
     def top_cost(self) -> float:
-        return self.stats.cost(self.nodes[self.heap[0][1]].rect) if self.heap else 0.0
+        return self.stats.work(self.nodes[self.heap[0][1]].rect) if self.heap else 0.0
 
     def split_top(self) -> None:
         _, i = heapq.heappop(self.heap)
@@ -137,7 +144,7 @@ class _Tree:
             node.children.append(self._add(_Node(cell, node.level - 1, i)))
 
     def mean_cost(self) -> float:
-        return sum(self.stats.cost(self.nodes[i].rect) for i in self.leaves) / len(self.leaves)
+        return sum(self.stats.work(self.nodes[i].rect) for i in self.leaves) / len(self.leaves)
 
     def merge_cheap(self) -> None:
         """Merge back siblings that are all whole, together no costlier than the mean unit, and alike."""
@@ -147,7 +154,7 @@ class _Tree:
             if not node.children or not all(c in self.leaves for c in node.children):
                 continue
             rects = [self.nodes[c].rect for c in node.children]
-            if self.stats.cost(node.rect) <= mean and _alike(rects, self.stats):
+            if self.stats.work(node.rect) <= mean and _alike(rects, self.stats):
                 self.leaves.difference_update(node.children)
                 self.leaves.add(i)
 
@@ -170,7 +177,7 @@ def partition(
     tree = _Tree(cmap.width, cmap.height, check_sizes(sizes), _Stats(cmap))
     while tree.heap and len(tree.leaves) < target_units:
         tree.split_top()
-    target_cost = tree.stats.cost(Rect(0, 0, cmap.width, cmap.height)) / target_units
+    target_cost = tree.stats.work(Rect(0, 0, cmap.width, cmap.height)) / target_units
     while tree.heap and len(tree.leaves) < 2 * target_units:
         if tree.top_cost() <= HALVE_FACTOR * target_cost:
             break

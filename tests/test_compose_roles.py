@@ -12,11 +12,12 @@ import time
 from pathlib import Path
 
 import pytest
+from farm_support import log_tails, wait_for_agents
 from prosody_support import needs_prosody
 
 from core.bundle import make_bundle
 from core.xmpp_server import free_port, port_accepts
-from quekaro.farm_client import FarmClient
+from quekaro.local_farm import stop_processes
 
 REPO = Path(__file__).resolve().parent.parent
 ENTRY = REPO / "deploy" / "entrypoint.sh"
@@ -53,7 +54,7 @@ def test_entrypoint_roles_render_a_job(tmp_path):
              QUEKARO_HOME=str(tmp_path / "farm"))
         for i in (1, 2):
             role(f"agent-{i}", QUEKARO_XMPP_PASSWORD="a-pw", QUEKARO_AGENT_NAME=f"box{i}")
-        client = _wait_for_agents(tmp_path, procs)
+        client = wait_for_agents(tmp_path / "farm", procs, 2, tmp_path)
         defines = {"res": "32", "spp": "8"}
         with tempfile.TemporaryDirectory() as tmp:
             bundle = make_bundle(REPO / "scenes" / "cbox.xml", defines, Path(tmp) / "b.tar").path.read_bytes()
@@ -61,31 +62,6 @@ def test_entrypoint_roles_render_a_job(tmp_path):
         deadline = time.monotonic() + 180
         while (job := client.status(job_id))["status"] == "running" and time.monotonic() < deadline:
             time.sleep(0.3)
-        assert job["status"] == "done", (job, _logs(tmp_path))
+        assert job["status"] == "done", (job, log_tails(tmp_path))
     finally:
-        for proc in reversed(procs):
-            proc.terminate()
-        for proc in procs:
-            try:
-                proc.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-
-
-def _wait_for_agents(tmp_path: Path, procs: list[subprocess.Popen]) -> FarmClient:
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
-        assert all(p.poll() is None for p in procs), _logs(tmp_path)
-        try:
-            client = FarmClient.from_home(tmp_path / "farm")
-            if sum(not a["lost"] for a in client.agents()) >= 2:
-                return client
-        except Exception:
-            pass
-        time.sleep(0.3)
-    raise AssertionError(_logs(tmp_path))
-
-
-def _logs(tmp_path: Path) -> str:
-    return "\n".join(f"--- {p.name}\n" + "\n".join(p.read_text().splitlines()[-12:])
-                     for p in sorted(tmp_path.glob("*.log")))
+        stop_processes(list(reversed(procs)))

@@ -12,12 +12,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from farm_support import log_tails, wait_for_agents
 from prosody_support import needs_prosody
 
 from core.bundle import make_bundle
 from core.imageio import read_exr
 from core.xmpp_server import ProsodyServer, free_port
-from quekaro.farm_client import FarmClient
+from quekaro.local_farm import stop_processes
 
 REPO = Path(__file__).resolve().parent.parent
 SCENE = REPO / "scenes" / "cbox.xml"
@@ -54,7 +55,7 @@ def test_master_and_two_agents_render_through_prosody(tmp_path):
                                      f"--password={passwords[name]}", "--master", "master@localhost",
                                      "--ca-file", str(ca), "--threads", "1",
                                      "--workdir", str(tmp_path / name)], logs / f"{name}.log"))
-            client = _wait_for_farm(home, procs, logs)
+            client = wait_for_agents(home, procs, 2, logs)
             defines = {"res": "48", "spp": "16"}
             with tempfile.TemporaryDirectory() as tmp:
                 bundle = make_bundle(SCENE, defines, Path(tmp) / "b.tar").path.read_bytes()
@@ -62,37 +63,11 @@ def test_master_and_two_agents_render_through_prosody(tmp_path):
             deadline = time.monotonic() + 240
             while (job := client.status(job_id))["status"] == "running" and time.monotonic() < deadline:
                 time.sleep(0.3)
-            assert job["status"] == "done", (job, _tails(logs))
+            assert job["status"] == "done", (job, log_tails(logs))
             out = client.result(job_id, tmp_path / "out.exr")
             image = read_exr(out)
             assert image.shape == (48, 48, 3) and np.isfinite(image).all() and image.mean() > 0.05
             master_log = (logs / "master.log").read_text()
             assert "agent-1@localhost" in master_log or "agent-2@localhost" in master_log
         finally:
-            for proc in procs:
-                proc.terminate()
-            for proc in procs:
-                try:
-                    proc.wait(timeout=15)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-
-
-def _wait_for_farm(home: Path, procs: list[subprocess.Popen], logs: Path) -> FarmClient:
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
-        for proc in procs:
-            assert proc.poll() is None, f"a farm process exited early: {_tails(logs)}"
-        if (home / "farm.json").exists():
-            try:
-                client = FarmClient.from_home(home)
-                if sum(not a["lost"] for a in client.agents()) >= 2:
-                    return client
-            except Exception:
-                pass
-        time.sleep(0.3)
-    raise AssertionError(f"farm did not come up: {_tails(logs)}")
-
-
-def _tails(logs: Path) -> str:
-    return "\n".join(f"--- {p.name}\n" + "\n".join(p.read_text().splitlines()[-15:]) for p in sorted(logs.glob("*")))
+            stop_processes(procs)

@@ -56,10 +56,10 @@ def test_random_units_never_fall_back_to_the_default(engine):
 PUBLISHED = [
     # rule (the paper's antecedents), inputs at label peaks, expected (output, label) as the rule file
     # documents: complex units keep more samples, depth is cut at Op B and VB only
-    ("R1", {"C": "VB", "S": "B", "Op": "VB"}, {"Ls": "S", "Rl": "N"}),
+    ("R1", {"C": "VB", "S": "B", "Op": "VB"}, {"Ls": "N", "Rl": "N"}),
     ("R2", {"C": "VS", "S": "N", "Op": "VB"}, {"Ls": "VS", "Rl": "N"}),
     ("R4", {"C": "B", "S": "S", "Op": "VB"}, {"Ls": "S", "Rl": "B"}),
-    ("R5", {"C": "B", "S": "N", "Op": "B"}, {"Ls": "S", "Rl": "B"}),
+    ("R5", {"C": "B", "S": "N", "Op": "B"}, {"Ls": "N", "Rl": "B"}),
     ("R7", {"C": "S", "S": "B", "Op": "B"}, {"Ls": "VS", "Rl": "B"}),
     ("R14", {"C": "VS", "S": "S", "Op": "S"}, {"Ls": "S", "Rl": "VB"}),
     ("R22", {"Nd": "VB", "Op": "N"}, {"Ibs": "VB"}),

@@ -1,0 +1,31 @@
+"""Helpers for tests that run farm processes by hand (Prosody deployments, the containers' roles)."""
+
+from __future__ import annotations
+
+import subprocess
+import time
+from pathlib import Path
+
+from quekaro.farm_client import FarmClient
+
+
+def log_tails(folder: Path, lines: int = 15) -> str:
+    """The last lines of every log file in `folder`, for an assertion message."""
+    return "\n".join(f"--- {p.name}\n" + "\n".join(p.read_text(errors="replace").splitlines()[-lines:])
+                     for p in sorted(folder.glob("*.log")))
+
+
+def wait_for_agents(home: Path, procs: list[subprocess.Popen], agents: int, logs: Path,
+                    timeout: float = 120.0) -> FarmClient:
+    """A client of the master in `home` once `agents` agents have registered; fails if a process dies."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        assert all(p.poll() is None for p in procs), f"a farm process exited early:\n{log_tails(logs)}"
+        try:
+            client = FarmClient.from_home(home)
+            if sum(not a["lost"] for a in client.agents()) >= agents:
+                return client
+        except Exception:
+            pass  # the master is not up yet
+        time.sleep(0.3)
+    raise AssertionError(f"farm did not come up:\n{log_tails(logs)}")
