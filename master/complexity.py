@@ -187,7 +187,8 @@ def _moment_pass(scene: Any, integrator: str, max_depth: int, spp: int, seed: in
     moment = mi.load_dict({"type": "moment", "nested": nested})
     img = np.array(mi.render(scene, integrator=moment, spp=max(2, spp), seed=seed), dtype=np.float64)
     mean, second = img[..., 3:6], img[..., 6:9]  # channels: RGB, nested RGB, nested 2nd moment
-    var = np.maximum(second - mean * mean, 0.0).mean(axis=2)
+    with np.errstate(invalid="ignore"):  # inf - inf from an infinite emitter: handled just below
+        var = np.maximum(second - mean * mean, 0.0).mean(axis=2)
     finite = np.isfinite(var)
     var[~finite] = var[finite].max() if finite.any() else 0.0
     return var, mean

@@ -202,3 +202,20 @@ def test_label_image_finds_gaps_and_overlaps() -> None:
         label_image([Rect(0, 0, 1, 2)], 2, 2)
     with pytest.raises(PartitionError, match="outside"):
         label_image([Rect(0, 0, 3, 2)], 2, 2)
+
+
+def test_noisy_corner_gets_small_units_even_at_equal_rays() -> None:
+    """Work = rays x relative noise: a caustic corner as cheap in rays as the wall is still split finest."""
+    w = h = 160
+    cost = np.full((h, w), 4.0)
+    mean = np.full((h, w), 0.3)
+    noise = np.full((h, w), 0.3**2 * 0.1**2)  # wall: relative std 0.1 per sample
+    noise[96:, 128:] = 0.3**2 * 1.5**2  # corner: relative std 1.5
+    units = partition(ComplexityMap(cost, noise, mean=mean), 8)
+    check_cover(units, w, h)
+    corner = [u for u in units if u.rect.intersect(Rect(128, 96, 32, 64)).area]
+    wall = [u for u in units if not u.rect.intersect(Rect(128, 96, 32, 64)).area]
+    assert max(u.S for u in corner) <= 32 * 32 < max(u.S for u in wall)
+    assert min(u.C for u in corner) > 5 * max(u.C for u in wall)
+    flat = partition(ComplexityMap(cost, noise), 8)  # no mean: rays only, the corner is not special
+    assert max(u.S for u in flat if u.rect.intersect(Rect(128, 96, 32, 64)).area) > 32 * 32
