@@ -105,26 +105,31 @@ def scene_spp(spec: SceneSpec) -> int | None:
     return None
 
 
-def default_unit_count(width: int, height: int, level: str) -> int:
-    """Units of about 128 px a side at level off and 56 px when the rules run. The rules move samples
+def default_unit_count(width: int, height: int, level: str, min_units: int = 1) -> int:
+    """Units of about 256 px a side at level off and 56 px when the rules run, and at least `min_units`
+    (a farm asks for a few per agent). At level off nothing is gained by small units in one process:
+    each render call costs ~0.05 s and bands add pixels (16 units of 128 px ran 1.16x one plain render of
+    cbox 512x512, 256 spp). When the rules run, the rules move samples
     between units, so the noisy corner of a scene must fall in units of its own (the partition weighs
     cost by relative noise, so the costly corner is split and the cheap wall stays in big units), while
     every unit pays a fixed cost per render call (~0.05 s here, ~20 spp of a 40 px unit), a 2 px band
     ((40+4)^2/40^2 = 1.21x the pixels at 40 px, 1.15x at 56) and a kernel compilation per new crop size.
     On caustic-corner at 160x160 (model from measured per-pixel noise and per-call cost) level S reached
     0.84x the uniform relMSE with 8 units, 0.91x with 7, 0.96x with 12 and 1.45x with 22 (40 px)."""
-    side = 128 if level == "off" else 56
-    return max(1, min(256, round(width * height / (side * side))))
+    side = 256 if level == "off" else 56
+    wanted = max(round(width * height / (side * side)), min_units)
+    return max(1, min(256, wanted, width * height))
 
 
-def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0) -> JobPlan:
-    """Analyse the scene's effects, run the pre-pass (optimised levels only) and partition the image."""
+def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: int = 1) -> JobPlan:
+    """Analyse the scene's effects, run the pre-pass (optimised levels only) and partition the image
+    (into `options.units` units, else the default count and at least `min_units`)."""
     effects = analyse(spec, options.overrides())
     info = film_info(spec)
     width, height = info.width, info.height
     spp = options.spp or scene_spp(spec) or DEFAULT_SPP
     depth = effects.max_depth
-    target = options.units or default_unit_count(width, height, options.level)
+    target = options.units or default_unit_count(width, height, options.level, min_units)
     if options.level == "off":
         # The rules need no features at level off, so the pre-pass would be pure overhead.
         units = _plain_units(width, height, target)

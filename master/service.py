@@ -15,6 +15,7 @@ import logging
 import re
 import secrets
 import shutil
+import sys
 import time
 import uuid
 from concurrent.futures import ProcessPoolExecutor
@@ -35,6 +36,7 @@ from master.store import JobRecord, JobStore, restore_auction
 log = logging.getLogger(__name__)
 
 TICK_S = 0.2
+UNITS_PER_AGENT = 4
 
 
 @dataclass
@@ -64,9 +66,20 @@ class MasterConfig:
         return self.jid.split("@", 1)[1].split("/", 1)[0]
 
 
-def _plan_in_child(scene_path: str, defines: dict[str, str], options: dict[str, Any], seed: int) -> JobPlan:
+def _die_with_parent() -> None:
+    """In the planner child: end when the master ends, even by SIGKILL (Linux), instead of lingering."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG = 1
+
+
+def _plan_in_child(scene_path: str, defines: dict[str, str], options: dict[str, Any], seed: int,
+                   min_units: int) -> JobPlan:
     """Plan a job in a child process: the pre-pass renders, and an LLVM abort must not kill the master."""
-    return plan_job(SceneSpec(Path(scene_path), defines), RenderOptions.from_dict(options), seed=seed)
+    return plan_job(SceneSpec(Path(scene_path), defines), RenderOptions.from_dict(options), seed=seed,
+                    min_units=min_units)
 
 
 class MasterService:
@@ -83,7 +96,8 @@ class MasterService:
         self.agent = None
         self._runner = None
         self._ticker: asyncio.Task | None = None
-        self._planner = ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"))
+        self._planner = ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"),
+                                            initializer=_die_with_parent)
         self._lock = asyncio.Lock()
         self._assembling: dict[str, asyncio.Task] = {}
         self._agent_re = re.compile(config.agent_pattern.format(domain=re.escape(config.domain)))
@@ -178,13 +192,18 @@ class MasterService:
             loop = asyncio.get_running_loop()
             plan = await loop.run_in_executor(
                 self._planner, _plan_in_child, str(scene), defines, options.to_dict(),
-                int.from_bytes(bytes.fromhex(job_id[:8]), "little"))
+                int.from_bytes(bytes.fromhex(job_id[:8]), "little"), self._units_for_agents())
         except BaseException:
             shutil.rmtree(job_dir, ignore_errors=True)
             raise
         scene_name = str(scene.relative_to(job_dir / "scene"))
         self._create_job(job_id, scene_name, defines, options, plan, bundle_hash(bundle))
         return job_id
+
+    def _units_for_agents(self) -> int:
+        """Units a job needs at least so that every live agent gets several (load balance)."""
+        live = sum(not a.lost for a in self.auction.agents.values()) if self.auction else 0
+        return UNITS_PER_AGENT * max(1, live)
 
     def _create_job(self, job_id: str, scene_name: str, defines: dict[str, str], options: RenderOptions,
                     plan: JobPlan, sha256: str) -> None:
