@@ -288,7 +288,7 @@ class ProsodyServer(_ChildServer):
 
     def register(self, user: str, password: str | None = None) -> str:
         """Create (or reset) account user@domain with prosodyctl; returns the password used."""
-        password = password or secrets.token_urlsafe(18)
+        password = password or secrets.token_hex(16)  # hex: never starts with "-" (argv-safe)
         self.data_dir.mkdir(parents=True, exist_ok=True)
         (self.data_dir / "data").mkdir(parents=True, exist_ok=True)
         done = subprocess.run(["prosodyctl", "--config", str(self.config), "register", user, self.domain,

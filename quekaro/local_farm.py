@@ -70,7 +70,7 @@ class LocalFarm:
         path = self.home / "secrets" / name
         path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
         path.touch(mode=0o600)
-        path.write_text(secrets.token_urlsafe(18))
+        path.write_text(secrets.token_hex(16))
         return path
 
     def _master_command(self) -> list[str]:

@@ -27,7 +27,7 @@ class Peer:
 
     def __init__(self, port: int, jid: str, password: str, mode: str, *extra: str, peers: str = "",
                  register: bool = False) -> None:
-        cmd = [sys.executable, str(PEER), "--jid", jid, "--password", password, "--port", str(port),
+        cmd = [sys.executable, str(PEER), "--jid", jid, f"--password={password}", "--port", str(port),
                "--peers", peers, *(["--register"] if register else []), *extra, mode]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                      cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO)))
