@@ -161,14 +161,18 @@ def _aggregate_at(
     """Value and slope of max over pieces of min(piece, its clip level) at x0 + offset, each (J, n)."""
     mu = slope = None
     for s, level in enumerate(levels):
-        v = plan.slot_v0[:, s, None] + plan.slot_slope[:, s, None] * offset
-        value = np.minimum(v, level)
-        piece_slope = np.where(v < level, plan.slot_slope[:, s, None], 0.0)
+        piece = plan.slot_slope[:, s, None]
+        v = piece * offset
+        v += plan.slot_v0[:, s, None]
+        below = v < level
+        np.minimum(v, level, out=v)  # v is now the clipped value
+        piece_slope = below * piece
         if mu is None:
-            mu, slope = value, piece_slope
+            mu, slope = v, piece_slope
             continue
-        slope = np.where(value > mu, piece_slope, slope)
-        mu = np.maximum(mu, value)
+        higher = v > mu
+        np.copyto(slope, piece_slope, where=higher)
+        np.maximum(mu, v, out=mu)
     return mu, slope
 
 
