@@ -123,8 +123,16 @@ def centroid(plan: CentroidPlan, h: np.ndarray) -> np.ndarray:
     return centroid_t(plan, np.asarray(h, dtype=np.float64).T)
 
 
+def _normal_levels(h: np.ndarray) -> np.ndarray:
+    """Clip levels in (0, smallest normal double) raised to it: subnormal levels lose all relative
+    precision in the products below, and the two defuzzifiers would disagree (seen at h = 5e-324)."""
+    tiny = np.finfo(np.float64).tiny
+    return np.where((h > 0.0) & (h < tiny), tiny, h)
+
+
 def centroid_t(plan: CentroidPlan, h_t: np.ndarray) -> np.ndarray:
     """`centroid` with activations laid out (L, n)."""
+    h_t = _normal_levels(h_t)
     n = h_t.shape[1]
     if plan.x0.size == 0 or n == 0:
         return _fallback(plan.midpoints, h_t, np.zeros(n), np.zeros(n))
@@ -166,7 +174,7 @@ def _aggregate_at(
         v += plan.slot_v0[:, s, None]
         below = v < level
         np.minimum(v, level, out=v)  # v is now the clipped value
-        piece_slope = below * piece
+        piece_slope = np.where(below, piece, 0.0)  # not below * piece: False * inf is NaN
         if mu is None:
             mu, slope = v, piece_slope
             continue
@@ -198,6 +206,7 @@ def centre_of_sums(params: np.ndarray, h: np.ndarray) -> np.ndarray:
 
 def centre_of_sums_t(params: np.ndarray, h: np.ndarray) -> np.ndarray:
     """`centre_of_sums` with activations laid out (L, n)."""
+    h = _normal_levels(h)
     a, b, c, d = (params[:, i][:, None] for i in range(4))
     p = a + h * (b - a)  # the clipped top runs from p to q
     q = d - h * (d - c)
