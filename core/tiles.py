@@ -82,24 +82,22 @@ def write_tile(path: str | Path, tile: Tile) -> Path:
     try:
         with OpenEXR.File(header, {"RGB": tile.pixels}) as exr:
             exr.write(tmp)
-        _fsync_file(tmp)
-        os.replace(tmp, path)
-        _fsync_dir(path.parent)
+        durable_replace(Path(tmp), path)
     except (OSError, RuntimeError) as exc:
         Path(tmp).unlink(missing_ok=True)
         raise TileError(f"{path}: cannot write tile ({exc})") from exc
     return path
 
 
-def _fsync_file(path: str) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+def durable_replace(tmp: Path, final: Path) -> None:
+    """Make `tmp` the file `final`, durably: fsync its data, rename it, fsync the folder (so a tile
+    counts as written only once a crash can no longer lose it)."""
+    _fsync(tmp)
+    os.replace(tmp, final)
+    _fsync(final.parent)
 
 
-def _fsync_dir(path: Path) -> None:
+def _fsync(path: Path) -> None:
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)

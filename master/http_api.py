@@ -47,6 +47,7 @@ from aiohttp import web
 from core.errors import TileError
 from core.geometry import Rect
 from core.hashing import sha256_file
+from core.tiles import durable_replace, read_tile
 
 log = logging.getLogger(__name__)
 
@@ -289,7 +290,6 @@ async def _accept(request: web.Request, plane: DataPlane, job: str, unit: int, t
 
 def _validate(path: Path, core: Rect, max_band: int, what: str) -> None:
     """Header first (no pixel decoded for a wrong window), then the whole tile through core.tiles."""
-    from core.tiles import read_tile
 
     window = _data_window(path, what)
     band = _band_of(window, core, max_band, what)
@@ -336,15 +336,8 @@ def _band_of(window: Rect, core: Rect, max_band: int, what: str) -> int:
 
 
 def _commit(tmp: Path, final: Path) -> None:
-    """Make the validated temp file the tile, durably: fsync it, rename, fsync the folder."""
-    with tmp.open("rb+") as fh:
-        os.fsync(fh.fileno())
-    os.replace(tmp, final)
-    fd = os.open(final.parent, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    """Make the validated temp file the tile, durably (core.tiles.durable_replace)."""
+    durable_replace(tmp, final)
 
 
 async def close(runner: web.AppRunner) -> None:
