@@ -4,8 +4,11 @@ obvious alternative of lowering spp everywhere.
 For each benchmark scene: a reference (no optimisation, `--ref-spp`) rendered once and cached; then the
 grid agents x levels, each cell a real job, through a real local farm (`quekaro.local_farm.LocalFarm`,
 one farm per agent count) or, with `--inprocess`, through `master.pipeline.render_job` (one process,
-so only the smallest agent count runs). Per cell: wall seconds (submit to done), CPU seconds of every
-process involved, the errors against the reference (`core.metrics`), and how the rules spent samples.
+so only the smallest agent count runs). Each cell's job runs once unmeasured first (`--no-warmup`
+skips it): Dr.Jit compiles a kernel per unit window size (~0.5 s each), which at the default size
+would otherwise be most of a job's time and fall on whichever cell first meets a size. Per cell: wall
+seconds (submit to done), CPU seconds of every process involved, the errors against the reference
+(`core.metrics`), and how the rules spent samples.
 
 The uniform baseline: plain Mitsuba on the whole image at the single spp that takes the same time.
 Render time is linear in spp (design.md section 3): the plain render is timed at two spp once, and the
@@ -57,6 +60,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--spp", type=int, default=128, help="the user's spp (what level off renders)")
     parser.add_argument("--ref-spp", type=int, default=2048, help="spp of the reference")
     parser.add_argument("--threads", type=int, default=2, help="threads in all, shared by the agents")
+    parser.add_argument("--no-warmup", dest="warmup", action="store_false",
+                        help="time each cell's first run (cold kernels) instead of a second, warm one")
     parser.add_argument("--inprocess", action="store_true",
                         help="render_job in this process instead of a farm (smallest agent count only)")
 
@@ -260,6 +265,8 @@ def scene_cells(name: str, agents: list[int], levels: list[str], args: argparse.
         with runner as run_job:
             for level in levels:
                 out = work / f"{name}-{n}-{level}.exr"
+                if args.warmup:  # compiles this job's kernels (one per unit window size) before timing it
+                    run_job(spec, level, args.spp, work / f"{name}-{n}-{level}-warm.exr")
                 report, wall, cpu = run_job(spec, level, args.spp, out)
                 image = read_exr(out)
                 cell = {"scene": name, "agents": n, "level": level, "seconds": wall, "cpu_seconds": cpu,

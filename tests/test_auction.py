@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import random
 from collections import Counter
 
@@ -368,6 +369,19 @@ def check_invariants(a: au.Auction) -> None:
                 assert holders[key] == 0
             if job.status == au.JobStatus.RUNNING:
                 assert unit.status != au.UnitStatus.FAILED
+    for agent in a.agents.values():
+        for rates in (agent.rates, agent.late_rates):
+            assert set(rates) <= set(a.jobs) and all(0 < r < float("inf") for r in rates.values())
+    # Safety of the look-ahead: every open unit is projected to some agent that may take it, if one exists.
+    now = max((ag.last_seen for ag in a.agents.values()), default=0.0)
+    for job in a.jobs.values():
+        if job.status != au.JobStatus.RUNNING:
+            continue
+        plan = a.projection(job.info.job_id, now)
+        live = {ag.name for ag in a.agents.values() if not ag.lost} - job.blocklist
+        for unit in job.units.values():
+            if unit.status in (au.UnitStatus.PENDING, au.UnitStatus.ANNOUNCED) and live - unit.failed_on:
+                assert plan[unit.spec.index].agent in live - unit.failed_on
 
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -467,3 +481,128 @@ def test_simulated_mixed_speeds_give_fast_agents_more_work() -> None:
 def test_simulate_needs_units_and_agents() -> None:
     with pytest.raises(ValueError):
         au.simulate([], [1.0])
+
+
+# --- the earliest-finish-time look-ahead --------------------------------------------------------------------
+
+
+def test_project_places_each_unit_where_it_finishes_first() -> None:
+    agents = [au.PlanAgent("fast", 1.0, 0.5), au.PlanAgent("slow", 0.0, 2.0)]
+    plan = au.project([au.PlanUnit(0, 10.0), au.PlanUnit(1, 1.0), au.PlanUnit(2, 1.0, frozenset({"slow"}))], agents)
+    assert plan[0] == au.Placement("fast", 1.0, 6.0)  # 6 s on fast, against 20 s on slow now
+    assert plan[1] == au.Placement("slow", 0.0, 2.0)  # fast would end it at 6.5
+    assert plan[2] == au.Placement("fast", 6.0, 6.5)  # it failed on slow
+    assert au.project([au.PlanUnit(0, 1.0, frozenset({"fast", "slow"}))], agents) == {}
+
+
+def test_refine_recovers_what_list_scheduling_misses() -> None:
+    units = [au.PlanUnit(i, c) for i, c in enumerate([3.0, 3.0, 2.0, 2.0, 2.0])]
+    agents = [au.PlanAgent("a", 0.0, 1.0), au.PlanAgent("b", 0.0, 1.0)]
+    lpt = au.project(units, agents)
+    assert max(p.finish for p in lpt.values()) == 7.0  # 3+2+2 against 3+2
+    better = au.refine(lpt, units, agents)
+    assert max(p.finish for p in better.values()) == 6.0 == au.fluid_finish([12.0], agents)
+    assert sorted(better) == [0, 1, 2, 3, 4]
+    for name in ("a", "b"):  # each agent's units back to back, most costly first
+        mine = sorted((p for p in better.values() if p.agent == name), key=lambda p: p.start)
+        assert mine[0].start == 0.0 and all(x.finish == y.start for x, y in itertools.pairwise(mine))
+
+
+def two_jobs_fast_agent_busy(big_job_costs: list[float]) -> au.Auction:
+    """'fast' (speed 4) renders job-0's unit of cost 4 from t=0 to t=1; job-1 waits; 'slow' (speed 1) is free."""
+    a = au.Auction(rng=random.Random(3))
+    a.add_job(info("job-0"), specs([4.0]))
+    a.register("fast", 0.0, speed=4.0)
+    cfp = sends(a.announce(0.0), m.CallForProposal, to="fast")[0].message
+    bid = m.Propose(conversation=cfp.conversation, job_id="job-0", estimates=(m.Estimate(index=0, seconds=1.0),))
+    assert a.on_propose("fast", bid, 0.0) == []
+    assert awards(a.decide(0.0))[0].to == "fast"
+    a.add_job(info("job-1"), specs(big_job_costs))
+    a.register("slow", 0.0, speed=1.0)
+    return a
+
+
+def test_end_game_free_slow_agent_leaves_the_big_unit_to_a_fast_agent_about_to_be_free() -> None:
+    a = two_jobs_fast_agent_busy([10.0])
+    assert a.projection("job-1", 0.5)[0] == au.Placement("fast", 1.0, 3.5)  # 10.5 on slow
+    assert sends(a.announce(0.5), m.CallForProposal) == []  # slow is not called: it would be the tail
+    # The slow agent gets a small unit that it finishes before the fast one would.
+    a = two_jobs_fast_agent_busy([10.0, 1.0])
+    cfps = sends(a.announce(0.5), m.CallForProposal)
+    assert [(s.to, [u.index for u in s.message.units]) for s in cfps] == [("slow", [1])]
+    bid_all(a, cfps, 0.5)
+    assert {i: s.to for i, s in awards(a.decide(0.5)).items()} == {1: "slow"}
+
+
+def test_fast_agent_freeing_up_takes_the_unit_held_for_it() -> None:
+    a = two_jobs_fast_agent_busy([10.0])
+    award = next(iter(a.jobs["job-0"].units.values()))
+    msg = m.Inform(conversation=award.conversation, job_id="job-0", index=0, token=award.token, tile_hash=HASH,
+                   depth=4, spp=8, band=2, seconds=1.0, nonfinite=0)
+    out = a.on_inform("fast", msg, 1.0) + a.tick(1.0)
+    assert [(s.to, [u.index for u in s.message.units]) for s in sends(out, m.CallForProposal)] == [("fast", [0])]
+
+
+def test_lost_fast_agent_releases_its_projected_units() -> None:
+    a = two_jobs_fast_agent_busy([10.0])
+    assert a.announce(0.5) == []
+    t = a.config.heartbeat_timeout_s + 0.5
+    a.on_heartbeat("slow", m.Heartbeat(conversation="h", busy=()), t)
+    out = a.tick(t)
+    assert [e.agent for e in events(out, "agent-lost")] == ["fast"]
+    assert a.projection("job-1", t)[0].agent == "slow"
+    # The lost agent's own unit (job-0, submitted first) is offered first; once slow refuses it, job-1's.
+    cfp = sends(out, m.CallForProposal, to="slow")[0].message
+    assert cfp.job.job_id == "job-0"
+    a.on_refuse("slow", m.Refuse(conversation=cfp.conversation, job_id="job-0", reason="no"), t)
+    again = sends(a.tick(t), m.CallForProposal, to="slow")
+    assert [(s.message.job.job_id, [u.index for u in s.message.units]) for s in again] == [("job-0", [0])]
+
+
+def test_blocklisted_agent_gets_no_projected_units() -> None:
+    a = make([5.0, 1.0], ["fast", "slow"])
+    a.agents["fast"].speed = 10.0
+    a.jobs["job-1"].blocklist.add("fast")
+    assert {p.agent for p in a.projection("job-1", 0.0).values()} == {"slow"}
+    assert {s.to for s in sends(a.announce(0.0), m.CallForProposal)} == {"slow"}
+
+
+def test_rates_are_learnt_from_bids_and_clamped() -> None:
+    a = make([4.0, 2.0], ["A", "C"])
+    cfps = {s.to: s.message for s in sends(a.announce(0.0), m.CallForProposal)}
+    a.register("B", 0.0, speed=2.0)  # after the call: it only watches
+    assert a.rate("A", "job-1") == 1.0 and a.rate("B", "job-1") == 0.5  # before any bid: 1 / speed
+    assert [u.index for u in cfps["A"].units] == [0, 1] and [u.index for u in cfps["C"].units] == [0, 1]
+
+    def propose(name: str, seconds: list[float]) -> None:
+        est = tuple(m.Estimate(index=i, seconds=s) for i, s in enumerate(seconds))
+        a.on_propose(name, m.Propose(conversation=cfps[name].conversation, job_id="job-1", estimates=est), 0.0)
+
+    propose("A", [8.0, 4.0])
+    assert a.rate("A", "job-1") == 2.0
+    assert a.rate("B", "job-1") == 1.0  # speed 2 against A's speed 1 x rate 2
+    propose("C", [0.0, 0.0])  # absurd: clamped to a hundredth of the others' median rate
+    assert a.rate("C", "job-1") == pytest.approx(2.0 / a.config.rate_clamp)
+    got = awards(a.decide(0.0))
+    assert got[0].to == "C" and got[0].message.estimate_s == 0.0
+    # It took 4 s on a unit of cost 4: projected at the rate it showed until it is on time again.
+    a.on_inform("C", inform(got[0], 4.0), 4.0)
+    assert a.rate("C", "job-1") == 1.0
+
+
+def test_equal_speeds_call_every_free_agent_on_the_costliest_units() -> None:
+    a = make([1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0], ["A", "B", "C"])
+    cfps = sends(a.announce(0.0), m.CallForProposal)
+    assert sorted(s.to for s in cfps) == ["A", "B", "C"]
+    for s in cfps:  # each is offered the three costliest: all three agents contest them
+        assert [u.index for u in s.message.units] == [6, 5, 4]
+
+
+def test_simulated_mixed_speeds_end_near_the_lower_bound() -> None:
+    costs = [12.0, 9.0, 8.0, 6.0, 5.0, 5.0, 4.0, 3.0, 3.0, 2.0, 2.0, 1.0, 1.0, 1.0]
+    speeds = [2.0, 1.0, 0.5, 0.5]
+    bound = max(sum(costs) / sum(speeds), max(costs) / max(speeds))
+    result = au.simulate(costs, speeds, latency=0.002)
+    assert result.makespan <= bound * 1.06, (result.makespan, bound)
+    # Greedy awards without the look-ahead give a big unit to a slow agent (its 12 / 0.5 alone is 24 s).
+    assert max(result.busy_s["agent2"], result.busy_s["agent3"]) <= bound * 1.06

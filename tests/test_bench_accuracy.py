@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import os
 import time
 
@@ -24,8 +23,6 @@ def args_for(tmp_path, *extra: str) -> argparse.Namespace:
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(importlib.util.find_spec("core.effects") is None,
-                    reason="the in-process pipeline needs core.effects, not landed yet")
 def test_inprocess_grid_json_has_cells_and_baseline(tmp_path):
     result = bench_accuracy.run(args_for(tmp_path, "--inprocess"))
     cells = result["cells"]
