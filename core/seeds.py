@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import hashlib
+import json
+from typing import Any
 
 SEED_BITS = 31  # the protocol carries seeds as non-negative 31-bit integers
 
@@ -12,3 +14,15 @@ def unit_seed(job_id: str, unit: int, pass_: int) -> int:
     """A seed in [0, 2^31) distinct for every (job, unit, pass), stable across processes and hosts."""
     digest = hashlib.blake2b(f"{job_id}\x00{unit}\x00{pass_}".encode(), digest_size=4).digest()
     return int.from_bytes(digest, "little") & ((1 << SEED_BITS) - 1)
+
+
+def plan_seed(scene_digest: str, defines: dict[str, str], options: dict[str, Any]) -> int:
+    """The pre-pass seed of a job, from the scene's content and the options that shape its plan.
+
+    The same job submitted again then gets the same units: their window sizes, which Dr.Jit compiles one
+    kernel for each (~0.5 s apiece, cached on disk), are reused instead of compiled anew because the
+    pre-pass noise moved a split. Thread counts do not change a plan and are left out.
+    """
+    shaping = {k: v for k, v in options.items() if k != "threads"}
+    text = json.dumps([scene_digest, sorted(defines.items()), shaping], sort_keys=True, default=str)
+    return unit_seed(text, -1, 0)

@@ -16,11 +16,12 @@ from pathlib import Path
 from typing import Any
 
 from core.compose import compose
+from core.hashing import sha256_file
 from core.imageio import write_exr, write_png
 from core.planner import Planner, UnitParams
 from core.render_unit import RenderWorker, UnitJob
 from core.scene import SceneSpec
-from core.seeds import unit_seed
+from core.seeds import plan_seed, unit_seed
 from core.tiles import Tile
 from master.jobplan import JobPlan, RenderOptions, plan_job
 
@@ -93,7 +94,8 @@ def render_job(spec: SceneSpec, options: RenderOptions, out: Path, job_id: str |
     """Render the scene as units in one process; write OUT.exr/.png/.json and return the report."""
     start = time.perf_counter()
     job_id = job_id or uuid.uuid4().hex[:12]
-    plan = plan_job(spec, options, seed=unit_seed(job_id, -1, 0))
+    seed = plan_seed(sha256_file(spec.path), spec.defines, options.to_dict())
+    plan = plan_job(spec, options, seed=seed)
     planner = Planner(options.rules, options.defuzzifier)
     chosen = plan_params(plan, planner)
     tiles, params = [], {}

@@ -28,6 +28,7 @@ from core import messages as m
 from core.bundle import BundleLimits, bundle_hash, extract_bundle
 from core.errors import MessageError, QuekaroError
 from core.scene import SceneSpec
+from core.seeds import plan_seed
 from core.tiles import read_tile
 from master import auction as au
 from master.jobplan import JobPlan, RenderOptions, plan_job
@@ -189,15 +190,16 @@ class MasterService:
         try:
             (job_dir / "bundle.tar").write_bytes(bundle)
             scene = extract_bundle(bundle, job_dir / "scene", BundleLimits())
+            digest = bundle_hash(bundle)
             loop = asyncio.get_running_loop()
             plan = await loop.run_in_executor(
                 self._planner, _plan_in_child, str(scene), defines, options.to_dict(),
-                int.from_bytes(bytes.fromhex(job_id[:8]), "little"), self._units_for_agents())
+                plan_seed(digest, defines, options.to_dict()), self._units_for_agents())
         except BaseException:
             shutil.rmtree(job_dir, ignore_errors=True)
             raise
         scene_name = str(scene.relative_to(job_dir / "scene"))
-        self._create_job(job_id, scene_name, defines, options, plan, bundle_hash(bundle))
+        self._create_job(job_id, scene_name, defines, options, plan, digest)
         return job_id
 
     def _units_for_agents(self) -> int:

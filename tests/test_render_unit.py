@@ -20,7 +20,7 @@ from core.render_unit import (
     set_window,
 )
 from core.scene import SceneSpec
-from core.seeds import unit_seed
+from core.seeds import plan_seed, unit_seed
 
 REPO = Path(__file__).resolve().parent.parent
 CBOX = SceneSpec(REPO / "scenes" / "cbox.xml", {"res": "48", "spp": "4"})
@@ -39,6 +39,16 @@ def job(unit=UNIT, spp=16, seed=1, spec=CBOX, size=(48, 48), band=2, **kw):
 def worker():
     with RenderWorker() as w:
         yield w
+
+
+def test_plan_seeds_follow_the_scene_and_the_plan_options_only():
+    opts = {"level": "S", "spp": 64, "threads": 2}
+    seed = plan_seed("ab" * 32, {"res": "64"}, opts)
+    assert 0 <= seed < 2**31
+    assert seed == plan_seed("ab" * 32, {"res": "64"}, {**opts, "threads": 1})  # threads shape no plan
+    assert seed != plan_seed("cd" * 32, {"res": "64"}, opts)
+    assert seed != plan_seed("ab" * 32, {"res": "65"}, opts)
+    assert seed != plan_seed("ab" * 32, {"res": "64"}, {**opts, "level": "N"})
 
 
 def test_unit_seeds_are_distinct_and_stable():
