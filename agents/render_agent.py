@@ -6,9 +6,11 @@ master/auction.py expects it:
 
   start     measure speed (agents/speed.py) -> Register; Register again after every reconnect;
             Heartbeat every 2 s listing the units it holds (awarded, not yet answered, not cancelled).
-  cfp       free (nothing rendering, nothing queued) -> Propose with an estimate per offered unit
-            (cost x the spp its own rules pick / speed, + a kernel compilation for a new window size,
-            times a per-job correction learnt from its finished units); else Refuse.
+  cfp       room for another unit (it holds fewer than `slots`: 2 by default, one rendering and one
+            waiting, so the render process goes on to the next unit while the last one's tile uploads)
+            -> Propose with an estimate per offered unit (cost x the spp its own rules pick / speed, + a
+            kernel compilation for a new window size, times a per-job correction learnt from its
+            finished units); the master adds the wait behind the unit it holds. Else Refuse.
   award     fetch the job's scene bundle once (cached by sha256 under the work dir), plan the unit
             with its own rules, render it with the award's seed, write the tile EXR (meta: the unit,
             seconds, non-finite pixels, spp, depth, band, the rules' crisp outputs, the agent's JID),
@@ -19,7 +21,8 @@ master/auction.py expects it:
 
 Duplicate awards (same unit, same token) are ignored; a re-award with a new token replaces the old one's
 token. Messages are handled one at a time on the XMPP loop and never wait for a render: renders run in a
-worker thread that talks to the render process (asyncio.to_thread).
+worker thread that talks to the render process (asyncio.to_thread), one at a time in award order; each
+finished tile is hashed, uploaded and informed by a task of its own while the next unit renders.
 
 Run it with `python -m agents.render_agent --server HOST --port P --jid J --password PW --master M`.
 """
@@ -80,6 +83,7 @@ class AgentConfig:
     ca_file: str | None = None
     verify_security: bool = False
     heartbeat_s: float = HEARTBEAT_S
+    slots: int = 2  # units held at once (one rendering, the others waiting); 1: no overlap
     max_render_s: float = 6 * 3600.0  # a render longer than this is killed whatever the estimate
     bundle_limits: BundleLimits = field(default_factory=BundleLimits)
 
@@ -145,6 +149,7 @@ class RenderAgent:
         self.finished: deque[tuple[str, int, str]] = deque(maxlen=FINISHED_MEMORY)
         self.kernels: set[tuple[Any, ...]] = set()  # what this agent's render process has compiled
         self.rendering = False
+        self._deliveries: set[asyncio.Task] = set()
         self.units_done = 0
         self.units_failed = 0
         self._queue: asyncio.Queue[Work] = asyncio.Queue()
@@ -180,9 +185,10 @@ class RenderAgent:
         self._stop.set()
 
     async def _shutdown(self) -> None:
-        for task in self._tasks:
+        tasks = [*self._tasks, *self._deliveries]
+        for task in tasks:
             task.cancel()
-        for task in self._tasks:
+        for task in tasks:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
         # A render in flight is abandoned: the child is asked to exit, then killed (RenderWorker.stop).
@@ -243,8 +249,12 @@ class RenderAgent:
                 log.debug("rejected in %s: %s", msg.conversation, msg.reason)
 
     def is_free(self) -> bool:
-        """Free = rendering nothing (not even a cancelled unit) and nothing waiting."""
-        return not self.rendering and not any(not w.cancelled for w in self.works.values())
+        """Room for another unit: it holds fewer than `slots` (rendering, waiting or uploading). With one
+        slot, also not rendering at all (not even a cancelled unit)."""
+        held = sum(not w.cancelled for w in self.works.values())
+        if self.config.slots == 1:
+            return not self.rendering and held == 0
+        return held < self.config.slots
 
     async def _on_cfp(self, cfp: m.CallForProposal) -> None:
         job_id = cfp.job.job_id
@@ -312,43 +322,62 @@ class RenderAgent:
     # ---- rendering ----------------------------------------------------------------------------------
 
     async def _render_forever(self) -> None:
+        """Render awarded units one at a time; hand each tile to a delivery task and go on at once."""
         while True:
             work = await self._queue.get()
             if work.cancelled:
                 continue
             self.rendering = True
+            started = time.monotonic()
             try:
-                await self._process(work)
+                rendered = await self._render_step(work)
             finally:
                 self.rendering = False
-                if self.works.get(work.key) is work:
-                    del self.works[work.key]
+            if rendered is None:
+                self._forget(work)
+                continue
+            task = asyncio.create_task(self._deliver(work, *rendered, started), name=f"deliver {work.key}")
+            self._deliveries.add(task)
+            task.add_done_callback(self._deliveries.discard)
 
-    async def _process(self, work: Work) -> None:
-        started = time.monotonic()
+    async def _render_step(self, work: Work) -> tuple[Tile, UnitParams, Path] | None:
+        """The unit rendered and its tile written; None if it failed (Failure sent) or was cancelled."""
+        try:
+            rendered = await self._render(work)
+        except Exception as exc:
+            self._remove_tile(work.key)
+            await self._failed(work, exc)
+            return None
+        if work.cancelled:
+            log.info("unit %s/%d rendered after its cancellation: discarded", *work.key)
+            self._remove_tile(work.key)
+            return None
+        return rendered
+
+    async def _deliver(self, work: Work, tile: Tile, params: UnitParams, tile_path: Path, started: float) -> None:
+        """Hash and upload the tile, then Inform; the unit is held (heartbeats list it) until this ends."""
         key = work.key
         try:
-            tile, params, tile_path = await self._render(work)
-            if work.cancelled:
-                log.info("unit %s/%d rendered after its cancellation: discarded", *key)
+            try:
+                sha256 = await asyncio.to_thread(sha256_file, tile_path)
+                award = work.award  # the latest award: a re-award during the render changes the token
+                await self._upload(award, tile_path, sha256)
+            except Exception as exc:
+                await self._failed(work, exc)
                 return
-            sha256 = await asyncio.to_thread(sha256_file, tile_path)
-            award = work.award  # the latest award: a re-award during the render changes the token
-            await self._upload(award, tile_path, sha256)
-        except Exception as exc:
+            finally:
+                self._remove_tile(key)
             if not work.cancelled:
-                self.units_failed += 1
-                await self._fail(work, exc)
-            return
+                await self._done(work, award, tile, params, sha256, time.monotonic() - started)
         finally:
-            for leftover in self.workdir.joinpath("tiles").glob(f"{_safe(key[0])}-{key[1]}.exr"):
-                leftover.unlink(missing_ok=True)
-        if work.cancelled:
-            return
+            self._forget(work)
+
+    async def _done(self, work: Work, award: m.Award, tile: Tile, params: UnitParams, sha256: str,
+                    wall: float) -> None:
+        key = work.key
         self.units_done += 1
         self.finished.append((*key, award.token))
         predicted = self._uncorrected(award.job, award.unit, params)
-        wall = time.monotonic() - started
         log.info("unit %s/%d done: %.3f s in all, render %.3f s, spp %d depth %d band %d (award estimate %.3f s)",
                  *key, wall, tile.meta["seconds"], params.spp, params.depth, params.band, award.estimate_s)
         self.kernels.add(_kernel_key(award.job, award.unit, params))
@@ -357,6 +386,19 @@ class RenderAgent:
             conversation=award.conversation, job_id=key[0], index=key[1], token=award.token,
             tile_hash=sha256, depth=params.depth, spp=params.spp, band=params.band,
             seconds=float(tile.meta["seconds"]), nonfinite=int(tile.meta.get("nonfinite", 0))))
+
+    async def _failed(self, work: Work, exc: BaseException) -> None:
+        if not work.cancelled:
+            self.units_failed += 1
+            await self._fail(work, exc)
+
+    def _forget(self, work: Work) -> None:
+        if self.works.get(work.key) is work:
+            del self.works[work.key]
+
+    def _remove_tile(self, key: tuple[str, int]) -> None:
+        for leftover in self.workdir.joinpath("tiles").glob(f"{_safe(key[0])}-{key[1]}.exr"):
+            leftover.unlink(missing_ok=True)
 
     async def _fail(self, work: Work, exc: BaseException) -> None:
         award = work.award
@@ -474,6 +516,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--register", action="store_true", help="create the XMPP account in-band (embedded server)")
     p.add_argument("--ca-file", default=None, help="CA certificate to verify the XMPP server's TLS with")
     p.add_argument("--heartbeat", type=float, default=HEARTBEAT_S, help="seconds between heartbeats")
+    p.add_argument("--slots", type=int, default=2,
+                   help="units held at once: 2 (default) renders the next while the last uploads; 1 none")
     p.add_argument("--log-level", default=os.environ.get("QUEKARO_LOG", "INFO"))
     return p
 
@@ -482,11 +526,13 @@ def config_from_args(args: argparse.Namespace) -> AgentConfig:
     password = xmpp_password(args.password, args.password_file)
     if args.threads < 1:
         raise QuekaroError(f"--threads {args.threads}: must be at least 1")
+    if args.slots < 1:
+        raise QuekaroError(f"--slots {args.slots}: must be at least 1")
     workdir = args.workdir or Path(tempfile.gettempdir()) / "quekaro-agent" / _safe(args.jid)
     return AgentConfig(jid=args.jid, password=password, master=args.master, server=args.server,
                        port=args.port, threads=args.threads, rules=args.rules, defuzzifier=args.defuzzifier,
                        workdir=workdir, auto_register=args.register, ca_file=args.ca_file,
-                       verify_security=bool(args.ca_file), heartbeat_s=args.heartbeat)
+                       verify_security=bool(args.ca_file), heartbeat_s=args.heartbeat, slots=args.slots)
 
 
 async def serve(config: AgentConfig) -> None:

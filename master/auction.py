@@ -82,6 +82,9 @@ class Config:
     min_estimate_s: float = 1e-3  # a lower (or zero) bid counts as this in the projection
     rate_clamp: float = 100.0  # an agent's rate stays within this factor of the job's median rate
     refine_moves: int = 64  # moves and swaps that shorten each projection (0: plain list schedule)
+    # Units an agent may hold at once: 2 lets it be awarded its next unit while it renders one, so its
+    # render process never waits for the upload, the inform and the next auction (~35 ms a unit here).
+    slots: int = 1
     max_cfp_units: int = m.MAX_CFP_UNITS
     upload_url: str = "http://127.0.0.1:8765/jobs/{job}/units/{index}/tile"
 
@@ -640,7 +643,8 @@ class Auction:
         return sorted((j for j in self.jobs.values() if j.status == JobStatus.RUNNING), key=lambda j: j.order)
 
     def _is_free(self, agent: Agent) -> bool:
-        return not agent.lost and not agent.holding and agent.invited is None
+        """Callable to an auction: live, not in one already, and with a slot for another unit."""
+        return not agent.lost and len(agent.holding) < self.config.slots and agent.invited is None
 
     def _seen(self, agent: Agent, now: float) -> list[Command]:
         agent.last_seen = max(agent.last_seen, now)
@@ -694,7 +698,7 @@ class Auction:
             if unit.status != UnitStatus.ANNOUNCED:
                 continue
             unit.status = UnitStatus.PENDING
-            winner = self._pick(round_, unit, job, winners)
+            winner = self._pick(round_, unit, job, winners, now)
             if winner is not None:
                 winners.add(winner)
                 out += self._award(job, unit, winner, round_.bids[winner][unit.spec.index], now)
@@ -762,12 +766,15 @@ class Auction:
         agent.rates[job_id] = _round_rate(rate)
 
     def _available(self, agent: Agent, now: float) -> float:
-        """When the agent should be free: now, or when the unit it holds should end. An agent past that
-        time is assumed to need as long again as it has overrun (a late agent looks ever later)."""
+        """When the agent should be free: now, or when the units it holds should end (one after the other,
+        in award order). An agent past that time is assumed to need as long again as it has overrun (a late
+        agent looks ever later)."""
         held = [self.jobs[j].units[i] for j, i in agent.holding if j in self.jobs and i in self.jobs[j].units]
         if not held:
             return now
-        end = max(u.awarded_at + u.estimate for u in held)
+        end = -math.inf
+        for unit in sorted(held, key=lambda u: u.awarded_at):
+            end = max(end, unit.awarded_at) + unit.estimate
         return end if end >= now else 2 * now - end
 
     def _worth_offering(
@@ -787,7 +794,7 @@ class Auction:
             and duration <= (place.finish - now) * (1 + self.config.finish_tolerance) + 1e-9
         )
 
-    def _pick(self, round_: Round, unit: Unit, job: Job, taken: set[str]) -> str | None:
+    def _pick(self, round_: Round, unit: Unit, job: Job, taken: set[str], now: float) -> str | None:
         bids = {
             name: bids[unit.spec.index]
             for name, bids in round_.bids.items()
@@ -800,18 +807,20 @@ class Auction:
         }
         if not bids:
             return None
-        # Every bidder is free now, so the bid is the finish time from now.
-        fastest = min(bids.values())
-        near = {n: e for n, e in bids.items() if e <= fastest * (1 + self.config.finish_tolerance) + 1e-9}
-        # Best record first (MAgArRO), then the lower estimate, then the name for determinism.
+        # A bidder still rendering a unit (a free slot) starts this one when that ends.
+        finish = {n: self._available(self.agents[n], now) - now + e for n, e in bids.items()}
+        fastest = min(finish.values())
+        near = {n: f for n, f in finish.items() if f <= fastest * (1 + self.config.finish_tolerance) + 1e-9}
+        # Best record first (MAgArRO), then the earlier finish, then the name for determinism.
         return min(near, key=lambda n: (-self.agents[n].score, near[n], n))
 
     def _award(self, job: Job, unit: Unit, agent: str, estimate: float, now: float) -> list[Command]:
         unit.status = UnitStatus.AWARDED
         unit.agent, unit.token, unit.conversation = agent, f"{self.rng.getrandbits(128):032x}", self._new_id()
         unit.attempts += 1
+        start = self._available(self.agents[agent], now)  # after the units it holds already
         unit.awarded_at, unit.estimate = now, estimate
-        unit.deadline = now + estimate * self.config.render_factor + self.config.render_slack_s
+        unit.deadline = start + estimate * self.config.render_factor + self.config.render_slack_s
         self.agents[agent].holding.add((job.info.job_id, unit.spec.index))
         url = self.config.upload_url.format(job=job.info.job_id, index=unit.spec.index)
         # The seed depends on the unit only, so a retried unit renders the same samples as the first try
@@ -1003,6 +1012,7 @@ class _Sim:
         self.queue: list[tuple[float, int, str, str, Any]] = []
         self.seq = 0
         self.busy = dict.fromkeys(speeds, 0.0)
+        self.render_end = dict.fromkeys(speeds, 0.0)
         self.holding: dict[str, set[tuple[str, int]]] = {name: set() for name in speeds}
         self.messages = 0
         self.timer = math.inf
@@ -1072,6 +1082,9 @@ class _Sim:
                 seconds=seconds,
                 nonfinite=0,
             )
-            # The upload and the inform leave when rendering ends; both are modelled as one latency.
-            self.push(now + seconds, "release", name, (msg.job.job_id, msg.unit.index))
-            self.push(now + seconds + self.latency, "master", name, inform)
+            # A unit awarded into a free slot starts when the one rendering ends. The upload and the inform
+            # leave when rendering ends; both are modelled as one latency.
+            end = max(now, self.render_end[name]) + seconds
+            self.render_end[name] = end
+            self.push(end, "release", name, (msg.job.job_id, msg.unit.index))
+            self.push(end + self.latency, "master", name, inform)

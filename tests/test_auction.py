@@ -370,6 +370,7 @@ def check_invariants(a: au.Auction) -> None:
             if job.status == au.JobStatus.RUNNING:
                 assert unit.status != au.UnitStatus.FAILED
     for agent in a.agents.values():
+        assert len(agent.holding) <= a.config.slots
         for rates in (agent.rates, agent.late_rates):
             assert set(rates) <= set(a.jobs) and all(0 < r < float("inf") for r in rates.values())
     # Safety of the look-ahead: every open unit is projected to some agent that may take it, if one exists.
@@ -385,9 +386,9 @@ def check_invariants(a: au.Auction) -> None:
 
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(ops, st.integers(1, 8))
-def test_random_event_sequences_never_lose_a_unit(sequence, n_units: int) -> None:
-    a = make([float(1 + i % 3) for i in range(n_units)], [f"a{i}" for i in range(4)])
+@given(ops, st.integers(1, 8), st.integers(1, 2))
+def test_random_event_sequences_never_lose_a_unit(sequence, n_units: int, slots: int) -> None:
+    a = make([float(1 + i % 3) for i in range(n_units)], [f"a{i}" for i in range(4)], au.Config(slots=slots))
     now, outstanding, done_events = 0.0, [], Counter()
     pending_cfps: list[au.Send] = []
     old_awards: list[au.Send] = []
@@ -606,3 +607,37 @@ def test_simulated_mixed_speeds_end_near_the_lower_bound() -> None:
     assert result.makespan <= bound * 1.06, (result.makespan, bound)
     # Greedy awards without the look-ahead give a big unit to a slow agent (its 12 / 0.5 alone is 24 s).
     assert max(result.busy_s["agent2"], result.busy_s["agent3"]) <= bound * 1.06
+
+
+def test_a_second_slot_awards_the_next_unit_while_one_renders() -> None:
+    a = make([4.0, 3.0, 2.0], ["A"], au.Config(slots=2))
+    first = round_trip(a, 0.0)
+    assert list(first) == [0]  # one unit per round
+    second = round_trip(a, 0.5)  # still rendering unit 0: called again, for the next unit
+    assert list(second) == [1]
+    assert len(a.agents["A"].holding) == 2
+    assert round_trip(a, 1.0) == {}  # both slots taken: not called
+    unit = a.jobs["job-1"].units[1]
+    # The queued unit starts when unit 0 should end (4 s), so its deadline counts from there.
+    assert unit.deadline == pytest.approx(4.0 + 3.0 * a.config.render_factor + a.config.render_slack_s)
+    assert a._available(a.agents["A"], 1.0) == pytest.approx(7.0)
+    a.on_inform("A", inform(first[0], 4.0), 4.0)
+    assert list(round_trip(a, 4.0)) == [2]
+
+
+def test_a_free_slot_does_not_win_over_an_idle_agent_that_finishes_sooner() -> None:
+    a = make([4.0, 3.0, 3.0], ["A", "B"], au.Config(slots=2))
+    first = round_trip(a, 0.0)
+    assert sorted(first) == [0, 1]
+    a.on_inform(first[1].to, inform(first[1], 3.0), 3.0)
+    idle = first[1].to
+    # The idle agent finishes unit 2 at 6 s; the busy one would start it at 4 s and end at 7 s.
+    assert {s.to for s in round_trip(a, 3.0).values()} == {idle}
+
+
+def test_slots_hide_the_message_latency_in_the_simulation() -> None:
+    costs = [1.0] * 12
+    one = au.simulate(costs, [1.0], latency=0.2).makespan
+    two = au.simulate(costs, [1.0], latency=0.2, config=au.Config(slots=2)).makespan
+    assert two < one - 12 * 0.2  # one slot waits ~2 latencies a unit (inform, then CFP/award)
+    assert two == pytest.approx(12.0, abs=1.5)

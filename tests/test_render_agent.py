@@ -299,7 +299,7 @@ def test_unit_is_planned_rendered_uploaded_and_informed(farm: Farm, bundles: dic
     assert again.estimates[0].seconds != pytest.approx(before, rel=1e-3)
 
 
-def test_cancelled_unit_is_dropped_and_busy_agent_refuses(farm: Farm, bundles: dict) -> None:
+def test_cancelled_units_are_dropped_and_a_full_agent_refuses(farm: Farm, bundles: dict) -> None:
     scene, _ = bundles["cbox"]
     # ~2 M samples: long enough (seconds) to cancel it mid-render on one thread.
     job = farm.job("job-b", sha_of(bundles, "cbox"), scene, spp=2048, level="off")
@@ -308,12 +308,18 @@ def test_cancelled_unit_is_dropped_and_busy_agent_refuses(farm: Farm, bundles: d
     farm.run(farm.master.send(farm.award(job, whole, "award-b0")))
     farm.run(farm.master.expect(m.Heartbeat, since=since, where=lambda h: len(h.busy) == 1
                                 and (h.busy[0].job_id, h.busy[0].index) == ("job-b", 0)))
-    farm.run(farm.master.send(cfp(job, "cfp-busy", unit(1, Rect(0, 0, 8, 8)))))
+    # One unit rendering leaves a slot (agents hold two): it bids, and takes a second unit to queue.
+    farm.run(farm.master.send(cfp(job, "cfp-slot", unit(1, Rect(0, 0, 8, 8)))))
+    propose = farm.run(farm.master.expect(m.Propose, since=since))
+    assert propose.conversation == "cfp-slot"
+    farm.run(farm.master.send(farm.award(job, unit(1, Rect(0, 0, 8, 8)), "award-b1")))
+    farm.run(farm.master.expect(m.Heartbeat, since=since, where=lambda h: len(h.busy) == 2))
+    farm.run(farm.master.send(cfp(job, "cfp-busy", unit(2, Rect(8, 0, 8, 8)))))
     refuse = farm.run(farm.master.expect(m.Refuse, since=since))
     assert refuse.conversation == "cfp-busy" and "busy" in refuse.reason
 
     cancelled_at = time.monotonic()
-    farm.run(farm.master.send(m.Cancel(conversation="award-b0", job_id="job-b", index=0, reason="test")))
+    farm.run(farm.master.send(m.Cancel(conversation="award-b0", job_id="job-b", index=None, reason="test")))
     farm.run(farm.master.expect(m.Heartbeat, since=cancelled_at + 0.1, where=lambda h: h.busy == ()))
     # Free again once the abandoned render ends: it proposes, and never delivered the cancelled unit.
     deadline = time.monotonic() + 20
