@@ -643,8 +643,19 @@ class Auction:
         return sorted((j for j in self.jobs.values() if j.status == JobStatus.RUNNING), key=lambda j: j.order)
 
     def _is_free(self, agent: Agent) -> bool:
-        """Callable to an auction: live, not in one already, and with a slot for another unit."""
-        return not agent.lost and len(agent.holding) < self.config.slots and agent.invited is None
+        """Callable to an auction: live, not in one already, and holding nothing, or with a slot for another
+        unit while the farm has plenty of work (`_queueing`)."""
+        if agent.lost or agent.invited is not None:
+            return False
+        return not agent.holding or (len(agent.holding) < self.config.slots and self._queueing())
+
+    def _queueing(self) -> bool:
+        """Whether units may be queued behind others: only while the open units are at least `slots` times
+        the live agents. In the end game a queued unit is committed before anyone knows which agent frees
+        up first (renders vary), and the simulation showed it lengthening the tail."""
+        live = sum(not a.lost for a in self.agents.values())
+        open_units = sum(u.status == UnitStatus.PENDING for j in self._running() for u in j.units.values())
+        return open_units >= self.config.slots * live
 
     def _seen(self, agent: Agent, now: float) -> list[Command]:
         agent.last_seen = max(agent.last_seen, now)

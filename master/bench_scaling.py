@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from core.geometry import Rect
+from master.auction import Config
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_SCENE = REPO / "scenes" / "caustic-corner.xml"
@@ -47,6 +48,7 @@ DEFAULT_OUT = REPO / "docs" / "benchmarks"
 MIXED_SPEEDS = (1.0, 0.5, 1.5, 2.0)  # cycled: agent i has speed MIXED_SPEEDS[i % 4]
 BAND = 2  # every unit renders this many extra pixels on each side (the gaussian filter's reach)
 TARGETS = {8: 0.9, 32: 0.8}
+FARM_AUCTION = Config()  # as the farm's master runs it by default (one unit per agent at a time)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -219,8 +221,9 @@ def simulate_row(tmap: TimeMap, cmap: Any, n: int, mixed: bool, args: argparse.N
     def run(rects: list[Rect], on: list[float]) -> float:
         costs = [tmap.unit_seconds(r, args.spp) for r in rects]
         # Mean over a few seeds: the jitter makes one run's tail a matter of luck.
-        return float(np.mean([simulate(costs, on, latency=args.latency, seed=s, jitter=args.jitter).makespan
-                              for s in range(args.repeats)]))
+        runs = [simulate(costs, on, latency=args.latency, seed=s, jitter=args.jitter, config=FARM_AUCTION)
+                for s in range(args.repeats)]
+        return float(np.mean([r.makespan for r in runs]))
 
     fuzzy_t, naive_t, equal_t = run(units, speeds), run(naive, speeds), run(equal, speeds)
     one_agent = run(units, [1.0])

@@ -9,6 +9,8 @@ import signal
 from pathlib import Path
 
 from core.credentials import xmpp_password
+from core.errors import QuekaroError
+from master import auction as au
 from master.service import MasterConfig, MasterService
 
 
@@ -19,7 +21,15 @@ def config_from(args: argparse.Namespace) -> MasterConfig:
         home=Path(args.home or default_home()), jid=args.jid, password=xmpp_password(args.password, args.password_file),
         xmpp_host=args.server, xmpp_port=args.port, auto_register=args.register, ca_file=args.ca_file,
         http_host=args.http_host, http_port=args.http_port, public_url=args.public_url, threads=args.threads,
+        auction=au.Config(slots=_slots(args)),
     )
+
+
+def _slots(args: argparse.Namespace) -> int:
+    slots = getattr(args, "slots", 1)
+    if slots < 1:
+        raise QuekaroError(f"--slots {slots}: must be at least 1")
+    return slots
 
 
 async def serve(config: MasterConfig) -> None:

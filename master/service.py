@@ -56,8 +56,7 @@ class MasterConfig:
     public_url: str | None = None  # what agents use to reach the HTTP API (default http://host:port)
     agent_pattern: str = r"^agent[-\w.]*@{domain}$"  # bare JIDs allowed to bid
     threads: int | None = None  # Dr.Jit threads of the pre-pass
-    # Two units per agent: the next one is awarded while the last one renders (see au.Config.slots).
-    auction: au.Config = field(default_factory=lambda: au.Config(slots=2))
+    auction: au.Config = field(default_factory=au.Config)
 
     @property
     def url(self) -> str:
