@@ -150,6 +150,7 @@ class RenderAgent:
         self.kernels: set[tuple[Any, ...]] = set()  # what this agent's render process has compiled
         self.rendering = False
         self._deliveries: set[asyncio.Task] = set()
+        self._planned: dict[tuple[str, int], UnitParams] = {}  # the rules' choice per unit bid on
         self.units_done = 0
         self.units_failed = 0
         self._queue: asyncio.Queue[Work] = asyncio.Queue()
@@ -269,6 +270,8 @@ class RenderAgent:
             await self._send(m.Refuse(conversation=cfp.conversation, job_id=job_id,
                                       reason=f"cannot plan units: {type(exc).__name__}: {exc}"[:1024]))
             return
+        for u, p in zip(cfp.units, plans, strict=True):
+            self._remember_plan(job_id, u.index, p)
         estimates = tuple(m.Estimate(index=u.index, seconds=min(self.estimate(cfp.job, u, p), 1e9))
                           for u, p in zip(cfp.units, plans, strict=True))
         log.info("proposing for %s: %s", job_id, ", ".join(f"{e.index}: {e.seconds:.3f} s" for e in estimates))
@@ -296,6 +299,11 @@ class RenderAgent:
         features = {k: [float(getattr(u, k)) for u in units] for k in ("C", "S", "Nd")}
         ranges = dict(job.ranges) or None
         return self.planner.plan(features, job.level, user_depth=job.depth, user_spp=job.spp, ranges=ranges)
+
+    def _remember_plan(self, job_id: str, index: int, params: UnitParams) -> None:
+        self._planned[(job_id, index)] = params
+        while len(self._planned) > FINISHED_MEMORY:
+            self._planned.pop(next(iter(self._planned)))  # the oldest first
 
     def _on_award(self, award: m.Award) -> None:
         key = (award.job.job_id, award.unit.index)
@@ -413,7 +421,8 @@ class RenderAgent:
         award = work.award
         job, unit = award.job, award.unit
         spec = await self._scene_for(job, award.token)
-        (params,) = self._plan(job, (unit,))
+        # What it bid on (a job's units and their features never change); planned afresh if forgotten.
+        params = self._planned.pop((job.job_id, unit.index), None) or self._plan(job, (unit,))[0]
         integrator = getattr(job, "integrator", "path")
         unit_job = UnitJob(
             scene=spec, variant=getattr(job, "variant", "llvm_ad_rgb"), integrator=integrator,

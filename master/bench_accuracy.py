@@ -59,10 +59,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenes", default=HETEROGENEOUS, help=f"comma list of {', '.join(SCENES)}")
     parser.add_argument("--agents", default="1,2", help="comma list of agent counts")
     parser.add_argument("--levels", default="off,VS,S,N,B,VB", help="comma list of optimisation levels")
-    parser.add_argument("--res", type=int, default=160, help="image side")
+    parser.add_argument("--res", type=int, default=320, help="image side (the default grid takes ~5 min here)")
     parser.add_argument("--spp", type=int, default=128, help="the user's spp (what level off renders)")
     parser.add_argument("--ref-spp", type=int, default=2048, help="spp of the reference")
     parser.add_argument("--threads", type=int, default=2, help="threads in all, shared by the agents")
+    parser.add_argument("--units", type=int, default=None,
+                        help="target unit count at the optimised levels (default: the planner's choice)")
     parser.add_argument("--no-warmup", dest="warmup", action="store_false",
                         help="time each cell's first run (cold kernels) instead of a second, warm one")
     parser.add_argument("--inprocess", action="store_true",
@@ -187,7 +189,7 @@ def _self_cpu() -> float:
 
 
 @contextmanager
-def farm_runner(agents: int, threads: int, home: Path) -> Iterator[Any]:
+def farm_runner(agents: int, threads: int, home: Path, units: int | None = None) -> Iterator[Any]:
     """A function (spec, level, spp, out) -> (report, wall s, CPU s) running jobs on a real local farm."""
     from core.bundle import make_bundle
     from quekaro.local_farm import LocalFarm
@@ -200,7 +202,8 @@ def farm_runner(agents: int, threads: int, home: Path) -> Iterator[Any]:
             bundle = make_bundle(spec.path, spec.defines, out.with_suffix(".tar")).path.read_bytes()
             roots = [p.pid for _, p in farm.procs]  # this process (and the XMPP server in it): _self_cpu
             cpu0, start = tree_cpu_seconds(roots) + _self_cpu(), time.perf_counter()
-            job_id = client.submit(bundle, spec.defines, {"level": level, "spp": spp})
+            options = {"level": level, "spp": spp} | ({"units": units} if units and level != "off" else {})
+            job_id = client.submit(bundle, spec.defines, options)
             status = _wait(client, farm, job_id)
             wall = time.perf_counter() - start
             cpu = tree_cpu_seconds(roots) + _self_cpu() - cpu0
@@ -224,14 +227,15 @@ def _wait(client: Any, farm: Any, job_id: str) -> dict[str, Any]:
 
 
 @contextmanager
-def inprocess_runner(threads: int) -> Iterator[Any]:
+def inprocess_runner(threads: int, units: int | None = None) -> Iterator[Any]:
     """The same function as `farm_runner`, with `master.pipeline.render_job` in this process."""
     from master.jobplan import RenderOptions
     from master.pipeline import render_job
 
     def run_job(spec: Any, level: str, spp: int, out: Path) -> tuple[dict, float, float]:
         cpu0, start = _self_cpu(), time.perf_counter()
-        report = render_job(spec, RenderOptions(level=level, spp=spp, threads=threads), out)
+        chosen = units if units and level != "off" else None
+        report = render_job(spec, RenderOptions(level=level, spp=spp, threads=threads, units=chosen), out)
         return report, time.perf_counter() - start, _self_cpu() - cpu0
 
     yield run_job
@@ -263,8 +267,8 @@ def scene_cells(name: str, agents: list[int], levels: list[str], args: argparse.
     t0, k = spp_timing(spec, args.spp, args.threads)
     cells, diffs = [], {}
     for n in agents:
-        runner = (inprocess_runner(args.threads) if args.inprocess
-                  else farm_runner(n, args.threads, work / f"farm-{name}-{n}"))
+        runner = (inprocess_runner(args.threads, args.units) if args.inprocess
+                  else farm_runner(n, args.threads, work / f"farm-{name}-{n}", args.units))
         with runner as run_job:
             for level in levels:
                 out = work / f"{name}-{n}-{level}.exr"
