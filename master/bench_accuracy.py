@@ -431,28 +431,31 @@ def write_outputs(result: dict[str, Any], out: Path) -> list[Path]:
 
 
 def plot(cells: list[dict[str, Any]], path: Path) -> None:
-    """relMSE against seconds: fuzzy cells (per agent count) and the equal-wall-time uniform renders."""
+    """relMSE against seconds, a Pareto view: fuzzy cells at their wall time (filled, per agent count) and
+    at their render time (hollow, fewest agents), and every uniform-spp render at its render time."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
+    fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=100)
     for i, (scene, n) in enumerate(dict.fromkeys((c["scene"], c["agents"]) for c in cells)):
-        sel = [c for c in cells if c["scene"] == scene and c["agents"] == n]
+        sel = sorted((c for c in cells if c["scene"] == scene and c["agents"] == n), key=lambda c: c["seconds"])
         ax.plot([c["seconds"] for c in sel], [c["relmse"] for c in sel], "o-", color=f"C{i}",
-                label=f"fuzzy, {scene}, {n} agent(s)")
+                label=f"fuzzy, {scene}, {n} agent(s), wall time")
         for c in sel:
             ax.annotate(c["level"], (c["seconds"], c["relmse"]), fontsize=7)
-        first = [c for c in sel if c.get("uniform_spp") is not None]
-        if n == min(c["agents"] for c in cells if c["scene"] == scene):
-            ax.plot([c["uniform_seconds"] for c in first], [c["uniform_relmse"] for c in first], "s--",
-                    color=f"C{i}", alpha=0.6, label=f"uniform spp, {scene}")
-    ax.set_xlabel("seconds (fuzzy: job wall time; uniform: plain render time)")
+        if n != min(c["agents"] for c in cells if c["scene"] == scene):
+            continue
+        ax.plot([c["render_seconds"] for c in sel], [c["relmse"] for c in sel], "o", mfc="none", color=f"C{i}",
+                label=f"fuzzy, {scene}, {n} agent(s), render time")
+        uniform = sorted((c[f"{p}_seconds"], c[f"{p}_relmse"]) for c in sel for p in ("uniform", "render_uniform"))
+        ax.plot(*zip(*uniform, strict=True), "s--", color="grey", alpha=0.7, label=f"uniform spp, {scene}")
+    ax.set_xlabel("seconds")
     ax.set_ylabel("relative MSE against the reference")
     ax.set_yscale("log")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=6.5)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
