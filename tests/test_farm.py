@@ -88,7 +88,9 @@ def test_job_on_three_agents_matches_local_render(farm3, tmp_path):
     a, b = block_means(image), block_means(reference)
     rel = np.abs(a - b).mean() / b.mean()
     assert rel < 0.08, rel
-    assert abs(image.mean() - reference.mean()) / reference.mean() < 0.03
+    # The image mean of one such render has a relative std of 0.9 % (30 seeds measured), so two renders
+    # differ by 1.3 % (1 sigma): 6 % is ~5 sigma, while one missing tile of six is off by ~17 %.
+    assert abs(image.mean() - reference.mean()) / reference.mean() < 0.06
     assert len(agents) >= 2, agents  # the work was spread over several agents
 
 
