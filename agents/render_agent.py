@@ -482,8 +482,6 @@ def _kernel_key(job: m.JobInfo, unit: m.UnitSpec, params: UnitParams) -> tuple[A
     return job.scene_hash, window.w, window.h, params.depth, getattr(job, "integrator", "path")
 
 
-
-
 def _safe(name: str) -> str:
     """A job id as a file name (ids may hold '/', ':' and '@')."""
     return re.sub(r"[^A-Za-z0-9._-]", "_", name)

@@ -51,8 +51,6 @@ async def _reason(resp: aiohttp.ClientResponse) -> str:
         return (await resp.text(errors="replace"))[:500]
 
 
-
-
 async def fetch_bundle(url: str, expected_sha256: str, dest: str | Path, limits: BundleLimits | None = None,
                        *, token: str | None = None, timeout_s: float = 300.0) -> Path:
     """Download and unpack the bundle at `url` into the new folder `dest`; return the scene file's path."""

@@ -158,8 +158,6 @@ def _cross_check(scene: Path, defines: dict[str, str] | None, members: dict[str,
 # ---- making ----------------------------------------------------------------------------------
 
 
-
-
 def _tarinfo(name: str, size: int) -> tarfile.TarInfo:
     info = tarfile.TarInfo(name)
     info.size, info.mode, info.mtime = size, 0o644, 0

@@ -566,9 +566,12 @@ class Auction:
         """Calls for proposals: each free agent is offered the pending units the projection gives it, and
         those it would finish about as soon as the free agent they are projected to (module docstring)."""
         out: list[Command] = []
-        free = sorted((a for a in self.agents.values() if self._is_free(a)), key=lambda a: (-a.score, a.name))
+        queueing = self._queueing()
+        free = sorted((a for a in self.agents.values() if self._is_free(a, queueing)),
+                      key=lambda a: (-a.score, a.name))
         for job in self._running():
-            agents = [a for a in free if a.name not in job.blocklist and a.invited is None]
+            callable_now = {a.name for a in free if a.invited is None}  # earlier jobs' rounds took some
+            agents = [a for a in free if a.name in callable_now and a.name not in job.blocklist]
             pending = sorted(
                 (u for u in job.units.values() if u.status == UnitStatus.PENDING),
                 key=lambda u: (-u.spec.cost, u.spec.index),
@@ -580,7 +583,9 @@ class Auction:
             offered = {}
             for agent in agents:
                 units = tuple(
-                    u.spec.index for u in pending if self._worth_offering(agent.name, u, plan, rates, now)
+                    u.spec.index
+                    for u in pending
+                    if self._worth_offering(agent.name, u, plan, rates, now, callable_now)
                 )
                 if units:
                     offered[agent.name] = units
@@ -643,12 +648,12 @@ class Auction:
     def _running(self) -> list[Job]:
         return sorted((j for j in self.jobs.values() if j.status == JobStatus.RUNNING), key=lambda j: j.order)
 
-    def _is_free(self, agent: Agent) -> bool:
+    def _is_free(self, agent: Agent, queueing: bool) -> bool:
         """Callable to an auction: live, not in one already, and holding nothing, or with a slot for another
-        unit while the farm has plenty of work (`_queueing`)."""
+        unit while the farm has plenty of work (`queueing`, from `_queueing`, decided once per tick)."""
         if agent.lost or agent.invited is not None:
             return False
-        return not agent.holding or (len(agent.holding) < self.config.slots and self._queueing())
+        return not agent.holding or (len(agent.holding) < self.config.slots and queueing)
 
     def _queueing(self) -> bool:
         """Whether units may be queued behind others: only while the open units are at least `slots` times
@@ -795,7 +800,13 @@ class Auction:
         return end if end >= now else 2 * now - end
 
     def _worth_offering(
-        self, name: str, unit: Unit, plan: dict[int, Placement], rates: dict[str, float], now: float
+        self,
+        name: str,
+        unit: Unit,
+        plan: dict[int, Placement],
+        rates: dict[str, float],
+        now: float,
+        callable_now: set[str],
     ) -> bool:
         place = plan.get(unit.spec.index)
         if place is None or name in unit.failed_on:
@@ -803,10 +814,9 @@ class Auction:
         if place.agent == name:
             return True
         # Contested among agents free now, when this one would finish about as soon (records decide).
-        other = self.agents[place.agent]
         duration = rates[name] * unit.spec.cost
         return (
-            self._is_free(other)
+            place.agent in callable_now
             and place.start <= now
             and duration <= (place.finish - now) * (1 + self.config.finish_tolerance) + 1e-9
         )

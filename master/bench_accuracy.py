@@ -204,7 +204,7 @@ def farm_runner(agents: int, threads: int, home: Path, units: int | None = None)
             cpu0, start = tree_cpu_seconds(roots) + _self_cpu(), time.perf_counter()
             options = {"level": level, "spp": spp} | ({"units": units} if units and level != "off" else {})
             job_id = client.submit(bundle, spec.defines, options)
-            status = _wait(client, farm, job_id)
+            status = client.wait(job_id, JOB_TIMEOUT_S, while_waiting=farm.check_alive)
             wall = time.perf_counter() - start
             cpu = tree_cpu_seconds(roots) + _self_cpu() - cpu0
             if status["status"] != "done":
@@ -213,17 +213,6 @@ def farm_runner(agents: int, threads: int, home: Path, units: int | None = None)
             return json.loads(out.with_suffix(".json").read_text()), wall, cpu
 
         yield run_job
-
-
-def _wait(client: Any, farm: Any, job_id: str) -> dict[str, Any]:
-    deadline = time.monotonic() + JOB_TIMEOUT_S
-    while time.monotonic() < deadline:
-        status = client.status(job_id)
-        if status["status"] != "running":
-            return status
-        farm.check_alive()
-        time.sleep(0.05)
-    raise QuekaroError(f"farm job {job_id} still running after {JOB_TIMEOUT_S:.0f} s")
 
 
 @contextmanager

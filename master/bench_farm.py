@@ -30,6 +30,7 @@ from typing import Any
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_SCENE = REPO / "scenes" / "cbox.xml"
 OVERHEAD_TARGET, SPEEDUP_TARGET = 1.05, 1.8
+JOB_TIMEOUT_S = 3600.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -67,8 +68,7 @@ class _Job:
         client = farm.client()
         start = time.perf_counter()
         job_id = client.submit(self.bundle, self.defines, self.options)
-        while (status := client.status(job_id))["status"] == "running":
-            time.sleep(0.05)
+        status = client.wait(job_id, JOB_TIMEOUT_S, while_waiting=farm.check_alive)
         if status["status"] != "done":
             raise RuntimeError(f"benchmark job {job_id} {status['status']}: {status.get('error')}")
         client.result(job_id, self.workdir / f"farm-{job_id}.exr")

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import hashlib
 import json
 import os
 import time
@@ -40,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from core.geometry import Rect
+from core.hashing import sha256_file
 from master.auction import Config
 
 REPO = Path(__file__).resolve().parent.parent
@@ -150,7 +150,7 @@ def cache_file(cache_dir: Path | None, scene_path: Path, res: int, cell: int, sp
     """Where the measurement of these inputs is cached: keyed by the scene file's sha256 (not the files it
     includes: remeasure after editing a mesh or texture), the image side, the cell side, spp and threads."""
     base = cache_dir or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "quekaro"
-    digest = hashlib.sha256(Path(scene_path).read_bytes()).hexdigest()[:16]
+    digest = sha256_file(scene_path)[:16]
     return Path(base) / f"scaling-{digest}-r{res}-c{cell}-s{spp}-t{threads}.npz"
 
 

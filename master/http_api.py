@@ -235,8 +235,6 @@ async def _accepted_hash(plane: DataPlane, job: str, unit: int) -> str | None:
     return plane.accepted[key]
 
 
-
-
 async def _receive(request: web.Request, final: Path, declared: str, cap: int) -> Path:
     """Stream the body to a temp file beside `final`, checking its size as it comes, its hash at the end."""
     fd, name = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".part", dir=final.parent)
@@ -274,7 +272,7 @@ async def _accept(request: web.Request, plane: DataPlane, job: str, unit: int, t
             return web.json_response({"status": "duplicate", "job": job, "unit": unit, "sha256": sha256})
         await asyncio.to_thread(_validate, tmp, rect, plane.max_band, f"unit {unit} of job {job!r}")
         final = plane.tile_path(job, unit)
-        await asyncio.to_thread(_commit, tmp, final)
+        await asyncio.to_thread(durable_replace, tmp, final)
         agent = request.headers.get(AGENT_HEADER, "")[:256] or None
         try:
             await _call(plane.on_tile, job, unit, final, sha256, agent)
@@ -333,11 +331,6 @@ def _band_of(window: Rect, core: Rect, max_band: int, what: str) -> int:
         raise Refusal(422, f"{what}: EXR dataWindow {window.as_list()} is not unit {core.as_list()} "
                            f"grown by one band of at most {max_band} px")
     return band
-
-
-def _commit(tmp: Path, final: Path) -> None:
-    """Make the validated temp file the tile, durably (core.tiles.durable_replace)."""
-    durable_replace(tmp, final)
 
 
 async def close(runner: web.AppRunner) -> None:

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 import os
+import time
 import urllib.error
 import urllib.request
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -70,6 +72,21 @@ class FarmClient:
 
     def status(self, job_id: str) -> dict[str, Any]:
         return dict(self._json("GET", f"/api/jobs/{job_id}"))
+
+    def wait(self, job_id: str, timeout: float, poll: float = 0.05,
+             while_waiting: Callable[[], None] | None = None) -> dict[str, Any]:
+        """The job's status once it no longer runs (done, failed or cancelled), polling every `poll` s and
+        calling `while_waiting` in between (e.g. a check that the farm's processes live); a QuekaroError
+        after `timeout` seconds."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            status = self.status(job_id)
+            if status["status"] != "running":
+                return status
+            if while_waiting is not None:
+                while_waiting()
+            time.sleep(poll)
+        raise QuekaroError(f"job {job_id} still running after {timeout:.0f} s")
 
     def agents(self) -> list[dict[str, Any]]:
         return list(self._json("GET", "/api/agents")["agents"])
