@@ -13,7 +13,8 @@ sha256, the image side, the cell side, the measure spp and the thread count); `-
 
 What is simulated: N = 1, 2, 4, ... agents through `master.auction.simulate`, the real `Auction` that
 the farm's master runs, with a message latency of `--latency` (default 2 ms one way: design.md section 4
-measured a 1.8 ms round trip through SPADE's server; taking it one way is pessimistic). For each N:
+measured a 1.8 ms round trip through SPADE's server; taking it one way is pessimistic) and a tile
+delivery of `--delivery` (default 25 ms, measured: render end to inform). For each N:
   - fuzzy: the partition of the pre-pass (`master.partition.partition`), with
     `max(--units, --units-per-agent x N)` target units so that every agent gets several;
   - naive: `equal_tiles(N)`, one tile per agent (the obvious split);
@@ -48,7 +49,10 @@ DEFAULT_OUT = REPO / "docs" / "benchmarks"
 MIXED_SPEEDS = (1.0, 0.5, 1.5, 2.0)  # cycled: agent i has speed MIXED_SPEEDS[i % 4]
 BAND = 2  # every unit renders this many extra pixels on each side (the gaussian filter's reach)
 TARGETS = {8: 0.9, 32: 0.8}
-FARM_AUCTION = Config()  # as the farm's master runs it by default (one unit per agent at a time)
+FARM_AUCTION = Config()  # as the farm's master runs it by default
+# A unit's delivery on this machine: the agent log's "in all" minus "render", 22-30 ms a unit
+# (caustic-corner 320x320, level S, one agent).
+DELIVERY_S = 0.025
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -63,6 +67,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cell", type=int, default=32, help="side of the grid cells timed for real")
     parser.add_argument("--measure-spp", type=int, default=64, help="spp of the real cell renders")
     parser.add_argument("--latency", type=float, default=0.002, help="one-way message latency, seconds")
+    parser.add_argument("--delivery", type=float, default=DELIVERY_S,
+                        help="seconds from a unit's render end to its inform (tile written, hashed, uploaded)")
     parser.add_argument("--jitter", type=float, default=0.05,
                         help="render times vary uniformly by +- this fraction around the estimate")
     parser.add_argument("--threads", type=int, default=2)
@@ -221,7 +227,8 @@ def simulate_row(tmap: TimeMap, cmap: Any, n: int, mixed: bool, args: argparse.N
     def run(rects: list[Rect], on: list[float]) -> float:
         costs = [tmap.unit_seconds(r, args.spp) for r in rects]
         # Mean over a few seeds: the jitter makes one run's tail a matter of luck.
-        runs = [simulate(costs, on, latency=args.latency, seed=s, jitter=args.jitter, config=FARM_AUCTION)
+        runs = [simulate(costs, on, latency=args.latency, seed=s, jitter=args.jitter, config=FARM_AUCTION,
+                         delivery=args.delivery)
                 for s in range(args.repeats)]
         return float(np.mean([r.makespan for r in runs]))
 
@@ -244,11 +251,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     tmap, cmap, cached = measure_cached(args.scene, args.res, args.cell, args.measure_spp, args.threads,
                                         args.cache_dir, args.remeasure)
     whole = Rect(0, 0, args.res, args.res)
-    t1 = simulate([tmap.unit_seconds(whole, args.spp, band=0)], [1.0], latency=args.latency).makespan
+    t1 = simulate([tmap.unit_seconds(whole, args.spp, band=0)], [1.0], latency=args.latency,
+                  delivery=args.delivery).makespan
     rows = [simulate_row(tmap, cmap, n, mixed, args, t1)
             for mixed in (False, True) for n in agent_counts(args.agents_max)]
     result = {
         "scene": str(args.scene), "res": args.res, "spp": args.spp, "latency_s": args.latency,
+        "delivery_s": args.delivery,
         "jitter": args.jitter, "t1_s": t1, "mixed_speeds": list(MIXED_SPEEDS), "measured": tmap.info,
         "measurement_cached": cached,
         "rows": rows, "targets": _targets(rows),
@@ -292,7 +301,8 @@ def format_report(result: dict[str, Any]) -> str:
         f"(cell {m['cell_seconds_min']:.3f}-{m['cell_seconds_max']:.3f} s, fixed per unit {m['fixed_s']:.4f} s, "
         f"rank corr. pre-pass cost vs time {m['cost_time_rank_corr']:.2f}); whole image "
         f"{m['whole_image_measured_s']:.2f} s measured vs {m['whole_image_predicted_s']:.2f} s predicted",
-        f"latency {result['latency_s'] * 1000:.1f} ms one way, jitter +-{result['jitter'] * 100:.0f} %, "
+        f"latency {result['latency_s'] * 1000:.1f} ms one way, tile delivery {result['delivery_s'] * 1000:.0f} ms, "
+        f"jitter +-{result['jitter'] * 100:.0f} %, "
         f"mixed speeds cycle {result['mixed_speeds']} (efficiency uses their sum); the job is submitted once "
         f"the agents have registered; measurement {'from the cache' if result.get('measurement_cached') else 'new'}",
         "", *table_lines(result["rows"]), "",

@@ -26,7 +26,7 @@ def config_from(args: argparse.Namespace) -> MasterConfig:
 
 
 def _slots(args: argparse.Namespace) -> int:
-    slots = args.slots
+    slots = au.Config.slots if args.slots is None else args.slots
     if slots < 1:
         raise QuekaroError(f"--slots {slots}: must be at least 1")
     return slots

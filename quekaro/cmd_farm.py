@@ -58,9 +58,9 @@ def _register_master(sub: argparse._SubParsersAction) -> None:
     parser.add_argument("--http-port", type=int, default=8765)
     parser.add_argument("--public-url", help="URL agents use to reach the HTTP API (default http://HOST:PORT)")
     parser.add_argument("--threads", type=int, help="Dr.Jit threads of the pre-pass")
-    parser.add_argument("--slots", type=int, default=1,
-                        help="units an agent may hold at once (default 1); 2 awards the next unit while one "
-                             "renders, worth it where messages take tens of ms (agents far away)")
+    parser.add_argument("--slots", type=int,
+                        help="units an agent may hold at once (default 2: its next unit is awarded while it "
+                             "renders one, outside the end game; 1: one at a time)")
     parser.add_argument("--log-level", default="INFO")
     parser.set_defaults(func=run_master)
 

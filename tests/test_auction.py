@@ -610,7 +610,7 @@ def test_simulated_mixed_speeds_end_near_the_lower_bound() -> None:
 
 
 def test_a_second_slot_awards_the_next_unit_while_one_renders() -> None:
-    a = make([4.0, 3.0, 2.0], ["A"], au.Config(slots=2))
+    a = make([4.0, 3.0, 2.0], ["A"], au.Config(slots=2, queue_above=0))
     first = round_trip(a, 0.0)
     assert list(first) == [0]  # one unit per round
     second = round_trip(a, 0.5)  # still rendering unit 0: called again, for the next unit
@@ -622,7 +622,7 @@ def test_a_second_slot_awards_the_next_unit_while_one_renders() -> None:
     assert unit.deadline == pytest.approx(4.0 + 3.0 * a.config.render_factor + a.config.render_slack_s)
     assert a._available(a.agents["A"], 1.0) == pytest.approx(7.0)
 def test_a_free_slot_does_not_win_over_an_idle_agent_that_finishes_sooner() -> None:
-    a = make([4.0, 3.0, 3.0], ["A", "B"], au.Config(slots=2))
+    a = make([4.0, 3.0, 3.0], ["A", "B"], au.Config(slots=2, queue_above=0))
     first = round_trip(a, 0.0)
     assert sorted(first) == [0, 1]
     a.on_inform(first[1].to, inform(first[1], 3.0), 3.0)
@@ -633,20 +633,30 @@ def test_a_free_slot_does_not_win_over_an_idle_agent_that_finishes_sooner() -> N
 
 def test_slots_hide_the_message_latency_in_the_simulation() -> None:
     costs = [1.0] * 12
-    one = au.simulate(costs, [1.0], latency=0.2).makespan
-    two = au.simulate(costs, [1.0], latency=0.2, config=au.Config(slots=2)).makespan
+    one = au.simulate(costs, [1.0], latency=0.2, config=au.Config(slots=1)).makespan
+    two = au.simulate(costs, [1.0], latency=0.2, config=au.Config(slots=2, queue_above=0)).makespan
     assert two < one - 12 * 0.2  # one slot waits ~2 latencies a unit (inform, then CFP/award)
     assert two < 12.0 + 10 * 0.2  # the end game runs one unit at a time (no queueing), a few latencies
 
 
+def test_slots_hide_the_tile_delivery_in_the_simulation() -> None:
+    costs = [1.0] * 12
+    one = au.simulate(costs, [1.0], latency=0.001, delivery=0.1, config=au.Config(slots=1)).makespan
+    two = au.simulate(costs, [1.0], latency=0.001, delivery=0.1).makespan  # the default: 2 slots
+    assert one >= 12 * 1.1  # each upload holds the agent's next render back
+    # Queued while 4 or more units are open (Config.queue_above): 8 of the 12 deliveries overlap a render.
+    assert two <= one - 8 * 0.1 + 0.05
+
+
 def test_no_unit_is_queued_behind_another_in_the_end_game() -> None:
-    a = make([4.0, 3.0, 2.0, 1.0], ["A"], au.Config(slots=2))
+    a = make([6.0, 5.0, 4.0, 3.0, 2.0, 1.0], ["A"])  # defaults: 2 slots, queue_above 4
     first, second = round_trip(a, 0.0), round_trip(a, 0.1)
-    assert list(first) == [0] and list(second) == [1]
-    a.on_inform("A", inform(first[0], 4.0), 4.0)
-    third = round_trip(a, 4.0)  # two units open for one agent: still worth queueing one
+    assert list(first) == [0] and list(second) == [1]  # five open units for one agent: queue one
+    assert round_trip(a, 0.2) == {}  # both slots taken
+    a.on_inform("A", inform(first[0], 6.0), 6.0)
+    third = round_trip(a, 6.0)  # four open: still worth queueing one
     assert list(third) == [2]
-    a.on_inform("A", inform(second[1], 3.0), 7.0)
-    assert round_trip(a, 7.0) == {}  # one unit open: it waits until A is idle, whoever frees up first
-    a.on_inform("A", inform(third[2], 2.0), 9.0)
-    assert list(round_trip(a, 9.0)) == [3]
+    a.on_inform("A", inform(second[1], 5.0), 11.0)
+    assert round_trip(a, 11.0) == {}  # three open: the end game, nothing is queued behind unit 2
+    a.on_inform("A", inform(third[2], 4.0), 15.0)
+    assert list(round_trip(a, 15.0)) == [3]
