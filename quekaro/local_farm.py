@@ -1,7 +1,8 @@
 """A whole farm on one machine (`quekaro up`, `quekaro demo`): SPADE's embedded XMPP server, the master
 and N render agents, each in its own process with its own Dr.Jit thread count and a unique JID.
 
-Stopping (Ctrl-C, or leaving the context) terminates the children in reverse order and waits for them.
+Stopping (Ctrl-C, SIGTERM, or leaving the context) terminates the children in reverse order and waits
+for them: a `kill` of `quekaro up` must not leave a master, agents and an XMPP server running.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ import argparse
 import json
 import os
 import secrets
+import signal
 import subprocess
 import sys
 import time
@@ -42,17 +44,24 @@ class LocalFarm:
         self.url = f"http://127.0.0.1:{self.http_port}"
         self.server: EmbeddedXmppServer | None = None
         self.procs: list[tuple[str, subprocess.Popen]] = []
+        self._previous_sigterm: object = None
 
     def __enter__(self) -> LocalFarm:
+        self._previous_sigterm = _sigterm_as_interrupt()
         try:
             self.start()
         except BaseException:
-            self.stop()
+            self.__exit__()
             raise
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self.stop()
+        try:
+            self.stop()
+        finally:
+            if self._previous_sigterm is not None:
+                signal.signal(signal.SIGTERM, self._previous_sigterm)
+                self._previous_sigterm = None
 
     def start(self) -> None:
         (self.home / "logs").mkdir(parents=True, exist_ok=True)
@@ -147,6 +156,18 @@ class LocalFarm:
         if self.server is not None:
             self.server.stop()
             self.server = None
+
+
+def _sigterm_as_interrupt() -> object:
+    """Make SIGTERM raise KeyboardInterrupt (so the context exits and stops the children) and return the
+    handler it replaced; None off the main thread, where Python cannot set handlers."""
+    def interrupt(_signum: int, _frame: object) -> None:
+        raise KeyboardInterrupt
+
+    try:
+        return signal.signal(signal.SIGTERM, interrupt)
+    except ValueError:
+        return None
 
 
 def stop_processes(procs: list[subprocess.Popen], timeout: float = 15.0) -> None:

@@ -188,3 +188,52 @@ def _done_tokens(home: Path, job_id: str) -> set[int]:
 
     with sqlite3.connect(home / "jobs.sqlite") as db:
         return {r[0] for r in db.execute("SELECT idx FROM units WHERE job_id = ? AND status = 'done'", (job_id,))}
+
+
+def _children(pid: int) -> set[int]:
+    """Every descendant of `pid` (from /proc)."""
+    kids: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            kids.setdefault(ppid, []).append(int(entry.name))
+    out, todo = set(), [pid]
+    while todo:
+        for kid in kids.get(todo.pop(), []):
+            out.add(kid)
+            todo.append(kid)
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_sigterm_to_quekaro_up_stops_the_whole_farm(tmp_path):
+    home = tmp_path / "farm"
+    up = subprocess.Popen([sys.executable, "-m", "quekaro", "up", "--agents", "1", "--threads", "1",
+                           "--home", str(home)], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 120
+        while not (home / "farm.json").exists() and time.monotonic() < deadline:
+            assert up.poll() is None, up.stdout.read().decode()[-2000:]
+            time.sleep(0.3)
+        time.sleep(2.0)  # the agent process has been spawned by now
+        farm = _children(up.pid)
+        assert len(farm) >= 3, farm  # XMPP server, master, agent (and their helpers)
+        up.send_signal(signal.SIGTERM)
+        assert up.wait(timeout=60) == 0
+        deadline = time.monotonic() + 20
+        while any(_alive(p) for p in farm) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not [p for p in farm if _alive(p)], "processes of the farm outlived quekaro up"
+    finally:
+        if up.poll() is None:
+            up.kill()
