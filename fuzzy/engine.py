@@ -64,18 +64,16 @@ class Engine:
         width = max(len(t) for t in rule_terms)
         pad = len(self._groups)  # a column of ones: AND with "true"
         self._rule_terms = np.array([t + [pad] * (width - len(t)) for t in rule_terms], dtype=np.intp)
-        # per output: activation of label l = max over the rules concluding it (padding = a zero column)
-        self._label_rules = []
-        for out in rb.outputs:
-            per_label = [
-                [r for r, rule in enumerate(rb.rules) if any(c.variable == out.name and c.label == lb
-                                                             for c in rule.consequents)]
-                for lb in out.labels
-            ]
-            width = max(1, *(len(p) for p in per_label))
-            self._label_rules.append(
-                np.array([p + [len(rb.rules)] * (width - len(p)) for p in per_label], dtype=np.intp)
-            )
+        # per output and label: the rules concluding it (none: the zero row after the rules). Kept per
+        # label, not padded to the longest list: one label concluded by many rules (Rl's VB) would
+        # otherwise make every label of its output gather that many rows.
+        self._label_rules = [
+            [np.array([r for r, rule in enumerate(rb.rules)
+                       if any(c.variable == out.name and c.label == lb for c in rule.consequents)]
+                      or [len(rb.rules)], dtype=np.intp)
+             for lb in out.labels]
+            for out in rb.outputs
+        ]
         self._plans = [plan_centroid(out.params) for out in rb.outputs]
 
     def activations(self, inputs: Inputs, ranges: Ranges = None) -> dict[str, np.ndarray]:
@@ -121,12 +119,18 @@ class Engine:
         self._group_degrees(x, ranges, degrees)
         degrees[-1] = 1.0
         strengths = np.empty((len(self.rulebase.rules) + 1, n))
-        np.min(degrees[self._rule_terms], axis=1, out=strengths[:-1])  # (R, n)
+        rules = strengths[:-1]  # (R, n): AND (min) of each rule's terms, one term column at a time
+        np.take(degrees, self._rule_terms[:, 0], axis=0, out=rules)
+        for t in range(1, self._rule_terms.shape[1]):
+            np.minimum(rules, degrees[self._rule_terms[:, t]], out=rules)
         strengths[-1] = 0.0
-        return {
-            out.name: strengths[idx].max(axis=1)
-            for out, idx in zip(self.rulebase.outputs, self._label_rules, strict=True)
-        }
+        acts = {}
+        for out, per_label in zip(self.rulebase.outputs, self._label_rules, strict=True):
+            h = np.empty((len(per_label), n))
+            for label, idx in enumerate(per_label):
+                np.max(strengths[idx], axis=0, out=h[label])
+            acts[out.name] = h
+        return acts
 
     def _group_degrees(self, x: np.ndarray, ranges: dict[str, tuple[float, float]], out: np.ndarray) -> None:
         mus = []

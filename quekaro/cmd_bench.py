@@ -15,6 +15,7 @@ BENCHMARKS = {
     "overhead": ("master.bench_overhead", "pipeline overhead against one plain Mitsuba render"),
     "farm": ("master.bench_farm", "farm overhead and 2-agent speedup"),
     "accuracy": ("master.bench_accuracy", "time and error per (agents, optimisation level)"),
+    "allocation": ("master.bench_allocation", "each level's render time and relMSE against uniform spp, predicted"),
     "scaling": ("master.bench_scaling", "simulated auction scaling to 64 agents"),
 }
 

@@ -1,4 +1,4 @@
-"""rules/pathtracing.xml: 28 rules, full coverage, the published rules as printed, the expertise."""
+"""rules/pathtracing.xml: 34 rules, full coverage, the published rules as printed, the expertise."""
 
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ def _peak(engine: Engine, var: str, label: str) -> float:
 
 def test_size_and_variables(engine):
     rb = engine.rulebase
-    assert len(rb.rules) == 28
+    assert len(rb.rules) == 34
     assert engine.input_names == ("C", "S", "Nd", "Op")
     assert engine.output_names == ("Ls", "Rl", "Ibs")
 
@@ -57,10 +57,10 @@ PUBLISHED = [
     # rule (the paper's antecedents), inputs at label peaks, expected (output, label) as the rule file
     # documents: complex units keep more samples, depth is cut at Op B and VB only
     ("R1", {"C": "VB", "S": "B", "Op": "VB"}, {"Ls": "N", "Rl": "N"}),
-    ("R2", {"C": "VS", "S": "N", "Op": "VB"}, {"Ls": "VS", "Rl": "N"}),
-    ("R4", {"C": "B", "S": "S", "Op": "VB"}, {"Ls": "S", "Rl": "B"}),
+    ("R2", {"C": "VS", "S": "N", "Op": "VB"}, {"Ls": "XS", "Rl": "N"}),
+    ("R4", {"C": "B", "S": "S", "Op": "VB"}, {"Ls": "N", "Rl": "B"}),  # Ls from R4c
     ("R5", {"C": "B", "S": "N", "Op": "B"}, {"Ls": "N", "Rl": "B"}),
-    ("R7", {"C": "S", "S": "B", "Op": "B"}, {"Ls": "VS", "Rl": "B"}),
+    ("R7", {"C": "S", "S": "B", "Op": "B"}, {"Ls": "XS", "Rl": "B"}),
     ("R14", {"C": "VS", "S": "S", "Op": "S"}, {"Ls": "S", "Rl": "VB"}),
     ("R22", {"Nd": "VB", "Op": "N"}, {"Ibs": "VB"}),
 ]

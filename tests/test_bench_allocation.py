@@ -1,0 +1,75 @@
+"""The allocation benchmark: its arithmetic on hand-made maps, and a small real run through its JSON."""
+
+from __future__ import annotations
+
+import argparse
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from core.geometry import Rect
+from master import bench_allocation as ba
+from master.bench_scaling import TimeMap
+
+
+def _plan(rects: list[Rect]) -> SimpleNamespace:
+    return SimpleNamespace(units=[SimpleNamespace(rect=r) for r in rects])
+
+
+def _params(spps: list[int], band: int = 0) -> list[SimpleNamespace]:
+    return [SimpleNamespace(spp=s, band=band) for s in spps]
+
+
+HALVES = [Rect(0, 0, 4, 8), Rect(4, 0, 4, 8)]
+
+
+def test_uniform_allocation_matches_the_uniform_baseline() -> None:
+    tmap = TimeMap(np.full((8, 8), 1e-3), 0.0, {})
+    weight = np.random.default_rng(1).uniform(0.1, 2.0, size=(8, 8, 3))
+    row = ba.level_row("S", _plan(HALVES), _params([16, 16]), weight, tmap)
+    spp, relmse = ba.uniform(row["render_seconds"], weight, tmap)
+    assert spp == pytest.approx(16.0)
+    assert row["relmse"] == pytest.approx(relmse)  # same samples everywhere: same expected error
+
+
+def test_samples_moved_to_the_noisy_half_beat_uniform_and_neyman_is_best() -> None:
+    tmap = TimeMap(np.full((8, 8), 1e-3), 0.0, {})
+    weight = np.ones((8, 8, 3))
+    weight[:, 4:] = 16.0  # the right half is 16x as noisy per sample: Neyman gives it 4x the samples
+    row = ba.level_row("S", _plan(HALVES), _params([8, 24]), weight, tmap)
+    _, uniform_relmse = ba.uniform(row["render_seconds"], weight, tmap)
+    assert row["relmse"] < uniform_relmse
+    bound = ba.neyman_ratio(_plan(HALVES), _params([8, 24]), weight, tmap)
+    assert bound <= row["relmse"] / uniform_relmse
+    # Neyman: spp in proportion to sqrt(16) = 4, so 6.4 and 25.6 for the same 32 spp-units of time;
+    # uniform spends it as 16 spp everywhere. Errors: weight sums 96 and 1536 over 192 values.
+    assert bound == pytest.approx(((96 / 6.4 + 1536 / 25.6) / 192) / (8.5 / 16), rel=1e-9)
+
+
+def test_fixed_costs_and_bands_are_charged_to_the_units() -> None:
+    tmap = TimeMap(np.full((8, 8), 1e-3), 0.05, {})
+    weight = np.ones((8, 8, 3))
+    row = ba.level_row("S", _plan(HALVES), _params([10, 10], band=2), weight, tmap)
+    # each half plus a 2 px band inside the 8x8 image is 6x8 pixels; two render calls
+    assert row["render_seconds"] == pytest.approx(2 * 0.05 + 2 * 10 * 48 * 1e-3)
+    spp, _ = ba.uniform(row["render_seconds"], weight, tmap)
+    # the same time buys uniform more than the units' 10 spp: one call, no band rendered twice
+    assert spp == pytest.approx((row["render_seconds"] - 0.05) / (64 * 1e-3)) and spp > 10
+
+
+@pytest.mark.slow  # six small real renders, a reference, a time map and 5 levels x 1 plan
+def test_small_real_run(tmp_path) -> None:
+    parser = argparse.ArgumentParser()
+    ba.add_arguments(parser)
+    args = parser.parse_args(["--res", "64", "--spp", "16", "--renders", "3", "--ref-spp", "128", "--seeds", "1",
+                              "--threads", "1", "--cell", "16", "--measure-spp", "4",
+                              "--cache-dir", str(tmp_path)])
+    args.json = True
+    result = ba.run(args)
+    assert [r["level"] for r in result["rows"]] == list(ba.LEVELS)
+    for r in result["rows"]:
+        assert 0.0 < r["time_vs_off"] < 3.0 and np.isfinite(r["ratio"]) and r["ratio"] > 0, r
+        assert 1 <= r["spp_min"] <= r["spp_max"] <= 3 * 16
+    assert 0.0 < result["neyman_ratio_S"] <= 1.0 + 1e-9
+    assert list(tmp_path.glob("allocation-noise-*.npy"))  # the noise map is cached
