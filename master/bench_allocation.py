@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from core.metrics import RELMSE_EPSILON
-from master.bench_accuracy import HETEROGENEOUS, SCENES, plain_render, reference
+from master.bench_accuracy import DEFAULT_OUT, HETEROGENEOUS, SCENES, plain_render, reference
 
 LEVELS = ("VS", "S", "N", "B", "VB")
 
@@ -40,12 +40,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--renders", type=int, default=6, help="independent renders for the noise map")
     parser.add_argument("--ref-spp", type=int, default=2048, help="spp of the reference")
     parser.add_argument("--rules", type=Path, help="rule file (default rules/pathtracing.xml)")
-    parser.add_argument("--seeds", type=int, default=3,
+    parser.add_argument("--seeds", type=int, default=5,
                         help="pre-pass seeds per level (the farm's plan uses one; the pre-pass is noisy)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--cell", type=int, default=32, help="side of the time map's cells (as bench scaling)")
     parser.add_argument("--measure-spp", type=int, default=64, help="spp of the time map's cell renders")
     parser.add_argument("--cache-dir", type=Path, default=Path.home() / ".cache" / "quekaro")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder for allocation.md")
 
 
 def noise_map(spec: Any, spp: int, renders: int, threads: int, cache: Path) -> np.ndarray:
@@ -115,7 +116,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     rows, bounds = [], []
     for level in LEVELS:
         options = RenderOptions(level=level, spp=args.spp, threads=args.threads, rules=args.rules)
-        base = plan_seed(sha256_file(spec.path), spec.defines, options.to_dict())
+        # Seeds from the options without the rule file, so two rule files are compared on the same
+        # pre-passes (the pre-pass's noise moves a level's ratio by +-0.1).
+        unruled = RenderOptions(level=level, spp=args.spp, threads=args.threads).to_dict()
+        base = plan_seed(sha256_file(spec.path), spec.defines, unruled)
         runs = []
         for k in range(args.seeds):  # k = 0 is the plan the farm makes for this job
             plan = plan_job(spec, options, seed=base + k)
@@ -131,8 +135,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     result = {"scene": str(args.scene), "res": args.res, "spp": args.spp, "renders": args.renders,
               "rules": str(planner.rules_path), "seeds": args.seeds, "off_render_seconds": off_seconds,
               "rows": rows, "neyman_ratio_S": float(np.mean(bounds))}
+    report = format_report(result)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "allocation.md").write_text(
+        "# Each level's allocation against uniform spp (`quekaro bench allocation`)\n\n" + report + "\n")
     if not args.json:
-        print(format_report(result))
+        print(report)
     return result
 
 

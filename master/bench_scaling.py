@@ -16,7 +16,7 @@ the farm's master runs, with a message latency of `--latency` (default 2 ms one 
 measured a 1.8 ms round trip through SPADE's server; taking it one way is pessimistic) and a tile
 delivery of `--delivery` (default 25 ms, measured: render end to inform). For each N:
   - fuzzy: the partition of the pre-pass (`master.partition.partition`), with
-    `max(--units, --units-per-agent x N)` target units so that every agent gets several;
+    `max(--units, farm_min_units(N))` target units (as the master: 4 per agent, from 8 agents 3 each + 8)
   - naive: `equal_tiles(N)`, one tile per agent (the obvious split);
   - equal auctioned: equal tiles, as many as the fuzzy partition has units, through the same auction.
 Efficiency is T1 / (N TN) for agents of equal speed, and T1 / (sum of speeds x TN) for mixed speeds;
@@ -42,6 +42,7 @@ import numpy as np
 from core.geometry import Rect
 from core.hashing import sha256_file
 from master.auction import Config
+from master.jobplan import farm_min_units
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_SCENE = REPO / "scenes" / "caustic-corner.xml"
@@ -61,8 +62,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--spp", type=int, default=1024, help="spp of the simulated job")
     parser.add_argument("--agents-max", type=int, default=64)
     parser.add_argument("--units", type=int, default=16, help="least target unit count of the partition")
-    parser.add_argument("--units-per-agent", type=int, default=4,
-                        help="the partition targets at least this many units per agent")
+    parser.add_argument("--units-per-agent", type=int,
+                        help="the partition targets at least this many units per agent (default: as the "
+                             "farm's master, master.jobplan.farm_min_units)")
     parser.add_argument("--repeats", type=int, default=3, help="simulations (seeds) averaged per cell")
     parser.add_argument("--cell", type=int, default=32, help="side of the grid cells timed for real")
     parser.add_argument("--measure-spp", type=int, default=64, help="spp of the real cell renders")
@@ -219,7 +221,8 @@ def simulate_row(tmap: TimeMap, cmap: Any, n: int, mixed: bool, args: argparse.N
 
     res = tmap.per_sample.shape[0]
     speeds = speeds_for(n, mixed)
-    target = max(args.units, args.units_per_agent * n)
+    per_agent = farm_min_units(n) if args.units_per_agent is None else args.units_per_agent * n
+    target = max(args.units, per_agent)
     units = [u.rect for u in partition(cmap, target_units=target)]
     naive = equal_tiles(res, res, n)
     equal = equal_tiles(res, res, len(units))

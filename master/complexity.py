@@ -97,7 +97,10 @@ class ComplexityMap:
 # units' noise better than 4 spp at a third: a pixel's variance from 4 samples of a heavy-tailed path
 # (caustics, a glass rim) is usually far too low. On caustic-corner 320x320, allocating each unit's
 # samples by the resulting C reached 0.66-0.72x the uniform relMSE over three seeds, against 0.75-0.91x
-# with 4 spp (the true noise: 0.55x); the pre-pass time is unchanged (~0.2 s once kernels are warm).
+# with 4 spp (the true noise: 0.55x). Through the previous rule base (`quekaro bench allocation`, 5 seeds)
+# it moved VS from 0.90 to 0.85x, B from 0.92 to 0.81x, S from 0.66 to 0.68x (within the seeds' spread),
+# and the per-seed spread shrank (VS 0.70-1.09 -> 0.75-0.90). The pre-pass costs ~0.25 s instead of ~0.2 s
+# here once its kernels are warm.
 PREPASS_SPP = 16
 
 

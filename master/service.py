@@ -31,13 +31,12 @@ from core.scene import SceneSpec
 from core.seeds import plan_seed
 from core.tiles import read_tile
 from master import auction as au
-from master.jobplan import JobPlan, RenderOptions, plan_job
+from master.jobplan import JobPlan, RenderOptions, farm_min_units, plan_job
 from master.store import JobRecord, JobStore, restore_auction
 
 log = logging.getLogger(__name__)
 
 TICK_S = 0.2
-UNITS_PER_AGENT = 4
 
 
 @dataclass
@@ -205,7 +204,7 @@ class MasterService:
     def _units_for_agents(self) -> int:
         """Units a job needs at least so that every live agent gets several (load balance)."""
         live = sum(not a.lost for a in self.auction.agents.values()) if self.auction else 0
-        return UNITS_PER_AGENT * max(1, live)
+        return farm_min_units(live)
 
     def _create_job(self, job_id: str, scene_name: str, defines: dict[str, str], options: RenderOptions,
                     plan: JobPlan, sha256: str) -> None:

@@ -64,7 +64,7 @@ def test_small_real_run(tmp_path) -> None:
     ba.add_arguments(parser)
     args = parser.parse_args(["--res", "64", "--spp", "16", "--renders", "3", "--ref-spp", "128", "--seeds", "1",
                               "--threads", "1", "--cell", "16", "--measure-spp", "4",
-                              "--cache-dir", str(tmp_path)])
+                              "--cache-dir", str(tmp_path), "--out", str(tmp_path)])
     args.json = True
     result = ba.run(args)
     assert [r["level"] for r in result["rows"]] == list(ba.LEVELS)
@@ -73,3 +73,4 @@ def test_small_real_run(tmp_path) -> None:
         assert 1 <= r["spp_min"] <= r["spp_max"] <= 3 * 16
     assert 0.0 < result["neyman_ratio_S"] <= 1.0 + 1e-9
     assert list(tmp_path.glob("allocation-noise-*.npy"))  # the noise map is cached
+    assert "| S |" in (tmp_path / "allocation.md").read_text()
