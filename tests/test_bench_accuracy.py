@@ -29,6 +29,7 @@ def test_inprocess_grid_json_has_cells_and_baseline(tmp_path):
     assert [(c["agents"], c["level"]) for c in cells] == [(1, "off"), (1, "S")]
     for c in cells:
         assert c["seconds"] > 0 and c["cpu_seconds"] > 0
+        assert len(c["seconds_runs"]) == 2 and len(c["relmse_runs"]) == 3  # two timed runs and the warm-up
         assert 0 < c["mean_pixel_diff_percent"] < 50 and 0 < c["relmse"] < 10 and 0 <= c["flip"] <= 1
         assert c["uniform_spp"] >= 1 and 0 < c["uniform_relmse"] < 10
         assert c["spp_min"] >= 1 and c["units"] >= 1
@@ -46,6 +47,8 @@ def test_grid_arguments_are_checked(tmp_path):
         bench_accuracy.parse_grid(args_for(tmp_path, "--agents", "1,x"))
     with pytest.raises(QuekaroError, match="unknown scene"):
         bench_accuracy.parse_grid(args_for(tmp_path, "--scenes", "nope"))
+    with pytest.raises(QuekaroError, match="--runs 0"):
+        bench_accuracy.parse_grid(args_for(tmp_path, "--runs", "0"))
     scenes, agents, levels = bench_accuracy.parse_grid(args_for(tmp_path, "--agents", "2,1,2", "--inprocess"))
     assert (scenes, agents, levels) == (["caustic-corner"], [1], ["off", "S"])
 
