@@ -441,7 +441,8 @@ class RenderAgent:
             "rules": self.planner.rules_path.name, "integrator": integrator,
         })
         path = self.workdir / "tiles" / f"{_safe(job.job_id)}-{unit.index}.exr"
-        await asyncio.to_thread(write_tile, path, tile)
+        # Not fsynced: the file lives until its upload; a crash loses the unit, which is rendered again.
+        await asyncio.to_thread(write_tile, path, tile, False)
         return tile, params, path
 
     # ---- the data plane -----------------------------------------------------------------------------

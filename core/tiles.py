@@ -66,8 +66,11 @@ def _header(tile: Tile) -> dict[str, Any]:
     }
 
 
-def write_tile(path: str | Path, tile: Tile) -> Path:
-    """Write the tile as an EXR at `path`, durably (temp file, fsync, rename); return the path."""
+def write_tile(path: str | Path, tile: Tile, durable: bool = True) -> Path:
+    """Write the tile as an EXR at `path` (temp file, then rename: never half-written); return the path.
+
+    `durable` also fsyncs the file and its folder, so that the tile survives a crash of the machine; an
+    agent's tile, deleted once uploaded and rendered again if lost, does not need it."""
     import OpenEXR
 
     path = Path(path)
@@ -82,7 +85,10 @@ def write_tile(path: str | Path, tile: Tile) -> Path:
     try:
         with OpenEXR.File(header, {"RGB": tile.pixels}) as exr:
             exr.write(tmp)
-        durable_replace(Path(tmp), path)
+        if durable:
+            durable_replace(Path(tmp), path)
+        else:
+            os.replace(tmp, path)
     except (OSError, RuntimeError) as exc:
         Path(tmp).unlink(missing_ok=True)
         raise TileError(f"{path}: cannot write tile ({exc})") from exc

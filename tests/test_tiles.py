@@ -69,3 +69,11 @@ def test_unwritable_target_is_a_tile_error(tmp_path):
     with pytest.raises(TileError, match="JSON"):
         write_tile(tmp_path / "t.exr", Tile(np.zeros((1, 1, 3)), Rect(0, 0, 1, 1), Rect(0, 0, 1, 1),
                                             {"bad": float("nan")}))
+
+
+def test_a_tile_written_without_fsync_reads_back_the_same(tmp_path):
+    tile = _tile()
+    path = write_tile(tmp_path / "quick.exr", tile, durable=False)
+    back = read_tile(path)
+    assert np.array_equal(back.pixels, tile.pixels) and back.rect == tile.rect
+    assert not list(tmp_path.glob(".*.tmp"))  # the temporary file was renamed, not left behind
