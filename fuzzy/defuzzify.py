@@ -148,7 +148,7 @@ def centroid_t(plan: CentroidPlan, h_t: np.ndarray) -> np.ndarray:
         v0, inv = plan.slot_v0[:, s, None], plan.slot_inv[:, s, None]
         if not inv.any():
             continue
-        cross.extend(np.clip(x0 + (levels[t] - v0) * inv, x0, x1) for t in range(k))
+        cross.extend(_crossing(levels[t], v0, inv, x0, x1) for t in range(k))
     pts = [np.broadcast_to(x0, (len(x0), n)), *_sorted(cross), np.broadcast_to(x1, (len(x0), n))]
     area = np.zeros((len(x0), n))
     moment = np.zeros((len(x0), n))
@@ -161,6 +161,16 @@ def centroid_t(plan: CentroidPlan, h_t: np.ndarray) -> np.ndarray:
         area += dx * mu
         moment += dx * (mid * mu + slope * dx * dx * (1.0 / 12.0))
     return _fallback(plan.midpoints, h_t, area.sum(axis=0), moment.sum(axis=0))
+
+
+def _crossing(level: np.ndarray, v0: np.ndarray, inv: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
+    """Where a sloped piece (value v0 at x0, 1/slope inv) reaches `level`, kept inside [x0, x1]."""
+    x = level - v0
+    x *= inv
+    x += x0
+    np.maximum(x, x0, out=x)
+    np.minimum(x, x1, out=x)
+    return x
 
 
 def _aggregate_at(
@@ -185,12 +195,13 @@ def _aggregate_at(
 
 
 def _sorted(arrays: list[np.ndarray]) -> list[np.ndarray]:
-    """Element-wise sort of a few same-shaped arrays (odd-even transposition network; np.sort if many)."""
+    """Element-wise sort of a few same-shaped arrays (odd-even transposition network; np.sort if many).
+    The arrays are reordered in place: pass arrays that nothing else holds."""
     m = len(arrays)
     if m > 9:
         stacked = np.sort(np.stack(arrays), axis=0)
         return list(stacked)
-    out = [a.copy() for a in arrays]
+    out = list(arrays)
     for rnd in range(m):
         for i in range(rnd % 2, m - 1, 2):
             lo = np.minimum(out[i], out[i + 1])
