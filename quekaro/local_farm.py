@@ -67,6 +67,9 @@ class LocalFarm:
         (self.home / "logs").mkdir(parents=True, exist_ok=True)
         (self.home / "farm.json").unlink(missing_ok=True)
         self.server = EmbeddedXmppServer(self.home / "xmpp", domain=DOMAIN)
+        # Accounts are made afresh at every start (new passwords, new agent JIDs): the database of a
+        # previous start would refuse the master's new password, and a second `quekaro demo` would fail.
+        self.server.database.unlink(missing_ok=True)
         self.server.start()
         self._spawn("master", self._master_command())
         self._wait_for_master()

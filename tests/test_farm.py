@@ -237,3 +237,12 @@ def test_sigterm_to_quekaro_up_stops_the_whole_farm(tmp_path):
     finally:
         if up.poll() is None:
             up.kill()
+
+
+def test_a_farm_starts_again_on_the_same_home(tmp_path):
+    """`quekaro demo` twice: the second start must not trip over the first one's XMPP accounts."""
+    home = tmp_path / "farm"
+    for _ in range(2):
+        with LocalFarm(home, agents=1, threads=1) as farm:
+            farm.wait_for_agents(timeout=120)
+            assert farm.client().agents()
