@@ -113,15 +113,16 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                                 args.cache_dir)
     off_seconds = tmap.unit_seconds(_whole(args.res), args.spp, band=0)
     planner = Planner(args.rules, "centroid")
+    digest = sha256_file(spec.path)
     rows, bounds = [], []
     for level in LEVELS:
         options = RenderOptions(level=level, spp=args.spp, threads=args.threads, rules=args.rules)
         # Seeds from the options without the rule file, so two rule files are compared on the same
         # pre-passes (the pre-pass's noise moves a level's ratio by +-0.1).
         unruled = RenderOptions(level=level, spp=args.spp, threads=args.threads).to_dict()
-        base = plan_seed(sha256_file(spec.path), spec.defines, unruled)
+        base = plan_seed(digest, spec.defines, unruled)
         runs = []
-        for k in range(args.seeds):  # k = 0 is the plan the farm makes for this job
+        for k in range(args.seeds):  # k = 0: the plan `quekaro render` makes with the default rules
             plan = plan_job(spec, options, seed=base + k)
             params = plan_params(plan, planner)
             run = level_row(level, plan, params, weight, tmap)
