@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from core.errors import QuekaroError
 from core.geometry import Rect
 from core.hashing import sha256_file
 from master.auction import Config
@@ -125,7 +126,6 @@ def measure(scene_path: Path, res: int, cell: int, spp: int, threads: int) -> tu
         # Cells are timed without a band: the map holds what each pixel costs; units pay their band.
         return UnitJob(spec, "llvm_ad_rgb", kind, depth, n, seed, res, res, rect, band=0, threads=threads)
 
-    per_sample = np.zeros((res, res))
     started = time.perf_counter()
     with RenderWorker() as worker:
         for rect in cells[:2]:  # compile the kernels of both spp before timing anything
@@ -138,10 +138,7 @@ def measure(scene_path: Path, res: int, cell: int, spp: int, threads: int) -> tu
         seconds = [min(worker.render(job(r, spp, 2 * i + j + 1)).meta["seconds"] for j in (0, 1))
                    for i, r in enumerate(cells)]
         whole = worker.render(job(Rect(0, 0, res, res), spp, 0)).meta["seconds"]
-    for rect, sec in zip(cells, seconds, strict=True):
-        cost = cmap.cost[rect.slices()]
-        share = cost / cost.sum() if cost.sum() > 0 else np.full(cost.shape, 1 / cost.size)
-        per_sample[rect.slices()] = max(sec - fixed, 0.0) / spp * share
+    per_sample = spread_cell_times(cells, seconds, fixed, spp, cmap.cost)
     cell_cost = [float(cmap.cost[r.slices()].sum()) for r in cells]
     tmap = TimeMap(per_sample, fixed, {
         "cells": len(cells), "cell": cell, "measure_spp": spp, "fixed_s": fixed,
@@ -152,6 +149,22 @@ def measure(scene_path: Path, res: int, cell: int, spp: int, threads: int) -> tu
         "whole_image_predicted_s": tmap_whole(per_sample, fixed, spp),
     })
     return tmap, cmap
+
+
+def spread_cell_times(cells: Sequence[Rect], seconds: Sequence[float], fixed: float, spp: int,
+                      cost: np.ndarray) -> np.ndarray:
+    """Seconds per sample of every pixel: each cell's time above the fixed cost of a render call, over its
+    spp, spread over the cell's pixels in proportion to their pre-pass cost. Refuses a map with no time at
+    all (every cell as fast as a 1-spp render): nothing would be measured, and each sample would look free."""
+    per_sample = np.zeros(cost.shape)
+    for rect, sec in zip(cells, seconds, strict=True):
+        c = cost[rect.slices()]
+        share = c / c.sum() if c.sum() > 0 else np.full(c.shape, 1 / c.size)
+        per_sample[rect.slices()] = max(sec - fixed, 0.0) / spp * share
+    if not per_sample.sum() > 0:
+        raise QuekaroError(f"no cell at {spp} spp took longer than a 1-spp render ({fixed * 1000:.1f} ms): "
+                           "the cost of a sample cannot be measured; raise --measure-spp or --cell")
+    return per_sample
 
 
 def cache_file(cache_dir: Path | None, scene_path: Path, res: int, cell: int, spp: int, threads: int) -> Path:

@@ -63,7 +63,7 @@ def test_small_real_run(tmp_path) -> None:
     parser = argparse.ArgumentParser()
     ba.add_arguments(parser)
     args = parser.parse_args(["--res", "64", "--spp", "16", "--renders", "3", "--ref-spp", "128", "--seeds", "1",
-                              "--threads", "1", "--cell", "16", "--measure-spp", "4",
+                              "--threads", "1", "--cell", "32", "--measure-spp", "64",
                               "--cache-dir", str(tmp_path), "--out", str(tmp_path)])
     args.json = True
     result = ba.run(args)

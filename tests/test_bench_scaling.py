@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+import numpy as np
 import pytest
 
 from master import bench_scaling
@@ -45,3 +46,17 @@ def test_agent_counts_and_mixed_speeds():
     assert bench_scaling.agent_counts(5) == [1, 2, 4]
     assert bench_scaling.speeds_for(5, mixed=True) == [1.0, 0.5, 1.5, 2.0, 1.0]
     assert bench_scaling.speeds_for(3, mixed=False) == [1.0, 1.0, 1.0]
+
+
+def test_cell_times_spread_by_cost_and_a_timeless_map_is_refused():
+    from core.errors import QuekaroError
+    from core.geometry import Rect
+
+    cells = [Rect(0, 0, 2, 2), Rect(2, 0, 2, 2)]
+    cost = np.array([[1.0, 3.0, 1.0, 1.0], [0.0, 0.0, 1.0, 1.0]])
+    per_sample = bench_scaling.spread_cell_times(cells, [0.5, 0.1], fixed=0.1, spp=4, cost=cost)
+    assert per_sample[:, :2].sum() == pytest.approx((0.5 - 0.1) / 4)  # the cell's time above the fixed cost
+    assert per_sample[0, 1] == pytest.approx(3 * per_sample[0, 0])  # in proportion to the pre-pass cost
+    assert per_sample[:, 2:].sum() == 0.0  # as fast as a 1-spp render: nothing per sample
+    with pytest.raises(QuekaroError, match="--measure-spp"):
+        bench_scaling.spread_cell_times(cells, [0.1, 0.09], fixed=0.1, spp=4, cost=cost)
