@@ -34,7 +34,7 @@ import os
 import resource
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -143,13 +143,38 @@ def reference(spec: Any, spp: int, threads: int, cache: Path) -> np.ndarray:
     return pixels
 
 
+#: The sample count's share of a render's time must exceed this (and MIN_SPP_SECONDS) before the line
+#: t0 + k spp is trusted: below it, the two timings differ by noise and k could be ~0, which made the
+#: uniform baseline ask Mitsuba for billions of samples on a 32 px image.
+MIN_SPP_SHARE = 0.5
+MIN_SPP_SECONDS = 0.02
+MAX_TIMING_SPP = 1 << 14
+
+
 def spp_timing(spec: Any, spp: int, threads: int) -> tuple[float, float]:
     """(t0, k) of t(spp) = t0 + k spp for a plain render, from the faster of two runs at two spp."""
-    lo, hi = max(1, spp // 4), spp
-    t_lo = min(plain_render(spec, lo, threads, seed=s)[1] for s in (1, 2))
-    t_hi = min(plain_render(spec, hi, threads, seed=s)[1] for s in (1, 2))
-    k = max((t_hi - t_lo) / (hi - lo), 1e-9)
-    return max(t_lo - k * lo, 0.0), k
+    return fit_spp_line(lambda n: min(plain_render(spec, n, threads, seed=s)[1] for s in (1, 2)), spp,
+                        what=f"{spec.path.name} at {_size(spec)[0]}x{_size(spec)[1]}")
+
+
+def fit_spp_line(seconds_at: Callable[[int], float], spp: int, what: str = "the scene") -> tuple[float, float]:
+    """(t0, k) through two timings, the higher spp raised 4x at a time until samples cost a measurable
+    share of its time (MIN_SPP_SHARE of t0, at least MIN_SPP_SECONDS); QuekaroError past MAX_TIMING_SPP."""
+    lo = max(1, spp // 4)
+    t_lo = seconds_at(lo)
+    hi = max(spp, lo + 1)
+    while True:
+        t_hi = seconds_at(hi)
+        grown = t_hi - t_lo
+        if grown >= max(MIN_SPP_SECONDS, MIN_SPP_SHARE * t_lo):
+            k = grown / (hi - lo)
+            return max(t_lo - k * lo, 0.0), k
+        if hi * 4 > MAX_TIMING_SPP:
+            raise QuekaroError(
+                f"{what}: a render at {hi} spp took {t_hi:.3f} s against {t_lo:.3f} s at {lo} spp; the cost "
+                f"of a sample is too small to time, so no uniform spp can be matched to a cell's time "
+                f"(raise --res)")
+        hi *= 4
 
 
 # ---- CPU time --------------------------------------------------------------------------------------
