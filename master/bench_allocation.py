@@ -64,15 +64,30 @@ def noise_map(spec: Any, spp: int, renders: int, threads: int, cache: Path) -> n
     return sigma2
 
 
+def composed_inverse_spp(plan: Any, spps: Any, bands: Any) -> np.ndarray:
+    """Per pixel, the composed image's variance in units of one sample's: sum over the tiles covering it
+    of w^2 / n, w its normalised blend weight (core.compose) and n the tile's spp. A pixel in one
+    tile's core only is 1 / n; where a neighbour's band overlaps, the two independent estimates average
+    and the variance falls (a band's samples are not wasted)."""
+    from core.compose import blend_weights
+
+    geometry = [(u.rect.grow(int(b), plan.width, plan.height), u.rect) for u, b in zip(plan.units, bands, strict=True)]
+    factor = np.zeros((plan.height, plan.width))
+    for (rect, _), w, n in zip(geometry, blend_weights(geometry, plan.width, plan.height), spps, strict=True):
+        factor[rect.slices()] += w * w / float(n)
+    return factor
+
+
 def level_row(level: str, plan: Any, params: list[Any], weight: np.ndarray, tmap: Any) -> dict[str, Any]:
-    """Predicted render seconds, relMSE and spp spread of one level's plan."""
-    spp = np.zeros(weight.shape[:2])
-    seconds = 0.0
+    """Predicted render seconds, relMSE of the composed image and spp spread of one level's plan."""
+    seconds = sum(tmap.unit_seconds(u.rect, p.spp, band=p.band) for u, p in zip(plan.units, params, strict=True))
+    spp = np.array([p.spp for p in params])
+    factor = composed_inverse_spp(plan, spp, [p.band for p in params])
+    pixel_spp = np.zeros((plan.height, plan.width))
     for unit, p in zip(plan.units, params, strict=True):
-        seconds += tmap.unit_seconds(unit.rect, p.spp, band=p.band)
-        spp[unit.rect.slices()] = p.spp
+        pixel_spp[unit.rect.slices()] = p.spp
     return {"level": level, "units": len(plan.units), "render_seconds": seconds,
-            "relmse": float((weight / spp[..., None]).mean()), "spp_mean": float(spp.mean()),
+            "relmse": float((weight * factor[..., None]).mean()), "spp_mean": float(pixel_spp.mean()),
             "spp_min": int(spp.min()), "spp_max": int(spp.max())}
 
 
@@ -83,8 +98,9 @@ def uniform(seconds: float, weight: np.ndarray, tmap: Any) -> tuple[float, float
 
 
 def neyman_ratio(plan: Any, params: list[Any], weight: np.ndarray, tmap: Any) -> float:
-    """relMSE over uniform's of the best allocation over these units at the same render time: each unit's
-    spp proportional to sqrt(error per sample / seconds per sample) (Neyman), with the true noise."""
+    """relMSE over uniform's of the best allocation over these units and bands at the same render time:
+    each unit's spp proportional to sqrt(error per sample / seconds per sample) (Neyman), with the true
+    noise; its error is the composed image's, as for the levels."""
     err = np.array([weight[u.rect.slices()].sum() for u in plan.units])
     per_spp = np.array([tmap.unit_seconds(u.rect, 1, band=p.band) - tmap.fixed_s
                         for u, p in zip(plan.units, params, strict=True)])
@@ -92,8 +108,8 @@ def neyman_ratio(plan: Any, params: list[Any], weight: np.ndarray, tmap: Any) ->
     budget = seconds - tmap.fixed_s * len(plan.units)
     share = np.sqrt(err / np.maximum(per_spp, 1e-15))
     spp = share * budget / float((share * per_spp).sum())
-    best = float((err / spp).sum() / weight.size)
-    return best / uniform(seconds, weight, tmap)[1]
+    factor = composed_inverse_spp(plan, spp, [p.band for p in params])
+    return float((weight * factor[..., None]).mean()) / uniform(seconds, weight, tmap)[1]
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:

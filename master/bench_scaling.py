@@ -171,11 +171,11 @@ def cache_file(cache_dir: Path | None, scene_path: Path, res: int, cell: int, sp
     """Where the measurement of these inputs is cached: keyed by the scene file's sha256 (not the files it
     includes: remeasure after editing a mesh or texture), the image side, the cell side, spp, threads and
     the pre-pass's samples per pixel (the cached complexity map, hence the partition, depends on them)."""
-    from master.complexity import PREPASS_SPP
+    from master.complexity import COST_SPP, NOISE_SHARE, PREPASS_SPP
 
     base = cache_dir or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "quekaro"
     digest = sha256_file(scene_path)[:16]
-    return Path(base) / f"scaling-{digest}-r{res}-c{cell}-s{spp}-t{threads}-p{PREPASS_SPP}.npz"
+    return Path(base) / f"scaling-{digest}-r{res}-c{cell}-s{spp}-t{threads}-p{PREPASS_SPP}-{COST_SPP}-{NOISE_SHARE}.npz"
 
 
 def measure_cached(scene_path: Path, res: int, cell: int, spp: int, threads: int,

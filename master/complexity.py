@@ -93,22 +93,28 @@ class ComplexityMap:
         return self.noise / (self.mean * self.mean + epsilon)
 
 
-# Samples per low-resolution pixel. For the same budget, 16 spp at a fifth of the resolution predicts the
-# units' noise better than 4 spp at a third: a pixel's variance from 4 samples of a heavy-tailed path
-# (caustics, a glass rim) is usually far too low. On caustic-corner 320x320, allocating each unit's
-# samples by the resulting C reached 0.66-0.72x the uniform relMSE over three seeds, against 0.75-0.91x
-# with 4 spp (the true noise: 0.55x). Through the previous rule base (`quekaro bench allocation`, 5 seeds)
-# it moved VS from 0.90 to 0.85x, B from 0.92 to 0.81x, S from 0.66 to 0.68x (within the seeds' spread),
-# and the per-seed spread shrank (VS 0.70-1.09 -> 0.75-0.90). The pre-pass costs ~0.25 s instead of ~0.2 s
-# here once its kernels are warm.
-PREPASS_SPP = 16
+# How the pre-pass's samples (budget / 4 of the render's) are spent. What limits the allocation is the
+# noise estimate of the units where the noise is heavy-tailed (caustics, the glass sphere's rim: a few
+# rare paths carry most of the variance), and what it needs is samples per unit, not per low-resolution
+# pixel: on caustic-corner 320x320 the rim's 32 px unit has a true relative std of 2.0; 16 spp at a fifth
+# of the resolution (1,024 samples in the unit) saw 0.35, 2 spp at full resolution or 8 spp at half
+# (16,384) saw 1.5-3. The ray count, what the cost map is made of, is smooth and needs few samples. So the
+# noise pass takes NOISE_SHARE of the samples, at NOISE_SPP per low-resolution pixel (at most a half of
+# the resolution on the default budget), and the ray-count pass the rest. Same sample budget as the
+# former 16 spp for both passes at a fifth of the resolution; through the rules (`quekaro bench
+# allocation`, 5 pre-pass seeds, relMSE over uniform spp at equal render time) S 0.64 -> 0.62,
+# N 0.75 -> 0.67, B 0.66 -> 0.64, VB 0.76 -> 0.72, and the seed-to-seed spread narrows.
+PREPASS_SPP = 4  # samples per low-resolution pixel of the noise (moment) pass
+COST_SPP = 4  # of the ray-count pass
+NOISE_SHARE = 0.8  # of the pre-pass's samples that go to the noise pass
 
 
-def choose_downscale(width: int, height: int, full_spp: int, spp: int, budget: float) -> int:
-    """Smallest integer k so that two passes of `spp` at (W/k x H/k) use <= budget/4 of the full samples."""
-    allowed = max(budget, 1e-6) / 4 * full_spp * width * height
+def choose_downscale(width: int, height: int, full_spp: int, spp: int, budget: float, share: float = 1.0) -> int:
+    """Smallest integer k so that one pass of `spp` at (W/k x H/k) uses <= share x budget/4 of the full
+    render's samples."""
+    allowed = max(budget, 1e-6) / 4 * share * full_spp * width * height
     k = 1
-    while 2 * spp * math.ceil(width / k) * math.ceil(height / k) > allowed and (k < width or k < height):
+    while spp * math.ceil(width / k) * math.ceil(height / k) > allowed and (k < width or k < height):
         k += 1
     return k
 
@@ -124,31 +130,41 @@ def prepass(
     budget: float = 0.05,
     spp: int = PREPASS_SPP,
     seed: int = 0,
+    cost_spp: int = COST_SPP,
 ) -> ComplexityMap:
     """Estimate per-pixel cost and noise of `scene` (a loaded mi.Scene or a core.scene.SceneSpec).
 
     `width`/`height` default to the scene film's size; `full_spp` is the spp of the render this
-    pre-pass is for, and sets (with `budget`) how far the resolution is reduced.
+    pre-pass is for, and sets (with `budget`) how far each pass reduces the resolution; `spp` and
+    `cost_spp` are the noise and ray-count passes' samples per low-resolution pixel.
     """
     start = time.perf_counter()
     scene = _as_scene(scene, threads)
     film = scene.sensors()[0].film()
     fw, fh = (int(v) for v in film.size())
     width, height = width or fw, height or fh
-    k = choose_downscale(width, height, full_spp, spp, budget)
-    lw, lh = max(1, math.ceil(width / k)), max(1, math.ceil(height / k))
+    k = choose_downscale(width, height, full_spp, spp, budget, NOISE_SHARE)
+    kc = choose_downscale(width, height, full_spp, cost_spp, budget, 1.0 - NOISE_SHARE)
+    lw, lh = _low_size(width, height, k)
+    cw, ch = _low_size(width, height, kc)
     with _film_size(scene, lw, lh):
         noise_low, mean_low = _moment_pass(scene, integrator, max_depth, spp, seed)
-        cost_low = _ray_count_pass(scene, lw, lh, max_depth, spp, seed + 1)
+    with _film_size(scene, cw, ch):
+        cost_low = _ray_count_pass(scene, cw, ch, max_depth, cost_spp, seed + 1)
     cmap = ComplexityMap(
         cost=_upsample(cost_low, width, height),
         noise=_upsample(noise_low, width, height),
         mean=_upsample(_finite_mean(mean_low), width, height),
         info={"downscale": k, "low_size": [lw, lh], "spp": spp, "full_spp": full_spp,
+              "cost_downscale": kc, "cost_low_size": [cw, ch], "cost_spp": cost_spp,
               "nonfinite_noise": int(np.count_nonzero(~np.isfinite(mean_low)))},
     )
     cmap.seconds = time.perf_counter() - start
     return cmap
+
+
+def _low_size(width: int, height: int, k: int) -> tuple[int, int]:
+    return max(1, math.ceil(width / k)), max(1, math.ceil(height / k))
 
 
 def _as_scene(scene: Any, threads: int | None) -> Any:

@@ -28,10 +28,11 @@ def mi():
 @pytest.mark.parametrize(("w", "h", "spp"), [(256, 256, 64), (683, 512, 256), (1, 1, 1), (1, 5000, 64),
                                               (97, 89, 16)])
 def test_downscale_keeps_samples_within_budget(w: int, h: int, spp: int) -> None:
-    k = choose_downscale(w, h, spp, 4, 0.05)
-    low = -(-w // k) * -(-h // k)
-    assert 2 * 4 * low <= 0.05 / 4 * spp * w * h or (k >= w and k >= h)
-    assert k == 1 or 2 * 4 * -(-w // (k - 1)) * -(-h // (k - 1)) > 0.05 / 4 * spp * w * h  # smallest k
+    for share in (0.8, 0.2):
+        k = choose_downscale(w, h, spp, 4, 0.05, share)
+        low = -(-w // k) * -(-h // k)
+        assert 4 * low <= share * 0.05 / 4 * spp * w * h or (k >= w and k >= h)
+        assert k == 1 or 4 * -(-w // (k - 1)) * -(-h // (k - 1)) > share * 0.05 / 4 * spp * w * h  # smallest k
 
 
 def test_relative_noise_divides_by_brightness_like_relmse() -> None:
