@@ -2,13 +2,13 @@
 
 What is measured (once, on this machine, at the job's image size): the complexity pre-pass of the
 scene, and the real render time of every cell of a fixed grid (`--cell` px) in a RenderWorker at a
-modest spp (`--measure-spp`, the faster of two runs), plus the fixed cost of one unit render (a cell
+modest spp (`--measure-spp`, the fastest of MEASURE_PASSES runs), plus the fixed cost of one unit render (a cell
 at 1 spp). From these, a per-pixel time map: each cell's time above the fixed cost, divided by its
 spp, spread over its pixels in proportion to the pre-pass cost (rays per sample). A unit of any rectangle then takes
 `fixed + job_spp * sum(time map over the unit grown by its band)` on an agent of speed 1; render time
 is linear in spp (design.md section 3), so the job's spp need not be rendered here.
 
-The measurement takes ~45 s, so it is cached (an .npz under ~/.cache/quekaro, keyed by the scene file's
+The measurement takes ~60 s, so it is cached (an .npz under ~/.cache/quekaro, keyed by the scene file's
 sha256, the image side, the cell side, the measure spp and the thread count); `--remeasure` renders again.
 
 What is simulated: N = 1, 2, 4, ... agents through `master.auction.simulate`, the real `Auction` that
@@ -55,6 +55,10 @@ FARM_AUCTION = Config()  # as the farm's master runs it by default
 # A unit's delivery on this machine: the agent log's "in all" minus "render", 22-30 ms a unit
 # (caustic-corner 320x320, level S, one agent).
 DELIVERY_S = 0.025
+# Runs per cell of the time map (fastest kept). With two runs back to back, three measurements of the
+# same scene on this shared machine gave 0.67-0.82 efficiency at N=32: one cell timed during a busy
+# spell makes its units look long, and the simulated tail with them.
+MEASURE_PASSES = 3
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -134,9 +138,11 @@ def measure(scene_path: Path, res: int, cell: int, spp: int, threads: int) -> tu
         probe = cells[:: max(1, len(cells) // 8)]
         fixed = float(np.median([min(worker.render(job(r, 1, s)).meta["seconds"] for s in (1, 2))
                                  for r in probe]))
-        # The faster of two runs: the machine is shared, and a slow run measures the neighbours.
-        seconds = [min(worker.render(job(r, spp, 2 * i + j + 1)).meta["seconds"] for j in (0, 1))
-                   for i, r in enumerate(cells)]
+        # The fastest of MEASURE_PASSES runs, each pass over every cell in turn: the machine is shared, a
+        # slow run measures the neighbours, and a busy spell would hit back-to-back runs of one cell alike.
+        passes = [[worker.render(job(r, spp, MEASURE_PASSES * i + j + 1)).meta["seconds"]
+                   for i, r in enumerate(cells)] for j in range(MEASURE_PASSES)]
+        seconds = [min(runs) for runs in zip(*passes, strict=True)]
         whole = worker.render(job(Rect(0, 0, res, res), spp, 0)).meta["seconds"]
     per_sample = spread_cell_times(cells, seconds, fixed, spp, cmap.cost)
     cell_cost = [float(cmap.cost[r.slices()].sum()) for r in cells]
@@ -175,7 +181,8 @@ def cache_file(cache_dir: Path | None, scene_path: Path, res: int, cell: int, sp
 
     base = cache_dir or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "quekaro"
     digest = sha256_file(scene_path)[:16]
-    return Path(base) / f"scaling-{digest}-r{res}-c{cell}-s{spp}-t{threads}-p{PREPASS_SPP}-{COST_SPP}-{NOISE_SHARE}.npz"
+    prepass = f"p{PREPASS_SPP}-{COST_SPP}-{NOISE_SHARE}"
+    return Path(base) / f"scaling-{digest}-r{res}-c{cell}-s{spp}-t{threads}-{prepass}-m{MEASURE_PASSES}.npz"
 
 
 def measure_cached(scene_path: Path, res: int, cell: int, spp: int, threads: int,
