@@ -93,17 +93,20 @@ class ComplexityMap:
         return self.noise / (self.mean * self.mean + epsilon)
 
 
-# How the pre-pass's samples (budget / 4 of the render's) are spent. What limits the allocation is the
-# noise estimate of the units where the noise is heavy-tailed (caustics, the glass sphere's rim: a few
-# rare paths carry most of the variance), and what it needs is samples per unit, not per low-resolution
-# pixel: on caustic-corner 320x320 the rim's 32 px unit has a true relative std of 2.0; 16 spp at a fifth
-# of the resolution (1,024 samples in the unit) saw 0.35, 2 spp at full resolution or 8 spp at half
-# (16,384) saw 1.5-3. The ray count, what the cost map is made of, is smooth and needs few samples. So the
-# noise pass takes NOISE_SHARE of the samples, at NOISE_SPP per low-resolution pixel (at most a half of
-# the resolution on the default budget), and the ray-count pass the rest. Same sample budget as the
-# former 16 spp for both passes at a fifth of the resolution; through the rules (`quekaro bench
-# allocation`, 5 pre-pass seeds, relMSE over uniform spp at equal render time) S 0.64 -> 0.62,
-# N 0.75 -> 0.67, B 0.66 -> 0.64, VB 0.76 -> 0.72, and the seed-to-seed spread narrows.
+# How the pre-pass's samples (budget / 4 of the render's) are spent: the noise (moment) pass takes
+# NOISE_SHARE of them at PREPASS_SPP per low-resolution pixel, the ray-count pass the rest at COST_SPP.
+# Ray counts are smooth and need few samples; the noise map gains from resolution. On the default
+# budget this is 4 spp at half the resolution for the noise (1,024 samples in a 32 px unit) where both
+# passes took 16 spp at a fifth (655), for the same total and 0.8x the pre-pass time (0.21 against
+# 0.26 s, caustic-corner 320x320, warm, medians of 6 alternating runs). Through the rules (`quekaro bench
+# allocation`, 5 pre-pass seeds, the same time map and rule file; relMSE over uniform spp at equal
+# render time) VS 0.64 -> 0.61, S 0.64 -> 0.62, N 0.75 -> 0.67, B 0.65 -> 0.63, VB 0.75 -> 0.71; the
+# gain is mostly in the seeds that went wrong (N's worst 0.96 -> 0.72). Per 32 px cell, C ranks the
+# cells' true relative noise about as well either way (rank correlation 0.78 against 0.80): a low-
+# resolution pixel that straddles an edge counts the edge as noise (median C over the true mean std:
+# 1.64 at a fifth of the resolution, 1.47 at half), and a 4-sample variance is biased low on heavy
+# tails (the glass rim's cell: true mean std 1.0, C 0.3-0.8 over 5 seeds; at a fifth 1.2-2.1).
+# Estimating the rim's cells well took 16x these samples (16 spp at full resolution: rms 2.07 for 2.02).
 PREPASS_SPP = 4  # samples per low-resolution pixel of the noise (moment) pass
 COST_SPP = 4  # of the ray-count pass
 NOISE_SHARE = 0.8  # of the pre-pass's samples that go to the noise pass

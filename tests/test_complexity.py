@@ -88,6 +88,21 @@ def test_pixels_that_hit_nothing_are_nearly_free(mi) -> None:
     assert tuple(scene.sensors()[0].film().size()) == (32, 32)
 
 
+def test_noise_pass_gets_its_share_of_the_samples_at_a_finer_grid(mi) -> None:
+    from master.complexity import NOISE_SHARE
+
+    scene = sphere_scene(mi, size=64)
+    cmap = prepass(scene, max_depth=8, full_spp=128)
+    info = cmap.info
+    allowed = 0.05 / 4 * 128 * 64 * 64  # the pre-pass's samples: budget / 4 of the render's
+    noise_samples = info["spp"] * info["low_size"][0] * info["low_size"][1]
+    cost_samples = info["cost_spp"] * info["cost_low_size"][0] * info["cost_low_size"][1]
+    assert noise_samples <= NOISE_SHARE * allowed and cost_samples <= (1 - NOISE_SHARE) * allowed
+    assert info["downscale"] < info["cost_downscale"]  # the noise map is the finer one
+    assert cmap.cost.shape == cmap.noise.shape == (64, 64)
+    assert tuple(scene.sensors()[0].film().size()) == (64, 64)  # both passes restore the film
+
+
 def test_nothing_visible_gives_a_flat_cheap_map(mi) -> None:
     scene = mi.load_dict({"type": "scene", "sensor": {"type": "perspective",
                           "film": {"type": "hdrfilm", "width": 16, "height": 8}}})
