@@ -13,9 +13,10 @@ what makes caustic-lit diffuse surfaces complex while plain glass is not. The sa
 pixel's mean, so that the noise can be taken relative to the brightness (`relative_noise`): the
 benchmark's error, relative MSE, weighs a pixel's squared error by 1 / (reference^2 + 0.01).
 
-Budget: both passes run at 1/k of the resolution per axis with a few samples, k chosen so that their
-samples are at most `budget` / 4 of the full render's (the rest of the 5 % goes to fixed overhead); see
-`choose_downscale`. Warm kernels make the passes themselves take milliseconds.
+Budget: together the passes take at most `budget` / 4 of the full render's samples (the rest of the 5 %
+goes to fixed overhead): the noise pass NOISE_SHARE of them, the ray-count pass the rest, each at 1/k of
+the resolution per axis with its own k (`choose_downscale`; the noise map gets the finer grid). Warm
+kernels make the passes themselves take milliseconds.
 """
 
 from __future__ import annotations
