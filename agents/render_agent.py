@@ -442,7 +442,7 @@ class RenderAgent:
         })
         path = self.workdir / "tiles" / f"{_safe(job.job_id)}-{unit.index}.exr"
         # Not fsynced: the file lives until its upload; a crash loses the unit, which is rendered again.
-        await asyncio.to_thread(write_tile, path, tile, False)
+        await asyncio.to_thread(write_tile, path, tile, durable=False)
         return tile, params, path
 
     # ---- the data plane -----------------------------------------------------------------------------

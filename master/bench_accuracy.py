@@ -153,8 +153,9 @@ MAX_TIMING_SPP = 1 << 14
 
 def spp_timing(spec: Any, spp: int, threads: int) -> tuple[float, float]:
     """(t0, k) of t(spp) = t0 + k spp for a plain render, from the faster of two runs at two spp."""
+    w, h = _size(spec)
     return fit_spp_line(lambda n: min(plain_render(spec, n, threads, seed=s)[1] for s in (1, 2)), spp,
-                        what=f"{spec.path.name} at {_size(spec)[0]}x{_size(spec)[1]}")
+                        what=f"{spec.path.name} at {w}x{h}")
 
 
 def fit_spp_line(seconds_at: Callable[[int], float], spp: int, what: str = "the scene") -> tuple[float, float]:

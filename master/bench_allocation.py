@@ -82,12 +82,10 @@ def level_row(level: str, plan: Any, params: list[Any], weight: np.ndarray, tmap
     """Predicted render seconds, relMSE of the composed image and spp spread of one level's plan."""
     seconds = sum(tmap.unit_seconds(u.rect, p.spp, band=p.band) for u, p in zip(plan.units, params, strict=True))
     spp = np.array([p.spp for p in params])
+    area = np.array([u.rect.area for u in plan.units])
     factor = composed_inverse_spp(plan, spp, [p.band for p in params])
-    pixel_spp = np.zeros((plan.height, plan.width))
-    for unit, p in zip(plan.units, params, strict=True):
-        pixel_spp[unit.rect.slices()] = p.spp
     return {"level": level, "units": len(plan.units), "render_seconds": seconds,
-            "relmse": float((weight * factor[..., None]).mean()), "spp_mean": float(pixel_spp.mean()),
+            "relmse": float((weight * factor[..., None]).mean()), "spp_mean": float((spp * area).sum() / area.sum()),
             "spp_min": int(spp.min()), "spp_max": int(spp.max())}
 
 

@@ -9,7 +9,8 @@ spp, spread over its pixels in proportion to the pre-pass cost (rays per sample)
 is linear in spp (design.md section 3), so the job's spp need not be rendered here.
 
 The measurement takes ~60 s, so it is cached (an .npz under ~/.cache/quekaro, keyed by the scene file's
-sha256, the image side, the cell side, the measure spp and the thread count); `--remeasure` renders again.
+sha256, the image side, the cell side, the measure spp, the thread count and the pre-pass's settings);
+`--remeasure` renders again.
 
 What is simulated: N = 1, 2, 4, ... agents through `master.auction.simulate`, the real `Auction` that
 the farm's master runs, with a message latency of `--latency` (default 2 ms one way: design.md section 4
@@ -175,8 +176,9 @@ def spread_cell_times(cells: Sequence[Rect], seconds: Sequence[float], fixed: fl
 
 def cache_file(cache_dir: Path | None, scene_path: Path, res: int, cell: int, spp: int, threads: int) -> Path:
     """Where the measurement of these inputs is cached: keyed by the scene file's sha256 (not the files it
-    includes: remeasure after editing a mesh or texture), the image side, the cell side, spp, threads and
-    the pre-pass's samples per pixel (the cached complexity map, hence the partition, depends on them)."""
+    includes: remeasure after editing a mesh or texture), the image side, the cell side, spp, threads,
+    the pre-pass's sample split (the cached complexity map, hence the partition, depends on it) and the
+    timing passes per cell."""
     from master.complexity import COST_SPP, NOISE_SHARE, PREPASS_SPP
 
     base = cache_dir or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "quekaro"

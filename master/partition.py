@@ -30,10 +30,10 @@ from core.units import Unit
 from master.complexity import ComplexityMap
 
 DEFAULT_SIZES = (32, 64, 128)  # no 16 px units: each render call costs ~0.05 s, ~20 spp of a 40 px unit
-# After reaching the unit count, still split units costing this many target costs. 2.5, not 2: since the
-# pre-pass gives C more samples (master/complexity.py), the caustic's and the glass rim's units carry more
-# of the work, and at 2 the 512 px scaling scene's 8-agent job was cut into 40 units instead of 34, each
-# paying its bands (simulated efficiency 0.895 against 0.904); the allocation is the same within its noise.
+# After reaching the unit count, still split units costing this many target costs. 2.5, not 2: with the
+# finer noise map of the pre-pass (master/complexity.py), at 2 the 512 px scaling scene's 8-agent job was
+# cut into 40 units instead of 34, each paying its bands (simulated efficiency 0.895 against 0.904); the
+# allocation (`quekaro bench allocation`) is the same within its noise (S 0.624 against 0.625).
 HALVE_FACTOR = 2.5
 VARIATION = 1.0  # a cell whose complexity std exceeds this many image-mean complexities splits early
 WORK_WEIGHTED = True  # balance units by rays x relative noise (the samples the rules will give), not rays
