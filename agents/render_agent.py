@@ -47,7 +47,7 @@ from typing import Any
 from agents.speed import SpeedSample, estimate_seconds, measure_speed
 from agents.transfer import fetch_bundle, upload_tile
 from core import messages as m
-from core.bundle import BundleLimits, read_manifest
+from core.bundle import RULES_NAME, BundleLimits, check_unpacked, read_manifest
 from core.credentials import xmpp_password
 from core.errors import QuekaroError
 from core.hashing import sha256_file
@@ -56,6 +56,7 @@ from core.render_unit import RenderWorker, UnitJob
 from core.scene import SceneSpec
 from core.tiles import Tile, write_tile
 from core.xmpp import Envelope, FarmAgent
+from fuzzy.engine import DEFUZZIFIERS
 from fuzzy.errors import RuleFileError
 
 log = logging.getLogger(__name__)
@@ -77,7 +78,7 @@ class AgentConfig:
     port: int = 5222
     threads: int = 1  # Dr.Jit threads of the render process
     rules: Path | None = None  # default: core.planner.default_rules_path()
-    defuzzifier: str = "centroid"
+    defuzzifier: str | None = None  # None: the rule file's dialect decides (centroid, or MASYRO's centre of sums)
     workdir: Path = field(default_factory=lambda: Path(tempfile.gettempdir()) / "quekaro-agent")
     auto_register: bool = False  # in-band registration: the embedded server only
     ca_file: str | None = None
@@ -151,6 +152,7 @@ class RenderAgent:
         self.rendering = False
         self._deliveries: set[asyncio.Task] = set()
         self._planned: dict[tuple[str, int], UnitParams] = {}  # the rules' choice per unit bid on
+        self._planners: dict[tuple[str | None, str | None], Planner] = {(None, config.defuzzifier): self.planner}
         self.units_done = 0
         self.units_failed = 0
         self._queue: asyncio.Queue[Work] = asyncio.Queue()
@@ -298,7 +300,18 @@ class RenderAgent:
     def _plan(self, job: m.JobInfo, units: tuple[m.UnitSpec, ...]) -> list[UnitParams]:
         features = {k: [float(getattr(u, k)) for u in units] for k in ("C", "S", "Nd")}
         ranges = dict(job.ranges) or None
-        return self.planner.plan(features, job.level, user_depth=job.depth, user_spp=job.spp, ranges=ranges)
+        planner = self._planner_for(job)
+        return planner.plan(features, job.level, user_depth=job.depth, user_spp=job.spp, ranges=ranges)
+
+    def _planner_for(self, job: m.JobInfo) -> Planner:
+        """The job's own rules once its bundle is here (else this agent's, for a bid's estimate only), with
+        the job's defuzzifier if it names one."""
+        rules = self.workdir / "bundles" / job.scene_hash / RULES_NAME
+        own = job.rules_sha256 is not None and rules.is_file()
+        key = (job.rules_sha256 if own else None, job.defuzzifier or self.config.defuzzifier)
+        if key not in self._planners:
+            self._planners[key] = Planner(rules if own else self.config.rules, key[1])
+        return self._planners[key]
 
     def _remember_plan(self, job_id: str, index: int, params: UnitParams) -> None:
         self._planned[(job_id, index)] = params
@@ -421,14 +434,16 @@ class RenderAgent:
         award = work.award
         job, unit = award.job, award.unit
         spec = await self._scene_for(job, award.token)
-        # What it bid on (a job's units and their features never change); planned afresh if forgotten.
-        params = self._planned.pop((job.job_id, unit.index), None) or self._plan(job, (unit,))[0]
-        integrator = getattr(job, "integrator", "path")
+        # What it bid on (a job's units and their features never change); planned afresh if forgotten,
+        # and always with the job's own rules once its bundle is here.
+        remembered = self._planned.pop((job.job_id, unit.index), None)
+        params = remembered if remembered and not job.rules_sha256 else self._plan(job, (unit,))[0]
+        integrator = job.integrator
         unit_job = UnitJob(
-            scene=spec, variant=getattr(job, "variant", "llvm_ad_rgb"), integrator=integrator,
+            scene=spec, variant=job.variant, integrator=integrator,
             max_depth=params.depth, spp=params.spp, seed=award.seed, width=job.width, height=job.height,
             unit=unit.rect, band=params.band, threads=self.config.threads, job_id=job.job_id,
-            unit_index=unit.index)
+            unit_index=unit.index, sensor=job.sensor)
         # Generous: the master's own deadline (estimate x 3 + 30 s) decides when it gives up.
         timeout = min(self.config.max_render_s, 120.0 + 10.0 * self._base_estimate(unit, params))
         try:
@@ -438,7 +453,7 @@ class RenderAgent:
         tile.meta.update({
             "job_id": job.job_id, "unit_index": unit.index, "spp": params.spp, "depth": params.depth,
             "band": params.band, "outputs": dict(params.outputs), "agent": self.jid, "level": job.level,
-            "rules": self.planner.rules_path.name, "integrator": integrator,
+            "rules": self._planner_for(job).rules_path.name, "integrator": integrator,
         })
         path = self.workdir / "tiles" / f"{_safe(job.job_id)}-{unit.index}.exr"
         # Not fsynced: the file lives until its upload; a crash loses the unit, which is rendered again.
@@ -466,6 +481,10 @@ class RenderAgent:
         if not scene.is_relative_to(folder.resolve()) or not scene.is_file():
             raise UnitFailed(f"scene {name!r} not found in the bundle of job {job.job_id}")
         defines = {**manifest.get("defines", {}), **(getattr(job, "defines", None) or {})}
+        try:
+            check_unpacked(scene, defines)
+        except QuekaroError as exc:
+            raise UnitFailed(f"scene bundle of job {job.job_id} refused: {exc}") from exc
         return SceneSpec(scene, defines)
 
     async def _upload(self, award: m.Award, path: Path, sha256: str) -> None:
@@ -480,7 +499,7 @@ class RenderAgent:
 
 def _kernel_key(job: m.JobInfo, unit: m.UnitSpec, params: UnitParams) -> tuple[Any, ...]:
     window = unit.rect.grow(params.band, job.width, job.height)
-    return job.scene_hash, window.w, window.h, params.depth, getattr(job, "integrator", "path")
+    return job.scene_hash, window.w, window.h, params.depth, job.integrator
 
 
 def _safe(name: str) -> str:
@@ -519,7 +538,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--master", required=True, help="the master's JID (only its messages are accepted)")
     p.add_argument("--threads", type=int, default=1, help="Dr.Jit threads of the render process (default 1)")
     p.add_argument("--rules", type=Path, default=None, help="rule file (default rules/pathtracing.xml)")
-    p.add_argument("--defuzzifier", default="centroid", choices=("centroid", "centre-of-sums"))
+    p.add_argument("--defuzzifier", default=None, choices=DEFUZZIFIERS,
+                   help="default for jobs that name none (default: centroid; centre of sums for MASYRO's dialect)")
     p.add_argument("--workdir", type=Path, default=None, help="bundle cache and tiles (default: a temp dir)")
     p.add_argument("--register", action="store_true", help="create the XMPP account in-band (embedded server)")
     p.add_argument("--ca-file", default=None, help="CA certificate to verify the XMPP server's TLS with")

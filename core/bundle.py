@@ -1,14 +1,15 @@
 """Scene bundles: one archive holding a scene file and every file it references, and its safe unpacking.
 
 Format: an uncompressed POSIX tar whose first member is `QUEKARO-MANIFEST.json` (format, version, the
-scene's relative name, its `-D` parameters, and the size and sha256 of every other member), followed by
-the files under their names relative to the scene's folder. Nothing in the scene is rewritten, so the
-unpacked scene loads exactly as the original.
-
-Making a bundle refuses, naming the XML file and the reference at fault: absolute references (they
-would read the agent's own files), references that escape the scene's folder (lexically with `..` or
-through a symbolic link), missing files and files over the size limit. Bundles are byte-for-byte
-deterministic (sorted names, zeroed times and owners), so their sha256 names them.
+scene's name, its `-D` parameters, the job's rule file if it has one, and the size and sha256 of every
+other member), followed by the files. The scene file lies at the top; every file it reads (found as
+Mitsuba finds it: core.resolver, through `<path>`, includes, `-a` search paths, absolute names, files
+outside the scene's folder too: the submitter owns them) lies at `files/<16 hex>/<its name>`, and the
+XML files are rewritten to name those members and lose their `<path>`s, so the unpacked scene reads
+exactly the files the original read and nothing outside the bundle (check_unpacked verifies it where
+the bundle is used). Missing files and files over the size limit are refused, naming the XML file, the
+line and every folder searched. Bundles are byte-for-byte deterministic (sorted names, zeroed times and
+owners), so their sha256 names them.
 
 Unpacking assumes a hostile archive. It uses `tarfile` (not zip) because an uncompressed tar cannot be a
 decompression bomb: everything unpacked is bounded by the archive's own size, which is checked first.
@@ -30,19 +31,22 @@ import re
 import shutil
 import tarfile
 import tempfile
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
-from typing import IO
+from typing import IO, Any
+
+from lxml import etree
 
 from core.errors import SceneError
 from core.hashing import sha256_file
-from core.scene import parse_xml
+from core.planner import Planner
+from core.resolver import Reference, SceneFiles, parse_xml, read_scene
+from fuzzy.errors import RuleFileError
 
 MANIFEST_NAME = "QUEKARO-MANIFEST.json"
 FORMAT = "quekaro-bundle"
-VERSION = 1
-MAX_INCLUDE_DEPTH = 15
+VERSION = 2
+RULES_NAME = "QUEKARO-RULES.xml"
 MAX_MANIFEST_BYTES = 4 << 20
 _CHUNK = 1 << 20
 _PARAM_RE = re.compile(r"\$([A-Za-z_][A-Za-z0-9_]*)")
@@ -72,90 +76,75 @@ class BundleInfo:
     files: dict[str, int] = field(default_factory=dict)
 
 
-# ---- finding what a scene references ---------------------------------------------------------
+# ---- making ----------------------------------------------------------------------------------
 
 
-def _references(path: Path, params: dict[str, str], depth: int) -> Iterator[tuple[Path, str, bool]]:
-    """(referring file, file name as written after `$` substitution, is-include) in document order."""
-    if depth > MAX_INCLUDE_DEPTH:
-        raise BundleError(f"{path}: includes nested deeper than {MAX_INCLUDE_DEPTH} levels")
-    for elem in parse_xml(path, BundleError).iter():
-        if not isinstance(elem.tag, str):
-            continue
-        if elem.tag == "default":
-            params.setdefault(elem.get("name", ""), elem.get("value", ""))
-            continue
-        name = None
-        if elem.tag == "include" or (elem.tag == "spectrum" and elem.get("filename")):
-            name = elem.get("filename")
-        elif elem.get("name") == "filename":
-            name = elem.get("value")
-        if name:
-            yield path, _PARAM_RE.sub(lambda m: params.get(m.group(1), m.group(0)), name), \
-                elem.tag == "include"
+def _member_name(target: Path, root: Path) -> str:
+    """Files in the scene's folder keep their place; others go to files/<hash of their path>/<name>."""
+    if target.resolve().is_relative_to(root.resolve()):
+        return target.resolve().relative_to(root.resolve()).as_posix()
+    return f"files/{hashlib.sha256(str(target).encode()).hexdigest()[:16]}/{target.name}"
 
 
-def _locate(name: str, referrer: Path, root: Path) -> Path:
-    """The lexical path of a reference: beside the referring file if there, else beside the scene file
-    (Mitsuba's lookup order, as in core.scene); refused when absolute or outside `root`."""
-    if "$" in name:
-        raise BundleError(f"{referrer}: file name {name!r} uses an undefined parameter")
-    if PurePosixPath(name).is_absolute() or Path(name).is_absolute() or "\\" in name:
-        raise BundleError(f"{referrer}: reference {name!r} is an absolute path; bundles hold only "
-                          f"files named relative to the scene's folder {root}")
-    candidates = [Path(os.path.normpath(base / name)) for base in (referrer.parent, root)]
-    target = next((c for c in candidates if c.exists()), candidates[-1])
-    if not target.is_relative_to(root):
-        raise BundleError(f"{referrer}: reference {name!r} escapes the scene's folder {root}")
-    if not target.is_file():
-        raise BundleError(f"{referrer}: referenced file {name!r} not found (looked for {target})")
-    if not target.resolve().is_relative_to(root.resolve()):
-        raise BundleError(f"{referrer}: reference {name!r} is a link to {target.resolve()}, "
-                          f"outside the scene's folder {root}")
-    return target
-
-
-def scene_members(scene_path: Path, defines: dict[str, str] | None = None) -> dict[str, Path]:
-    """Relative name -> file for the scene and everything it references (includes followed)."""
+def scene_members(scene_path: Path, defines: dict[str, str] | None = None,
+                  search_paths: tuple[Path, ...] = ()) -> dict[str, bytes | Path]:
+    """Member name -> content (rewritten XML as bytes, other files by path) for the scene and every file
+    it reads."""
     scene = Path(os.path.abspath(scene_path))
     if not scene.is_file():
         raise BundleError(f"{scene_path}: scene file not found")
-    root = scene.parent
-    members = {scene.name: scene}
-    params = {str(k): str(v) for k, v in (defines or {}).items()}
-    stack = [(scene, 0)]
-    while stack:
-        current, depth = stack.pop()
-        for referrer, name, is_include in _references(current, params, depth):
-            target = _locate(name, referrer, root)
-            rel = target.relative_to(root).as_posix()
-            if rel == MANIFEST_NAME:
-                raise BundleError(f"{referrer}: reference {name!r} collides with the bundle manifest")
-            if is_include and rel not in members:
-                stack.append((target, depth + 1))
-            members.setdefault(rel, target)
-    _cross_check(scene, defines, members)
+    try:
+        found = read_scene(scene, {str(k): str(v) for k, v in (defines or {}).items()}, search_paths,
+                           cwd=Path.cwd())
+    except SceneError as exc:
+        raise BundleError(str(exc)) from exc
+    names = {found.main: scene.name}
+    for ref in found.references:
+        if ref.kind != "path":
+            names.setdefault(ref.target, _member_name(ref.target, scene.parent))
+    raw = {path: parse_xml(path, BundleError) for path in found.trees}  # as written, `$names` and all
+    changed = {ref.file for ref in found.references if _rewrite(ref, raw[ref.file], names,
+                                                                 _lookup_base(ref, found, names))}
+    members: dict[str, bytes | Path] = {}
+    for target, name in names.items():  # an XML file whose references stay as written is packed as is
+        members[name] = etree.tostring(raw[target], xml_declaration=True, encoding="utf-8") \
+            if target in changed else target
     return members
 
 
-def _cross_check(scene: Path, defines: dict[str, str] | None, members: dict[str, Path]) -> None:
-    # core.scene reads the same XML for rendering; a file it needs that this walk missed would make a
-    # bundle that fails on every agent, so say so here instead.
-    from core.scene import SceneSpec, referenced_files
-
-    ours = {p.resolve() for p in members.values()}
-    try:
-        needed = referenced_files(SceneSpec(scene, defines or {}))
-    except BundleError:
-        raise
-    except SceneError as exc:
-        raise BundleError(str(exc)) from exc
-    missed = [p for p in needed if p.resolve() not in ours]
-    if missed:
-        raise BundleError(f"{scene}: references {', '.join(map(str, missed))} that the bundle would not hold")
+def _lookup_base(ref: Reference, found: SceneFiles, names: dict[Path, str]) -> PurePosixPath:
+    """The bundle folder Mitsuba will look the rewritten name up in first (no `<path>`s are left): the
+    including file's folder for an include; for a spectrum file, the folder of the file that included
+    the one naming it; the scene's folder for every other file (they are looked up after parsing)."""
+    owner = ref.file if ref.kind == "include" else found.includers.get(ref.file) if ref.kind == "spectrum" else None
+    return PurePosixPath(names[owner]).parent if owner is not None else PurePosixPath(".")
 
 
-# ---- making ----------------------------------------------------------------------------------
+def _rewrite(ref: Reference, raw_root: Any, names: dict[Path, str], base: PurePosixPath) -> bool:
+    """Point the reference, in the file as written, at its member (found from `base`); whether it changed."""
+    elem = raw_root.xpath(ref.element.getroottree().getpath(ref.element))[0]
+    if ref.kind == "path":
+        elem.getparent().remove(elem)  # every file it found is now named by its member
+        return True
+    attr = "filename" if ref.kind in ("include", "spectrum") else "value"
+    new = PurePosixPath(os.path.relpath(names[ref.target], base.as_posix())).as_posix()
+    if new == elem.get(attr):
+        return False
+    _keep_parameters(elem, raw_root, elem.get(attr, ""))
+    elem.set(attr, new)
+    return True
+
+
+def _keep_parameters(elem: Any, root: Any, written: str) -> None:
+    """Mitsuba refuses a -D parameter that nothing uses: when a rewritten name held `$x`, a `<default>`
+    that uses it keeps it in use (put after the element's top-level ancestor, where `$x` is known)."""
+    top = elem
+    while top.getparent() is not None and top.getparent() is not root:
+        top = top.getparent()
+    for name in dict.fromkeys(_PARAM_RE.findall(written)):
+        keeper = f"quekaro_keeps_{name}"
+        if not root.xpath(f"default[@name='{keeper}']"):
+            top.addnext(etree.Element("default", name=keeper, value=f"${name}"))
 
 
 def _tarinfo(name: str, size: int) -> tarfile.TarInfo:
@@ -166,22 +155,30 @@ def _tarinfo(name: str, size: int) -> tarfile.TarInfo:
     return info
 
 
+def _entry(name: str, content: bytes | Path, limits: BundleLimits) -> dict[str, Any]:
+    if isinstance(content, bytes):
+        return {"path": name, "size": len(content), "sha256": hashlib.sha256(content).hexdigest()}
+    size = content.stat().st_size  # checked before reading, so a huge file costs nothing
+    if size > limits.max_file_bytes:
+        raise BundleError(f"{content}: {size} bytes, over the per-file limit {limits.max_file_bytes}")
+    return {"path": name, "size": size, "sha256": sha256_file(content)}
+
+
 def make_bundle(scene_path: str | Path, defines: dict[str, str] | None, out: str | Path,
-                limits: BundleLimits | None = None) -> BundleInfo:
-    """Write the bundle of `scene_path` (with its `-D` parameters) to `out`; return what was written."""
+                limits: BundleLimits | None = None, search_paths: tuple[Path, ...] = (),
+                rules: Path | None = None) -> BundleInfo:
+    """Write the bundle of `scene_path` (with its `-D` parameters, `-a` search paths and, if given, the
+    job's rule file) to `out`; return what was written."""
     limits = limits or BundleLimits()
-    members = scene_members(Path(scene_path), defines)
+    members = scene_members(Path(scene_path), defines, tuple(search_paths))
+    if rules is not None:
+        members[RULES_NAME] = _checked_rules(Path(rules))
     if len(members) > limits.max_files:
-        raise BundleError(f"{scene_path}: references {len(members)} files, over the limit {limits.max_files}")
-    entries = []
-    for rel in sorted(members):
-        size = members[rel].stat().st_size  # checked before reading, so a huge file costs nothing
-        if size > limits.max_file_bytes:
-            raise BundleError(f"{members[rel]}: {size} bytes, over the per-file limit "
-                              f"{limits.max_file_bytes}")
-        entries.append({"path": rel, "size": size, "sha256": sha256_file(members[rel])})
+        raise BundleError(f"{scene_path}: reads {len(members)} files, over the limit {limits.max_files}")
+    entries = [_entry(name, members[name], limits) for name in sorted(members)]
     manifest = {"format": FORMAT, "version": VERSION, "scene": Path(scene_path).name,
-                "defines": {str(k): str(v) for k, v in (defines or {}).items()}, "files": entries}
+                "defines": {str(k): str(v) for k, v in (defines or {}).items()}, "files": entries,
+                "rules": RULES_NAME if rules is not None else None}
     blob = json.dumps(manifest, sort_keys=True, indent=1).encode()
     out = Path(out)
     tmp = out.with_name(f".{out.name}.{os.getpid()}.part")
@@ -189,7 +186,8 @@ def make_bundle(scene_path: str | Path, defines: dict[str, str] | None, out: str
         with tarfile.open(tmp, "w", format=tarfile.PAX_FORMAT) as tar:
             tar.addfile(_tarinfo(MANIFEST_NAME, len(blob)), io.BytesIO(blob))
             for entry in entries:
-                with members[entry["path"]].open("rb") as fh:
+                content = members[entry["path"]]
+                with (io.BytesIO(content) if isinstance(content, bytes) else content.open("rb")) as fh:
                     tar.addfile(_tarinfo(entry["path"], entry["size"]), fh)
         size = tmp.stat().st_size
         if size > limits.max_bundle_bytes:
@@ -199,6 +197,28 @@ def make_bundle(scene_path: str | Path, defines: dict[str, str] | None, out: str
     finally:
         tmp.unlink(missing_ok=True)
     return BundleInfo(out, bundle_hash(out), size, manifest["scene"], {e["path"]: e["size"] for e in entries})
+
+
+def _checked_rules(path: Path) -> bytes:
+    """The rule file's bytes, refused (naming the file) unless a planner can use it."""
+    try:
+        Planner(path)
+    except (RuleFileError, ValueError) as exc:
+        raise BundleError(f"--rules: {exc}") from exc
+    return path.read_bytes()
+
+
+def check_unpacked(scene: Path, defines: dict[str, str]) -> None:
+    """Refuse an unpacked scene that would read any file outside its bundle folder (naming it)."""
+    folder = Path(scene).parent.resolve()
+    try:
+        found = read_scene(scene, defines, (), cwd=None)
+    except SceneError as exc:
+        raise BundleError(f"bundle scene: {exc}") from exc
+    for ref in found.references:
+        if not ref.target.resolve().is_relative_to(folder):
+            raise BundleError(f"{ref.file.name}:{ref.line}: reference {ref.name!r} resolves to "
+                              f"{ref.target}, outside the bundle")
 
 
 def bundle_hash(data: bytes | str | Path) -> str:
@@ -251,6 +271,9 @@ def _read_manifest(tar: tarfile.TarFile, member: tarfile.TarInfo | None, dest: P
                           f"{manifest.get('version')!r} (expected {FORMAT!r}/{VERSION})")
     if not isinstance(scene, str) or scene not in files:
         raise BundleError(f"bundle manifest: scene {scene!r} is not among its files")
+    if manifest.get("rules") not in (None, RULES_NAME) or (manifest.get("rules") and RULES_NAME not in files):
+        raise BundleError(f"bundle manifest: rules {str(manifest.get('rules'))[:60]!r} is not {RULES_NAME!r} "
+                          "among its files")
     # Kept beside the files so that the unpacked folder says what it is (read_manifest).
     (dest / MANIFEST_NAME).write_bytes(raw)
     return {"scene": scene, "files": files}

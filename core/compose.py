@@ -11,7 +11,9 @@ Rules for the awkward cases (counted in `ComposeReport`):
   - a covered pixel with no finite contribution is filled with the mean of the finite composed pixels
     in its 3x3 neighbourhood, or 0 when there are none (`filled`);
   - a pixel no tile covers raises TileError, or with `allow_uncovered=True` is 0 and counted;
-  - duplicate tiles for the same core (a late second delivery) are ignored: the first in the list wins.
+  - duplicate tiles for the same core (a late second delivery) are ignored: the first in the list wins;
+  - every channel (alpha, AOVs, moments) is blended with the same weights; all tiles must carry the
+    same channels in the same order (TileError otherwise).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ class TileLike(Protocol):
     pixels: np.ndarray
     rect: Rect
     core: Rect
+    channels: tuple[str, ...]
 
 
 @dataclass
@@ -82,10 +85,11 @@ def blend_weights(geometry: Sequence[tuple[Rect, Rect]], width: int, height: int
 def compose(
     tiles: Iterable[TileLike], width: int, height: int, allow_uncovered: bool = False
 ) -> tuple[np.ndarray, ComposeReport]:
-    """Blend tiles into a float32 (height, width, 3) image; see the module docstring for the rules."""
+    """Blend tiles into a float32 (height, width, channels) image; see the module docstring for the rules."""
     report = ComposeReport()
     chosen = _dedupe(tiles, width, height, report)
-    acc = np.zeros((height, width, 3), dtype=np.float64)
+    depth = len(_channels(chosen[0])) if chosen else 3
+    acc = np.zeros((height, width, depth), dtype=np.float64)
     wsum = np.zeros((height, width), dtype=np.float64)
     covered = np.zeros((height, width), dtype=bool)
     for tile in chosen:
@@ -101,7 +105,7 @@ def compose(
         covered[sl] = True
     report.tiles_used = len(chosen)
     _check_coverage(covered, allow_uncovered, report)
-    image = np.zeros((height, width, 3), dtype=np.float64)
+    image = np.zeros((height, width, depth), dtype=np.float64)
     has = wsum > 0
     image[has] = acc[has] / wsum[has][:, None]
     holes = covered & ~has
@@ -114,9 +118,12 @@ def compose(
 def _dedupe(tiles: Iterable[TileLike], width: int, height: int, report: ComposeReport) -> list[TileLike]:
     """Validate every tile and keep the first one delivered per core."""
     seen: set[Rect] = set()
-    chosen = []
+    chosen: list[TileLike] = []
     for tile in tiles:
         _validate(tile, width, height)
+        if chosen and _channels(tile) != _channels(chosen[0]):
+            raise TileError(f"tile for unit {tile.core.as_list()}: channels {list(_channels(tile))[:8]} differ "
+                            f"from the first tile's {list(_channels(chosen[0]))[:8]}")
         if tile.core in seen:
             report.duplicates_ignored += 1
             continue
@@ -133,8 +140,13 @@ def _validate(tile: TileLike, width: int, height: int) -> None:
     if core.intersect(rect) != core or core.area == 0:
         raise TileError(f"{where}: core is empty or not inside the rendered rectangle {rect.as_list()}")
     shape = np.shape(tile.pixels)
-    if shape != (rect.h, rect.w, 3):
-        raise TileError(f"{where}: pixels have shape {shape}, expected {(rect.h, rect.w, 3)}")
+    expected = (rect.h, rect.w, len(_channels(tile)))
+    if shape != expected:
+        raise TileError(f"{where}: pixels have shape {shape}, expected {expected}")
+
+
+def _channels(tile: TileLike) -> tuple[str, ...]:
+    return tuple(getattr(tile, "channels", ("R", "G", "B")))
 
 
 def _check_coverage(covered: np.ndarray, allow_uncovered: bool, report: ComposeReport) -> None:

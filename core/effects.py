@@ -1,16 +1,17 @@
-"""Effect analysis: decide what a render must simulate (variant, integrator, depth cap), with a reason
-for every decision, from the scene's XML (before a variant exists) and the loaded scene's flags.
+"""Effect analysis: what a render may save without changing the image, with a reason for every decision.
 
-Rules, each conservative (when unsure, keep the costlier choice):
-- variant: spectral when the XML uses spectral-only input (wavelength:value spectra, spectrum files,
-  blackbody/regular/irregular spectra); otherwise rgb.
-- integrator: `volpath` when the XML declares a participating medium; `direct` when no light can
-  reach the camera through two or more bounces (no delta/glossy/transmissive BSDF, and either every
-  non-emitting surface is black or there is a single convex one, which cannot light itself);
-  otherwise `path`.
-- depth cap: only without delta, glossy or transmissive BSDFs and without media (no specular chains):
-  a path of depth d carries at most a^(d-1) of the light, a = the largest diffuse albedo, so depth is
-  capped where the whole tail beyond it is below DEPTH_TAIL of the image's light.
+The scene says what to compute: its integrator (type, parameters, nested integrators), its sensor and
+its film are kept as written. The analysis may only make the render cheaper where the image stays
+statistically the same, and says why:
+- variant: rgb unless the XML's spectral data would render differently in rgb (spectral_data.py's test:
+  paths of up to three bounces off each spectrum, and between any two, keep their colour in rgb within
+  RGB_TOLERANCE; a wavelength-dependent index of refraction always needs spectral; blackbody spectra are
+  spectral-only in Mitsuba). A flat reflectance passes; narrow lines and structured spectra do not.
+- depth cap: only for path tracers without delta, glossy or transmissive BSDFs and without media (no
+  specular chains): a path of depth d carries at most a^(d-1) of the light, a = the largest diffuse
+  albedo, so max_depth is lowered where the whole tail beyond it is below DEPTH_TAIL of the light.
+- tiles: an integrator whose samples stay in their pixel can be split into units; one that splats
+  light paths anywhere on the film (ptracer) is rendered whole, as one unit (core.integrators).
 User overrides (variant, integrator, max_depth) always win, and the reasons say so.
 """
 
@@ -22,65 +23,51 @@ from typing import Any
 
 import numpy as np
 
+from core import integrators, spectral_data
 from core import scene as scene_mod
 from core.errors import SceneError
 
 DEPTH_TAIL = 5e-3
 RGB_VARIANT, SPECTRAL_VARIANT = "llvm_ad_rgb", "llvm_ad_spectral"
-_SPECTRAL_TYPES = {"blackbody", "regular", "irregular"}
-_PATH_TRACERS = {"path", "volpath", "volpathmis", "direct", "prb", "prbvolpath"}
-_CONVEX = {"Sphere", "Rectangle", "Disk"}
+_CAPPABLE = {"path", "volpath", "volpathmis", "prb", "prb_basic", "prbvolpath"}
 _OVERRIDABLE = ("variant", "integrator", "max_depth")
 
 
 @dataclass
 class Effects:
-    """What the render simulates, and why."""
+    """What the render simulates, and why.
+
+    `integrator` names what renders (the scene's own tree, e.g. `moment(path)`, or the user's override);
+    `override` is the user's integrator type (None: the scene's own); `max_depth` the path depth the units
+    start from (-1: unbounded, or the integrator takes none); `splittable` whether units may be tiles.
+    """
 
     variant: str
     integrator: str
     max_depth: int
     reasons: list[str] = field(default_factory=list)
+    override: str | None = None
+    splittable: bool = True
 
     def to_dict(self) -> dict[str, Any]:
         return {"variant": self.variant, "integrator": self.integrator, "max_depth": self.max_depth,
-                "reasons": list(self.reasons)}
+                "reasons": list(self.reasons), "override": self.override, "splittable": self.splittable}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Effects:
         return cls(str(data["variant"]), str(data["integrator"]), int(data["max_depth"]),
-                   [str(r) for r in data.get("reasons", [])])
+                   [str(r) for r in data.get("reasons", [])], data.get("override"),
+                   bool(data.get("splittable", True)))
 
 
-def _spectral_need(root: Any) -> str | None:
-    for elem in root.iter("spectrum"):
-        src = elem.get(scene_mod.SRC_ATTR, "?")
-        if elem.get("type") in _SPECTRAL_TYPES:
-            return f"{src}: <spectrum type={elem.get('type')!r}> is spectral-only"
-        if elem.get("filename"):
-            return f"{src}: spectrum read from file {elem.get('filename')!r}"
-        if ":" in elem.get("value", ""):
-            return f"{src}: <spectrum name={elem.get('name')!r}> is given per wavelength"
-    return None
-
-
-def _scene_integrator(root: Any) -> tuple[str, int]:
-    elem = root.find("integrator")
-    if elem is None:
-        return "path", -1
-    depth = -1
-    for child in elem:
-        if child.tag == "integer" and child.get("name") == "max_depth":
-            try:
-                depth = int(child.get("value", "-1"))
-            except ValueError as exc:
-                raise SceneError(f"{elem.get(scene_mod.SRC_ATTR)}: max_depth {child.get('value')!r}") from exc
-    if depth == 0 or depth < -1:
+def _scene_depth(elem: Any) -> int:
+    depth = integrators.depth_of(elem)
+    if depth is not None and (depth == 0 or depth < -1):
         # Mitsuba renders nothing at max_depth 0 (1 shows only the emitters): refuse rather than
         # deliver a black image without a word.
         raise SceneError(f"{elem.get(scene_mod.SRC_ATTR)}: integrator max_depth {depth} renders nothing; "
                          "use 1 or more, or -1 for unbounded")
-    return elem.get("type", "path"), depth
+    return -1 if depth is None else depth
 
 
 def _albedo(bsdf: Any) -> float:
@@ -97,7 +84,7 @@ def _albedo(bsdf: Any) -> float:
 def _surface_facts(loaded: Any) -> dict[str, Any]:
     import mitsuba as mi
 
-    facts = {"delta": False, "glossy": False, "transmission": False, "albedo": 0.0, "lit_shapes": []}
+    facts = {"delta": False, "glossy": False, "transmission": False, "albedo": 0.0}
     for shape in loaded.shapes():
         bsdf = shape.bsdf()
         flags = int(bsdf.flags())
@@ -106,11 +93,7 @@ def _surface_facts(loaded: Any) -> dict[str, Any]:
         facts["transmission"] |= bool(flags & int(mi.BSDFFlags.Transmission) and
                                       not flags & int(mi.BSDFFlags.Null))
         if not shape.is_emitter():
-            albedo = _albedo(bsdf)
-            facts["albedo"] = max(facts["albedo"], albedo)
-            if albedo > 0:
-                facts["lit_shapes"].append(shape.class_name())
-    facts["infinite"] = any(int(e.flags()) & int(mi.EmitterFlags.Infinite) for e in loaded.emitters())
+            facts["albedo"] = max(facts["albedo"], _albedo(bsdf))
     return facts
 
 
@@ -124,25 +107,37 @@ def depth_cap(albedo: float, tail: float = DEPTH_TAIL) -> int | None:
 
 
 def analyse(spec: scene_mod.SceneSpec, overrides: dict[str, Any] | None = None) -> Effects:
-    """Decide variant, integrator and depth for the scene; `overrides` (variant/integrator/max_depth) win."""
+    """Decide variant, depth and tiling for the scene; `overrides` (variant/integrator/max_depth) win."""
     overrides = {k: v for k, v in (overrides or {}).items() if v is not None}
     unknown = set(overrides) - set(_OVERRIDABLE)
     if unknown:
         raise SceneError(f"unknown effect override(s): {sorted(unknown)} (allowed: {list(_OVERRIDABLE)})")
     root = scene_mod.expand(spec).root
     reasons: list[str] = []
-    need = _spectral_need(root)
+    need = spectral_data.spectral_need(root, spec.path)
     variant = SPECTRAL_VARIANT if need else RGB_VARIANT
-    reasons.append(f"variant {variant}: " + (need or "no spectral-only input in the XML"))
+    reasons.append(f"variant {variant}: " + (need or "no spectral data that rgb would render differently"))
     variant = _override(overrides, "variant", variant, reasons)
-    loaded = scene_mod.load(spec, variant)
-    facts = _surface_facts(loaded)
-    scene_type, scene_depth = _scene_integrator(root)
-    integrator = _choose_integrator(root, facts, scene_type, reasons)
-    integrator = _override(overrides, "integrator", integrator, reasons)
-    depth = _choose_depth(facts, integrator, scene_depth, root.find(".//medium") is not None, reasons)
+    elem = integrators.scene_element(root)
+    override = overrides.get("integrator")
+    name = override or integrators.describe(elem)
+    reasons.append(f"integrator {name}: " + ("user override" if override else "the scene's own, kept as written"))
+    if override:
+        entry = integrators.kind(override)
+        split, why = entry.splittable, f"{override}: {entry.note}"
+    else:
+        split, why = integrators.splittable(elem)
+    reasons.append(("tiles: " if split else "one unit, the whole film: ") + why)
+    loaded = scene_mod.load(spec, variant)  # also checks that Mitsuba accepts the scene
+    takes_depth = integrators.kind(override).depth if override else integrators.depth_of(elem) is not None
+    if "max_depth" in overrides and not takes_depth:
+        raise SceneError(f"{spec.path}: --depth {overrides['max_depth']}: the integrator {name} takes no depth")
+    depth = _scene_depth(elem)
+    if "max_depth" not in overrides and not override:
+        media = root.find(".//medium") is not None
+        depth = _choose_depth(_surface_facts(loaded), elem, depth, media, reasons)
     depth = int(_override(overrides, "max_depth", depth, reasons))
-    return Effects(variant, integrator, depth, reasons)
+    return Effects(variant, name, depth, reasons, override, split)
 
 
 def _override(overrides: dict[str, Any], key: str, chosen: Any, reasons: list[str]) -> Any:
@@ -152,30 +147,14 @@ def _override(overrides: dict[str, Any], key: str, chosen: Any, reasons: list[st
     return chosen
 
 
-def _choose_integrator(root: Any, facts: dict[str, Any], scene_type: str, reasons: list[str]) -> str:
-    if scene_type not in _PATH_TRACERS:
-        reasons.append(f"integrator {scene_type}: the scene's own, not a path tracer, kept as is")
-        return scene_type
-    if root.find(".//medium") is not None:
-        reasons.append("integrator volpath: the scene declares a participating medium")
-        return "volpath"
-    chains = facts["delta"] or facts["glossy"] or facts["transmission"]
-    lit = facts["lit_shapes"]
-    single_convex = len(lit) <= 1 and all(name in _CONVEX for name in lit)
-    if not chains and single_convex:
-        why = "no non-emitting surface reflects light" if not lit else f"a single convex {lit[0]} cannot light itself"
-        reasons.append(f"integrator direct: no indirect light can reach the camera ({why})")
-        return "direct"
-    what = "specular/glossy/transmissive BSDFs" if chains else f"{len(lit)} reflecting surfaces light each other"
-    reasons.append(f"integrator path: indirect light matters ({what})")
-    return "path"
-
-
-def _choose_depth(facts: dict[str, Any], integrator: str, scene_depth: int, media: bool,
-                  reasons: list[str]) -> int:
-    if integrator == "direct":
-        reasons.append("max_depth 2: the direct integrator stops after one bounce")
-        return 2
+def _choose_depth(facts: dict[str, Any], elem: Any, scene_depth: int, media: bool, reasons: list[str]) -> int:
+    depth_types = [t for t in integrators.types(elem) if integrators.kind(t).depth]
+    if not depth_types:
+        reasons.append("max_depth: the integrator takes none")
+        return scene_depth
+    if any(t not in _CAPPABLE for t in depth_types):
+        reasons.append(f"max_depth {scene_depth}: the scene's own (no cap for {', '.join(depth_types)})")
+        return scene_depth
     if facts["delta"] or facts["glossy"] or facts["transmission"] or media:
         reasons.append(f"max_depth {scene_depth}: the scene's own; no cap with specular/glossy chains or media")
         return scene_depth

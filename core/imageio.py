@@ -1,4 +1,5 @@
-"""Whole-image files: linear float32 RGB EXR in and out, and a tonemapped sRGB PNG for people.
+"""Whole-image files: linear float32 EXR in and out (RGB, or every channel of a film: alpha, AOVs,
+moments), and a tonemapped sRGB PNG of the R, G, B channels for people.
 
 No NaN passes silently: writing an image with non-finite values is an error unless the caller says
 `allow_nonfinite=True` (EXR only; a PNG cannot show them).
@@ -6,6 +7,8 @@ No NaN passes silently: writing an image with non-finite values is an error unle
 
 from __future__ import annotations
 
+import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -35,37 +38,66 @@ def _check_finite(image: np.ndarray, path: Path) -> None:
         raise ImageError(f"{path}: image has {bad} non-finite pixels (NaN or Inf)")
 
 
-def write_exr(path: str | Path, image: np.ndarray, allow_nonfinite: bool = False) -> Path:
-    """Write a linear float32 RGB EXR (ZIP compressed)."""
+def write_exr(path: str | Path, image: np.ndarray, allow_nonfinite: bool = False,
+              channels: Sequence[str] | None = None) -> Path:
+    """Write a linear float32 EXR (ZIP compressed): RGB, or every channel named in `channels`.
+
+    Written to a temporary name beside `path` and renamed, so a failed write leaves no partial file."""
     import OpenEXR
 
     path = Path(path)
-    rgb = as_rgb(image, str(path))
+    if channels is None:
+        planes = {"RGB": as_rgb(image, str(path))}
+    else:
+        planes = _planes(np.asarray(image, dtype=np.float32), tuple(channels), path)
     if not allow_nonfinite:
-        _check_finite(rgb, path)
+        for plane in planes.values():
+            _check_finite(plane if plane.ndim == 3 else plane[..., None], path)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
     try:
-        with OpenEXR.File(header, {"RGB": rgb}) as exr:
-            exr.write(str(path))
+        with OpenEXR.File(header, planes) as exr:
+            exr.write(str(tmp))
+        os.replace(tmp, path)
     except (OSError, RuntimeError) as exc:
         raise ImageError(f"{path}: cannot write EXR ({exc})") from exc
+    finally:
+        tmp.unlink(missing_ok=True)
     return path
 
 
-def read_exr(path: str | Path) -> np.ndarray:
-    """Read an EXR's R, G, B (or Y) channels as float32 (H, W, 3), whatever their stored precision."""
+def _planes(image: np.ndarray, channels: tuple[str, ...], path: Path) -> dict[str, np.ndarray]:
+    if image.ndim != 3 or image.shape[-1] != len(channels) or len(set(channels)) != len(channels):
+        raise ImageError(f"{path}: image shaped {image.shape} does not match its {len(channels)} "
+                         f"distinct channel names")
+    return {c: np.ascontiguousarray(image[..., i]) for i, c in enumerate(channels)}
+
+
+def read_exr_channels(path: str | Path) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Every channel of an EXR as float32 (H, W, C) and their names: R, G, B first, the rest sorted."""
+    channels = _read_planes(Path(path))
+    names = [c for c in "RGB" if c in channels] + sorted(c for c in channels if c not in ("R", "G", "B"))
+    return np.stack([channels[c] for c in names], axis=-1), tuple(names)
+
+
+def _read_planes(path: Path) -> dict[str, np.ndarray]:
     import OpenEXR
 
-    path = Path(path)
     if not path.is_file():
         raise ImageError(f"{path}: no such file")
     if not OpenEXR.isOpenExrFile(str(path)):
         raise ImageError(f"{path}: not an EXR file")
     try:
         with OpenEXR.File(str(path), separate_channels=True) as exr:
-            channels = {k: np.array(v.pixels, dtype=np.float32) for k, v in exr.channels().items()}
+            return {k: np.array(v.pixels, dtype=np.float32) for k, v in exr.channels().items()}
     except Exception as exc:  # OpenEXR reports corrupt files as RuntimeError or ValueError
         raise ImageError(f"{path}: unreadable EXR ({exc})") from exc
+
+
+def read_exr(path: str | Path) -> np.ndarray:
+    """Read an EXR's R, G, B (or Y) channels as float32 (H, W, 3), whatever their stored precision."""
+    path = Path(path)
+    channels = _read_planes(path)
     if all(c in channels for c in "RGB"):
         return np.stack([channels["R"], channels["G"], channels["B"]], axis=-1)
     if "Y" in channels:

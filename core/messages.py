@@ -23,6 +23,7 @@ from typing import Any, ClassVar, Union
 
 from core.errors import MessageError
 from core.geometry import Rect
+from fuzzy.engine import DEFUZZIFIERS
 
 PROTOCOL_VERSION = 1
 ONTOLOGY = "quekaro-render"
@@ -82,7 +83,12 @@ class JobInfo:
     defines: dict[str, str] = _spec(max_items=64, key_pattern=_NAME, max_len=1024, default_factory=dict)  # noqa: RUF009
     variant: str = _spec(pattern=re.compile(r"(scalar|llvm|cuda)(_ad)?_(rgb|spectral|mono)[a-z_]*"),
                          default="llvm_ad_rgb")
-    integrator: str = _spec(choices=("direct", "path", "volpath"), default="path")
+    # None: the scene's own integrator, as written; a plugin type: the user's override.
+    integrator: str | None = _spec(pattern=re.compile(r"[a-z][a-z0-9_]{0,31}"), default=None)
+    sensor: int = _spec(lo=0, hi=1024, default=0)  # which of the scene's sensors renders
+    # The job's own rule file, inside the bundle (its sha256); None: each agent's default rules.
+    rules_sha256: str | None = _spec(pattern=_HEX, default=None)
+    defuzzifier: str | None = _spec(choices=DEFUZZIFIERS, default=None)  # None: each agent's own
 
     def check(self) -> None:
         for name, (lo, hi) in self.ranges.items():

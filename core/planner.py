@@ -6,7 +6,8 @@ Otherwise the fuzzy rule base (rules/pathtracing.xml unless told) weights the us
 `fuzzy.render_params` documents; the band never drops below `min_band`, the reach of the gaussian
 reconstruction filter (2 px), so that neighbouring tiles always overlap enough to blend.
 
-Depth is quantised: the crisp Rl is rounded to the nearest of DEPTH_STEPS (1, 3/4, 1/2 of the user's
+A user depth of -1 (unbounded, or an integrator that takes no depth) is kept as it is: there is no
+depth to weight. Depth is quantised: the crisp Rl is rounded to the nearest of DEPTH_STEPS (1, 3/4, 1/2 of the user's
 depth) before it weights the user's depth. Dr.Jit bakes max_depth into the kernel, so every distinct
 depth costs a compilation per window size (~0.1-0.5 s); three steps keep that bounded.
 
@@ -17,6 +18,7 @@ same in the farm as in `quekaro render`. How many samples a level spends overall
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
@@ -25,7 +27,9 @@ from pathlib import Path
 import numpy as np
 
 from fuzzy import Engine, load_rulebase
-from fuzzy.render_params import LEVELS, op_value, to_render_params
+from fuzzy.render_params import LEVELS, masyro_render_params, to_render_params
+from fuzzy.terms import Trapezoid
+from fuzzy.variables import masyro_sets, widen_degenerate
 
 FEATURES = ("C", "S", "Nd")
 DEPTH_STEPS = (1.0, 0.75, 0.5)  # the fractions of the user's depth a unit may render with
@@ -64,14 +68,16 @@ class Planner:
     def __init__(
         self,
         rules_path: str | os.PathLike[str] | None = None,
-        defuzzifier: str = "centroid",
+        defuzzifier: str | None = None,
         min_band: int = 2,
     ) -> None:
         if min_band < 0:
             raise ValueError(f"min_band must be >= 0, got {min_band}")
         self.rules_path = Path(rules_path) if rules_path is not None else default_rules_path()
         self.rulebase = load_rulebase(self.rules_path)
-        self.engine = Engine(self.rulebase, defuzzifier)
+        # MASYRO's published inference is a centre of sums; the paper dialect's default is the exact centroid.
+        default = "centre-of-sums" if self.rulebase.dialect == "masyro" else "centroid"
+        self.engine = Engine(self.rulebase, defuzzifier or default)
         self.min_band = int(min_band)
         needed = {*FEATURES, "Op"}
         if set(self.engine.input_names) != needed:
@@ -100,13 +106,34 @@ class Planner:
             return []
         if ranges is None:
             ranges = {k: (float(v.min()), float(v.max())) for k, v in cols.items()}
-        inputs = {**cols, "Op": np.full(n, op_value(level))}
-        outputs = self.engine.evaluate(inputs, ranges)
-        quantised = {**outputs, "Rl": quantise_depth_factor(outputs["Rl"])}
-        depth, spp, band = to_render_params(quantised, user_depth, user_spp)
+        inputs = {**cols, "Op": np.full(n, self.rulebase.op_value(level))}
+        if self.rulebase.dialect == "masyro":
+            outputs = self._masyro_engine(ranges).evaluate(inputs)
+            maxima = {k: self.rulebase.output(k).universe[1] for k in ("Rl", "Ls")}
+            depth, spp, band = masyro_render_params(outputs, max(user_depth, 0), user_spp, maxima)
+        else:
+            outputs = self.engine.evaluate(inputs, ranges)
+            quantised = {**outputs, "Rl": quantise_depth_factor(outputs["Rl"])}
+            depth, spp, band = to_render_params(quantised, max(user_depth, 0), user_spp)
+        if user_depth < 1:  # unbounded (-1), or an integrator without depth: nothing to weight
+            depth = np.full(n, user_depth, dtype=np.int64)
         band = np.maximum(band, self.min_band)
         crisp = [{k: float(outputs[k][i]) for k in ("Rl", "Ls", "Ibs")} for i in range(n)]
         return [UnitParams(int(depth[i]), int(spp[i]), int(band[i]), crisp[i]) for i in range(n)]
+
+
+    def _masyro_engine(self, ranges: Mapping[str, tuple[float, float]]) -> Engine:
+        """MASYRO's agent rewrote the sets of C, Nd and S for each job from the zones' range before it ran
+        the rules (its src/RenderAgent.py): the same here, with fuzzy.variables.masyro_sets."""
+        inputs = []
+        for var in self.rulebase.inputs:
+            if var.name in FEATURES:
+                lo, hi = widen_degenerate(*(float(v) for v in ranges[var.name]))
+                rows = masyro_sets(len(var.labels), lo, hi)
+                sets = tuple(Trapezoid(label, *row) for label, row in zip(var.labels, rows, strict=True))
+                var = dataclasses.replace(var, sets=sets, universe=(float(rows[0, 0]), float(rows[-1, 3])))
+            inputs.append(var)
+        return Engine(dataclasses.replace(self.rulebase, inputs=tuple(inputs)), self.engine.defuzzifier)
 
 
 def _feature_columns(features: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:

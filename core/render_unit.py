@@ -2,11 +2,13 @@
 process (`RenderWorker`) that runs it so that an LLVM abort or a hang costs one unit, never the job.
 
 How a unit renders: the unit's rectangle grown by its band (clipped to the image) is rendered with the
-job's integrator type, depth, spp and seed. For perspective and thin-lens sensors the window is not a
-Mitsuba crop at the window's offset but a crop at (0, 0) of the window's size with the camera's
-principal point shifted by (x / W, y / H): the rays are the same (tested to float precision) while
-Dr.Jit compiles one kernel per window *size* instead of one per window *position* (a crop offset is
-baked into the kernel and costs ~0.45 s to compile; design.md section 3). Other sensors use a crop.
+scene's own integrator (or, when the rules chose a depth, the scene's integrator with that `max_depth`:
+core.integrators), the unit's spp and seed, through the job's sensor. For perspective and thin-lens
+sensors the window is not a Mitsuba crop at the window's offset but a crop at (0, 0) of the window's
+size with the camera's principal point shifted by (x / W, y / H): the rays are the same (tested to float
+precision) while Dr.Jit compiles one kernel per window *size* instead of one per window *position* (a
+crop offset is baked into the kernel and costs ~0.45 s to compile; design.md section 3). Other sensors
+use a crop. The tile keeps every channel the film writes (the film's bitmap, as `mitsuba` writes it).
 
 Non-finite pixels (an emitter with infinite or NaN radiance): every non-finite channel value is set to
 0, and the number of pixels that had any is reported as `meta["nonfinite"]`, so they never propagate.
@@ -29,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from core import integrators
 from core.errors import QuekaroError, RenderError, SceneError
 from core.geometry import Rect
 from core.scene import SceneSpec
@@ -42,7 +45,9 @@ _PP_KEYS = ("principal_point_offset_x", "principal_point_offset_y")
 class UnitJob:
     """Everything a process needs to render one unit; JSON-serialisable through to_dict/from_dict.
 
-    `integrator=None` keeps the scene's integrator (then `max_depth` must be None too).
+    `integrator=None` renders with the scene's own integrator; a plugin name is the user's override.
+    `max_depth=None` keeps the depth the scene wrote; a number replaces it on every depth-bearing
+    integrator of the tree. `sensor` indexes the scene's sensors (Mitsuba's `-s`).
     """
 
     scene: SceneSpec
@@ -59,6 +64,7 @@ class UnitJob:
     job_id: str = ""
     unit_index: int = -1
     extra: dict[str, Any] = field(default_factory=dict)
+    sensor: int = 0
 
     def __post_init__(self) -> None:
         _check_job(self)
@@ -74,7 +80,7 @@ class UnitJob:
             "max_depth": self.max_depth, "spp": self.spp, "seed": self.seed, "width": self.width,
             "height": self.height, "unit": self.unit.as_list(), "band": self.band,
             "threads": self.threads, "job_id": self.job_id, "unit_index": self.unit_index,
-            "extra": dict(self.extra),
+            "extra": dict(self.extra), "sensor": self.sensor,
         }
 
     @classmethod
@@ -87,7 +93,7 @@ class UnitJob:
                 height=int(data["height"]), unit=Rect.from_list(data["unit"]),
                 band=int(data.get("band", 0)), threads=_opt_int(data.get("threads")),
                 job_id=str(data.get("job_id", "")), unit_index=int(data.get("unit_index", -1)),
-                extra=dict(data.get("extra") or {}),
+                extra=dict(data.get("extra") or {}), sensor=int(data.get("sensor", 0)),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise RenderError(f"malformed unit job ({type(exc).__name__}: {exc})") from exc
@@ -103,8 +109,8 @@ def _check_job(job: UnitJob) -> None:
         problems.append(f"spp={job.spp} (must be >= 1; Mitsuba reads 0 as 'sampler default')")
     if job.max_depth is not None and job.max_depth < -1:
         problems.append(f"max_depth={job.max_depth} (must be >= -1)")
-    if job.integrator is None and job.max_depth is not None:
-        problems.append("max_depth given without an integrator type")
+    if job.sensor < 0:
+        problems.append(f"sensor={job.sensor} (must be >= 0)")
     if not 0 <= job.seed < 2**32:
         problems.append(f"seed={job.seed} (must fit 32 bits)")
     if job.width < 1 or job.height < 1:
@@ -129,8 +135,9 @@ class _SceneCache:
     def __init__(self) -> None:
         self.key: tuple[Any, ...] | None = None
         self.scene: Any = None
-        self.base_pp: tuple[float, float] | None = None
-        self.integrators: dict[tuple[str, int | None], Any] = {}
+        self.integrator_xml: Any = None
+        self.base_pp: dict[int, tuple[float, float] | None] = {}
+        self.integrators: dict[tuple[str | None, int | None], Any] = {}
 
     def scene_for(self, spec: SceneSpec, variant: str, threads: int | None) -> tuple[Any, float]:
         """(scene, seconds spent loading it now: 0 when cached)."""
@@ -143,48 +150,69 @@ class _SceneCache:
         start = time.perf_counter()
         self.scene, self.key = None, None  # free the old scene before loading the next
         self.scene = scene.load(spec)
-        self.key, self.integrators = key, {}
-        self.base_pp = principal_point(self.scene)
+        self.integrator_xml = integrators.scene_element(scene.expand(spec).root)
+        self.key, self.integrators, self.base_pp = key, {}, {}
         return self.scene, time.perf_counter() - start
 
-    def integrator(self, kind: str | None, depth: int | None) -> Any:
-        if kind is None:
-            return None
-        key = (kind, depth)
-        if key not in self.integrators:
-            import mitsuba as mi
+    def principal_point(self, sensor: int) -> tuple[float, float] | None:
+        if sensor not in self.base_pp:
+            self.base_pp[sensor] = principal_point(self.scene, sensor)
+        return self.base_pp[sensor]
 
-            props: dict[str, Any] = {"type": kind}
-            if depth is not None and kind != "direct":  # `direct` has no depth: it is depth 2 by nature
-                props["max_depth"] = depth
-            try:
-                self.integrators[key] = mi.load_dict(props)
-            except RuntimeError as exc:
-                raise RenderError(f"cannot build integrator {props}: {exc}") from exc
+    def integrator(self, override: str | None, depth: int | None) -> Any:
+        """None (the scene's own) unless the user overrode the type or a depth must change."""
+        if override is None and (depth is None or integrators.depth_of(self.integrator_xml) in (None, depth)):
+            return None
+        key = (override, depth)
+        if key not in self.integrators:
+            self.integrators[key] = _build_integrator(override, depth, self.integrator_xml)
         return self.integrators[key]
+
+
+def _build_integrator(override: str | None, depth: int | None, scene_xml: Any) -> Any:
+    import mitsuba as mi
+
+    try:
+        if override is None:
+            return mi.load_string(integrators.with_depth(scene_xml, int(depth)))
+        props: dict[str, Any] = {"type": override}
+        if depth is not None and integrators.kind(override).depth:
+            props["max_depth"] = depth
+        return mi.load_dict(props)
+    except RuntimeError as exc:
+        what = override or integrators.describe(scene_xml)
+        raise RenderError(f"cannot build integrator {what} at depth {depth}: {exc}") from exc
 
 
 _local_cache = _SceneCache()
 
 
-def principal_point(scene: Any) -> tuple[float, float] | None:
-    """The first sensor's own principal-point offset, or None when it has none (not perspective)."""
+def sensor_of(scene: Any, index: int, where: str = "scene") -> Any:
+    """The scene's sensor `index` (Mitsuba's `-s`), or a RenderError saying how many there are."""
+    sensors = scene.sensors()
+    if not 0 <= index < len(sensors):
+        raise RenderError(f"{where}: sensor {index} asked for, the scene has {len(sensors)} (0..{len(sensors) - 1})")
+    return sensors[index]
+
+
+def principal_point(scene: Any, sensor: int = 0) -> tuple[float, float] | None:
+    """The sensor's own principal-point offset, or None when it has none (not perspective)."""
     import mitsuba as mi
 
-    params = mi.traverse(scene.sensors()[0])
+    params = mi.traverse(sensor_of(scene, sensor))
     if not all(k in params for k in _PP_KEYS):
         return None
     return float(params[_PP_KEYS[0]][0]), float(params[_PP_KEYS[1]][0])
 
 
-def set_window(scene: Any, window: Rect, base: tuple[float, float] | None) -> str:
-    """Make the scene's first sensor render `window` of its film; return the method ("shift" or "crop").
+def set_window(scene: Any, window: Rect, base: tuple[float, float] | None, sensor: int = 0) -> str:
+    """Make the scene's sensor render `window` of its film; return the method ("shift" or "crop").
 
     `base` is the sensor's principal point as loaded (from `principal_point`), None for a crop.
     """
     import mitsuba as mi
 
-    params = mi.traverse(scene.sensors()[0])
+    params = mi.traverse(sensor_of(scene, sensor))
     width, height = (int(v) for v in params["film.size"])
     if base is not None:
         params[_PP_KEYS[0]] = base[0] + window.x / width
@@ -208,13 +236,18 @@ def sanitize(pixels: np.ndarray) -> tuple[np.ndarray, int]:
     return pixels, count
 
 
-def _to_rgb(image: Any) -> np.ndarray:
-    array = np.array(image, dtype=np.float32)
+def film_channels(film: Any) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Every channel the film holds after a render, as `mitsuba` writes them: (H x W x C, names)."""
+    bitmap = film.bitmap()
+    names = tuple(bitmap.struct_()[i].name for i in range(bitmap.channel_count()))
+    array = np.array(bitmap, dtype=np.float32, copy=True)
     if array.ndim == 2:
         array = array[..., None]
-    if array.shape[-1] == 1:
-        return np.repeat(array, 3, axis=-1)
-    return np.ascontiguousarray(array[..., :3])
+    if names[:3] != ("R", "G", "B"):
+        if names[:1] in (("Y",), ("L",)):  # a mono film: its one channel is the image
+            return np.repeat(array[..., :1], 3, axis=-1), ("R", "G", "B")
+        raise RenderError(f"film channels {list(names)[:8]} do not start with R, G, B")
+    return np.ascontiguousarray(array), names
 
 
 def render_job_here(job: UnitJob, cache: _SceneCache | None = None) -> Tile:
@@ -223,34 +256,36 @@ def render_job_here(job: UnitJob, cache: _SceneCache | None = None) -> Tile:
 
     cache = cache or _local_cache
     scene, load_s = cache.scene_for(job.scene, job.variant, job.threads)
-    film = scene.sensors()[0].film()
+    sensor = sensor_of(scene, job.sensor, str(job.scene.path))
+    film = sensor.film()
     if tuple(int(v) for v in film.size()) != (job.width, job.height):
         size = tuple(int(v) for v in film.size())
         raise RenderError(f"{job.scene.path}: film is {size[0]}x{size[1]}, job says {job.width}x{job.height}")
     window = job.window
-    method = set_window(scene, window, cache.base_pp)
+    method = set_window(scene, window, cache.principal_point(job.sensor), job.sensor)
     integrator = cache.integrator(job.integrator, job.max_depth)
     start = time.perf_counter()
-    image = mi.render(scene, integrator=integrator, spp=job.spp, seed=job.seed)
-    pixels, nonfinite = sanitize(_to_rgb(image))
+    mi.render(scene, sensor=job.sensor, integrator=integrator, spp=job.spp, seed=job.seed)
+    raw, channels = film_channels(film)
+    pixels, nonfinite = sanitize(raw)
     seconds = time.perf_counter() - start
     meta = {
         "job_id": job.job_id, "unit_index": job.unit_index, "seconds": seconds, "load_seconds": load_s,
         "nonfinite": nonfinite, "spp": job.spp, "depth": job.max_depth, "integrator": job.integrator,
         "variant": mi.variant(), "seed": job.seed, "band": job.band, "window_method": method,
-        "pid": os.getpid(),
+        "pid": os.getpid(), "sensor": job.sensor,
     }
-    return Tile(pixels, window, job.unit, meta)
+    return Tile(pixels, window, job.unit, meta, channels)
 
 
 def render_full(spec: SceneSpec, variant: str, integrator: str | None, depth: int | None, spp: int,
-                seed: int = 0, threads: int | None = None) -> np.ndarray:
+                seed: int = 0, threads: int | None = None, sensor: int = 0) -> np.ndarray:
     """A plain render of the whole image in this process (the reference benchmarks compare against)."""
     from core import scene as scene_mod
 
-    width, height = scene_mod.image_size(spec)
+    width, height = scene_mod.image_size(spec, sensor)
     job = UnitJob(spec, variant, integrator, depth, spp, seed, width, height, Rect(0, 0, width, height),
-                  threads=threads)
+                  threads=threads, sensor=sensor)
     return render_job_here(job).pixels
 
 
@@ -278,7 +313,7 @@ def _child_main(conn: Any) -> None:
             return
         try:
             tile = render_job_here(UnitJob.from_dict(message), cache)
-            conn.send(("ok", tile.pixels, tile.rect.as_list(), tile.meta))
+            conn.send(("ok", tile.pixels, tile.rect.as_list(), tile.meta, tile.channels))
         except Exception as exc:
             kind = type(exc).__name__ if isinstance(exc, QuekaroError) else "RenderError"
             conn.send(("error", kind, f"{type(exc).__name__}: {exc}", traceback.format_exc(limit=3)))
@@ -381,8 +416,8 @@ class RenderWorker:
     @staticmethod
     def _tile_from_answer(answer: tuple[Any, ...], job: UnitJob, where: str) -> Tile:
         if answer[0] == "ok":
-            _, pixels, rect, meta = answer
-            return Tile(pixels, Rect.from_list(rect), job.unit, meta)
+            _, pixels, rect, meta, channels = answer
+            return Tile(pixels, Rect.from_list(rect), job.unit, meta, channels)
         _, kind, message, _trace = answer
         if kind == "SceneError":
             raise SceneError(message)

@@ -1,30 +1,30 @@
 """Scene files: what a scene is (`SceneSpec`: a file plus `-D` parameters), loading it into Mitsuba,
 and reading facts from its XML without loading it (image size, film filter, files it references).
 
-The XML reader follows Mitsuba's own rules where they matter here: `<default name value>` sets a
-parameter unless `-D` already did, `$name` is substituted in attribute values, `<include filename>`
-is expanded in place (at most 15 levels), and a relative file name is looked up beside the file that
-names it, then beside the main scene file.
+The XML reader follows Mitsuba's own rules (core.resolver): `<default name value>` sets a parameter
+unless `-D` already did, `$name` is substituted in attribute values, `<include filename>` is expanded in
+place (at most 15 levels), and file names are looked up as Mitsuba's file resolver does (the scene's
+folder, `<path>` entries, the working directory, then the `-a` search paths of the SceneSpec).
 """
 
 from __future__ import annotations
 
 import copy
 import re
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from lxml import etree
 
+from core import resolver
 from core.errors import SceneError
+from core.resolver import SRC_ATTR, parse_xml
 
-MAX_INCLUDE_DEPTH = 15
+__all__ = ["SRC_ATTR", "parse_xml"]
+
 _NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
-_PARAM_RE = re.compile(r"\$([A-Za-z_][A-Za-z0-9_]*)")
-# Private attribute marking which file an element came from once includes are merged.
-SRC_ATTR = "{urn:quekaro}src"
 
 # Mitsuba's defaults when the XML does not say: hdrfilm 768x576, gaussian filter (stddev 0.5, radius 4 sd).
 DEFAULT_SIZE = (768, 576)
@@ -34,28 +34,32 @@ _FILTER_RADIUS = {"box": 0.5, "tent": 1.0, "mitchell": 2.0, "catmullrom": 2.0}
 
 @dataclass(frozen=True)
 class SceneSpec:
-    """A scene to render: its XML file and the `-D name=value` parameters it is loaded with."""
+    """A scene to render: its XML file, the `-D name=value` parameters it is loaded with, and extra
+    folders to look for its files in (Mitsuba's `-a`, searched after everything else)."""
 
     path: Path
     defines: dict[str, str] = field(default_factory=dict)
+    search_paths: tuple[Path, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "path", Path(self.path))
         object.__setattr__(self, "defines", {str(k): str(v) for k, v in dict(self.defines).items()})
+        object.__setattr__(self, "search_paths", tuple(Path(p).absolute() for p in self.search_paths))
 
     def __hash__(self) -> int:
         return hash(self.key())
 
-    def key(self) -> tuple[str, tuple[tuple[str, str], ...]]:
-        """A hashable identity: the resolved path and the sorted parameters."""
-        return str(self.path.resolve()), tuple(sorted(self.defines.items()))
+    def key(self) -> tuple[Any, ...]:
+        """A hashable identity: the resolved path, the sorted parameters and the search paths."""
+        return str(self.path.resolve()), tuple(sorted(self.defines.items())), tuple(map(str, self.search_paths))
 
     def with_defines(self, **extra: Any) -> SceneSpec:
         """The same scene with some parameters added or replaced."""
-        return SceneSpec(self.path, {**self.defines, **{k: str(v) for k, v in extra.items()}})
+        return SceneSpec(self.path, {**self.defines, **{k: str(v) for k, v in extra.items()}}, self.search_paths)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"path": str(self.path), "defines": dict(self.defines)}
+        return {"path": str(self.path), "defines": dict(self.defines),
+                "search_paths": [str(p) for p in self.search_paths]}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> SceneSpec:
@@ -64,7 +68,7 @@ class SceneSpec:
         defines = data.get("defines") or {}
         if not isinstance(defines, dict):
             raise SceneError(f"scene spec field 'defines' must be an object, got {defines!r}")
-        return cls(Path(data["path"]), defines)
+        return cls(Path(data["path"]), defines, tuple(data.get("search_paths") or ()))
 
 
 @dataclass(frozen=True)
@@ -113,11 +117,18 @@ def load(spec: SceneSpec, variant: str | None = None, threads: int | None = None
     threads_before = dr.thread_count()
     if threads_before < 2:
         dr.set_thread_count(2)
+    resolver = mi.file_resolver()
+    before = [str(resolver[i]) for i in range(len(resolver))]
+    for folder in spec.search_paths:  # as Mitsuba's `-a`: searched after everything else
+        resolver.append(str(folder))
     try:
         return mi.load_file(str(path), **spec.defines)
     except RuntimeError as exc:
         raise SceneError(f"{path}: {exc}") from exc
     finally:
+        resolver.clear()
+        for folder in before:
+            resolver.append(folder)
         if threads_before < 2:
             dr.set_thread_count(threads_before)
 
@@ -125,32 +136,9 @@ def load(spec: SceneSpec, variant: str | None = None, threads: int | None = None
 # ---- reading the XML -------------------------------------------------------------------------
 
 
-def parse_xml(path: Path, error: type[SceneError] = SceneError) -> etree._Element:
-    """One scene XML file, parsed safely: scene files may come from strangers (bundles), so no entity
-    expansion, no DTD, no network, no huge trees. Failures raise `error` naming the file."""
-    parser = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False,
-                             remove_comments=True)
-    try:
-        return etree.parse(str(path), parser).getroot()
-    except OSError as exc:
-        raise error(f"{path}: cannot read ({exc})") from exc
-    except etree.XMLSyntaxError as exc:
-        raise error(f"{path}: not well-formed XML ({exc})") from exc
-
-
-def _substitute(text: str, params: dict[str, str]) -> str:
-    return _PARAM_RE.sub(lambda m: params.get(m.group(1), m.group(0)), text)
-
-
-def resolve_reference(name: str, referrer: Path, main: Path) -> Path:
-    """A file named in the XML: beside the file naming it, else beside the main scene, else as given."""
-    candidate = Path(name)
-    if candidate.is_absolute():
-        return candidate
-    for base in (referrer.parent, main.parent):
-        if (base / candidate).exists():
-            return (base / candidate).resolve()
-    return (main.parent / candidate).resolve()
+def read(spec: SceneSpec) -> resolver.SceneFiles:
+    """The scene's XML files and every file reference, resolved as Mitsuba does (core.resolver)."""
+    return resolver.read_scene(spec.path, spec.defines, spec.search_paths, cwd=Path.cwd())
 
 
 @dataclass
@@ -164,83 +152,34 @@ class ExpandedXml:
 
 def expand(spec: SceneSpec) -> ExpandedXml:
     """Parse the scene file, expanding `<include>` and substituting `$name` as Mitsuba does."""
-    main = spec.path.resolve()
-    if not main.is_file():
-        raise SceneError(f"{spec.path}: scene file not found")
-    params = dict(spec.defines)
-    includes: list[Path] = []
-    root = _expand_file(main, main, params, includes, [])
-    return ExpandedXml(root, params, includes)
+    files = read(spec)
+    root = copy.deepcopy(files.trees[files.main])
+    _splice(root, files)
+    includes = [r.target for r in files.references if r.kind == "include"]
+    return ExpandedXml(root, files.params, includes)
 
 
-def _expand_file(path: Path, main: Path, params: dict[str, str], includes: list[Path],
-                 stack: list[Path]) -> etree._Element:
-    if len(stack) > MAX_INCLUDE_DEPTH:
-        raise SceneError(f"{path}: includes nested deeper than {MAX_INCLUDE_DEPTH} levels")
-    if path in stack:
-        raise SceneError(f"{path}: includes itself (through {' -> '.join(map(str, stack))})")
-    root = parse_xml(path)
-    for elem in list(root.iter()):
-        if not isinstance(elem.tag, str):
-            continue
-        for key, value in elem.attrib.items():
-            elem.set(key, _substitute(value, params))
-        elem.set(SRC_ATTR, str(path))
-        if elem.tag == "default":
-            params.setdefault(elem.get("name", ""), elem.get("value", ""))
-        elif elem.tag == "include":
-            _splice_include(elem, path, main, params, includes, [*stack, path])
-    return root
-
-
-def _splice_include(elem: etree._Element, path: Path, main: Path, params: dict[str, str],
-                    includes: list[Path], stack: list[Path]) -> None:
-    name = elem.get("filename")
-    if not name:
-        raise SceneError(f"{path}: <include> without a filename")
-    target = resolve_reference(name, path, main)
-    if not target.is_file():
-        raise SceneError(f"{path}: included file {name!r} not found (looked for {target})")
-    includes.append(target)
-    sub = _expand_file(target, main, params, includes, stack)
-    parent = elem.getparent()
-    index = parent.index(elem)
-    parent.remove(elem)
-    for offset, child in enumerate(list(sub)):
-        parent.insert(index + offset, copy.deepcopy(child))
-
-
-def _source(elem: etree._Element) -> Path:
-    return Path(elem.get(SRC_ATTR, "."))
-
-
-def _file_values(root: etree._Element) -> Iterator[tuple[etree._Element, str]]:
-    for elem in root.iter():
-        if not isinstance(elem.tag, str):
-            continue
-        if elem.get("name") == "filename" and elem.get("value"):
-            yield elem, elem.get("value", "")
-        elif elem.tag == "spectrum" and elem.get("filename"):
-            yield elem, elem.get("filename", "")
+def _splice(root: etree._Element, files: resolver.SceneFiles) -> None:
+    """Replace each `<include>` (in a copy) by the children of the file it resolved to, recursively."""
+    targets = {(r.file, r.line, r.name): r.target for r in files.references if r.kind == "include"}
+    for elem in [e for e in root.iter("include")]:
+        key = (Path(elem.get(SRC_ATTR, "")), elem.sourceline or 0, elem.get("filename", ""))
+        sub = copy.deepcopy(files.trees[targets[key]])
+        _splice(sub, files)
+        parent = elem.getparent()
+        index = parent.index(elem)
+        parent.remove(elem)
+        for offset, child in enumerate(list(sub)):
+            parent.insert(index + offset, child)
 
 
 def referenced_files(spec: SceneSpec) -> list[Path]:
     """Every file the scene needs besides itself: includes, meshes, textures, envmaps, spectra.
 
-    Absolute, resolved, without duplicates, in document order; a missing file is a SceneError
-    naming the XML file that references it.
+    Absolute, without duplicates, in the order Mitsuba resolves them; a missing file is a SceneError
+    naming the XML file, the line and every folder searched.
     """
-    xml = expand(spec)
-    main = spec.path.resolve()
-    found: list[Path] = list(xml.includes)
-    for elem, name in _file_values(xml.root):
-        if "$" in name:
-            raise SceneError(f"{_source(elem)}: file name {name!r} uses an undefined parameter")
-        target = resolve_reference(name, _source(elem), main)
-        if not target.is_file():
-            raise SceneError(f"{_source(elem)}: referenced file {name!r} not found (looked for {target})")
-        found.append(target)
-    return list(dict.fromkeys(found))
+    return read(spec).files()
 
 
 def _int_property(parent: etree._Element, name: str, default: int) -> int | None:
@@ -275,31 +214,43 @@ def _filter_from_xml(film: etree._Element | None) -> tuple[str, float] | None:
     return None
 
 
-def film_info_from_scene(scene: Any) -> FilmInfo:
-    """Film facts of a loaded Mitsuba scene (first sensor)."""
-    film = scene.sensors()[0].film()
+def film_info_from_scene(scene: Any, sensor: int = 0) -> FilmInfo:
+    """Film facts of a loaded Mitsuba scene (sensor `sensor`)."""
+    sensors = scene.sensors()
+    if not 0 <= sensor < len(sensors):
+        raise SceneError(f"sensor {sensor} asked for, the scene has {len(sensors)}")
+    film = sensors[sensor].film()
     width, height = (int(v) for v in film.size())
     rfilter = film.rfilter()
     name = rfilter.class_name().lower().removesuffix("filter")
     return FilmInfo(width, height, name, float(rfilter.radius()))
 
 
-def film_info(spec: SceneSpec) -> FilmInfo:
-    """Image size and filter of the scene's first sensor, read from the XML (loads it when unsure)."""
+def sensor_elements(root: etree._Element) -> list[etree._Element]:
+    """The scene's top-level sensors, in the order Mitsuba numbers them (`-s N`)."""
+    return [e for e in root if isinstance(e.tag, str) and e.tag == "sensor"]
+
+
+def film_info(spec: SceneSpec, sensor: int = 0) -> FilmInfo:
+    """Image size and filter of the scene's sensor `sensor`, read from the XML (loads it when unsure)."""
     root = expand(spec).root
-    sensor = root.find("sensor")
-    film = sensor.find("film") if sensor is not None else None
+    sensors = sensor_elements(root)
+    if sensor < 0 or (sensors and sensor >= len(sensors)) or (not sensors and sensor > 0):
+        raise SceneError(f"{spec.path}: sensor {sensor} asked for, the scene declares {len(sensors)} "
+                         f"top-level sensor(s) (0..{max(len(sensors), 1) - 1})")
+    element = sensors[sensor] if sensors else None
+    film = element.find("film") if element is not None else None
     width = _int_property(film, "width", DEFAULT_SIZE[0]) if film is not None else DEFAULT_SIZE[0]
     height = _int_property(film, "height", DEFAULT_SIZE[1]) if film is not None else DEFAULT_SIZE[1]
     filt = _filter_from_xml(film)
     if width is None or height is None or filt is None:
-        return film_info_from_scene(load(spec))
+        return film_info_from_scene(load(spec), sensor)
     if width < 1 or height < 1:
         raise SceneError(f"{spec.path}: film size {width}x{height} must be at least 1x1")
     return FilmInfo(width, height, filt[0], filt[1])
 
 
-def image_size(spec: SceneSpec) -> tuple[int, int]:
-    """(width, height) of the image the scene renders."""
-    info = film_info(spec)
+def image_size(spec: SceneSpec, sensor: int = 0) -> tuple[int, int]:
+    """(width, height) of the image the scene renders through sensor `sensor`."""
+    info = film_info(spec, sensor)
     return info.width, info.height

@@ -1,9 +1,11 @@
-"""Tiles: a rendered unit (pixels, where they go, what happened) and its file form, a float32 RGB EXR.
+"""Tiles: a rendered unit (pixels, where they go, what happened) and its file form, a float32 EXR.
 
-File layout: one scanline part, channels R, G, B as FLOAT, ZIP compressed. The EXR `dataWindow` is
-the rendered rectangle (band included), so the file carries its own position; `quekaro_core` holds the
-unit rectangle as "x y w h" and `quekaro_meta` the meta dict as JSON. Files are written durably:
-a temporary file beside the target, fsync, then an atomic rename.
+A tile holds every channel of the film (R, G, B first; then alpha, AOVs, moments: whatever the scene's
+film and integrator write), in the film's order. File layout: one scanline part, every channel as
+FLOAT, ZIP compressed. The EXR `dataWindow` is the rendered rectangle (band included), so the file
+carries its own position; `quekaro_core` holds the unit rectangle as "x y w h", `quekaro_channels` the
+channel order and `quekaro_meta` the meta dict as JSON. Files are written durably: a temporary file
+beside the target, fsync, then an atomic rename.
 """
 
 from __future__ import annotations
@@ -23,20 +25,27 @@ from core.geometry import Rect
 
 META_ATTR = "quekaro_meta"
 CORE_ATTR = "quekaro_core"
+CHANNELS_ATTR = "quekaro_channels"
+RGB = ("R", "G", "B")
+MAX_CHANNELS = 256
 
 
 @dataclass
 class Tile:
-    """Pixels (float32, H x W x 3) of `rect` (the rendered rectangle, band included); `core` is the unit."""
+    """Pixels (float32, H x W x channels) of `rect` (the rendered rectangle, band included); `core` is the
+    unit; `channels` names the last axis (the film's channel names, R, G, B first)."""
 
     pixels: np.ndarray
     rect: Rect
     core: Rect
     meta: dict[str, Any] = field(default_factory=dict)
+    channels: tuple[str, ...] = RGB
 
     def __post_init__(self) -> None:
         self.pixels = np.ascontiguousarray(self.pixels, dtype=np.float32)
-        expected = (self.rect.h, self.rect.w, 3)
+        self.channels = tuple(self.channels)
+        check_channels(self.channels)
+        expected = (self.rect.h, self.rect.w, len(self.channels))
         if self.pixels.shape != expected:
             raise TileError(f"tile pixels shaped {self.pixels.shape}, rect {self.rect} needs {expected}")
         if self.core.intersect(self.rect) != self.core:
@@ -46,6 +55,16 @@ class Tile:
         """The pixels of the unit itself, band cut away."""
         y0, x0 = self.core.y - self.rect.y, self.core.x - self.rect.x
         return self.pixels[y0:y0 + self.core.h, x0:x0 + self.core.w]
+
+
+def check_channels(channels: tuple[str, ...], name: str = "tile") -> None:
+    """Channel names must start with R, G, B, be unique, printable and at most MAX_CHANNELS."""
+    if tuple(channels[:3]) != RGB:
+        raise TileError(f"{name}: channels {list(channels[:8])} do not start with R, G, B")
+    if len(set(channels)) != len(channels) or len(channels) > MAX_CHANNELS:
+        raise TileError(f"{name}: {len(channels)} channels, duplicated or over {MAX_CHANNELS}")
+    if any(not c or len(c) > 64 or not c.isprintable() or "," in c for c in channels):
+        raise TileError(f"{name}: a channel name is empty, over 64 characters, not printable or has a comma")
 
 
 def _header(tile: Tile) -> dict[str, Any]:
@@ -63,6 +82,7 @@ def _header(tile: Tile) -> dict[str, Any]:
         "displayWindow": ((0, 0), (r.x1 - 1, r.y1 - 1)),
         META_ATTR: meta,
         CORE_ATTR: " ".join(str(v) for v in tile.core.as_list()),
+        CHANNELS_ATTR: ",".join(tile.channels),
     }
 
 
@@ -83,7 +103,8 @@ def write_tile(path: str | Path, tile: Tile, durable: bool = True) -> Path:
         raise TileError(f"{path}: cannot write tile ({exc})") from exc
     os.close(fd)
     try:
-        with OpenEXR.File(header, {"RGB": tile.pixels}) as exr:
+        planes = {c: np.ascontiguousarray(tile.pixels[..., i]) for i, c in enumerate(tile.channels)}
+        with OpenEXR.File(header, planes) as exr:
             exr.write(tmp)
         if durable:
             durable_replace(Path(tmp), path)
@@ -133,14 +154,15 @@ def read_tile_bytes(data: bytes, name: str = "<tile>") -> Tile:
             header = exr.header()
             channels = {k: np.array(v.pixels) for k, v in exr.channels().items()}
             rect = _rect_from_header(header, name)
-            pixels = _rgb_from_channels(channels, rect, name)
+            order = _channel_order(header, name)
+            pixels = _stack_channels(channels, order, rect, name)
             core, meta = _core_and_meta(header, name)
     except TileError:
         raise
     except Exception as exc:  # OpenEXR reports corrupt data as RuntimeError or ValueError
         raise TileError(f"{name}: unreadable EXR ({exc})") from exc
     try:
-        return Tile(pixels, rect, core, meta)
+        return Tile(pixels, rect, core, meta, order)
     except TileError as exc:
         raise TileError(f"{name}: {exc}") from exc
 
@@ -155,15 +177,23 @@ def _rect_from_header(header: dict[str, Any], name: str) -> Rect:
     return Rect(x0, y0, x1 - x0 + 1, y1 - y0 + 1)
 
 
-def _rgb_from_channels(channels: dict[str, np.ndarray], rect: Rect, name: str) -> np.ndarray:
-    if sorted(channels) != ["B", "G", "R"]:
-        raise TileError(f"{name}: channels {sorted(channels)}, a tile needs exactly R, G, B")
+def _channel_order(header: dict[str, Any], name: str) -> tuple[str, ...]:
+    raw = header.get(CHANNELS_ATTR)
+    order = tuple(str(raw).split(",")) if raw is not None else RGB
+    check_channels(order, name)
+    return order
+
+
+def _stack_channels(channels: dict[str, np.ndarray], order: tuple[str, ...], rect: Rect,
+                    name: str) -> np.ndarray:
+    if sorted(channels) != sorted(order):
+        raise TileError(f"{name}: channels {sorted(channels)[:8]} differ from the header's list {list(order)[:8]}")
     for key, plane in channels.items():
         if plane.dtype != np.float32:
             raise TileError(f"{name}: channel {key} is {plane.dtype}, a tile needs float32")
         if plane.shape != (rect.h, rect.w):
             raise TileError(f"{name}: channel {key} is {plane.shape}, dataWindow says {(rect.h, rect.w)}")
-    return np.stack([channels["R"], channels["G"], channels["B"]], axis=-1)
+    return np.stack([channels[c] for c in order], axis=-1)
 
 
 def _core_and_meta(header: dict[str, Any], name: str) -> tuple[Rect, dict[str, Any]]:

@@ -7,7 +7,8 @@ rules concluding it (aggregation); each label's set is clipped at its activation
 union is defuzzified (`centroid`, exact) or, for compatibility with MASYRO, each clipped set's centroid
 is averaged weighted by its area (`centre-of-sums`).
 
-Where no rule fires for an output, that output takes the default its variable declares: never NaN and
+Where no rule fires for an output, that output takes the default its variable declares (MASYRO's dialect
+declares none: NaN there, which the planner reads as 'keep the user's value'); otherwise never NaN and
 never a silent 0. NaN inputs are an error (`FuzzyInputError`, naming the variable and row); infinite
 inputs are clamped like any other out-of-range value. Crisp outputs are clamped into their universe.
 """
@@ -100,7 +101,7 @@ class Engine:
             h = acts[out.name]
             exact = self.defuzzifier == "centroid"
             crisp = centroid_t(plan, h) if exact else centre_of_sums_t(out.params, h)
-            crisp = np.where(np.isnan(crisp), out.default, crisp)
+            crisp = np.where(np.isnan(crisp), np.nan if out.default is None else out.default, crisp)
             result[out.name] = np.clip(crisp, *out.universe)
         return result
 
@@ -136,7 +137,7 @@ class Engine:
         mus = []
         for i, var in enumerate(self.rulebase.inputs):
             params, (lo, hi) = var.resolve(ranges.get(var.name))
-            mus.append(membership_t(np.clip(x[:, i], lo, hi), params))
+            mus.append(membership_t(np.clip(x[:, i], lo, hi) if var.clamp else x[:, i], params))
         for g, (var_i, idx) in enumerate(self._groups):
             np.max(mus[var_i][idx], axis=0, out=out[g])
 

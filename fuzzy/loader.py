@@ -2,7 +2,12 @@
 
 Both dialects are read (see rules/quekaro-rules.xsd): the paper's `<fset>`, `<antecedent name label>`
 and the original MASYRO files' `<fuzzyset>`, `<antecedent varname linguisticlabel>`, with `<system>`
-as the root or as a child of any outer element.
+as the root or as a child of any outer element. Each keeps its own meaning. A file that uses `<fuzzyset>`
+is read as MASYRO's published code (TheProjecter/masyro06, trunk/src/Util_fuzzy.py and
+src/RenderAgent.py) reads it: inputs are not clamped (membership 0 outside every set) and an output with
+no `default` has no value where no rule fires, so the planner keeps the user's value. The sets are kept
+as written; rebuilding C, Nd and S for each job is the planner's part (core.planner), as it was the
+agent's in MASYRO.
 
 Hostile files are refused before parsing: more than `MAX_BYTES`, or any DOCTYPE / ENTITY declaration
 (entity expansion such as "billion laughs", external entities). The parser itself resolves no entities,
@@ -144,8 +149,9 @@ def _build(system: etree._Element, file: str) -> RuleBase:
     inputs: list[InputVariable] = []
     outputs: list[OutputVariable] = []
     seen: set[str] = set()
+    masyro = next(system.iter("fuzzyset"), None) is not None
     for el in system.iter("linguisticvar"):
-        var = _build_variable(el, file)
+        var = _build_variable(el, file, masyro)
         if var.name in seen:
             raise RuleFileError("variable declared twice", file=file, line=el.sourceline, variable=var.name)
         seen.add(var.name)
@@ -157,10 +163,11 @@ def _build(system: etree._Element, file: str) -> RuleBase:
     rules = tuple(_build_rule(el, i, ins, outs, file) for i, el in enumerate(system.iter("rule"), 1))
     if not rules:
         raise RuleFileError("the system has no rules", file=file, line=system.sourceline)
-    return RuleBase(system.get("name") or Path(file).stem, tuple(inputs), tuple(outputs), rules, file)
+    dialect = "masyro" if masyro else "paper"
+    return RuleBase(system.get("name") or Path(file).stem, tuple(inputs), tuple(outputs), rules, file, dialect)
 
 
-def _build_variable(el: etree._Element, file: str) -> InputVariable | OutputVariable:
+def _build_variable(el: etree._Element, file: str, masyro: bool = False) -> InputVariable | OutputVariable:
     name = el.get("name")
     is_input = el.get("type") == "in"
     dynamic = el.get("dynamic") in ("true", "1")
@@ -189,7 +196,9 @@ def _build_variable(el: etree._Element, file: str) -> InputVariable | OutputVari
     sets = tuple(_build_set(s, name, file) for s in set_els)
     universe = _universe(el, sets, file)
     if is_input:
-        return InputVariable(name, tuple(labels), dynamic=False, sets=sets, universe=universe)
+        return InputVariable(name, tuple(labels), dynamic=False, sets=sets, universe=universe, clamp=not masyro)
+    if masyro and el.get("default") is None:
+        return OutputVariable(name, sets, universe, None)
     return OutputVariable(name, sets, universe, _default(el, universe, file))
 
 

@@ -12,8 +12,14 @@ least when its spp grows with its noise); the cap bounds what one unit can cost.
 so that a unit always renders something. A planner may impose a larger minimum band (core.planner
 does: the reconstruction filter's reach) and quantise depth.
 
-The optimisation level is an input: `op_value(level)` gives the crisp Op for a level name, the peak
-of that label in the rule file's Op variable (VS=0, S=1, N=2, B=3, VB=4).
+The optimisation level is an input: `RuleBase.op_value(level)` gives the crisp Op for a level name, the
+middle of that label's plateau in the rule file's own Op sets (VS=0 .. VB=4 in rules/pathtracing.xml,
+2.5 .. 27.5 in MASYRO's file, whose Op universe is 0..30).
+
+MASYRO's dialect keeps MASYRO's mapping (its trunk/src/FinalRender.py): the crisp Rl and Ls are floored,
+divided by their universe's maximum (9 and 13 in its file) and raised to at least 0.5, then weight the
+user's depth and samples (at least 1); the band is the floored Ibs. An output no rule fired for (NaN)
+keeps the user's value: factor 1, band 0 (`masyro_render_params`).
 """
 
 from __future__ import annotations
@@ -23,18 +29,7 @@ from collections.abc import Mapping
 import numpy as np
 
 LEVELS = ("VS", "S", "N", "B", "VB")
-_OP_VALUES = {level: float(i) for i, level in enumerate(LEVELS)}
 LS_MAX = 3.0  # most a unit's spp may grow over the user's (see the module docstring)
-
-
-def op_value(level: str) -> float:
-    """Crisp Op for an optimisation level name (VS, S, N, B, VB); `off` means no rules at all."""
-    try:
-        return _OP_VALUES[level]
-    except KeyError:
-        raise ValueError(
-            f"unknown optimisation level {level!r}; expected one of {', '.join(LEVELS)} (or 'off' upstream)"
-        ) from None
 
 
 def to_render_params(
@@ -51,3 +46,19 @@ def to_render_params(
     spp = np.maximum(1, np.rint(user_spp * np.clip(ls, 0.0, LS_MAX))).astype(np.int64)
     band = np.maximum(0, np.rint(ibs)).astype(np.int64)
     return depth, spp, band
+
+
+def masyro_render_params(
+    outputs: Mapping[str, np.ndarray], user_depth: int, user_spp: int, maxima: Mapping[str, float]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(depth, spp, band) from MASYRO-dialect outputs (see the module docstring); `maxima` holds the
+    universe maximum of Rl and Ls."""
+    rl, ls, ibs = (np.asarray(outputs[k], dtype=np.float64) for k in ("Rl", "Ls", "Ibs"))
+
+    def factor(values: np.ndarray, top: float) -> np.ndarray:
+        return np.where(np.isnan(values), 1.0, np.maximum(0.5, np.floor(np.nan_to_num(values)) / top))
+
+    depth = np.maximum(1, (factor(rl, maxima["Rl"]) * user_depth).astype(np.int64))
+    spp = np.maximum(1, (factor(ls, maxima["Ls"]) * user_spp).astype(np.int64))
+    band = np.where(np.isnan(ibs), 0, np.floor(np.nan_to_num(ibs))).astype(np.int64)
+    return depth, spp, np.maximum(band, 0)

@@ -42,6 +42,21 @@ class RuleBase:
     outputs: tuple[OutputVariable, ...]
     rules: tuple[Rule, ...]
     source: str | None = None
+    dialect: str = "paper"  # "paper" (QUEKARO's XML) or "masyro" (MASYRO 2006): each keeps its meaning
+
+    def op_value(self, level: str, levels: tuple[str, ...] = ("VS", "S", "N", "B", "VB")) -> float:
+        """The crisp Op of a level name: the middle of that label's plateau in the file's own Op sets; for
+        a file whose Op sets do not name the levels, the level's rank spread evenly over the Op universe."""
+        op = self.input("Op")
+        if level not in levels:
+            raise ValueError(f"unknown optimisation level {level!r}; expected one of {', '.join(levels)}")
+        if op.dynamic or op.universe is None:
+            raise ValueError(f"{self.source}: the Op input must have sets written in the file")
+        if level in op.labels:
+            _, b, c, _ = next(s for s in op.sets if s.label == level).vertices
+            return 0.5 * (b + c)
+        lo, hi = op.universe
+        return lo + (hi - lo) * levels.index(level) / (len(levels) - 1)
 
     def input(self, name: str) -> InputVariable:
         return next(v for v in self.inputs if v.name == name)

@@ -13,6 +13,11 @@ the file; its sets are spread linearly over the range observed in the current sc
 
 Inputs outside a variable's universe (or outside the observed range of a dynamic variable) are clamped
 to it: a unit just outside the observed range is treated like one at its edge rather than firing nothing.
+
+MASYRO's dialect keeps MASYRO's meaning (its published code, fuzzy/loader.py says which file): an input
+outside every set has membership 0 there (no clamping), and an output no rule fires has no value (NaN:
+the planner keeps the user's value). `masyro_sets` is MASYRO's scheme for the sets its agent rebuilt for
+each job from the observed range (the planner uses it for C, Nd and S).
 """
 
 from __future__ import annotations
@@ -50,15 +55,36 @@ def widen_degenerate(lo: float, hi: float) -> tuple[float, float]:
     return lo - half, lo + half
 
 
+def masyro_sets(n_labels: int, lo: float, hi: float) -> np.ndarray:
+    """MASYRO's per-job sets over the observed [lo, hi]: I = (hi - lo) / (n + 1), padded by `pad` on both
+    sides (MASYRO adds 1 on a complexity scale spanning ~48 in its file: 1/48 of the range here), with
+    shoulders at both ends and plateaus of one I in the middle label (its published file fits this)."""
+    pad = (hi - lo) / 48.0
+    step = (hi - lo) / (n_labels + 1)
+    m, big = lo - pad, hi + pad
+    if n_labels == 5:
+        rows = [(m, m, m + step, m + 2 * step), (m + step, m + 2 * step, m + 2 * step, m + 3 * step),
+                (m + 2 * step, m + 3 * step, big - 3 * step, big - 2 * step),
+                (big - 3 * step, big - 2 * step, big - 2 * step, big - step), (big - 2 * step, big - step, big, big)]
+    elif n_labels == 3:
+        rows = [(m, m, m + step, m + 2 * step), (m + step, m + 2 * step, big - 2 * step, big - step),
+                (big - 2 * step, big - step, big, big)]
+    else:
+        raise FuzzyInputError(f"MASYRO's per-job sets exist for 3 or 5 labels, not {n_labels}")
+    return np.array(rows, dtype=np.float64)
+
+
 @dataclass(frozen=True)
 class InputVariable:
-    """An input: static (sets and universe from the file) or dynamic (labels only)."""
+    """An input: static (sets and universe from the file) or dynamic (labels only); `clamp` False gives
+    membership 0 outside every set (MASYRO's meaning)."""
 
     name: str
     labels: tuple[str, ...]
     dynamic: bool
     sets: tuple[Trapezoid, ...] = ()
     universe: tuple[float, float] | None = None
+    clamp: bool = True
 
     def resolve(self, observed: tuple[float, float] | None) -> tuple[np.ndarray, tuple[float, float]]:
         """The (L, 4) vertices and the clamping interval to use for one evaluation.
@@ -81,12 +107,12 @@ class InputVariable:
 
 @dataclass(frozen=True)
 class OutputVariable:
-    """An output: its sets, its universe and the value it takes when no rule fires."""
+    """An output: its sets, its universe and the value it takes when no rule fires (None: no value, NaN)."""
 
     name: str
     sets: tuple[Trapezoid, ...]
     universe: tuple[float, float]
-    default: float
+    default: float | None
 
     @property
     def labels(self) -> tuple[str, ...]:

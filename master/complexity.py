@@ -135,26 +135,28 @@ def prepass(
     spp: int = PREPASS_SPP,
     seed: int = 0,
     cost_spp: int = COST_SPP,
+    sensor: int = 0,
 ) -> ComplexityMap:
     """Estimate per-pixel cost and noise of `scene` (a loaded mi.Scene or a core.scene.SceneSpec).
 
     `width`/`height` default to the scene film's size; `full_spp` is the spp of the render this
     pre-pass is for, and sets (with `budget`) how far each pass reduces the resolution; `spp` and
-    `cost_spp` are the noise and ray-count passes' samples per low-resolution pixel.
+    `cost_spp` are the noise and ray-count passes' samples per low-resolution pixel. `integrator` is a
+    plugin type or a standalone integrator XML (core.integrators.radiance_xml: the scene's own).
     """
     start = time.perf_counter()
     scene = _as_scene(scene, threads)
-    film = scene.sensors()[0].film()
+    film = scene.sensors()[sensor].film()
     fw, fh = (int(v) for v in film.size())
     width, height = width or fw, height or fh
     k = choose_downscale(width, height, full_spp, spp, budget, NOISE_SHARE)
     kc = choose_downscale(width, height, full_spp, cost_spp, budget, 1.0 - NOISE_SHARE)
     lw, lh = _low_size(width, height, k)
     cw, ch = _low_size(width, height, kc)
-    with _film_size(scene, lw, lh):
-        noise_low, mean_low = _moment_pass(scene, integrator, max_depth, spp, seed)
-    with _film_size(scene, cw, ch):
-        cost_low = _ray_count_pass(scene, cw, ch, max_depth, cost_spp, seed + 1)
+    with _film_size(scene, lw, lh, sensor):
+        noise_low, mean_low = _moment_pass(scene, integrator, max_depth, spp, seed, sensor)
+    with _film_size(scene, cw, ch, sensor):
+        cost_low = _ray_count_pass(scene, cw, ch, max_depth, cost_spp, seed + 1, sensor)
     cmap = ComplexityMap(
         cost=_upsample(cost_low, width, height),
         noise=_upsample(noise_low, width, height),
@@ -186,14 +188,14 @@ def _as_scene(scene: Any, threads: int | None) -> Any:
 
 
 @contextmanager
-def _film_size(scene: Any, w: int, h: int) -> Iterator[None]:
-    """Temporarily render `scene` at another film size (its crop reset), restoring it afterwards."""
+def _film_size(scene: Any, w: int, h: int, sensor: int = 0) -> Iterator[None]:
+    """Temporarily render `scene`'s sensor at another film size (its crop reset), restoring it afterwards."""
     import mitsuba as mi
 
-    params = mi.traverse(scene)
+    params = mi.traverse(scene.sensors()[sensor])
     names = list(params.keys())
     fields = ("size", "crop_size", "crop_offset")
-    keys = {s: next(k for k in names if k.endswith("film." + s)) for s in fields}
+    keys = {s: next(k for k in names if k == "film." + s or k.endswith(".film." + s)) for s in fields}
     saved = {s: list(params[k]) for s, k in keys.items()}
 
     def apply(values: dict[str, list[int]]) -> None:
@@ -208,16 +210,26 @@ def _film_size(scene: Any, w: int, h: int) -> Iterator[None]:
         apply(saved)
 
 
-def _moment_pass(scene: Any, integrator: str, max_depth: int, spp: int, seed: int) -> tuple[np.ndarray, ...]:
+def _moment_pass(scene: Any, integrator: str, max_depth: int, spp: int, seed: int,
+                 sensor: int = 0) -> tuple[np.ndarray, ...]:
     """Per-pixel per-sample variance (mean over RGB, non-finite -> the largest finite value) and mean."""
     import mitsuba as mi
 
-    nested: dict[str, Any] = {"type": integrator}
-    if integrator != "direct":
-        nested["max_depth"] = int(max_depth)
+    from core.render_unit import film_channels
+
+    if integrator.lstrip().startswith("<"):
+        nested: Any = mi.load_string(integrator)
+    else:
+        nested = {"type": integrator}
+        if integrator != "direct":
+            nested["max_depth"] = int(max_depth)
     moment = mi.load_dict({"type": "moment", "nested": nested})
-    img = np.array(mi.render(scene, integrator=moment, spp=max(2, spp), seed=seed), dtype=np.float64)
-    mean, second = img[..., 3:6], img[..., 6:9]  # channels: RGB, nested RGB, nested 2nd moment
+    mi.render(scene, sensor=sensor, integrator=moment, spp=max(2, spp), seed=seed)
+    img, names = film_channels(scene.sensors()[sensor].film())
+    img = img.astype(np.float64)
+    second_at = [i for i, n in enumerate(names) if n.startswith("m2_")][:3]  # the nested 2nd moment
+    mean_at = [names.index(names[i][3:]) for i in second_at]  # its mean: the same name without m2_
+    mean, second = img[..., mean_at], img[..., second_at]
     with np.errstate(invalid="ignore"):  # inf - inf from an infinite emitter: handled just below
         var = np.maximum(second - mean * mean, 0.0).mean(axis=2)
     finite = np.isfinite(var)
@@ -231,7 +243,8 @@ def _finite_mean(mean_rgb: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(m) & (m > 0), m, 0.0)
 
 
-def _ray_count_pass(scene: Any, w: int, h: int, max_depth: int, spp: int, seed: int) -> np.ndarray:
+def _ray_count_pass(scene: Any, w: int, h: int, max_depth: int, spp: int, seed: int,
+                    sensor: int = 0) -> np.ndarray:
     """Mean rays per sample of each pixel: camera ray, one per bounce, one shadow ray per smooth hit."""
     import drjit as dr
     import mitsuba as mi
@@ -242,7 +255,7 @@ def _ray_count_pass(scene: Any, w: int, h: int, max_depth: int, spp: int, seed: 
     idx = dr.arange(mi.UInt32, n)
     pix = idx // spp
     pos = mi.Point2f(mi.Float(pix % w), mi.Float(pix // w)) + sampler.next_2d()
-    ray, _ = scene.sensors()[0].sample_ray(0.0, sampler.next_1d(), pos / mi.ScalarVector2f(w, h),
+    ray, _ = scene.sensors()[sensor].sample_ray(0.0, sampler.next_1d(), pos / mi.ScalarVector2f(w, h),
                                            sampler.next_2d())
     rays, active, beta = mi.Float(0.0), mi.Bool(True), mi.Spectrum(1.0)
     depth = MAX_TRACE_DEPTH if max_depth < 0 else max(1, max_depth)

@@ -7,15 +7,17 @@ pre-pass, and the partition into units with their features (C, S, Nd). The in-pr
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from core import integrators
 from core.effects import Effects, analyse
 from core.errors import QuekaroError
 from core.messages import LEVELS
-from core.scene import SceneSpec, expand, film_info
+from core.scene import SceneSpec, expand, film_info, sensor_elements
 from core.units import Unit
 from master.partition import equal_tiles
 
@@ -31,10 +33,11 @@ class RenderOptions:
     depth: int | None = None
     threads: int | None = None
     rules: Path | None = None
-    defuzzifier: str = "centroid"
+    defuzzifier: str | None = None  # None: centroid in one process, each agent's own on a farm
     variant: str | None = None
     integrator: str | None = None
     units: int | None = None  # target number of work units; None: chosen from the image size
+    sensor: int = 0  # which of the scene's sensors renders (Mitsuba's -s)
 
     def __post_init__(self) -> None:
         if self.level not in LEVELS:
@@ -45,6 +48,8 @@ class RenderOptions:
             raise QuekaroError(f"--depth {self.depth}: must be at least 1 (or -1 for unbounded)")
         if self.units is not None and self.units < 1:
             raise QuekaroError(f"--units {self.units}: must be at least 1")
+        if self.sensor < 0:
+            raise QuekaroError(f"--sensor {self.sensor}: must be at least 0")
 
     def overrides(self) -> dict[str, Any]:
         """The effect decisions the user forced (they win over the analysis)."""
@@ -54,15 +59,16 @@ class RenderOptions:
     def to_dict(self) -> dict[str, Any]:
         return {"level": self.level, "spp": self.spp, "depth": self.depth, "threads": self.threads,
                 "rules": str(self.rules) if self.rules else None, "defuzzifier": self.defuzzifier,
-                "variant": self.variant, "integrator": self.integrator, "units": self.units}
+                "variant": self.variant, "integrator": self.integrator, "units": self.units,
+                "sensor": self.sensor}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> RenderOptions:
         rules = data.get("rules")
         return cls(level=data.get("level", "off"), spp=data.get("spp"), depth=data.get("depth"),
                    threads=data.get("threads"), rules=Path(rules) if rules else None,
-                   defuzzifier=data.get("defuzzifier", "centroid"), variant=data.get("variant"),
-                   integrator=data.get("integrator"), units=data.get("units"))
+                   defuzzifier=data.get("defuzzifier"), variant=data.get("variant"),
+                   integrator=data.get("integrator"), units=data.get("units"), sensor=data.get("sensor", 0))
 
 
 @dataclass
@@ -90,9 +96,10 @@ class JobPlan:
         return {name: (min(values), max(values)) for name, values in self.features().items()}
 
 
-def scene_spp(spec: SceneSpec) -> int | None:
-    """The sample count the scene's own sampler asks for, read from the XML (None if not stated)."""
-    sensor = expand(spec).root.find("sensor")
+def scene_spp(spec: SceneSpec, sensor_index: int = 0) -> int | None:
+    """The sample count the scene's sensor's sampler asks for, read from the XML (None if not stated)."""
+    sensors = sensor_elements(expand(spec).root)
+    sensor = sensors[sensor_index] if sensor_index < len(sensors) else None
     sampler = sensor.find("sampler") if sensor is not None else None
     if sampler is None:
         return None
@@ -135,11 +142,17 @@ def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: 
     """Analyse the scene's effects, run the pre-pass (optimised levels only) and partition the image
     (into `options.units` units, else the default count and at least `min_units`)."""
     effects = analyse(spec, options.overrides())
-    info = film_info(spec)
+    info = film_info(spec, options.sensor)
     width, height = info.width, info.height
-    spp = options.spp or scene_spp(spec) or DEFAULT_SPP
+    spp = options.spp or scene_spp(spec, options.sensor) or DEFAULT_SPP
     depth = effects.max_depth
     target = options.units or default_unit_count(width, height, options.level, min_units)
+    if not effects.splittable:
+        if options.level != "off":
+            effects.reasons.append(f"level {options.level} not applied: the rules choose per unit, and this "
+                                   "integrator renders as one unit at the user's spp and depth")
+        return JobPlan(spec, dataclasses.replace(options, level="off"), width, height, effects, spp, depth,
+                       _plain_units(width, height, 1))
     if options.level == "off":
         # The rules need no features at level off, so the pre-pass would be pure overhead.
         units = _plain_units(width, height, target)
@@ -155,8 +168,10 @@ def _planned_with_prepass(spec: SceneSpec, options: RenderOptions, effects: Effe
 
     start = time.perf_counter()
     scene = scene_mod.load(spec, effects.variant, options.threads)
-    cmap = prepass(scene, width, height, integrator=effects.integrator, max_depth=depth,
-                   threads=options.threads, full_spp=spp, seed=seed)
+    own = integrators.scene_element(expand(spec).root)
+    radiance = effects.override or integrators.radiance_xml(own, depth)
+    cmap = prepass(scene, width, height, integrator=radiance, max_depth=depth,
+                   threads=options.threads, full_spp=spp, seed=seed, sensor=options.sensor)
     units = partition(cmap, target_units=target)
     seconds = time.perf_counter() - start
     return JobPlan(spec, options, width, height, effects, spp, depth, units, seconds, dict(cmap.info))

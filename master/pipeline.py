@@ -40,10 +40,10 @@ def unit_job(plan: JobPlan, index: int, params: UnitParams, job_id: str, threads
     """The render order for one unit, with a seed unique to (job, unit, pass)."""
     unit = plan.units[index]
     return UnitJob(
-        scene=plan.spec, variant=plan.effects.variant, integrator=plan.effects.integrator,
+        scene=plan.spec, variant=plan.effects.variant, integrator=plan.effects.override,
         max_depth=params.depth, spp=params.spp, seed=unit_seed(job_id, unit.index, 0),
         width=plan.width, height=plan.height, unit=unit.rect, band=params.band, threads=threads,
-        job_id=job_id, unit_index=unit.index,
+        job_id=job_id, unit_index=unit.index, sensor=plan.options.sensor,
     )
 
 
@@ -55,6 +55,7 @@ def unit_record(plan: JobPlan, tile: Tile, params: dict[str, Any]) -> dict[str, 
         "depth": params.get("depth"), "spp": params.get("spp"), "band": params.get("band"),
         "outputs": params.get("outputs", {}), "seconds": float(tile.meta.get("seconds", 0.0)),
         "nonfinite": int(tile.meta.get("nonfinite", 0)), "agent": params.get("agent"),
+        "rules": params.get("rules"),
     }
 
 
@@ -65,16 +66,17 @@ def assemble(plan: JobPlan, tiles: Iterable[Tile], params: dict[int, dict[str, A
     `started` is the job's start on the `time.perf_counter` clock (for the total seconds)."""
     tiles = list(tiles)
     image, compose_report = compose(tiles, plan.width, plan.height)
+    channels = tiles[0].channels if tiles else ("R", "G", "B")
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_exr(out, image)
-    write_png(out.with_suffix(".png"), image)
+    write_exr(out, image, channels=channels)
+    write_png(out.with_suffix(".png"), image[..., :3])
     units = sorted((unit_record(plan, t, params[int(t.meta["unit_index"])]) for t in tiles),
                    key=lambda u: u["index"])
     report = {
         "scene": plan.spec.to_dict(), "options": plan.options.to_dict(),
         "image": {"width": plan.width, "height": plan.height, "exr": str(out),
-                  "png": str(out.with_suffix(".png"))},
+                  "png": str(out.with_suffix(".png")), "channels": list(channels), "sensor": plan.options.sensor},
         "effects": plan.effects.to_dict(), "user": {"spp": plan.spp, "depth": plan.depth},
         "prepass": plan.prepass_info, "units": units, "compose": compose_report.to_dict(),
         "totals": {
@@ -103,5 +105,5 @@ def render_job(spec: SceneSpec, options: RenderOptions, out: Path, job_id: str |
         for unit, p in zip(plan.units, chosen, strict=True):
             job = unit_job(plan, unit.index, p, job_id, options.threads)
             tiles.append(worker.render(job, timeout=UNIT_TIMEOUT_S))
-            params[unit.index] = p.to_dict()
+            params[unit.index] = {**p.to_dict(), "rules": planner.rules_path.name}
     return assemble(plan, tiles, params, out, start, {"job_id": job_id})

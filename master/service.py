@@ -25,11 +25,14 @@ from pathlib import Path
 from typing import Any
 
 from core import messages as m
-from core.bundle import BundleLimits, bundle_hash, extract_bundle
+from core.bundle import BundleLimits, bundle_hash, check_unpacked, extract_bundle, read_manifest
 from core.errors import MessageError, QuekaroError
+from core.hashing import sha256_file
+from core.planner import Planner
 from core.scene import SceneSpec
 from core.seeds import plan_seed
 from core.tiles import read_tile
+from fuzzy.errors import RuleFileError
 from master import auction as au
 from master.jobplan import JobPlan, RenderOptions, farm_min_units, plan_job
 from master.store import JobRecord, JobStore, restore_auction
@@ -178,7 +181,8 @@ class MasterService:
             depth=plan["depth"], level=record.options["options"]["level"],
             ranges={k: tuple(v) for k, v in plan["ranges"].items()}, scene_name=record.scene,
             defines=dict(record.defines), variant=plan["effects"]["variant"],
-            integrator=plan["effects"]["integrator"],
+            integrator=plan["effects"].get("override"), sensor=int(record.options["options"].get("sensor", 0)),
+            rules_sha256=plan.get("rules_sha256"), defuzzifier=record.options["options"].get("defuzzifier"),
         )
 
     async def submit(self, bundle: bytes, defines: dict[str, str], options: RenderOptions) -> str:
@@ -189,6 +193,8 @@ class MasterService:
         try:
             (job_dir / "bundle.tar").write_bytes(bundle)
             scene = extract_bundle(bundle, job_dir / "scene", BundleLimits())
+            check_unpacked(scene, defines)
+            options, rules_sha256 = _job_rules(job_dir / "scene", options)
             digest = bundle_hash(bundle)
             loop = asyncio.get_running_loop()
             plan = await loop.run_in_executor(
@@ -198,7 +204,7 @@ class MasterService:
             shutil.rmtree(job_dir, ignore_errors=True)
             raise
         scene_name = str(scene.relative_to(job_dir / "scene"))
-        self._create_job(job_id, scene_name, defines, options, plan, digest)
+        self._create_job(job_id, scene_name, defines, options, plan, digest, rules_sha256)
         return job_id
 
     def _units_for_agents(self) -> int:
@@ -207,12 +213,13 @@ class MasterService:
         return farm_min_units(live)
 
     def _create_job(self, job_id: str, scene_name: str, defines: dict[str, str], options: RenderOptions,
-                    plan: JobPlan, sha256: str) -> None:
-        stored = {"options": options.to_dict(), "plan": {
+                    plan: JobPlan, sha256: str, rules_sha256: str | None = None) -> None:
+        stored = {"options": plan.options.to_dict(), "plan": {
             "width": plan.width, "height": plan.height, "spp": plan.spp, "depth": plan.depth,
             "effects": plan.effects.to_dict(), "ranges": {k: list(v) for k, v in plan.ranges().items()},
             "prepass_seconds": plan.prepass_seconds, "prepass_info": plan.prepass_info,
             "bundle_sha256": sha256, "neighbours": {u.index: list(u.neighbours) for u in plan.units},
+            "rules_sha256": rules_sha256,
         }}
         specs = [m.UnitSpec(index=u.index, rect=u.rect, C=u.C, S=float(u.S), Nd=u.Nd, cost=u.cost)
                  for u in plan.units]
@@ -354,6 +361,21 @@ def plan_from_record(record: JobRecord, store: JobStore, job_dir: Path) -> JobPl
                    plan["prepass_seconds"], plan["prepass_info"])
 
 
+def _job_rules(folder: Path, options: RenderOptions) -> tuple[RenderOptions, str | None]:
+    """The job's options with its rule file (from its bundle, validated) and that file's sha256."""
+    if options.rules is not None:
+        raise QuekaroError("options.rules: a job's rule file travels inside its bundle (quekaro submit --rules)")
+    name = read_manifest(folder).get("rules")
+    if not name:
+        return options, None
+    path = folder / name
+    try:
+        Planner(path, options.defuzzifier)
+    except (RuleFileError, ValueError) as exc:
+        raise QuekaroError(f"the job's rule file: {exc}") from exc
+    return dataclasses.replace(options, rules=path), sha256_file(path)
+
+
 def _params_from_meta(meta: dict[str, Any]) -> dict[str, Any]:
     """The parameters an agent chose, as its tile's header states them (validated: they enter the report)."""
     try:
@@ -364,6 +386,7 @@ def _params_from_meta(meta: dict[str, Any]) -> dict[str, Any]:
         raise QuekaroError(f"tile header lacks valid render parameters: {exc}") from exc
     params["outputs"] = meta.get("outputs") if isinstance(meta.get("outputs"), dict) else {}
     params["agent"] = meta.get("agent")
+    params["rules"] = str(meta.get("rules", ""))[:256] or None
     return params
 
 

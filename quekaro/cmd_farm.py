@@ -10,7 +10,7 @@ import sys
 import time
 from pathlib import Path
 
-from quekaro.cmd_render import add_job_arguments, options_from_args
+from quekaro.cmd_render import add_job_arguments, options_from_args, search_paths
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -132,8 +132,10 @@ def run_submit(args: argparse.Namespace) -> int:
 
     defines = parse_defines(args.defines)
     options = options_from_args(args).to_dict()
+    options["rules"] = None  # the rule file travels inside the bundle, to every agent
     with tempfile.TemporaryDirectory() as tmp:
-        bundle = Path(make_bundle(args.scene, defines, Path(tmp) / "bundle.tar").path).read_bytes()
+        bundle = Path(make_bundle(args.scene, defines, Path(tmp) / "bundle.tar", search_paths=search_paths(args),
+                                  rules=args.rules).path).read_bytes()
     client = _client(args)
     job_id = client.submit(bundle, defines, options)
     print(job_id)
@@ -153,7 +155,18 @@ def run_status(args: argparse.Namespace) -> int:
         print(f"{job['job_id']}  {job['status']:<9} {job['units_done']}/{job['units_total']} units  "
               f"agents busy {job['agents_busy']}  ETA {eta}  {job['scene']}"
               + (f"  error: {job['error']}" if job.get("error") else ""))
+        if args.job:
+            print_effects(job.get("effects") or {})
     return 0
+
+
+def print_effects(effects: dict) -> None:
+    """What the job simulates and why, one reason a line (as `quekaro render` prints them)."""
+    if not effects:
+        return
+    print(f"effects: {effects.get('variant')} / {effects.get('integrator')} / max_depth {effects.get('max_depth')}")
+    for reason in effects.get("reasons", []):
+        print(f"  - {reason}")
 
 
 def run_watch(args: argparse.Namespace) -> int:
@@ -167,6 +180,7 @@ def watch(client, job_id: str, poll_s: float = 0.5) -> int:
     columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} units"),
                TextColumn("agents busy {task.fields[busy]}"), TextColumn("ETA {task.fields[eta]}"),
                TimeElapsedColumn())
+    print_effects(client.status(job_id).get("effects") or {})
     with Progress(*columns, transient=False) as progress:
         task = progress.add_task(job_id, total=None, busy=0, eta="-")
         while True:

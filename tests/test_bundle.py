@@ -14,6 +14,7 @@ import pytest
 
 from core.bundle import (
     MANIFEST_NAME,
+    VERSION,
     BundleError,
     BundleLimits,
     bundle_hash,
@@ -31,7 +32,7 @@ needs_shared = pytest.mark.skipif(not SHARED.is_dir(), reason="../shared scenes 
 
 def _manifest(files: dict[str, bytes], scene: str = "scene.xml") -> bytes:
     entries = [{"path": n, "size": len(d), "sha256": hashlib.sha256(d).hexdigest()} for n, d in files.items()]
-    return json.dumps({"format": "quekaro-bundle", "version": 1, "scene": scene, "defines": {},
+    return json.dumps({"format": "quekaro-bundle", "version": VERSION, "scene": scene, "defines": {},
                        "files": entries}).encode()
 
 
@@ -103,8 +104,9 @@ def test_real_scene_round_trip_renders_identically(tmp_path, scene, defines, exp
     out = extract_bundle(info.path, tmp_path / "x")
     assert out == tmp_path / "x" / src.name
     assert read_manifest(out.parent)["defines"] == defines
-    for rel in info.files:
-        assert (out.parent / rel).read_bytes() == (src.parent / rel).read_bytes()
+    for rel in info.files:  # XML files are rewritten (their references); every other file is as it was
+        if not rel.endswith(".xml"):
+            assert (out.parent / rel).read_bytes() == (src.parent / rel).read_bytes()
     # The unpacked copy renders as the original (same seed, variant, threads); two renders of the same
     # file differ by ~2e-7 from the order of filter splats across threads, hence the tiny tolerance.
     np.testing.assert_allclose(_render(out, defines), _render(src, defines), rtol=1e-5, atol=1e-5)
@@ -144,24 +146,56 @@ def test_defaults_and_defines_choose_the_file(tmp_path):
 
 
 @pytest.mark.parametrize(("body", "match"), [
-    (_shape("/etc/passwd"), r"'/etc/passwd' is an absolute path"),
-    (_shape("../evil/x.obj"), r"'../evil/x.obj' escapes the scene's folder"),
-    (_shape("meshes/../../evil/x.obj"), r"escapes the scene's folder"),
-    (_shape("missing.obj"), r"'missing.obj' not found"),
+    (_shape("missing.obj"), r":1: file file 'missing.obj' not found; searched: .*scene"),
     (_shape("$nope.obj"), r"undefined parameter"),
-    ("<include filename='../evil/inc.xml'/>", r"escapes the scene's folder"),
-    ("<include filename='link.obj'/>", r"'link.obj' is a link to .*outside"),
+    ("<include filename='nope.xml'/>", r"include file 'nope.xml' not found"),
+    ("<path value='nowhere'/>", r"<path>: folder 'nowhere' not found"),
 ])
 def test_bad_references_are_refused(tmp_path, body, match):
-    (tmp_path / "evil").mkdir()
-    (tmp_path / "evil" / "x.obj").write_text("secret")
-    (tmp_path / "evil" / "inc.xml").write_text("<scene version='3.0.0'/>")
     scene = _scene_with(tmp_path, body)
-    (scene.parent / "link.obj").symlink_to(tmp_path / "evil" / "x.obj")
     with pytest.raises(BundleError, match=match) as err:
         make_bundle(scene, None, tmp_path / "b.tar")
     assert str(scene) in str(err.value)  # names the file at fault
     assert not (tmp_path / "b.tar").exists()
+
+
+def test_files_outside_the_scene_folder_are_packed_and_references_rewritten(tmp_path):
+    """Absolute names, `..` and `<path>` folders outside the scene's folder: the submitter owns those
+    files, so the bundle holds them, and the unpacked scene names them inside the bundle only."""
+    (tmp_path / "common" / "include").mkdir(parents=True)
+    (tmp_path / "common" / "include" / "x.xml").write_text(
+        "<scene version='3.0.0'>" + _shape("meshes/m.obj") + "</scene>")
+    (tmp_path / "common" / "meshes").mkdir()
+    (tmp_path / "common" / "meshes" / "m.obj").write_text("m")
+    (tmp_path / "abs.obj").write_text("abs")
+    scene = _scene_with(tmp_path, "<path value='../common'/><include filename='include/x.xml'/>"
+                        + _shape(str(tmp_path / "abs.obj")) + _shape("../abs.obj"))
+    info = make_bundle(scene, None, tmp_path / "b.tar")
+    out = extract_bundle(info.path, tmp_path / "x")
+    from core.bundle import check_unpacked
+    from core.resolver import read_scene
+
+    check_unpacked(out, {})
+    found = read_scene(out, {}, cwd=None)
+    folder = out.parent.resolve()
+    targets = {r.target.resolve() for r in found.references}
+    assert all(t.is_relative_to(folder) for t in targets)
+    assert sorted(t.read_text() for t in targets if t.suffix == ".obj") == ["abs", "m"]
+    assert "<path" not in out.read_text()
+
+
+@pytest.mark.parametrize("reference", ["/etc/hostname", "../../outside.obj"])
+def test_an_unpacked_scene_that_reads_outside_its_bundle_is_refused(tmp_path, reference):
+    from core.bundle import check_unpacked
+
+    (tmp_path / "outside.obj").write_text("secret")
+    folder = tmp_path / "job" / "scene"
+    folder.mkdir(parents=True)
+    scene = folder / "scene.xml"
+    scene.write_text(f"<scene version='3.0.0'>{_shape(reference)}</scene>")
+    if not Path(reference).is_absolute() or Path(reference).exists():
+        with pytest.raises(BundleError, match="outside the bundle"):
+            check_unpacked(scene, {})
 
 
 def test_huge_referenced_file_is_refused_without_reading(tmp_path):
@@ -176,7 +210,6 @@ def test_include_cycle_is_bounded(tmp_path):
     scene = _scene_with(tmp_path, "<include filename='a.xml'/>")
     (scene.parent / "a.xml").write_text("<scene version='3.0.0'><include filename='b.xml'/></scene>")
     (scene.parent / "b.xml").write_text("<scene version='3.0.0'><include filename='a.xml'/></scene>")
-    # Our walk visits each include once; core.scene's cross-check reports the cycle itself.
     with pytest.raises(BundleError, match="includes itself"):
         make_bundle(scene, None, tmp_path / "b.tar")
 

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from fuzzy_helpers import DATA, RULES, SIMPLE_IN, SIMPLE_OUT, SIMPLE_RULES, system_xml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fuzzy import RuleFileError, load_rulebase, parse_rulebase
+from fuzzy import Engine, RuleFileError, load_rulebase, parse_rulebase
 from fuzzy.loader import MAX_BYTES
 
 
@@ -181,3 +182,54 @@ def test_fuzzed_rule_files_load_or_are_refused_never_crash(start, length, junk):
         assert exc.file == "fuzzed.xml"
     else:
         assert rb.rules and rb.outputs
+
+
+# ---- MASYRO's own rule file (TheProjecter/masyro06, src/init/fuzzyMasyro.xml, GPL v2) ------------------
+# masyro_original.xml is that file verbatim; masyro_fixed.xml mends its one typo (Ls B: d=1 -> 11).
+# The expected outputs come from a port of MASYRO's published engine (trunk/src/Util_fuzzy.py: min for
+# AND, max per label, each label's trapezoid clipped at that height, centre of sums), run on the file's
+# own sets; the typo is not involved in these rows.
+
+
+def test_masyros_published_file_is_refused_naming_its_typo():
+    path = DATA / "masyro_original.xml"
+    with pytest.raises(RuleFileError) as info:
+        load_rulebase(path)
+    err = info.value
+    assert (err.file, err.line, err.variable, err.label) == (str(path), 41, "Ls", "B")
+    assert "c=9 > d=1" in str(err)
+
+
+@pytest.mark.parametrize(("inputs", "expected"), [
+    ({"C": 45.0, "Nd": 40.0, "S": 140000.0, "Op": 25.0}, {"Ls": 5.0, "Rl": 3.0, "Ibs": 3.8889}),
+    ({"C": 80.0, "Nd": 80.0, "S": 90000.0, "Op": 5.0}, {"Ls": 11.3034, "Rl": 8.1517, "Ibs": 26.1111}),
+])
+def test_masyros_mended_file_evaluates_as_masyros_engine(inputs, expected):
+    rulebase = load_rulebase(DATA / "masyro_fixed.xml")
+    assert rulebase.dialect == "masyro" and len(rulebase.rules) == 86
+    out = Engine(rulebase, "centre-of-sums").evaluate({k: [v] for k, v in inputs.items()})
+    for name, value in expected.items():
+        assert out[name][0] == pytest.approx(value, abs=1e-4)
+
+
+def test_masyro_inputs_outside_their_sets_fire_nothing_and_outputs_have_no_value():
+    rulebase = load_rulebase(DATA / "masyro_fixed.xml")
+    # C=100 lies above every C set: MASYRO gives membership 0 (the paper dialect would clamp to VB), so
+    # no rule naming C fires; Ibs comes from Nd alone (the engine's port: Ibs 7.5611, Ls and Rl missing).
+    out = Engine(rulebase, "centre-of-sums").evaluate({"C": [100.0], "Nd": [50.0], "S": [1e5], "Op": [15.0]})
+    assert np.isnan(out["Ls"][0]) and np.isnan(out["Rl"][0])
+    assert out["Ibs"][0] == pytest.approx(7.5611, abs=1e-4)
+
+
+def test_masyros_file_plans_units_keeping_the_users_values_where_no_rule_fires():
+    from core.planner import Planner
+
+    planner = Planner(DATA / "masyro_fixed.xml")
+    assert planner.engine.defuzzifier == "centre-of-sums"
+    features = {"C": np.array([0.1, 0.5, 0.9]), "S": np.array([3000.0, 3000.0, 9000.0]),
+                "Nd": np.array([0.0, 0.2, 0.4])}
+    params = planner.plan(features, "VB", user_depth=8, user_spp=128)
+    assert all(1 <= p.depth <= 8 and 64 <= p.spp <= 128 for p in params)  # factors in [0.5, 1]
+    assert params[0].spp >= params[2].spp or params[0].depth >= params[2].depth  # simple units keep more
+    low = planner.plan(features, "VS", user_depth=8, user_spp=128)
+    assert sum(p.spp for p in low) >= sum(p.spp for p in params)  # VS optimises least

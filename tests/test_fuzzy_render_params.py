@@ -2,16 +2,34 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from fuzzy.render_params import LEVELS, LS_MAX, op_value, to_render_params
+from fuzzy import load_rulebase
+from fuzzy.render_params import LEVELS, LS_MAX, masyro_render_params, to_render_params
+
+REPO = Path(__file__).resolve().parent.parent
 
 
-def test_op_values_are_the_label_peaks():
-    assert [op_value(level) for level in LEVELS] == [0.0, 1.0, 2.0, 3.0, 4.0]
-    with pytest.raises(ValueError, match="unknown optimisation level 'XL'"):
-        op_value("XL")
+def test_op_values_are_the_label_peaks_of_the_files_own_op_sets():
+    rulebase = load_rulebase(REPO / "rules" / "pathtracing.xml")
+    assert [rulebase.op_value(level) for level in LEVELS] == [0.0, 1.0, 2.0, 3.0, 4.0]
+    masyro = load_rulebase(REPO / "tests" / "data" / "rules" / "masyro_fixed.xml")  # Op universe 0..30
+    assert [masyro.op_value(level) for level in LEVELS] == [2.5, 10.0, 15.0, 20.0, 27.5]
+    with pytest.raises(ValueError, match="'XL'"):
+        rulebase.op_value("XL")
+
+
+def test_masyro_mapping_floors_scales_and_keeps_the_users_value_where_no_rule_fired():
+    outputs = {"Rl": np.array([9.0, 4.9, np.nan]), "Ls": np.array([8.5, 1.2, np.nan]),
+               "Ibs": np.array([3.9, 0.0, np.nan])}
+    depth, spp, band = masyro_render_params(outputs, 8, 100, {"Rl": 9.0, "Ls": 13.0})
+    # int(max(0.5, floor(Rl)/9) * 8): 8, int(4/9*8)=3 -> 0.5 floor wins: 4; NaN keeps 8
+    assert depth.tolist() == [8, 4, 8]
+    assert spp.tolist() == [61, 50, 100]  # int(8/13*100)=61, int(0.5*100)=50, kept
+    assert band.tolist() == [3, 0, 0]
 
 
 def test_factors_weight_the_users_values():

@@ -80,7 +80,7 @@ def test_shifted_camera_renders_the_same_pixels_as_a_crop():
     assert shifted.meta["window_method"] == "shift"
     scene, _ = cache.scene_for(j.scene, VARIANT, 1)
     params = mi.traverse(scene.sensors()[0])
-    params["principal_point_offset_x"], params["principal_point_offset_y"] = cache.base_pp
+    params["principal_point_offset_x"], params["principal_point_offset_y"] = cache.principal_point(0)
     params.update()
     set_window(scene, j.window, None)  # a real crop at the window's offset, camera as loaded
     cropped = np.array(mi.render(scene, integrator=cache.integrator("path", 4), spp=8, seed=j.seed))

@@ -1,0 +1,161 @@
+"""Finding every file a scene reads, exactly as Mitsuba 3.9's parser and file resolver find them.
+
+Mitsuba keeps a list of search folders. Loading a scene file puts the file's folder first, then the
+folders that were there already (the working directory at start, and `-a` paths at the end). Then:
+- `<path value>` (a child of the root only): tried beside the XML file that holds it, else through the
+  search folders; the folder is put first in the list of the file being read.
+- `<include filename>`: looked up with the including file's folder put first; the included file is read
+  with that list (copied: its own `<path>`s end with it).
+- `<spectrum filename>`: looked up while reading, with the list of the file being read.
+- every other `filename` (meshes, textures, envmaps, volume grids, measured BSDFs): looked up when the
+  plugin is built, after all the XML was read, with the main file's final list, whichever file named it.
+A lookup tries each folder in order and takes the first that has the file; absolute names are kept.
+`$name` is substituted in every attribute and `<default>` sets a parameter from its place on, shared
+with includes, as Mitsuba does.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from lxml import etree
+
+from core.errors import SceneError
+
+MAX_INCLUDE_DEPTH = 15
+SRC_ATTR = "{urn:quekaro}src"  # private attribute: which file an element came from
+_PARAM_RE = re.compile(r"\$([A-Za-z_][A-Za-z0-9_]*)")
+
+
+@dataclass
+class Reference:
+    """One file named in the XML: where, how (include, spectrum, file, path) and what it resolved to."""
+
+    file: Path
+    line: int
+    kind: str
+    name: str
+    target: Path
+    element: etree._Element
+
+
+@dataclass
+class SceneFiles:
+    """The scene's XML files as read (parameters substituted, each file its own tree) and every reference."""
+
+    main: Path
+    trees: dict[Path, etree._Element] = field(default_factory=dict)
+    references: list[Reference] = field(default_factory=list)
+    params: dict[str, str] = field(default_factory=dict)
+    includers: dict[Path, Path] = field(default_factory=dict)  # included file -> the file including it
+
+    def files(self) -> list[Path]:
+        """Every file the scene reads besides the main one (folders of `<path>` excluded), in order."""
+        return list(dict.fromkeys(r.target for r in self.references if r.kind != "path"))
+
+
+def parse_xml(path: Path, error: type[SceneError] = SceneError) -> etree._Element:
+    """One scene XML file, parsed safely: scene files may come from strangers (bundles), so no entity
+    expansion, no DTD, no network, no huge trees. Failures raise `error` naming the file."""
+    parser = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False,
+                             remove_comments=True)
+    try:
+        return etree.parse(str(path), parser).getroot()
+    except OSError as exc:
+        raise error(f"{path}: cannot read ({exc})") from exc
+    except etree.XMLSyntaxError as exc:
+        raise error(f"{path}: not well-formed XML ({exc})") from exc
+
+
+def lookup(name: str, folders: Sequence[Path]) -> Path | None:
+    """Mitsuba's FileResolver.resolve: an absolute name as is, else the first folder holding it."""
+    candidate = Path(name)
+    if candidate.is_absolute():
+        return candidate if candidate.exists() else None
+    for folder in folders:
+        if (folder / candidate).exists():
+            return folder / candidate
+    return None
+
+
+def read_scene(main: Path, defines: dict[str, str], search_paths: Sequence[Path] = (),
+               cwd: Path | None = None) -> SceneFiles:
+    """Read the scene file and everything it includes; resolve every reference (SceneError if one fails,
+    naming the file, the line and every folder searched)."""
+    main = Path(main).absolute()
+    if not main.is_file():
+        raise SceneError(f"{main}: scene file not found")
+    found = SceneFiles(main, params=dict(defines))
+    top = [main.parent, *([cwd] if cwd is not None else []), *(Path(p).absolute() for p in search_paths)]
+    deferred: list[tuple[Path, etree._Element, str]] = []
+    _read_file(main, top, found, deferred, [])
+    for file, elem, name in deferred:
+        found.references.append(_resolved(file, elem, "file", name, top))
+    return found
+
+
+def _read_file(path: Path, folders: list[Path], found: SceneFiles,
+               deferred: list[tuple[Path, etree._Element, str]], stack: list[Path]) -> None:
+    if len(stack) > MAX_INCLUDE_DEPTH:
+        raise SceneError(f"{path}: includes nested deeper than {MAX_INCLUDE_DEPTH} levels")
+    if path in stack:
+        raise SceneError(f"{path}: includes itself (through {' -> '.join(map(str, stack))})")
+    root = parse_xml(path)
+    found.trees.setdefault(path, root)
+    for elem in root.iter():
+        if not isinstance(elem.tag, str):
+            continue
+        for key, value in elem.attrib.items():
+            elem.set(key, _PARAM_RE.sub(lambda m: found.params.get(m.group(1), m.group(0)), value))
+        elem.set(SRC_ATTR, str(path))
+        _visit(elem, path, root, folders, found, deferred, stack)
+
+
+def _visit(elem: etree._Element, path: Path, root: etree._Element, folders: list[Path], found: SceneFiles,
+           deferred: list[tuple[Path, etree._Element, str]], stack: list[Path]) -> None:
+    if elem.tag == "default":
+        found.params.setdefault(elem.get("name", ""), elem.get("value", ""))
+    elif elem.tag == "path":
+        if elem.getparent() is not root:
+            raise SceneError(f"{path}:{elem.sourceline}: <path> can only be a child of the root")
+        ref = _path_folder(elem, path, folders)
+        found.references.append(ref)
+        folders.insert(0, ref.target)
+    elif elem.tag == "include":
+        scope = [path.parent, *folders]
+        ref = _resolved(path, elem, "include", elem.get("filename") or "", scope)
+        found.references.append(ref)
+        found.includers.setdefault(ref.target, path)
+        _read_file(ref.target, scope, found, deferred, [*stack, path])
+    elif elem.tag == "spectrum" and elem.get("filename"):
+        found.references.append(_resolved(path, elem, "spectrum", elem.get("filename", ""), folders))
+    elif elem.get("name") == "filename" and elem.get("value") is not None and elem.tag == "string":
+        deferred.append((path, elem, elem.get("value", "")))
+
+
+def _resolved(file: Path, elem: etree._Element, kind: str, name: str, folders: Sequence[Path]) -> Reference:
+    where = f"{file}:{elem.sourceline}"
+    if not name:
+        raise SceneError(f"{where}: <{elem.tag}> names no file")
+    if "$" in name:
+        raise SceneError(f"{where}: file name {name!r} uses an undefined parameter")
+    target = lookup(name, folders)
+    if target is None or not target.is_file():
+        searched = ", ".join(str(f) for f in folders) if not Path(name).is_absolute() else "(absolute name)"
+        raise SceneError(f"{where}: {kind} file {name!r} not found; searched: {searched}")
+    return Reference(file, elem.sourceline or 0, kind, name, Path(os.path.normpath(target.absolute())), elem)
+
+
+def _path_folder(elem: etree._Element, file: Path, folders: Sequence[Path]) -> Reference:
+    value = elem.get("value", "")
+    target = Path(value) if Path(value).is_absolute() else file.parent / value
+    if not target.exists():
+        target = lookup(value, folders) or target
+    if not target.is_dir():
+        raise SceneError(f"{file}:{elem.sourceline}: <path>: folder {value!r} not found; searched: "
+                         f"{', '.join(str(f) for f in [file.parent, *folders])}")
+    return Reference(file, elem.sourceline or 0, "path", value, Path(os.path.normpath(target.absolute())), elem)

@@ -1,0 +1,115 @@
+"""The compatibility suite's scenes (tests/compat/scenes): one per kind of input users bring, each with the
+variant the effect analysis must choose and how it is rendered (spp, sensor, -D parameters, -a paths)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from render_check import by_name, compare, reference_renders
+
+from core.imageio import read_exr_channels
+from quekaro.farm_client import FarmClient
+
+SCENES = Path(__file__).resolve().parent / "compat" / "scenes"
+RGB, SPECTRAL = "llvm_ad_rgb", "llvm_ad_spectral"
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    file: str
+    variant: str = RGB
+    spp: int = 64
+    sensor: int = 0
+    defines: dict[str, str] = field(default_factory=dict)
+    units: int = 6  # enough to have bands between tiles in both directions
+    search: tuple[str, ...] = ()  # -a folders, relative to SCENES
+
+    @property
+    def scene(self) -> Path:
+        return SCENES / self.file
+
+
+CASES = (
+    Case("moment", "moment.xml"),
+    Case("aov", "aov.xml"),
+    Case("search-path", "searchpath/scene/scene.xml"),
+    Case("search-path-a", "searchpath/scene/needs_a.xml", search=("searchpath/common",)),
+    Case("default-integrator", "default_integrator.xml", defines={"integrator": "direct"}),
+    Case("direct", "direct.xml"),
+    Case("spectral-flat", "spectral_flat.xml"),
+    Case("spectral-spiky", "spectral_spiky.xml", variant=SPECTRAL),
+    Case("instancing", "instancing.xml"),
+    Case("medium-homogeneous", "medium_homogeneous.xml"),
+    Case("medium-grid", "medium_grid.xml"),
+    Case("emitters-textured", "emitters_textured.xml"),
+    Case("orthographic", "orthographic.xml"),
+    Case("second-sensor", "two_sensors.xml", sensor=1),
+    Case("rgba", "rgba.xml"),
+    Case("ptracer", "ptracer.xml"),  # must come back as one unit whatever is asked
+)
+
+
+# ---- running a case, shared by tests/test_compat.py and tests/compat_report.py ---------------------------
+
+REPO = SCENES.parent.parent.parent
+_refs: dict[str, tuple] = {}
+
+
+def job_args(case: Case) -> list[str]:
+    """The `quekaro render` / `quekaro submit` arguments of a case (level off: no rules)."""
+    args = [str(case.scene), "--opt", "off", "--units", str(case.units), "-s", str(case.sensor)]
+    for key, value in case.defines.items():
+        args += ["-D", f"{key}={value}"]
+    for folder in case.search:
+        args += ["-a", str(SCENES / folder)]
+    return args
+
+
+def quekaro(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    """Run the real command line."""
+    return subprocess.run([sys.executable, "-m", "quekaro", *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def reference(case: Case) -> tuple:
+    """Plain Mitsuba's renders of the case (cached for the process)."""
+    if case.name not in _refs:
+        _refs[case.name] = reference_renders(case.scene, case.variant, case.spp, case.sensor, case.defines,
+                                             search_paths=tuple(SCENES / f for f in case.search))
+    return _refs[case.name]
+
+
+def problems(case: Case, exr: Path) -> list[str]:
+    """What differs between the EXR (and its JSON report) and plain Mitsuba; empty when nothing does."""
+    report = json.loads(exr.with_suffix(".json").read_text())
+    image, names = read_exr_channels(exr)
+    refs, ref_names = reference(case)
+    if sorted(names) != sorted(ref_names):
+        return [f"channels {list(names)} != Mitsuba's {list(ref_names)}"]
+    found = []
+    verdict = compare(by_name(image, names, ref_names), refs)
+    if not verdict.passed:
+        found.append(str(verdict))
+    if report["effects"]["variant"] != case.variant:
+        found.append(f"variant {report['effects']['variant']} != {case.variant}")
+    units = 1 if case.name == "ptracer" else case.units
+    if len(report["units"]) != units:
+        found.append(f"{len(report['units'])} units, expected {units}")
+    return found
+
+
+def wait_done(client: FarmClient, job_id: str, timeout: float = 600.0) -> dict:
+    """The job's status once it is no longer running."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        job = client.status(job_id)
+        if job["status"] != "running":
+            return job
+        time.sleep(0.5)
+    raise AssertionError(f"job {job_id} still running: {client.status(job_id)}")

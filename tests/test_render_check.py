@@ -1,0 +1,43 @@
+"""The statistical comparison with plain Mitsuba (tests/render_check.py) has power: it refuses renders
+that compute something else, with fewer samples, or from tiles of an integrator that cannot be tiled."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+from compat_cases import CASES, SCENES, problems
+from render_check import compare, reference_renders
+
+import core.integrators as integrators
+from core.scene import SceneSpec
+from master.jobplan import RenderOptions
+from master.pipeline import render_job
+
+pytestmark = pytest.mark.slow
+
+
+def _case(name: str):
+    return next(c for c in CASES if c.name == name)
+
+
+def test_another_seed_passes_and_fewer_samples_or_another_integrator_fail():
+    scene = SCENES / "default_integrator.xml"
+    refs, _ = reference_renders(scene, "llvm_ad_rgb", 64, defines={"integrator": "direct"})
+    same, _ = reference_renders(scene, "llvm_ad_rgb", 64, defines={"integrator": "direct"}, renders=1, seed0=7)
+    assert compare(same[0], refs).passed
+    fewer, _ = reference_renders(scene, "llvm_ad_rgb", 16, defines={"integrator": "direct"}, renders=1, seed0=7)
+    verdict = compare(fewer[0], refs)
+    assert not verdict.passed and verdict.variance_ratio > 2
+    path, _ = reference_renders(scene, "llvm_ad_rgb", 64, defines={"integrator": "path"}, renders=1, seed0=7)
+    assert compare(path[0], refs).failing > 1000
+
+
+def test_a_tiled_particle_tracer_is_refused_by_the_comparison(tmp_path, monkeypatch):
+    """Why ptracer renders whole: forced into 6 tiles, its image fails (light paths splat across tiles)."""
+    forced = dataclasses.replace(integrators.CATALOGUE["ptracer"], splittable=True)
+    monkeypatch.setitem(integrators.CATALOGUE, "ptracer", forced)
+    case = _case("ptracer")
+    render_job(SceneSpec(case.scene), RenderOptions(units=6, threads=2), tmp_path / "tiled.exr")
+    found = problems(case, tmp_path / "tiled.exr")
+    assert any("DIFFERENT" in p for p in found), found
