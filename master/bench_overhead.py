@@ -29,16 +29,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeats", type=int, default=2)
 
 
-def plain_render(scene: str, defines: dict[str, str], integrator: str, depth: int, spp: int, threads: int,
-                 out: str) -> None:
-    """One ordinary Mitsuba render of the whole image (the baseline), in this process."""
+def plain_render(scene: str, defines: dict[str, str], spp: int, threads: int, out: str) -> None:
+    """One ordinary Mitsuba render of the whole image with the scene's own integrator (the baseline)."""
     import drjit as dr
     import mitsuba as mi
 
     mi.set_variant("llvm_ad_rgb")
     dr.set_thread_count(threads)
     loaded = mi.load_file(scene, **defines)
-    image = mi.render(loaded, integrator=mi.load_dict({"type": integrator, "max_depth": depth}), spp=spp)
+    image = mi.render(loaded, spp=spp)
     mi.Bitmap(image).write(out)
 
 
@@ -59,8 +58,7 @@ def run(args: argparse.Namespace) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         plain_out, farm_out = Path(tmp) / "plain.exr", Path(tmp) / "quekaro.exr"
         plain_cmd = [sys.executable, "-m", "master.bench_overhead", "plain", str(args.scene),
-                     json.dumps(defines), effects.integrator, str(effects.max_depth), str(args.spp),
-                     str(args.threads), str(plain_out)]
+                     json.dumps(defines), str(args.spp), str(args.threads), str(plain_out)]
         ours_cmd = [sys.executable, "-m", "quekaro", "render", str(args.scene), "--opt", "off", "--spp",
                     str(args.spp), "--threads", str(args.threads), "-o", str(farm_out)]
         ours_cmd += [arg for k, v in defines.items() for arg in ("-D", f"{k}={v}")]
@@ -91,8 +89,8 @@ def run(args: argparse.Namespace) -> dict:
 
 
 def _plain_main(argv: list[str]) -> None:
-    scene, defines, integrator, depth, spp, threads, out = argv
-    plain_render(scene, json.loads(defines), integrator, int(depth), int(spp), int(threads), out)
+    scene, defines, spp, threads, out = argv
+    plain_render(scene, json.loads(defines), int(spp), int(threads), out)
 
 
 if __name__ == "__main__" and len(sys.argv) > 1 and sys.argv[1] == "plain":

@@ -124,14 +124,16 @@ def compare(test: np.ndarray | list[np.ndarray], reference: np.ndarray, alpha: f
 
 def _measure_false_failures(trials: int = 10) -> str:
     """Mitsuba against Mitsuba (other seeds) on every compatibility scene: how often `compare` fails."""
-    from compat_cases import CASES
+    from compat_cases import CASES, SCENES
 
     fails, total = 0, 0
     for case in CASES:
-        ref, _ = reference_renders(case.scene, case.variant, case.spp, case.sensor, case.defines)
+        search = tuple(SCENES / f for f in case.search)
+        ref, _ = reference_renders(case.scene, case.variant, case.spp, case.sensor, case.defines,
+                                   search_paths=search)
         for trial in range(trials):
             other, _ = reference_renders(case.scene, case.variant, case.spp, case.sensor, case.defines, renders=1,
-                                         seed0=90_000 + trial)
+                                         seed0=90_000 + trial, search_paths=search)
             verdict = compare(other[0], ref)
             fails += not verdict.passed
             total += 1
