@@ -35,6 +35,7 @@ from core import integrators
 from core.errors import QuekaroError, RenderError, SceneError
 from core.geometry import Rect
 from core.scene import SceneSpec
+from core.supervision import die_with_parent
 from core.tiles import Tile
 
 STARTUP_TIMEOUT_S = 120.0
@@ -363,7 +364,7 @@ class RenderWorker:
         env = {**os.environ, "PYTHONPATH": path}
         code = f"import core.render_unit as r; r._child_entry({theirs.fileno()})"
         self._proc = subprocess.Popen([sys.executable, "-c", code], pass_fds=(theirs.fileno(),), env=env,
-                                      stdin=subprocess.DEVNULL)
+                                      stdin=subprocess.DEVNULL, preexec_fn=die_with_parent)
         theirs.close()
         self._conn = Connection(ours.detach())
         self.starts += 1

@@ -27,7 +27,7 @@ META_ATTR = "quekaro_meta"
 CORE_ATTR = "quekaro_core"
 CHANNELS_ATTR = "quekaro_channels"
 RGB = ("R", "G", "B")
-MAX_CHANNELS = 256
+MAX_CHANNELS = 64
 
 
 @dataclass

@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import IO
 
 from core.errors import QuekaroError
+from core.supervision import die_with_parent
 
 log = logging.getLogger(__name__)
 
@@ -113,15 +114,19 @@ def _tail(path: Path, lines: int = 15) -> str:
 
 
 def _stop_child(proc: subprocess.Popen | None, timeout: float) -> None:
-    if proc is None or proc.poll() is not None:
+    """SIGTERM to the server's whole process group (its workers hold the port too), SIGKILL after `timeout`;
+    the group is signalled even when the server's main process is already dead."""
+    if proc is None:
         return
-    proc.send_signal(signal.SIGTERM)
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGTERM)
     try:
         proc.wait(timeout=timeout)
     except subprocess.TimeoutExpired:
         log.warning("XMPP server pid %d ignored SIGTERM for %.0f s: killing it", proc.pid, timeout)
-        proc.kill()
-        proc.wait(timeout=timeout)
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=timeout)
 
 
 class _ChildServer:
@@ -162,7 +167,7 @@ class _ChildServer:
         cmd, env = self._command()
         self._log_file = open(self.log_path, "ab")  # noqa: SIM115 (kept open for the child's life)
         self._proc = subprocess.Popen(cmd, stdout=self._log_file, stderr=subprocess.STDOUT, env=env,
-                                      cwd=self.data_dir, start_new_session=True)
+                                      cwd=self.data_dir, start_new_session=True, preexec_fn=die_with_parent)
         try:
             _wait_until_accepting(self._proc, self.host, self.port, timeout, self.log_path)
         except XmppServerError:
@@ -179,11 +184,10 @@ class _ChildServer:
             self._log_file = None
 
     def kill(self) -> None:
-        """Kill the server at once (SIGKILL), as a crash would."""
+        """Kill the server's main process at once (SIGKILL), as a crash would; stop() ends its workers."""
         if self._proc and self._proc.poll() is None:
             self._proc.kill()
             self._proc.wait()
-        self.stop()
 
     def restart(self, downtime: float = 0.0, timeout: float = 30.0) -> None:
         """Stop, stay down `downtime` seconds, start again on the same port with the same data."""

@@ -432,7 +432,8 @@ class Auction:
             case m.Refuse():
                 return self.on_refuse(sender, msg, now)
             case m.Inform():
-                return self.on_inform(sender, msg, now)
+                # A unit is done only once its tile is durable: the master feeds on_inform from the upload.
+                return [_ignored(sender, "an inform counts only through its tile's upload", msg.job_id, msg.index)]
             case m.Failure():
                 return self.on_failure(sender, msg, now)
         return [_ignored(sender, f"{msg.performative} is not a message the master accepts")]
@@ -1065,7 +1066,9 @@ class _Sim:
                 self.deliver(self.auction.tick(now), now)
             elif kind == "master":
                 self.messages += 1
-                self.deliver(self.auction.on_message(who, payload, now) + self.auction.tick(now), now)
+                # An inform here stands for the tile's upload, which the real master turns into on_inform.
+                handle = self.auction.on_inform if isinstance(payload, m.Inform) else self.auction.on_message
+                self.deliver(handle(who, payload, now) + self.auction.tick(now), now)
             elif kind == "agent":
                 self.messages += 1
                 self.agent_receives(who, payload, now)

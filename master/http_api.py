@@ -47,7 +47,7 @@ from aiohttp import web
 from core.errors import TileError
 from core.geometry import Rect
 from core.hashing import sha256_file
-from core.tiles import durable_replace, read_tile
+from core.tiles import MAX_CHANNELS, durable_replace, read_tile
 
 log = logging.getLogger(__name__)
 
@@ -186,8 +186,9 @@ def _expected_rect(value: Any, job: str, unit: int) -> tuple[str, Rect]:
 
 
 def _size_cap(plane: DataPlane, rect: Rect) -> int:
+    # float32 per channel, as many channels as a tile may carry (alpha, AOVs, moments)
     pixels = (rect.w + 2 * plane.max_band) * (rect.h + 2 * plane.max_band)
-    return min(plane.max_tile_bytes, pixels * 12 + _EXR_SLACK)
+    return min(plane.max_tile_bytes, pixels * 4 * MAX_CHANNELS + _EXR_SLACK)
 
 
 async def put_tile(request: web.Request) -> web.Response:
@@ -270,7 +271,7 @@ async def _accept(request: web.Request, plane: DataPlane, job: str, unit: int, t
             raise Refusal(403, f"unit {unit} of job {job!r} was awarded to another token meanwhile")
         if plane.accepted.get((job, unit)) == sha256:  # a repeat the master has not acted on yet
             return web.json_response({"status": "duplicate", "job": job, "unit": unit, "sha256": sha256})
-        await asyncio.to_thread(_validate, tmp, rect, plane.max_band, f"unit {unit} of job {job!r}")
+        await asyncio.to_thread(_validate, tmp, rect, plane.max_band, f"unit {unit} of job {job!r}", job, unit)
         final = plane.tile_path(job, unit)
         await asyncio.to_thread(durable_replace, tmp, final)
         agent = request.headers.get(AGENT_HEADER, "")[:256] or None
@@ -286,8 +287,9 @@ async def _accept(request: web.Request, plane: DataPlane, job: str, unit: int, t
                               "bytes": final.stat().st_size})
 
 
-def _validate(path: Path, core: Rect, max_band: int, what: str) -> None:
-    """Header first (no pixel decoded for a wrong window), then the whole tile through core.tiles."""
+def _validate(path: Path, core: Rect, max_band: int, what: str, job: str, unit: int) -> None:
+    """Header first (no pixel decoded for a wrong window), then the whole tile through core.tiles, and
+    the unit and job its header names (assembly reads them)."""
 
     window = _data_window(path, what)
     band = _band_of(window, core, max_band, what)
@@ -297,6 +299,9 @@ def _validate(path: Path, core: Rect, max_band: int, what: str) -> None:
         raise Refusal(422, f"{what}: {exc}") from exc
     if tile.core != core:
         raise Refusal(422, f"{what}: tile says its unit is {tile.core}, expected {core}")
+    if tile.meta.get("unit_index") != unit or tile.meta.get("job_id") != job:
+        raise Refusal(422, f"{what}: tile header names unit {tile.meta.get('unit_index')!r} of job "
+                           f"{tile.meta.get('job_id')!r}")
     log.debug("%s: tile %s with band %d valid", what, window, band)
 
 

@@ -15,7 +15,6 @@ import logging
 import re
 import secrets
 import shutil
-import sys
 import time
 import uuid
 from concurrent.futures import ProcessPoolExecutor
@@ -31,6 +30,7 @@ from core.hashing import sha256_file
 from core.planner import Planner
 from core.scene import SceneSpec
 from core.seeds import plan_seed
+from core.supervision import die_with_parent
 from core.tiles import read_tile
 from fuzzy.errors import RuleFileError
 from master import auction as au
@@ -69,15 +69,6 @@ class MasterConfig:
         return self.jid.split("@", 1)[1].split("/", 1)[0]
 
 
-def _die_with_parent() -> None:
-    """In the planner child: end when the master ends, even by SIGKILL (Linux), instead of lingering."""
-    if sys.platform.startswith("linux"):
-        import ctypes
-        import signal
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG = 1
-
-
 def _plan_in_child(scene_path: str, defines: dict[str, str], options: dict[str, Any], seed: int,
                    min_units: int) -> JobPlan:
     """Plan a job in a child process: the pre-pass renders, and an LLVM abort must not kill the master."""
@@ -100,7 +91,7 @@ class MasterService:
         self._runner = None
         self._ticker: asyncio.Task | None = None
         self._planner = ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"),
-                                            initializer=_die_with_parent)
+                                            initializer=die_with_parent)
         self._lock = asyncio.Lock()
         self._assembling: dict[str, asyncio.Task] = {}
         self._agent_re = re.compile(config.agent_pattern.format(domain=re.escape(config.domain)))
@@ -110,6 +101,7 @@ class MasterService:
     async def start(self) -> None:
         self.jobs_dir.mkdir(parents=True, exist_ok=True)
         now = time.time()
+        self._repair_store(now)
         upload = f"{self.config.url}/jobs/{{job}}/units/{{index}}/tile"
         auction_config = dataclasses.replace(self.config.auction, upload_url=upload)
         self.auction, events = restore_auction(self.store, self.job_info, now, auction_config)
@@ -123,6 +115,13 @@ class MasterService:
                 self._assemble_later(record.id)
         log.info("master %s up: HTTP %s, %d running job(s)", self.config.jid, self.config.url,
                  len(self.auction.jobs))
+
+    def _repair_store(self, now: float) -> None:
+        """Units done in the store without their tile on disk go back to auction (jobs not yet assembled)."""
+        jobs = [r.id for r in self.store.list_jobs("running")]
+        jobs += [r.id for r in self.store.list_jobs("done") if not self.result_path(r.id).with_suffix(".json").exists()]
+        for job_id, index in self.store.repair(jobs, now):
+            log.warning("job %s unit %d was done without its tile on disk: back to auction", job_id, index)
 
     async def stop(self) -> None:
         if self._ticker:
@@ -340,6 +339,8 @@ class MasterService:
             results = store.results(job_id)
             plan = plan_from_record(record, store, self.job_dir(job_id))
         tiles = [read_tile(r.tile_path) for r in results]
+        for tile, r in zip(tiles, results, strict=True):  # the store says which unit a tile is, not its header
+            tile.meta.update(unit_index=r.index, job_id=job_id)
         params = {r.index: r.params for r in results}
         report = assemble(plan, tiles, params, self.result_path(job_id), started=time.perf_counter(),
                           extra={"job_id": job_id, "created": record.created, "finished": record.finished})

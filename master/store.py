@@ -364,6 +364,22 @@ class JobStore:
             )
         return [j.id for j in self.list_jobs("running")]
 
+    def repair(self, job_ids: list[str], now: float) -> list[tuple[str, int]]:
+        """Units of these jobs marked done whose tile is gone (or never recorded) go back to pending, and a
+        job ended as done with such a unit runs again: the store and the disk agree before the auction is
+        rebuilt. Returns the (job, unit) pairs repaired."""
+        bad = []
+        for job_id in job_ids:
+            tiles = {r.index: r.tile_path for r in self.results(job_id)}
+            bad += [(job_id, u.index) for u in self.units(job_id)
+                    if u.status == "done" and not (u.index in tiles and Path(tiles[u.index]).is_file())]
+        with self._tx() as db:
+            for job_id, index in bad:
+                db.execute("DELETE FROM results WHERE job_id = ? AND idx = ?", (job_id, index))
+                db.execute("UPDATE units SET status = 'pending' WHERE job_id = ? AND idx = ?", (job_id, index))
+                db.execute("UPDATE jobs SET status = 'running', finished = NULL WHERE id = ?", (job_id,))
+        return bad
+
     def failures(self, job_id: str) -> list[tuple[int, str, str]]:
         rows = self.db.execute(
             "SELECT idx, agent, reason FROM attempts WHERE job_id = ? AND outcome = 'failed' ORDER BY id",

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 from quekaro.cmd_render import add_job_arguments, options_from_args, search_paths
+from quekaro.farm_client import default_home
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -97,7 +98,7 @@ def _register_client(sub: argparse._SubParsersAction) -> None:
 def run_up(args: argparse.Namespace) -> int:
     from quekaro.local_farm import LocalFarm
 
-    with LocalFarm(args.home, args.agents, args.threads, args.rules, args.http_port) as farm:
+    with LocalFarm(args.home, args.agents, args.threads, args.rules, args.http_port, supervise=True) as farm:
         print(f"farm up: master {farm.url}, {args.agents} agents, home {farm.home} (Ctrl-C stops it)")
         farm.wait()
     return 0
@@ -150,6 +151,7 @@ def run_status(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(jobs, indent=2))
         return 0
+    _print_processes(Path(args.home or default_home()))
     for job in jobs:
         eta = f"{job['eta_s']:.0f} s" if job.get("eta_s") is not None else "-"
         print(f"{job['job_id']}  {job['status']:<9} {job['units_done']}/{job['units_total']} units  "
@@ -158,6 +160,17 @@ def run_status(args: argparse.Namespace) -> int:
         if args.job:
             print_effects(job.get("effects") or {})
     return 0
+
+
+def _print_processes(home: Path) -> None:
+    """A local farm's processes that are not running (restarting, or failed after a crash loop)."""
+    try:
+        processes = json.loads((home / "processes.json").read_text())["processes"]
+    except (OSError, ValueError, KeyError):
+        return
+    for proc in processes:
+        if proc.get("state") != "running":
+            print(f"process {proc['name']}: {proc['state']} after {proc.get('restarts', 0)} restart(s)")
 
 
 def print_effects(effects: dict) -> None:

@@ -78,10 +78,12 @@ def farm(tmp_path):
     farm.stop()
 
 
-def _tile(tmp: Path, name: str, rect: Rect | None = None, core: Rect = CORE, seed: int = 0) -> Path:
+def _tile(tmp: Path, name: str, rect: Rect | None = None, core: Rect = CORE, seed: int = 0,
+          unit: int | None = 3, job: str = "job1") -> Path:
     rect = rect or CORE.grow(BAND, 640, 480)
     pixels = np.random.default_rng(seed).random((rect.h, rect.w, 3), dtype=np.float32)
-    return write_tile(tmp / name, Tile(pixels, rect, core, {"spp": 4, "band": BAND}))
+    meta = {"spp": 4, "band": BAND, "job_id": job, **({"unit_index": unit} if unit is not None else {})}
+    return write_tile(tmp / name, Tile(pixels, rect, core, meta))
 
 
 def _unit_url(farm: Farm, job: str = "job1", unit: int | str = 3) -> str:
@@ -254,7 +256,7 @@ def test_16_mib_tile_round_trip(farm, tmp_path):
     side = 1200  # 1200^2 px x 12 B of float32 RGB noise: over 16 MiB after ZIP compression
     core = Rect(BAND, BAND, side - 2 * BAND, side - 2 * BAND)
     farm.units[("job1", 7)] = (TOKEN, core)
-    path = _tile(tmp_path, "big.exr", rect=Rect(0, 0, side, side), core=core)
+    path = _tile(tmp_path, "big.exr", rect=Rect(0, 0, side, side), core=core, unit=7)
     assert path.stat().st_size > 16 << 20
     start = time.perf_counter()
     answer = asyncio.run(upload_tile(_unit_url(farm, unit=7), TOKEN, path))
@@ -325,3 +327,11 @@ def test_bundle_token_when_required(tmp_path):
         assert scene.read_bytes() == (tmp_path / "src" / "scene.xml").read_bytes()
     finally:
         farm.stop()
+
+
+def test_a_tile_whose_header_names_no_unit_or_another_is_refused(farm, tmp_path):
+    """Assembly reads which unit a tile is: a header without it (or naming another) never gets in."""
+    for unit in (None, 4):
+        path = _tile(tmp_path, f"t{unit}.exr", unit=unit)
+        _refused(farm, upload_tile(_unit_url(farm), TOKEN, path), 422, f"tile header names unit {unit}")
+    assert asyncio.run(upload_tile(_unit_url(farm), TOKEN, _tile(tmp_path, "ok.exr")))["status"] == "accepted"

@@ -1,0 +1,81 @@
+"""Supervision of the local farm: the restart policy alone, then a real `quekaro up` whose agent is killed
+(restarted, the job completes) and which is itself killed with SIGKILL (no process of the farm survives)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from test_farm import SCENE, _alive, _children, bundle_of
+
+from core.supervision import RestartPolicy
+from quekaro.farm_client import FarmClient
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def test_backoff_doubles_and_a_crash_loop_is_given_up():
+    policy = RestartPolicy(backoff_s=0.5, max_backoff_s=4.0, crash_loop=5, window_s=60.0)
+    times = [policy.on_exit(100.0 + i) for i in range(5)]
+    assert [t - (100.0 + i) for i, t in enumerate(times)] == [0.5, 1.0, 2.0, 4.0, 4.0]
+    assert policy.on_exit(106.0) is None and policy.failed  # the sixth exit within a minute
+
+
+def test_restarts_spread_out_in_time_never_fail():
+    policy = RestartPolicy(crash_loop=5, window_s=60.0)
+    for i in range(20):
+        assert policy.on_exit(i * 61.0) is not None
+    assert not policy.failed and policy.count == 1
+
+
+def _states(home: Path) -> dict[str, dict]:
+    try:
+        return {p["name"]: p for p in json.loads((home / "processes.json").read_text())["processes"]}
+    except (OSError, ValueError):
+        return {}
+
+
+def _wait_for(predicate, timeout: float, what: str, up: subprocess.Popen) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        assert up.poll() is None, f"quekaro up exited while waiting for {what}"
+        if predicate():
+            return
+        time.sleep(0.3)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+@pytest.mark.slow
+def test_a_killed_agent_is_restarted_and_a_killed_farm_leaves_no_orphans(tmp_path):
+    home = tmp_path / "farm"
+    up = subprocess.Popen([sys.executable, "-m", "quekaro", "up", "--agents", "2", "--threads", "1",
+                           "--home", str(home)], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        _wait_for(lambda: len(_states(home)) == 4 and (home / "farm.json").exists(), 120, "the farm", up)
+        client = FarmClient.from_home(home)
+        _wait_for(lambda: sum(not a["lost"] for a in client.agents()) >= 2, 120, "two agents", up)
+        victim = _states(home)["agent-0"]["pid"]
+        os.kill(victim, signal.SIGKILL)
+        _wait_for(lambda: _states(home)["agent-0"]["restarts"] == 1 and _states(home)["agent-0"]["pid"] != victim
+                  and _states(home)["agent-0"]["state"] == "running", 30, "the agent's restart", up)
+        assert _states(home)["master"]["state"] == "running"
+        defines = {"res": "48", "spp": "8"}
+        job_id = client.submit(bundle_of(SCENE, defines), defines, {"level": "off", "units": 4})
+        assert client.wait(job_id, 240, poll=0.3)["status"] == "done"
+        farm = _children(up.pid)
+        assert len(farm) >= 4, farm  # XMPP server (+ workers), master, two agents (+ render processes)
+        up.kill()  # SIGKILL: quekaro up cannot clean up; its children must go by themselves
+        up.wait(timeout=10)
+        deadline = time.monotonic() + 30
+        while any(_alive(p) for p in farm) and time.monotonic() < deadline:
+            time.sleep(0.3)
+        assert not [p for p in farm if _alive(p)], "processes of the farm outlived a killed quekaro up"
+    finally:
+        if up.poll() is None:
+            up.kill()
