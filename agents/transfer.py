@@ -33,6 +33,7 @@ HASH_HEADER = "X-Content-SHA256"
 AGENT_HEADER = "X-Quekaro-Agent"
 _CHUNK = 1 << 20
 _RETRY_STATUS = {500, 502, 503, 504}
+DISK_FULL_STATUS = 507  # the master's disk is full: wait for space, never count it as the unit's failure
 
 
 class TransferError(QuekaroError):
@@ -97,15 +98,21 @@ async def _download(url: str, out: Any, cap: int, token: str | None, timeout_s: 
 
 async def upload_tile(url: str, token: str, path: str | Path, sha256: str | None = None, *,
                       agent: str | None = None, retries: int = 4, backoff_s: float = 0.5,
-                      timeout_s: float = 300.0) -> dict[str, Any]:
-    """PUT the tile at `path` to `url`; return the server's JSON answer ("accepted" or "duplicate")."""
+                      timeout_s: float = 300.0, disk_full_wait_s: float = 600.0) -> dict[str, Any]:
+    """PUT the tile at `path` to `url`; return the server's JSON answer ("accepted" or "duplicate").
+
+    A master whose disk is full (507) is asked again every few seconds for up to `disk_full_wait_s`
+    without using up the retries: the tile waits on this agent until space returns."""
     path = Path(path)
     sha256 = sha256 or await asyncio.to_thread(sha256_file, path)
     headers = {TOKEN_HEADER: token, HASH_HEADER: sha256, "Content-Type": "image/x-exr"}
     if agent:
         headers[AGENT_HEADER] = agent
     timeout = aiohttp.ClientTimeout(total=timeout_s)
-    for attempt in range(retries + 1):
+    full_until = asyncio.get_running_loop().time() + disk_full_wait_s
+    attempt = -1
+    while attempt < retries:
+        attempt += 1
         delay = backoff_s * 2 ** attempt
         try:
             async with aiohttp.ClientSession(timeout=timeout) as session:
@@ -114,10 +121,15 @@ async def upload_tile(url: str, token: str, path: str | Path, sha256: str | None
                         if resp.status in (200, 201):
                             return await resp.json(content_type=None)
                         reason = await _reason(resp)
-                        if resp.status not in _RETRY_STATUS or attempt == retries:
+                        if resp.status == DISK_FULL_STATUS and asyncio.get_running_loop().time() < full_until:
+                            log.warning("upload to %s: %s; waiting for space", url, reason)
+                            attempt -= 1  # not a retry of the tile's own: the master's disk
+                            delay = min(5.0, backoff_s * 4)
+                        elif resp.status not in _RETRY_STATUS or attempt == retries:
                             raise TransferError(url, reason, resp.status)
-                        log.warning("upload to %s: HTTP %d (%s), retrying in %.1f s", url, resp.status,
-                                    reason, delay)
+                        else:
+                            log.warning("upload to %s: HTTP %d (%s), retrying in %.1f s", url, resp.status,
+                                        reason, delay)
         except (TimeoutError, aiohttp.ClientConnectionError) as exc:
             if attempt == retries:
                 raise TransferError(url, f"upload failed after {retries + 1} attempts "

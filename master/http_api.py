@@ -18,8 +18,10 @@ Routes:
       Only then is it fsynced, renamed into `{tile_dir}/{job}/tiles/unit-{unit}.exr`, the folder
       fsynced, and `on_tile(job, unit, path, sha256, agent)` awaited. If that callback raises, the
       file is removed again and the answer is 500, so the agent may retry.
-      A duplicate of an accepted tile (same sha256) is answered 200 with status "duplicate" and
-      changes nothing; different content for an accepted unit is 409.
+      A duplicate of an accepted tile (same sha256, sent with the token that delivered it) is answered
+      200 with status "duplicate" and changes nothing; any other upload for a unit not awaiting a tile
+      gets the same 404, whatever its content, so that no one without the token learns whether a
+      sha256 matches an accepted tile.
 
 Every refusal is JSON `{"error": reason, "status": code}` and leaves no file behind. The app depends on
 no store: the master supplies the provider callbacks `expected(job, unit) -> (token, rect) | None`
@@ -29,6 +31,7 @@ no store: the master supplies the provider callbacks `expected(job, unit) -> (to
 from __future__ import annotations
 
 import asyncio
+import errno
 import contextlib
 import hashlib
 import hmac
@@ -46,7 +49,6 @@ from aiohttp import web
 
 from core.errors import TileError
 from core.geometry import Rect
-from core.hashing import sha256_file
 from core.tiles import MAX_CHANNELS, durable_replace, read_tile
 
 log = logging.getLogger(__name__)
@@ -61,6 +63,7 @@ _SHA_RE = re.compile(r"^[0-9a-f]{64}$")
 _CHUNK = 1 << 20
 # An EXR's header, offsets and compression overhead on top of the raw float32 RGB pixels.
 _EXR_SLACK = 1 << 20
+DISK_FULL = "disk full on the master: nothing was stored; send it again once space is freed"
 
 Expected = Callable[[str, int], Any]
 BundleProvider = Callable[[str], Any]
@@ -79,7 +82,7 @@ class DataPlane:
     max_band: int = 256
     authorize_bundle: Callable[[str, str], Any] | None = None
     locks: dict[tuple[str, int], asyncio.Lock] = field(default_factory=dict)
-    accepted: dict[tuple[str, int], str] = field(default_factory=dict)
+    accepted: dict[tuple[str, int], tuple[str, str]] = field(default_factory=dict)  # (sha256, token)
 
     def tile_path(self, job: str, unit: int) -> Path:
         return self.tile_dir / job / "tiles" / f"unit-{unit}.exr"
@@ -131,6 +134,12 @@ async def _json_errors(request: web.Request, handler: Callable[[web.Request], Aw
     except Refusal as exc:
         log.info("%s %s refused (%d): %s", request.method, request.path, exc.status, exc.reason)
         return _error(exc.status, exc.reason)
+    except OSError as exc:
+        if exc.errno != errno.ENOSPC:
+            raise
+        # The master's disk, not the sender's doing: 507, and the sender keeps its data to send again.
+        log.error("%s %s: disk full on the master (%s)", request.method, request.path, exc)
+        return _error(507, DISK_FULL)
     except web.HTTPException as exc:
         if exc.status >= 400:  # aiohttp's own 404/405/413: same JSON shape as ours
             return _error(exc.status, exc.reason)
@@ -199,7 +208,7 @@ async def put_tile(request: web.Request) -> web.Response:
         raise Refusal(400, f"header {HASH_HEADER} must be the body's sha256 as 64 hex digits")
     slot = await _call(plane.expected, job, unit)
     if slot is None:
-        return await _late_upload(plane, job, unit, declared)
+        return _late_upload(plane, job, unit, declared, _token(request))
     token, rect = _expected_rect(slot, job, unit)
     if not hmac.compare_digest(_token(request).encode(), token.encode()):
         raise Refusal(403, f"wrong or missing {TOKEN_HEADER} for unit {unit} of job {job!r}")
@@ -216,24 +225,14 @@ async def put_tile(request: web.Request) -> web.Response:
         tmp.unlink(missing_ok=True)
 
 
-async def _late_upload(plane: DataPlane, job: str, unit: int, declared: str) -> web.Response:
-    # The unit is no longer awarded: a repeat of its accepted tile is harmless, anything else is refused.
-    accepted = await _accepted_hash(plane, job, unit)
-    if accepted is None:
-        raise Refusal(404, f"unit {unit} of job {job!r} is not awaiting a tile")
-    if accepted != declared:
-        raise Refusal(409, f"unit {unit} of job {job!r} already has an accepted tile with another sha256")
-    return web.json_response({"status": "duplicate", "job": job, "unit": unit, "sha256": declared})
-
-
-async def _accepted_hash(plane: DataPlane, job: str, unit: int) -> str | None:
-    key = (job, unit)
-    if key not in plane.accepted:
-        path = plane.tile_path(job, unit)
-        if not path.is_file():
-            return None
-        plane.accepted[key] = await asyncio.to_thread(sha256_file, path)  # after a master restart
-    return plane.accepted[key]
+def _late_upload(plane: DataPlane, job: str, unit: int, declared: str, token: str) -> web.Response:
+    # The unit is no longer awarded: the repeat of its accepted tile by the award that delivered it is
+    # harmless; anything else gets one answer, whatever it holds.
+    accepted = plane.accepted.get((job, unit))
+    if accepted is not None and accepted[0] == declared and hmac.compare_digest(accepted[1].encode(),
+                                                                                token.encode()):
+        return web.json_response({"status": "duplicate", "job": job, "unit": unit, "sha256": declared})
+    raise Refusal(404, f"unit {unit} of job {job!r} is not awaiting a tile")
 
 
 async def _receive(request: web.Request, final: Path, declared: str, cap: int) -> Path:
@@ -265,11 +264,11 @@ async def _accept(request: web.Request, plane: DataPlane, job: str, unit: int, t
         # Asked again under the lock: a concurrent upload may have completed the unit meanwhile.
         slot = await _call(plane.expected, job, unit)
         if slot is None:
-            return await _late_upload(plane, job, unit, sha256)
+            return _late_upload(plane, job, unit, sha256, _token(request))
         token, rect = _expected_rect(slot, job, unit)
         if not hmac.compare_digest(_token(request).encode(), token.encode()):
             raise Refusal(403, f"unit {unit} of job {job!r} was awarded to another token meanwhile")
-        if plane.accepted.get((job, unit)) == sha256:  # a repeat the master has not acted on yet
+        if plane.accepted.get((job, unit)) == (sha256, token):  # a repeat the master has not acted on yet
             return web.json_response({"status": "duplicate", "job": job, "unit": unit, "sha256": sha256})
         await asyncio.to_thread(_validate, tmp, rect, plane.max_band, f"unit {unit} of job {job!r}", job, unit)
         final = plane.tile_path(job, unit)
@@ -282,7 +281,7 @@ async def _accept(request: web.Request, plane: DataPlane, job: str, unit: int, t
             log.exception("on_tile failed for unit %d of job %s", unit, job)
             reason = f"the master could not record the tile ({type(exc).__name__}: {exc})"
             raise Refusal(500, reason) from exc
-        plane.accepted[(job, unit)] = sha256
+        plane.accepted[(job, unit)] = (sha256, token)
     return web.json_response({"status": "accepted", "job": job, "unit": unit, "sha256": sha256,
                               "bytes": final.stat().st_size})
 

@@ -8,6 +8,7 @@ pre-pass, and the partition into units with their features (C, S, Nd). The in-pr
 from __future__ import annotations
 
 import dataclasses
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,12 +17,18 @@ from typing import Any
 from core import integrators
 from core.effects import Effects, analyse
 from core.errors import QuekaroError
+from core.integrators import CATALOGUE
 from core.messages import LEVELS
 from core.scene import SceneSpec, expand, film_info, sensor_elements
 from core.units import Unit
+from fuzzy.engine import DEFUZZIFIERS
 from master.partition import equal_tiles
 
 DEFAULT_SPP = 64  # when neither the user nor the scene's sampler says
+# Integer options and their ranges (the message schema's limits, core.messages.JobInfo).
+_INT_RANGES = {"spp": (1, 1 << 20), "depth": (1, 1024), "threads": (1, 4096), "units": (1, 4096),
+               "sensor": (0, 1024)}
+_VARIANT = re.compile(r"(scalar|llvm|cuda)(_ad)?_(rgb|spectral|mono)[a-z_]*")
 
 
 @dataclass(frozen=True)
@@ -42,14 +49,21 @@ class RenderOptions:
     def __post_init__(self) -> None:
         if self.level not in LEVELS:
             raise QuekaroError(f"--opt {self.level!r}: expected one of {', '.join(LEVELS)}")
-        if self.spp is not None and self.spp < 1:
-            raise QuekaroError(f"--spp {self.spp}: must be at least 1")
-        if self.depth is not None and self.depth < 1 and self.depth != -1:
-            raise QuekaroError(f"--depth {self.depth}: must be at least 1 (or -1 for unbounded)")
-        if self.units is not None and self.units < 1:
-            raise QuekaroError(f"--units {self.units}: must be at least 1")
-        if self.sensor < 0:
-            raise QuekaroError(f"--sensor {self.sensor}: must be at least 0")
+        for name, (lo, hi) in _INT_RANGES.items():
+            value = getattr(self, name)
+            if value is None:
+                continue
+            if type(value) is not int:  # bool, float (1e400 is inf), str: refused, not coerced
+                raise QuekaroError(f"option {name}: {value!r} is not an integer")
+            if not lo <= value <= hi and not (name == "depth" and value == -1):
+                raise QuekaroError(f"option {name}: {value} outside {lo}..{hi}"
+                                   + (" (or -1 for unbounded)" if name == "depth" else ""))
+        if self.defuzzifier is not None and self.defuzzifier not in DEFUZZIFIERS:
+            raise QuekaroError(f"option defuzzifier: {self.defuzzifier!r} is not one of {', '.join(DEFUZZIFIERS)}")
+        if self.integrator is not None and self.integrator not in CATALOGUE:
+            raise QuekaroError(f"option integrator: {self.integrator!r} is not one of Mitsuba's integrators")
+        if self.variant is not None and not (isinstance(self.variant, str) and _VARIANT.fullmatch(self.variant)):
+            raise QuekaroError(f"option variant: {str(self.variant)[:40]!r} is not a Mitsuba variant name")
 
     def overrides(self) -> dict[str, Any]:
         """The effect decisions the user forced (they win over the analysis)."""
@@ -64,7 +78,16 @@ class RenderOptions:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> RenderOptions:
+        """The options of a JSON object; unknown keys are refused, naming them (never silently dropped)."""
+        if not isinstance(data, dict):
+            raise QuekaroError(f"options must be a JSON object, got {type(data).__name__}")
+        unknown = sorted(set(data) - {f.name for f in dataclasses.fields(cls)})
+        if unknown:
+            raise QuekaroError(f"option {unknown[0][:40]!r} is not known (known: "
+                               f"{', '.join(f.name for f in dataclasses.fields(cls))})")
         rules = data.get("rules")
+        if rules is not None and not isinstance(rules, str):
+            raise QuekaroError(f"option rules: {rules!r} is not a path")
         return cls(level=data.get("level", "off"), spp=data.get("spp"), depth=data.get("depth"),
                    threads=data.get("threads"), rules=Path(rules) if rules else None,
                    defuzzifier=data.get("defuzzifier"), variant=data.get("variant"),
@@ -106,9 +129,13 @@ def scene_spp(spec: SceneSpec, sensor_index: int = 0) -> int | None:
     for child in sampler:
         if child.tag == "integer" and child.get("name") == "sample_count":
             try:
-                return int(child.get("value", ""))
+                count = int(child.get("value", ""))
             except ValueError:
                 return None
+            if count < 1:  # Mitsuba reads 0 as "the sampler's default": say so instead of guessing
+                raise QuekaroError(f"{spec.path}: sample_count {count} (e.g. from -D) is not a sample count; "
+                                   "give 1 or more, or --spp")
+            return count
     return None
 
 

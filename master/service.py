@@ -298,7 +298,11 @@ class MasterService:
         self.store.apply(commands, time.time())
         for cmd in commands:
             if isinstance(cmd, au.Send):
-                performative, body = m.encode(cmd.message)
+                try:
+                    performative, body = m.encode(cmd.message)
+                except MessageError as exc:  # a job whose messages cannot be sent fails alone
+                    await self._fail_job(getattr(cmd.message, "job_id", None) or cmd.message.job.job_id, exc)
+                    continue
                 await self.agent.send(cmd.to, performative, body, conversation_id=cmd.message.conversation,
                                       protocol=m.PROTOCOL, ontology=m.ONTOLOGY)
             elif cmd.kind == "job-done":
@@ -306,6 +310,12 @@ class MasterService:
             elif cmd.kind != "ignored" or cmd.reason:
                 log.info("%s job=%s unit=%s agent=%s %s", cmd.kind, cmd.job_id, cmd.index, cmd.agent,
                          cmd.reason)
+
+    async def _fail_job(self, job_id: str, exc: Exception) -> None:
+        log.error("job %s: its messages cannot be encoded (%s): the job fails, the others go on", job_id, exc)
+        reason = f"cannot send its messages: {exc}"
+        self.store.set_status(job_id, "failed", time.time(), reason)  # first: the cancel below keeps it failed
+        await self._execute(self.auction.cancel_job(job_id, reason))
 
     # ---- the final image ----------------------------------------------------------------------------
 

@@ -515,5 +515,10 @@ def restore_auction(
     for record in store.list_jobs("running"):
         units = store.units(record.id)
         done = [u.index for u in units if u.status == "done"]
-        out += auction.add_job(job_info(record), [u.spec() for u in units], done, store.failures(record.id))
+        try:
+            info = job_info(record)
+        except Exception as exc:  # one job the master cannot describe must not stop the others
+            store.set_status(record.id, "failed", now, f"cannot resume the job: {type(exc).__name__}: {exc}")
+            continue
+        out += auction.add_job(info, [u.spec() for u in units], done, store.failures(record.id))
     return auction, out

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hashlib
 import io
+import os
 import socket
+import subprocess
 import tarfile
 import threading
 import time
@@ -125,10 +128,23 @@ def test_duplicate_upload_is_harmless(farm, tmp_path):
     again = asyncio.run(upload_tile(_unit_url(farm), TOKEN, path))
     assert again["status"] == "duplicate" and len(farm.tiles) == 1
     other = _tile(tmp_path, "other.exr", seed=1)
-    with pytest.raises(TransferError, match="already has an accepted tile") as err:
+    with pytest.raises(TransferError, match="is not awaiting a tile") as err:
         asyncio.run(upload_tile(_unit_url(farm), TOKEN, other))
-    assert err.value.status == 409
+    assert err.value.status == 404
     assert (tmp_path / "jobs/job1/tiles/unit-3.exr").read_bytes() == path.read_bytes()
+
+
+def test_a_finished_unit_answers_every_stranger_alike(farm, tmp_path):
+    """Without the award's token, a PUT of the accepted tile and of any other content get the same 404:
+    nobody learns whether a sha256 matches the accepted tile."""
+    path = _tile(tmp_path, "t.exr")
+    asyncio.run(upload_tile(_unit_url(farm), TOKEN, path))
+    answers = []
+    for body in (path, _tile(tmp_path, "other.exr", seed=1)):
+        with pytest.raises(TransferError) as err:
+            asyncio.run(upload_tile(_unit_url(farm), "ab" * 16, body))
+        answers.append((err.value.status, str(err.value).split(": ", 1)[1]))
+    assert answers[0] == answers[1] and answers[0][0] == 404
 
 
 def test_duplicate_while_still_awarded_is_not_reported_twice(farm, tmp_path):
@@ -335,3 +351,47 @@ def test_a_tile_whose_header_names_no_unit_or_another_is_refused(farm, tmp_path)
         path = _tile(tmp_path, f"t{unit}.exr", unit=unit)
         _refused(farm, upload_tile(_unit_url(farm), TOKEN, path), 422, f"tile header names unit {unit}")
     assert asyncio.run(upload_tile(_unit_url(farm), TOKEN, _tile(tmp_path, "ok.exr")))["status"] == "accepted"
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A real 256 KiB filesystem (tmpfs; needs root, which CI has) for the master's tiles."""
+    mount = tmp_path / "small"
+    mount.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mount)],
+                                           capture_output=True).returncode != 0:
+        pytest.skip("needs root to mount a small tmpfs (CI runs as root)")
+    yield mount
+    subprocess.run(["umount", "-l", str(mount)], check=False)
+
+
+def test_a_full_disk_is_a_507_and_the_tile_waits_on_its_agent(small_disk, tmp_path):
+    """ENOSPC on the master: 507 'disk full on the master' (never blamed on the agent); the agent keeps
+    asking, and the upload goes through once space is freed."""
+    farm = Farm(small_disk)
+    farm.url = farm.start()
+    try:
+        (small_disk / "jobs").mkdir(exist_ok=True)
+        filler = small_disk / "filler"
+        with filler.open("wb") as fh, contextlib.suppress(OSError):
+            fh.write(b"\0" * (1 << 20))  # fills the 256 KiB
+        path = _tile(tmp_path, "t.exr")
+        with pytest.raises(TransferError) as err:
+            asyncio.run(upload_tile(_unit_url(farm), TOKEN, path, disk_full_wait_s=0.0, retries=0))
+        assert err.value.status == 507 and "disk full on the master" in str(err.value)
+        assert [p for p in (small_disk / "jobs").rglob("*") if p.is_file()] == []  # no partial file
+
+        async def free_space_later() -> None:
+            await asyncio.sleep(1.0)
+            filler.unlink()
+
+        async def upload_while_freeing() -> dict:
+            freeing = asyncio.create_task(free_space_later())
+            answer = await upload_tile(_unit_url(farm), TOKEN, path, disk_full_wait_s=30.0, retries=0,
+                                       backoff_s=0.1)
+            await freeing
+            return answer
+
+        assert asyncio.run(upload_while_freeing())["status"] == "accepted"
+    finally:
+        farm.stop()
