@@ -54,9 +54,9 @@ class RenderOptions:
             if value is None:
                 continue
             if type(value) is not int:  # bool, float (1e400 is inf), str: refused, not coerced
-                raise QuekaroError(f"option {name}: {value!r} is not an integer")
+                raise QuekaroError(f"option {name} (--{name} {value!r}): not an integer")
             if not lo <= value <= hi and not (name == "depth" and value == -1):
-                raise QuekaroError(f"option {name}: {value} outside {lo}..{hi}"
+                raise QuekaroError(f"option {name} (--{name} {value}): outside {lo}..{hi}"
                                    + (" (or -1 for unbounded)" if name == "depth" else ""))
         if self.defuzzifier is not None and self.defuzzifier not in DEFUZZIFIERS:
             raise QuekaroError(f"option defuzzifier: {self.defuzzifier!r} is not one of {', '.join(DEFUZZIFIERS)}")

@@ -10,12 +10,12 @@ from master.jobplan import RenderOptions, scene_spp
 
 
 @pytest.mark.parametrize(("options", "match"), [
-    ({"spp": float("inf")}, "option spp: inf is not an integer"),
-    ({"spp": 1e400}, "option spp: inf is not an integer"),
-    ({"spp": 0}, r"option spp: 0 outside 1\.\.1048576"),
-    ({"spp": True}, "option spp: True is not an integer"),
-    ({"units": "4"}, "option units: '4' is not an integer"),
-    ({"depth": 0}, r"option depth: 0 outside 1\.\.1024 \(or -1 for unbounded\)"),
+    ({"spp": float("inf")}, r"option spp \(--spp inf\): not an integer"),
+    ({"spp": 1e400}, r"option spp \(--spp inf\): not an integer"),
+    ({"spp": 0}, r"option spp \(--spp 0\): outside 1\.\.1048576"),
+    ({"spp": True}, r"option spp \(--spp True\): not an integer"),
+    ({"units": "4"}, r"option units \(--units '4'\): not an integer"),
+    ({"depth": 0}, r"option depth \(--depth 0\): outside 1\.\.1024 \(or -1 for unbounded\)"),
     ({"colour": "red"}, "option 'colour' is not known"),
     ({"integrator": "raytracer"}, "not one of Mitsuba's integrators"),
     ({"defuzzifier": "mean"}, "option defuzzifier"),
