@@ -31,8 +31,8 @@ no store: the master supplies the provider callbacks `expected(job, unit) -> (to
 from __future__ import annotations
 
 import asyncio
-import errno
 import contextlib
+import errno
 import hashlib
 import hmac
 import inspect
