@@ -203,12 +203,18 @@ class _ChildServer:
         self.stop()
 
 
+ALLOWED_ACCOUNTS = "allowed-accounts"  # in the data dir: the only user names that may register
+
+
 class EmbeddedXmppServer(_ChildServer):
     """SPADE's pyjabber server in a child process: loopback only, file database, domain as host.
 
-    Registration is open (any client that reaches the port may create an account): use it only on one
-    machine. `message_persistence` makes pyjabber keep messages to offline JIDs (off by default, as
-    measured: messages to offline JIDs are dropped, so every protocol step must time out and retry).
+    Registration is closed once `allow` has been called: only the user names listed in
+    DATA_DIR/allowed-accounts may register (the local farm lists its master and each agent it starts),
+    any other in-band registration is refused with `forbidden`. Without that file pyjabber's open
+    registration stands (tests of the transport alone). `message_persistence` makes pyjabber keep
+    messages to offline JIDs (off by default, as measured: messages to offline JIDs are dropped, so every
+    protocol step must time out and retry).
     """
 
     def __init__(self, data_dir: Path | str, domain: str = "localhost", port: int | None = None,
@@ -225,6 +231,15 @@ class EmbeddedXmppServer(_ChildServer):
     @property
     def database(self) -> Path:
         return self.data_dir / "pyjabber.db"
+
+    def allow(self, usernames: Iterable[str]) -> None:
+        """Let these user names register (and close registration to every other)."""
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        path = self.data_dir / ALLOWED_ACCOUNTS
+        known = path.read_text().split() if path.exists() else []
+        tmp = path.with_name(f".{path.name}.part")
+        tmp.write_text("\n".join(dict.fromkeys([*known, *usernames])) + "\n")
+        os.replace(tmp, path)
 
     def _prepare(self) -> None:
         certs = self.data_dir / "certs"
@@ -329,6 +344,7 @@ def _run_embedded(args: argparse.Namespace) -> int:
         database_path=str(data_dir / "pyjabber.db"), database_in_memory=False,
         cert_path=str(data_dir / "certs"), message_persistence=args.message_persistence,
     )
+    _close_registration(data_dir / ALLOWED_ACCOUNTS)
     server = Server(params)
     # pyjabber also listens on the host's "public" address (found by a UDP trick); a local farm must
     # stay on loopback, so that address is dropped before the listeners are created.
@@ -339,6 +355,30 @@ def _run_embedded(args: argparse.Namespace) -> int:
     server._http_server = None
     asyncio.run(server.start())
     return 0
+
+
+def _close_registration(allowed: Path) -> None:
+    """Refuse in-band registration of any user name not in `allowed` (when that file exists). pyjabber
+    answers a registration IQ whether or not it advertises the feature, so its handler is wrapped."""
+    import xml.etree.ElementTree as ET
+
+    from pyjabber.features.SASL import SASL as sasl_module
+
+    original = sasl_module.SASL.handle_iq
+
+    async def handle_iq(self, element: ET.Element) -> None:
+        query = element.find("{jabber:iq:register}query")
+        name = query.find("{jabber:iq:register}username") if query is not None else None
+        if allowed.exists() and element.attrib.get("type") == "set" and name is not None \
+                and (name.text or "") not in allowed.read_text().split():
+            log.warning("in-band registration of %r refused: not an account of this farm", name.text)
+            refusal = (f'<iq type="error" id="{element.attrib.get("id", "")}"><error type="auth">'
+                       '<forbidden xmlns="urn:ietf:params:xml:ns:xmpp-stanzas"/></error></iq>')
+            self._transport.write(refusal.encode())
+            return None
+        return await original(self, element)
+
+    sasl_module.SASL.handle_iq = handle_iq
 
 
 def main(argv: list[str] | None = None) -> int:

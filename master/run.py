@@ -21,7 +21,7 @@ def config_from(args: argparse.Namespace) -> MasterConfig:
         home=Path(args.home or default_home()), jid=args.jid, password=xmpp_password(args.password, args.password_file),
         xmpp_host=args.server, xmpp_port=args.port, auto_register=args.register, ca_file=args.ca_file,
         http_host=args.http_host, http_port=args.http_port, public_url=args.public_url, threads=args.threads,
-        auction=au.Config(slots=_slots(args)),
+        auction=au.Config(slots=_slots(args)), agent_allowlist=args.agents_allow,
     )
 
 

@@ -57,6 +57,7 @@ class MasterConfig:
     http_port: int = 8765
     public_url: str | None = None  # what agents use to reach the HTTP API (default http://host:port)
     agent_pattern: str = r"^agent[-\w.]*@{domain}$"  # bare JIDs allowed to bid
+    agent_allowlist: Path | None = None  # and, if given, only the bare JIDs listed in this file
     threads: int | None = None  # Dr.Jit threads of the pre-pass
     auction: au.Config = field(default_factory=au.Config)
 
@@ -95,6 +96,8 @@ class MasterService:
         self._lock = asyncio.Lock()
         self._assembling: dict[str, asyncio.Task] = {}
         self._agent_re = re.compile(config.agent_pattern.format(domain=re.escape(config.domain)))
+        self._allowed: set[str] = set()
+        self._allow_stamp: tuple[int, int] | None = None
 
     # ---- life-cycle ---------------------------------------------------------------------------------
 
@@ -153,11 +156,28 @@ class MasterService:
 
         self.agent = FarmAgent(
             self.config.jid, self.config.password, port=self.config.xmpp_port, server=self.config.xmpp_host,
-            ontology=m.ONTOLOGY, accept_sender=lambda jid: bool(self._agent_re.match(jid)), validate=m.parse,
+            ontology=m.ONTOLOGY, accept_sender=self._accepts, validate=m.parse,
             ca_file=self.config.ca_file, verify_security=bool(self.config.ca_file),
         )
         self.agent.set_handler(self._on_envelope)
         await self.agent.start(auto_register=self.config.auto_register)
+
+    def _accepts(self, jid: str) -> bool:
+        """Whether a sender may take part: its bare JID matches the agents' pattern and, with an allowlist,
+        is listed in it (re-read when the file changes: a supervised farm adds restarted agents)."""
+        if not self._agent_re.match(jid):
+            return False
+        path = self.config.agent_allowlist
+        if path is None:
+            return True
+        try:
+            info = path.stat()
+            stamp = (info.st_mtime_ns, info.st_size)
+            if stamp != self._allow_stamp:
+                self._allowed, self._allow_stamp = set(path.read_text().split()), stamp
+        except OSError:
+            return False  # an allowlist that cannot be read lets nobody in
+        return jid in self._allowed
 
     def _write_farm_file(self) -> None:
         info = {"url": self.config.url, "jid": self.config.jid, "token_file": str(self.home / "admin.token")}

@@ -62,6 +62,9 @@ def _register_master(sub: argparse._SubParsersAction) -> None:
     parser.add_argument("--slots", type=int,
                         help="units an agent may hold at once (default 2: its next unit is awarded while it "
                              "renders one, outside the end game; 1: one at a time)")
+    parser.add_argument("--agents-allow", type=Path,
+                        help="file of agent JIDs (one a line, read again when it changes): only these may bid; "
+                             "default: any JID matching agent*@DOMAIN that the XMPP server authenticated")
     parser.add_argument("--log-level", default="INFO")
     parser.set_defaults(func=run_master)
 

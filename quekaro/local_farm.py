@@ -106,6 +106,8 @@ class LocalFarm:
         # Accounts are made afresh at every start (new passwords, new agent JIDs): the database of a
         # previous start would refuse the master's new password, and a second `quekaro demo` would fail.
         self.server.database.unlink(missing_ok=True)
+        (self.home / "agents.allow").write_text("")
+        self.server.allow(["master"])  # registration closed to every account this farm does not make
         self.server.start()
         master_command = self._master_command()
         self._add(Child("master", lambda: master_command, {}))
@@ -131,11 +133,16 @@ class LocalFarm:
         return [sys.executable, "-m", "quekaro", "master", "--home", str(self.home), "--jid", MASTER_JID,
                 "--password-file", str(self._secret_file("master.pw")), "--server", "127.0.0.1",
                 "--port", str(self.server.port), "--register", "--http-port", str(self.http_port),
-                "--threads", str(self.threads)]
+                "--threads", str(self.threads), "--agents-allow", str(self.home / "agents.allow")]
 
     def _agent_command(self, i: int) -> list[str]:
-        # A JID that reconnects may never receive again on the embedded server: unique per process.
-        jid = f"agent-{i}-{secrets.token_hex(3)}@{DOMAIN}"
+        # A JID that reconnects may never receive again on the embedded server: unique per process. The
+        # account is let in: the server may register it, the master may take its bids.
+        user = f"agent-{i}-{secrets.token_hex(3)}"
+        jid = f"{user}@{DOMAIN}"
+        self.server.allow([user])
+        with (self.home / "agents.allow").open("a") as allow:
+            allow.write(jid + "\n")
         cmd = [sys.executable, "-m", "agents.render_agent", "--server", "127.0.0.1",
                "--port", str(self.server.port), "--jid", jid, "--master", MASTER_JID,
                "--threads", str(self.threads), "--workdir", str(self.home / "agents" / f"agent-{i}"),

@@ -12,8 +12,11 @@ Pixel channels whose reference variance is 0 must agree to 1e-4 (relative). Besi
 variance: the median over pixel channels of (x - m)^2 / (v (1 + 1/K)) must be within VARIANCE_BOUNDS of
 its median for an independent render of the same noise (the median of F(1, K - 1); a median, so that a
 rare firefly does not move it): an image rendered with half the samples, or with extra noise, fails it
-even when no single pixel does. ALPHA is per comparison (the suite makes ~30 a run); the test is
-approximate where a pixel's values are far from normal (an emitter's edge seen directly at low spp).
+even when no single pixel does. ALPHA is per comparison (the suite makes ~30 a run). A pixel's values
+are far from normal where a rare path carries much light (a firefly): the t-test does not model that
+tail, so up to FIREFLY_PIXELS significant pixels pass (one was seen in ~200 farm and in-process renders
+of the suite); every defect met so far moves hundreds or thousands (a tiled particle tracer 2475 pixel
+channels, another integrator 2369, a quarter of the samples fails the variance test).
 
 False failures: measured by `python tests/render_check.py` (plain Mitsuba against plain Mitsuba, other
 seeds, every scene of the compatibility suite): FALSE_FAILURES below.
@@ -32,6 +35,7 @@ ALPHA = 1e-4  # per comparison; the suite makes ~30 of them per run
 REFERENCE_RENDERS = 32
 VARIANCE_BOUNDS = (0.6, 1.6)
 FLOAT_TOLERANCE = 1e-5
+FIREFLY_PIXELS = 2  # significant pixels tolerated as fireflies (see the module docstring)
 # Written from the last run of `python tests/render_check.py` (see __main__ below).
 FALSE_FAILURES = "0 of 160 (10 trials on each of 16 scenes: Mitsuba against Mitsuba, new seeds)"
 
@@ -107,6 +111,9 @@ def compare(test: np.ndarray | list[np.ndarray], reference: np.ndarray, alpha: f
     n = int(noisy.sum())
     alpha_px = 1.0 - (1.0 - alpha) ** (1.0 / max(n, 1))
     failing = int((p < alpha_px).sum())
+    significant = np.zeros(m.shape, dtype=bool)
+    significant[noisy] = p < alpha_px
+    pixels = int(significant.reshape(-1, m.shape[-1]).any(axis=1).sum())
     exact_bad = int((np.abs(mt[~noisy] - m[~noisy]) > 1e-4 * np.maximum(1.0, np.abs(m[~noisy]))).sum())
     # Only where the noise is well above float rounding: elsewhere the floor, not the noise, sets the scale.
     real = v[noisy] > (100 * floor) ** 2
@@ -118,7 +125,7 @@ def compare(test: np.ndarray | list[np.ndarray], reference: np.ndarray, alpha: f
         idx = np.argwhere(noisy)[np.argmin(p)] if failing else np.argwhere(~noisy)[0]
         where = f"worst at (y, x, channel) {tuple(int(i) for i in idx)}; "
     detail = f"{where}{exact_bad} noiseless channels differ; Sidak alpha per channel {alpha_px:.2g}"
-    return Verdict(failing == 0 and exact_bad == 0 and var_ok, failing + exact_bad, n,
+    return Verdict(pixels <= FIREFLY_PIXELS and exact_bad == 0 and var_ok, failing + exact_bad, n,
                    float(p.min()) if n else 1.0, ratio, detail)
 
 

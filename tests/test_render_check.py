@@ -54,6 +54,9 @@ def test_the_variant_criterion_on_both_sides_against_real_renders(name, rgb_is_t
     spectral, _ = reference_renders(SCENES / name, "llvm_ad_spectral", 64)
     rgb, _ = reference_renders(SCENES / name, "llvm_ad_rgb", 64, renders=1, seed0=5)
     verdict = compare(rgb[0], spectral)
-    assert (verdict.failing == 0) == rgb_is_the_same, verdict
+    if rgb_is_the_same:
+        assert verdict.failing == 0, verdict  # every mean agrees (the variance is lower, see above)
+    else:
+        assert not verdict.passed and verdict.failing > 100, verdict
     chosen = analyse(SceneSpec(SCENES / name)).variant
     assert chosen == ("llvm_ad_rgb" if rgb_is_the_same else "llvm_ad_spectral")
