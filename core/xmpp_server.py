@@ -345,6 +345,7 @@ def _run_embedded(args: argparse.Namespace) -> int:
         cert_path=str(data_dir / "certs"), message_persistence=args.message_persistence,
     )
     _close_registration(data_dir / ALLOWED_ACCOUNTS)
+    _forget_unavailable_resources()
     server = Server(params)
     # pyjabber also listens on the host's "public" address (found by a UDP trick); a local farm must
     # stay on loopback, so that address is dropped before the listeners are created.
@@ -379,6 +380,30 @@ def _close_registration(allowed: Path) -> None:
         return await original(self, element)
 
     sasl_module.SASL.handle_iq = handle_iq
+
+
+def _forget_unavailable_resources() -> None:
+    """A resource that sent `unavailable` is forgotten, not kept as unavailable: pyjabber routes a message
+    for a bare JID to the resources of the highest priority, and a stale entry of a cleanly stopped
+    master (its old resource, with the priority it last announced) outranked the restarted master's new
+    one, so a master restarted on a running server received nothing (measured: deaf for 60 s and more
+    after SIGTERM and restart; fine after SIGKILL, which sends no presence)."""
+    import xml.etree.ElementTree as ET
+
+    from pyjabber.features.presence import PresenceFeature as presence_module
+
+    original = presence_module.Presence._handle_global_presence
+
+    async def handle(self, jid, element: ET.Element):
+        result = await original(self, jid, element)
+        if element.attrib.get("type") == "unavailable":
+            entries = self._online_status.get(jid.bare(), [])
+            entries[:] = [e for e in entries if e[0] != jid.resource]
+            if not entries:
+                self._online_status.pop(jid.bare(), None)
+        return result
+
+    presence_module.Presence._handle_global_presence = handle
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -79,3 +79,29 @@ def test_a_killed_agent_is_restarted_and_a_killed_farm_leaves_no_orphans(tmp_pat
     finally:
         if up.poll() is None:
             up.kill()
+
+
+@pytest.mark.slow
+def test_a_master_restarted_three_times_on_the_same_server_hears_its_agents(tmp_path):
+    """Stopped cleanly (SIGTERM) and started again while the embedded server and the agents run: it was
+    deaf (a stale resource outranked its new one) until the server restarted."""
+    from quekaro.local_farm import LocalFarm
+
+    home = tmp_path / "farm"
+    with LocalFarm(home, agents=1, threads=1) as farm:
+        farm.wait_for_agents()
+        master = farm.children[0]
+        for _ in range(3):
+            master.proc.terminate()
+            master.proc.wait(timeout=30)
+            (home / "farm.json").unlink()
+            farm._spawn(master)
+            farm._wait_for_master()
+            client = farm.client()
+            deadline = time.monotonic() + 20
+            while not [a for a in client.agents() if not a["lost"]]:
+                assert time.monotonic() < deadline, "the restarted master hears no agent"
+                time.sleep(0.3)
+        defines = {"res": "32", "spp": "4"}
+        job_id = client.submit(bundle_of(SCENE, defines), defines, {"level": "off", "units": 2})
+        assert client.wait(job_id, 120, poll=0.3)["status"] == "done"
