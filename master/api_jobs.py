@@ -16,6 +16,9 @@ from __future__ import annotations
 
 import hmac
 import json
+import os
+import tempfile
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from aiohttp import web
@@ -57,16 +60,24 @@ def _service(request: web.Request) -> MasterService:
     return service
 
 
-async def _read_limited(request: web.Request, limit: int) -> bytes:
+async def _receive_to_file(request: web.Request, folder: Path, limit: int) -> Path:
+    """Stream the body to a new file in `folder`, a MiB at a time (never the whole upload in memory)."""
     if request.content_length is not None and request.content_length > limit:
         raise web.HTTPRequestEntityTooLarge(max_size=limit, actual_size=request.content_length)
-    chunks, size = [], 0
-    async for chunk in request.content.iter_chunked(1 << 20):
-        size += len(chunk)
-        if size > limit:
-            raise web.HTTPRequestEntityTooLarge(max_size=limit, actual_size=size)
-        chunks.append(chunk)
-    return b"".join(chunks)
+    folder.mkdir(parents=True, exist_ok=True)
+    fd, name = tempfile.mkstemp(prefix=".upload-", suffix=".tar", dir=folder)
+    path, size = Path(name), 0
+    try:
+        with os.fdopen(fd, "wb") as out:
+            async for chunk in request.content.iter_chunked(1 << 20):
+                size += len(chunk)
+                if size > limit:
+                    raise web.HTTPRequestEntityTooLarge(max_size=limit, actual_size=size)
+                out.write(chunk)
+    except BaseException:
+        path.unlink(missing_ok=True)
+        raise
+    return path
 
 
 async def submit(request: web.Request) -> web.Response:
@@ -79,11 +90,13 @@ async def submit(request: web.Request) -> web.Response:
         return _error(400, f"header X-Quekaro-Job: {exc}")
     except QuekaroError as exc:
         return _error(400, str(exc))
-    bundle = await _read_limited(request, MAX_BUNDLE_BYTES)
+    bundle = await _receive_to_file(request, service.jobs_dir, MAX_BUNDLE_BYTES)
     try:
         job_id = await service.submit(bundle, defines, options)
     except QuekaroError as exc:
         return _error(422, str(exc))
+    finally:
+        bundle.unlink(missing_ok=True)
     return web.json_response({"job_id": job_id}, status=201)
 
 

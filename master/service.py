@@ -12,6 +12,7 @@ import contextlib
 import dataclasses
 import json
 import logging
+import os
 import re
 import secrets
 import shutil
@@ -204,13 +205,18 @@ class MasterService:
             rules_sha256=plan.get("rules_sha256"), defuzzifier=record.options["options"].get("defuzzifier"),
         )
 
-    async def submit(self, bundle: bytes, defines: dict[str, str], options: RenderOptions) -> str:
-        """Accept a job: keep its bundle, plan it (pre-pass in a child process), auction its units."""
+    async def submit(self, bundle: bytes | Path, defines: dict[str, str], options: RenderOptions) -> str:
+        """Accept a job: keep its bundle (bytes, or a file of the jobs folder, moved), plan it (pre-pass in a
+        child process), auction its units."""
         job_id = uuid.uuid4().hex[:12]
         job_dir = self.job_dir(job_id)
         job_dir.mkdir(parents=True)
         try:
-            (job_dir / "bundle.tar").write_bytes(bundle)
+            if isinstance(bundle, Path):
+                os.replace(bundle, job_dir / "bundle.tar")
+                bundle = job_dir / "bundle.tar"
+            else:
+                (job_dir / "bundle.tar").write_bytes(bundle)
             scene = extract_bundle(bundle, job_dir / "scene", BundleLimits())
             check_unpacked(scene, defines)
             options, rules_sha256 = _job_rules(job_dir / "scene", options)
