@@ -129,6 +129,45 @@ def compare(test: np.ndarray | list[np.ndarray], reference: np.ndarray, alpha: f
                    float(p.min()) if n else 1.0, ratio, detail)
 
 
+def moment_channels(image: np.ndarray, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, per-sample variance) of a render by Mitsuba's `moment` integrator, from its channels."""
+    second = [i for i, n in enumerate(names) if n.startswith("m2_")]
+    first = [names.index(names[i][3:]) for i in second]
+    mean = image[..., first].astype(np.float64)
+    return mean, np.maximum(image[..., second].astype(np.float64) - mean**2, 0.0)
+
+
+def compare_moment_renders(a: tuple[np.ndarray, np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray, np.ndarray],
+                           alpha: float = ALPHA) -> Verdict:
+    """Two single renders of one job, each (mean, per-sample variance, samples per pixel) from the moment
+    integrator: a per-pixel Z-test of the means, (ma - mb) / sqrt(va / na + vb / nb), Sidak-corrected, with
+    the same float floor and firefly allowance as `compare`. For renders whose spp differs per pixel (an
+    optimisation level), na and nb are each pixel's least spp among the tiles covering it (conservative)."""
+    (ma, va, na), (mb, vb, nb) = a, b
+    var = va / na[..., None] + vb / nb[..., None] + (FLOAT_TOLERANCE * np.maximum(1.0, np.abs(mb))) ** 2
+    z = np.abs(ma - mb) / np.sqrt(var)
+    p = 2.0 * stats.norm.sf(z)
+    alpha_px = 1.0 - (1.0 - alpha) ** (1.0 / p.size)
+    significant = p < alpha_px
+    pixels = int(significant.any(axis=-1).sum())
+    detail = f"Sidak alpha per channel {alpha_px:.2g}"
+    if pixels:
+        detail = f"worst at (y, x, channel) {tuple(int(i) for i in np.unravel_index(np.argmin(p), p.shape))}; " + detail
+    return Verdict(pixels <= FIREFLY_PIXELS, int(significant.sum()), p.size, float(p.min()), 1.0, detail)
+
+
+def least_spp(report: dict) -> np.ndarray:
+    """Each pixel's least spp among the tiles covering it (unit grown by its band), from a job report."""
+    height, width = report["image"]["height"], report["image"]["width"]
+    spp = np.full((height, width), np.inf)
+    for unit in report["units"]:
+        x, y, w, h = unit["rect"]
+        band = unit.get("band") or 0
+        ys, xs = slice(max(0, y - band), min(height, y + h + band)), slice(max(0, x - band), min(width, x + w + band))
+        spp[ys, xs] = np.minimum(spp[ys, xs], unit["spp"])
+    return spp
+
+
 def _measure_false_failures(trials: int = 10) -> str:
     """Mitsuba against Mitsuba (other seeds) on every compatibility scene: how often `compare` fails."""
     from compat_cases import CASES, SCENES

@@ -1,0 +1,105 @@
+"""A lying agent for the chaos test: a real XMPP account of the farm that bids 0 s on everything, answers
+each award with an INFORM but never its tile, and PUTs an invented tile for another unit than the one it
+holds, with the token it holds. It stops after `--lies` awards. Prints one JSON line per lie.
+
+    python tests/liar_agent.py --jid agent-liar@localhost --port 5222 --master master@localhost --lies 4
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import hashlib
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import aiohttp
+import numpy as np
+
+from core import messages as m
+from core.geometry import Rect
+from core.tiles import Tile, write_tile
+from core.xmpp import Envelope, FarmAgent
+
+
+def emit(event: str, **fields: object) -> None:
+    print(json.dumps({"event": event, **fields}), flush=True)
+
+
+async def put_foreign_tile(award: m.Award) -> int:
+    """Upload an invented tile for the unit after the awarded one, with the award's token."""
+    other = award.unit.index + 1
+    rect = Rect(0, 0, 4, 4)
+    with tempfile.TemporaryDirectory() as tmp:
+        tile = Tile(np.full((4, 4, 3), 99.0, np.float32), rect, rect, {"job_id": award.job.job_id,
+                                                                       "unit_index": other})
+        data = write_tile(Path(tmp) / "t.exr", tile, durable=False).read_bytes()
+    url = award.upload_url.rsplit("/units/", 1)[0] + f"/units/{other}/tile"
+    headers = {"X-Quekaro-Token": award.token, "X-Content-SHA256": hashlib.sha256(data).hexdigest()}
+    async with aiohttp.ClientSession() as session, session.put(url, data=data, headers=headers) as resp:
+        return resp.status
+
+
+async def run(args: argparse.Namespace) -> int:
+    agent = FarmAgent(args.jid, os.environ["QUEKARO_XMPP_PASSWORD"], port=args.port, server="127.0.0.1",
+                      ontology=m.ONTOLOGY, peers=[args.master], validate=m.parse,
+                      performatives=frozenset({"cfp", "accept-proposal", "reject-proposal", "cancel"}))
+    done = asyncio.Event()
+    lies = 0
+
+    async def send(msg: m.Message) -> None:
+        performative, body = m.encode(msg)
+        await agent.send(args.master, performative, body, conversation_id=msg.conversation,
+                         protocol=m.PROTOCOL, ontology=m.ONTOLOGY)
+
+    async def on_message(env: Envelope) -> None:
+        nonlocal lies
+        msg = m.parse(env.performative, env.body)
+        if isinstance(msg, m.CallForProposal) and lies < args.lies:
+            estimates = tuple(m.Estimate(index=u.index, seconds=0.0) for u in msg.units)
+            await send(m.Propose(conversation=msg.conversation, job_id=msg.job.job_id, estimates=estimates))
+        elif isinstance(msg, m.Award) and lies < args.lies:
+            lies += 1
+            status = await put_foreign_tile(msg)
+            await send(m.Inform(conversation=msg.conversation, job_id=msg.job.job_id, index=msg.unit.index,
+                                token=msg.token, tile_hash="ab" * 32, depth=1, spp=1, band=0, seconds=0.0,
+                                nonfinite=0))
+            emit("lied", job=msg.job.job_id, unit=msg.unit.index, foreign_put=status)
+            if lies >= args.lies:
+                done.set()
+
+    agent.set_handler(on_message)
+    await agent.start(auto_register=True)
+    await send(m.Register(conversation="liar", speed=1000.0, threads=1, rules="lies.xml"))
+    emit("online")
+
+    async def heartbeat() -> None:
+        while True:
+            await send(m.Heartbeat(conversation="hb", busy=()))
+            await asyncio.sleep(2.0)
+
+    beat = asyncio.create_task(heartbeat())
+    with contextlib.suppress(TimeoutError):
+        await asyncio.wait_for(done.wait(), timeout=args.timeout)
+    beat.cancel()
+    await agent.stop()
+    emit("stopped", lies=lies)
+    return 0
+
+
+def main() -> int:
+    p = argparse.ArgumentParser()
+    p.add_argument("--jid", required=True)
+    p.add_argument("--port", type=int, required=True)
+    p.add_argument("--master", required=True)
+    p.add_argument("--lies", type=int, default=4)
+    p.add_argument("--timeout", type=float, default=120.0)
+    return asyncio.run(run(p.parse_args()))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
