@@ -14,13 +14,18 @@ Rules for the awkward cases (counted in `ComposeReport`):
   - duplicate tiles for the same core (a late second delivery) are ignored: the first in the list wins;
   - every channel (alpha, AOVs, moments) is blended with the same weights; all tiles must carry the
     same channels in the same order (TileError otherwise).
+
+Memory: `compose_planar` works in bands of rows and reads each tile only while a band needs it (a
+`TileSource` loads it from its file), so composing needs the output image (float32, planar: one
+contiguous plane per channel, as an EXR is written) plus a band's float64 sums and the tiles of one row
+of units: well under twice the output image for any size.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -82,48 +87,100 @@ def blend_weights(geometry: Sequence[tuple[Rect, Rect]], width: int, height: int
     return [w / total[rect.slices()] for (rect, _), w in zip(geometry, raw, strict=True)]
 
 
+@dataclass(frozen=True)
+class TileSource:
+    """A tile known by its header (where it lies, its channels and meta), loaded only when needed."""
+
+    rect: Rect
+    core: Rect
+    channels: tuple[str, ...]
+    load: Callable[[], TileLike]
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+def _as_source(tile: TileLike | TileSource) -> TileSource:
+    if isinstance(tile, TileSource):
+        return tile
+    return TileSource(tile.rect, tile.core, _channels(tile), lambda: tile, dict(getattr(tile, "meta", {})))
+
+
 def compose(
     tiles: Iterable[TileLike], width: int, height: int, allow_uncovered: bool = False
 ) -> tuple[np.ndarray, ComposeReport]:
     """Blend tiles into a float32 (height, width, channels) image; see the module docstring for the rules."""
+    planar, report = compose_planar(tiles, width, height, allow_uncovered)
+    return np.ascontiguousarray(planar.transpose(1, 2, 0)), report
+
+
+def compose_planar(tiles: Iterable[TileLike | TileSource], width: int, height: int,
+                   allow_uncovered: bool = False, band_rows: int = 128) -> tuple[np.ndarray, ComposeReport]:
+    """Blend tiles into a float32 (channels, height, width) image, a band of rows at a time."""
     report = ComposeReport()
-    chosen = _dedupe(tiles, width, height, report)
-    depth = len(_channels(chosen[0])) if chosen else 3
-    acc = np.zeros((height, width, depth), dtype=np.float64)
-    wsum = np.zeros((height, width), dtype=np.float64)
+    chosen = _dedupe([_as_source(t) for t in tiles], width, height, report)
+    depth = len(chosen[0].channels) if chosen else 3
+    image = np.zeros((depth, height, width), dtype=np.float32)
     covered = np.zeros((height, width), dtype=bool)
-    for tile in chosen:
-        pixels = np.asarray(tile.pixels, dtype=np.float64)
-        finite = np.all(np.isfinite(pixels), axis=2)
-        bad = int(finite.size - np.count_nonzero(finite))
-        if bad:
-            report.nonfinite[tuple(tile.core.as_list())] = bad
-        w = tile_weight(tile.rect, tile.core) * finite
-        sl = tile.rect.slices()
-        acc[sl] += np.where(finite[..., None], pixels, 0.0) * w[..., None]
-        wsum[sl] += w
-        covered[sl] = True
+    has = np.zeros((height, width), dtype=bool)
+    loaded: dict[int, TileLike] = {}
+    for y0 in range(0, height, band_rows):
+        y1 = min(height, y0 + band_rows)
+        acc = np.zeros((depth, y1 - y0, width), dtype=np.float64)
+        wsum = np.zeros((y1 - y0, width), dtype=np.float64)
+        for i, source in enumerate(chosen):
+            if source.rect.y < y1 and source.rect.y1 > y0:
+                tile = loaded.get(i) or loaded.setdefault(i, _loaded(source, report))
+                _accumulate(tile, y0, y1, acc, wsum, covered)
+                if source.rect.y1 <= y1:
+                    loaded.pop(i)  # no later band needs it
+        band_has = wsum > 0
+        image[:, y0:y1][:, band_has] = (acc[:, band_has] / wsum[band_has]).astype(np.float32)
+        has[y0:y1] = band_has
+        del acc, wsum  # before the next band's are made
     report.tiles_used = len(chosen)
     _check_coverage(covered, allow_uncovered, report)
-    image = np.zeros((height, width, depth), dtype=np.float64)
-    has = wsum > 0
-    image[has] = acc[has] / wsum[has][:, None]
     holes = covered & ~has
     report.filled = int(np.count_nonzero(holes))
     if report.filled:
         _fill_holes(image, holes, has)
-    return image.astype(np.float32), report
+    return image, report
 
 
-def _dedupe(tiles: Iterable[TileLike], width: int, height: int, report: ComposeReport) -> list[TileLike]:
-    """Validate every tile and keep the first one delivered per core."""
+def _loaded(source: TileSource, report: ComposeReport) -> TileLike:
+    """The tile's pixels, checked against its header; its non-finite pixels counted once."""
+    tile = source.load()
+    where = f"tile for unit {source.core.as_list()}"
+    expected = (source.rect.h, source.rect.w, len(source.channels))
+    if np.shape(tile.pixels) != expected:
+        raise TileError(f"{where}: pixels have shape {np.shape(tile.pixels)}, expected {expected}")
+    bad = int((~np.isfinite(tile.pixels)).any(axis=2).sum())
+    if bad:
+        report.nonfinite[tuple(source.core.as_list())] = bad
+    return tile
+
+
+def _accumulate(tile: TileLike, y0: int, y1: int, acc: np.ndarray, wsum: np.ndarray, covered: np.ndarray) -> None:
+    """Add the rows [y0, y1) of a tile, weighted, to a band's sums (non-finite pixels weigh 0)."""
+    rect = tile.rect
+    top, bottom = max(y0, rect.y), min(y1, rect.y1)
+    rows = slice(top - rect.y, bottom - rect.y)
+    pixels = np.asarray(tile.pixels[rows], dtype=np.float64)
+    finite = np.all(np.isfinite(pixels), axis=2)
+    w = tile_weight(rect, tile.core)[rows] * finite
+    cols = slice(rect.x, rect.x1)
+    acc[:, top - y0:bottom - y0, cols] += np.moveaxis(np.where(finite[..., None], pixels, 0.0) * w[..., None], 2, 0)
+    wsum[top - y0:bottom - y0, cols] += w
+    covered[top:bottom, cols] = True
+
+
+def _dedupe(tiles: Iterable[TileSource], width: int, height: int, report: ComposeReport) -> list[TileSource]:
+    """Validate every tile's place and keep the first one delivered per core."""
     seen: set[Rect] = set()
-    chosen: list[TileLike] = []
+    chosen: list[TileSource] = []
     for tile in tiles:
         _validate(tile, width, height)
-        if chosen and _channels(tile) != _channels(chosen[0]):
-            raise TileError(f"tile for unit {tile.core.as_list()}: channels {list(_channels(tile))[:8]} differ "
-                            f"from the first tile's {list(_channels(chosen[0]))[:8]}")
+        if chosen and tile.channels != chosen[0].channels:
+            raise TileError(f"tile for unit {tile.core.as_list()}: channels {list(tile.channels)[:8]} differ "
+                            f"from the first tile's {list(chosen[0].channels)[:8]}")
         if tile.core in seen:
             report.duplicates_ignored += 1
             continue
@@ -132,17 +189,13 @@ def _dedupe(tiles: Iterable[TileLike], width: int, height: int, report: ComposeR
     return chosen
 
 
-def _validate(tile: TileLike, width: int, height: int) -> None:
+def _validate(tile: TileSource, width: int, height: int) -> None:
     rect, core = tile.rect, tile.core
     where = f"tile for unit {core.as_list()}"
     if rect.x < 0 or rect.y < 0 or rect.x1 > width or rect.y1 > height:
         raise TileError(f"{where}: rectangle {rect.as_list()} lies outside the {width}x{height} image")
     if core.intersect(rect) != core or core.area == 0:
         raise TileError(f"{where}: core is empty or not inside the rendered rectangle {rect.as_list()}")
-    shape = np.shape(tile.pixels)
-    expected = (rect.h, rect.w, len(_channels(tile)))
-    if shape != expected:
-        raise TileError(f"{where}: pixels have shape {shape}, expected {expected}")
 
 
 def _channels(tile: TileLike) -> tuple[str, ...]:
@@ -158,9 +211,10 @@ def _check_coverage(covered: np.ndarray, allow_uncovered: bool, report: ComposeR
 
 
 def _fill_holes(image: np.ndarray, holes: np.ndarray, good: np.ndarray) -> None:
-    """Set each hole to the mean of the blended (`good`) pixels in its 3x3 neighbourhood (else 0)."""
+    """Set each hole of the planar image to the mean of the blended (`good`) pixels in its 3x3
+    neighbourhood (else 0)."""
     h, w = holes.shape
     for y, x in np.argwhere(holes):
         ys, xs = slice(max(0, y - 1), min(h, y + 2)), slice(max(0, x - 1), min(w, x + 2))
         mask = good[ys, xs]
-        image[y, x] = image[ys, xs][mask].mean(axis=0) if mask.any() else 0.0
+        image[:, y, x] = image[:, ys, xs][:, mask].mean(axis=1) if mask.any() else 0.0

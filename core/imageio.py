@@ -39,14 +39,20 @@ def _check_finite(image: np.ndarray, path: Path) -> None:
 
 
 def write_exr(path: str | Path, image: np.ndarray, allow_nonfinite: bool = False,
-              channels: Sequence[str] | None = None) -> Path:
-    """Write a linear float32 EXR (ZIP compressed): RGB, or every channel named in `channels`.
+              channels: Sequence[str] | None = None, planar: bool = False) -> Path:
+    """Write a linear float32 EXR (ZIP compressed): RGB, or every channel named in `channels`; `planar`
+    images are (channels, H, W) and are written without a copy.
 
     Written to a temporary name beside `path` and renamed, so a failed write leaves no partial file."""
     import OpenEXR
 
     path = Path(path)
-    if channels is None:
+    if planar:
+        names = tuple(channels or ("R", "G", "B"))
+        if image.ndim != 3 or image.shape[0] != len(names):
+            raise ImageError(f"{path}: planar image shaped {image.shape} does not match {len(names)} channels")
+        planes = {c: image[i] for i, c in enumerate(names)}
+    elif channels is None:
         planes = {"RGB": as_rgb(image, str(path))}
     else:
         planes = _planes(np.asarray(image, dtype=np.float32), tuple(channels), path)
@@ -133,6 +139,26 @@ def write_png(path: str | Path, image: np.ndarray, exposure: float = 1.0) -> Pat
     try:
         bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True).write(str(path))
     except RuntimeError as exc:
+        raise ImageError(f"{path}: cannot write PNG ({exc})") from exc
+    return path
+
+
+def write_png_planar(path: str | Path, planar: np.ndarray, rows: int = 128) -> Path:
+    """`write_png` of a planar (channels, H, W) image's first three channels, converted a band of rows at a
+    time (the 8-bit copy is a quarter of the float image) and encoded by Pillow, which copies it once;
+    Mitsuba's Bitmap made two more copies (a 4096^2 image's assembly went over twice its size)."""
+    from PIL import Image
+
+    path = Path(path)
+    _, height, width = planar.shape
+    out = np.empty((height, width, 3), dtype=np.uint8)
+    for y0 in range(0, height, rows):
+        band = np.moveaxis(planar[:3, y0:y0 + rows], 0, 2)
+        _check_finite(band, path)
+        out[y0:y0 + rows] = np.rint(tonemap(band) * 255.0).astype(np.uint8)
+    try:
+        Image.fromarray(out, "RGB").save(path, format="PNG")
+    except (OSError, ValueError) as exc:
         raise ImageError(f"{path}: cannot write PNG ({exc})") from exc
     return path
 

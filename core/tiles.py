@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from core.compose import TileSource
 from core.errors import TileError
 from core.geometry import Rect
 
@@ -130,6 +131,31 @@ def _fsync(path: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def tile_source(path: str | Path, **meta: Any) -> TileSource:
+    """The tile at `path` known by its header alone (its pixels are read when composition needs them);
+    `meta` entries override the header's (the store knows which unit a tile is)."""
+    import OpenEXR
+
+    path = Path(path)
+    try:
+        with OpenEXR.File(str(path), header_only=True) as exr:
+            header = exr.header()
+            rect = _rect_from_header(header, str(path))
+            order = _channel_order(header, str(path))
+            core, stored = _core_and_meta(header, str(path))
+    except TileError:
+        raise
+    except Exception as exc:  # OpenEXR reports corrupt data as RuntimeError or ValueError
+        raise TileError(f"{path}: unreadable EXR header ({exc})") from exc
+
+    def load() -> Tile:
+        tile = read_tile(path)
+        tile.meta.update(meta)
+        return tile
+
+    return TileSource(rect, core, order, load, {**stored, **meta})
 
 
 def read_tile(path: str | Path) -> Tile:

@@ -15,9 +15,9 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from core.compose import compose
+from core.compose import TileSource, compose_planar
 from core.hashing import sha256_file
-from core.imageio import write_exr, write_png
+from core.imageio import write_exr, write_png_planar
 from core.planner import Planner, UnitParams
 from core.render_unit import RenderWorker, UnitJob
 from core.scene import SceneSpec
@@ -59,18 +59,20 @@ def unit_record(plan: JobPlan, tile: Tile, params: dict[str, Any]) -> dict[str, 
     }
 
 
-def assemble(plan: JobPlan, tiles: Iterable[Tile], params: dict[int, dict[str, Any]], out: Path,
+def assemble(plan: JobPlan, tiles: Iterable[Tile | TileSource], params: dict[int, dict[str, Any]], out: Path,
              started: float, extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Compose the tiles and write OUT.exr, OUT.png and OUT.json; return the report.
+    """Compose the tiles (in memory, or sources read from their files as needed) and write OUT.exr,
+    OUT.png and OUT.json; return the report.
 
     `started` is the job's start on the `time.perf_counter` clock (for the total seconds)."""
     tiles = list(tiles)
-    image, compose_report = compose(tiles, plan.width, plan.height)
+    image, compose_report = compose_planar(tiles, plan.width, plan.height)
     channels = tiles[0].channels if tiles else ("R", "G", "B")
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_exr(out, image, channels=channels)
-    write_png(out.with_suffix(".png"), image[..., :3])
+    write_exr(out, image, channels=channels, planar=True)
+    write_png_planar(out.with_suffix(".png"), image)
+    del image
     units = sorted((unit_record(plan, t, params[int(t.meta["unit_index"])]) for t in tiles),
                    key=lambda u: u["index"])
     report = {

@@ -32,7 +32,7 @@ from core.planner import Planner
 from core.scene import SceneSpec
 from core.seeds import plan_seed
 from core.supervision import die_with_parent
-from core.tiles import read_tile
+from core.tiles import read_tile, tile_source
 from fuzzy.errors import RuleFileError
 from master import auction as au
 from master.jobplan import JobPlan, RenderOptions, farm_min_units, plan_job
@@ -374,9 +374,9 @@ class MasterService:
             record = store.job(job_id)
             results = store.results(job_id)
             plan = plan_from_record(record, store, self.job_dir(job_id))
-        tiles = [read_tile(r.tile_path) for r in results]
-        for tile, r in zip(tiles, results, strict=True):  # the store says which unit a tile is, not its header
-            tile.meta.update(unit_index=r.index, job_id=job_id)
+        # Headers only: each tile's pixels are read while composition needs them. The store, not the
+        # header, says which unit a tile is.
+        tiles = [tile_source(r.tile_path, unit_index=r.index, job_id=job_id) for r in results]
         params = {r.index: r.params for r in results}
         report = assemble(plan, tiles, params, self.result_path(job_id), started=time.perf_counter(),
                           extra={"job_id": job_id, "created": record.created, "finished": record.finished})

@@ -1,0 +1,57 @@
+"""Assembly memory: composing a 4096 x 4096 image from 64 tile files stays under twice the output image
+(it peaked at about 10x when every tile was read up front and the sums were float64 images)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.slow
+
+REPO = Path(__file__).resolve().parent.parent
+SCRIPT = r"""
+import json, sys
+from pathlib import Path
+import numpy as np
+from core.compose import compose_planar
+from core.geometry import Rect
+from core.imageio import write_exr, write_png_planar
+from core.tiles import Tile, tile_source, write_tile
+
+size, side, band, out = 4096, 512, 2, Path(sys.argv[1])
+paths = []
+for y in range(0, size, side):
+    for x in range(0, size, side):
+        core = Rect(x, y, side, side)
+        rect = core.grow(band, size, size)
+        pixels = np.full((rect.h, rect.w, 3), 0.25, np.float32) + np.float32((x + y) / (4 * size))
+        paths.append(write_tile(out / f"{x}-{y}.exr", Tile(pixels, rect, core, {}), durable=False))
+        del pixels
+
+def rss(key):
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(key):
+            return int(line.split()[1]) * 1024
+
+Path("/proc/self/clear_refs").write_text("5")  # the peak starts again from here
+base = rss("VmRSS:")
+image, report = compose_planar([tile_source(p) for p in paths], size, size)
+write_exr(out / "result.exr", image, channels=("R", "G", "B"), planar=True)
+write_png_planar(out / "result.png", image)
+print(json.dumps({"grown": rss("VmHWM:") - base, "image": image.nbytes, "mean": float(image.mean())}))
+"""
+
+
+def test_composing_a_4096_image_stays_under_twice_the_image(tmp_path):
+    done = subprocess.run([sys.executable, "-c", SCRIPT, str(tmp_path)], capture_output=True, text=True,
+                          cwd=REPO, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    found = json.loads(done.stdout.strip().splitlines()[-1])
+    assert 0.25 < found["mean"] < 0.75  # every tile arrived
+    assert found["grown"] < 2 * found["image"], f"peak grew {found['grown'] / 2**20:.0f} MiB for a " \
+                                                  f"{found['image'] / 2**20:.0f} MiB image"
+    print(f"assembly of 4096^2 x 3: peak grew {found['grown'] / 2**20:.0f} MiB, image {found['image'] / 2**20:.0f} MiB")
