@@ -111,6 +111,7 @@ def job_summary(service: MasterService, job_id: str) -> dict[str, Any]:
         "agents_busy": progress.agents_busy, "eta_s": progress.eta_s,
         "result_ready": service.result_path(job_id).with_suffix(".json").exists(),
         "effects": record.options["plan"].get("effects", {}),
+        "paused": service.paused if record.status == "running" else None,
     }
 
 

@@ -60,6 +60,7 @@ class MasterConfig:
     agent_pattern: str = r"^agent[-\w.]*@{domain}$"  # bare JIDs allowed to bid
     agent_allowlist: Path | None = None  # and, if given, only the bare JIDs listed in this file
     threads: int | None = None  # Dr.Jit threads of the pre-pass
+    min_free_bytes: int = 64 << 20  # below this free space in its home the master pauses every job
     auction: au.Config = field(default_factory=au.Config)
 
     @property
@@ -97,6 +98,8 @@ class MasterService:
         self._lock = asyncio.Lock()
         self._assembling: dict[str, asyncio.Task] = {}
         self._agent_re = re.compile(config.agent_pattern.format(domain=re.escape(config.domain)))
+        self._paused_s = 0.0  # the auction's clock stands still while the disk is full
+        self._paused_since: float | None = None
         self._allowed: set[str] = set()
         self._allow_stamp: tuple[int, int] | None = None
 
@@ -294,9 +297,9 @@ class MasterService:
                 conversation=unit.conversation, job_id=job_id, index=index, token=unit.token,
                 tile_hash=sha256, depth=params["depth"], spp=params["spp"], band=params["band"],
                 seconds=params["seconds"], nonfinite=params["nonfinite"])
-            now = time.time()
+            now = self.auction_now()
             # Tick at once: the agent that just finished is free, and waiting for the timer would idle it.
-            await self._execute(self.auction.on_inform(unit.agent, inform, now) + self.auction.tick(now))
+            await self._execute(self.auction.on_inform(unit.agent, inform, now) + self._tick(now))
 
     # ---- messages and time --------------------------------------------------------------------------
 
@@ -307,17 +310,44 @@ class MasterService:
             log.warning("refused %s from %s: %s", env.performative, env.sender, exc)
             return
         async with self._lock:
-            now = time.time()
-            await self._execute(self.auction.on_message(env.sender, msg, now) + self.auction.tick(now))
+            now = self.auction_now()
+            await self._execute(self.auction.on_message(env.sender, msg, now) + self._tick(now))
 
     async def _tick_forever(self) -> None:
         while True:
             await asyncio.sleep(TICK_S)
             try:
+                self.check_disk()
                 async with self._lock:
-                    await self._execute(self.auction.tick(time.time()))
+                    await self._execute(self._tick(self.auction_now()))
             except Exception:  # one bad tick must not stop the master
                 log.exception("master tick failed")
+
+    def _tick(self, now: float) -> list[au.Command]:
+        """The auction's tick, unless paused: no awards, deadlines or losses while the disk is full."""
+        return [] if self.paused else self.auction.tick(now)
+
+    @property
+    def paused(self) -> str | None:
+        """Why every job is paused (the disk is full), or None."""
+        return "disk full on the master" if self._paused_since is not None else None
+
+    def auction_now(self) -> float:
+        """The auction's clock: wall time less the time spent paused (so no deadline runs out meanwhile)."""
+        now = time.time()
+        return now - self._paused_s - (now - self._paused_since if self._paused_since is not None else 0.0)
+
+    def check_disk(self) -> None:
+        """Pause every job while the master's home has less than `min_free_bytes` free; resume after."""
+        free = shutil.disk_usage(self.home).free
+        full = free < self.config.min_free_bytes
+        if full and self._paused_since is None:
+            self._paused_since = time.time()
+            log.error("disk full on the master (%d bytes free): every job paused until space returns", free)
+        elif not full and self._paused_since is not None:
+            self._paused_s += time.time() - self._paused_since
+            self._paused_since = None
+            log.warning("space on the master again (%d bytes free): jobs resume", free)
 
     async def _execute(self, commands: list[au.Command]) -> None:
         """Record events first (the store is the truth after a crash), then send messages."""

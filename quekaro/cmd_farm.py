@@ -159,7 +159,8 @@ def run_status(args: argparse.Namespace) -> int:
         eta = f"{job['eta_s']:.0f} s" if job.get("eta_s") is not None else "-"
         print(f"{job['job_id']}  {job['status']:<9} {job['units_done']}/{job['units_total']} units  "
               f"agents busy {job['agents_busy']}  ETA {eta}  {job['scene']}"
-              + (f"  error: {job['error']}" if job.get("error") else ""))
+              + (f"  error: {job['error']}" if job.get("error") else "")
+              + (f"  PAUSED: {job['paused']}" if job.get("paused") else ""))
         if args.job:
             print_effects(job.get("effects") or {})
     return 0

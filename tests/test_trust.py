@@ -49,3 +49,25 @@ def test_the_master_takes_bids_only_from_its_allowlist(tmp_path):
     finally:
         service.store.close()
         service._planner.shutdown(wait=False)
+
+
+def test_a_full_disk_pauses_every_job_and_stops_the_auctions_clock(tmp_path):
+    """Below `min_free_bytes` free, the master pauses: no tick (no award, deadline or loss) and the
+    auction's clock stands still, so nothing has run out when space returns."""
+    import time
+
+    service = MasterService(MasterConfig(home=tmp_path / "home", min_free_bytes=1 << 62))  # always "full"
+    try:
+        service.check_disk()
+        assert service.paused == "disk full on the master" and service._tick(0.0) == []
+        frozen = service.auction_now()
+        time.sleep(0.3)
+        assert service.auction_now() == pytest.approx(frozen, abs=0.02)
+        service.config.min_free_bytes = 0  # space is back
+        service.check_disk()
+        assert service.paused is None
+        time.sleep(0.2)
+        assert service.auction_now() - frozen == pytest.approx(0.2, abs=0.1)  # the pause is not counted
+    finally:
+        service.store.close()
+        service._planner.shutdown(wait=False)
