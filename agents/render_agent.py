@@ -528,7 +528,7 @@ def _logged(what: str):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m agents.render_agent",
+    p = argparse.ArgumentParser(prog="quekaro agent",
                                 description="A QUEKARO render agent: bids on units, renders them, uploads tiles.")
     p.add_argument("--server", default=None, help="XMPP server host (default: the JID's domain)")
     p.add_argument("--port", type=int, default=5222, help="XMPP client port (default 5222)")
