@@ -156,10 +156,14 @@ def write_png_planar(path: str | Path, planar: np.ndarray, rows: int = 128) -> P
         band = np.moveaxis(planar[:3, y0:y0 + rows], 0, 2)
         _check_finite(band, path)
         out[y0:y0 + rows] = np.rint(tonemap(band) * 255.0).astype(np.uint8)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
     try:
-        Image.fromarray(out, "RGB").save(path, format="PNG")
+        Image.fromarray(out, "RGB").save(tmp, format="PNG")
+        os.replace(tmp, path)
     except (OSError, ValueError) as exc:
         raise ImageError(f"{path}: cannot write PNG ({exc})") from exc
+    finally:
+        tmp.unlink(missing_ok=True)
     return path
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 import uuid
 from collections.abc import Iterable
@@ -90,7 +91,10 @@ def assemble(plan: JobPlan, tiles: Iterable[Tile | TileSource], params: dict[int
     }
     report.update(extra or {})
     report["totals"]["seconds"] = time.perf_counter() - started
-    out.with_suffix(".json").write_text(json.dumps(report, indent=2))
+    report_path = out.with_suffix(".json")
+    tmp = report_path.with_name(f".{report_path.name}.part")
+    tmp.write_text(json.dumps(report, indent=2))  # a full disk leaves the .part, never a torn report
+    os.replace(tmp, report_path)
     return report
 
 
