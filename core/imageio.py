@@ -8,7 +8,7 @@ No NaN passes silently: writing an image with non-finite values is an error unle
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -60,13 +60,22 @@ def write_exr(path: str | Path, image: np.ndarray, allow_nonfinite: bool = False
         for plane in planes.values():
             _check_finite(plane if plane.ndim == 3 else plane[..., None], path)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
-    try:
+
+    def write(tmp: Path) -> None:
         with OpenEXR.File(header, planes) as exr:
             exr.write(str(tmp))
+
+    return _written_atomically(path, write, "EXR")
+
+
+def _written_atomically(path: Path, write: Callable[[Path], None], what: str) -> Path:
+    """`write(tmp)` to a temporary name beside `path`, then rename: a failure leaves no partial file."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
+    try:
+        write(tmp)
         os.replace(tmp, path)
-    except (OSError, RuntimeError) as exc:
-        raise ImageError(f"{path}: cannot write EXR ({exc})") from exc
+    except (OSError, RuntimeError, ValueError) as exc:
+        raise ImageError(f"{path}: cannot write {what} ({exc})") from exc
     finally:
         tmp.unlink(missing_ok=True)
     return path
@@ -156,15 +165,7 @@ def write_png_planar(path: str | Path, planar: np.ndarray, rows: int = 128) -> P
         band = np.moveaxis(planar[:3, y0:y0 + rows], 0, 2)
         _check_finite(band, path)
         out[y0:y0 + rows] = np.rint(tonemap(band) * 255.0).astype(np.uint8)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
-    try:
-        Image.fromarray(out, "RGB").save(tmp, format="PNG")
-        os.replace(tmp, path)
-    except (OSError, ValueError) as exc:
-        raise ImageError(f"{path}: cannot write PNG ({exc})") from exc
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    return _written_atomically(path, lambda tmp: Image.fromarray(out, "RGB").save(tmp, format="PNG"), "PNG")
 
 
 def read_png(path: str | Path) -> np.ndarray:
