@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 from aiohttp import web
 
 from core.errors import QuekaroError
+from master.http_guard import read_body_chunks
 from master.jobplan import RenderOptions
 from master.store import StoreError
 
@@ -69,7 +70,7 @@ async def _receive_to_file(request: web.Request, folder: Path, limit: int) -> Pa
     path, size = Path(name), 0
     try:
         with os.fdopen(fd, "wb") as out:
-            async for chunk in request.content.iter_chunked(1 << 20):
+            async for chunk in read_body_chunks(request):
                 size += len(chunk)
                 if size > limit:
                     raise web.HTTPRequestEntityTooLarge(max_size=limit, actual_size=size)

@@ -50,6 +50,8 @@ from aiohttp import web
 from core.errors import TileError
 from core.geometry import Rect
 from core.tiles import MAX_CHANNELS, durable_replace, read_tile
+from master.http_guard import read_body_chunks
+from master.http_guard import serve as guarded_serve
 
 log = logging.getLogger(__name__)
 
@@ -114,12 +116,9 @@ def create_app(expected: Expected, bundle: BundleProvider, on_tile: OnTile, tile
 
 async def serve(app: web.Application, host: str = DEFAULT_HOST,
                 port: int = DEFAULT_PORT) -> tuple[web.AppRunner, int]:
-    """Start `app` on host:port (0 picks a free port); return the runner (cleanup() stops) and the port."""
-    runner = web.AppRunner(app, access_log=None)
-    await runner.setup()
-    site = web.TCPSite(runner, host, port)
-    await site.start()
-    return runner, site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
+    """Start `app` on host:port (0 picks a free port) behind master.http_guard's time limits; return the
+    runner (cleanup() stops) and the port."""
+    return await guarded_serve(app, host, port)
 
 
 def _error(status: int, reason: str) -> web.Response:
@@ -241,7 +240,7 @@ async def _receive(request: web.Request, final: Path, declared: str, cap: int) -
     tmp, digest, size = Path(name), hashlib.sha256(), 0
     try:
         with os.fdopen(fd, "wb") as out:
-            async for chunk in request.content.iter_chunked(_CHUNK):
+            async for chunk in read_body_chunks(request, _CHUNK):
                 size += len(chunk)
                 if size > cap:
                     raise Refusal(413, f"tile exceeds the limit of {cap} bytes")

@@ -35,6 +35,7 @@ from core.supervision import die_with_parent
 from core.tiles import read_tile, tile_source
 from fuzzy.errors import RuleFileError
 from master import auction as au
+from master.http_api import create_app, serve
 from master.jobplan import JobPlan, RenderOptions, farm_min_units, plan_job
 from master.store import JobRecord, JobStore, restore_auction
 
@@ -143,17 +144,12 @@ class MasterService:
         self.store.close()
 
     async def _start_http(self) -> None:
-        from aiohttp import web
-
-        from master.api_jobs import add_job_routes
-        from master.http_api import create_app
+        from master.api_jobs import add_job_routes  # api_jobs imports this module (issue 13's cycle)
 
         app = create_app(expected=self._expected_upload, bundle=self._bundle_for, on_tile=self._on_tile,
                          tile_dir=self.jobs_dir, authorize_bundle=self._bundle_allowed)
         add_job_routes(app, self)
-        self._runner = web.AppRunner(app, access_log=None)
-        await self._runner.setup()
-        await web.TCPSite(self._runner, self.config.http_host, self.config.http_port).start()
+        self._runner, _ = await serve(app, self.config.http_host, self.config.http_port)
 
     async def _start_xmpp(self) -> None:
         from core.xmpp import FarmAgent

@@ -395,3 +395,42 @@ def test_a_full_disk_is_a_507_and_the_tile_waits_on_its_agent(small_disk, tmp_pa
         assert asyncio.run(upload_while_freeing())["status"] == "accepted"
     finally:
         farm.stop()
+
+
+def _idle_connection_closed_within(url: str, send: bytes, seconds: float) -> float:
+    """Send `send` and nothing more; the seconds until the server closes the connection."""
+    import socket
+    from urllib.parse import urlparse
+
+    where = urlparse(url)
+    start = time.monotonic()
+    with socket.create_connection((where.hostname, where.port), timeout=seconds) as sock:
+        sock.sendall(send)
+        try:
+            while sock.recv(4096):
+                pass
+        except TimeoutError:
+            return float("inf")
+    return time.monotonic() - start
+
+
+def test_trickled_headers_and_bodies_are_cut_off(tmp_path, monkeypatch):
+    """Slowloris: a client that never finishes its headers is disconnected after the header limit; a
+    body that falls behind the minimum rate gets 408. One request per connection (keep-alive off)."""
+    import master.http_guard as guard
+
+    monkeypatch.setattr(guard, "HEADER_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(guard, "BODY_GRACE_S", 1.0)
+    farm = Farm(tmp_path)
+    farm.url = farm.start()
+    try:
+        took = _idle_connection_closed_within(farm.url, b"PUT /jobs/job1/units/3/tile HTTP/1.1\r\nHost: x\r\n", 10)
+        assert took < 5, f"a connection with unfinished headers stayed open {took:.1f} s"
+        body_start = (f"PUT /jobs/job1/units/3/tile HTTP/1.1\r\nHost: x\r\nX-Quekaro-Token: {TOKEN}\r\n"
+                      f"X-Content-SHA256: {'0' * 64}\r\nContent-Length: 100000\r\n\r\n").encode() + b"x" * 10
+        took = _idle_connection_closed_within(farm.url, body_start, 10)
+        assert took < 5, f"a stalled body kept its connection {took:.1f} s"
+        answer = asyncio.run(upload_tile(_unit_url(farm), TOKEN, _tile(tmp_path, "ok.exr")))
+        assert answer["status"] == "accepted"  # a normal client is not hurt
+    finally:
+        farm.stop()
