@@ -19,9 +19,9 @@ Routes:
       fsynced, and `on_tile(job, unit, path, sha256, agent)` awaited. If that callback raises, the
       file is removed again and the answer is 500, so the agent may retry.
       A duplicate of an accepted tile (same sha256, sent with the token that delivered it) is answered
-      200 with status "duplicate" and changes nothing; any other upload for a unit not awaiting a tile
-      gets the same 404, whatever its content, so that no one without the token learns whether a
-      sha256 matches an accepted tile.
+      200 with status "duplicate" and changes nothing; any upload without the current award's token gets
+      one answer (403, the same text whether the unit is pending, awarded to another or done, whatever
+      the body), so that no one without the token learns a unit's state or whether a sha256 matches.
 
 Every refusal is JSON `{"error": reason, "status": code}` and leaves no file behind. The app depends on
 no store: the master supplies the provider callbacks `expected(job, unit) -> (token, rect) | None`
@@ -185,11 +185,16 @@ async def get_bundle(request: web.Request) -> web.StreamResponse:
 # ---- PUT tile --------------------------------------------------------------------------------
 
 
+def _not_yours(job: str, unit: int) -> Refusal:
+    """The one answer to an upload without the current award's token, whatever the unit's state."""
+    return Refusal(403, f"no current award of unit {unit} of job {job!r} matches the {TOKEN_HEADER} sent")
+
+
 def _expected_rect(value: Any, job: str, unit: int) -> tuple[str, Rect]:
     token, rect = value[0], value[1]
     rect = rect if isinstance(rect, Rect) else Rect.from_list(rect)
     if not token:
-        raise Refusal(404, f"unit {unit} of job {job!r} has no award to upload to")
+        raise _not_yours(job, unit)
     return str(token), rect
 
 
@@ -210,7 +215,7 @@ async def put_tile(request: web.Request) -> web.Response:
         return _late_upload(plane, job, unit, declared, _token(request))
     token, rect = _expected_rect(slot, job, unit)
     if not hmac.compare_digest(_token(request).encode(), token.encode()):
-        raise Refusal(403, f"wrong or missing {TOKEN_HEADER} for unit {unit} of job {job!r}")
+        raise _not_yours(job, unit)
     cap = _size_cap(plane, rect)
     if request.content_length is not None and request.content_length > cap:
         raise Refusal(413, f"tile of {request.content_length} bytes exceeds the limit of {cap} bytes "
@@ -231,7 +236,7 @@ def _late_upload(plane: DataPlane, job: str, unit: int, declared: str, token: st
     if accepted is not None and accepted[0] == declared and hmac.compare_digest(accepted[1].encode(),
                                                                                 token.encode()):
         return web.json_response({"status": "duplicate", "job": job, "unit": unit, "sha256": declared})
-    raise Refusal(404, f"unit {unit} of job {job!r} is not awaiting a tile")
+    raise _not_yours(job, unit)
 
 
 async def _receive(request: web.Request, final: Path, declared: str, cap: int) -> Path:
@@ -266,7 +271,7 @@ async def _accept(request: web.Request, plane: DataPlane, job: str, unit: int, t
             return _late_upload(plane, job, unit, sha256, _token(request))
         token, rect = _expected_rect(slot, job, unit)
         if not hmac.compare_digest(_token(request).encode(), token.encode()):
-            raise Refusal(403, f"unit {unit} of job {job!r} was awarded to another token meanwhile")
+            raise _not_yours(job, unit)  # awarded to another token meanwhile
         if plane.accepted.get((job, unit)) == (sha256, token):  # a repeat the master has not acted on yet
             return web.json_response({"status": "duplicate", "job": job, "unit": unit, "sha256": sha256})
         await asyncio.to_thread(_validate, tmp, rect, plane.max_band, f"unit {unit} of job {job!r}", job, unit)

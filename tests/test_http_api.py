@@ -128,23 +128,28 @@ def test_duplicate_upload_is_harmless(farm, tmp_path):
     again = asyncio.run(upload_tile(_unit_url(farm), TOKEN, path))
     assert again["status"] == "duplicate" and len(farm.tiles) == 1
     other = _tile(tmp_path, "other.exr", seed=1)
-    with pytest.raises(TransferError, match="is not awaiting a tile") as err:
+    with pytest.raises(TransferError, match="no current award of unit 3") as err:
         asyncio.run(upload_tile(_unit_url(farm), TOKEN, other))
-    assert err.value.status == 404
+    assert err.value.status == 403
     assert (tmp_path / "jobs/job1/tiles/unit-3.exr").read_bytes() == path.read_bytes()
 
 
-def test_a_finished_unit_answers_every_stranger_alike(farm, tmp_path):
-    """Without the award's token, a PUT of the accepted tile and of any other content get the same 404:
-    nobody learns whether a sha256 matches the accepted tile."""
+def test_every_upload_without_the_token_gets_one_answer(farm, tmp_path):
+    """Without the award's token, a PUT to an awarded unit, and to a finished one with the accepted tile or
+    any other content, all get the same answer: nobody learns a unit's state or whether a sha256 matches."""
     path = _tile(tmp_path, "t.exr")
-    asyncio.run(upload_tile(_unit_url(farm), TOKEN, path))
     answers = []
-    for body in (path, _tile(tmp_path, "other.exr", seed=1)):
+
+    def stranger(body: Path) -> None:
         with pytest.raises(TransferError) as err:
             asyncio.run(upload_tile(_unit_url(farm), "ab" * 16, body))
         answers.append((err.value.status, str(err.value).split(": ", 1)[1]))
-    assert answers[0] == answers[1] and answers[0][0] == 404
+
+    stranger(path)  # while the unit is awarded
+    asyncio.run(upload_tile(_unit_url(farm), TOKEN, path))
+    stranger(path)  # done: the accepted tile
+    stranger(_tile(tmp_path, "other.exr", seed=1))  # done: something else
+    assert len(set(answers)) == 1 and answers[0][0] == 403, answers
 
 
 def test_duplicate_while_still_awarded_is_not_reported_twice(farm, tmp_path):
@@ -158,7 +163,7 @@ def test_duplicate_while_still_awarded_is_not_reported_twice(farm, tmp_path):
 @pytest.mark.parametrize("token", ["wrong", "", TOKEN + "x"])
 def test_wrong_token_is_403_and_job_unharmed(farm, tmp_path, token):
     path = _tile(tmp_path, "t.exr")
-    _refused(farm, upload_tile(_unit_url(farm), token, path), 403, "wrong or missing X-Quekaro-Token")
+    _refused(farm, upload_tile(_unit_url(farm), token, path), 403, "matches the X-Quekaro-Token sent")
     assert asyncio.run(upload_tile(_unit_url(farm), TOKEN, path))["status"] == "accepted"
 
 
@@ -203,10 +208,13 @@ def test_not_exr_and_wrong_channels_are_422(farm, tmp_path):
     _refused(farm, upload_tile(_unit_url(farm), TOKEN, half), 422, "float16, a tile needs float32")
 
 
-def test_unknown_job_or_unit_is_404(farm, tmp_path):
+def test_unknown_job_or_unit_gets_the_strangers_answer_and_malformed_ids_404(farm, tmp_path):
     path = _tile(tmp_path, "t.exr")
-    for url in (_unit_url(farm, "nojob"), _unit_url(farm, unit=4), _unit_url(farm, unit="x"),
-                _unit_url(farm, job="..")):
+    for url in (_unit_url(farm, "nojob"), _unit_url(farm, unit=4)):  # well formed: no hint it does not exist
+        with pytest.raises(TransferError, match="no current award of unit") as err:
+            asyncio.run(upload_tile(url, TOKEN, path))
+        assert err.value.status == 403
+    for url in (_unit_url(farm, unit="x"), _unit_url(farm, job="..")):
         with pytest.raises(TransferError) as err:
             asyncio.run(upload_tile(url, TOKEN, path))
         assert err.value.status == 404
