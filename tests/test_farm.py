@@ -103,10 +103,9 @@ def test_agent_killed_mid_job_the_job_completes(farm3, tmp_path):
     defines = {"res": "96", "spp": "64"}
     job_id = client.submit(bundle_of(SCENE, defines), defines, {"level": "off", "units": 9})
     wait_job(farm3, job_id, until=lambda j: j["units_done"] >= 1)
-    victim = farm3.procs[1]  # the first agent (procs[0] is the master)
-    os.kill(victim[1].pid, signal.SIGKILL)
-    victim[1].wait()
-    farm3.procs.remove(victim)
+    victim = farm3.children[1].proc  # the first agent (children[0] is the master); not supervised here
+    os.kill(victim.pid, signal.SIGKILL)
+    victim.wait()
     job = wait_job(farm3, job_id)
     assert job["status"] == "done", job
     image = read_exr(client.result(job_id, tmp_path / "r.exr"))
@@ -118,12 +117,11 @@ def test_master_restarted_mid_job_resumes_without_rerendering(farm3, tmp_path):
     defines = {"res": "96", "spp": "64"}
     job_id = client.submit(bundle_of(SCENE, defines), defines, {"level": "off", "units": 9})
     wait_job(farm3, job_id, until=lambda j: j["units_done"] >= 2)
-    name, master = farm3.procs[0]
-    master.kill()
-    master.wait()
+    master = farm3.children[0]
+    master.proc.kill()
+    master.proc.wait()
     done_before = _done_tokens(farm3.home, job_id)
-    farm3.procs[0] = (name, subprocess.Popen(master.args, cwd=REPO, stdout=subprocess.DEVNULL,
-                                             stderr=(farm3.home / "logs" / "master2.log").open("ab")))
+    farm3._spawn(master)  # the same command again, a child of the farm (it dies with it)
     _wait_http(farm3)
     job = wait_job(farm3, job_id)
     assert job["status"] == "done", job
