@@ -172,7 +172,8 @@ def make_bundle(scene_path: str | Path, defines: dict[str, str] | None, out: str
     limits = limits or BundleLimits()
     members = scene_members(Path(scene_path), defines, tuple(search_paths))
     if rules is not None:
-        members[RULES_NAME] = _checked_rules(Path(rules))
+        check_rules(Path(rules))
+        members[RULES_NAME] = Path(rules).read_bytes()
     if len(members) > limits.max_files:
         raise BundleError(f"{scene_path}: reads {len(members)} files, over the limit {limits.max_files}")
     entries = [_entry(name, members[name], limits) for name in sorted(members)]
@@ -199,13 +200,13 @@ def make_bundle(scene_path: str | Path, defines: dict[str, str] | None, out: str
     return BundleInfo(out, bundle_hash(out), size, manifest["scene"], {e["path"]: e["size"] for e in entries})
 
 
-def _checked_rules(path: Path) -> bytes:
-    """The rule file's bytes, refused (naming the file) unless a planner can use it."""
+def check_rules(path: Path, defuzzifier: str | None = None, what: str = "--rules") -> None:
+    """Refuse (naming the file, line, variable and label) a rule file a planner cannot use: at submit, on
+    the submitter's side and again on the master's."""
     try:
-        Planner(path)
+        Planner(path, defuzzifier)
     except (RuleFileError, ValueError) as exc:
-        raise BundleError(f"--rules: {exc}") from exc
-    return path.read_bytes()
+        raise BundleError(f"{what}: {exc}") from exc
 
 
 def check_unpacked(scene: Path, defines: dict[str, str]) -> None:

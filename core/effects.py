@@ -60,8 +60,8 @@ class Effects:
                    bool(data.get("splittable", True)))
 
 
-def _scene_depth(elem: Any) -> int:
-    depth = integrators.depth_of(elem)
+def _scene_depth(elem: Any, depth: int | None) -> int:
+    """The scene's own depth (-1 when its integrator takes none), refused where it renders nothing."""
     if depth is not None and (depth == 0 or depth < -1):
         # Mitsuba renders nothing at max_depth 0 (1 shows only the emitters): refuse rather than
         # deliver a black image without a word.
@@ -129,10 +129,11 @@ def analyse(spec: scene_mod.SceneSpec, overrides: dict[str, Any] | None = None) 
         split, why = integrators.splittable(elem)
     reasons.append(("tiles: " if split else "one unit, the whole film: ") + why)
     loaded = scene_mod.load(spec, variant)  # also checks that Mitsuba accepts the scene
-    takes_depth = integrators.kind(override).depth if override else integrators.depth_of(elem) is not None
+    own_depth = integrators.depth_of(elem)
+    takes_depth = integrators.kind(override).depth if override else own_depth is not None
     if "max_depth" in overrides and not takes_depth:
         raise SceneError(f"{spec.path}: --depth {overrides['max_depth']}: the integrator {name} takes no depth")
-    depth = _scene_depth(elem)
+    depth = _scene_depth(elem, own_depth)
     if "max_depth" not in overrides and not override:
         media = root.find(".//medium") is not None
         depth = _choose_depth(_surface_facts(loaded), elem, depth, media, reasons)

@@ -103,12 +103,9 @@ def splittable(elem: etree._Element | None) -> tuple[bool, str]:
 
 def depth_of(elem: etree._Element | None) -> int | None:
     """The scene's `max_depth` over its depth-bearing integrators (-1 unbounded); None when none takes one."""
-    depths = []
-    for e in walk(elem) if elem is not None else iter(()):
-        if kind(e.get("type", "")).depth:
-            depths.append(_depth_value(e))
     if elem is None:
-        return -1
+        return -1  # Mitsuba's default path tracer, unbounded
+    depths = [_depth_value(e) for e in walk(elem) if kind(e.get("type", "")).depth]
     if not depths:
         return None
     return -1 if -1 in depths else max(depths)

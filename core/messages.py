@@ -33,6 +33,7 @@ MAX_BODY_BYTES = 64 * 1024
 # A CFP lists at most this many units; with the field limits below it stays under MAX_BODY_BYTES.
 MAX_CFP_UNITS = 64
 LEVELS = ("off", "VS", "S", "N", "B", "VB")
+VARIANT_PATTERN = re.compile(r"(scalar|llvm|cuda)(_ad)?_(rgb|spectral|mono)[a-z_]*")  # a Mitsuba variant name
 
 _ID = re.compile(r"[A-Za-z0-9._:@/+-]{1,128}")
 _HEX = re.compile(r"[0-9a-f]{16,128}")
@@ -81,8 +82,7 @@ class JobInfo:
     # parameters, the Mitsuba variant and the integrator. Each agent picks depth/spp/band with its rules.
     scene_name: str = _spec(max_len=512, pattern=_SCENE_NAME, default="scene.xml")
     defines: dict[str, str] = _spec(max_items=64, key_pattern=_NAME, max_len=1024, default_factory=dict)  # noqa: RUF009
-    variant: str = _spec(pattern=re.compile(r"(scalar|llvm|cuda)(_ad)?_(rgb|spectral|mono)[a-z_]*"),
-                         default="llvm_ad_rgb")
+    variant: str = _spec(pattern=VARIANT_PATTERN, default="llvm_ad_rgb")
     # None: the scene's own integrator, as written; a plugin type: the user's override.
     integrator: str | None = _spec(pattern=re.compile(r"[a-z][a-z0-9_]{0,31}"), default=None)
     sensor: int = _spec(lo=0, hi=1024, default=0)  # which of the scene's sensors renders

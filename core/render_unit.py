@@ -137,6 +137,7 @@ class _SceneCache:
         self.key: tuple[Any, ...] | None = None
         self.scene: Any = None
         self.integrator_xml: Any = None
+        self.own_depth: int | None = None
         self.base_pp: dict[int, tuple[float, float] | None] = {}
         self.integrators: dict[tuple[str | None, int | None], Any] = {}
 
@@ -152,6 +153,7 @@ class _SceneCache:
         self.scene, self.key = None, None  # free the old scene before loading the next
         self.scene = scene.load(spec)
         self.integrator_xml = integrators.scene_element(scene.expand(spec).root)
+        self.own_depth = integrators.depth_of(self.integrator_xml)
         self.key, self.integrators, self.base_pp = key, {}, {}
         return self.scene, time.perf_counter() - start
 
@@ -162,7 +164,7 @@ class _SceneCache:
 
     def integrator(self, override: str | None, depth: int | None) -> Any:
         """None (the scene's own) unless the user overrode the type or a depth must change."""
-        if override is None and (depth is None or integrators.depth_of(self.integrator_xml) in (None, depth)):
+        if override is None and (depth is None or self.own_depth in (None, depth)):
             return None
         key = (override, depth)
         if key not in self.integrators:

@@ -28,6 +28,7 @@ from core.errors import SceneError
 
 MAX_INCLUDE_DEPTH = 15
 SRC_ATTR = "{urn:quekaro}src"  # private attribute: which file an element came from
+RESOLVED_ATTR = "{urn:quekaro}resolved"  # private attribute: the file a spectrum's filename resolved to
 _PARAM_RE = re.compile(r"\$([A-Za-z_][A-Za-z0-9_]*)")
 
 
@@ -132,7 +133,9 @@ def _visit(elem: etree._Element, path: Path, root: etree._Element, folders: list
         found.includers.setdefault(ref.target, path)
         _read_file(ref.target, scope, found, deferred, [*stack, path])
     elif elem.tag == "spectrum" and elem.get("filename"):
-        found.references.append(_resolved(path, elem, "spectrum", elem.get("filename", ""), folders))
+        ref = _resolved(path, elem, "spectrum", elem.get("filename", ""), folders)
+        found.references.append(ref)
+        elem.set(RESOLVED_ATTR, str(ref.target))  # readers of the expanded XML need not resolve it again
     elif elem.get("name") == "filename" and elem.get("value") is not None and elem.tag == "string":
         deferred.append((path, elem, elem.get("value", "")))
 

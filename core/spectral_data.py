@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from core.errors import SceneError
+from core.resolver import RESOLVED_ATTR, SRC_ATTR
 
 RGB_TOLERANCE = 0.02  # of the brightest channel, after up to three bounces (a flat 400-700 nm spectrum: 0.9 %)
 IOR_TOLERANCE = 1e-4  # relative spread of an index of refraction over wavelength
@@ -72,10 +73,11 @@ def _on_grid(wavelengths: np.ndarray, values: np.ndarray) -> np.ndarray:
 
 
 def read_spectrum(elem: Any, src: Path) -> tuple[np.ndarray, np.ndarray] | None:
-    """(wavelengths, values) of a `<spectrum>` given per wavelength or by file; None for a plain value."""
-    where = f"{elem.get('{urn:quekaro}src', src)}: <spectrum name={elem.get('name')!r}>"
+    """(wavelengths, values) of a `<spectrum>` of the expanded XML given per wavelength or by file (the
+    file core.resolver found for it); None for a plain value."""
+    where = f"{elem.get(SRC_ATTR, src)}: <spectrum name={elem.get('name')!r}>"
     if elem.get("filename"):
-        return _from_file(elem.get("filename"), src, where)
+        return _from_file(Path(elem.get(RESOLVED_ATTR, elem.get("filename"))), where)
     value = elem.get("value", "")
     if ":" not in value:
         return None
@@ -87,10 +89,9 @@ def read_spectrum(elem: Any, src: Path) -> tuple[np.ndarray, np.ndarray] | None:
     return data[:, 0], data[:, 1]
 
 
-def _from_file(name: str, src: Path, where: str) -> tuple[np.ndarray, np.ndarray]:
+def _from_file(path: Path, where: str) -> tuple[np.ndarray, np.ndarray]:
     import mitsuba as mi
 
-    path = Path(name) if Path(name).is_absolute() else Path(src).parent / name
     try:
         wavelengths, values = mi.spectrum_from_file(str(path))
     except RuntimeError as exc:
@@ -102,7 +103,7 @@ def spectral_need(root: Any, scene_path: Path) -> str | None:
     """Why the scene needs a spectral variant, or None when rgb renders its spectral data the same."""
     colours: list[tuple[str, np.ndarray]] = []
     for elem in root.iter("spectrum"):
-        src = Path(elem.get("{urn:quekaro}src", scene_path))
+        src = Path(elem.get(SRC_ATTR, scene_path))
         name = elem.get("name")
         if elem.get("type") == "blackbody":
             return f"{src}: <spectrum type='blackbody'> exists only in spectral variants"
@@ -136,5 +137,5 @@ def _typed(elem: Any) -> tuple[np.ndarray, np.ndarray] | None:
             return np.linspace(lo, hi, len(values)), values
         return np.array([float(v) for v in props["wavelengths"].replace(",", " ").split()]), values
     except (KeyError, ValueError) as exc:
-        raise SceneError(f"{elem.get('{urn:quekaro}src')}: <spectrum type={elem.get('type')!r}> "
+        raise SceneError(f"{elem.get(SRC_ATTR)}: <spectrum type={elem.get('type')!r}> "
                          f"lacks or mangles {exc}") from exc

@@ -8,7 +8,6 @@ pre-pass, and the partition into units with their features (C, S, Nd). The in-pr
 from __future__ import annotations
 
 import dataclasses
-import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,7 +17,7 @@ from core import integrators
 from core.effects import Effects, analyse
 from core.errors import QuekaroError
 from core.integrators import CATALOGUE
-from core.messages import LEVELS
+from core.messages import LEVELS, VARIANT_PATTERN
 from core.scene import SceneSpec, expand, film_info, sensor_elements
 from core.units import Unit
 from fuzzy.engine import DEFUZZIFIERS
@@ -28,7 +27,6 @@ DEFAULT_SPP = 64  # when neither the user nor the scene's sampler says
 # Integer options and their ranges (the message schema's limits, core.messages.JobInfo).
 _INT_RANGES = {"spp": (1, 1 << 20), "depth": (1, 1024), "threads": (1, 4096), "units": (1, 4096),
                "sensor": (0, 1024)}
-_VARIANT = re.compile(r"(scalar|llvm|cuda)(_ad)?_(rgb|spectral|mono)[a-z_]*")
 
 
 @dataclass(frozen=True)
@@ -62,7 +60,7 @@ class RenderOptions:
             raise QuekaroError(f"option defuzzifier: {self.defuzzifier!r} is not one of {', '.join(DEFUZZIFIERS)}")
         if self.integrator is not None and self.integrator not in CATALOGUE:
             raise QuekaroError(f"option integrator: {self.integrator!r} is not one of Mitsuba's integrators")
-        if self.variant is not None and not (isinstance(self.variant, str) and _VARIANT.fullmatch(self.variant)):
+        if self.variant is not None and not (isinstance(self.variant, str) and VARIANT_PATTERN.fullmatch(self.variant)):
             raise QuekaroError(f"option variant: {str(self.variant)[:40]!r} is not a Mitsuba variant name")
 
     def overrides(self) -> dict[str, Any]:

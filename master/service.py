@@ -25,15 +25,13 @@ from pathlib import Path
 from typing import Any
 
 from core import messages as m
-from core.bundle import BundleLimits, bundle_hash, check_unpacked, extract_bundle, read_manifest
+from core.bundle import BundleLimits, bundle_hash, check_rules, check_unpacked, extract_bundle, read_manifest
 from core.errors import MessageError, QuekaroError
 from core.hashing import sha256_file
-from core.planner import Planner
 from core.scene import SceneSpec
 from core.seeds import plan_seed
 from core.supervision import die_with_parent
 from core.tiles import read_tile, tile_source
-from fuzzy.errors import RuleFileError
 from master import auction as au
 from master.http_api import create_app, serve
 from master.jobplan import JobPlan, RenderOptions, farm_min_units, plan_job
@@ -432,10 +430,7 @@ def _job_rules(folder: Path, options: RenderOptions) -> tuple[RenderOptions, str
     if not name:
         return options, None
     path = folder / name
-    try:
-        Planner(path, options.defuzzifier)
-    except (RuleFileError, ValueError) as exc:
-        raise QuekaroError(f"the job's rule file: {exc}") from exc
+    check_rules(path, options.defuzzifier, "the job's rule file")
     return dataclasses.replace(options, rules=path), sha256_file(path)
 
 

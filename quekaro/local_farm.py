@@ -71,6 +71,7 @@ class LocalFarm:
         self.server: EmbeddedXmppServer | None = None
         self.children: list[Child] = []
         self._server_policy = RestartPolicy()
+        self._server_restart_at: float | None = None
         self._supervise = supervise
         self._lock = threading.Lock()
         self._stopping = threading.Event()
@@ -203,14 +204,18 @@ class LocalFarm:
         return False
 
     def _supervise_server(self, now: float) -> bool:
+        """As `_supervise_child`, without sleeping under the lock: the restart waits for a later round."""
         if self.server is None or self.server.running or self._server_policy.failed:
             return False
-        at = self._server_policy.on_exit(now)
-        if at is None:
-            _say("XMPP server crash-looped: marked failed")
+        if self._server_restart_at is None:
+            self.server.stop()  # its workers too: they would hold the port
+            self._server_restart_at = self._server_policy.on_exit(now)
+            if self._server_restart_at is None:
+                _say("XMPP server crash-looped: marked failed")
             return True
-        self.server.stop()  # its workers too: they would hold the port
-        time.sleep(max(0.0, at - now))
+        if now < self._server_restart_at:
+            return False
+        self._server_restart_at = None
         self.server.start()
         _say(f"XMPP server restarted (pid {self.server.pid})")
         return True

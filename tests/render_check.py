@@ -63,20 +63,11 @@ def reference_renders(scene: Path, variant: str, spp: int, sensor: int = 0, defi
     `search_paths` are appended to Mitsuba's file resolver while loading, as its `-a` does."""
     import mitsuba as mi
 
-    from core import mitsuba_env
     from core.render_unit import film_channels
+    from core.scene import SceneSpec, load
 
-    mitsuba_env.init(variant, threads=2)
-    resolver = mi.file_resolver()
-    before = [str(resolver[i]) for i in range(len(resolver))]
-    for folder in search_paths:
-        resolver.append(str(folder))
-    try:
-        loaded = mi.load_file(str(scene), **(defines or {}))
-    finally:
-        resolver.clear()
-        for folder in before:
-            resolver.append(folder)
+    # core.scene.load is mi.load_file with the -a folders appended to Mitsuba's resolver meanwhile.
+    loaded = load(SceneSpec(scene, defines or {}, search_paths), variant, threads=2)
     images = []
     names: tuple[str, ...] = ()
     for k in range(renders):

@@ -215,6 +215,14 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
+def assert_all_gone(pids: set[int], timeout: float, what: str) -> None:
+    """Every process in `pids` ends within `timeout` seconds, or the assertion names `what` outlived."""
+    deadline = time.monotonic() + timeout
+    while any(_alive(p) for p in pids) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not [p for p in pids if _alive(p)], f"processes of the farm outlived {what}"
+
+
 def test_sigterm_to_quekaro_up_stops_the_whole_farm(tmp_path):
     home = tmp_path / "farm"
     up = subprocess.Popen([sys.executable, "-m", "quekaro", "up", "--agents", "1", "--threads", "1",
@@ -229,10 +237,7 @@ def test_sigterm_to_quekaro_up_stops_the_whole_farm(tmp_path):
         assert len(farm) >= 3, farm  # XMPP server, master, agent (and their helpers)
         up.send_signal(signal.SIGTERM)
         assert up.wait(timeout=60) == 0
-        deadline = time.monotonic() + 20
-        while any(_alive(p) for p in farm) and time.monotonic() < deadline:
-            time.sleep(0.2)
-        assert not [p for p in farm if _alive(p)], "processes of the farm outlived quekaro up"
+        assert_all_gone(farm, 20, "quekaro up")
     finally:
         if up.poll() is None:
             up.kill()

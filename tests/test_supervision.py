@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
-from test_farm import SCENE, _alive, _children, bundle_of
+from test_farm import SCENE, _children, assert_all_gone, bundle_of
 
 from core.supervision import RestartPolicy
 from quekaro.farm_client import FarmClient
@@ -72,10 +72,7 @@ def test_a_killed_agent_is_restarted_and_a_killed_farm_leaves_no_orphans(tmp_pat
         assert len(farm) >= 4, farm  # XMPP server (+ workers), master, two agents (+ render processes)
         up.kill()  # SIGKILL: quekaro up cannot clean up; its children must go by themselves
         up.wait(timeout=10)
-        deadline = time.monotonic() + 30
-        while any(_alive(p) for p in farm) and time.monotonic() < deadline:
-            time.sleep(0.3)
-        assert not [p for p in farm if _alive(p)], "processes of the farm outlived a killed quekaro up"
+        assert_all_gone(farm, 30, "a killed quekaro up")
     finally:
         if up.poll() is None:
             up.kill()
