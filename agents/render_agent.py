@@ -1,7 +1,7 @@
 """The render agent: bids on the master's units, renders the ones it is awarded, uploads their tiles.
 
-One agent process = one `FarmAgent` (the XMPP transport, core.xmpp) + one `RenderWorker` (a persistent
-child process that renders, core.render_unit) + its own rule base (core.planner). The protocol, as
+One agent process = one `FarmAgent` (the XMPP transport, core.transport.xmpp) + one `RenderWorker` (a persistent
+child process that renders, core.render.worker) + its own rule base (core.render.planner). The protocol, as
 master/auction.py expects it:
 
   start     measure speed (agents/speed.py) -> Register; Register again after every reconnect;
@@ -46,16 +46,17 @@ from typing import Any
 
 from agents.speed import SpeedSample, estimate_seconds, measure_speed
 from agents.transfer import fetch_bundle, upload_tile
-from core import messages as m
-from core.bundle import RULES_NAME, BundleLimits, check_unpacked, read_manifest
-from core.credentials import xmpp_password
 from core.errors import QuekaroError
-from core.hashing import sha256_file
-from core.planner import Planner, UnitParams
-from core.render_unit import RenderWorker, UnitJob
-from core.scene import SceneSpec
-from core.tiles import Tile, write_tile
-from core.xmpp import Envelope, FarmAgent
+from core.model import messages as m
+from core.model.hashing import sha256_file
+from core.model.job import SceneSpec
+from core.model.units import WorkUnit
+from core.render.bundle import RULES_NAME, BundleLimits, check_unpacked, read_manifest
+from core.render.planner import Planner, RenderParams
+from core.render.tiles import Tile, write_tile
+from core.render.worker import RenderRequest, RenderWorker
+from core.transport.credentials import xmpp_password
+from core.transport.xmpp import Envelope, FarmAgent
 from fuzzy.engine import DEFUZZIFIERS
 from fuzzy.errors import RuleFileError
 
@@ -77,7 +78,7 @@ class AgentConfig:
     server: str | None = None  # host of the XMPP server; default: the JID's domain
     port: int = 5222
     threads: int = 1  # Dr.Jit threads of the render process
-    rules: Path | None = None  # default: core.planner.default_rules_path()
+    rules: Path | None = None  # default: core.data.default_rules_path()
     defuzzifier: str | None = None  # None: the rule file's dialect decides (centroid, or MASYRO's centre of sums)
     workdir: Path = field(default_factory=lambda: Path(tempfile.gettempdir()) / "quekaro-agent")
     auto_register: bool = False  # in-band registration: the embedded server only
@@ -101,7 +102,7 @@ class Work:
         return self.award.job.job_id, self.award.unit.index
 
 
-class UnitFailed(QuekaroError):
+class RenderFailed(QuekaroError):
     """A unit that could not be rendered or delivered; the message is the Failure's reason."""
 
 
@@ -151,7 +152,7 @@ class RenderAgent:
         self.kernels: set[tuple[Any, ...]] = set()  # what this agent's render process has compiled
         self.rendering = False
         self._deliveries: set[asyncio.Task] = set()
-        self._planned: dict[tuple[str, int], UnitParams] = {}  # the rules' choice per unit bid on
+        self._planned: dict[tuple[str, int], RenderParams] = {}  # the rules' choice per unit bid on
         self._planners: dict[tuple[str | None, str | None], Planner] = {(None, config.defuzzifier): self.planner}
         self.units_done = 0
         self.units_failed = 0
@@ -212,10 +213,10 @@ class RenderAgent:
         await self._send(m.Register(conversation=f"register-{_stamp()}", speed=self.speed.speed,
                                     threads=self.config.threads, rules=rules))
 
-    def busy_units(self) -> tuple[m.BusyUnit, ...]:
+    def busy_units(self) -> tuple[m.HeldUnit, ...]:
         """The units this agent holds: awarded, not finished, not cancelled."""
         keys = sorted(k for k, w in self.works.items() if not w.cancelled)
-        return tuple(m.BusyUnit(job_id=j, index=i) for j, i in keys)
+        return tuple(m.HeldUnit(job_id=j, index=i) for j, i in keys)
 
     async def _beat_forever(self) -> None:
         """Register now and after every reconnect; a heartbeat every `heartbeat_s` seconds."""
@@ -279,25 +280,25 @@ class RenderAgent:
         log.info("proposing for %s: %s", job_id, ", ".join(f"{e.index}: {e.seconds:.3f} s" for e in estimates))
         await self._send(m.Propose(conversation=cfp.conversation, job_id=job_id, estimates=estimates))
 
-    def estimate(self, job: m.JobInfo, unit: m.UnitSpec, params: UnitParams) -> float:
+    def estimate(self, job: m.JobInfo, unit: WorkUnit, params: RenderParams) -> float:
         """Seconds this agent expects to spend on the unit (see agents/speed.py for the units): the base
         estimate, plus a kernel compilation if the window is new, times the job's learned correction."""
         return self._uncorrected(job, unit, params) * self.calibration.factor(job.job_id)
 
-    def _uncorrected(self, job: m.JobInfo, unit: m.UnitSpec, params: UnitParams) -> float:
+    def _uncorrected(self, job: m.JobInfo, unit: WorkUnit, params: RenderParams) -> float:
         return self._base_estimate(unit, params) + self._compile_estimate(job, unit, params)
 
-    def _compile_estimate(self, job: m.JobInfo, unit: m.UnitSpec, params: UnitParams) -> float:
+    def _compile_estimate(self, job: m.JobInfo, unit: WorkUnit, params: RenderParams) -> float:
         # Dr.Jit bakes the window size and the depth into the kernel (design.md section 3).
         if self.speed is None or _kernel_key(job, unit, params) in self.kernels:
             return 0.0
         return self.speed.compile_s
 
-    def _base_estimate(self, unit: m.UnitSpec, params: UnitParams) -> float:
+    def _base_estimate(self, unit: WorkUnit, params: RenderParams) -> float:
         speed = self.speed.speed if self.speed else 1.0
         return estimate_seconds(unit.cost, params.spp, speed)
 
-    def _plan(self, job: m.JobInfo, units: tuple[m.UnitSpec, ...]) -> list[UnitParams]:
+    def _plan(self, job: m.JobInfo, units: tuple[WorkUnit, ...]) -> list[RenderParams]:
         features = {k: [float(getattr(u, k)) for u in units] for k in ("C", "S", "Nd")}
         ranges = dict(job.ranges) or None
         planner = self._planner_for(job)
@@ -313,7 +314,7 @@ class RenderAgent:
             self._planners[key] = Planner(rules if own else self.config.rules, key[1])
         return self._planners[key]
 
-    def _remember_plan(self, job_id: str, index: int, params: UnitParams) -> None:
+    def _remember_plan(self, job_id: str, index: int, params: RenderParams) -> None:
         self._planned[(job_id, index)] = params
         while len(self._planned) > FINISHED_MEMORY:
             self._planned.pop(next(iter(self._planned)))  # the oldest first
@@ -361,7 +362,7 @@ class RenderAgent:
             self._deliveries.add(task)
             task.add_done_callback(self._deliveries.discard)
 
-    async def _render_step(self, work: Work) -> tuple[Tile, UnitParams, Path] | None:
+    async def _render_step(self, work: Work) -> tuple[Tile, RenderParams, Path] | None:
         """The unit rendered and its tile written; None if it failed (Failure sent) or was cancelled."""
         try:
             rendered = await self._render(work)
@@ -375,7 +376,7 @@ class RenderAgent:
             return None
         return rendered
 
-    async def _deliver(self, work: Work, tile: Tile, params: UnitParams, tile_path: Path, started: float) -> None:
+    async def _deliver(self, work: Work, tile: Tile, params: RenderParams, tile_path: Path, started: float) -> None:
         """Hash and upload the tile, then Inform; the unit is held (heartbeats list it) until this ends."""
         key = work.key
         try:
@@ -393,7 +394,7 @@ class RenderAgent:
         finally:
             self._forget(work)
 
-    async def _done(self, work: Work, award: m.Award, tile: Tile, params: UnitParams, sha256: str,
+    async def _done(self, work: Work, award: m.Award, tile: Tile, params: RenderParams, sha256: str,
                     wall: float) -> None:
         key = work.key
         self.units_done += 1
@@ -430,7 +431,7 @@ class RenderAgent:
                                        index=award.unit.index, token=award.token,
                                        reason=reason[:1024] or type(exc).__name__))
 
-    async def _render(self, work: Work) -> tuple[Tile, UnitParams, Path]:
+    async def _render(self, work: Work) -> tuple[Tile, RenderParams, Path]:
         award = work.award
         job, unit = award.job, award.unit
         spec = await self._scene_for(job, award.token)
@@ -439,7 +440,7 @@ class RenderAgent:
         remembered = self._planned.pop((job.job_id, unit.index), None)
         params = remembered if remembered and not job.rules_sha256 else self._plan(job, (unit,))[0]
         integrator = job.integrator
-        unit_job = UnitJob(
+        unit_job = RenderRequest(
             scene=spec, variant=job.variant, integrator=integrator,
             max_depth=params.depth, spp=params.spp, seed=award.seed, width=job.width, height=job.height,
             unit=unit.rect, band=params.band, threads=self.config.threads, job_id=job.job_id,
@@ -449,7 +450,7 @@ class RenderAgent:
         try:
             tile = await asyncio.to_thread(self.worker.render, unit_job, timeout)
         except QuekaroError as exc:
-            raise UnitFailed(f"render failed: {exc}") from exc
+            raise RenderFailed(f"render failed: {exc}") from exc
         tile.meta.update({
             "job_id": job.job_id, "unit_index": unit.index, "spp": params.spp, "depth": params.depth,
             "band": params.band, "outputs": dict(params.outputs), "agent": self.jid, "level": job.level,
@@ -472,32 +473,32 @@ class RenderAgent:
                 try:
                     await fetch_bundle(job.scene_url, digest, folder, self.config.bundle_limits, token=token)
                 except Exception as exc:
-                    raise UnitFailed(f"scene bundle {job.scene_url} refused: {_why(exc)}") from exc
+                    raise RenderFailed(f"scene bundle {job.scene_url} refused: {_why(exc)}") from exc
         manifest = read_manifest(folder)
         name = getattr(job, "scene_name", None) or manifest["scene"]
         scene = (folder / name).resolve()
         if not scene.is_file() and name != manifest["scene"]:
             scene = (folder / manifest["scene"]).resolve()
         if not scene.is_relative_to(folder.resolve()) or not scene.is_file():
-            raise UnitFailed(f"scene {name!r} not found in the bundle of job {job.job_id}")
+            raise RenderFailed(f"scene {name!r} not found in the bundle of job {job.job_id}")
         defines = {**manifest.get("defines", {}), **(getattr(job, "defines", None) or {})}
         try:
             check_unpacked(scene, defines)
         except QuekaroError as exc:
-            raise UnitFailed(f"scene bundle of job {job.job_id} refused: {exc}") from exc
+            raise RenderFailed(f"scene bundle of job {job.job_id} refused: {exc}") from exc
         return SceneSpec(scene, defines)
 
     async def _upload(self, award: m.Award, path: Path, sha256: str) -> None:
         try:
             await upload_tile(award.upload_url, award.token, path, sha256, agent=self.jid)
         except Exception as exc:
-            raise UnitFailed(f"tile upload to {award.upload_url} refused: {_why(exc)}") from exc
+            raise RenderFailed(f"tile upload to {award.upload_url} refused: {_why(exc)}") from exc
 
 
 # ---- small helpers ---------------------------------------------------------------------------------
 
 
-def _kernel_key(job: m.JobInfo, unit: m.UnitSpec, params: UnitParams) -> tuple[Any, ...]:
+def _kernel_key(job: m.JobInfo, unit: WorkUnit, params: RenderParams) -> tuple[Any, ...]:
     window = unit.rect.grow(params.band, job.width, job.height)
     return job.scene_hash, window.w, window.h, params.depth, job.integrator
 

@@ -1,10 +1,10 @@
 """An agent's speed: a tiny reference render timed in its own render process, and the estimates it implies.
 
-Units. The master's unit cost (`UnitSpec.cost`, from `master.complexity` through `master.partition`) is
+Units. The master's unit cost (`WorkUnit.cost`, from `planning.complexity` through `planning.partition`) is
 the sum over the unit's pixels of the rays one sample traces (camera ray, bounces, shadow rays): rays at
 1 spp. A unit therefore needs about `cost x spp` rays. An agent's speed is measured in mega-rays per
 second of that same kind, on the reference render below, whose rays per sample were counted once with
-`master.complexity.prepass` (REF_RAYS_PER_SAMPLE). So
+`planning.complexity.prepass` (REF_RAYS_PER_SAMPLE). So
 
     estimate [s] = cost x spp / (speed x 1e6)
 
@@ -20,23 +20,23 @@ render compiles the kernel (~0.6 s); the best of the timed ones gives the speed 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
+from core.data import DEMO_SCENE
 from core.errors import QuekaroError
-from core.geometry import Rect
-from core.mitsuba_env import DEFAULT_VARIANT
-from core.render_unit import RenderWorker, UnitJob
-from core.scene import SceneSpec
+from core.model.geometry import Rect
+from core.model.job import SceneSpec
+from core.render.mitsuba_env import DEFAULT_VARIANT
+from core.render.worker import RenderRequest, RenderWorker
 
-REFERENCE_SCENE = Path(__file__).resolve().parent.parent / "scenes" / "cbox.xml"
+REFERENCE_SCENE = DEMO_SCENE
 REF_RES = 32
 REF_SPP = 128
 REF_DEPTH = 6
-# Mean rays per sample of the reference render, counted by master.complexity.prepass (path, depth 6,
+# Mean rays per sample of the reference render, counted by planning.complexity.prepass (path, depth 6,
 # 32x32): 6.67. Measured, not derived: it changes only if scenes/cbox.xml or the tracer changes.
 REF_RAYS_PER_SAMPLE = 6.67
 RAYS_PER_SPEED_UNIT = 1e6
-MIN_SPEED = 1e-6  # core.messages.Register's lower bound
+MIN_SPEED = 1e-6  # core.model.messages.Register's lower bound
 
 
 @dataclass(frozen=True)
@@ -51,12 +51,12 @@ class SpeedSample:
     compile_s: float = 0.0
 
 
-def reference_job(threads: int | None, spp: int = REF_SPP) -> UnitJob:
+def reference_job(threads: int | None, spp: int = REF_SPP) -> RenderRequest:
     """The reference render as a unit job (the whole 32x32 image)."""
     if not REFERENCE_SCENE.is_file():
         raise QuekaroError(f"reference scene for the speed benchmark not found: {REFERENCE_SCENE}")
     spec = SceneSpec(REFERENCE_SCENE, {"res": str(REF_RES), "spp": str(spp), "max_depth": str(REF_DEPTH)})
-    return UnitJob(spec, DEFAULT_VARIANT, "path", REF_DEPTH, spp, 7, REF_RES, REF_RES,
+    return RenderRequest(spec, DEFAULT_VARIANT, "path", REF_DEPTH, spp, 7, REF_RES, REF_RES,
                    Rect(0, 0, REF_RES, REF_RES), threads=threads, job_id="speed-benchmark")
 
 

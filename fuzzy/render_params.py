@@ -9,7 +9,7 @@ and deeper paths only cost. Samples may go up to LS_MAX (3) times the user's: th
 from simple units to the noisy ones, which needs factors above 1 (at a fixed time a unit's error is
 least when its spp grows with its noise); the cap bounds what one unit can cost. The outputs' default
 (no rule fired) is 1.0, i.e. "keep the user's value". Results are clamped to depth >= 1 and spp >= 1
-so that a unit always renders something. A planner may impose a larger minimum band (core.planner
+so that a unit always renders something. A planner may impose a larger minimum band (core.render.planner
 does: the reconstruction filter's reach) and quantise depth.
 
 The optimisation level is an input: `RuleBase.op_value(level)` gives the crisp Op for a level name, the
@@ -28,7 +28,6 @@ from collections.abc import Mapping
 
 import numpy as np
 
-LEVELS = ("VS", "S", "N", "B", "VB")
 LS_MAX = 3.0  # most a unit's spp may grow over the user's (see the module docstring)
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from fuzzy.levels import RULE_LEVELS
 from fuzzy.variables import InputVariable, OutputVariable
 
 
@@ -44,7 +45,7 @@ class RuleBase:
     source: str | None = None
     dialect: str = "paper"  # "paper" (QUEKARO's XML) or "masyro" (MASYRO 2006): each keeps its meaning
 
-    def op_value(self, level: str, levels: tuple[str, ...] = ("VS", "S", "N", "B", "VB")) -> float:
+    def op_value(self, level: str, levels: tuple[str, ...] = RULE_LEVELS) -> float:
         """The crisp Op of a level name: the middle of that label's plateau in the file's own Op sets; for
         a file whose Op sets do not name the levels, the level's rank spread evenly over the Op universe."""
         op = self.input("Op")

@@ -19,17 +19,30 @@ import json
 import os
 import tempfile
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from aiohttp import web
 
 from core.errors import QuekaroError
+from core.model.job import JobSpec, RenderOptions
 from master.http_guard import read_body_chunks
-from master.jobplan import RenderOptions
-from master.store import StoreError
+from master.store import JobStore, StoreError
 
-if TYPE_CHECKING:
-    from master.service import MasterService
+
+class MasterService(Protocol):
+    """What the job API needs of the master (`master.service.MasterService` is it; this module does not
+    import it, so that the service can mount these routes)."""
+
+    admin_token: str
+    jobs_dir: Path
+    store: JobStore
+    auction: Any
+    paused: str | None
+
+    async def submit(self, bundle: Path, defines: dict[str, str], options: RenderOptions) -> str: ...
+    async def cancel(self, job_id: str) -> bool: ...
+    async def ensure_assembled(self, job_id: str) -> Path: ...
+    def result_path(self, job_id: str) -> Path: ...
 
 MAX_BUNDLE_BYTES = 1 << 30
 SERVICE_KEY = web.AppKey("quekaro_master", object)
@@ -84,16 +97,14 @@ async def _receive_to_file(request: web.Request, folder: Path, limit: int) -> Pa
 async def submit(request: web.Request) -> web.Response:
     service = _service(request)
     try:
-        header = json.loads(request.headers.get("X-Quekaro-Job", "{}"))
-        defines = {str(k): str(v) for k, v in dict(header.get("defines", {})).items()}
-        options = RenderOptions.from_dict(dict(header.get("options", {})))
+        spec = JobSpec.from_dict(json.loads(request.headers.get("X-Quekaro-Job", "{}")))
     except (ValueError, TypeError, AttributeError) as exc:
         return _error(400, f"header X-Quekaro-Job: {exc}")
     except QuekaroError as exc:
         return _error(400, str(exc))
     bundle = await _receive_to_file(request, service.jobs_dir, MAX_BUNDLE_BYTES)
     try:
-        job_id = await service.submit(bundle, defines, options)
+        job_id = await service.submit(bundle, spec.defines, spec.options)
     except QuekaroError as exc:
         return _error(422, str(exc))
     finally:
@@ -107,11 +118,11 @@ def job_summary(service: MasterService, job_id: str) -> dict[str, Any]:
     progress = service.store.progress(job_id)
     return {
         "job_id": record.id, "scene": record.scene, "status": record.status, "error": record.error,
-        "created": record.created, "finished": record.finished, "level": record.options["options"]["level"],
+        "created": record.created, "finished": record.finished, "level": record.plan["options"]["level"],
         "units_done": progress.done, "units_total": progress.total, "units_failed": progress.failed,
         "agents_busy": progress.agents_busy, "eta_s": progress.eta_s,
         "result_ready": service.result_path(job_id).with_suffix(".json").exists(),
-        "effects": record.options["plan"].get("effects", {}),
+        "effects": record.plan.get("effects", {}),
         "paused": service.paused if record.status == "running" else None,
     }
 

@@ -42,9 +42,10 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
 
-from core import messages as m
-from core.geometry import Rect
-from core.seeds import unit_seed
+from core.model import messages as m
+from core.model.geometry import Rect
+from core.model.seeds import unit_seed
+from core.model.units import WorkUnit
 
 
 class UnitStatus(StrEnum):
@@ -119,8 +120,8 @@ Command = Send | Event
 
 
 @dataclass
-class Unit:
-    spec: m.UnitSpec
+class UnitState:
+    spec: WorkUnit
     status: UnitStatus = UnitStatus.PENDING
     attempts: int = 0
     failures: int = 0
@@ -156,7 +157,7 @@ class Agent:
 @dataclass
 class Job:
     info: m.JobInfo
-    units: dict[int, Unit]
+    units: dict[int, UnitState]
     order: int
     status: JobStatus = JobStatus.RUNNING
     error: str = ""
@@ -188,7 +189,7 @@ class PlanAgent:
 
 
 @dataclass(frozen=True)
-class PlanUnit:
+class ProjectedUnit:
     """A unit to place: its index, cost, and the agents that may not take it (it failed on them)."""
 
     index: int
@@ -203,7 +204,7 @@ class Placement:
     finish: float
 
 
-def project(units: Iterable[PlanUnit], agents: Iterable[PlanAgent]) -> dict[int, Placement]:
+def project(units: Iterable[ProjectedUnit], agents: Iterable[PlanAgent]) -> dict[int, Placement]:
     """List schedule of `units`, most costly first, each on the agent where it would finish earliest (ties:
     the earlier start, then the name). Units that no agent may take are left out.
 
@@ -239,7 +240,7 @@ def project(units: Iterable[PlanUnit], agents: Iterable[PlanAgent]) -> dict[int,
 
 def refine(
     plan: dict[int, Placement],
-    units: Iterable[PlanUnit],
+    units: Iterable[ProjectedUnit],
     agents: Iterable[PlanAgent],
     max_moves: int = 64,
     gap: float = 0.002,
@@ -301,7 +302,7 @@ def _best_step(
     last: str,
     owned: dict[str, list[int]],
     finish: dict[str, float],
-    unit_of: dict[int, PlanUnit],
+    unit_of: dict[int, ProjectedUnit],
     agent_of: dict[str, PlanAgent],
 ) -> tuple[int, str, int | None] | None:
     """The move (unit, to agent, None) or swap (unit, with agent, its unit) that lowers the later finish of
@@ -339,7 +340,7 @@ def _move(
     dst: str,
     owned: dict[str, list[int]],
     finish: dict[str, float],
-    unit_of: dict[int, PlanUnit],
+    unit_of: dict[int, ProjectedUnit],
     agent_of: dict[str, PlanAgent],
 ) -> None:
     owned[src].remove(index)
@@ -384,7 +385,7 @@ class Auction:
     def add_job(
         self,
         info: m.JobInfo,
-        units: Sequence[m.UnitSpec],
+        units: Sequence[WorkUnit],
         done: Iterable[int] = (),
         failures: Iterable[tuple[int, str, str]] = (),
     ) -> list[Command]:
@@ -394,7 +395,7 @@ class Auction:
             raise ValueError(f"job {info.job_id!r} already known")
         if len({u.index for u in units}) != len(units) or not units:
             raise ValueError(f"job {info.job_id!r}: unit indices must be unique and non-empty")
-        job = Job(info, {u.index: Unit(u) for u in units}, order=len(self.jobs))
+        job = Job(info, {u.index: UnitState(u) for u in units}, order=len(self.jobs))
         for index in done:
             job.units[index].status = UnitStatus.DONE
         for index, agent, reason in failures:
@@ -689,7 +690,7 @@ class Auction:
 
     def _award_for(
         self, agent: str, job_id: str, index: int, token: str, conv: str
-    ) -> tuple[Unit | None, str]:
+    ) -> tuple[UnitState | None, str]:
         job = self.jobs.get(job_id)
         unit = job.units.get(index) if job else None
         if unit is None:
@@ -738,7 +739,7 @@ class Auction:
 
     def _project(self, job: Job, now: float, rates: dict[str, float]) -> dict[int, Placement]:
         units = [
-            PlanUnit(u.spec.index, u.spec.cost, frozenset(u.failed_on))
+            ProjectedUnit(u.spec.index, u.spec.cost, frozenset(u.failed_on))
             for u in job.units.values()
             if u.status in (UnitStatus.PENDING, UnitStatus.ANNOUNCED)
         ]
@@ -807,7 +808,7 @@ class Auction:
     def _worth_offering(
         self,
         name: str,
-        unit: Unit,
+        unit: UnitState,
         plan: dict[int, Placement],
         rates: dict[str, float],
         now: float,
@@ -826,7 +827,7 @@ class Auction:
             and duration <= (place.finish - now) * (1 + self.config.finish_tolerance) + 1e-9
         )
 
-    def _pick(self, round_: Round, unit: Unit, job: Job, taken: set[str], now: float) -> str | None:
+    def _pick(self, round_: Round, unit: UnitState, job: Job, taken: set[str], now: float) -> str | None:
         bids = {
             name: bids[unit.spec.index]
             for name, bids in round_.bids.items()
@@ -846,7 +847,7 @@ class Auction:
         # Best record first (MAgArRO), then the earlier finish, then the name for determinism.
         return min(near, key=lambda n: (-self.agents[n].score, near[n], n))
 
-    def _award(self, job: Job, unit: Unit, agent: str, estimate: float, now: float) -> list[Command]:
+    def _award(self, job: Job, unit: UnitState, agent: str, estimate: float, now: float) -> list[Command]:
         unit.status = UnitStatus.AWARDED
         unit.agent, unit.token, unit.conversation = agent, f"{self.rng.getrandbits(128):032x}", self._new_id()
         unit.attempts += 1
@@ -877,7 +878,7 @@ class Auction:
             Event("unit-awarded", job.info.job_id, unit.spec.index, agent, detail=detail),
         ]
 
-    def _clear_award(self, unit: Unit, status: UnitStatus) -> None:
+    def _clear_award(self, unit: UnitState, status: UnitStatus) -> None:
         unit.status = status
         unit.agent = unit.token = unit.conversation = None
         unit.deadline = math.inf
@@ -1019,7 +1020,7 @@ def simulate(
         ranges={},
     )
     specs = [
-        m.UnitSpec(index=i, rect=Rect(0, 0, 1, 1), C=0.0, S=1.0, Nd=0.0, cost=float(c))
+        WorkUnit(index=i, rect=Rect(0, 0, 1, 1), C=0.0, S=1, Nd=0.0, cost=float(c))
         for i, c in enumerate(costs)
     ]
     sim = _Sim(auction, latency, rng, jitter, {f"agent{i}": float(s) for i, s in enumerate(speeds)}, delivery)
@@ -1073,7 +1074,7 @@ class _Sim:
                 self.messages += 1
                 self.agent_receives(who, payload, now)
             elif kind == "beat":
-                busy = tuple(m.BusyUnit(job_id=j, index=i) for j, i in sorted(self.holding[who]))
+                busy = tuple(m.HeldUnit(job_id=j, index=i) for j, i in sorted(self.holding[who]))
                 self.push(now + self.latency, "master", who, m.Heartbeat(conversation="hb", busy=busy))
                 if job is None or job.status == JobStatus.RUNNING:
                     self.push(now + payload, "beat", who, payload)

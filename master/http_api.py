@@ -2,7 +2,7 @@
 
 Routes:
   GET /jobs/{job}/bundle
-      The job's scene bundle (core.bundle), its sha256 in `X-Content-SHA256`. Open by default: a bundle
+      The job's scene bundle (core.render.bundle), its sha256 in `X-Content-SHA256`. Open by default: a bundle
       is content the agents need before they hold any token, and the default bind is 127.0.0.1. Pass
       `authorize_bundle(job, token) -> bool` to require `X-Quekaro-Token` (do so when binding beyond
       loopback); a refused token is 403.
@@ -13,7 +13,7 @@ Routes:
       limit: the app's `max_tile_bytes`, and what the unit's rectangle can need) and hash (422 on a
       mismatch) are checked. The EXR header is checked before any pixel is decoded (a small file can
       declare a huge image): its dataWindow must be the unit's rectangle grown by one band on every
-      side, clipped at the image's top/left edges (422 otherwise); then core.tiles.read_tile
+      side, clipped at the image's top/left edges (422 otherwise); then core.render.tiles.read_tile
       validates the whole tile (float32 R, G, B; its core rectangle equal to the unit's).
       Only then is it fsynced, renamed into `{tile_dir}/{job}/tiles/unit-{unit}.exr`, the folder
       fsynced, and `on_tile(job, unit, path, sha256, agent)` awaited. If that callback raises, the
@@ -48,8 +48,8 @@ from typing import Any
 from aiohttp import web
 
 from core.errors import TileError
-from core.geometry import Rect
-from core.tiles import MAX_CHANNELS, durable_replace, read_tile
+from core.model.geometry import Rect
+from core.render.tiles import MAX_CHANNELS, durable_replace, read_tile
 from master.http_guard import read_body_chunks
 from master.http_guard import serve as guarded_serve
 
@@ -291,7 +291,7 @@ async def _accept(request: web.Request, plane: DataPlane, job: str, unit: int, t
 
 
 def _validate(path: Path, core: Rect, max_band: int, what: str, job: str, unit: int) -> None:
-    """Header first (no pixel decoded for a wrong window), then the whole tile through core.tiles, and
+    """Header first (no pixel decoded for a wrong window), then the whole tile through core.render.tiles, and
     the unit and job its header names (assembly reads them)."""
 
     window = _data_window(path, what)

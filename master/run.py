@@ -8,15 +8,14 @@ import logging
 import signal
 from pathlib import Path
 
-from core.credentials import xmpp_password
 from core.errors import QuekaroError
+from core.home import default_home
+from core.transport.credentials import xmpp_password
 from master import auction as au
 from master.service import MasterConfig, MasterService
 
 
 def config_from(args: argparse.Namespace) -> MasterConfig:
-    from quekaro.farm_client import default_home
-
     return MasterConfig(
         home=Path(args.home or default_home()), jid=args.jid, password=xmpp_password(args.password, args.password_file),
         xmpp_host=args.server, xmpp_port=args.port, auto_register=args.register, ca_file=args.ca_file,

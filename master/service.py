@@ -24,18 +24,22 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
-from core import messages as m
-from core.bundle import BundleLimits, bundle_hash, check_rules, check_unpacked, extract_bundle, read_manifest
 from core.errors import MessageError, QuekaroError
-from core.hashing import sha256_file
-from core.scene import SceneSpec
-from core.seeds import plan_seed
+from core.home import ADMIN_TOKEN, FARM_FILE
+from core.model import messages as m
+from core.model.hashing import sha256_file
+from core.model.job import JobPlan, JobSpec, RenderOptions, SceneSpec
+from core.model.seeds import plan_seed
+from core.render.bundle import BundleLimits, bundle_hash, check_rules, check_unpacked, extract_bundle, read_manifest
+from core.render.tiles import read_tile, tile_source
 from core.supervision import die_with_parent
-from core.tiles import read_tile, tile_source
+from core.transport.xmpp import FarmAgent
 from master import auction as au
+from master.api_jobs import add_job_routes
 from master.http_api import create_app, serve
-from master.jobplan import JobPlan, RenderOptions, farm_min_units, plan_job
 from master.store import JobRecord, JobStore, restore_auction
+from planning.jobplan import farm_min_units, plan_job
+from planning.pipeline import assemble
 
 log = logging.getLogger(__name__)
 
@@ -142,16 +146,12 @@ class MasterService:
         self.store.close()
 
     async def _start_http(self) -> None:
-        from master.api_jobs import add_job_routes  # api_jobs imports this module (issue 13's cycle)
-
         app = create_app(expected=self._expected_upload, bundle=self._bundle_for, on_tile=self._on_tile,
                          tile_dir=self.jobs_dir, authorize_bundle=self._bundle_allowed)
         add_job_routes(app, self)
         self._runner, _ = await serve(app, self.config.http_host, self.config.http_port)
 
     async def _start_xmpp(self) -> None:
-        from core.xmpp import FarmAgent
-
         self.agent = FarmAgent(
             self.config.jid, self.config.password, port=self.config.xmpp_port, server=self.config.xmpp_host,
             ontology=m.ONTOLOGY, accept_sender=self._accepts, validate=m.parse,
@@ -178,8 +178,8 @@ class MasterService:
         return jid in self._allowed
 
     def _write_farm_file(self) -> None:
-        info = {"url": self.config.url, "jid": self.config.jid, "token_file": str(self.home / "admin.token")}
-        (self.home / "farm.json").write_text(json.dumps(info, indent=2))
+        info = {"url": self.config.url, "jid": self.config.jid, "token_file": str(self.home / ADMIN_TOKEN)}
+        (self.home / FARM_FILE).write_text(json.dumps(info, indent=2))
 
     # ---- jobs ---------------------------------------------------------------------------------------
 
@@ -189,17 +189,19 @@ class MasterService:
     def result_path(self, job_id: str) -> Path:
         return self.job_dir(job_id) / "result.exr"
 
+    def job_plan(self, record: JobRecord) -> JobPlan:
+        """A stored job's plan, its scene where the master unpacked the job's bundle."""
+        return self.store.plan(record.id, self.job_dir(record.id) / "scene" / record.scene)
+
     def job_info(self, record: JobRecord) -> m.JobInfo:
         """The job as agents see it in calls for proposals (rebuilt from the store after a restart)."""
-        plan = record.options["plan"]
+        plan = self.job_plan(record)
         return m.JobInfo(
             job_id=record.id, scene_url=f"{self.config.url}/jobs/{record.id}/bundle",
-            scene_hash=plan["bundle_sha256"], width=plan["width"], height=plan["height"], spp=plan["spp"],
-            depth=plan["depth"], level=record.options["options"]["level"],
-            ranges={k: tuple(v) for k, v in plan["ranges"].items()}, scene_name=record.scene,
-            defines=dict(record.defines), variant=plan["effects"]["variant"],
-            integrator=plan["effects"].get("override"), sensor=int(record.options["options"].get("sensor", 0)),
-            rules_sha256=plan.get("rules_sha256"), defuzzifier=record.options["options"].get("defuzzifier"),
+            scene_hash=plan.bundle_sha256, width=plan.width, height=plan.height, spp=plan.spp,
+            depth=plan.depth, level=plan.options.level, ranges=plan.ranges(), scene_name=record.scene,
+            defines=dict(record.spec.defines), variant=plan.effects.variant, integrator=plan.effects.override,
+            sensor=plan.options.sensor, rules_sha256=plan.rules_sha256, defuzzifier=plan.options.defuzzifier,
         )
 
     async def submit(self, bundle: bytes | Path, defines: dict[str, str], options: RenderOptions) -> str:
@@ -226,7 +228,8 @@ class MasterService:
             shutil.rmtree(job_dir, ignore_errors=True)
             raise
         scene_name = str(scene.relative_to(job_dir / "scene"))
-        self._create_job(job_id, scene_name, defines, options, plan, digest, rules_sha256)
+        plan = dataclasses.replace(plan, bundle_sha256=digest, rules_sha256=rules_sha256)
+        self._create_job(job_id, scene_name, JobSpec(defines, options), plan)
         return job_id
 
     def _units_for_agents(self) -> int:
@@ -234,20 +237,10 @@ class MasterService:
         live = sum(not a.lost for a in self.auction.agents.values()) if self.auction else 0
         return farm_min_units(live)
 
-    def _create_job(self, job_id: str, scene_name: str, defines: dict[str, str], options: RenderOptions,
-                    plan: JobPlan, sha256: str, rules_sha256: str | None = None) -> None:
-        stored = {"options": plan.options.to_dict(), "plan": {
-            "width": plan.width, "height": plan.height, "spp": plan.spp, "depth": plan.depth,
-            "effects": plan.effects.to_dict(), "ranges": {k: list(v) for k, v in plan.ranges().items()},
-            "prepass_seconds": plan.prepass_seconds, "prepass_info": plan.prepass_info,
-            "bundle_sha256": sha256, "neighbours": {u.index: list(u.neighbours) for u in plan.units},
-            "rules_sha256": rules_sha256,
-        }}
-        specs = [m.UnitSpec(index=u.index, rect=u.rect, C=u.C, S=float(u.S), Nd=u.Nd, cost=u.cost)
-                 for u in plan.units]
+    def _create_job(self, job_id: str, scene_name: str, spec: JobSpec, plan: JobPlan) -> None:
         now = time.time()
-        self.store.create_job(job_id, scene_name, defines, stored, specs, now)
-        events = self.auction.add_job(self.job_info(self.store.job(job_id)), specs)
+        self.store.create_job(job_id, scene_name, spec, plan, now)
+        events = self.auction.add_job(self.job_info(self.store.job(job_id)), plan.units)
         self.store.apply(events, now)
 
     async def cancel(self, job_id: str) -> bool:
@@ -275,7 +268,7 @@ class MasterService:
         path = self.job_dir(job_id) / "bundle.tar"
         if not path.is_file():
             return None
-        return path, self.store.job(job_id).options["plan"]["bundle_sha256"]
+        return path, self.store.job(job_id).plan["bundle_sha256"]
 
     async def _on_tile(self, job_id: str, index: int, path: Path, sha256: str, agent: str | None = None) -> None:
         """A tile is on disk (fsynced): record it, then let the auction count the unit as done."""
@@ -392,12 +385,10 @@ class MasterService:
 
     def assemble(self, job_id: str) -> dict[str, Any]:
         """Compose the job's tiles into result.exr/.png/.json (again, if asked: it is deterministic)."""
-        from master.pipeline import assemble
-
         with JobStore(self.store.path) as store:  # a connection of this thread's own
             record = store.job(job_id)
             results = store.results(job_id)
-            plan = plan_from_record(record, store, self.job_dir(job_id))
+            plan = store.plan(job_id, self.job_dir(job_id) / "scene" / record.scene)
         # Headers only: each tile's pixels are read while composition needs them. The store, not the
         # header, says which unit a tile is.
         tiles = [tile_source(r.tile_path, unit_index=r.index, job_id=job_id) for r in results]
@@ -405,21 +396,6 @@ class MasterService:
         report = assemble(plan, tiles, params, self.result_path(job_id), started=time.perf_counter(),
                           extra={"job_id": job_id, "created": record.created, "finished": record.finished})
         return report
-
-
-def plan_from_record(record: JobRecord, store: JobStore, job_dir: Path) -> JobPlan:
-    """The JobPlan of a stored job, enough to assemble its image and report."""
-    from core.effects import Effects
-    from core.units import Unit
-
-    plan = record.options["plan"]
-    neighbours = {int(k): tuple(v) for k, v in plan.get("neighbours", {}).items()}
-    units = [Unit(index=u.index, rect=u.rect, C=u.C, S=int(u.S), Nd=u.Nd, cost=u.cost,
-                  neighbours=neighbours.get(u.index, ())) for u in store.units(record.id)]
-    spec = SceneSpec(job_dir / "scene" / record.scene, record.defines)
-    return JobPlan(spec, RenderOptions.from_dict(record.options["options"]), plan["width"], plan["height"],
-                   Effects.from_dict(plan["effects"]), plan["spp"], plan["depth"], units,
-                   plan["prepass_seconds"], plan["prepass_info"])
 
 
 def _job_rules(folder: Path, options: RenderOptions) -> tuple[RenderOptions, str | None]:
@@ -451,7 +427,7 @@ def _params_from_meta(meta: dict[str, Any]) -> dict[str, Any]:
 def _admin_token(home: Path) -> str:
     """The secret that `quekaro submit/cancel` must present: created once, readable by the owner only."""
     home.mkdir(parents=True, exist_ok=True)
-    path = home / "admin.token"
+    path = home / ADMIN_TOKEN
     if not path.exists():
         path.touch(mode=0o600)
         path.write_text(secrets.token_hex(24))

@@ -14,25 +14,27 @@ from __future__ import annotations
 import json
 import random
 import sqlite3
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from core import messages as m
 from core.errors import QuekaroError
-from core.geometry import Rect
+from core.model import messages as m
+from core.model.geometry import Rect
+from core.model.job import JobPlan, JobSpec, SceneSpec
+from core.model.units import WorkUnit
 from master import auction as au
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 _SCHEMA = """
 CREATE TABLE jobs (
     id       TEXT PRIMARY KEY,
     scene    TEXT NOT NULL,
-    defines  TEXT NOT NULL,                 -- JSON object
-    options  TEXT NOT NULL,                 -- JSON object
+    spec     TEXT NOT NULL,                 -- JSON: JobSpec.to_dict() (-D parameters, options)
+    plan     TEXT NOT NULL,                 -- JSON: JobPlan.to_dict() (size, effects, spp, depth, hashes)
     status   TEXT NOT NULL CHECK (status IN ('running', 'done', 'failed', 'cancelled')),
     created  REAL NOT NULL,
     finished REAL,
@@ -90,9 +92,9 @@ class StoreError(QuekaroError):
 @dataclass(frozen=True)
 class JobRecord:
     id: str
-    scene: str
-    defines: dict[str, str]
-    options: dict[str, Any]
+    scene: str  # the main scene file inside the job's bundle
+    spec: JobSpec
+    plan: dict[str, Any]  # JobPlan.to_dict(); `JobStore.plan` rebuilds the JobPlan
     status: str
     created: float
     finished: float | None
@@ -111,8 +113,8 @@ class UnitRecord:
     status: str
     attempts: int
 
-    def spec(self) -> m.UnitSpec:
-        return m.UnitSpec(index=self.index, rect=self.rect, C=self.C, S=self.S, Nd=self.Nd, cost=self.cost)
+    def unit(self) -> WorkUnit:
+        return WorkUnit(index=self.index, rect=self.rect, C=self.C, S=int(self.S), Nd=self.Nd, cost=self.cost)
 
 
 @dataclass(frozen=True)
@@ -174,8 +176,37 @@ class JobStore:
                         db.execute(statement)
                     db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
                     version = SCHEMA_VERSION
+        if version == 1 and not readonly:
+            version = self._migrate_from_1()
         if version != SCHEMA_VERSION:
             raise StoreError(f"{self.path}: schema version {version}, this program reads {SCHEMA_VERSION}")
+
+    def _migrate_from_1(self) -> int:
+        """Schema 1 kept {"options", "plan"} in one `options` column and the -D parameters in `defines`:
+        split them into `spec` and `plan`, rebuilding the table as SQLite's ALTER TABLE procedure says
+        (foreign keys off meanwhile, so the units rows are not cascaded away)."""
+        self.db.execute("PRAGMA foreign_keys = OFF")
+        try:
+            with self._tx() as db:
+                if db.execute("PRAGMA user_version").fetchone()[0] != 1:
+                    return db.execute("PRAGMA user_version").fetchone()[0]
+                rows = db.execute("SELECT * FROM jobs").fetchall()
+                db.execute(_SCHEMA.split(";")[0].replace("CREATE TABLE jobs", "CREATE TABLE jobs_v2"))
+                for r in rows:
+                    old = json.loads(r["options"])
+                    spec = {"defines": json.loads(r["defines"]), "options": old["options"]}
+                    plan = {**old["plan"], "options": old["options"]}
+                    db.execute("INSERT INTO jobs_v2 VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                               (r["id"], r["scene"], json.dumps(spec), json.dumps(plan), r["status"],
+                                r["created"], r["finished"], r["error"]))
+                db.execute("DROP TABLE jobs")
+                db.execute("ALTER TABLE jobs_v2 RENAME TO jobs")
+                if db.execute("PRAGMA foreign_key_check").fetchall():
+                    raise StoreError(f"{self.path}: migrating from schema 1 broke a foreign key")
+                db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+        finally:
+            self.db.execute("PRAGMA foreign_keys = ON")
+        return SCHEMA_VERSION
 
     @contextmanager
     def _tx(self) -> Iterator[sqlite3.Connection]:
@@ -197,21 +228,21 @@ class JobStore:
         self,
         job_id: str,
         scene: str,
-        defines: dict[str, str],
-        options: dict[str, Any],
-        units: Sequence[m.UnitSpec],
+        spec: JobSpec,
+        plan: JobPlan,
         now: float,
     ) -> None:
-        """A job and all its units, in one transaction."""
+        """A job (`scene` is its main file inside the bundle) and all its planned units, in one transaction."""
+        units = plan.units
         if not units:
             raise StoreError(f"job {job_id!r} has no units")
         with self._tx() as db:
             if db.execute("SELECT 1 FROM jobs WHERE id = ?", (job_id,)).fetchone():
                 raise StoreError(f"job {job_id!r} already exists")
             db.execute(
-                "INSERT INTO jobs (id, scene, defines, options, status, created)"
+                "INSERT INTO jobs (id, scene, spec, plan, status, created)"
                 " VALUES (?, ?, ?, ?, 'running', ?)",
-                (job_id, scene, json.dumps(defines), json.dumps(options), now),
+                (job_id, scene, json.dumps(spec.to_dict()), json.dumps(plan.to_dict()), now),
             )
             db.executemany(
                 "INSERT INTO units (job_id, idx, x, y, w, h, C, S, Nd, cost, status)"
@@ -240,6 +271,12 @@ class JobStore:
             )
             for r in rows
         ]  # fmt: skip
+
+    def plan(self, job_id: str, scene_path: Path) -> JobPlan:
+        """The stored JobPlan of a job, its scene at `scene_path` (where the master unpacked its bundle)."""
+        record = self.job(job_id)
+        units = [u.unit() for u in self.units(job_id)]
+        return JobPlan.from_dict(record.plan, SceneSpec(scene_path, record.spec.defines), units)
 
     def results(self, job_id: str) -> list[ResultRecord]:
         rows = self.db.execute("SELECT * FROM results WHERE job_id = ? ORDER BY idx", (job_id,))
@@ -493,7 +530,7 @@ class JobStore:
 
 def _job(row: sqlite3.Row) -> JobRecord:
     return JobRecord(
-        row["id"], row["scene"], json.loads(row["defines"]), json.loads(row["options"]),
+        row["id"], row["scene"], JobSpec.from_dict(json.loads(row["spec"])), json.loads(row["plan"]),
         row["status"], row["created"], row["finished"], row["error"],
     )  # fmt: skip
 
@@ -520,5 +557,5 @@ def restore_auction(
         except Exception as exc:  # one job the master cannot describe must not stop the others
             store.set_status(record.id, "failed", now, f"cannot resume the job: {type(exc).__name__}: {exc}")
             continue
-        out += auction.add_job(info, [u.spec() for u in units], done, store.failures(record.id))
+        out += auction.add_job(info, [u.unit() for u in units], done, store.failures(record.id))
     return auction, out

@@ -11,12 +11,12 @@ import importlib
 import json
 
 BENCHMARKS = {
-    "fuzzy": ("fuzzy.bench", "fuzzy engine: evaluations/s against pyfuzzylite, centroid exactness"),
-    "overhead": ("master.bench_overhead", "pipeline overhead against one plain Mitsuba render"),
-    "farm": ("master.bench_farm", "farm overhead and 2-agent speedup"),
-    "accuracy": ("master.bench_accuracy", "time and error per (agents, optimisation level)"),
-    "allocation": ("master.bench_allocation", "each level's render time and relMSE against uniform spp, predicted"),
-    "scaling": ("master.bench_scaling", "simulated auction scaling to 64 agents"),
+    "fuzzy": ("bench.fuzzy_engine", "fuzzy engine: evaluations/s against pyfuzzylite, centroid exactness"),
+    "overhead": ("bench.overhead", "pipeline overhead against one plain Mitsuba render"),
+    "farm": ("bench.farm", "farm overhead and 2-agent speedup"),
+    "accuracy": ("bench.accuracy", "time and error per (agents, optimisation level)"),
+    "allocation": ("bench.allocation", "each level's render time and relMSE against uniform spp, predicted"),
+    "scaling": ("bench.scaling", "simulated auction scaling to 64 agents"),
 }
 
 

@@ -21,7 +21,7 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from core import imageio, metrics
+    from core.render import imageio, metrics
 
     test, reference = imageio.read_exr(args.test), imageio.read_exr(args.reference)
     results = metrics.all_metrics(test, reference)

@@ -1,5 +1,5 @@
 """`quekaro up | demo | master | agent | submit | status | watch | result | cancel`: running a farm, and
-using one. The processes themselves live in `quekaro.local_farm` (up, demo), `master.service` and
+using one. The processes themselves live in `farm.local` (up, demo), `master.service` and
 `agents.render_agent`; this module is argument parsing and printing."""
 
 from __future__ import annotations
@@ -7,11 +7,19 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+from core.data import DEMO_SCENE
+from core.home import PROCESSES_FILE, default_home
+from core.render.bundle import make_bundle
+from core.render.scene import parse_defines
+from farm.client import FarmClient
+from farm.local import LocalFarm
 from quekaro.cmd_render import add_job_arguments, options_from_args, search_paths
-from quekaro.farm_client import default_home
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -99,8 +107,6 @@ def _register_client(sub: argparse._SubParsersAction) -> None:
 
 
 def run_up(args: argparse.Namespace) -> int:
-    from quekaro.local_farm import LocalFarm
-
     with LocalFarm(args.home, args.agents, args.threads, args.rules, args.http_port, supervise=True) as farm:
         print(f"farm up: master {farm.url}, {args.agents} agents, home {farm.home} (Ctrl-C stops it)")
         farm.wait()
@@ -108,12 +114,31 @@ def run_up(args: argparse.Namespace) -> int:
 
 
 def run_demo(args: argparse.Namespace) -> int:
-    from quekaro.local_farm import run_demo as demo
-
-    return demo(args)
+    """Start a farm, render the demo scene on it, fetch the image, and say where everything is."""
+    with LocalFarm(args.home, args.agents, args.threads, args.rules, args.http_port, supervise=True) as farm:
+        print(f"farm up: master {farm.url}, {farm.n_agents} agents, home {farm.home}")
+        farm.wait_for_agents()
+        with tempfile.TemporaryDirectory() as tmp:
+            bundle = make_bundle(DEMO_SCENE, {}, Path(tmp) / "bundle.tar").path.read_bytes()
+        client = farm.client()
+        job_id = client.submit(bundle, {}, {"level": args.level})
+        print(f"submitted {DEMO_SCENE.name} as job {job_id} (optimisation {args.level})")
+        status = watch(client, job_id)
+        if status != 0:
+            return status
+        out = client.result(job_id, args.out)
+        report = json.loads(out.with_suffix(".json").read_text())
+    totals = report["totals"]
+    print(f"image:  {out.resolve()}\npng:    {out.with_suffix('.png').resolve()}\n"
+          f"report: {out.with_suffix('.json').resolve()}")
+    print(f"{totals['units']} units, {totals['seconds']:.1f} s to compose, render seconds on agents "
+          f"{totals['render_seconds']:.1f}, pre-pass {totals['prepass_seconds']:.2f} s")
+    return 0
 
 
 def run_master(args: argparse.Namespace) -> int:
+    # Lazy: the master's SPADE and aiohttp take ~0.4 s to import, which `quekaro --help`, `status` and
+    # `watch` should not pay.
     from master.run import main
 
     return main(args)
@@ -123,17 +148,10 @@ def run_master(args: argparse.Namespace) -> int:
 
 
 def _client(args: argparse.Namespace):
-    from quekaro.farm_client import FarmClient
-
     return FarmClient.from_home(args.home, args.url, args.token_file)
 
 
 def run_submit(args: argparse.Namespace) -> int:
-    import tempfile
-
-    from core.bundle import make_bundle
-    from core.scene import parse_defines
-
     defines = parse_defines(args.defines)
     options = options_from_args(args).to_dict()
     options["rules"] = None  # the rule file travels inside the bundle, to every agent
@@ -169,7 +187,7 @@ def run_status(args: argparse.Namespace) -> int:
 def _print_processes(home: Path) -> None:
     """A local farm's processes that are not running (restarting, or failed after a crash loop)."""
     try:
-        processes = json.loads((home / "processes.json").read_text())["processes"]
+        processes = json.loads((home / PROCESSES_FILE).read_text())["processes"]
     except (OSError, ValueError, KeyError):
         return
     for proc in processes:
@@ -192,8 +210,6 @@ def run_watch(args: argparse.Namespace) -> int:
 
 def watch(client, job_id: str, poll_s: float = 0.5) -> int:
     """A live progress bar until the job ends; exit status 0 only if it is done."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
     columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} units"),
                TextColumn("agents busy {task.fields[busy]}"), TextColumn("ETA {task.fields[eta]}"),
                TimeElapsedColumn())

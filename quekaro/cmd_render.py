@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from core.integrators import CATALOGUE
-from core.messages import LEVELS
+from core.model.integrators import CATALOGUE
 from fuzzy.engine import DEFUZZIFIERS
+from fuzzy.levels import LEVELS
 
 
 def add_job_arguments(parser: argparse.ArgumentParser) -> None:
@@ -34,7 +34,7 @@ def add_job_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def options_from_args(args: argparse.Namespace):
-    from master.jobplan import RenderOptions
+    from core.model.job import RenderOptions
 
     return RenderOptions(level=args.level, spp=args.spp, depth=args.depth,
                          threads=getattr(args, "threads", None), rules=args.rules,
@@ -62,8 +62,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.scene import SceneSpec, parse_defines
-    from master.pipeline import render_job
+    from core.model.job import SceneSpec
+    from core.render.scene import parse_defines
+    from planning.pipeline import render_job
 
     spec = SceneSpec(args.scene, parse_defines(args.defines), search_paths(args))
     report = render_job(spec, options_from_args(args), args.out)

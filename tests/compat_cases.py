@@ -12,8 +12,8 @@ from pathlib import Path
 
 from render_check import by_name, compare, reference_renders
 
-from core.imageio import read_exr_channels
-from quekaro.farm_client import FarmClient
+from core.render.imageio import read_exr_channels
+from farm.client import FarmClient
 
 SCENES = Path(__file__).resolve().parent / "compat" / "scenes"
 RGB, SPECTRAL = "llvm_ad_rgb", "llvm_ad_spectral"

@@ -16,7 +16,7 @@ from pathlib import Path
 from compat_cases import CASES, REPO, job_args, problems, quekaro, wait_done
 from render_check import FALSE_FAILURES
 
-from quekaro.local_farm import LocalFarm
+from farm.local import LocalFarm
 
 OUT = REPO / "docs" / "compat.md"
 

@@ -6,7 +6,7 @@ import subprocess
 import time
 from pathlib import Path
 
-from quekaro.farm_client import FarmClient
+from farm.client import FarmClient
 
 
 def log_tails(folder: Path, lines: int = 15) -> str:

@@ -20,10 +20,10 @@ from pathlib import Path
 import aiohttp
 import numpy as np
 
-from core import messages as m
-from core.geometry import Rect
-from core.tiles import Tile, write_tile
-from core.xmpp import Envelope, FarmAgent
+from core.model import messages as m
+from core.model.geometry import Rect
+from core.render.tiles import Tile, write_tile
+from core.transport.xmpp import Envelope, FarmAgent
 
 
 def emit(event: str, **fields: object) -> None:

@@ -63,10 +63,11 @@ def reference_renders(scene: Path, variant: str, spp: int, sensor: int = 0, defi
     `search_paths` are appended to Mitsuba's file resolver while loading, as its `-a` does."""
     import mitsuba as mi
 
-    from core.render_unit import film_channels
-    from core.scene import SceneSpec, load
+    from core.model.job import SceneSpec
+    from core.render.scene import load
+    from core.render.worker import film_channels
 
-    # core.scene.load is mi.load_file with the -a folders appended to Mitsuba's resolver meanwhile.
+    # core.render.scene.load is mi.load_file with the -a folders appended to Mitsuba's resolver meanwhile.
     loaded = load(SceneSpec(scene, defines or {}, search_paths), variant, threads=2)
     images = []
     names: tuple[str, ...] = ()

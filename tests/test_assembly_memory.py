@@ -17,10 +17,10 @@ SCRIPT = r"""
 import json, sys
 from pathlib import Path
 import numpy as np
-from core.compose import compose_planar
-from core.geometry import Rect
-from core.imageio import write_exr, write_png_planar
-from core.tiles import Tile, tile_source, write_tile
+from core.render.compose import compose_planar
+from core.model.geometry import Rect
+from core.render.imageio import write_exr, write_png_planar
+from core.render.tiles import Tile, tile_source, write_tile
 
 size, side, band, out = 4096, 512, 2, Path(sys.argv[1])
 paths = []

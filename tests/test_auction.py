@@ -11,8 +11,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from core import messages as m
-from core.geometry import Rect
+from core.model import messages as m
+from core.model.geometry import Rect
+from core.model.units import WorkUnit
 from master import auction as au
 
 HASH = "cd" * 32
@@ -32,9 +33,9 @@ def info(job_id: str = "job-1") -> m.JobInfo:
     )
 
 
-def specs(costs: list[float]) -> list[m.UnitSpec]:
+def specs(costs: list[float]) -> list[WorkUnit]:
     return [
-        m.UnitSpec(index=i, rect=Rect(0, 0, 8, 8), C=c, S=64.0, Nd=0.0, cost=c) for i, c in enumerate(costs)
+        WorkUnit(index=i, rect=Rect(0, 0, 8, 8), C=c, S=64, Nd=0.0, cost=c) for i, c in enumerate(costs)
     ]
 
 
@@ -200,7 +201,7 @@ def test_render_deadline_cancels_and_retries_elsewhere() -> None:
     got = round_trip(a, 0.0)
     assert got[0].to == "A"
     deadline = 1.0 * a.config.render_factor + a.config.render_slack_s
-    rendering = (m.BusyUnit(job_id="job-1", index=0),)
+    rendering = (m.HeldUnit(job_id="job-1", index=0),)
     assert a.on_heartbeat("A", m.Heartbeat(conversation="h", busy=rendering), deadline - 1) == []
     a.on_heartbeat("B", m.Heartbeat(conversation="h", busy=()), deadline - 1)
     out = a.expire(deadline + 0.1)
@@ -300,7 +301,7 @@ def test_heartbeat_reconciles_lost_awards_and_stale_work() -> None:
     assert events(out, "unit-requeued")[0].reason == "award not acknowledged by the agent"
     assert not a.upload_allowed("job-1", 0, got[0].message.token)
     stale = a.on_heartbeat(
-        "A", m.Heartbeat(conversation="h", busy=(m.BusyUnit(job_id="job-1", index=0),)), 20
+        "A", m.Heartbeat(conversation="h", busy=(m.HeldUnit(job_id="job-1", index=0),)), 20
     )
     assert [s.message.index for s in sends(stale, m.Cancel, to="A")] == [0]
 
@@ -427,7 +428,7 @@ def test_random_event_sequences_never_lose_a_unit(sequence, n_units: int, slots:
             award = old_awards[who % len(old_awards)]
             feed(a.on_inform(award.to, inform(award, step), now))
         elif op == "beat":
-            busy = tuple(m.BusyUnit(job_id=j, index=i) for j, i in sorted(a.agents[name].holding))
+            busy = tuple(m.HeldUnit(job_id=j, index=i) for j, i in sorted(a.agents[name].holding))
             feed(a.on_heartbeat(name, m.Heartbeat(conversation="h", busy=busy), now))
         check_invariants(a)
     assert all(n == 1 for n in done_events.values())  # no unit done twice
@@ -489,15 +490,16 @@ def test_simulate_needs_units_and_agents() -> None:
 
 def test_project_places_each_unit_where_it_finishes_first() -> None:
     agents = [au.PlanAgent("fast", 1.0, 0.5), au.PlanAgent("slow", 0.0, 2.0)]
-    plan = au.project([au.PlanUnit(0, 10.0), au.PlanUnit(1, 1.0), au.PlanUnit(2, 1.0, frozenset({"slow"}))], agents)
+    units = [au.ProjectedUnit(0, 10.0), au.ProjectedUnit(1, 1.0), au.ProjectedUnit(2, 1.0, frozenset({"slow"}))]
+    plan = au.project(units, agents)
     assert plan[0] == au.Placement("fast", 1.0, 6.0)  # 6 s on fast, against 20 s on slow now
     assert plan[1] == au.Placement("slow", 0.0, 2.0)  # fast would end it at 6.5
     assert plan[2] == au.Placement("fast", 6.0, 6.5)  # it failed on slow
-    assert au.project([au.PlanUnit(0, 1.0, frozenset({"fast", "slow"}))], agents) == {}
+    assert au.project([au.ProjectedUnit(0, 1.0, frozenset({"fast", "slow"}))], agents) == {}
 
 
 def test_refine_recovers_what_list_scheduling_misses() -> None:
-    units = [au.PlanUnit(i, c) for i, c in enumerate([3.0, 3.0, 2.0, 2.0, 2.0])]
+    units = [au.ProjectedUnit(i, c) for i, c in enumerate([3.0, 3.0, 2.0, 2.0, 2.0])]
     agents = [au.PlanAgent("a", 0.0, 1.0), au.PlanAgent("b", 0.0, 1.0)]
     lpt = au.project(units, agents)
     assert max(p.finish for p in lpt.values()) == 7.0  # 3+2+2 against 3+2

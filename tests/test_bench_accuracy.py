@@ -8,8 +8,8 @@ import time
 
 import pytest
 
+from bench import accuracy as bench_accuracy
 from core.errors import QuekaroError
-from master import bench_accuracy
 
 
 def args_for(tmp_path, *extra: str) -> argparse.Namespace:

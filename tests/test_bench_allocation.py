@@ -8,9 +8,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from core.geometry import Rect
-from master import bench_allocation as ba
-from master.bench_scaling import TimeMap
+from bench import allocation as ba
+from bench.scaling import TimeMap
+from core.model.geometry import Rect
 
 
 def _plan(rects: list[Rect]) -> SimpleNamespace:

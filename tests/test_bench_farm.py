@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from master import bench_farm
+from bench import farm as bench_farm
 
 REPO = Path(__file__).resolve().parent.parent
 

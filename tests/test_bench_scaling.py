@@ -7,7 +7,7 @@ import argparse
 import numpy as np
 import pytest
 
-from master import bench_scaling
+from bench import scaling as bench_scaling
 
 pytestmark = pytest.mark.slow  # a pre-pass and ~20 real unit renders
 
@@ -50,7 +50,7 @@ def test_agent_counts_and_mixed_speeds():
 
 def test_cell_times_spread_by_cost_and_a_timeless_map_is_refused():
     from core.errors import QuekaroError
-    from core.geometry import Rect
+    from core.model.geometry import Rect
 
     cells = [Rect(0, 0, 2, 2), Rect(2, 0, 2, 2)]
     cost = np.array([[1.0, 3.0, 1.0, 1.0], [0.0, 0.0, 1.0, 1.0]])

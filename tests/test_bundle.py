@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.bundle import (
+from core.render.bundle import (
     MANIFEST_NAME,
     VERSION,
     BundleError,
@@ -81,7 +81,7 @@ def _refused(data: bytes | Path, tmp_path: Path, match: str, limits: BundleLimit
 def _render(scene: Path, defines: dict[str, str]) -> np.ndarray:
     import mitsuba as mi
 
-    from core import mitsuba_env
+    from core.render import mitsuba_env
 
     # threads=1 deadlocks while loading matpreview (mitsuba 3.9: load_file never returns); 2 works.
     mitsuba_env.init("llvm_ad_rgb", threads=2)
@@ -172,8 +172,8 @@ def test_files_outside_the_scene_folder_are_packed_and_references_rewritten(tmp_
                         + _shape(str(tmp_path / "abs.obj")) + _shape("../abs.obj"))
     info = make_bundle(scene, None, tmp_path / "b.tar")
     out = extract_bundle(info.path, tmp_path / "x")
-    from core.bundle import check_unpacked
-    from core.resolver import read_scene
+    from core.render.bundle import check_unpacked
+    from core.render.resolver import read_scene
 
     check_unpacked(out, {})
     found = read_scene(out, {}, cwd=None)
@@ -186,7 +186,7 @@ def test_files_outside_the_scene_folder_are_packed_and_references_rewritten(tmp_
 
 @pytest.mark.parametrize("reference", ["/etc/hostname", "../../outside.obj"])
 def test_an_unpacked_scene_that_reads_outside_its_bundle_is_refused(tmp_path, reference):
-    from core.bundle import check_unpacked
+    from core.render.bundle import check_unpacked
 
     (tmp_path / "outside.obj").write_text("secret")
     folder = tmp_path / "job" / "scene"

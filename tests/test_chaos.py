@@ -22,10 +22,10 @@ import pytest
 from compat_cases import SCENES
 from render_check import compare_moment_renders, least_spp, moment_channels
 
-from core.bundle import make_bundle
-from core.imageio import read_exr_channels
-from quekaro.farm_client import FarmClient
-from quekaro.local_farm import LocalFarm
+from core.render.bundle import make_bundle
+from core.render.imageio import read_exr_channels
+from farm.client import FarmClient
+from farm.local import LocalFarm
 
 pytestmark = pytest.mark.slow
 

@@ -9,7 +9,7 @@ import json
 import pytest
 from compat_cases import CASES, REPO, job_args, problems, quekaro, wait_done
 
-from quekaro.local_farm import LocalFarm
+from farm.local import LocalFarm
 
 pytestmark = pytest.mark.slow
 

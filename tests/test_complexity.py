@@ -1,4 +1,4 @@
-"""master.complexity: the pre-pass's budget, its maps (cost from rays per sample, noise from moments)."""
+"""planning.complexity: the pre-pass's budget, its maps (cost from rays per sample, noise from moments)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.scene import SceneSpec
-from master.complexity import ComplexityError, ComplexityMap, _upsample, choose_downscale, prepass
+from core.model.job import SceneSpec
+from planning.complexity import ComplexityError, ComplexityMap, _upsample, choose_downscale, prepass
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "scenes" / "mitsuba-data"
 needs_shared = pytest.mark.skipif(not SHARED.is_dir(), reason="../shared scenes absent")
@@ -17,7 +17,7 @@ needs_shared = pytest.mark.skipif(not SHARED.is_dir(), reason="../shared scenes 
 
 @pytest.fixture(scope="module")
 def mi():
-    from core import mitsuba_env
+    from core.render import mitsuba_env
 
     mitsuba_env.init("llvm_ad_rgb", 1)
     import mitsuba
@@ -89,7 +89,7 @@ def test_pixels_that_hit_nothing_are_nearly_free(mi) -> None:
 
 
 def test_noise_pass_gets_its_share_of_the_samples_at_a_finer_grid(mi) -> None:
-    from master.complexity import NOISE_SHARE
+    from planning.complexity import NOISE_SHARE
 
     scene = sphere_scene(mi, size=64)
     cmap = prepass(scene, max_depth=8, full_spp=128)
@@ -114,7 +114,7 @@ def test_nothing_visible_gives_a_flat_cheap_map(mi) -> None:
 @pytest.mark.slow
 def test_prepass_is_far_cheaper_than_the_render(mi, capsys) -> None:
     spec = SceneSpec(SHARED / "cbox" / "cbox.xml", {"res": "128"})
-    from core.scene import load
+    from core.render.scene import load
 
     scene = load(spec)
     integrator = mi.load_dict({"type": "path", "max_depth": 6})
@@ -139,7 +139,7 @@ def test_prepass_is_far_cheaper_than_the_render(mi, capsys) -> None:
 @pytest.mark.slow
 def test_noise_map_predicts_where_the_error_is(mi) -> None:
     """Block-mean pre-pass noise against the real squared error of an 8 spp render (rank correlation)."""
-    from core.scene import load
+    from core.render.scene import load
 
     scene = load(SceneSpec(SHARED / "cbox" / "cbox.xml", {"res": "64"}))
     integrator = mi.load_dict({"type": "path", "max_depth": 6})

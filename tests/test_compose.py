@@ -1,4 +1,4 @@
-"""core.compose: weights sum to one for any layout, NaN never spreads, and no seam shows (statistically)."""
+"""core.render.compose: weights sum to one for any layout, NaN never spreads, and no seam shows (statistically)."""
 
 from __future__ import annotations
 
@@ -9,12 +9,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from core.compose import blend_weights, compose, tile_weight
 from core.errors import TileError
-from core.geometry import Rect
-from core.tiles import Tile
-from master.complexity import ComplexityMap
-from master.partition import equal_tiles, partition
+from core.model.geometry import Rect
+from core.render.compose import blend_weights, compose, tile_weight
+from core.render.tiles import Tile
+from planning.complexity import ComplexityMap
+from planning.partition import equal_tiles, partition
 
 
 def smooth_image(width: int, height: int) -> np.ndarray:
@@ -187,14 +187,14 @@ SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "scenes" / "mit
 @pytest.mark.skipif(not SHARED.is_dir(), reason="../shared scenes absent")
 def test_no_seam_with_real_mitsuba_tiles() -> None:
     """Cornell box 64x64 as 9 tiles (band 3) at 16 spp against a plain 16 spp render, both vs 1024 spp."""
-    from core.render_unit import UnitJob, render_full, render_job_here
-    from core.scene import SceneSpec
+    from core.model.job import SceneSpec
+    from core.render.worker import RenderRequest, render_full, render_job_here
 
     spec, size, spp, band = SceneSpec(SHARED / "cbox" / "cbox.xml", {"res": "64"}), 64, 16, 3
     ref = render_full(spec, "llvm_ad_rgb", "path", 6, 1024, seed=99, threads=1)
     plain = render_full(spec, "llvm_ad_rgb", "path", 6, spp, seed=98, threads=1)
     cores = equal_tiles(size, size, 9)
-    tiles = [render_job_here(UnitJob(spec, "llvm_ad_rgb", "path", 6, spp, 1000 + i, size, size, core,
+    tiles = [render_job_here(RenderRequest(spec, "llvm_ad_rgb", "path", 6, spp, 1000 + i, size, size, core,
                                      band=band, threads=1)) for i, core in enumerate(cores)]
     out, report = compose(tiles, size, size)
     assert report.tiles_used == 9 and not report.nonfinite

@@ -15,9 +15,9 @@ import pytest
 from farm_support import log_tails, wait_for_agents
 from prosody_support import needs_prosody
 
-from core.bundle import make_bundle
-from core.xmpp_server import free_port, port_accepts
-from quekaro.local_farm import stop_processes
+from core.render.bundle import make_bundle
+from core.transport.xmpp_server import free_port, port_accepts
+from farm.local import stop_processes
 
 REPO = Path(__file__).resolve().parent.parent
 ENTRY = REPO / "deploy" / "entrypoint.sh"

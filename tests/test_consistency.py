@@ -8,7 +8,7 @@ from pathlib import Path
 
 from test_store import HASH, info_of, new_store
 
-from core import messages as m
+from core.model import messages as m
 from master import auction as au
 from master.store import restore_auction
 

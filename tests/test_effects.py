@@ -5,10 +5,10 @@ from pathlib import Path
 
 import pytest
 
-from core.effects import analyse, depth_cap
 from core.errors import SceneError
-from core.render_unit import render_full
-from core.scene import SceneSpec
+from core.model.job import SceneSpec
+from core.render.effects import analyse, depth_cap
+from core.render.worker import render_full
 
 REPO = Path(__file__).resolve().parent.parent
 DATA = REPO / "tests" / "data" / "scenes"

@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.bundle import make_bundle
-from core.imageio import read_exr
-from quekaro.local_farm import LocalFarm
+from core.render.bundle import make_bundle
+from core.render.imageio import read_exr
+from farm.local import LocalFarm
 
 pytestmark = pytest.mark.slow
 

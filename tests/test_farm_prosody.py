@@ -15,10 +15,10 @@ import pytest
 from farm_support import log_tails, wait_for_agents
 from prosody_support import needs_prosody
 
-from core.bundle import make_bundle
-from core.imageio import read_exr
-from core.xmpp_server import ProsodyServer, free_port
-from quekaro.local_farm import stop_processes
+from core.render.bundle import make_bundle
+from core.render.imageio import read_exr
+from core.transport.xmpp_server import ProsodyServer, free_port
+from farm.local import stop_processes
 
 REPO = Path(__file__).resolve().parent.parent
 SCENE = REPO / "scenes" / "cbox.xml"

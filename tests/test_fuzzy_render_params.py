@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from fuzzy import load_rulebase
-from fuzzy.render_params import LEVELS, LS_MAX, masyro_render_params, to_render_params
+from fuzzy.levels import RULE_LEVELS as LEVELS
+from fuzzy.render_params import LS_MAX, masyro_render_params, to_render_params
 
 REPO = Path(__file__).resolve().parent.parent
 

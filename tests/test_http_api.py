@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 from agents.transfer import TransferError, fetch_bundle, upload_tile
-from core.bundle import BundleError, make_bundle
-from core.geometry import Rect
-from core.tiles import Tile, write_tile
+from core.model.geometry import Rect
+from core.render.bundle import BundleError, make_bundle
+from core.render.tiles import Tile, write_tile
 from master.http_api import create_app, serve
 
 CORE = Rect(16, 8, 24, 16)

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from core.imageio import ImageError, linear_to_srgb, read_exr, read_png, write_exr, write_png
+from core.render.imageio import ImageError, linear_to_srgb, read_exr, read_png, write_exr, write_png
 
 
 def test_exr_round_trip(tmp_path):

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from quekaro.local_farm import LocalFarm
+from farm.local import LocalFarm
 
 pytestmark = pytest.mark.slow
 

@@ -9,9 +9,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from core import messages as m
 from core.errors import MessageError
-from core.geometry import Rect
+from core.model import messages as m
+from core.model.geometry import Rect
+from core.model.units import WorkUnit
 
 HASH = "ab" * 32
 TOKEN = "0123456789abcdef" * 2
@@ -25,9 +26,9 @@ def job(**changes) -> m.JobInfo:
     return m.JobInfo(**{**base, **changes})
 
 
-def unit(index: int = 0, rect: Rect | None = None, cost: float = 1.5) -> m.UnitSpec:
+def unit(index: int = 0, rect: Rect | None = None, cost: float = 1.5) -> WorkUnit:
     rect = rect or Rect(0, 0, 32, 32)
-    return m.UnitSpec(index=index, rect=rect, C=0.7, S=float(rect.area), Nd=0.1, cost=cost)
+    return WorkUnit(index=index, rect=rect, C=0.7, S=rect.area, Nd=0.1, cost=cost)
 
 
 ONE_OF_EACH = [
@@ -60,7 +61,7 @@ ONE_OF_EACH = [
     ),
     m.Failure(conversation="c2", job_id="job-1", index=0, token=TOKEN, reason="child process crashed"),
     m.Register(conversation="r1", speed=1.25, threads=1, rules="rules/quekaro.xml"),
-    m.Heartbeat(conversation="h1", busy=(m.BusyUnit(job_id="job-1", index=0),)),
+    m.Heartbeat(conversation="h1", busy=(m.HeldUnit(job_id="job-1", index=0),)),
     m.Cancel(conversation="c2", job_id="job-1", index=None, reason="job cancelled"),
 ]
 
@@ -116,6 +117,7 @@ def test_bad_inform_fields_are_refused_by_name(change, field: str) -> None:
 def test_cfp_cross_field_checks() -> None:
     data = body_of(ONE_OF_EACH[0])
     data["units"][1]["rect"] = [80, 0, 32, 32]  # runs past the 96-pixel width
+    data["units"][1]["S"] = 32 * 32
     assert refused("cfp", data).field == "units.rect"
     data = body_of(ONE_OF_EACH[0])
     data["units"][1]["index"] = 0
@@ -167,8 +169,8 @@ def test_largest_cfp_fits_the_size_limit() -> None:
         ranges={f"v{i:02d}{'x' * 28}": (-1.2345678901234567e11, 1.2345678901234567e11) for i in range(16)},
     )
     units = tuple(
-        m.UnitSpec(index=10**7 - i, rect=Rect(65535, 65535, 1, 1), C=1.2345678901234567e11,
-                   S=1.2345678901234567e11, Nd=1.2345678901234567e11, cost=1.2345678901234567e11)
+        WorkUnit(index=10**7 - i, rect=Rect(65535, 65535, 1, 1), C=1.2345678901234567e11,
+                 S=1, Nd=1.2345678901234567e11, cost=1.2345678901234567e11)
         for i in range(m.MAX_CFP_UNITS)
     )  # fmt: skip
     cfp = m.CallForProposal(conversation="c" * 128, job=big, units=units, reply_within_s=3599.999999)

@@ -6,8 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from core import imageio, metrics
-from core.imageio import ImageError
+from core.render import imageio, metrics
+from core.render.imageio import ImageError
 from quekaro import cmd_diff
 
 

@@ -6,7 +6,8 @@ from __future__ import annotations
 import pytest
 
 from core.errors import QuekaroError
-from master.jobplan import RenderOptions, scene_spp
+from core.model.job import RenderOptions
+from planning.jobplan import scene_spp
 
 
 @pytest.mark.parametrize(("options", "match"), [
@@ -33,7 +34,7 @@ def test_good_options_round_trip():
 
 
 def test_a_zero_sample_count_from_a_define_is_refused(tmp_path):
-    from core.scene import SceneSpec
+    from core.model.job import SceneSpec
 
     scene = tmp_path / "s.xml"
     scene.write_text('<scene version="3.0.0"><default name="spp" value="8"/><sensor type="perspective">'

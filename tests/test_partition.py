@@ -1,4 +1,4 @@
-"""master.partition: exact cover for any image size, bounded unit sizes, balanced cost, C/S/Nd features."""
+"""planning.partition: exact cover for any image size, bounded unit sizes, balanced cost, C/S/Nd features."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from core.geometry import Rect
-from master.complexity import ComplexityMap
-from master.partition import (
+from core.model.geometry import Rect
+from planning.complexity import ComplexityMap
+from planning.partition import (
     DEFAULT_SIZES,
     PartitionError,
     distinct_sizes,

@@ -1,4 +1,4 @@
-"""core.planner: unit features + level -> depth, spp, band per unit, with the real rule base."""
+"""core.render.planner: unit features + level -> depth, spp, band per unit, with the real rule base."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from fuzzy_helpers import DATA, RULES
 
-from core.planner import DEPTH_STEPS, Planner, UnitParams, default_rules_path, quantise_depth_factor
+from core.data import default_rules_path
+from core.render.planner import DEPTH_STEPS, Planner, RenderParams, quantise_depth_factor
 from fuzzy import RuleFileError
 from fuzzy.render_params import LS_MAX
 
@@ -22,12 +23,12 @@ def planner() -> Planner:
 
 
 def test_default_rules_are_the_repository_file():
-    assert default_rules_path() == RULES
+    assert default_rules_path() == RULES.resolve()
 
 
 def test_level_off_keeps_the_users_values(planner):
     plans = planner.plan(FEATURES, "off", user_depth=6, user_spp=32)
-    assert plans == [UnitParams(6, 32, 2)] * 4
+    assert plans == [RenderParams(6, 32, 2)] * 4
 
 
 def test_plans_are_bounded_and_banded(planner):

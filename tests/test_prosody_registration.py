@@ -8,8 +8,8 @@ import asyncio
 import pytest
 from prosody_support import needs_prosody
 
-from core.xmpp import FarmAgent, XmppError
-from core.xmpp_server import ProsodyServer
+from core.transport.xmpp import FarmAgent, XmppError
+from core.transport.xmpp_server import ProsodyServer
 
 pytestmark = [
     pytest.mark.slow,

@@ -5,9 +5,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.geometry import Rect
-from core.render_unit import RenderWorker, UnitJob
-from core.scene import SceneSpec, image_size, referenced_files
+from core.model.geometry import Rect
+from core.model.job import SceneSpec
+from core.render.scene import image_size, referenced_files
+from core.render.worker import RenderRequest, RenderWorker
 
 REPO = Path(__file__).resolve().parent.parent
 SHARED = REPO.parent / "shared" / "scenes" / "mitsuba-data"
@@ -35,7 +36,7 @@ def test_real_scene_renders_as_units(worker, name, defines, variant):
     width, height = image_size(spec)
     assert all(path.is_file() for path in referenced_files(spec))
     unit = Rect(width // 4, height // 4, width // 2, height // 2)
-    tile = worker.render(UnitJob(spec, variant, "path", 4, 4, 1, width, height, unit, band=2, threads=1),
+    tile = worker.render(RenderRequest(spec, variant, "path", 4, 4, 1, width, height, unit, band=2, threads=1),
                          timeout=120)
     assert tile.pixels.shape == (unit.h + 4, unit.w + 4, 3)
     assert np.isfinite(tile.pixels).all() and tile.pixels.mean() > 0

@@ -27,12 +27,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from core import messages as m
-from core.bundle import make_bundle
-from core.geometry import Rect
-from core.tiles import read_tile_bytes
-from core.xmpp import Envelope, FarmAgent
-from core.xmpp_server import EmbeddedXmppServer
+from core.model import messages as m
+from core.model.geometry import Rect
+from core.model.units import WorkUnit
+from core.render.bundle import make_bundle
+from core.render.tiles import read_tile_bytes
+from core.transport.xmpp import Envelope, FarmAgent
+from core.transport.xmpp_server import EmbeddedXmppServer
 
 pytestmark = pytest.mark.slow
 
@@ -171,7 +172,7 @@ class Farm:
                          defines={"res": "32"} if defines is None else defines, variant="llvm_ad_rgb",
                          integrator="path")
 
-    def award(self, job: m.JobInfo, unit: m.UnitSpec, conversation: str, token: str | None = None) -> m.Award:
+    def award(self, job: m.JobInfo, unit: WorkUnit, conversation: str, token: str | None = None) -> m.Award:
         token = token or hashlib.sha256(conversation.encode()).hexdigest()[:32]
         self.master.tokens[(job.job_id, unit.index)] = token
         self.master.rects[(job.job_id, unit.index)] = unit.rect
@@ -180,11 +181,11 @@ class Farm:
                        seed=unit.index, estimate_s=1.0)
 
 
-def unit(index: int, rect: Rect, C: float = 0.4, Nd: float = 0.1) -> m.UnitSpec:
-    return m.UnitSpec(index=index, rect=rect, C=C, S=float(rect.area), Nd=Nd, cost=rect.area * 6.67)
+def unit(index: int, rect: Rect, C: float = 0.4, Nd: float = 0.1) -> WorkUnit:
+    return WorkUnit(index=index, rect=rect, C=C, S=rect.area, Nd=Nd, cost=rect.area * 6.67)
 
 
-def cfp(job: m.JobInfo, conversation: str, *units: m.UnitSpec) -> m.CallForProposal:
+def cfp(job: m.JobInfo, conversation: str, *units: WorkUnit) -> m.CallForProposal:
     return m.CallForProposal(conversation=conversation, job=job, units=units, reply_within_s=5.0)
 
 

@@ -9,10 +9,9 @@ import pytest
 from compat_cases import CASES, SCENES, problems
 from render_check import compare, reference_renders
 
-import core.integrators as integrators
-from core.scene import SceneSpec
-from master.jobplan import RenderOptions
-from master.pipeline import render_job
+import core.model.integrators as integrators
+from core.model.job import RenderOptions, SceneSpec
+from planning.pipeline import render_job
 
 pytestmark = pytest.mark.slow
 
@@ -49,7 +48,7 @@ def test_the_variant_criterion_on_both_sides_against_real_renders(name, rgb_is_t
     by plain Mitsuba in both variants. Flat data: an rgb render's means agree with spectral renders' (its
     variance is lower: no colour noise from sampling wavelengths). A narrow line lighting a narrow band:
     rgb's channel-wise product lights a sphere that spectral light leaves dark."""
-    from core.effects import analyse
+    from core.render.effects import analyse
 
     spectral, _ = reference_renders(SCENES / name, "llvm_ad_spectral", 64)
     rgb, _ = reference_renders(SCENES / name, "llvm_ad_rgb", 64, renders=1, seed0=5)

@@ -10,17 +10,17 @@ import numpy as np
 import pytest
 
 from core.errors import RenderError, SceneError
-from core.geometry import Rect
-from core.render_unit import (
+from core.model.geometry import Rect
+from core.model.job import SceneSpec
+from core.model.seeds import plan_seed, unit_seed
+from core.render.worker import (
+    RenderRequest,
     RenderWorker,
-    UnitJob,
     _SceneCache,
     render_full,
     render_job_here,
     set_window,
 )
-from core.scene import SceneSpec
-from core.seeds import plan_seed, unit_seed
 
 REPO = Path(__file__).resolve().parent.parent
 CBOX = SceneSpec(REPO / "scenes" / "cbox.xml", {"res": "48", "spp": "4"})
@@ -32,7 +32,7 @@ UNIT = Rect(8, 16, 16, 16)
 
 
 def job(unit=UNIT, spp=16, seed=1, spec=CBOX, size=(48, 48), band=2, **kw):
-    return UnitJob(spec, VARIANT, "path", 4, spp, seed, size[0], size[1], unit, band=band, threads=1, **kw)
+    return RenderRequest(spec, VARIANT, "path", 4, spp, seed, size[0], size[1], unit, band=band, threads=1, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +59,7 @@ def test_unit_seeds_are_distinct_and_stable():
 
 def test_job_round_trip_and_refusals():
     j = job(job_id="abc", unit_index=5)
-    assert UnitJob.from_dict(j.to_dict()) == j
+    assert RenderRequest.from_dict(j.to_dict()) == j
     assert j.window == Rect(6, 14, 20, 20)
     assert job(unit=Rect(0, 0, 4, 4), band=10).window == Rect(0, 0, 14, 14)  # band clipped to the image
     with pytest.raises(RenderError, match="spp=0"):
@@ -67,7 +67,7 @@ def test_job_round_trip_and_refusals():
     with pytest.raises(RenderError, match="outside"):
         job(unit=Rect(40, 40, 16, 16))
     with pytest.raises(RenderError, match="malformed"):
-        UnitJob.from_dict({"scene": {"path": "x"}})
+        RenderRequest.from_dict({"scene": {"path": "x"}})
 
 
 def test_shifted_camera_renders_the_same_pixels_as_a_crop():

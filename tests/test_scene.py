@@ -5,7 +5,15 @@ from pathlib import Path
 import pytest
 
 from core.errors import SceneError
-from core.scene import SceneSpec, film_info, film_info_from_scene, image_size, load, parse_defines, referenced_files
+from core.render.scene import (
+    SceneSpec,
+    film_info,
+    film_info_from_scene,
+    image_size,
+    load,
+    parse_defines,
+    referenced_files,
+)
 
 REPO = Path(__file__).resolve().parent.parent
 DATA = REPO / "tests" / "data" / "scenes"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import multiprocessing
 import random
 import sqlite3
@@ -10,30 +12,39 @@ from pathlib import Path
 
 import pytest
 
-from core import messages as m
-from core.geometry import Rect
+from core.model import messages as m
+from core.model.geometry import Rect
+from core.model.job import Effects, JobPlan, JobSpec, RenderOptions, SceneSpec
+from core.model.units import WorkUnit
 from master import auction as au
-from master.store import JobStore, StoreError, restore_auction
+from master.store import _SCHEMA, JobStore, StoreError, restore_auction
 
 HASH = "ef" * 32
 
 
-def specs(n: int) -> list[m.UnitSpec]:
+def specs(n: int) -> list[WorkUnit]:
     return [
-        m.UnitSpec(index=i, rect=Rect(8 * i, 0, 8, 8), C=0.5, S=64.0, Nd=0.1, cost=1.0 + i) for i in range(n)
+        WorkUnit(index=i, rect=Rect(8 * i, 0, 8, 8), C=0.5, S=64, Nd=0.1, cost=1.0 + i) for i in range(n)
     ]
+
+
+def plan_of(units: list[WorkUnit], spp: int = 16) -> JobPlan:
+    effects = Effects("llvm_ad_rgb", "path", 8, ["a reason"])
+    return JobPlan(SceneSpec(Path("scene.xml")), RenderOptions(level="S", spp=spp), 64, 8, effects, spp, 8, units,
+                   bundle_sha256=HASH)
 
 
 def info_of(record) -> m.JobInfo:
     return m.JobInfo(
         job_id=record.id, scene_url="http://127.0.0.1:8765/scene", scene_hash=HASH, width=64, height=8,
-        spp=record.options["spp"], depth=8, level="S", ranges={},
+        spp=record.plan["spp"], depth=8, level="S", ranges={},
     )  # fmt: skip
 
 
 def new_store(path: Path, n: int = 4, job_id: str = "job-1") -> JobStore:
     store = JobStore(path)
-    store.create_job(job_id, "scene.xml", {"k": "v"}, {"spp": 16}, specs(n), now=100.0)
+    store.create_job(job_id, "scene.xml", JobSpec({"k": "v"}, RenderOptions(level="S", spp=16)), plan_of(specs(n)),
+                     now=100.0)
     return store
 
 
@@ -67,18 +78,17 @@ def test_schema_pragmas_and_records(tmp_path: Path) -> None:
     with new_store(tmp_path / "farm.db") as store:
         assert store.db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
         assert store.db.execute("PRAGMA foreign_keys").fetchone()[0] == 1
-        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 1
+        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 2
         job = store.job("job-1")
-        assert (job.scene, job.defines, job.options, job.status) == (
-            "scene.xml",
-            {"k": "v"},
-            {"spp": 16},
-            "running",
-        )
+        assert (job.scene, job.spec, job.status) == ("scene.xml", JobSpec({"k": "v"}, RenderOptions("S", 16)),
+                                                     "running")
+        plan = store.plan("job-1", Path("/jobs/job-1/scene.xml"))
+        assert plan == dataclasses.replace(plan_of(specs(4)), spec=SceneSpec(Path("/jobs/job-1/scene.xml"),
+                                                                               {"k": "v"}))
         units = store.units("job-1")
-        assert [u.spec() for u in units] == specs(4) and {u.status for u in units} == {"pending"}
+        assert [u.unit() for u in units] == specs(4) and {u.status for u in units} == {"pending"}
         with pytest.raises(StoreError, match="already exists"):
-            store.create_job("job-1", "s", {}, {}, specs(1), now=0)
+            store.create_job("job-1", "s", JobSpec(), plan_of(specs(1)), now=0)
         with pytest.raises(StoreError, match="no job 'nope'"):
             store.job("nope")
         with pytest.raises(sqlite3.IntegrityError):  # foreign keys hold
@@ -112,7 +122,7 @@ def test_done_needs_a_durable_result_and_happens_once(tmp_path: Path) -> None:
 def test_auction_events_are_recorded(tmp_path: Path) -> None:
     store = new_store(tmp_path / "farm.db", n=3)
     auction = au.Auction(rng=random.Random(5))
-    auction.add_job(info_of(store.job("job-1")), [u.spec() for u in store.units("job-1")])
+    auction.add_job(info_of(store.job("job-1")), [u.unit() for u in store.units("job-1")])
     for name in ("A", "B"):
         store.apply(auction.register(name, 100.0), 100.0)
     awarded = play(auction, store, 101.0, finish=1)
@@ -171,7 +181,7 @@ def _crashing_master(path: str) -> None:
 
     store = new_store(Path(path), n=5)
     auction = au.Auction(rng=random.Random(9))
-    auction.add_job(info_of(store.job("job-1")), [u.spec() for u in store.units("job-1")])
+    auction.add_job(info_of(store.job("job-1")), [u.unit() for u in store.units("job-1")])
     for name in ("A", "B", "C", "D"):
         store.apply(auction.register(name, 100.0), 100.0)
     play(auction, store, 101.0, finish=2)
@@ -249,3 +259,33 @@ def test_readers_see_progress_while_the_master_writes(tmp_path: Path) -> None:
     assert len(set(seen)) > 2  # the reader really overlapped the writer
     with pytest.raises(sqlite3.OperationalError):
         reader.db.execute("UPDATE jobs SET status = 'failed'")
+
+
+SCHEMA_1_JOBS = """CREATE TABLE jobs (id TEXT PRIMARY KEY, scene TEXT NOT NULL, defines TEXT NOT NULL,
+    options TEXT NOT NULL, status TEXT NOT NULL, created REAL NOT NULL, finished REAL,
+    error TEXT NOT NULL DEFAULT '')"""
+
+
+def test_a_schema_1_store_is_migrated_with_its_jobs(tmp_path: Path) -> None:
+    """A farm home written by schema 1 (options and plan in one column) opens, every job and unit kept."""
+    path = tmp_path / "farm.db"
+    with new_store(path) as store:
+        plan = store.job("job-1").plan
+    old = {"options": plan["options"], "plan": {k: v for k, v in plan.items() if k != "options"}}
+    path.unlink()
+    db = sqlite3.connect(path, isolation_level=None)
+    for statement in [SCHEMA_1_JOBS, *_SCHEMA.split(";")[1:]]:
+        db.execute(statement)
+    db.execute("INSERT INTO jobs VALUES ('job-1', 'scene.xml', ?, ?, 'running', 100.0, NULL, '')",
+               (json.dumps({"k": "v"}), json.dumps(old)))
+    db.executemany("INSERT INTO units (job_id, idx, x, y, w, h, C, S, Nd, cost, status)"
+                   " VALUES ('job-1', ?, ?, ?, ?, ?, ?, ?, ?, ?, 'pending')",
+                   [(u.index, *u.rect.as_list(), u.C, u.S, u.Nd, u.cost) for u in specs(4)])
+    db.execute("PRAGMA user_version = 1")
+    db.close()
+    with JobStore(path) as store:
+        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 2
+        record = store.job("job-1")
+        assert record.spec == JobSpec({"k": "v"}, RenderOptions("S", 16)) and record.plan == plan
+        assert [u.unit() for u in store.units("job-1")] == specs(4)
+        assert store.db.execute("PRAGMA foreign_keys").fetchone()[0] == 1

@@ -15,7 +15,7 @@ import pytest
 from test_farm import SCENE, _children, assert_all_gone, bundle_of
 
 from core.supervision import RestartPolicy
-from quekaro.farm_client import FarmClient
+from farm.client import FarmClient
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -82,7 +82,7 @@ def test_a_killed_agent_is_restarted_and_a_killed_farm_leaves_no_orphans(tmp_pat
 def test_a_master_restarted_three_times_on_the_same_server_hears_its_agents(tmp_path):
     """Stopped cleanly (SIGTERM) and started again while the embedded server and the agents run: it was
     deaf (a stale resource outranked its new one) until the server restarted."""
-    from quekaro.local_farm import LocalFarm
+    from farm.local import LocalFarm
 
     home = tmp_path / "farm"
     with LocalFarm(home, agents=1, threads=1) as farm:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from core.xmpp_server import EmbeddedXmppServer
+from core.transport.xmpp_server import EmbeddedXmppServer
 from master.service import MasterConfig, MasterService
 
 REPO = Path(__file__).resolve().parent.parent

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from prosody_support import needs_prosody
 
-from core.xmpp_server import EmbeddedXmppServer, ProsodyServer
+from core.transport.xmpp_server import EmbeddedXmppServer, ProsodyServer
 
 REPO = Path(__file__).resolve().parent.parent
 PEER = REPO / "tests" / "xmpp_peer.py"

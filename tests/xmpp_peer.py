@@ -19,7 +19,7 @@ import signal
 import sys
 import time
 
-from core.xmpp import Envelope, FarmAgent, XmppError
+from core.transport.xmpp import Envelope, FarmAgent, XmppError
 
 PROTOCOL = "quekaro-test"
 

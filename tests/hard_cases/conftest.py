@@ -4,8 +4,8 @@ A scene case is rendered along one of two routes, and every scene test runs on b
   - "units": the job's parts called in the pipeline's order (pre-pass and partition at optimised levels,
     equal tiles at `off`; the planner; every unit in one shared `RenderWorker` child; `compose`). Cheap,
     since one child process serves the whole catalogue.
-  - "pipeline": `master.pipeline.render_job` with `RenderOptions`, exactly as `quekaro render` runs it.
-    Skipped, with the import error as the reason, while `master.pipeline` cannot be imported.
+  - "pipeline": `planning.pipeline.render_job` with `RenderOptions`, exactly as `quekaro render` runs it.
+    Skipped, with the import error as the reason, while `planning.pipeline` cannot be imported.
 Both return a `Run`: the composed image, the non-finite pixels counted, the units' parameters and windows.
 """
 
@@ -20,11 +20,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from core.compose import compose
-from core.planner import Planner
-from core.render_unit import RenderWorker, UnitJob
-from core.scene import SceneSpec, film_info
-from core.seeds import unit_seed
+from core.model.job import SceneSpec
+from core.model.seeds import unit_seed
+from core.render.compose import compose
+from core.render.planner import Planner
+from core.render.scene import film_info
+from core.render.worker import RenderRequest, RenderWorker
 
 HERE = Path(__file__).resolve().parent
 SCENES = HERE / "scenes"
@@ -35,11 +36,11 @@ THREADS = 1
 
 
 def pipeline_import_error() -> str | None:
-    """None when master.pipeline imports, else why not (the skip reason of the pipeline route)."""
+    """None when planning.pipeline imports, else why not (the skip reason of the pipeline route)."""
     try:
-        import master.pipeline  # noqa: F401
+        import planning.pipeline  # noqa: F401
     except ImportError as exc:
-        return f"master.pipeline cannot be imported yet: {exc}"
+        return f"planning.pipeline cannot be imported yet: {exc}"
     return None
 
 
@@ -62,16 +63,16 @@ def worker() -> Iterator[RenderWorker]:
 
 
 def _plan_units(spec: SceneSpec, level: str, spp: int, depth: int, target: int) -> list[Any]:
-    from core.units import Unit
-    from master.partition import equal_tiles
+    from core.model.units import WorkUnit
+    from planning.partition import equal_tiles
 
     info = film_info(spec)
     if level == "off":
         rects = equal_tiles(info.width, info.height, target)
-        return [Unit(i, r, 0.0, r.area, 0.0, float(r.area)) for i, r in enumerate(rects)]
-    from core import scene as scene_mod
-    from master.complexity import prepass
-    from master.partition import partition
+        return [WorkUnit(index=i, rect=r, C=0.0, S=r.area, Nd=0.0, cost=float(r.area)) for i, r in enumerate(rects)]
+    from core.render import scene as scene_mod
+    from planning.complexity import prepass
+    from planning.partition import partition
 
     scene = scene_mod.load(spec, VARIANT, THREADS)
     cmap = prepass(scene, info.width, info.height, integrator="path", max_depth=depth, threads=THREADS,
@@ -89,7 +90,7 @@ def render_units(worker: RenderWorker, spec: SceneSpec, level: str, spp: int, de
     chosen = Planner(rules).plan(features, level, user_depth=depth, user_spp=spp, ranges=ranges)
     tiles, records = [], []
     for unit, p in zip(plan, chosen, strict=True):
-        job = UnitJob(spec, VARIANT, "path", p.depth, p.spp, unit_seed("hard", unit.index, 0), info.width,
+        job = RenderRequest(spec, VARIANT, "path", p.depth, p.spp, unit_seed("hard", unit.index, 0), info.width,
                       info.height, unit.rect, p.band, THREADS, "hard", unit.index)
         tile = worker.render(job, timeout=120)
         tiles.append(tile)
@@ -103,9 +104,9 @@ def render_units(worker: RenderWorker, spec: SceneSpec, level: str, spp: int, de
 def render_pipeline(spec: SceneSpec, level: str, spp: int, depth: int, units: int, rules: Path | None,
                     out: Path) -> Run:
     """The "pipeline" route: `render_job` as `quekaro render` calls it; reads back what it wrote."""
-    from core.imageio import read_exr
-    from master.jobplan import RenderOptions
-    from master.pipeline import render_job
+    from core.model.job import RenderOptions
+    from core.render.imageio import read_exr
+    from planning.pipeline import render_job
 
     options = RenderOptions(level=level, spp=spp, depth=depth, threads=THREADS, rules=rules, units=units)
     report = render_job(spec, options, out)

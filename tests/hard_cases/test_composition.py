@@ -13,10 +13,10 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from core.compose import compose
-from core.geometry import Rect
-from core.tiles import Tile
-from master.partition import equal_tiles
+from core.model.geometry import Rect
+from core.render.compose import compose
+from core.render.tiles import Tile
+from planning.partition import equal_tiles
 
 F32_MAX = float(np.finfo(np.float32).max)
 F32_TINY = float(np.finfo(np.float32).smallest_subnormal)

@@ -1,6 +1,6 @@
 """Faults the farm must survive without losing a unit, as far as they can be driven without a farm:
 an agent dying at each step of the contract net (master/auction.py is a pure state machine, driven
-here directly), and a disk that fills while a tile is written (core.tiles.write_tile on a tiny tmpfs).
+here directly), and a disk that fills while a tile is written (core.render.tiles.write_tile on a tiny tmpfs).
 The farm-level faults (SIGKILL, master and XMPP restarts) are in tests/test_farm.py."""
 
 from __future__ import annotations
@@ -16,10 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core import messages as m
 from core.errors import TileError
-from core.geometry import Rect
-from core.tiles import Tile, read_tile, write_tile
+from core.model import messages as m
+from core.model.geometry import Rect
+from core.model.units import WorkUnit
+from core.render.tiles import Tile, read_tile, write_tile
 from master import auction as au
 
 HASH = "ab" * 32
@@ -30,7 +31,7 @@ def _auction() -> au.Auction:
     a = au.Auction(rng=random.Random(3))
     info = m.JobInfo(job_id="job-1", scene_url="http://127.0.0.1:8765/scene", scene_hash=HASH, width=16,
                      height=16, spp=4, depth=4, level="S", ranges={"C": (0.0, 1.0)})
-    a.add_job(info, [m.UnitSpec(index=0, rect=Rect(0, 0, 16, 16), C=1.0, S=256.0, Nd=0.0, cost=1.0)])
+    a.add_job(info, [WorkUnit(index=0, rect=Rect(0, 0, 16, 16), C=1.0, S=256, Nd=0.0, cost=1.0)])
     for name in ("doomed", "spare"):
         a.register(name, 0.0)
     a.agents["doomed"].credits = 5  # it wins the contest, so its death is what the test exercises
@@ -64,7 +65,7 @@ def test_agent_dying_at_each_protocol_step_loses_nothing(step):
     _bid(a, 0.0, {"doomed", "spare"})
     award = _sends(a.decide(0.0), m.Award)[0]
     assert award.to == "doomed"
-    busy = (m.BusyUnit(job_id="job-1", index=0),)
+    busy = (m.HeldUnit(job_id="job-1", index=0),)
     if step in ("rendering", "uploaded"):
         a.on_heartbeat("doomed", m.Heartbeat(conversation="h", busy=busy), 1.0)
     if step == "uploaded":

@@ -8,7 +8,7 @@ import itertools
 import numpy as np
 import pytest
 
-from core.planner import default_rules_path
+from core.data import default_rules_path
 from fuzzy import Engine, load_rulebase
 from fuzzy.render_params import LS_MAX, to_render_params
 from hard_cases.conftest import RULES

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from core import messages as m
 from core.errors import MessageError
+from core.model import messages as m
 from fuzzy import RuleFileError, load_rulebase
 from hard_cases.conftest import MESSAGES, RULES
 

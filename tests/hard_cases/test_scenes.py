@@ -87,7 +87,7 @@ def test_depth_zero_from_the_user_is_refused_naming_the_option():
     if reason := pipeline_import_error():
         pytest.skip(reason)
     from core.errors import QuekaroError
-    from master.jobplan import RenderOptions
+    from core.model.job import RenderOptions
 
     with pytest.raises(QuekaroError, match="--depth 0"):
         RenderOptions(level="S", depth=0)
@@ -100,9 +100,8 @@ def test_scene_asking_for_depth_zero_renders_finite_with_depth_at_least_one(leve
     if reason := pipeline_import_error():
         pytest.skip(reason)
     from core.errors import QuekaroError
-    from core.scene import SceneSpec
-    from master.jobplan import RenderOptions
-    from master.pipeline import render_job
+    from core.model.job import RenderOptions, SceneSpec
+    from planning.pipeline import render_job
 
     spec = SceneSpec(SCENES / "lamp.xml", {"depth": "0"})
     options = RenderOptions(level=level, spp=2, threads=1, units=2)

@@ -1,0 +1,195 @@
+"""`quekaro bench allocation`: what each optimisation level's sample allocation costs in render time and
+buys in error, predicted from measured maps in about a minute, without a farm.
+
+`quekaro bench accuracy` measures the same thing end to end, but one render's relMSE on a caustic swings
+by tens of percent, so comparing two rule files there takes many runs. Here the noise is measured once:
+  - sigma^2: each pixel's per-sample variance, from `--renders` independent plain renders at `--spp`
+    (their sample variance times spp), weighted by 1 / (reference^2 + 0.01) as relMSE weighs it;
+  - time: the scaling benchmark's measured per-pixel seconds per sample and fixed cost per render call
+    (`bench.scaling.measure_cached`).
+For each level the plan is the one the farm makes (pre-pass, partition, the rules); a unit at n spp
+costs fixed + n x (seconds per sample over the unit and its bands), and its pixels' expected relMSE is
+sigma^2 / n. Uniform spp at the same render time is the baseline; the Neyman allocation over level
+S's units, knowing the true noise, is the bound a unit-level allocation can reach.
+
+Not modelled: depth cuts (levels B and VB render shorter paths: less time, some bias), the farm's
+protocol costs (render time only), and the per-render noise of relMSE itself.
+All measurements are cached under `--cache-dir` (the reference is `quekaro bench accuracy`'s).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench.accuracy import DEFAULT_OUT, HETEROGENEOUS, SCENES, plain_render, reference
+from core.render.metrics import RELMSE_EPSILON
+from fuzzy.levels import RULE_LEVELS
+
+LEVELS = RULE_LEVELS  # every level that runs the rules
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scene", type=Path, default=SCENES[HETEROGENEOUS])
+    parser.add_argument("--res", type=int, default=320, help="image side")
+    parser.add_argument("--spp", type=int, default=128, help="the user's spp (level off)")
+    parser.add_argument("--renders", type=int, default=6, help="independent renders for the noise map")
+    parser.add_argument("--ref-spp", type=int, default=2048, help="spp of the reference")
+    parser.add_argument("--rules", type=Path, help="rule file (default rules/pathtracing.xml)")
+    parser.add_argument("--seeds", type=int, default=5,
+                        help="pre-pass seeds per level (the farm's plan uses one; the pre-pass is noisy)")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--cell", type=int, default=32, help="side of the time map's cells (as bench scaling)")
+    parser.add_argument("--measure-spp", type=int, default=64, help="spp of the time map's cell renders")
+    parser.add_argument("--cache-dir", type=Path, default=Path.home() / ".cache" / "quekaro")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder for allocation.md")
+
+
+def noise_map(spec: Any, spp: int, renders: int, threads: int, cache: Path) -> np.ndarray:
+    """Per-pixel, per-channel variance of one sample (cached by scene content, defines, spp, renders)."""
+    key = hashlib.sha256(spec.path.read_bytes() + json.dumps([spec.defines, spp, renders]).encode())
+    path = cache / f"allocation-noise-{key.hexdigest()[:16]}.npy"
+    if path.exists():
+        return np.load(path)
+    if renders < 2:
+        raise ValueError(f"--renders {renders}: a variance needs at least 2 renders")
+    images = np.stack([plain_render(spec, spp, threads, seed=101 + i)[0] for i in range(renders)])
+    sigma2 = spp * images.var(axis=0, ddof=1)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.save(path, sigma2)
+    return sigma2
+
+
+def composed_inverse_spp(plan: Any, spps: Any, bands: Any) -> np.ndarray:
+    """Per pixel, the composed image's variance in units of one sample's: sum over the tiles covering it
+    of w^2 / n, w its normalised blend weight (core.render.compose) and n the tile's spp. A pixel in one
+    tile's core only is 1 / n; where a neighbour's band overlaps, the two independent estimates average
+    and the variance falls (a band's samples are not wasted)."""
+    from core.render.compose import blend_weights
+
+    geometry = [(u.rect.grow(int(b), plan.width, plan.height), u.rect) for u, b in zip(plan.units, bands, strict=True)]
+    factor = np.zeros((plan.height, plan.width))
+    for (rect, _), w, n in zip(geometry, blend_weights(geometry, plan.width, plan.height), spps, strict=True):
+        factor[rect.slices()] += w * w / float(n)
+    return factor
+
+
+def level_row(level: str, plan: Any, params: list[Any], weight: np.ndarray, tmap: Any) -> dict[str, Any]:
+    """Predicted render seconds, relMSE of the composed image and spp spread of one level's plan."""
+    seconds = sum(tmap.unit_seconds(u.rect, p.spp, band=p.band) for u, p in zip(plan.units, params, strict=True))
+    spp = np.array([p.spp for p in params])
+    area = np.array([u.rect.area for u in plan.units])
+    factor = composed_inverse_spp(plan, spp, [p.band for p in params])
+    return {"level": level, "units": len(plan.units), "render_seconds": seconds,
+            "relmse": float((weight * factor[..., None]).mean()), "spp_mean": float((spp * area).sum() / area.sum()),
+            "spp_min": int(spp.min()), "spp_max": int(spp.max())}
+
+
+def uniform(seconds: float, weight: np.ndarray, tmap: Any) -> tuple[float, float]:
+    """(spp, relMSE) of plain uniform spp over the whole image in `seconds` of render time."""
+    spp = max(1.0, (seconds - tmap.fixed_s) / float(tmap.per_sample.sum()))
+    return spp, float(weight.mean() / spp)
+
+
+def neyman_ratio(plan: Any, params: list[Any], weight: np.ndarray, tmap: Any) -> float:
+    """relMSE over uniform's of the best allocation over these units and bands at the same render time:
+    each unit's spp proportional to sqrt(error per sample / seconds per sample) (Neyman), with the true
+    noise; its error is the composed image's, as for the levels."""
+    err = np.array([weight[u.rect.slices()].sum() for u in plan.units])
+    per_spp = np.array([tmap.unit_seconds(u.rect, 1, band=p.band) - tmap.fixed_s
+                        for u, p in zip(plan.units, params, strict=True)])
+    seconds = sum(tmap.unit_seconds(u.rect, p.spp, band=p.band) for u, p in zip(plan.units, params, strict=True))
+    budget = seconds - tmap.fixed_s * len(plan.units)
+    share = np.sqrt(err / np.maximum(per_spp, 1e-15))
+    spp = share * budget / float((share * per_spp).sum())
+    factor = composed_inverse_spp(plan, spp, [p.band for p in params])
+    return float((weight * factor[..., None]).mean()) / uniform(seconds, weight, tmap)[1]
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    from bench.scaling import measure_cached
+    from core.model.hashing import sha256_file
+    from core.model.job import RenderOptions, SceneSpec
+    from core.model.seeds import plan_seed
+    from core.render.planner import Planner
+    from planning.jobplan import plan_job
+    from planning.pipeline import plan_params
+
+    spec = SceneSpec(args.scene.resolve(), {"res": str(args.res)})  # as `bench accuracy`: one reference
+    sigma2 = noise_map(spec, args.spp, args.renders, args.threads, args.cache_dir)
+    ref = reference(spec, args.ref_spp, args.threads, args.cache_dir)
+    weight = sigma2 / (ref**2 + RELMSE_EPSILON)
+    tmap, _, _ = measure_cached(spec.path, args.res, args.cell, args.measure_spp, args.threads,
+                                args.cache_dir)
+    off_seconds = tmap.unit_seconds(_whole(args.res), args.spp, band=0)
+    planner = Planner(args.rules, "centroid")
+    digest = sha256_file(spec.path)
+    rows, bounds = [], []
+    for level in LEVELS:
+        options = RenderOptions(level=level, spp=args.spp, threads=args.threads, rules=args.rules)
+        # Seeds from the options without the rule file, so two rule files are compared on the same
+        # pre-passes (the pre-pass's noise moves a level's ratio by +-0.1).
+        unruled = RenderOptions(level=level, spp=args.spp, threads=args.threads).to_dict()
+        base = plan_seed(digest, spec.defines, unruled)
+        runs = []
+        for k in range(args.seeds):  # k = 0: the plan `quekaro render` makes with the default rules
+            plan = plan_job(spec, options, seed=base + k)
+            params = plan_params(plan, planner)
+            run = level_row(level, plan, params, weight, tmap)
+            run["uniform_spp"], run["uniform_relmse"] = uniform(run["render_seconds"], weight, tmap)
+            run["ratio"] = run["relmse"] / run["uniform_relmse"]
+            run["time_vs_off"] = run["render_seconds"] / off_seconds
+            runs.append(run)
+            if level == "S":
+                bounds.append(neyman_ratio(plan, params, weight, tmap))
+        rows.append(_summary(level, runs))
+    result = {"scene": str(args.scene), "res": args.res, "spp": args.spp, "renders": args.renders,
+              "rules": str(planner.rules_path), "seeds": args.seeds, "off_render_seconds": off_seconds,
+              "rows": rows, "neyman_ratio_S": float(np.mean(bounds))}
+    report = format_report(result)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "allocation.md").write_text(
+        "# Each level's allocation against uniform spp (`quekaro bench allocation`)\n\n" + report + "\n")
+    if not args.json:
+        print(report)
+    return result
+
+
+def _summary(level: str, runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Means over the pre-pass seeds, with each seed's ratio and time listed."""
+    row: dict[str, Any] = {"level": level}
+    for key in ("units", "render_seconds", "relmse", "spp_mean", "uniform_spp", "uniform_relmse", "ratio",
+                "time_vs_off"):
+        row[key] = float(np.mean([r[key] for r in runs]))
+    row["spp_min"] = min(r["spp_min"] for r in runs)
+    row["spp_max"] = max(r["spp_max"] for r in runs)
+    row["ratio_runs"] = [r["ratio"] for r in runs]
+    row["time_vs_off_runs"] = [r["time_vs_off"] for r in runs]
+    return row
+
+
+def _whole(res: int) -> Any:
+    from core.model.geometry import Rect
+
+    return Rect(0, 0, res, res)
+
+
+def format_report(result: dict[str, Any]) -> str:
+    lines = [f"{Path(result['scene']).name} {result['res']}x{result['res']}, user spp {result['spp']}, "
+             f"rules {Path(result['rules']).name}; level off renders {result['off_render_seconds']:.2f} s "
+             "(predicted)",
+             "| level | units | render s | x off | spp mean (min-max) | relMSE | uniform spp | uniform relMSE "
+             "| ratio (per seed) |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in result["rows"]:
+        each = ", ".join(f"{x:.2f}" for x in r["ratio_runs"])
+        lines.append(f"| {r['level']} | {r['units']:.0f} | {r['render_seconds']:.2f} | {r['time_vs_off']:.2f} | "
+                     f"{r['spp_mean']:.0f} ({r['spp_min']}-{r['spp_max']}) | {r['relmse']:.5f} | "
+                     f"{r['uniform_spp']:.0f} | {r['uniform_relmse']:.5f} | {r['ratio']:.3f} ({each}) |")
+    lines.append(f"means over {result['seeds']} pre-pass seeds; Neyman allocation over level S's units (true "
+                 f"noise known): ratio {result['neyman_ratio_S']:.3f}")
+    return "\n".join(lines)

@@ -1,0 +1,235 @@
+"""The job contract: what crosses the wire and the disk about a job, named once for the whole farm.
+
+`SceneSpec` (a scene file, its -D parameters and search paths), `RenderOptions` (what the user asked for),
+`JobSpec` (what a user submits beside a scene bundle: parameters and options), `Effects` (what the render
+simulates, and why) and `JobPlan` (a planned job: size, effects, spp, depth, its work units). Each has
+`to_dict` / `from_dict`, used by the CLI, the job API, the job store and the in-process pipeline alike.
+The choices they validate against are each named once: the levels in `fuzzy.levels`, the defuzzifiers in
+`fuzzy.engine`, Mitsuba's integrators in `core.model.integrators`, the variant pattern here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from core.errors import QuekaroError, SceneError
+from core.model.integrators import CATALOGUE
+from core.model.units import WorkUnit
+from fuzzy.engine import DEFUZZIFIERS
+from fuzzy.levels import LEVELS
+
+VARIANT_PATTERN = re.compile(r"(scalar|llvm|cuda)(_ad)?_(rgb|spectral|mono)[a-z_]*")  # a Mitsuba variant name
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """A scene to render: its XML file, the `-D name=value` parameters it is loaded with, and extra
+    folders to look for its files in (Mitsuba's `-a`, searched after everything else)."""
+
+    path: Path
+    defines: dict[str, str] = field(default_factory=dict)
+    search_paths: tuple[Path, ...] = ()
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "path", Path(self.path))
+        object.__setattr__(self, "defines", {str(k): str(v) for k, v in dict(self.defines).items()})
+        object.__setattr__(self, "search_paths", tuple(Path(p).absolute() for p in self.search_paths))
+
+    def __hash__(self) -> int:
+        return hash(self.key())
+
+    def key(self) -> tuple[Any, ...]:
+        """A hashable identity: the resolved path, the sorted parameters and the search paths."""
+        return str(self.path.resolve()), tuple(sorted(self.defines.items())), tuple(map(str, self.search_paths))
+
+    def with_defines(self, **extra: Any) -> SceneSpec:
+        """The same scene with some parameters added or replaced."""
+        return SceneSpec(self.path, {**self.defines, **{k: str(v) for k, v in extra.items()}}, self.search_paths)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"path": str(self.path), "defines": dict(self.defines),
+                "search_paths": [str(p) for p in self.search_paths]}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> SceneSpec:
+        if not isinstance(data, dict) or "path" not in data:
+            raise SceneError(f"scene spec must be an object with a 'path', got {data!r}")
+        defines = data.get("defines") or {}
+        if not isinstance(defines, dict):
+            raise SceneError(f"scene spec field 'defines' must be an object, got {defines!r}")
+        return cls(Path(data["path"]), defines, tuple(data.get("search_paths") or ()))
+
+
+# Integer options and their ranges (the message schema's limits, core.model.messages.JobInfo).
+_INT_RANGES = {"spp": (1, 1 << 20), "depth": (1, 1024), "threads": (1, 4096), "units": (1, 4096),
+               "sensor": (0, 1024)}
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """What the user asked for: optimisation level, predefined spp/depth, rules and overrides."""
+
+    level: str = "off"
+    spp: int | None = None
+    depth: int | None = None
+    threads: int | None = None
+    rules: Path | None = None
+    defuzzifier: str | None = None  # None: centroid in one process, each agent's own on a farm
+    variant: str | None = None
+    integrator: str | None = None
+    units: int | None = None  # target number of work units; None: chosen from the image size
+    sensor: int = 0  # which of the scene's sensors renders (Mitsuba's -s)
+
+    def __post_init__(self) -> None:
+        if self.level not in LEVELS:
+            raise QuekaroError(f"--opt {self.level!r}: expected one of {', '.join(LEVELS)}")
+        for name, (lo, hi) in _INT_RANGES.items():
+            value = getattr(self, name)
+            if value is None:
+                continue
+            if type(value) is not int:  # bool, float (1e400 is inf), str: refused, not coerced
+                raise QuekaroError(f"option {name} (--{name} {value!r}): not an integer")
+            if not lo <= value <= hi and not (name == "depth" and value == -1):
+                raise QuekaroError(f"option {name} (--{name} {value}): outside {lo}..{hi}"
+                                   + (" (or -1 for unbounded)" if name == "depth" else ""))
+        if self.defuzzifier is not None and self.defuzzifier not in DEFUZZIFIERS:
+            raise QuekaroError(f"option defuzzifier: {self.defuzzifier!r} is not one of {', '.join(DEFUZZIFIERS)}")
+        if self.integrator is not None and self.integrator not in CATALOGUE:
+            raise QuekaroError(f"option integrator: {self.integrator!r} is not one of Mitsuba's integrators")
+        if self.variant is not None and not (isinstance(self.variant, str) and VARIANT_PATTERN.fullmatch(self.variant)):
+            raise QuekaroError(f"option variant: {str(self.variant)[:40]!r} is not a Mitsuba variant name")
+
+    def overrides(self) -> dict[str, Any]:
+        """The effect decisions the user forced (they win over the analysis)."""
+        forced = {"variant": self.variant, "integrator": self.integrator, "max_depth": self.depth}
+        return {k: v for k, v in forced.items() if v is not None}
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"level": self.level, "spp": self.spp, "depth": self.depth, "threads": self.threads,
+                "rules": str(self.rules) if self.rules else None, "defuzzifier": self.defuzzifier,
+                "variant": self.variant, "integrator": self.integrator, "units": self.units,
+                "sensor": self.sensor}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> RenderOptions:
+        """The options of a JSON object; unknown keys are refused, naming them (never silently dropped)."""
+        if not isinstance(data, dict):
+            raise QuekaroError(f"options must be a JSON object, got {type(data).__name__}")
+        unknown = sorted(set(data) - {f.name for f in dataclasses.fields(cls)})
+        if unknown:
+            raise QuekaroError(f"option {unknown[0][:40]!r} is not known (known: "
+                               f"{', '.join(f.name for f in dataclasses.fields(cls))})")
+        rules = data.get("rules")
+        if rules is not None and not isinstance(rules, str):
+            raise QuekaroError(f"option rules: {rules!r} is not a path")
+        return cls(level=data.get("level", "off"), spp=data.get("spp"), depth=data.get("depth"),
+                   threads=data.get("threads"), rules=Path(rules) if rules else None,
+                   defuzzifier=data.get("defuzzifier"), variant=data.get("variant"),
+                   integrator=data.get("integrator"), units=data.get("units"), sensor=data.get("sensor", 0))
+
+
+@dataclass
+class Effects:
+    """What the render simulates, and why.
+
+    `integrator` names what renders (the scene's own tree, e.g. `moment(path)`, or the user's override);
+    `override` is the user's integrator type (None: the scene's own); `max_depth` the path depth the units
+    start from (-1: unbounded, or the integrator takes none); `splittable` whether units may be tiles.
+    """
+
+    variant: str
+    integrator: str
+    max_depth: int
+    reasons: list[str] = field(default_factory=list)
+    override: str | None = None
+    splittable: bool = True
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"variant": self.variant, "integrator": self.integrator, "max_depth": self.max_depth,
+                "reasons": list(self.reasons), "override": self.override, "splittable": self.splittable}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> Effects:
+        return cls(str(data["variant"]), str(data["integrator"]), int(data["max_depth"]),
+                   [str(r) for r in data.get("reasons", [])], data.get("override"),
+                   bool(data.get("splittable", True)))
+
+
+@dataclass(frozen=True)
+class JobSpec:
+    """What a user submits beside a scene bundle: the scene's -D parameters and the options."""
+
+    defines: dict[str, str] = field(default_factory=dict)
+    options: RenderOptions = field(default_factory=RenderOptions)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"defines": dict(self.defines), "options": self.options.to_dict()}
+
+    @classmethod
+    def from_dict(cls, data: Any) -> JobSpec:
+        """Strict: unknown keys, and parameters that are not name -> text, are refused naming them."""
+        if not isinstance(data, dict):
+            raise QuekaroError(f"a job must be a JSON object, got {type(data).__name__}")
+        unknown = sorted(set(data) - {"defines", "options"})
+        if unknown:
+            raise QuekaroError(f"job field {unknown[0][:40]!r} is not known (known: defines, options)")
+        defines = data.get("defines", {})
+        if not isinstance(defines, dict) or not all(isinstance(k, str) and isinstance(v, str)
+                                                    for k, v in defines.items()):
+            raise QuekaroError("job field defines: expected an object of name -> text (-D name=value)")
+        return cls(dict(defines), RenderOptions.from_dict(data.get("options", {})))
+
+
+@dataclass
+class JobPlan:
+    """A planned job: image size, effects, the user's spp/depth, and the units to render. A farm job also
+    records its bundle's and rule file's sha256 (what agents check what they download against)."""
+
+    spec: SceneSpec
+    options: RenderOptions
+    width: int
+    height: int
+    effects: Effects
+    spp: int
+    depth: int
+    units: list[WorkUnit]
+    prepass_seconds: float = 0.0
+    prepass_info: dict[str, Any] = field(default_factory=dict)
+    bundle_sha256: str | None = None
+    rules_sha256: str | None = None
+
+    def features(self) -> dict[str, list[float]]:
+        """The fuzzy inputs of every unit, in unit order."""
+        return {"C": [u.C for u in self.units], "S": [float(u.S) for u in self.units],
+                "Nd": [u.Nd for u in self.units]}
+
+    def ranges(self) -> dict[str, tuple[float, float]]:
+        """The observed range of each dynamic input over the whole scene (the paper's dynamic sets)."""
+        return {name: (min(values), max(values)) for name, values in self.features().items()}
+
+    def to_dict(self) -> dict[str, Any]:
+        """Everything but the scene's location and the units (the job store keeps those in their own
+        columns and rows), the units' neighbours included."""
+        return {"options": self.options.to_dict(), "width": self.width, "height": self.height,
+                "effects": self.effects.to_dict(), "spp": self.spp, "depth": self.depth,
+                "ranges": {k: list(v) for k, v in self.ranges().items()},
+                "prepass_seconds": self.prepass_seconds, "prepass_info": dict(self.prepass_info),
+                "neighbours": {str(u.index): list(u.neighbours) for u in self.units},
+                "bundle_sha256": self.bundle_sha256, "rules_sha256": self.rules_sha256}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], spec: SceneSpec, units: list[WorkUnit]) -> JobPlan:
+        """The plan `to_dict` wrote, for the scene at `spec` with these units (their neighbours restored)."""
+        try:
+            near = {int(k): tuple(v) for k, v in data.get("neighbours", {}).items()}
+            units = [dataclasses.replace(u, neighbours=near.get(u.index, u.neighbours)) for u in units]
+            return cls(spec, RenderOptions.from_dict(data["options"]), int(data["width"]), int(data["height"]),
+                       Effects.from_dict(data["effects"]), int(data["spp"]), int(data["depth"]), units,
+                       float(data.get("prepass_seconds", 0.0)), dict(data.get("prepass_info", {})),
+                       data.get("bundle_sha256"), data.get("rules_sha256"))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise QuekaroError(f"stored job plan is malformed: {type(exc).__name__}: {exc}") from exc

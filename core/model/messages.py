@@ -1,0 +1,471 @@
+"""The farm's control-message schema: versioned JSON bodies of FIPA-ACL-style messages, validated on receipt.
+
+Every message travels as (metadata, body) over XMPP. The metadata carries the performative, the ontology
+(`quekaro-render`), the protocol (`fipa-contract-net`) and the conversation id; the body is a JSON object
+with the protocol version `v`, the conversation id again (so the two can be checked against each other)
+and the fields of one message kind. `encode` and `parse` are the only ways in and out: both validate
+every field (types, ranges, finite numbers, lengths), so a peer never acts on a malformed message.
+
+Unknown fields are refused rather than ignored: the version number is the one place where peers agree
+on what a body may hold, and silently dropping fields would hide a version mismatch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import re
+import types
+import typing
+from dataclasses import dataclass
+from typing import Any, ClassVar, Union
+
+from core.errors import MessageError
+from core.model.fields import constrained
+from core.model.geometry import Rect
+from core.model.job import VARIANT_PATTERN
+from core.model.units import WorkUnit
+from fuzzy.engine import DEFUZZIFIERS
+from fuzzy.levels import LEVELS
+
+PROTOCOL_VERSION = 1
+ONTOLOGY = "quekaro-render"
+PROTOCOL = "fipa-contract-net"
+# Prosody drops a sender whose stanza exceeds 256 KiB (design.md section 4): stay well below it.
+MAX_BODY_BYTES = 64 * 1024
+# A CFP lists at most this many units; with the field limits below it stays under MAX_BODY_BYTES.
+MAX_CFP_UNITS = 64
+
+_ID = re.compile(r"[A-Za-z0-9._:@/+-]{1,128}")
+_HEX = re.compile(r"[0-9a-f]{16,128}")
+_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,31}")
+# A relative path inside a scene bundle: no leading '/', no '..' component.
+_SCENE_NAME = re.compile(r"(?!/)(?!.*(^|/)\.\.(/|$))[A-Za-z0-9._/+-]{1,512}")
+
+
+# --- message parts -------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class JobInfo:
+    """What an agent needs to render any unit of a job: where the scene is and what the user asked for."""
+
+    job_id: str = constrained(pattern=_ID)
+    scene_url: str = constrained(max_len=2048, pattern=re.compile(r"https?://[\x21-\x7e]+"))
+    scene_hash: str = constrained(pattern=_HEX)
+    width: int = constrained(lo=1, hi=65536)
+    height: int = constrained(lo=1, hi=65536)
+    spp: int = constrained(lo=1, hi=1 << 20)
+    depth: int = constrained(lo=-1, hi=1024)  # Mitsuba's max_depth: -1 means unbounded
+    level: str = constrained(choices=LEVELS)
+    # Observed (lo, hi) of the dynamic input variables (C, S, Nd) over the whole scene.
+    ranges: dict[str, tuple[float, float]] = constrained(max_items=16, key_pattern=_NAME, lo=-1e12, hi=1e12)  # noqa: RUF009
+    # How to render, as the master's effect analysis decided: the scene file inside the bundle, its -D
+    # parameters, the Mitsuba variant and the integrator. Each agent picks depth/spp/band with its rules.
+    scene_name: str = constrained(max_len=512, pattern=_SCENE_NAME, default="scene.xml")
+    defines: dict[str, str] = constrained(max_items=64, key_pattern=_NAME, max_len=1024, default_factory=dict)  # noqa: RUF009
+    variant: str = constrained(pattern=VARIANT_PATTERN, default="llvm_ad_rgb")
+    # None: the scene's own integrator, as written; a plugin type: the user's override.
+    integrator: str | None = constrained(pattern=re.compile(r"[a-z][a-z0-9_]{0,31}"), default=None)
+    sensor: int = constrained(lo=0, hi=1024, default=0)  # which of the scene's sensors renders
+    # The job's own rule file, inside the bundle (its sha256); None: each agent's default rules.
+    rules_sha256: str | None = constrained(pattern=_HEX, default=None)
+    defuzzifier: str | None = constrained(choices=DEFUZZIFIERS, default=None)  # None: each agent's own
+
+    def check(self) -> None:
+        for name, (lo, hi) in self.ranges.items():
+            if lo > hi:
+                raise MessageError(f"range lower bound {lo} above upper bound {hi}", f"ranges.{name}")
+
+
+# --- messages ------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class Message:
+    """Base of every message kind: the conversation id and the FIPA performative it travels under."""
+
+    performative: ClassVar[str] = ""
+    conversation: str = constrained(pattern=_ID)
+
+    def check(self) -> None:
+        """Cross-field checks beyond each field's own constraints."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class CallForProposal(Message):
+    """Master -> agent: units of one job up for auction; answer (Propose or Refuse) within reply_within_s."""
+
+    performative: ClassVar[str] = "cfp"
+    job: JobInfo
+    units: tuple[WorkUnit, ...] = constrained(max_items=MAX_CFP_UNITS, min_items=1)
+    # Relative, not absolute: the hosts' clocks need not agree.
+    reply_within_s: float = constrained(lo=0.001, hi=3600.0)
+
+    def check(self) -> None:
+        self.job.check()
+        image = Rect(0, 0, self.job.width, self.job.height)
+        seen: set[int] = set()
+        for unit in self.units:
+            if unit.index in seen:
+                raise MessageError(f"unit {unit.index} listed twice", "units")
+            seen.add(unit.index)
+            if unit.rect.area == 0 or unit.rect.intersect(image) != unit.rect:
+                raise MessageError(f"unit {unit.index} rectangle {unit.rect} outside the image", "units.rect")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Estimate:
+    """An agent's bid on one unit: the seconds it expects to take."""
+
+    index: int = constrained(lo=0, hi=10**7)
+    seconds: float = constrained(lo=0.0, hi=1e9)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Propose(Message):
+    """Agent -> master: estimates for the announced units it is willing to render (its speed x their cost)."""
+
+    performative: ClassVar[str] = "propose"
+    job_id: str = constrained(pattern=_ID)
+    estimates: tuple[Estimate, ...] = constrained(max_items=MAX_CFP_UNITS, min_items=1)
+
+    def check(self) -> None:
+        if len({e.index for e in self.estimates}) != len(self.estimates):
+            raise MessageError("unit estimated twice", "estimates")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Refuse(Message):
+    """Agent -> master: declines a call for proposals (busy, cannot fetch the scene, ...)."""
+
+    performative: ClassVar[str] = "refuse"
+    job_id: str = constrained(pattern=_ID)
+    reason: str = constrained(max_len=1024)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Award(Message):
+    """Master -> agent (accept-proposal): render this unit; upload the tile with the token; seed fixed."""
+
+    performative: ClassVar[str] = "accept-proposal"
+    job: JobInfo
+    unit: WorkUnit
+    token: str = constrained(pattern=_HEX)
+    upload_url: str = constrained(max_len=2048, pattern=re.compile(r"https?://[\x21-\x7e]+"))
+    seed: int = constrained(lo=0, hi=2**31 - 1)
+    estimate_s: float = constrained(lo=0.0, hi=1e9)
+
+    def check(self) -> None:
+        self.job.check()
+
+
+@dataclass(frozen=True, kw_only=True)
+class Reject(Message):
+    """Master -> agent (reject-proposal): the units it bid on went elsewhere."""
+
+    performative: ClassVar[str] = "reject-proposal"
+    job_id: str = constrained(pattern=_ID)
+    reason: str = constrained(max_len=1024)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Inform(Message):
+    """Agent -> master: unit rendered and its tile uploaded; the parameters the agent's rules chose."""
+
+    performative: ClassVar[str] = "inform"
+    job_id: str = constrained(pattern=_ID)
+    index: int = constrained(lo=0, hi=10**7)
+    token: str = constrained(pattern=_HEX)
+    tile_hash: str = constrained(pattern=_HEX)
+    depth: int = constrained(lo=-1, hi=1024)
+    spp: int = constrained(lo=1, hi=1 << 20)
+    band: int = constrained(lo=0, hi=65536)
+    seconds: float = constrained(lo=0.0, hi=1e9)
+    nonfinite: int = constrained(lo=0, hi=1 << 32)  # pixels that were NaN/inf before clamping
+
+
+@dataclass(frozen=True, kw_only=True)
+class Failure(Message):
+    """Agent -> master: the awarded unit could not be rendered."""
+
+    performative: ClassVar[str] = "failure"
+    job_id: str = constrained(pattern=_ID)
+    index: int = constrained(lo=0, hi=10**7)
+    token: str = constrained(pattern=_HEX)
+    reason: str = constrained(max_len=1024)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Register(Message):
+    """Agent -> master: here I am, with my measured speed (reference-cost seconds per second)."""
+
+    performative: ClassVar[str] = "register"
+    speed: float = constrained(lo=1e-6, hi=1e6)
+    threads: int = constrained(lo=1, hi=4096)
+    rules: str = constrained(max_len=256)
+
+
+@dataclass(frozen=True, kw_only=True)
+class HeldUnit:
+    """A unit an agent holds: awarded to it and not yet answered with Inform or Failure."""
+
+    job_id: str = constrained(pattern=_ID)
+    index: int = constrained(lo=0, hi=10**7)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Heartbeat(Message):
+    """Agent -> master, periodically: still alive, and the units it holds."""
+
+    performative: ClassVar[str] = "heartbeat"
+    busy: tuple[HeldUnit, ...] = constrained(max_items=256)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Cancel(Message):
+    """Master -> agent: stop this unit (index given) or every unit of this job (index None)."""
+
+    performative: ClassVar[str] = "cancel"
+    job_id: str = constrained(pattern=_ID)
+    index: int | None = constrained(lo=0, hi=10**7, default=None)
+    reason: str = constrained(max_len=1024)
+
+
+KINDS: dict[str, type[Message]] = {
+    cls.performative: cls
+    for cls in (CallForProposal, Propose, Refuse, Award, Reject, Inform, Failure, Register, Heartbeat, Cancel)
+}
+
+
+# --- encoding ------------------------------------------------------------------------------------------
+
+
+def encode(msg: Message) -> tuple[str, str]:
+    """The (performative, JSON body) of a message, validated and size-checked as the receiver will."""
+    if type(msg) not in KINDS.values():
+        raise MessageError(f"not a message kind: {type(msg).__name__}")
+    data = {"v": PROTOCOL_VERSION, **_to_json(msg)}
+    body = json.dumps(data, separators=(",", ":"), allow_nan=False, ensure_ascii=False)
+    _check_size(body)
+    _check_value(type(msg), _to_json(msg), "")  # the sender is held to the same rules as any receiver
+    return msg.performative, body
+
+
+def metadata(msg: Message) -> dict[str, str]:
+    """The XMPP metadata a message travels under."""
+    return {
+        "performative": msg.performative,
+        "ontology": ONTOLOGY,
+        "protocol": PROTOCOL,
+        "conversation": msg.conversation,
+    }
+
+
+def parse(performative: str, body: str | bytes) -> Message:
+    """Validate a received body as the kind its performative names; MessageError if anything is off."""
+    cls = KINDS.get(performative) if isinstance(performative, str) else None
+    if cls is None:
+        raise MessageError(f"unknown performative {str(performative)[:40]!r}", "performative")
+    if isinstance(body, bytes):
+        _check_size(body)
+        try:
+            body = body.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise MessageError("body is not UTF-8", "body") from exc
+    if not isinstance(body, str):
+        raise MessageError("body is not text", "body")
+    _check_size(body)
+    try:
+        data = json.loads(body, parse_constant=_refuse_constant)
+    except (ValueError, RecursionError) as exc:
+        raise MessageError(f"body is not valid JSON: {str(exc)[:120]}", "body") from exc
+    if not isinstance(data, dict):
+        raise MessageError("body is not a JSON object", "body")
+    version = data.pop("v", None)
+    if type(version) is not int:
+        raise MessageError("protocol version missing or not an integer", "v")
+    if version != PROTOCOL_VERSION:
+        raise MessageError(f"protocol version {version} not supported (this side: {PROTOCOL_VERSION})", "v")
+    return _check_value(cls, data, "")
+
+
+def parse_with_metadata(meta: dict[str, str], body: str | bytes) -> Message:
+    """Parse a body and check the metadata it came with: ontology, protocol and matching conversation id."""
+    if meta.get("ontology") != ONTOLOGY:
+        raise MessageError(f"ontology {str(meta.get('ontology'))[:40]!r} is not {ONTOLOGY!r}", "ontology")
+    if meta.get("protocol") != PROTOCOL:
+        raise MessageError(f"protocol {str(meta.get('protocol'))[:40]!r} is not {PROTOCOL!r}", "protocol")
+    msg = parse(meta.get("performative", ""), body)
+    if meta.get("conversation") != msg.conversation:
+        raise MessageError("conversation id in the metadata differs from the body's", "conversation")
+    return msg
+
+
+def _check_size(body: str | bytes) -> None:
+    # len() of a str counts characters, each at least one byte: a cheap bound before encoding it.
+    if len(body) > MAX_BODY_BYTES:
+        raise MessageError(f"body of {len(body)}+ bytes exceeds the limit of {MAX_BODY_BYTES}", "body")
+    if isinstance(body, str):
+        try:
+            size = len(body.encode("utf-8"))
+        except UnicodeEncodeError as exc:
+            raise MessageError("body holds characters that are not valid Unicode", "body") from exc
+        if size > MAX_BODY_BYTES:
+            raise MessageError(f"body of {size} bytes exceeds the limit of {MAX_BODY_BYTES}", "body")
+    if len(body) == 0:
+        raise MessageError("empty body", "body")
+
+
+def _refuse_constant(name: str) -> None:
+    raise MessageError(f"non-finite number {name} in body", "body")
+
+
+def _to_json(value: Any) -> Any:
+    if isinstance(value, Rect):
+        return value.as_list()
+    if dataclasses.is_dataclass(value):
+        return {f.name: _to_json(getattr(value, f.name)) for f in _wire_fields(value)}
+    if isinstance(value, tuple | list):
+        return [_to_json(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _to_json(v) for k, v in value.items()}
+    return value
+
+
+# --- validation: JSON value -> typed value, driven by the dataclasses' type hints --------------------------
+
+_HINTS: dict[type, dict[str, Any]] = {}
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    if cls not in _HINTS:
+        _HINTS[cls] = typing.get_type_hints(cls)
+    return _HINTS[cls]
+
+
+def _check_value(cls: type, data: Any, where: str) -> Any:
+    """Build a dataclass instance from a JSON object, checking every field; `where` names the path so far."""
+    if not isinstance(data, dict):
+        raise MessageError("expected a JSON object", where or "body")
+    hints = _hints(cls)
+    names = [f.name for f in _wire_fields(cls)]
+    unknown = sorted(set(data) - set(names))
+    if unknown:
+        raise MessageError(f"unknown field {unknown[0][:40]!r}", _join(where, unknown[0][:40]))
+    values = {}
+    for f in _wire_fields(cls):
+        path = _join(where, f.name)
+        if f.name not in data:
+            if f.default is dataclasses.MISSING:
+                raise MessageError("required field missing", path)
+            values[f.name] = f.default
+            continue
+        values[f.name] = _convert(hints[f.name], data[f.name], dict(f.metadata), path)
+    try:
+        obj = cls(**values)
+    except MessageError as exc:  # a type's own checks (e.g. a unit's S against its rectangle)
+        raise MessageError(exc.reason, exc.field or where or "body") from exc
+    if hasattr(obj, "check"):
+        obj.check()
+    return obj
+
+
+def _wire_fields(cls: Any) -> list[dataclasses.Field]:
+    """The fields that travel: a field marked `wire=False` (e.g. a unit's neighbours) stays at home and
+    takes its default on the receiving side."""
+    return [f for f in dataclasses.fields(cls) if f.metadata.get("wire", True)]
+
+
+def _join(where: str, name: str) -> str:
+    return f"{where}.{name}" if where else name
+
+
+def _convert(hint: Any, value: Any, meta: dict[str, Any], path: str) -> Any:
+    origin = typing.get_origin(hint)
+    if origin in (Union, types.UnionType):
+        if value is None and type(None) in typing.get_args(hint):
+            return None
+        (inner,) = [a for a in typing.get_args(hint) if a is not type(None)]
+        return _convert(inner, value, meta, path)
+    if hint is Rect:
+        return _rect(value, path)
+    if dataclasses.is_dataclass(hint):
+        return _check_value(hint, value, path)
+    if origin is tuple:
+        return _tuple(hint, value, meta, path)
+    if origin is dict:
+        return _mapping(hint, value, meta, path)
+    return _scalar(hint, value, meta, path)
+
+
+def _tuple(hint: Any, value: Any, meta: dict[str, Any], path: str) -> tuple:
+    if not isinstance(value, list):
+        raise MessageError("expected a JSON array", path)
+    args = typing.get_args(hint)
+    if len(args) == 2 and args[1] is Ellipsis:
+        if len(value) > meta.get("max_items", 1 << 16) or len(value) < meta.get("min_items", 0):
+            raise MessageError(f"array of {len(value)} items outside the allowed count", path)
+        inner = {k: v for k, v in meta.items() if k not in ("max_items", "min_items")}
+        return tuple(_convert(args[0], v, inner, f"{path}[{i}]") for i, v in enumerate(value))
+    if len(value) != len(args):
+        raise MessageError(f"expected {len(args)} items, got {len(value)}", path)
+    pairs = enumerate(zip(args, value, strict=True))
+    return tuple(_convert(a, v, meta, f"{path}[{i}]") for i, (a, v) in pairs)
+
+
+def _mapping(hint: Any, value: Any, meta: dict[str, Any], path: str) -> dict:
+    if not isinstance(value, dict):
+        raise MessageError("expected a JSON object", path)
+    if len(value) > meta.get("max_items", 1 << 16):
+        raise MessageError(f"object of {len(value)} entries exceeds the allowed count", path)
+    _, inner_hint = typing.get_args(hint)
+    inner = {k: v for k, v in meta.items() if k not in ("max_items", "key_pattern")}
+    out = {}
+    for key, item in value.items():
+        if not meta.get("key_pattern", _NAME).fullmatch(key):
+            raise MessageError(f"key {key[:40]!r} is not a valid name", path)
+        out[key] = _convert(inner_hint, item, inner, f"{path}.{key}")
+    return out
+
+
+def _rect(value: Any, path: str) -> Rect:
+    if not isinstance(value, list) or len(value) != 4 or any(type(v) is not int for v in value):
+        raise MessageError("expected a rectangle [x, y, w, h] of integers", path)
+    if any(v < 0 or v > 65536 for v in value):
+        raise MessageError(f"rectangle {value} has a coordinate outside 0..65536", path)
+    return Rect.from_list(value)
+
+
+def _scalar(hint: Any, value: Any, meta: dict[str, Any], path: str) -> Any:
+    if hint is bool:
+        if type(value) is not bool:
+            raise MessageError("expected true or false", path)
+        return value
+    if hint is int:
+        if type(value) is not int:  # bool is an int subclass: refused here on purpose
+            raise MessageError("expected an integer", path)
+    elif hint is float:
+        if type(value) not in (int, float):
+            raise MessageError("expected a number", path)
+        if isinstance(value, int) and abs(value) > 1 << 53:
+            raise MessageError("number out of range", path)
+        value = float(value)
+        if not math.isfinite(value):
+            raise MessageError("expected a finite number", path)
+    elif hint is str:
+        if type(value) is not str:
+            raise MessageError("expected a string", path)
+        if len(value) > meta.get("max_len", 128):
+            raise MessageError(f"string of {len(value)} characters is too long", path)
+        if "pattern" in meta and not meta["pattern"].fullmatch(value):
+            raise MessageError(f"malformed value {value[:40]!r}", path)
+        if "choices" in meta and value not in meta["choices"]:
+            raise MessageError(f"{value[:40]!r} is not one of {', '.join(meta['choices'])}", path)
+        return value
+    else:  # pragma: no cover - a schema bug, not a peer's
+        raise TypeError(f"unsupported field type {hint!r} at {path}")
+    if value < meta.get("lo", -math.inf) or value > meta.get("hi", math.inf):
+        raise MessageError(f"{value} outside {meta.get('lo')}..{meta.get('hi')}", path)
+    return value

@@ -1,0 +1,82 @@
+"""Work units: the rectangles the master auctions, with the features the fuzzy rules read (C, S, Nd)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from core.errors import MessageError
+from core.model.fields import constrained
+from core.model.geometry import Rect
+
+
+class UnitError(MessageError):
+    """A unit description (e.g. from a message or a job file) that is malformed."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class WorkUnit:
+    """One work unit: its rectangle and the features the fuzzy engine and the auction use. The same
+    object is planned, stored, announced in calls for proposals and rendered.
+
+    `C` is the unit's complexity (mean per-sample noise of its pixels), `S` its size in pixels
+    (its area), `Nd` the largest absolute difference between its C and a neighbour's C, `cost` its
+    estimated relative render time (sum of per-pixel time per sample), `neighbours` the indices of
+    the units that share a border of positive length with it.
+    """
+
+    index: int = constrained(lo=0, hi=10**7)
+    rect: Rect
+    C: float = constrained(lo=0.0, hi=1e12)
+    S: int = constrained(lo=0, hi=1 << 32)
+    Nd: float = constrained(lo=0.0, hi=1e12)
+    cost: float = constrained(lo=0.0, hi=1e12)  # seconds on a reference agent of speed 1
+    # The partition's adjacency: the planner's business, not the agents' (so never on the wire).
+    neighbours: tuple[int, ...] = constrained(wire=False, default=())
+
+    def __post_init__(self) -> None:
+        area = self.rect.area
+        if type(self.S) is not int or area != self.S:
+            raise UnitError(f"unit {self.index}: S={self.S} differs from its rectangle's area {area}")
+        for name in ("C", "Nd", "cost"):
+            value = getattr(self, name)
+            if not math.isfinite(value) or value < 0:
+                raise UnitError(f"unit {self.index}: field {name!r} must be finite and >= 0, got {value!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "index": self.index,
+            "rect": self.rect.as_list(),
+            "C": self.C,
+            "S": self.S,
+            "Nd": self.Nd,
+            "cost": self.cost,
+            "neighbours": list(self.neighbours),
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> WorkUnit:
+        """Rebuild a unit from `to_dict`'s output; a missing or malformed field raises UnitError naming it."""
+        if not isinstance(data, dict):
+            raise UnitError(f"unit must be a JSON object, got {type(data).__name__}")
+        try:
+            return cls(
+                index=int(_field(data, "index")),
+                rect=Rect.from_list(_field(data, "rect")),
+                C=float(_field(data, "C")),
+                S=int(_field(data, "S")),
+                Nd=float(_field(data, "Nd")),
+                cost=float(_field(data, "cost")),
+                neighbours=tuple(int(n) for n in data.get("neighbours", ())),
+            )
+        except UnitError:
+            raise
+        except (TypeError, ValueError) as exc:
+            raise UnitError(f"malformed unit {data!r}: {exc}") from exc
+
+
+def _field(data: dict[str, Any], name: str) -> Any:
+    if name not in data:
+        raise UnitError(f"unit is missing field {name!r}")
+    return data[name]

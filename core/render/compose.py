@@ -1,0 +1,220 @@
+"""Composition: blend the returned tiles (unit core plus interpolation band) into one image.
+
+Every tile gets a separable weight w(x) * w(y) over its rendered rectangle: 1 inside its core, falling
+linearly across the band to a small positive value at the band's outer edge (distance d outside the core
+on a side with band b gets 1 - d / (b + 1)). The composed pixel is the weighted mean of the tiles that
+cover it, so the normalised weights sum to one at every covered pixel, horizontally, vertically and at
+corners alike, and a pixel covered by a single tile takes that tile's value.
+
+Rules for the awkward cases (counted in `ComposeReport`):
+  - a non-finite pixel (any channel NaN or Inf) gets weight 0 in that tile, so it never spreads;
+  - a covered pixel with no finite contribution is filled with the mean of the finite composed pixels
+    in its 3x3 neighbourhood, or 0 when there are none (`filled`);
+  - a pixel no tile covers raises TileError, or with `allow_uncovered=True` is 0 and counted;
+  - duplicate tiles for the same core (a late second delivery) are ignored: the first in the list wins;
+  - every channel (alpha, AOVs, moments) is blended with the same weights; all tiles must carry the
+    same channels in the same order (TileError otherwise).
+
+Memory: `compose_planar` works in bands of rows and reads each tile only while a band needs it (a
+`TileSource` loads it from its file), so composing needs the output image (float32, planar: one
+contiguous plane per channel, as an EXR is written) plus a band's float64 sums and the tiles of one row
+of units: well under twice the output image for any size.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from core.errors import TileError
+from core.model.geometry import Rect
+
+
+class TileLike(Protocol):
+    pixels: np.ndarray
+    rect: Rect
+    core: Rect
+    channels: tuple[str, ...]
+
+
+@dataclass
+class ComposeReport:
+    """What composition had to do beyond plain blending."""
+
+    nonfinite: dict[tuple[int, int, int, int], int] = field(default_factory=dict)  # core -> count
+    filled: int = 0  # covered pixels with no finite contribution, filled from their neighbours
+    uncovered: int = 0  # pixels no tile covers (only with allow_uncovered=True)
+    duplicates_ignored: int = 0
+    tiles_used: int = 0
+
+    def to_dict(self) -> dict:
+        return {
+            "nonfinite": [{"core": list(k), "count": v} for k, v in sorted(self.nonfinite.items())],
+            "nonfinite_total": sum(self.nonfinite.values()),
+            "filled": self.filled,
+            "uncovered": self.uncovered,
+            "duplicates_ignored": self.duplicates_ignored,
+            "tiles_used": self.tiles_used,
+        }
+
+
+def ramp(start: int, stop: int, core_start: int, core_stop: int) -> np.ndarray:
+    """1-D weights over [start, stop): 1 on [core_start, core_stop), linear fall-off across each band."""
+    pos = np.arange(start, stop, dtype=np.float64)
+    before = np.maximum(core_start - pos, 0.0)  # distance outside the core, left/top
+    after = np.maximum(pos - (core_stop - 1), 0.0)  # distance outside the core, right/bottom
+    band_before = max(core_start - start, 0)
+    band_after = max(stop - core_stop, 0)
+    return (1.0 - before / (band_before + 1)) * (1.0 - after / (band_after + 1))
+
+
+def tile_weight(rect: Rect, core: Rect) -> np.ndarray:
+    """Un-normalised weight (h, w) of a tile over its rendered rectangle: > 0 everywhere, 1 on its core."""
+    wx = ramp(rect.x, rect.x1, core.x, core.x1)
+    wy = ramp(rect.y, rect.y1, core.y, core.y1)
+    return np.outer(wy, wx)
+
+
+def blend_weights(geometry: Sequence[tuple[Rect, Rect]], width: int, height: int) -> list[np.ndarray]:
+    """Normalised weights of each (rect, core) tile over its rect; they sum to one at every covered pixel."""
+    total = np.zeros((height, width), dtype=np.float64)
+    raw = [tile_weight(rect, core) for rect, core in geometry]
+    for (rect, _), w in zip(geometry, raw, strict=True):
+        total[rect.slices()] += w
+    return [w / total[rect.slices()] for (rect, _), w in zip(geometry, raw, strict=True)]
+
+
+@dataclass(frozen=True)
+class TileSource:
+    """A tile known by its header (where it lies, its channels and meta), loaded only when needed."""
+
+    rect: Rect
+    core: Rect
+    channels: tuple[str, ...]
+    load: Callable[[], TileLike]
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+def _as_source(tile: TileLike | TileSource) -> TileSource:
+    if isinstance(tile, TileSource):
+        return tile
+    return TileSource(tile.rect, tile.core, _channels(tile), lambda: tile, dict(getattr(tile, "meta", {})))
+
+
+def compose(
+    tiles: Iterable[TileLike], width: int, height: int, allow_uncovered: bool = False
+) -> tuple[np.ndarray, ComposeReport]:
+    """Blend tiles into a float32 (height, width, channels) image; see the module docstring for the rules."""
+    planar, report = compose_planar(tiles, width, height, allow_uncovered)
+    return np.ascontiguousarray(planar.transpose(1, 2, 0)), report
+
+
+def compose_planar(tiles: Iterable[TileLike | TileSource], width: int, height: int,
+                   allow_uncovered: bool = False, band_rows: int = 128) -> tuple[np.ndarray, ComposeReport]:
+    """Blend tiles into a float32 (channels, height, width) image, a band of rows at a time."""
+    report = ComposeReport()
+    chosen = _dedupe([_as_source(t) for t in tiles], width, height, report)
+    depth = len(chosen[0].channels) if chosen else 3
+    image = np.zeros((depth, height, width), dtype=np.float32)
+    covered = np.zeros((height, width), dtype=bool)
+    has = np.zeros((height, width), dtype=bool)
+    loaded: dict[int, TileLike] = {}
+    for y0 in range(0, height, band_rows):
+        y1 = min(height, y0 + band_rows)
+        acc = np.zeros((depth, y1 - y0, width), dtype=np.float64)
+        wsum = np.zeros((y1 - y0, width), dtype=np.float64)
+        for i, source in enumerate(chosen):
+            if source.rect.y < y1 and source.rect.y1 > y0:
+                tile = loaded.get(i) or loaded.setdefault(i, _loaded(source, report))
+                _accumulate(tile, y0, y1, acc, wsum, covered)
+                if source.rect.y1 <= y1:
+                    loaded.pop(i)  # no later band needs it
+        band_has = wsum > 0
+        image[:, y0:y1][:, band_has] = (acc[:, band_has] / wsum[band_has]).astype(np.float32)
+        has[y0:y1] = band_has
+        del acc, wsum  # before the next band's are made
+    report.tiles_used = len(chosen)
+    _check_coverage(covered, allow_uncovered, report)
+    holes = covered & ~has
+    report.filled = int(np.count_nonzero(holes))
+    if report.filled:
+        _fill_holes(image, holes, has)
+    return image, report
+
+
+def _loaded(source: TileSource, report: ComposeReport) -> TileLike:
+    """The tile's pixels, checked against its header; its non-finite pixels counted once."""
+    tile = source.load()
+    where = f"tile for unit {source.core.as_list()}"
+    expected = (source.rect.h, source.rect.w, len(source.channels))
+    if np.shape(tile.pixels) != expected:
+        raise TileError(f"{where}: pixels have shape {np.shape(tile.pixels)}, expected {expected}")
+    bad = int((~np.isfinite(tile.pixels)).any(axis=2).sum())
+    if bad:
+        report.nonfinite[tuple(source.core.as_list())] = bad
+    return tile
+
+
+def _accumulate(tile: TileLike, y0: int, y1: int, acc: np.ndarray, wsum: np.ndarray, covered: np.ndarray) -> None:
+    """Add the rows [y0, y1) of a tile, weighted, to a band's sums (non-finite pixels weigh 0)."""
+    rect = tile.rect
+    top, bottom = max(y0, rect.y), min(y1, rect.y1)
+    rows = slice(top - rect.y, bottom - rect.y)
+    pixels = np.asarray(tile.pixels[rows], dtype=np.float64)
+    finite = np.all(np.isfinite(pixels), axis=2)
+    w = tile_weight(rect, tile.core)[rows] * finite
+    cols = slice(rect.x, rect.x1)
+    acc[:, top - y0:bottom - y0, cols] += np.moveaxis(np.where(finite[..., None], pixels, 0.0) * w[..., None], 2, 0)
+    wsum[top - y0:bottom - y0, cols] += w
+    covered[top:bottom, cols] = True
+
+
+def _dedupe(tiles: Iterable[TileSource], width: int, height: int, report: ComposeReport) -> list[TileSource]:
+    """Validate every tile's place and keep the first one delivered per core."""
+    seen: set[Rect] = set()
+    chosen: list[TileSource] = []
+    for tile in tiles:
+        _validate(tile, width, height)
+        if chosen and tile.channels != chosen[0].channels:
+            raise TileError(f"tile for unit {tile.core.as_list()}: channels {list(tile.channels)[:8]} differ "
+                            f"from the first tile's {list(chosen[0].channels)[:8]}")
+        if tile.core in seen:
+            report.duplicates_ignored += 1
+            continue
+        seen.add(tile.core)
+        chosen.append(tile)
+    return chosen
+
+
+def _validate(tile: TileSource, width: int, height: int) -> None:
+    rect, core = tile.rect, tile.core
+    where = f"tile for unit {core.as_list()}"
+    if rect.x < 0 or rect.y < 0 or rect.x1 > width or rect.y1 > height:
+        raise TileError(f"{where}: rectangle {rect.as_list()} lies outside the {width}x{height} image")
+    if core.intersect(rect) != core or core.area == 0:
+        raise TileError(f"{where}: core is empty or not inside the rendered rectangle {rect.as_list()}")
+
+
+def _channels(tile: TileLike) -> tuple[str, ...]:
+    return tuple(getattr(tile, "channels", ("R", "G", "B")))
+
+
+def _check_coverage(covered: np.ndarray, allow_uncovered: bool, report: ComposeReport) -> None:
+    missing = int(covered.size - np.count_nonzero(covered))
+    if missing and not allow_uncovered:
+        y, x = np.argwhere(~covered)[0]
+        raise TileError(f"{missing} pixel(s) covered by no tile, the first at x={x}, y={y}")
+    report.uncovered = missing
+
+
+def _fill_holes(image: np.ndarray, holes: np.ndarray, good: np.ndarray) -> None:
+    """Set each hole of the planar image to the mean of the blended (`good`) pixels in its 3x3
+    neighbourhood (else 0)."""
+    h, w = holes.shape
+    for y, x in np.argwhere(holes):
+        ys, xs = slice(max(0, y - 1), min(h, y + 2)), slice(max(0, x - 1), min(w, x + 2))
+        mask = good[ys, xs]
+        image[:, y, x] = image[:, ys, xs][:, mask].mean(axis=1) if mask.any() else 0.0

@@ -1,0 +1,141 @@
+"""The unit planner: unit features (C, S, Nd) and the user's level -> per unit depth, spp and band.
+
+Used by the render agents (each with its own rule file) and by the in-process pipeline. Level `off`
+applies no rules at all: every unit renders at the user's depth and spp, with the minimum band.
+Otherwise the fuzzy rule base (rules/pathtracing.xml unless told) weights the user's values, as
+`fuzzy.render_params` documents; the band never drops below `min_band`, the reach of the gaussian
+reconstruction filter (2 px), so that neighbouring tiles always overlap enough to blend.
+
+A user depth of -1 (unbounded, or an integrator that takes no depth) is kept as it is: there is no
+depth to weight. Depth is quantised: the crisp Rl is rounded to the nearest of DEPTH_STEPS (1, 3/4, 1/2 of the user's
+depth) before it weights the user's depth. Dr.Jit bakes max_depth into the kernel, so every distinct
+depth costs a compilation per window size (~0.1-0.5 s); three steps keep that bounded.
+
+No budget normalisation across units: a render agent plans the units it is offered one job-context at a
+time (the unit's features and the scene's ranges), so a unit's parameters depend only on those, the
+same in the farm as in `quekaro render`. How many samples a level spends overall is the rules' doing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from core.data import default_rules_path
+from fuzzy import Engine, load_rulebase
+from fuzzy.levels import RULE_LEVELS
+from fuzzy.render_params import masyro_render_params, to_render_params
+from fuzzy.terms import Trapezoid
+from fuzzy.variables import masyro_sets, widen_degenerate
+
+FEATURES = ("C", "S", "Nd")
+DEPTH_STEPS = (1.0, 0.75, 0.5)  # the fractions of the user's depth a unit may render with
+
+
+def quantise_depth_factor(rl: np.ndarray) -> np.ndarray:
+    """Each Rl rounded to the nearest of DEPTH_STEPS (ties go to the deeper step)."""
+    steps = np.asarray(DEPTH_STEPS)
+    rl = np.asarray(rl, dtype=np.float64)
+    return steps[np.argmin(np.abs(rl[:, None] - steps[None, :]), axis=1)]
+
+
+@dataclass(frozen=True)
+class RenderParams:
+    """What one unit renders with; `outputs` holds the crisp Rl, Ls, Ibs (empty at level off)."""
+
+    depth: int
+    spp: int
+    band: int
+    outputs: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class Planner:
+    """Compiles one rule file once; `plan` then maps many units at a time."""
+
+    def __init__(
+        self,
+        rules_path: str | os.PathLike[str] | None = None,
+        defuzzifier: str | None = None,
+        min_band: int = 2,
+    ) -> None:
+        if min_band < 0:
+            raise ValueError(f"min_band must be >= 0, got {min_band}")
+        self.rules_path = Path(rules_path) if rules_path is not None else default_rules_path()
+        self.rulebase = load_rulebase(self.rules_path)
+        # MASYRO's published inference is a centre of sums; the paper dialect's default is the exact centroid.
+        default = "centre-of-sums" if self.rulebase.dialect == "masyro" else "centroid"
+        self.engine = Engine(self.rulebase, defuzzifier or default)
+        self.min_band = int(min_band)
+        needed = {*FEATURES, "Op"}
+        if set(self.engine.input_names) != needed:
+            raise ValueError(
+                f"{self.rules_path}: a planner rule base needs inputs {sorted(needed)}, "
+                f"has {sorted(self.engine.input_names)}"
+            )
+
+    def plan(
+        self,
+        features: Mapping[str, np.ndarray],
+        level: str,
+        user_depth: int,
+        user_spp: int,
+        ranges: Mapping[str, tuple[float, float]] | None = None,
+    ) -> list[RenderParams]:
+        """One `RenderParams` per unit; `ranges` defaults to the min/max of the given features."""
+        cols = _feature_columns(features)
+        n = len(cols["C"])
+        if level == "off":
+            return [RenderParams(int(user_depth), int(user_spp), self.min_band) for _ in range(n)]
+        if level not in RULE_LEVELS:
+            choices = ", ".join(RULE_LEVELS)
+            raise ValueError(f"unknown optimisation level {level!r}; expected off or one of {choices}")
+        if n == 0:
+            return []
+        if ranges is None:
+            ranges = {k: (float(v.min()), float(v.max())) for k, v in cols.items()}
+        inputs = {**cols, "Op": np.full(n, self.rulebase.op_value(level))}
+        if self.rulebase.dialect == "masyro":
+            outputs = self._masyro_engine(ranges).evaluate(inputs)
+            maxima = {k: self.rulebase.output(k).universe[1] for k in ("Rl", "Ls")}
+            depth, spp, band = masyro_render_params(outputs, max(user_depth, 0), user_spp, maxima)
+        else:
+            outputs = self.engine.evaluate(inputs, ranges)
+            quantised = {**outputs, "Rl": quantise_depth_factor(outputs["Rl"])}
+            depth, spp, band = to_render_params(quantised, max(user_depth, 0), user_spp)
+        if user_depth < 1:  # unbounded (-1), or an integrator without depth: nothing to weight
+            depth = np.full(n, user_depth, dtype=np.int64)
+        band = np.maximum(band, self.min_band)
+        crisp = [{k: float(outputs[k][i]) for k in ("Rl", "Ls", "Ibs")} for i in range(n)]
+        return [RenderParams(int(depth[i]), int(spp[i]), int(band[i]), crisp[i]) for i in range(n)]
+
+
+    def _masyro_engine(self, ranges: Mapping[str, tuple[float, float]]) -> Engine:
+        """MASYRO's agent rewrote the sets of C, Nd and S for each job from the zones' range before it ran
+        the rules (its src/RenderAgent.py): the same here, with fuzzy.variables.masyro_sets."""
+        inputs = []
+        for var in self.rulebase.inputs:
+            if var.name in FEATURES:
+                lo, hi = widen_degenerate(*(float(v) for v in ranges[var.name]))
+                rows = masyro_sets(len(var.labels), lo, hi)
+                sets = tuple(Trapezoid(label, *row) for label, row in zip(var.labels, rows, strict=True))
+                var = dataclasses.replace(var, sets=sets, universe=(float(rows[0, 0]), float(rows[-1, 3])))
+            inputs.append(var)
+        return Engine(dataclasses.replace(self.rulebase, inputs=tuple(inputs)), self.engine.defuzzifier)
+
+
+def _feature_columns(features: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    missing = [k for k in FEATURES if k not in features]
+    if missing:
+        raise ValueError(f"unit features lack {', '.join(missing)} (need {', '.join(FEATURES)})")
+    cols = {k: np.atleast_1d(np.asarray(features[k], dtype=np.float64)) for k in FEATURES}
+    if len({c.shape for c in cols.values()}) != 1 or cols["C"].ndim != 1:
+        raise ValueError("unit features C, S, Nd must be 1-D arrays of one common length")
+    return cols

@@ -1,0 +1,218 @@
+"""Scene files: what a scene is (`SceneSpec`: a file plus `-D` parameters), loading it into Mitsuba,
+and reading facts from its XML without loading it (image size, film filter, files it references).
+
+The XML reader follows Mitsuba's own rules (core.render.resolver): `<default name value>` sets a parameter
+unless `-D` already did, `$name` is substituted in attribute values, `<include filename>` is expanded in
+place (at most 15 levels), and file names are looked up as Mitsuba's file resolver does (the scene's
+folder, `<path>` entries, the working directory, then the `-a` search paths of the SceneSpec).
+"""
+
+from __future__ import annotations
+
+import copy
+import re
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from lxml import etree
+
+from core.errors import SceneError
+from core.model.job import SceneSpec
+from core.render import resolver
+from core.render.resolver import SRC_ATTR, parse_xml
+
+__all__ = ["SRC_ATTR", "parse_xml"]
+
+_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+# Mitsuba's defaults when the XML does not say: hdrfilm 768x576, gaussian filter (stddev 0.5, radius 4 sd).
+DEFAULT_SIZE = (768, 576)
+DEFAULT_FILTER = "gaussian"
+_FILTER_RADIUS = {"box": 0.5, "tent": 1.0, "mitchell": 2.0, "catmullrom": 2.0}
+
+
+@dataclass(frozen=True)
+class FilmInfo:
+    """The film of a scene's first sensor: image size and reconstruction filter."""
+
+    width: int
+    height: int
+    filter_type: str
+    filter_radius: float
+
+
+def parse_defines(items: Iterable[str] | None) -> dict[str, str]:
+    """`["spp=16", "res=64"]` -> `{"spp": "16", "res": "64"}`, as Mitsuba's `-D`; clear errors otherwise."""
+    out: dict[str, str] = {}
+    for item in items or ():
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        if not sep:
+            raise SceneError(f"-D {item!r}: expected NAME=VALUE")
+        if not _NAME_RE.match(name):
+            raise SceneError(f"-D {item!r}: {name!r} is not a parameter name (letters, digits, _)")
+        if name in out and out[name] != value:
+            raise SceneError(f"-D {name} given twice with different values ({out[name]!r}, {value!r})")
+        out[name] = value
+    return out
+
+
+def load(spec: SceneSpec, variant: str | None = None, threads: int | None = None) -> Any:
+    """Load the scene into Mitsuba (variant set first if given, else the current one or the default)."""
+    import mitsuba as mi
+
+    from core.render import mitsuba_env
+
+    if variant is not None or mi.variant() is None:
+        mitsuba_env.init(variant or mitsuba_env.DEFAULT_VARIANT, threads)
+    elif threads is not None:
+        mitsuba_env.init(mi.variant(), threads)
+    path = spec.path
+    if not path.is_file():
+        raise SceneError(f"{path}: scene file not found")
+    import drjit as dr
+
+    # Loading deadlocks when Dr.Jit's pool has one thread (seen with matpreview's envmap, serial or
+    # parallel loader alike): load with two threads, then give the caller back its thread count.
+    threads_before = dr.thread_count()
+    if threads_before < 2:
+        dr.set_thread_count(2)
+    resolver = mi.file_resolver()
+    before = [str(resolver[i]) for i in range(len(resolver))]
+    for folder in spec.search_paths:  # as Mitsuba's `-a`: searched after everything else
+        resolver.append(str(folder))
+    try:
+        return mi.load_file(str(path), **spec.defines)
+    except RuntimeError as exc:
+        raise SceneError(f"{path}: {exc}") from exc
+    finally:
+        resolver.clear()
+        for folder in before:
+            resolver.append(folder)
+        if threads_before < 2:
+            dr.set_thread_count(threads_before)
+
+
+# ---- reading the XML -------------------------------------------------------------------------
+
+
+def read(spec: SceneSpec) -> resolver.SceneFiles:
+    """The scene's XML files and every file reference, resolved as Mitsuba does (core.render.resolver)."""
+    return resolver.read_scene(spec.path, spec.defines, spec.search_paths, cwd=Path.cwd())
+
+
+@dataclass
+class ExpandedXml:
+    """The scene XML with includes merged and parameters substituted."""
+
+    root: etree._Element
+    params: dict[str, str]
+    includes: list[Path]
+
+
+def expand(spec: SceneSpec) -> ExpandedXml:
+    """Parse the scene file, expanding `<include>` and substituting `$name` as Mitsuba does."""
+    files = read(spec)
+    root = copy.deepcopy(files.trees[files.main])
+    _splice(root, files)
+    includes = [r.target for r in files.references if r.kind == "include"]
+    return ExpandedXml(root, files.params, includes)
+
+
+def _splice(root: etree._Element, files: resolver.SceneFiles) -> None:
+    """Replace each `<include>` (in a copy) by the children of the file it resolved to, recursively."""
+    targets = {(r.file, r.line, r.name): r.target for r in files.references if r.kind == "include"}
+    for elem in [e for e in root.iter("include")]:
+        key = (Path(elem.get(SRC_ATTR, "")), elem.sourceline or 0, elem.get("filename", ""))
+        sub = copy.deepcopy(files.trees[targets[key]])
+        _splice(sub, files)
+        parent = elem.getparent()
+        index = parent.index(elem)
+        parent.remove(elem)
+        for offset, child in enumerate(list(sub)):
+            parent.insert(index + offset, child)
+
+
+def referenced_files(spec: SceneSpec) -> list[Path]:
+    """Every file the scene needs besides itself: includes, meshes, textures, envmaps, spectra.
+
+    Absolute, without duplicates, in the order Mitsuba resolves them; a missing file is a SceneError
+    naming the XML file, the line and every folder searched.
+    """
+    return read(spec).files()
+
+
+def _int_property(parent: etree._Element, name: str, default: int) -> int | None:
+    for child in parent:
+        if child.tag == "integer" and child.get("name") == name:
+            try:
+                return int(child.get("value", ""))
+            except ValueError:
+                return None  # an unresolved $parameter: let Mitsuba decide
+    return default
+
+
+def _float_property(parent: etree._Element, name: str) -> float | None:
+    for child in parent:
+        if child.tag == "float" and child.get("name") == name:
+            try:
+                return float(child.get("value", ""))
+            except ValueError:
+                return None
+    return None
+
+
+def _filter_from_xml(film: etree._Element | None) -> tuple[str, float] | None:
+    rfilter = film.find("rfilter") if film is not None else None
+    ftype = rfilter.get("type", DEFAULT_FILTER) if rfilter is not None else DEFAULT_FILTER
+    if ftype == "gaussian":
+        stddev = _float_property(rfilter, "stddev") if rfilter is not None else None
+        return ftype, 4.0 * (stddev if stddev is not None else 0.5)
+    if ftype in _FILTER_RADIUS:
+        radius = _float_property(rfilter, "radius") if rfilter is not None and ftype == "tent" else None
+        return ftype, radius if radius is not None else _FILTER_RADIUS[ftype]
+    return None
+
+
+def film_info_from_scene(scene: Any, sensor: int = 0) -> FilmInfo:
+    """Film facts of a loaded Mitsuba scene (sensor `sensor`)."""
+    sensors = scene.sensors()
+    if not 0 <= sensor < len(sensors):
+        raise SceneError(f"sensor {sensor} asked for, the scene has {len(sensors)}")
+    film = sensors[sensor].film()
+    width, height = (int(v) for v in film.size())
+    rfilter = film.rfilter()
+    name = rfilter.class_name().lower().removesuffix("filter")
+    return FilmInfo(width, height, name, float(rfilter.radius()))
+
+
+def sensor_elements(root: etree._Element) -> list[etree._Element]:
+    """The scene's top-level sensors, in the order Mitsuba numbers them (`-s N`)."""
+    return [e for e in root if isinstance(e.tag, str) and e.tag == "sensor"]
+
+
+def film_info(spec: SceneSpec, sensor: int = 0) -> FilmInfo:
+    """Image size and filter of the scene's sensor `sensor`, read from the XML (loads it when unsure)."""
+    root = expand(spec).root
+    sensors = sensor_elements(root)
+    if sensor < 0 or (sensors and sensor >= len(sensors)) or (not sensors and sensor > 0):
+        raise SceneError(f"{spec.path}: sensor {sensor} asked for, the scene declares {len(sensors)} "
+                         f"top-level sensor(s) (0..{max(len(sensors), 1) - 1})")
+    element = sensors[sensor] if sensors else None
+    film = element.find("film") if element is not None else None
+    width = _int_property(film, "width", DEFAULT_SIZE[0]) if film is not None else DEFAULT_SIZE[0]
+    height = _int_property(film, "height", DEFAULT_SIZE[1]) if film is not None else DEFAULT_SIZE[1]
+    filt = _filter_from_xml(film)
+    if width is None or height is None or filt is None:
+        return film_info_from_scene(load(spec), sensor)
+    if width < 1 or height < 1:
+        raise SceneError(f"{spec.path}: film size {width}x{height} must be at least 1x1")
+    return FilmInfo(width, height, filt[0], filt[1])
+
+
+def image_size(spec: SceneSpec, sensor: int = 0) -> tuple[int, int]:
+    """(width, height) of the image the scene renders through sensor `sensor`."""
+    info = film_info(spec, sensor)
+    return info.width, info.height

@@ -1,0 +1,460 @@
+"""Rendering one work unit: the job description (`RenderRequest`), the render itself, and the persistent child
+process (`RenderWorker`) that runs it so that an LLVM abort or a hang costs one unit, never the job.
+
+How a unit renders: the unit's rectangle grown by its band (clipped to the image) is rendered with the
+scene's own integrator (or, when the rules chose a depth, the scene's integrator with that `max_depth`:
+core.model.integrators), the unit's spp and seed, through the job's sensor. For perspective and thin-lens
+sensors the window is not a Mitsuba crop at the window's offset but a crop at (0, 0) of the window's
+size with the camera's principal point shifted by (x / W, y / H): the rays are the same (tested to float
+precision) while Dr.Jit compiles one kernel per window *size* instead of one per window *position* (a
+crop offset is baked into the kernel and costs ~0.45 s to compile; design.md section 3). Other sensors
+use a crop. The tile keeps every channel the film writes (the film's bitmap, as `mitsuba` writes it).
+
+Non-finite pixels (an emitter with infinite or NaN radiance): every non-finite channel value is set to
+0, and the number of pixels that had any is reported as `meta["nonfinite"]`, so they never propagate.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import traceback
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from core.errors import QuekaroError, RenderError, SceneError
+from core.model import integrators
+from core.model.geometry import Rect
+from core.model.job import SceneSpec
+from core.render.tiles import Tile
+from core.supervision import die_with_parent
+
+STARTUP_TIMEOUT_S = 120.0
+_PP_KEYS = ("principal_point_offset_x", "principal_point_offset_y")
+
+
+@dataclass(frozen=True)
+class RenderRequest:
+    """Everything a process needs to render one unit; JSON-serialisable through to_dict/from_dict.
+
+    `integrator=None` renders with the scene's own integrator; a plugin name is the user's override.
+    `max_depth=None` keeps the depth the scene wrote; a number replaces it on every depth-bearing
+    integrator of the tree. `sensor` indexes the scene's sensors (Mitsuba's `-s`).
+    """
+
+    scene: SceneSpec
+    variant: str
+    integrator: str | None
+    max_depth: int | None
+    spp: int
+    seed: int
+    width: int
+    height: int
+    unit: Rect
+    band: int = 0
+    threads: int | None = None
+    job_id: str = ""
+    unit_index: int = -1
+    extra: dict[str, Any] = field(default_factory=dict)
+    sensor: int = 0
+
+    def __post_init__(self) -> None:
+        _check_job(self)
+
+    @property
+    def window(self) -> Rect:
+        """The rectangle actually rendered: the unit grown by its band, clipped to the image."""
+        return self.unit.grow(self.band, self.width, self.height)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "scene": self.scene.to_dict(), "variant": self.variant, "integrator": self.integrator,
+            "max_depth": self.max_depth, "spp": self.spp, "seed": self.seed, "width": self.width,
+            "height": self.height, "unit": self.unit.as_list(), "band": self.band,
+            "threads": self.threads, "job_id": self.job_id, "unit_index": self.unit_index,
+            "extra": dict(self.extra), "sensor": self.sensor,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> RenderRequest:
+        try:
+            return cls(
+                scene=SceneSpec.from_dict(data["scene"]), variant=str(data["variant"]),
+                integrator=data.get("integrator"), max_depth=_opt_int(data.get("max_depth")),
+                spp=int(data["spp"]), seed=int(data["seed"]), width=int(data["width"]),
+                height=int(data["height"]), unit=Rect.from_list(data["unit"]),
+                band=int(data.get("band", 0)), threads=_opt_int(data.get("threads")),
+                job_id=str(data.get("job_id", "")), unit_index=int(data.get("unit_index", -1)),
+                extra=dict(data.get("extra") or {}), sensor=int(data.get("sensor", 0)),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise RenderError(f"malformed unit job ({type(exc).__name__}: {exc})") from exc
+
+
+def _opt_int(value: Any) -> int | None:
+    return None if value is None else int(value)
+
+
+def _check_job(job: RenderRequest) -> None:
+    problems = []
+    if job.spp < 1:
+        problems.append(f"spp={job.spp} (must be >= 1; Mitsuba reads 0 as 'sampler default')")
+    if job.max_depth is not None and job.max_depth < -1:
+        problems.append(f"max_depth={job.max_depth} (must be >= -1)")
+    if job.sensor < 0:
+        problems.append(f"sensor={job.sensor} (must be >= 0)")
+    if not 0 <= job.seed < 2**32:
+        problems.append(f"seed={job.seed} (must fit 32 bits)")
+    if job.width < 1 or job.height < 1:
+        problems.append(f"image {job.width}x{job.height} (must be at least 1x1)")
+    if job.band < 0:
+        problems.append(f"band={job.band} (must be >= 0)")
+    if job.threads is not None and job.threads < 1:
+        problems.append(f"threads={job.threads} (must be >= 1)")
+    image = Rect(0, 0, job.width, job.height)
+    if job.unit.area == 0 or image.intersect(job.unit) != job.unit:
+        problems.append(f"unit {job.unit.as_list()} is empty or outside the {job.width}x{job.height} image")
+    if problems:
+        raise RenderError("bad unit job: " + "; ".join(problems))
+
+
+# ---- rendering, in whichever process calls it ------------------------------------------------------
+
+
+class _SceneCache:
+    """The last loaded scene and the integrators built for it, so consecutive units reuse them."""
+
+    def __init__(self) -> None:
+        self.key: tuple[Any, ...] | None = None
+        self.scene: Any = None
+        self.integrator_xml: Any = None
+        self.own_depth: int | None = None
+        self.base_pp: dict[int, tuple[float, float] | None] = {}
+        self.integrators: dict[tuple[str | None, int | None], Any] = {}
+
+    def scene_for(self, spec: SceneSpec, variant: str, threads: int | None) -> tuple[Any, float]:
+        """(scene, seconds spent loading it now: 0 when cached)."""
+        from core.render import mitsuba_env, scene
+
+        used = mitsuba_env.init(variant, threads)
+        key = (spec.key(), used)
+        if key == self.key:
+            return self.scene, 0.0
+        start = time.perf_counter()
+        self.scene, self.key = None, None  # free the old scene before loading the next
+        self.scene = scene.load(spec)
+        self.integrator_xml = integrators.scene_element(scene.expand(spec).root)
+        self.own_depth = integrators.depth_of(self.integrator_xml)
+        self.key, self.integrators, self.base_pp = key, {}, {}
+        return self.scene, time.perf_counter() - start
+
+    def principal_point(self, sensor: int) -> tuple[float, float] | None:
+        if sensor not in self.base_pp:
+            self.base_pp[sensor] = principal_point(self.scene, sensor)
+        return self.base_pp[sensor]
+
+    def integrator(self, override: str | None, depth: int | None) -> Any:
+        """None (the scene's own) unless the user overrode the type or a depth must change."""
+        if override is None and (depth is None or self.own_depth in (None, depth)):
+            return None
+        key = (override, depth)
+        if key not in self.integrators:
+            self.integrators[key] = _build_integrator(override, depth, self.integrator_xml)
+        return self.integrators[key]
+
+
+def _build_integrator(override: str | None, depth: int | None, scene_xml: Any) -> Any:
+    import mitsuba as mi
+
+    try:
+        if override is None:
+            return mi.load_string(integrators.with_depth(scene_xml, int(depth)))
+        props: dict[str, Any] = {"type": override}
+        if depth is not None and integrators.kind(override).depth:
+            props["max_depth"] = depth
+        return mi.load_dict(props)
+    except RuntimeError as exc:
+        what = override or integrators.describe(scene_xml)
+        raise RenderError(f"cannot build integrator {what} at depth {depth}: {exc}") from exc
+
+
+_local_cache = _SceneCache()
+
+
+def sensor_of(scene: Any, index: int, where: str = "scene") -> Any:
+    """The scene's sensor `index` (Mitsuba's `-s`), or a RenderError saying how many there are."""
+    sensors = scene.sensors()
+    if not 0 <= index < len(sensors):
+        raise RenderError(f"{where}: sensor {index} asked for, the scene has {len(sensors)} (0..{len(sensors) - 1})")
+    return sensors[index]
+
+
+def principal_point(scene: Any, sensor: int = 0) -> tuple[float, float] | None:
+    """The sensor's own principal-point offset, or None when it has none (not perspective)."""
+    import mitsuba as mi
+
+    params = mi.traverse(sensor_of(scene, sensor))
+    if not all(k in params for k in _PP_KEYS):
+        return None
+    return float(params[_PP_KEYS[0]][0]), float(params[_PP_KEYS[1]][0])
+
+
+def set_window(scene: Any, window: Rect, base: tuple[float, float] | None, sensor: int = 0) -> str:
+    """Make the scene's sensor render `window` of its film; return the method ("shift" or "crop").
+
+    `base` is the sensor's principal point as loaded (from `principal_point`), None for a crop.
+    """
+    import mitsuba as mi
+
+    params = mi.traverse(sensor_of(scene, sensor))
+    width, height = (int(v) for v in params["film.size"])
+    if base is not None:
+        params[_PP_KEYS[0]] = base[0] + window.x / width
+        params[_PP_KEYS[1]] = base[1] + window.y / height
+        params["film.crop_offset"] = [0, 0]
+        method = "shift"
+    else:
+        params["film.crop_offset"] = [window.x, window.y]
+        method = "crop"
+    params["film.crop_size"] = [window.w, window.h]
+    params.update()
+    return method
+
+
+def sanitize(pixels: np.ndarray) -> tuple[np.ndarray, int]:
+    """(pixels with every non-finite value set to 0, number of pixels that had one)."""
+    bad = ~np.isfinite(pixels)
+    count = int(bad.any(axis=-1).sum())
+    if count:
+        pixels = np.where(bad, np.float32(0.0), pixels).astype(np.float32)
+    return pixels, count
+
+
+def film_channels(film: Any) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Every channel the film holds after a render, as `mitsuba` writes them: (H x W x C, names)."""
+    bitmap = film.bitmap()
+    names = tuple(bitmap.struct_()[i].name for i in range(bitmap.channel_count()))
+    array = np.array(bitmap, dtype=np.float32, copy=True)
+    if array.ndim == 2:
+        array = array[..., None]
+    if names[:3] != ("R", "G", "B"):
+        if names[:1] in (("Y",), ("L",)):  # a mono film: its one channel is the image
+            return np.repeat(array[..., :1], 3, axis=-1), ("R", "G", "B")
+        raise RenderError(f"film channels {list(names)[:8]} do not start with R, G, B")
+    return np.ascontiguousarray(array), names
+
+
+def render_job_here(job: RenderRequest, cache: _SceneCache | None = None) -> Tile:
+    """Render the unit in this process (the child calls this; so can a test or a benchmark)."""
+    import mitsuba as mi
+
+    cache = cache or _local_cache
+    scene, load_s = cache.scene_for(job.scene, job.variant, job.threads)
+    sensor = sensor_of(scene, job.sensor, str(job.scene.path))
+    film = sensor.film()
+    if tuple(int(v) for v in film.size()) != (job.width, job.height):
+        size = tuple(int(v) for v in film.size())
+        raise RenderError(f"{job.scene.path}: film is {size[0]}x{size[1]}, job says {job.width}x{job.height}")
+    window = job.window
+    method = set_window(scene, window, cache.principal_point(job.sensor), job.sensor)
+    integrator = cache.integrator(job.integrator, job.max_depth)
+    start = time.perf_counter()
+    mi.render(scene, sensor=job.sensor, integrator=integrator, spp=job.spp, seed=job.seed)
+    raw, channels = film_channels(film)
+    pixels, nonfinite = sanitize(raw)
+    seconds = time.perf_counter() - start
+    meta = {
+        "job_id": job.job_id, "unit_index": job.unit_index, "seconds": seconds, "load_seconds": load_s,
+        "nonfinite": nonfinite, "spp": job.spp, "depth": job.max_depth, "integrator": job.integrator,
+        "variant": mi.variant(), "seed": job.seed, "band": job.band, "window_method": method,
+        "pid": os.getpid(), "sensor": job.sensor,
+    }
+    return Tile(pixels, window, job.unit, meta, channels)
+
+
+def render_full(spec: SceneSpec, variant: str, integrator: str | None, depth: int | None, spp: int,
+                seed: int = 0, threads: int | None = None, sensor: int = 0) -> np.ndarray:
+    """A plain render of the whole image in this process (the reference benchmarks compare against)."""
+    from core.render import scene as scene_mod
+
+    width, height = scene_mod.image_size(spec, sensor)
+    job = RenderRequest(spec, variant, integrator, depth, spp, seed, width, height, Rect(0, 0, width, height),
+                  threads=threads, sensor=sensor)
+    return render_job_here(job).pixels
+
+
+# ---- the child process ------------------------------------------------------------------------------
+
+
+def _child_entry(fd: int) -> None:
+    """Entry point of the render process: fd is its end of the socket pair to the parent."""
+    _child_main(Connection(fd))
+
+
+def _child_main(conn: Any) -> None:
+    """Loop of the render process: receive a job dict, answer ("ok", pixels, rect, meta) or ("error", ...)."""
+    start = time.perf_counter()
+    import mitsuba  # noqa: F401  (imported once here, so each unit pays nothing for it)
+
+    conn.send(("ready", {"import_seconds": time.perf_counter() - start, "pid": os.getpid()}))
+    cache = _SceneCache()
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):
+            return  # the parent went away
+        if message is None:
+            return
+        try:
+            tile = render_job_here(RenderRequest.from_dict(message), cache)
+            conn.send(("ok", tile.pixels, tile.rect.as_list(), tile.meta, tile.channels))
+        except Exception as exc:
+            kind = type(exc).__name__ if isinstance(exc, QuekaroError) else "RenderError"
+            conn.send(("error", kind, f"{type(exc).__name__}: {exc}", traceback.format_exc(limit=3)))
+
+
+def _death_reason(exitcode: int | None) -> str:
+    if exitcode is None:
+        return "render process stopped answering"
+    if exitcode < 0:
+        try:
+            return f"render process killed by {signal.Signals(-exitcode).name}"
+        except ValueError:
+            return f"render process killed by signal {-exitcode}"
+    return f"render process exited with status {exitcode}"
+
+
+class RenderWorker:
+    """A persistent child process rendering units one at a time, restarted after a crash or timeout.
+
+    It keeps Mitsuba imported and the last scene loaded, so a unit costs little more than its render.
+    """
+
+    def __init__(self, startup_timeout: float = STARTUP_TIMEOUT_S) -> None:
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._conn: Connection | None = None
+        self.startup_timeout = startup_timeout
+        self.starts = 0
+        self.import_seconds: float | None = None
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid if self._proc is not None else None
+
+    def alive(self) -> bool:
+        return self._proc is not None and self._proc.poll() is None
+
+    def start(self) -> None:
+        """Start the child (if not running) and wait until Mitsuba is imported in it."""
+        if self.alive():
+            return
+        self._discard()
+        # A plain subprocess, not multiprocessing: spawn would re-import the caller's __main__, and
+        # fork would copy a process that may hold Dr.Jit threads.
+        ours, theirs = socket.socketpair()
+        root = str(Path(__file__).resolve().parents[2])
+        path = os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))
+        env = {**os.environ, "PYTHONPATH": path}
+        code = f"import core.render.worker as r; r._child_entry({theirs.fileno()})"
+        self._proc = subprocess.Popen([sys.executable, "-c", code], pass_fds=(theirs.fileno(),), env=env,
+                                      stdin=subprocess.DEVNULL, preexec_fn=die_with_parent)
+        theirs.close()
+        self._conn = Connection(ours.detach())
+        self.starts += 1
+        if not self._conn.poll(self.startup_timeout):
+            self._kill()
+            raise RenderError(f"render process did not start within {self.startup_timeout:.0f} s")
+        try:
+            _, info = self._conn.recv()
+        except (EOFError, OSError):
+            reason = _death_reason(self._reap())
+            raise RenderError(f"render process failed to start ({reason})") from None
+        self.import_seconds = float(info["import_seconds"])
+
+    def stop(self) -> None:
+        """Ask the child to exit; kill it if it does not within a few seconds."""
+        if self._proc is None:
+            return
+        with contextlib.suppress(OSError):
+            self._conn.send(None)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self._proc.wait(5)
+        self._kill()
+
+    def __enter__(self) -> RenderWorker:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def render(self, job: RenderRequest, timeout: float | None = None) -> Tile:
+        """Render one unit in the child; a crash or timeout is a RenderError, and the next call restarts."""
+        self.start()
+        where = f"unit {job.unit_index} {job.unit.as_list()}"
+        try:
+            self._conn.send(job.to_dict())
+        except (OSError, BrokenPipeError):
+            reason = _death_reason(self._reap())
+            raise RenderError(f"{where}: {reason}") from None
+        if not self._conn.poll(timeout):
+            self._kill()
+            raise RenderError(f"{where}: timed out after {timeout:.1f} s (render process killed)")
+        try:
+            answer = self._conn.recv()
+        except (EOFError, OSError):
+            reason = _death_reason(self._reap())
+            raise RenderError(f"{where}: {reason}") from None
+        return self._tile_from_answer(answer, job, where)
+
+    @staticmethod
+    def _tile_from_answer(answer: tuple[Any, ...], job: RenderRequest, where: str) -> Tile:
+        if answer[0] == "ok":
+            _, pixels, rect, meta, channels = answer
+            return Tile(pixels, Rect.from_list(rect), job.unit, meta, channels)
+        _, kind, message, _trace = answer
+        if kind == "SceneError":
+            raise SceneError(message)
+        raise RenderError(f"{where}: {message}")
+
+    def _reap(self) -> int | None:
+        """Wait for a dead child and forget it; its exit code."""
+        proc = self._proc
+        if proc is None:
+            return None
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(5)
+        code = proc.poll()
+        self._kill()
+        return code
+
+    def _kill(self) -> None:
+        if self._proc is not None and self._proc.poll() is None:
+            self._proc.kill()
+            self._proc.wait()
+        self._discard()
+
+    def _discard(self) -> None:
+        if self._conn is not None:
+            self._conn.close()
+        self._proc, self._conn = None, None
+
+
+_default_worker: RenderWorker | None = None
+
+
+def render_unit(job: RenderRequest, timeout: float | None = None) -> Tile:
+    """Render a unit in this process's shared RenderWorker (started on first use)."""
+    global _default_worker
+    if _default_worker is None:
+        _default_worker = RenderWorker()
+    return _default_worker.render(job, timeout)

@@ -1,0 +1,422 @@
+"""The XMPP transport both farm agents stand on: a SPADE agent that moves validated strings, nothing more.
+
+`FarmAgent` (a `spade.agent.Agent`) connects with its own JID and password, comes back by itself when
+the connection drops or the server restarts, sends messages whose metadata carries performative,
+ontology, protocol and conversation id with a non-empty body, and lets a message reach the code above
+only after checking its sender, its size and its metadata (refusals are logged with a reason, counted,
+and never raise). What a body means is not decided here: a `validate(performative, body)` callback,
+typically `core.model.messages.parse`, may refuse it.
+
+Pitfalls it exists to avoid (design.md section 4): empty bodies vanish over XMPP; two agents in one
+process bypass XMPP (here `send` always goes through the socket); SPADE reconnects only at its 55 s
+keepalive (here the `disconnected` event starts a reconnect loop); SPADE's web interface can stop an
+agent with one unauthenticated GET (here it is never started).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import logging
+import ssl
+import time
+from collections.abc import Awaitable, Callable, Collection, Iterable
+from dataclasses import dataclass
+
+from slixmpp import JID
+from spade.agent import Agent, AuthenticationFailure, DisconnectedException
+from spade.message import Message
+
+from core.errors import MessageError, QuekaroError
+
+log = logging.getLogger(__name__)
+
+METADATA_KEYS = ("performative", "ontology", "protocol", "conversation-id")
+DEFAULT_ONTOLOGY = "quekaro"
+# Prosody's default c2s stanza limit is 256 KiB and a larger stanza disconnects the sender without an
+# error in SPADE: keep bodies far below it (scenes and tiles travel over HTTP, not XMPP).
+DEFAULT_MAX_BODY = 64 * 1024
+INBOX_SIZE = 1000
+TLS_SETTLE_S = 0.05
+SESSION_TIMEOUT_S = 8.0
+
+
+@dataclass(frozen=True)
+class Envelope:
+    """One accepted message: who sent it, its metadata and its (still opaque) body."""
+
+    sender: str  # bare JID, as stamped by the server
+    to: str
+    performative: str
+    ontology: str
+    protocol: str
+    conversation_id: str
+    body: str
+    received_at: float  # time.monotonic() on arrival
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """A message that never reached the handler, and why."""
+
+    sender: str
+    kind: str  # sender | size | body | metadata | invalid | inbox
+    reason: str
+    performative: str | None
+    conversation_id: str | None
+    size: int
+
+
+class _Refused(Exception):
+    def __init__(self, kind: str, reason: str) -> None:
+        super().__init__(reason)
+        self.kind, self.reason = kind, reason
+
+
+class XmppError(QuekaroError):
+    """A connection that could not be made (wrong password, server unreachable, registration closed)."""
+
+
+Handler = Callable[[Envelope], Awaitable[None]]
+Validator = Callable[[str, str], object]  # (performative, body) -> anything; raises to refuse
+SenderCheck = Callable[[str], bool]  # bare JID -> accepted?
+
+
+class FarmAgent(Agent):
+    """A SPADE agent with a guarded inbox, a one-call `send`, and reconnection by itself.
+
+    Typical use (the master or a render agent subclasses it or wraps it):
+
+        agent = FarmAgent("agent-1@localhost", pw, port=5222, peers={"master@localhost"},
+                          validate=core.model.messages.parse)
+        agent.set_handler(on_message)            # async def on_message(env: Envelope) -> None
+        await agent.start(auto_register=False)   # waits for the session; raises XmppError
+        await agent.send("master@localhost", "propose", body, conversation_id="job1/u3",
+                         protocol="fipa-contract-net")
+        ...
+        await agent.stop()
+
+    Messages that pass the gate go to the handler (one at a time, in arrival order) and to any SPADE
+    behaviour whose template matches them; refused ones reach neither.
+    """
+
+    def __init__(
+        self,
+        jid: str,
+        password: str,
+        *,
+        port: int = 5222,
+        server: str | None = None,
+        ontology: str = DEFAULT_ONTOLOGY,
+        peers: Iterable[str] = (),
+        accept_sender: SenderCheck | None = None,
+        validate: Validator | None = None,
+        performatives: Collection[str] | None = None,
+        max_body: int = DEFAULT_MAX_BODY,
+        verify_security: bool = False,
+        ca_file: str | None = None,
+        reconnect: bool = True,
+        reconnect_max_delay: float = 1.0,
+    ) -> None:
+        super().__init__(jid, password, port=port, verify_security=verify_security)
+        self.server = server or self.jid.host
+        self.ontology = ontology
+        self.peers: set[str] = {JID(p).bare for p in peers}
+        self.accept_sender = accept_sender
+        self.validate = validate
+        self.performatives = frozenset(performatives) if performatives else None
+        self.max_body = max_body
+        self.ca_file = ca_file
+        self.reconnect = reconnect
+        self.reconnect_max_delay = reconnect_max_delay
+        self.refusals: collections.Counter[str] = collections.Counter()
+        self.recent_refusals: collections.deque[Refusal] = collections.deque(maxlen=100)
+        self.on_refusal: Callable[[Refusal], None] | None = None
+        self.reconnects = 0
+        self.last_outage_s: float | None = None
+        self.tls = False
+        self._handler: Handler | None = None
+        self._inbox: asyncio.Queue[Envelope] | None = None
+        self._inbox_task: asyncio.Task | None = None
+        self._online = asyncio.Event()
+        self._stopping = False
+        self._down_since: float | None = None
+        self._reconnect_task: asyncio.Task | None = None
+
+    # ---- public API -------------------------------------------------------------------------------
+
+    @property
+    def bare_jid(self) -> str:
+        return str(self.jid.bare)
+
+    @property
+    def online(self) -> bool:
+        """True while an XMPP session is up (messages can be sent)."""
+        return self._online.is_set()
+
+    def set_handler(self, handler: Handler | None) -> None:
+        """The coroutine function every accepted message is given to, one at a time, in order."""
+        self._handler = handler
+
+    def allow_peer(self, jid: str) -> None:
+        """Accept messages from this JID (bare or full) from now on."""
+        self.peers.add(JID(jid).bare)
+
+    def forget_peer(self, jid: str) -> None:
+        self.peers.discard(JID(jid).bare)
+
+    async def start(self, auto_register: bool = False, timeout: float = 30.0) -> None:
+        """Connect, open the session and start the inbox; retries until `timeout` while the server is down.
+
+        `auto_register=True` creates the account in-band: the embedded server allows it, Prosody (with
+        the repository's config) does not. Raises XmppError on a wrong password or a server that never
+        answers.
+        """
+        self._stopping = False
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                await super().start(auto_register=auto_register)
+                return
+            except AuthenticationFailure as exc:
+                await self._drop_client()
+                raise XmppError(f"XMPP login refused for {self.bare_jid} on {self.server}:{self.xmpp_port}"
+                                + ("" if auto_register else " (account missing or wrong password)")) from exc
+            except (TimeoutError, DisconnectedException, OSError) as exc:
+                await self._drop_client()
+                if time.monotonic() > deadline:
+                    raise XmppError(f"no XMPP session for {self.bare_jid} at {self.server}:{self.xmpp_port} "
+                                    f"within {timeout:.0f} s: {exc}") from exc
+                await asyncio.sleep(0.5)
+
+    async def wait_online(self, timeout: float | None = None) -> bool:
+        """Wait until a session is up; False if `timeout` passes first."""
+        try:
+            await asyncio.wait_for(self._online.wait(), timeout)
+            return True
+        except TimeoutError:
+            return False
+
+    async def send(self, to: str, performative: str, body: str, *, conversation_id: str,
+                   protocol: str, ontology: str | None = None, thread: str | None = None) -> bool:
+        """Send one message over the XMPP socket (never in-process). False when offline (not queued).
+
+        Raises MessageError when the message itself is unsendable (empty body or metadata, too large).
+        """
+        meta = {"performative": performative, "ontology": ontology or self.ontology,
+                "protocol": protocol, "conversation-id": conversation_id}
+        for key, value in meta.items():
+            if not isinstance(value, str) or not value:
+                raise MessageError(f"metadata {key} must be a non-empty string", field=key)
+        if not isinstance(body, str) or not body.strip():
+            raise MessageError("message body is empty (XMPP drops empty bodies silently)", field="body")
+        if len(body.encode()) > self.max_body:
+            raise MessageError(f"body of {len(body.encode())} bytes exceeds the limit of {self.max_body}",
+                               field="body")
+        if not self.online or self.client is None:
+            log.info("%s offline: %s to %s not sent", self.bare_jid, performative, to)
+            return False
+        msg = Message(to=to, sender=str(self.jid), body=body, thread=thread or conversation_id, metadata=meta)
+        msg.prepare(self.client).send()
+        return True
+
+    # ---- SPADE hooks --------------------------------------------------------------------------------
+
+    async def setup(self) -> None:
+        if self._inbox_task is None or self._inbox_task.done():
+            self._inbox = asyncio.Queue(maxsize=INBOX_SIZE)
+            self._inbox_task = asyncio.create_task(self._drain_inbox(), name=f"inbox {self.bare_jid}")
+
+    async def stop(self) -> None:
+        self._stopping = True
+        for task in (self._reconnect_task, self._inbox_task):
+            if task and not task.done():
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await task
+        self._online.clear()
+        if self.client is not None and not self.is_alive():
+            await self._drop_client()
+        await super().stop()
+
+    async def _async_connect(self) -> None:
+        """Replaces SPADE's: same events, plus TLS settings, the server address and the reconnect hook."""
+        client = self.client
+        if self.ca_file:
+            client.ssl_context = ssl.create_default_context(cafile=self.ca_file)
+        # SPADE registers xep_0199 keepalive every 55 s; kept as the detector of half-dead links.
+        # A client from a failed start attempt may still fire events: only the current one counts.
+        def current(handler: Callable[[object], None]) -> Callable[[object], None]:
+            return lambda event: handler(event) if client is self.client else None
+
+        client.add_event_handler("session_start", current(self._on_session_start))
+        client.add_event_handler("tls_success", current(self._on_tls))
+        # pyjabber races its own STARTTLS upgrade: a stream header that arrives before it has reset its
+        # parser is lost and the login hangs. slixmpp sends that header right after this event, so
+        # this handler blocks briefly (once per connection); harmless with Prosody.
+        client.add_event_handler("tls_success", lambda _e: time.sleep(TLS_SETTLE_S))
+        client.add_event_handler("disconnected", current(self._on_disconnected))
+        client.add_event_handler("message", current(self._message_received))
+        outcome: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+
+        def settle(result: str) -> Callable[[object], None]:
+            return lambda _event: outcome.done() or outcome.set_result(result)
+
+        client.add_event_handler("session_start", settle("ok"), disposable=True)
+        client.add_event_handler("failed_all_auth", settle("auth"), disposable=True)
+        client.add_event_handler("disconnected", settle("down"), disposable=True)
+        client.add_event_handler("connection_failed", settle("down"), disposable=True)
+        client.connect(host=self.server, port=self.xmpp_port)
+        result = await asyncio.wait_for(outcome, timeout=SESSION_TIMEOUT_S)
+        if result == "auth":
+            raise AuthenticationFailure(f"authentication failed for {self.bare_jid}")
+        if result == "down":
+            raise DisconnectedException(f"no session with {self.server}:{self.xmpp_port}")
+        log.info("%s connected to %s:%d (tls=%s)", self.bare_jid, self.server, self.xmpp_port, self.tls)
+
+    # ---- connection state ---------------------------------------------------------------------------
+
+    def _on_tls(self, _event: object) -> None:
+        self.tls = True
+
+    def _on_session_start(self, _event: object) -> None:
+        if self._down_since is not None:
+            self.last_outage_s = time.monotonic() - self._down_since
+            self.reconnects += 1
+            log.warning("%s back online after %.2f s", self.bare_jid, self.last_outage_s)
+            self._down_since = None
+        self._online.set()
+
+    def _on_disconnected(self, reason: object) -> None:
+        was_online = self._online.is_set()
+        self._online.clear()
+        if self._stopping or not self.reconnect or not self.is_alive():
+            return
+        if was_online:
+            self._down_since = time.monotonic()
+            log.warning("%s lost its XMPP session (%s): reconnecting", self.bare_jid, reason or "no reason")
+        if self._reconnect_task is None or self._reconnect_task.done():
+            self._reconnect_task = asyncio.create_task(self._reconnect_loop(),
+                                                       name=f"reconnect {self.bare_jid}")
+
+    async def _reconnect_loop(self) -> None:
+        """Try again quickly (0.25 s, doubling to `reconnect_max_delay`) until a session is up.
+
+        slixmpp's own retry backs off 1, 3, 7, 15 ... s; a farm wants its agents back within a second
+        or two of the server, so the TCP port is polled and slixmpp is asked to connect when it answers.
+        """
+        delay = 0.25
+        while not self._stopping and not self._online.is_set():
+            if await _port_open(self.server, self.xmpp_port) and not self.client.is_connecting():
+                self.client.connect(host=self.server, port=self.xmpp_port)
+                if await self.wait_online(timeout=SESSION_TIMEOUT_S):
+                    return
+                self.client.cancel_connection_attempt()
+                self.client.abort()
+            await asyncio.sleep(delay)
+            delay = min(delay * 2, self.reconnect_max_delay)
+
+    async def _drop_client(self) -> None:
+        if self.client is None:
+            return
+        with contextlib.suppress(Exception):
+            self.client.cancel_connection_attempt()
+            self.client.abort()
+
+    # ---- the gate -----------------------------------------------------------------------------------
+
+    def dispatch(self, msg: Message) -> list[asyncio.Task]:
+        """Every incoming message passes here (SPADE calls it for XMPP and in-process delivery alike)."""
+        try:
+            envelope = self._check(msg)
+        except _Refused as exc:
+            self._refuse(msg, exc.kind, exc.reason)
+            return []
+        except MessageError as exc:
+            self._refuse(msg, "invalid", str(exc))
+            return []
+        except Exception as exc:  # a validator's bug must not kill the agent
+            self._refuse(msg, "invalid", f"validator raised {type(exc).__name__}: {exc}")
+            return []
+        if self._handler is not None and self._inbox is not None:
+            try:
+                self._inbox.put_nowait(envelope)
+            except asyncio.QueueFull:
+                self._refuse(msg, "inbox", f"inbox full ({INBOX_SIZE} messages waiting)")
+                return []
+        if any(b.match(msg) for b in self.behaviours):
+            return super().dispatch(msg)
+        return []
+
+    def _check(self, msg: Message) -> Envelope:
+        sender = str(msg.sender.bare) if msg.sender else ""
+        if not self._sender_known(sender):
+            raise _Refused("sender", f"unknown sender {sender or '(none)'}")
+        body = msg.body or ""
+        size = len(body.encode())
+        if size == 0:
+            raise _Refused("body", "empty body")
+        if size > self.max_body:
+            raise _Refused("size", f"body of {size} bytes exceeds the limit of {self.max_body}")
+        meta = {key: msg.get_metadata(key) for key in METADATA_KEYS}
+        for key, value in meta.items():
+            if not value:
+                raise _Refused("metadata", f"metadata {key!r} missing")
+        if meta["ontology"] != self.ontology:
+            raise _Refused("metadata", f"unknown ontology {meta['ontology']!r}")
+        if self.performatives is not None and meta["performative"] not in self.performatives:
+            raise _Refused("metadata", f"unexpected performative {meta['performative']!r}")
+        if self.validate is not None:
+            self.validate(meta["performative"], body)
+        return Envelope(sender=sender, to=str(msg.to.bare) if msg.to else "",
+                        performative=meta["performative"], ontology=meta["ontology"],
+                        protocol=meta["protocol"], conversation_id=meta["conversation-id"],
+                        body=body, received_at=time.monotonic())
+
+    def _sender_known(self, sender: str) -> bool:
+        if not sender:
+            return False
+        if sender in self.peers:
+            return True
+        return bool(self.accept_sender and self.accept_sender(sender))
+
+    def _refuse(self, msg: Message, kind: str, reason: str) -> None:
+        refusal = Refusal(sender=str(msg.sender.bare) if msg.sender else "", kind=kind, reason=reason,
+                          performative=msg.get_metadata("performative"),
+                          conversation_id=msg.get_metadata("conversation-id"),
+                          size=len((msg.body or "").encode()))
+        self.refusals[kind] += 1
+        self.recent_refusals.append(refusal)
+        log.warning("%s refused a message from %s: %s", self.bare_jid, refusal.sender or "(none)", reason)
+        if self.on_refusal is not None:
+            try:
+                self.on_refusal(refusal)
+            except Exception:
+                log.exception("on_refusal callback failed")
+
+    async def _drain_inbox(self) -> None:
+        assert self._inbox is not None
+        while True:
+            envelope = await self._inbox.get()
+            handler = self._handler
+            if handler is None:
+                continue
+            try:
+                await handler(envelope)
+            except asyncio.CancelledError:
+                raise
+            except Exception:
+                log.exception("%s: handler failed on %s from %s (conversation %s)", self.bare_jid,
+                              envelope.performative, envelope.sender, envelope.conversation_id)
+
+
+async def _port_open(host: str, port: int, timeout: float = 1.0) -> bool:
+    try:
+        _reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port), timeout)
+    except (TimeoutError, OSError):
+        return False
+    writer.close()
+    with contextlib.suppress(Exception):
+        await writer.wait_closed()
+    return True

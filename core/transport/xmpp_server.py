@@ -1,0 +1,428 @@
+"""Run the XMPP server a farm stands on, as a child process: SPADE's embedded one (pyjabber) or Prosody.
+
+`EmbeddedXmppServer` is for one machine only. It binds 127.0.0.1 alone, keeps its accounts in a file
+database under the given directory, and uses the JID domain as its host (pyjabber's default host
+`0.0.0.0` accepts logins but delivers nothing). Its in-band registration (XEP-0077) is open to anyone
+who can reach the port, and the CA key behind its default certificate ships in the wheel: that is
+acceptable on loopback and nowhere else. Use Prosody (`deploy/prosody/`) when agents run on other hosts.
+
+`ProsodyServer` runs a real Prosody 0.12 with the repository's `deploy/prosody/prosody.cfg.lua`, its
+own data directory, pid file, free port on 127.0.0.1 and a fresh self-signed certificate. The tests use
+it; `quekaro` never needs the system's Prosody service.
+
+Run as `python -m core.transport.xmpp_server embedded --domain D --port P --s2s-port Q --data-dir DIR` to host
+pyjabber in this process (that is what `EmbeddedXmppServer` spawns).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import ipaddress
+import logging
+import os
+import secrets
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterable
+from pathlib import Path
+from typing import IO
+
+from core.errors import QuekaroError
+from core.supervision import die_with_parent
+
+log = logging.getLogger(__name__)
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+PROSODY_CONFIG = REPO_ROOT / "deploy" / "prosody" / "prosody.cfg.lua"
+
+
+
+class XmppServerError(QuekaroError):
+    """An XMPP server that could not be configured, started or stopped."""
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that nothing listens on at `host` right now (the OS picks it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def port_accepts(host: str, port: int, timeout: float = 0.5) -> bool:
+    """True when a TCP connection to host:port succeeds now."""
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            return True
+    except OSError:
+        return False
+
+
+def resolves_to_loopback(domain: str) -> bool:
+    """True when every IPv4 address `domain` resolves to is a loopback address."""
+    try:
+        infos = socket.getaddrinfo(domain, None, socket.AF_INET)
+    except socket.gaierror:
+        return False
+    return bool(infos) and all(ipaddress.ip_address(i[4][0]).is_loopback for i in infos)
+
+
+def make_self_signed_cert(directory: Path, domain: str, days: int = 30) -> tuple[Path, Path]:
+    """Write `<domain>_cert.pem` and `<domain>_key.pem` (RSA 2048, SAN = domain) with openssl.
+
+    pyjabber looks for exactly these names in its cert directory; Prosody is told the paths.
+    """
+    directory.mkdir(parents=True, exist_ok=True)
+    cert, key = directory / f"{domain}_cert.pem", directory / f"{domain}_key.pem"
+    if shutil.which("openssl") is None:
+        raise XmppServerError("openssl is not installed: cannot make the XMPP server's certificate")
+    cmd = [
+        "openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", str(days),
+        "-subj", f"/CN={domain}", "-addext", f"subjectAltName=DNS:{domain}",
+        "-keyout", str(key), "-out", str(cert),
+    ]
+    done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        raise XmppServerError(f"openssl could not make a certificate for {domain}: {done.stderr.strip()}")
+    key.chmod(0o600)
+    return cert, key
+
+
+def _wait_until_accepting(proc: subprocess.Popen, host: str, port: int, timeout: float,
+                          log_path: Path) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise XmppServerError(f"XMPP server exited with code {proc.returncode}; see {log_path}:\n"
+                                  + _tail(log_path))
+        if port_accepts(host, port, timeout=0.2):
+            return
+        time.sleep(0.05)
+    raise XmppServerError(f"XMPP server did not accept connections on {host}:{port} within {timeout:.0f} s; "
+                          f"see {log_path}:\n" + _tail(log_path))
+
+
+def _tail(path: Path, lines: int = 15) -> str:
+    try:
+        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+    except OSError:
+        return "(no log)"
+
+
+def _stop_child(proc: subprocess.Popen | None, timeout: float) -> None:
+    """SIGTERM to the server's whole process group (its workers hold the port too), SIGKILL after `timeout`;
+    the group is signalled even when the server's main process is already dead."""
+    if proc is None:
+        return
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGTERM)
+    try:
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        log.warning("XMPP server pid %d ignored SIGTERM for %.0f s: killing it", proc.pid, timeout)
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=timeout)
+
+
+class _ChildServer:
+    """What both servers share: a child process, a port on 127.0.0.1, start/stop/restart."""
+
+    host = "127.0.0.1"
+
+    def __init__(self, data_dir: Path | str, domain: str, port: int | None) -> None:
+        self.data_dir = Path(data_dir).resolve()
+        self.domain = domain
+        self.port = port or free_port()
+        self.log_path = self.data_dir / "server.log"
+        self._proc: subprocess.Popen | None = None
+        self._log_file: IO[bytes] | None = None
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid if self._proc and self._proc.poll() is None else None
+
+    @property
+    def running(self) -> bool:
+        return self.pid is not None
+
+    def _command(self) -> tuple[list[str], dict[str, str]]:
+        raise NotImplementedError
+
+    def _prepare(self) -> None:
+        """Create what the first start needs (directories, certificate, accounts)."""
+
+    def start(self, timeout: float = 30.0) -> None:
+        """Start the server and return once it accepts TCP connections on 127.0.0.1:port."""
+        if self.running:
+            return
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        self._prepare()
+        if port_accepts(self.host, self.port, timeout=0.2):
+            raise XmppServerError(f"port {self.host}:{self.port} is already in use")
+        cmd, env = self._command()
+        self._log_file = open(self.log_path, "ab")  # noqa: SIM115 (kept open for the child's life)
+        self._proc = subprocess.Popen(cmd, stdout=self._log_file, stderr=subprocess.STDOUT, env=env,
+                                      cwd=self.data_dir, start_new_session=True, preexec_fn=die_with_parent)
+        try:
+            _wait_until_accepting(self._proc, self.host, self.port, timeout, self.log_path)
+        except XmppServerError:
+            self.stop()
+            raise
+        log.info("XMPP server %s up on %s:%d (pid %d)", self.domain, self.host, self.port, self._proc.pid)
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop the server (SIGTERM, then SIGKILL after `timeout`); its data directory stays."""
+        _stop_child(self._proc, timeout)
+        self._proc = None
+        if self._log_file:
+            self._log_file.close()
+            self._log_file = None
+
+    def kill(self) -> None:
+        """Kill the server's main process at once (SIGKILL), as a crash would; stop() ends its workers."""
+        if self._proc and self._proc.poll() is None:
+            self._proc.kill()
+            self._proc.wait()
+
+    def restart(self, downtime: float = 0.0, timeout: float = 30.0) -> None:
+        """Stop, stay down `downtime` seconds, start again on the same port with the same data."""
+        self.stop()
+        time.sleep(downtime)
+        self.start(timeout=timeout)
+
+    def __enter__(self) -> _ChildServer:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+ALLOWED_ACCOUNTS = "allowed-accounts"  # in the data dir: the only user names that may register
+
+
+class EmbeddedXmppServer(_ChildServer):
+    """SPADE's pyjabber server in a child process: loopback only, file database, domain as host.
+
+    Registration is closed once `allow` has been called: only the user names listed in
+    DATA_DIR/allowed-accounts may register (the local farm lists its master and each agent it starts),
+    any other in-band registration is refused with `forbidden`. Without that file pyjabber's open
+    registration stands (tests of the transport alone). `message_persistence` makes pyjabber keep
+    messages to offline JIDs (off by default, as measured: messages to offline JIDs are dropped, so every
+    protocol step must time out and retry).
+    """
+
+    def __init__(self, data_dir: Path | str, domain: str = "localhost", port: int | None = None,
+                 s2s_port: int | None = None, message_persistence: bool = False,
+                 log_level: str = "WARNING") -> None:
+        if not resolves_to_loopback(domain):
+            raise XmppServerError(f"embedded XMPP domain {domain!r} must resolve to 127.0.0.1 (pyjabber "
+                                  "binds the domain's address): use localhost, or Prosody for several hosts")
+        super().__init__(data_dir, domain, port)
+        self.s2s_port = s2s_port or free_port()
+        self.message_persistence = message_persistence
+        self.log_level = log_level
+
+    @property
+    def database(self) -> Path:
+        return self.data_dir / "pyjabber.db"
+
+    def allow(self, usernames: Iterable[str]) -> None:
+        """Let these user names register (and close registration to every other)."""
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        path = self.data_dir / ALLOWED_ACCOUNTS
+        known = path.read_text().split() if path.exists() else []
+        tmp = path.with_name(f".{path.name}.part")
+        tmp.write_text("\n".join(dict.fromkeys([*known, *usernames])) + "\n")
+        os.replace(tmp, path)
+
+    def _prepare(self) -> None:
+        certs = self.data_dir / "certs"
+        if not (certs / f"{self.domain}_cert.pem").exists():
+            # Our own certificate, so that pyjabber never signs one with the CA key it ships.
+            make_self_signed_cert(certs, self.domain)
+
+    def _command(self) -> tuple[list[str], dict[str, str]]:
+        cmd = [sys.executable, "-m", "core.transport.xmpp_server", "embedded", "--domain", self.domain,
+               "--port", str(self.port), "--s2s-port", str(self.s2s_port), "--data-dir", str(self.data_dir),
+               "--log-level", self.log_level]
+        if self.message_persistence:
+            cmd.append("--message-persistence")
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO_ROOT),
+                                                                         os.environ.get("PYTHONPATH")])))
+        return cmd, env
+
+
+class ProsodyServer(_ChildServer):
+    """A real Prosody 0.12 on 127.0.0.1 with the repository's config, TLS required, registration closed.
+
+    Runs in the foreground as a child (no system service, no daemon); everything it writes stays in
+    `data_dir`. Accounts are created with `prosodyctl register` before (or while) it runs.
+    """
+
+    def __init__(self, data_dir: Path | str, domain: str = "localhost", port: int | None = None,
+                 config: Path = PROSODY_CONFIG, stanza_limit: int = 256 * 1024) -> None:
+        for tool in ("prosody", "prosodyctl"):
+            if shutil.which(tool) is None:
+                raise XmppServerError(f"{tool} is not installed (Debian package 'prosody')")
+        if not Path(config).is_file():
+            raise XmppServerError(f"Prosody config not found: {config}")
+        super().__init__(data_dir, domain, port)
+        self.config = Path(config)
+        self.stanza_limit = stanza_limit
+
+    @property
+    def cert_dir(self) -> Path:
+        return self.data_dir / "certs"
+
+    def env(self) -> dict[str, str]:
+        """The environment the repository's prosody.cfg.lua reads its settings from."""
+        return dict(
+            os.environ,
+            QUEKARO_XMPP_DOMAIN=self.domain,
+            QUEKARO_XMPP_PORT=str(self.port),
+            QUEKARO_XMPP_INTERFACE=self.host,
+            QUEKARO_PROSODY_DATA=str(self.data_dir / "data"),
+            QUEKARO_PROSODY_PIDFILE=str(self.data_dir / "prosody.pid"),
+            QUEKARO_PROSODY_LOG=str(self.data_dir / "prosody.log"),
+            QUEKARO_XMPP_CERT=str(self.cert_dir / f"{self.domain}_cert.pem"),
+            QUEKARO_XMPP_KEY=str(self.cert_dir / f"{self.domain}_key.pem"),
+            QUEKARO_XMPP_STANZA_LIMIT=str(self.stanza_limit),
+            # Running as root in a container: keep files owned by us rather than switch to `prosody`.
+            QUEKARO_PROSODY_USER=_current_user(),
+        )
+
+    def _prepare(self) -> None:
+        (self.data_dir / "data").mkdir(parents=True, exist_ok=True)
+        if not (self.cert_dir / f"{self.domain}_cert.pem").exists():
+            make_self_signed_cert(self.cert_dir, self.domain)
+
+    def _command(self) -> tuple[list[str], dict[str, str]]:
+        return ["prosody", "--config", str(self.config), "-F"], self.env()
+
+    def register(self, user: str, password: str | None = None) -> str:
+        """Create (or reset) account user@domain with prosodyctl; returns the password used."""
+        password = password or secrets.token_hex(16)  # hex: never starts with "-" (argv-safe)
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        (self.data_dir / "data").mkdir(parents=True, exist_ok=True)
+        done = subprocess.run(["prosodyctl", "--config", str(self.config), "register", user, self.domain,
+                               password], env=self.env(), capture_output=True, text=True, check=False)
+        if done.returncode != 0:
+            raise XmppServerError(f"prosodyctl register {user}@{self.domain} failed: "
+                                  f"{(done.stderr or done.stdout).strip()}")
+        return password
+
+    def register_all(self, users: Iterable[str]) -> dict[str, str]:
+        """Create several accounts with generated passwords: user -> password."""
+        return {u: self.register(u) for u in users}
+
+
+def _current_user() -> str:
+    import pwd
+
+    return pwd.getpwuid(os.getuid()).pw_name
+
+
+def _run_embedded(args: argparse.Namespace) -> int:
+    """Host pyjabber in this process until SIGTERM/SIGINT (the child side of EmbeddedXmppServer)."""
+    import asyncio
+
+    from loguru import logger
+    from pyjabber.server import Server
+    from pyjabber.server_parameters import Parameters
+
+    logger.remove()
+    logger.add(sys.stderr, level=args.log_level)
+    data_dir = Path(args.data_dir)
+    params = Parameters(
+        host=args.domain, client_port=args.port, server_port=args.s2s_port,
+        database_path=str(data_dir / "pyjabber.db"), database_in_memory=False,
+        cert_path=str(data_dir / "certs"), message_persistence=args.message_persistence,
+    )
+    _close_registration(data_dir / ALLOWED_ACCOUNTS)
+    _forget_unavailable_resources()
+    server = Server(params)
+    # pyjabber also listens on the host's "public" address (found by a UDP trick); a local farm must
+    # stay on loopback, so that address is dropped before the listeners are created.
+    server._public_ip = None
+    # Its HTTP upload feature serves an admin page on a fixed port 9090 (two farms collide, and the
+    # farm moves files over its own data plane). The feature itself must stay configured (pyjabber's
+    # iq dispatch breaks without it), so only its web server is left unstarted.
+    server._http_server = None
+    asyncio.run(server.start())
+    return 0
+
+
+def _close_registration(allowed: Path) -> None:
+    """Refuse in-band registration of any user name not in `allowed` (when that file exists). pyjabber
+    answers a registration IQ whether or not it advertises the feature, so its handler is wrapped."""
+    import xml.etree.ElementTree as ET
+
+    from pyjabber.features.SASL import SASL as sasl_module
+
+    original = sasl_module.SASL.handle_iq
+
+    async def handle_iq(self, element: ET.Element) -> None:
+        query = element.find("{jabber:iq:register}query")
+        name = query.find("{jabber:iq:register}username") if query is not None else None
+        if allowed.exists() and element.attrib.get("type") == "set" and name is not None \
+                and (name.text or "") not in allowed.read_text().split():
+            log.warning("in-band registration of %r refused: not an account of this farm", name.text)
+            refusal = (f'<iq type="error" id="{element.attrib.get("id", "")}"><error type="auth">'
+                       '<forbidden xmlns="urn:ietf:params:xml:ns:xmpp-stanzas"/></error></iq>')
+            self._transport.write(refusal.encode())
+            return None
+        return await original(self, element)
+
+    sasl_module.SASL.handle_iq = handle_iq
+
+
+def _forget_unavailable_resources() -> None:
+    """A resource that sent `unavailable` is forgotten, not kept as unavailable: pyjabber routes a message
+    for a bare JID to the resources of the highest priority, and a stale entry of a cleanly stopped
+    master (its old resource, with the priority it last announced) outranked the restarted master's new
+    one, so a master restarted on a running server received nothing (measured: deaf for 60 s and more
+    after SIGTERM and restart; fine after SIGKILL, which sends no presence)."""
+    import xml.etree.ElementTree as ET
+
+    from pyjabber.features.presence import PresenceFeature as presence_module
+
+    original = presence_module.Presence._handle_global_presence
+
+    async def handle(self, jid, element: ET.Element):
+        result = await original(self, jid, element)
+        if element.attrib.get("type") == "unavailable":
+            entries = self._online_status.get(jid.bare(), [])
+            entries[:] = [e for e in entries if e[0] != jid.resource]
+            if not entries:
+                self._online_status.pop(jid.bare(), None)
+        return result
+
+    presence_module.Presence._handle_global_presence = handle
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m core.transport.xmpp_server", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    emb = sub.add_parser("embedded", help="run SPADE's pyjabber server on 127.0.0.1 in the foreground")
+    emb.add_argument("--domain", default="localhost", help="JID domain, also the host pyjabber binds")
+    emb.add_argument("--port", type=int, default=5222, help="client port")
+    emb.add_argument("--s2s-port", type=int, default=5269, help="server-to-server port (loopback)")
+    emb.add_argument("--data-dir", required=True, help="directory of the database and certificate")
+    emb.add_argument("--message-persistence", action="store_true", help="keep messages to offline JIDs")
+    emb.add_argument("--log-level", default="WARNING")
+    args = parser.parse_args(argv)
+    if not resolves_to_loopback(args.domain):
+        parser.error(f"--domain {args.domain!r} must resolve to a loopback address")
+    with contextlib.suppress(KeyboardInterrupt):
+        return _run_embedded(args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,109 @@
+"""The user's side of the master's job API: submit, status, result, cancel (plain HTTP, stdlib only)."""
+
+from __future__ import annotations
+
+import json
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from core.errors import QuekaroError
+from core.home import ADMIN_TOKEN, FARM_FILE, default_home
+from core.model.job import JobSpec, RenderOptions
+
+
+@dataclass(frozen=True)
+class FarmClient:
+    """A master's URL and the admin token that its job API demands."""
+
+    url: str
+    token: str
+    timeout: float = 600.0
+
+    @classmethod
+    def from_home(cls, home: Path | None = None, url: str | None = None,
+                  token_file: Path | None = None) -> FarmClient:
+        """From the farm.json the master writes in its home, overridden by explicit url/token file."""
+        home = Path(home or default_home())
+        info: dict[str, Any] = {}
+        farm_file = home / FARM_FILE
+        if farm_file.exists():
+            info = json.loads(farm_file.read_text())
+        url = url or info.get("url")
+        token_path = Path(token_file or info.get("token_file") or home / ADMIN_TOKEN)
+        if not url:
+            raise QuekaroError(f"no farm found: {farm_file} does not exist (start one with `quekaro up`, "
+                               "or give --url and --token-file)")
+        if not token_path.exists():
+            raise QuekaroError(f"admin token file {token_path} not found")
+        return cls(url.rstrip("/"), token_path.read_text().strip())
+
+    def _request(self, method: str, path: str, body: bytes | None = None,
+                 headers: dict[str, str] | None = None) -> bytes:
+        req = urllib.request.Request(self.url + path, data=body, method=method, headers={
+            "Authorization": f"Bearer {self.token}", **(headers or {})})
+        try:
+            with urllib.request.urlopen(req, timeout=self.timeout) as resp:
+                return resp.read()
+        except urllib.error.HTTPError as exc:
+            raise QuekaroError(f"{method} {path}: HTTP {exc.code}: {_reason(exc)}") from None
+        except urllib.error.URLError as exc:
+            raise QuekaroError(f"cannot reach the master at {self.url}: {exc.reason}") from None
+
+    def _json(self, method: str, path: str, **kw: Any) -> Any:
+        return json.loads(self._request(method, path, **kw))
+
+    def submit(self, bundle: bytes, defines: dict[str, str], options: dict[str, Any]) -> str:
+        header = json.dumps(JobSpec(defines, RenderOptions.from_dict(options)).to_dict())
+        answer = self._json("POST", "/api/jobs", body=bundle,
+                            headers={"X-Quekaro-Job": header, "Content-Type": "application/x-tar"})
+        return str(answer["job_id"])
+
+    def jobs(self) -> list[dict[str, Any]]:
+        return list(self._json("GET", "/api/jobs")["jobs"])
+
+    def status(self, job_id: str) -> dict[str, Any]:
+        return dict(self._json("GET", f"/api/jobs/{job_id}"))
+
+    def wait(self, job_id: str, timeout: float, poll: float = 0.05,
+             while_waiting: Callable[[], None] | None = None) -> dict[str, Any]:
+        """The job's status once it no longer runs (done, failed or cancelled), polling every `poll` s and
+        calling `while_waiting` in between (e.g. a check that the farm's processes live); a QuekaroError
+        after `timeout` seconds."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            status = self.status(job_id)
+            if status["status"] != "running":
+                return status
+            if while_waiting is not None:
+                while_waiting()
+            time.sleep(poll)
+        raise QuekaroError(f"job {job_id} still running after {timeout:.0f} s")
+
+    def agents(self) -> list[dict[str, Any]]:
+        return list(self._json("GET", "/api/agents")["agents"])
+
+    def result(self, job_id: str, out: Path) -> Path:
+        """Download the composed EXR and its report, and write the tonemapped PNG beside them."""
+        from core.render.imageio import read_exr, write_png
+
+        out = Path(out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_bytes(self._request("GET", f"/api/jobs/{job_id}/result"))
+        out.with_suffix(".json").write_bytes(self._request("GET", f"/api/jobs/{job_id}/report"))
+        write_png(out.with_suffix(".png"), read_exr(out))
+        return out
+
+    def cancel(self, job_id: str) -> bool:
+        return bool(self._json("POST", f"/api/jobs/{job_id}/cancel")["cancelled"])
+
+
+def _reason(exc: urllib.error.HTTPError) -> str:
+    try:
+        return str(json.loads(exc.read()).get("error", exc.reason))
+    except (ValueError, AttributeError):
+        return str(exc.reason)

@@ -1,0 +1,315 @@
+"""A whole farm on one machine (`quekaro up`, `quekaro demo`): SPADE's embedded XMPP server, the master
+and N render agents, each in its own process with its own Dr.Jit thread count and a unique JID.
+
+Supervised (`supervise=True`, as `quekaro up` and `quekaro demo` run it): a child that dies is restarted
+with backoff, and one that crash-loops is marked failed and left down while the rest goes on
+(core.supervision); an agent comes back under a new JID (the embedded server may never deliver to a JID
+that reconnects). The state of every process is in HOME/processes.json. Every child dies with the farm,
+even when it is killed with SIGKILL (PR_SET_PDEATHSIG); stopping (Ctrl-C, SIGTERM, or leaving the
+context) terminates the children in reverse order and waits for them.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import secrets
+import signal
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from core.errors import QuekaroError
+from core.home import AGENTS_ALLOW, FARM_FILE, PROCESSES_FILE, default_home
+from core.supervision import RestartPolicy, die_with_parent
+from core.transport.xmpp_server import EmbeddedXmppServer, free_port
+from farm.client import FarmClient
+
+DOMAIN = "localhost"
+MASTER_JID = f"master@{DOMAIN}"
+REPO = Path(__file__).resolve().parent.parent
+START_TIMEOUT_S = 120.0
+
+
+@dataclass
+class Child:
+    """One supervised process: how to start it, its process now, and its restart history."""
+
+    name: str
+    command: Callable[[], list[str]]
+    env: dict[str, str]
+    proc: subprocess.Popen | None = None
+    policy: RestartPolicy = field(default_factory=RestartPolicy)
+    restart_at: float | None = None
+    state: str = "running"  # running, restarting or failed
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "state": self.state, "pid": self.proc.pid if self.proc else None,
+                "restarts": self.policy.count}
+
+
+class LocalFarm:
+    """The processes of a local farm; use as a context manager."""
+
+    def __init__(self, home: Path | None, agents: int = 2, threads: int | None = None,
+                 rules: list[Path] | None = None, http_port: int = 0, supervise: bool = False) -> None:
+        if agents < 1:
+            raise QuekaroError(f"--agents {agents}: a farm needs at least one agent")
+        self.home = Path(home or default_home()).resolve()
+        self.n_agents = agents
+        self.threads = threads or max(1, (os.cpu_count() or 1) // agents)
+        self.rules = [Path(r).resolve() for r in rules or []]
+        self.http_port = http_port or free_port()
+        self.url = f"http://127.0.0.1:{self.http_port}"
+        self.server: EmbeddedXmppServer | None = None
+        self.children: list[Child] = []
+        self._server_policy = RestartPolicy()
+        self._server_restart_at: float | None = None
+        self._supervise = supervise
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._supervisor: threading.Thread | None = None
+        self._previous_sigterm: object = None
+
+    @property
+    def procs(self) -> list[tuple[str, subprocess.Popen]]:
+        """(name, process) of every child started and not stopped (master first)."""
+        return [(c.name, c.proc) for c in self.children if c.proc is not None]
+
+    def __enter__(self) -> LocalFarm:
+        self._previous_sigterm = _sigterm_as_interrupt()
+        try:
+            self.start()
+        except BaseException:
+            self.__exit__()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            self.stop()
+        finally:
+            if self._previous_sigterm is not None:
+                signal.signal(signal.SIGTERM, self._previous_sigterm)
+                self._previous_sigterm = None
+
+    def start(self) -> None:
+        (self.home / "logs").mkdir(parents=True, exist_ok=True)
+        (self.home / FARM_FILE).unlink(missing_ok=True)
+        self.server = EmbeddedXmppServer(self.home / "xmpp", domain=DOMAIN)
+        # Accounts are made afresh at every start (new passwords, new agent JIDs): the database of a
+        # previous start would refuse the master's new password, and a second `quekaro demo` would fail.
+        self.server.database.unlink(missing_ok=True)
+        (self.home / AGENTS_ALLOW).write_text("")
+        self.server.allow(["master"])  # registration closed to every account this farm does not make
+        self.server.start()
+        master_command = self._master_command()
+        self._add(Child("master", lambda: master_command, {}))
+        self._wait_for_master()
+        for i in range(self.n_agents):
+            # The password travels in the environment: not in `ps`, and never parsed as an option.
+            password = self._secret_file(f"agent-{i}.pw").read_text()
+            self._add(Child(f"agent-{i}", functools.partial(self._agent_command, i),
+                            {"QUEKARO_XMPP_PASSWORD": password}))
+        self._write_states()
+        if self._supervise:
+            self._supervisor = threading.Thread(target=self._supervise_forever, name="supervisor", daemon=True)
+            self._supervisor.start()
+
+    def _secret_file(self, name: str) -> Path:
+        path = self.home / "secrets" / name
+        path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+        path.touch(mode=0o600)
+        path.write_text(secrets.token_hex(16))
+        return path
+
+    def _master_command(self) -> list[str]:
+        return [sys.executable, "-m", "quekaro", "master", "--home", str(self.home), "--jid", MASTER_JID,
+                "--password-file", str(self._secret_file("master.pw")), "--server", "127.0.0.1",
+                "--port", str(self.server.port), "--register", "--http-port", str(self.http_port),
+                "--threads", str(self.threads), "--agents-allow", str(self.home / AGENTS_ALLOW)]
+
+    def _agent_command(self, i: int) -> list[str]:
+        # A JID that reconnects may never receive again on the embedded server: unique per process. The
+        # account is let in: the server may register it, the master may take its bids.
+        user = f"agent-{i}-{secrets.token_hex(3)}"
+        jid = f"{user}@{DOMAIN}"
+        self.server.allow([user])
+        with (self.home / AGENTS_ALLOW).open("a") as allow:
+            allow.write(jid + "\n")
+        cmd = [sys.executable, "-m", "agents.render_agent", "--server", "127.0.0.1",
+               "--port", str(self.server.port), "--jid", jid, "--master", MASTER_JID,
+               "--threads", str(self.threads), "--workdir", str(self.home / "agents" / f"agent-{i}"),
+               "--register"]
+        if self.rules:
+            cmd += ["--rules", str(self.rules[i % len(self.rules)])]
+        return cmd
+
+    def _add(self, child: Child) -> None:
+        self._spawn(child)
+        self.children.append(child)
+
+    def _spawn(self, child: Child) -> None:
+        with (self.home / "logs" / f"{child.name}.log").open("ab") as log:
+            env = dict(os.environ, **child.env,
+                       PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
+            child.proc = subprocess.Popen(child.command(), stdout=log, stderr=subprocess.STDOUT, env=env, cwd=REPO,
+                                          preexec_fn=die_with_parent)
+        child.state, child.restart_at = "running", None
+
+    # ---- supervision ------------------------------------------------------------------------------
+
+    def _supervise_forever(self, tick: float = 0.25) -> None:
+        while not self._stopping.wait(tick):
+            try:
+                self.supervise(time.monotonic())
+            except Exception as exc:  # the supervisor must outlive any one failed restart
+                _say(f"supervisor: {type(exc).__name__}: {exc}")
+
+    def supervise(self, now: float) -> None:
+        """One round: notice dead children, restart those whose backoff has passed, give up on crash loops."""
+        with self._lock:
+            if self._stopping.is_set():
+                return
+            changed = self._supervise_server(now)
+            for child in self.children:
+                changed |= self._supervise_child(child, now)
+            if changed:
+                self._write_states()
+
+    def _supervise_child(self, child: Child, now: float) -> bool:
+        if child.state == "running" and child.proc is not None and child.proc.poll() is not None:
+            code = child.proc.returncode
+            child.restart_at = child.policy.on_exit(now)
+            if child.restart_at is None:
+                child.state = "failed"
+                _say(f"{child.name} exited with status {code}: {child.policy.crash_loop} restarts within "
+                     f"{child.policy.window_s:.0f} s, marked failed; the farm goes on without it")
+            else:
+                child.state = "restarting"
+                _say(f"{child.name} exited with status {code}: restarting in {child.restart_at - now:.1f} s "
+                     f"(restart {child.policy.count})")
+            return True
+        if child.state == "restarting" and now >= child.restart_at:
+            self._spawn(child)
+            _say(f"{child.name} restarted (pid {child.proc.pid})")
+            return True
+        return False
+
+    def _supervise_server(self, now: float) -> bool:
+        """As `_supervise_child`, without sleeping under the lock: the restart waits for a later round."""
+        if self.server is None or self.server.running or self._server_policy.failed:
+            return False
+        if self._server_restart_at is None:
+            self.server.stop()  # its workers too: they would hold the port
+            self._server_restart_at = self._server_policy.on_exit(now)
+            if self._server_restart_at is None:
+                _say("XMPP server crash-looped: marked failed")
+            return True
+        if now < self._server_restart_at:
+            return False
+        self._server_restart_at = None
+        self.server.start()
+        _say(f"XMPP server restarted (pid {self.server.pid})")
+        return True
+
+    def _write_states(self) -> None:
+        server = {"name": "xmpp-server", "pid": self.server.pid if self.server else None,
+                  "state": "failed" if self._server_policy.failed else "running",
+                  "restarts": self._server_policy.count}
+        states = {"processes": [server, *(c.to_dict() for c in self.children)]}
+        tmp = self.home / ".processes.json.part"
+        tmp.write_text(json.dumps(states, indent=1))
+        os.replace(tmp, self.home / PROCESSES_FILE)
+
+    def _wait_for_master(self) -> None:
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while time.monotonic() < deadline:
+            self.check_alive()
+            if (self.home / FARM_FILE).exists():
+                try:
+                    urllib.request.urlopen(self.url + "/api/agents", timeout=2)
+                except urllib.error.HTTPError:
+                    return  # 401 without the token: the API is up
+                except OSError:
+                    pass
+            time.sleep(0.2)
+        raise QuekaroError(f"the master did not come up within {START_TIMEOUT_S:.0f} s "
+                           f"(see {self.home / 'logs' / 'master.log'})")
+
+    def check_alive(self) -> None:
+        """Raise if a child is down for good (failed under supervision, or dead without it)."""
+        for child in self.children:
+            dead = child.proc is not None and child.proc.poll() is not None and not self._supervise
+            if dead or (child.state == "failed" and child.name == "master"):
+                raise QuekaroError(f"{child.name} exited with status {child.proc.returncode} "
+                                   f"(see {self.home / 'logs' / (child.name + '.log')})")
+
+    def client(self) -> FarmClient:
+        return FarmClient.from_home(self.home)
+
+    def wait_for_agents(self, timeout: float = START_TIMEOUT_S) -> None:
+        """Until every agent has registered with the master."""
+        client = self.client()
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            self.check_alive()
+            if sum(not a["lost"] for a in client.agents()) >= self.n_agents:
+                return
+            time.sleep(0.3)
+        raise QuekaroError(f"agents did not register within {timeout:.0f} s (see {self.home / 'logs'})")
+
+    def wait(self) -> None:
+        """Block until Ctrl-C, or until a child is down for good (see check_alive)."""
+        try:
+            while True:
+                self.check_alive()
+                time.sleep(1.0)
+        except KeyboardInterrupt:
+            print("stopping the farm ...")
+
+    def stop(self) -> None:
+        self._stopping.set()
+        if self._supervisor is not None:
+            self._supervisor.join(timeout=30)
+        with self._lock:
+            stop_processes([proc for _name, proc in reversed(self.procs)])
+            self.children.clear()
+            if self.server is not None:
+                self.server.stop()
+                self.server = None
+
+
+def _say(line: str) -> None:
+    print(f"quekaro: {line}", file=sys.stderr, flush=True)
+
+
+def _sigterm_as_interrupt() -> object:
+    """Make SIGTERM raise KeyboardInterrupt (so the context exits and stops the children) and return the
+    handler it replaced; None off the main thread, where Python cannot set handlers."""
+    def interrupt(_signum: int, _frame: object) -> None:
+        raise KeyboardInterrupt
+
+    try:
+        return signal.signal(signal.SIGTERM, interrupt)
+    except ValueError:
+        return None
+
+
+def stop_processes(procs: list[subprocess.Popen], timeout: float = 15.0) -> None:
+    """SIGTERM to all (in the order given), then wait for each; SIGKILL the ones that outstay `timeout`."""
+    for proc in procs:
+        if proc.poll() is None:
+            proc.terminate()
+    for proc in procs:
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()

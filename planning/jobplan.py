@@ -1,0 +1,113 @@
+"""Planning a job: from a scene and the user's options to the effects to simulate and the work units.
+
+This is the master's half of the pipeline before any unit renders: effect analysis, the complexity
+pre-pass, and the partition into units with their features (C, S, Nd). The in-process pipeline
+(`quekaro render`) and the farm's master both start from a `JobPlan`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+from core.errors import QuekaroError
+from core.model import integrators
+from core.model.job import Effects, JobPlan, RenderOptions, SceneSpec
+from core.model.units import WorkUnit
+from core.render.effects import analyse
+from core.render.scene import expand, film_info, sensor_elements
+from planning.partition import equal_tiles
+
+DEFAULT_SPP = 64  # when neither the user nor the scene's sampler says
+def scene_spp(spec: SceneSpec, sensor_index: int = 0) -> int | None:
+    """The sample count the scene's sensor's sampler asks for, read from the XML (None if not stated)."""
+    sensors = sensor_elements(expand(spec).root)
+    sensor = sensors[sensor_index] if sensor_index < len(sensors) else None
+    sampler = sensor.find("sampler") if sensor is not None else None
+    if sampler is None:
+        return None
+    for child in sampler:
+        if child.tag == "integer" and child.get("name") == "sample_count":
+            try:
+                count = int(child.get("value", ""))
+            except ValueError:
+                return None
+            if count < 1:  # Mitsuba reads 0 as "the sampler's default": say so instead of guessing
+                raise QuekaroError(f"{spec.path}: sample_count {count} (e.g. from -D) is not a sample count; "
+                                   "give 1 or more, or --spp")
+            return count
+    return None
+
+
+def farm_min_units(live_agents: int) -> int:
+    """Units a farm job needs at least for its live agents: 4 each on small farms, and from 8 agents on
+    3 each plus 8 for the end game. Every unit pays a render call and its bands, so past the few each
+    agent needs for balance more units cost more than they even out (simulated on caustic-corner
+    512x512 with the real auction, 25 ms tile delivery: 32 agents reached 0.80 / 0.79 efficiency with
+    4 per agent and 0.83 / 0.81 with 3 + 8, equal / mixed speeds; 8 agents get 32 either way)."""
+    n = max(1, live_agents)
+    return min(4 * n, 3 * n + 8)
+
+
+def default_unit_count(width: int, height: int, level: str, min_units: int = 1) -> int:
+    """Units of about 256 px a side at level off and 56 px when the rules run, and at least `min_units`
+    (a farm asks for a few per agent). At level off nothing is gained by small units in one process:
+    each render call costs ~0.05 s and bands add pixels (16 units of 128 px ran 1.16x one plain render of
+    cbox 512x512, 256 spp). When the rules run, the rules move samples
+    between units, so the noisy corner of a scene must fall in units of its own (the partition weighs
+    cost by relative noise, so the costly corner is split and the cheap wall stays in big units), while
+    every unit pays a fixed cost per render call (~0.05 s here, ~20 spp of a 40 px unit), a 2 px band
+    ((40+4)^2/40^2 = 1.21x the pixels at 40 px, 1.15x at 56) and a kernel compilation per new crop size.
+    On caustic-corner at 160x160 (model from measured per-pixel noise and per-call cost) level S reached
+    0.84x the uniform relMSE with 8 units, 0.91x with 7, 0.96x with 12 and 1.45x with 22 (40 px)."""
+    side = 256 if level == "off" else 56
+    wanted = max(round(width * height / (side * side)), min_units)
+    return max(1, min(256, wanted, width * height))
+
+
+def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: int = 1) -> JobPlan:
+    """Analyse the scene's effects, run the pre-pass (optimised levels only) and partition the image
+    (into `options.units` units, else the default count and at least `min_units`)."""
+    effects = analyse(spec, options.overrides())
+    info = film_info(spec, options.sensor)
+    width, height = info.width, info.height
+    spp = options.spp or scene_spp(spec, options.sensor) or DEFAULT_SPP
+    depth = effects.max_depth
+    target = options.units or default_unit_count(width, height, options.level, min_units)
+    if not effects.splittable:
+        if options.level != "off":
+            effects.reasons.append(f"level {options.level} not applied: the rules choose per unit, and this "
+                                   "integrator renders as one unit at the user's spp and depth")
+        return JobPlan(spec, dataclasses.replace(options, level="off"), width, height, effects, spp, depth,
+                       _plain_units(width, height, 1))
+    if options.level == "off":
+        # The rules need no features at level off, so the pre-pass would be pure overhead.
+        units = _plain_units(width, height, target)
+        return JobPlan(spec, options, width, height, effects, spp, depth, units)
+    return _planned_with_prepass(spec, options, effects, width, height, spp, depth, target, seed)
+
+
+def _planned_with_prepass(spec: SceneSpec, options: RenderOptions, effects: Effects, width: int,
+                          height: int, spp: int, depth: int, target: int, seed: int) -> JobPlan:
+    from core.render import scene as scene_mod
+    from planning.complexity import prepass
+    from planning.partition import partition
+
+    start = time.perf_counter()
+    scene = scene_mod.load(spec, effects.variant, options.threads)
+    own = integrators.scene_element(expand(spec).root)
+    radiance = effects.override or integrators.radiance_xml(own, depth)
+    cmap = prepass(scene, width, height, integrator=radiance, max_depth=depth,
+                   threads=options.threads, full_spp=spp, seed=seed, sensor=options.sensor)
+    units = partition(cmap, target_units=target)
+    seconds = time.perf_counter() - start
+    return JobPlan(spec, options, width, height, effects, spp, depth, units, seconds, dict(cmap.info))
+
+
+def _plain_units(width: int, height: int, target: int) -> list[WorkUnit]:
+    rects = equal_tiles(width, height, target)
+    units = []
+    for i, rect in enumerate(rects):
+        units.append(WorkUnit(index=i, rect=rect, C=0.0, S=rect.area, Nd=0.0, cost=float(rect.area),
+                          neighbours=()))
+    return units
