@@ -40,10 +40,20 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib import image as mpimg
+from matplotlib.figure import Figure
 
 from core.errors import QuekaroError
 from core.model.geometry import Rect
+from core.model.job import RenderOptions, SceneSpec
+from core.render.bundle import make_bundle
+from core.render.imageio import read_exr, write_exr
+from core.render.metrics import all_metrics, diff_image
+from core.render.scene import image_size
+from core.render.worker import RenderRequest, RenderWorker
+from farm.local import LocalFarm
 from fuzzy.levels import LEVELS
+from planning.pipeline import render_job
 
 REPO = Path(__file__).resolve().parent.parent
 SCENES = {"caustic-corner": REPO / "scenes" / "caustic-corner.xml",
@@ -114,8 +124,6 @@ def parse_grid(args: argparse.Namespace) -> tuple[list[str], list[int], list[str
 
 def plain_render(spec: Any, spp: int, threads: int, seed: int = 0) -> tuple[np.ndarray, float]:
     """The whole image at `spp` with the scene's own integrator, in a child process; (pixels, seconds)."""
-    from core.render.worker import RenderRequest, RenderWorker
-
     w, h = _size(spec)
     with RenderWorker() as worker:
         tile = worker.render(RenderRequest(spec, VARIANT, None, None, spp, seed, w, h, Rect(0, 0, w, h),
@@ -124,15 +132,11 @@ def plain_render(spec: Any, spp: int, threads: int, seed: int = 0) -> tuple[np.n
 
 
 def _size(spec: Any) -> tuple[int, int]:
-    from core.render.scene import image_size
-
     return image_size(spec)
 
 
 def reference(spec: Any, spp: int, threads: int, cache: Path) -> np.ndarray:
     """The scene at `spp`, no optimisation; cached under `cache` by scene file content, defines and spp."""
-    from core.render.imageio import read_exr, write_exr
-
     key = hashlib.sha256(spec.path.read_bytes() + json.dumps([spec.defines, spp, VARIANT]).encode())
     path = cache / "references" / f"{spec.path.stem}-{key.hexdigest()[:16]}.exr"
     if path.exists():
@@ -225,8 +229,6 @@ def _self_cpu() -> float:
 @contextmanager
 def farm_runner(agents: int, threads: int, home: Path, units: int | None = None) -> Iterator[Any]:
     """A function (spec, level, spp, out) -> (report, wall s, CPU s) running jobs on a real local farm."""
-    from core.render.bundle import make_bundle
-    from farm.local import LocalFarm
 
     with LocalFarm(home, agents=agents, threads=max(1, threads // agents)) as farm:
         farm.wait_for_agents()
@@ -252,8 +254,6 @@ def farm_runner(agents: int, threads: int, home: Path, units: int | None = None)
 @contextmanager
 def inprocess_runner(threads: int, units: int | None = None) -> Iterator[Any]:
     """The same function as `farm_runner`, with `planning.pipeline.render_job` in this process."""
-    from core.model.job import RenderOptions
-    from planning.pipeline import render_job
 
     def run_job(spec: Any, level: str, spp: int, out: Path) -> tuple[dict, float, float]:
         cpu0, start = _self_cpu(), time.perf_counter()
@@ -281,9 +281,6 @@ def spent(report: dict[str, Any]) -> dict[str, Any]:
 def scene_cells(name: str, agents: list[int], levels: list[str], args: argparse.Namespace,
                 work: Path) -> list[dict[str, Any]]:
     """Every (agents, level) cell of one scene, with errors and the uniform baseline."""
-    from core.model.job import SceneSpec
-    from core.render.imageio import read_exr
-    from core.render.metrics import diff_image
 
     spec = SceneSpec(SCENES[name], {"res": str(args.res)})
     ref = reference(spec, args.ref_spp, args.threads, Path(args.cache))
@@ -325,8 +322,6 @@ def scene_cells(name: str, agents: list[int], levels: list[str], args: argparse.
 def mean_metrics(images: list[np.ndarray], ref: np.ndarray) -> dict[str, float]:
     """Every metric averaged over independent renders of one setting (one render's relMSE swings by tens
     of percent on a caustic, where a few pixels hold most of the error); `relmse_runs` lists them."""
-    from core.render.metrics import all_metrics
-
     runs = [all_metrics(image, ref) for image in images]
     mean = {key: float(np.mean([r[key] for r in runs])) for key in runs[0]}
     return {**mean, "relmse_runs": [r["relmse"] for r in runs]}
@@ -356,15 +351,10 @@ def uniform_baseline(spec: Any, cells: list[dict[str, Any]], n: int, args: argpa
 
 def write_diff_images(name: str, diffs: dict[str, np.ndarray], out: Path) -> None:
     """Grey difference images against the reference, one per level (white = DIFF_WHITE or more)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     folder = out / "accuracy-diff"
     folder.mkdir(parents=True, exist_ok=True)
     for level, diff in diffs.items():
-        plt.imsave(folder / f"{name}-{level}.png", np.clip(diff / DIFF_WHITE, 0, 1), cmap="gray", vmin=0, vmax=1)
+        mpimg.imsave(folder / f"{name}-{level}.png", np.clip(diff / DIFF_WHITE, 0, 1), cmap="gray", vmin=0, vmax=1)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -464,12 +454,8 @@ def write_outputs(result: dict[str, Any], out: Path) -> list[Path]:
 def plot(cells: list[dict[str, Any]], path: Path) -> None:
     """relMSE against seconds, a Pareto view: fuzzy cells at their wall time (filled, per agent count) and
     at their render time (hollow, fewest agents), and every uniform-spp render at its render time."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=100)
+    fig = Figure(figsize=(6.4, 4.2), dpi=100)  # no pyplot: no GUI backend, no global figure state
+    ax = fig.subplots()
     for i, (scene, n) in enumerate(dict.fromkeys((c["scene"], c["agents"]) for c in cells)):
         sel = sorted((c for c in cells if c["scene"] == scene and c["agents"] == n), key=lambda c: c["seconds"])
         ax.plot([c["seconds"] for c in sel], [c["relmse"] for c in sel], "o-", color=f"C{i}",
@@ -489,4 +475,3 @@ def plot(cells: list[dict[str, Any]], path: Path) -> None:
     ax.legend(fontsize=6.5)
     fig.tight_layout()
     fig.savefig(path)
-    plt.close(fig)

@@ -28,8 +28,17 @@ from typing import Any
 import numpy as np
 
 from bench.accuracy import DEFAULT_OUT, HETEROGENEOUS, SCENES, plain_render, reference
+from bench.scaling import measure_cached
+from core.model.geometry import Rect
+from core.model.hashing import sha256_file
+from core.model.job import RenderOptions, SceneSpec
+from core.model.seeds import plan_seed
+from core.render.compose import blend_weights
 from core.render.metrics import RELMSE_EPSILON
+from core.render.planner import Planner
 from fuzzy.levels import RULE_LEVELS
+from planning.jobplan import plan_job
+from planning.pipeline import plan_params
 
 LEVELS = RULE_LEVELS  # every level that runs the rules
 
@@ -70,8 +79,6 @@ def composed_inverse_spp(plan: Any, spps: Any, bands: Any) -> np.ndarray:
     of w^2 / n, w its normalised blend weight (core.render.compose) and n the tile's spp. A pixel in one
     tile's core only is 1 / n; where a neighbour's band overlaps, the two independent estimates average
     and the variance falls (a band's samples are not wasted)."""
-    from core.render.compose import blend_weights
-
     geometry = [(u.rect.grow(int(b), plan.width, plan.height), u.rect) for u, b in zip(plan.units, bands, strict=True)]
     factor = np.zeros((plan.height, plan.width))
     for (rect, _), w, n in zip(geometry, blend_weights(geometry, plan.width, plan.height), spps, strict=True):
@@ -112,13 +119,6 @@ def neyman_ratio(plan: Any, params: list[Any], weight: np.ndarray, tmap: Any) ->
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    from bench.scaling import measure_cached
-    from core.model.hashing import sha256_file
-    from core.model.job import RenderOptions, SceneSpec
-    from core.model.seeds import plan_seed
-    from core.render.planner import Planner
-    from planning.jobplan import plan_job
-    from planning.pipeline import plan_params
 
     spec = SceneSpec(args.scene.resolve(), {"res": str(args.res)})  # as `bench accuracy`: one reference
     sigma2 = noise_map(spec, args.spp, args.renders, args.threads, args.cache_dir)
@@ -174,8 +174,6 @@ def _summary(level: str, runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def _whole(res: int) -> Any:
-    from core.model.geometry import Rect
-
     return Rect(0, 0, res, res)
 
 

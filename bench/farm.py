@@ -27,6 +27,9 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
+from core.render.bundle import make_bundle
+from farm.local import LocalFarm
+
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_SCENE = REPO / "scenes" / "cbox.xml"
 OVERHEAD_TARGET, SPEEDUP_TARGET = 1.05, 1.8
@@ -47,8 +50,6 @@ class _Job:
     """The benchmark job, as `quekaro render` arguments and as a farm submission."""
 
     def __init__(self, args: argparse.Namespace, workdir: Path) -> None:
-        from core.render.bundle import make_bundle
-
         self.args = args
         self.workdir = workdir
         self.defines = {"res": str(args.res), "spp": str(args.spp)}
@@ -88,8 +89,6 @@ def alternate(sides: dict[str, Callable[[], float]], repeats: int) -> dict[str, 
 
 def _up(stack: ExitStack, home: Path, agents: int, threads: int) -> Any:
     """A local farm that `stack` stops, with all its agents registered."""
-    from farm.local import LocalFarm
-
     farm = stack.enter_context(LocalFarm(home, agents=agents, threads=threads))
     farm.wait_for_agents()
     return farm

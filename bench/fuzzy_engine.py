@@ -14,6 +14,7 @@ import statistics
 import time
 from pathlib import Path
 
+import fuzzylite as fl
 import numpy as np
 
 from core.data import default_rules_path
@@ -88,14 +89,6 @@ def _centroid_error(engine: Engine, x: np.ndarray, ranges: dict, units: int, poi
 
 
 def _pyfuzzylite(rb: RuleBase, engine: Engine, x: np.ndarray, ranges: dict, ours: dict) -> dict:
-    try:
-        import fuzzylite as fl
-    except ImportError:
-        return {
-            "pyfuzzylite_evals_per_s": None,
-            "ratio": None,
-            "pyfuzzylite_note": "pyfuzzylite is not installed (a dev dependency: pip install pyfuzzylite)",
-        }
     fl_engine = _build_fuzzylite(fl, rb, engine, ranges)
     fl_engine.input_values = x
     t0 = time.perf_counter()

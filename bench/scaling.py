@@ -12,7 +12,7 @@ The measurement takes ~60 s, so it is cached (an .npz under ~/.cache/quekaro, ke
 sha256, the image side, the cell side, the measure spp, the thread count and the pre-pass's settings);
 `--remeasure` renders again.
 
-What is simulated: N = 1, 2, 4, ... agents through `master.auction.simulate`, the real `Auction` that
+What is simulated: N = 1, 2, 4, ... agents through `bench.simulate.simulate`, the real `Auction` that
 the farm's master runs, with a message latency of `--latency` (default 2 ms one way: design.md section 4
 measured a 1.8 ms round trip through SPADE's server; taking it one way is pessimistic) and a tile
 delivery of `--delivery` (default 25 ms, measured: render end to inform). For each N:
@@ -39,13 +39,19 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib.figure import Figure
 
+from bench.simulate import simulate
 from core.errors import QuekaroError
 from core.model.geometry import Rect
 from core.model.hashing import sha256_file
 from core.model.job import SceneSpec
+from core.render import scene as scene_mod
+from core.render.worker import RenderRequest, RenderWorker
 from master.auction import Config
+from planning.complexity import COST_SPP, NOISE_SHARE, PREPASS_SPP, ComplexityMap, prepass
 from planning.jobplan import farm_min_units
+from planning.partition import equal_tiles, partition
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_SCENE = REPO / "scenes" / "caustic-corner.xml"
@@ -104,9 +110,7 @@ class TimeMap:
 
 def scene_integrator(spec: Any) -> tuple[str, int]:
     """The scene's integrator type and max_depth as its XML states them (path, 8 if unstated)."""
-    from core.render.scene import expand
-
-    node = expand(spec).root.find("integrator")
+    node = scene_mod.expand(spec).root.find("integrator")
     kind = node.get("type", "path") if node is not None else "path"
     depth = 8
     for child in node if node is not None else ():
@@ -117,10 +121,6 @@ def scene_integrator(spec: Any) -> tuple[str, int]:
 
 def measure(scene_path: Path, res: int, cell: int, spp: int, threads: int) -> tuple[TimeMap, Any]:
     """The pre-pass complexity map and the measured per-pixel time map of the scene at res x res."""
-    from core.render import scene as scene_mod
-    from core.render.worker import RenderRequest, RenderWorker
-    from planning.complexity import prepass
-
     spec = SceneSpec(scene_path, {"res": str(res)})
     kind, depth = scene_integrator(spec)
     loaded = scene_mod.load(spec, "llvm_ad_rgb", threads)
@@ -180,8 +180,6 @@ def cache_file(cache_dir: Path | None, scene_path: Path, res: int, cell: int, sp
     includes: remeasure after editing a mesh or texture), the image side, the cell side, spp, threads,
     the pre-pass's sample split (the cached complexity map, hence the partition, depends on it) and the
     timing passes per cell."""
-    from planning.complexity import COST_SPP, NOISE_SHARE, PREPASS_SPP
-
     base = cache_dir or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "quekaro"
     digest = sha256_file(scene_path)[:16]
     prepass = f"p{PREPASS_SPP}-{COST_SPP}-{NOISE_SHARE}"
@@ -192,8 +190,6 @@ def measure_cached(scene_path: Path, res: int, cell: int, spp: int, threads: int
                    cache_dir: Path | None = None, remeasure: bool = False) -> tuple[TimeMap, Any, bool]:
     """`measure`, read from the cache when it holds these inputs (and `remeasure` is false); the third value
     says whether it came from the cache. A cache file that cannot be read is measured again."""
-    from planning.complexity import ComplexityMap
-
     path = cache_file(cache_dir, scene_path, res, cell, spp, threads)
     if path.exists() and not remeasure:
         try:
@@ -242,9 +238,6 @@ def agent_counts(agents_max: int) -> list[int]:
 def simulate_row(tmap: TimeMap, cmap: Any, n: int, mixed: bool, args: argparse.Namespace,
                  t1: float) -> dict[str, Any]:
     """Makespan and efficiency of the fuzzy partition, naive tiling and auctioned equal tiles on n agents."""
-    from master.auction import simulate
-    from planning.partition import equal_tiles, partition
-
     res = tmap.per_sample.shape[0]
     speeds = speeds_for(n, mixed)
     per_agent = farm_min_units(n) if args.units_per_agent is None else args.units_per_agent * n
@@ -275,8 +268,6 @@ def simulate_row(tmap: TimeMap, cmap: Any, n: int, mixed: bool, args: argparse.N
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    from master.auction import simulate
-
     tmap, cmap, cached = measure_cached(args.scene, args.res, args.cell, args.measure_spp, args.threads,
                                         args.cache_dir, args.remeasure)
     whole = Rect(0, 0, args.res, args.res)
@@ -360,12 +351,9 @@ def write_outputs(result: dict[str, Any], out: Path) -> list[Path]:
 
 
 def plot(rows: list[dict[str, Any]], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3.6), dpi=100)
+    # A Figure of its own (no pyplot): no backend to select, no global figure state to close.
+    fig = Figure(figsize=(6, 3.6), dpi=100)
+    ax = fig.subplots()
     styles = {"equal": "-", "mixed": "--"}
     for speeds, style in styles.items():
         sel = [r for r in rows if r["speeds"] == speeds]
@@ -383,4 +371,3 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     ax.legend(fontsize=6.5, loc="lower left")
     fig.tight_layout()
     fig.savefig(path)
-    plt.close(fig)

@@ -14,6 +14,7 @@ from typing import Any
 from core.errors import QuekaroError
 from core.home import ADMIN_TOKEN, FARM_FILE, default_home
 from core.model.job import JobSpec, RenderOptions
+from core.render.imageio import read_exr, write_png
 
 
 @dataclass(frozen=True)
@@ -89,8 +90,6 @@ class FarmClient:
 
     def result(self, job_id: str, out: Path) -> Path:
         """Download the composed EXR and its report, and write the tonemapped PNG beside them."""
-        from core.render.imageio import read_exr, write_png
-
         out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_bytes(self._request("GET", f"/api/jobs/{job_id}/result"))

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fuzzy.terms import membership
+
 
 @dataclass(frozen=True)
 class CentroidPlan:
@@ -246,8 +248,6 @@ def _fallback(midpoints: np.ndarray, h: np.ndarray, area: np.ndarray, moment: np
 
 def aggregate(params: np.ndarray, h: np.ndarray, x: np.ndarray) -> np.ndarray:
     """mu(x) for one unit (`h` shaped (L,)) on points `x`: the reference for numerical checks."""
-    from fuzzy.terms import membership
-
     return np.minimum(membership(x, params), np.asarray(h)[None, :]).max(axis=1)
 
 

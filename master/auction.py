@@ -3,9 +3,10 @@
 Units go PENDING -> ANNOUNCED -> AWARDED -> DONE, or back to PENDING when an auction leaves them
 unsold, an agent fails them, misses their render deadline or is lost; a job whose remaining units no
 live agent may take any more is FAILED with the reason. Every call takes `now` (seconds, any epoch) and
-returns plain commands, `Send(to, message)` for the transport to deliver and `Event(...)` for the job
-store and the logs, so the SPADE layer only delivers messages and the same code runs under the
-simulated clock of `simulate` (the scaling benchmark).
+returns plain commands, `Send(to, message)` for the transport to deliver and events (one dataclass per kind,
+`Event`) for the job store and the logs, so the SPADE layer only delivers messages and the same code runs
+under the simulated clock of `bench.simulate` (the scaling benchmark). Every status change goes through the
+transition table of `core.model.status`, which the job store checks too.
 
 The award rule is MAgArRO's (design.md section 2) with an earliest-finish-time look-ahead. Before each
 call for proposals the master projects a list schedule of the job's open units, most costly first, over
@@ -37,30 +38,14 @@ import math
 import random
 import statistics
 from collections import Counter, deque
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from enum import StrEnum
-from typing import Any
+from typing import Protocol
 
 from core.model import messages as m
-from core.model.geometry import Rect
 from core.model.seeds import unit_seed
+from core.model.status import JobStatus, UnitStatus, job_transition, unit_transition
 from core.model.units import WorkUnit
-
-
-class UnitStatus(StrEnum):
-    PENDING = "pending"
-    ANNOUNCED = "announced"
-    AWARDED = "awarded"
-    DONE = "done"
-    FAILED = "failed"
-
-
-class JobStatus(StrEnum):
-    RUNNING = "running"
-    DONE = "done"
-    FAILED = "failed"
-    CANCELLED = "cancelled"
 
 
 @dataclass(frozen=True)
@@ -106,17 +91,142 @@ class Send:
 
 @dataclass(frozen=True)
 class Event:
-    """Something the store or the log should know: kind, where, and details (plain JSON-able data)."""
+    """Something the job store or the log should know: one subclass per kind, with typed fields. Tokens are
+    left out of the repr, so that logging an event leaks no award's secret."""
 
-    kind: str
+
+@dataclass(frozen=True)
+class UnitAwarded(Event):
+    job_id: str
+    index: int
+    agent: str
+    token: str = field(repr=False)
+    estimate: float  # seconds, the winning bid
+    attempt: int  # 1 for the unit's first award
+    deadline: float  # render deadline, auction time
+
+
+@dataclass(frozen=True)
+class UnitDone(Event):
+    """The unit's tile is durable and its award's holder is done; the agent's parameters and record."""
+
+    job_id: str
+    index: int
+    agent: str
+    token: str = field(repr=False)
+    seconds: float
+    estimate: float
+    tile_hash: str
+    depth: int
+    spp: int
+    band: int
+    nonfinite: int
+    credits: int  # the agent's credits after this unit
+    on_time: bool  # within `Config.credit_tolerance` of its estimate
+
+    @property
+    def params(self) -> dict[str, int]:
+        """The render parameters the agent chose, as the store records them."""
+        return {"depth": self.depth, "spp": self.spp, "band": self.band, "nonfinite": self.nonfinite}
+
+
+@dataclass(frozen=True)
+class UnitFailed(Event):
+    """The unit failed on its agent (its report, or its render deadline passed): back to pending."""
+
+    job_id: str
+    index: int
+    agent: str
+    token: str = field(repr=False)
+    reason: str
+    credits: int  # the agent's credits after this failure
+
+
+@dataclass(frozen=True)
+class UnitRequeued(Event):
+    """The unit went back to pending without blaming its agent (lost, or the award never arrived)."""
+
+    job_id: str
+    index: int
+    agent: str
+    token: str = field(repr=False)
+    reason: str
+
+
+@dataclass(frozen=True)
+class JobDone(Event):
+    job_id: str
+
+
+@dataclass(frozen=True)
+class JobFailed(Event):
+    job_id: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class JobCancelled(Event):
+    job_id: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class AgentRegistered(Event):
+    agent: str
+    speed: float
+
+
+@dataclass(frozen=True)
+class AgentLost(Event):
+    agent: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class AgentBack(Event):
+    agent: str
+
+
+@dataclass(frozen=True)
+class AgentBlocklisted(Event):
+    job_id: str
+    agent: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class BidRefused(Event):
+    """An agent answered a call for proposals with a refusal."""
+
+    job_id: str
+    agent: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class MessageIgnored(Event):
+    """A message or request that changes nothing (late, forged, duplicate, out of its auction), and why."""
+
+    agent: str | None
+    reason: str
     job_id: str | None = None
     index: int | None = None
-    agent: str | None = None
-    reason: str = ""
-    detail: dict[str, Any] = field(default_factory=dict)
 
 
 Command = Send | Event
+
+
+class ResumedJob(Protocol):
+    """A running job as a restarted master finds it (the job store's `RunningJob`): `Auction.restore`."""
+
+    @property
+    def job_id(self) -> str: ...
+    @property
+    def units(self) -> Sequence[WorkUnit]: ...
+    @property
+    def done(self) -> Sequence[int]: ...
+    @property
+    def failures(self) -> Sequence[tuple[int, str, str]]: ...  # (unit index, agent, reason), oldest first
 
 
 @dataclass
@@ -380,6 +490,31 @@ class Auction:
         self.agents: dict[str, Agent] = {}
         self.rounds: dict[str, Round] = {}
 
+    @classmethod
+    def restore(
+        cls,
+        jobs: Iterable[ResumedJob],
+        describe: Callable[[str], m.JobInfo],
+        credits: dict[str, int] | None = None,
+        config: Config | None = None,
+        rng: random.Random | None = None,
+    ) -> tuple[Auction, list[Command]]:
+        """The auction after a master restart: every running job with its done units and past failures, and
+        the agents' records (`credits`, applied as each registers again). `describe` gives a job's CFP
+        description (its scene URL depends on where the master serves now); a job it cannot describe fails
+        alone. Returns the auction and the events of resuming (a job that was in fact complete, or failed),
+        for the job store to apply."""
+        auction = cls(config, rng, credits=credits)
+        out: list[Command] = []
+        for job in jobs:
+            try:
+                info = describe(job.job_id)
+            except Exception as exc:  # one job the master cannot describe must not stop the others
+                out.append(JobFailed(job.job_id, f"cannot resume the job: {type(exc).__name__}: {exc}"))
+                continue
+            out += auction.add_job(info, job.units, job.done, job.failures)
+        return auction, out
+
     # --- set-up --------------------------------------------------------------------------------------
 
     def add_job(
@@ -395,9 +530,12 @@ class Auction:
             raise ValueError(f"job {info.job_id!r} already known")
         if len({u.index for u in units}) != len(units) or not units:
             raise ValueError(f"job {info.job_id!r}: unit indices must be unique and non-empty")
-        job = Job(info, {u.index: UnitState(u) for u in units}, order=len(self.jobs))
-        for index in done:
-            job.units[index].status = UnitStatus.DONE
+        done = set(done)
+        if done - {u.index for u in units}:
+            raise ValueError(f"job {info.job_id!r}: done units {sorted(done - {u.index for u in units})} unknown")
+        # Units done before a restart start as done: a state, not a change of it.
+        job = Job(info, {u.index: UnitState(u, UnitStatus.DONE if u.index in done else UnitStatus.PENDING)
+                         for u in units}, order=len(self.jobs))
         for index, agent, reason in failures:
             unit = job.units[index]
             unit.failures += 1
@@ -415,7 +553,7 @@ class Auction:
             credits = self.known_credits.get(agent, credits)
             known = self.agents[agent] = Agent(agent, now, credits=credits, speed=speed)
             known.recent = deque(maxlen=self.config.recent_window)
-            return [Event("agent-registered", agent=agent, detail={"speed": speed})]
+            return [AgentRegistered(agent, speed)]
         known.speed = speed
         return self._seen(known, now)
 
@@ -476,7 +614,7 @@ class Auction:
         if round_ is None:
             return [_ignored(agent, why, msg.job_id)]
         round_.answered.add(agent)
-        return [Event("refused", msg.job_id, agent=agent, reason=msg.reason)]
+        return [BidRefused(msg.job_id, agent, msg.reason)]
 
     def on_inform(self, agent: str, msg: m.Inform, now: float) -> list[Command]:
         """A unit finished. Only the current award's holder, token and conversation count."""
@@ -492,19 +630,14 @@ class Auction:
         elif unit.spec.cost > 0:
             state.late_rates[msg.job_id] = _round_rate(min(msg.seconds / unit.spec.cost, _MAX_RATE))
         state.recent.append(True)
-        params = {"depth": msg.depth, "spp": msg.spp, "band": msg.band, "nonfinite": msg.nonfinite}
-        detail = {
-            "token": unit.token,
-            "seconds": msg.seconds,
-            "estimate": unit.estimate,
-            "tile_hash": msg.tile_hash,
-            "params": params,
-            "credits": state.credits,
-            "on_time": on_time,
-        }
-        self._clear_award(unit, UnitStatus.DONE)
+        done = UnitDone(
+            msg.job_id, msg.index, agent, unit.token, seconds=msg.seconds, estimate=unit.estimate,
+            tile_hash=msg.tile_hash, depth=msg.depth, spp=msg.spp, band=msg.band, nonfinite=msg.nonfinite,
+            credits=state.credits, on_time=on_time,
+        )  # fmt: skip
         job = self.jobs[msg.job_id]
-        return [Event("unit-done", msg.job_id, msg.index, agent, detail=detail), *self._finish_if_done(job)]
+        self._clear_award(job, unit, UnitStatus.DONE)
+        return [done, *self._finish_if_done(job)]
 
     def on_failure(self, agent: str, msg: m.Failure, now: float) -> list[Command]:
         unit, why = self._award_for(agent, msg.job_id, msg.index, msg.token, msg.conversation)
@@ -532,7 +665,7 @@ class Auction:
         for state in self.agents.values():
             if not state.lost and now - state.last_seen > self.config.heartbeat_timeout_s:
                 state.lost = True
-                out.append(Event("agent-lost", agent=state.name, reason="no heartbeat"))
+                out.append(AgentLost(state.name, "no heartbeat"))
                 for key in sorted(state.holding):
                     out += self._requeue(key, f"agent {state.name} lost")
                 if state.invited in self.rounds:
@@ -604,10 +737,10 @@ class Auction:
             conv = self._new_id()
             held = frozenset(i for indices in offered.values() for i in indices)
             self.rounds[conv] = Round(conv, job.info.job_id, offered, held, now + self.config.cfp_timeout_s)
+            for index in sorted(held):
+                self._set_unit(job, job.units[index], UnitStatus.ANNOUNCED)
             for name, indices in offered.items():
                 self.agents[name].invited = conv
-                for index in indices:
-                    job.units[index].status = UnitStatus.ANNOUNCED
                 specs = tuple(job.units[i].spec for i in indices)
                 cfp = m.CallForProposal(
                     conversation=conv, job=job.info, units=specs, reply_within_s=self.config.cfp_timeout_s
@@ -640,7 +773,7 @@ class Auction:
         if job is None or job.status != JobStatus.RUNNING:
             return [_ignored(None, "no running job of that id", job_id)]
         out = self._stop_job(job, JobStatus.CANCELLED, reason)
-        return [*out, Event("job-cancelled", job_id, reason=reason)]
+        return [*out, JobCancelled(job_id, reason)]
 
     # --- queries -------------------------------------------------------------------------------------
 
@@ -673,7 +806,7 @@ class Auction:
         agent.last_seen = max(agent.last_seen, now)
         if agent.lost:
             agent.lost = False
-            return [Event("agent-back", agent=agent.name)]
+            return [AgentBack(agent.name)]
         return []
 
     def _round_for(self, agent: str, conversation: str, job_id: str) -> tuple[Round | None, str]:
@@ -720,9 +853,10 @@ class Auction:
         for unit in units:
             if unit.status != UnitStatus.ANNOUNCED:
                 continue
-            unit.status = UnitStatus.PENDING
             winner = self._pick(round_, unit, job, winners, now)
-            if winner is not None:
+            if winner is None:
+                self._set_unit(job, unit, UnitStatus.PENDING)
+            else:
                 winners.add(winner)
                 out += self._award(job, unit, winner, round_.bids[winner][unit.spec.index], now)
         for name in sorted(set(round_.bids) - winners):
@@ -848,7 +982,7 @@ class Auction:
         return min(near, key=lambda n: (-self.agents[n].score, near[n], n))
 
     def _award(self, job: Job, unit: UnitState, agent: str, estimate: float, now: float) -> list[Command]:
-        unit.status = UnitStatus.AWARDED
+        self._set_unit(job, unit, UnitStatus.AWARDED)
         unit.agent, unit.token, unit.conversation = agent, f"{self.rng.getrandbits(128):032x}", self._new_id()
         unit.attempts += 1
         start = self._available(self.agents[agent], now)  # after the units it holds already
@@ -867,30 +1001,33 @@ class Auction:
             seed=unit_seed(job.info.job_id, unit.spec.index, 0),
             estimate_s=estimate,
         )
-        detail = {
-            "token": unit.token,
-            "estimate": estimate,
-            "attempt": unit.attempts,
-            "deadline": unit.deadline,
-        }
-        return [
-            Send(agent, award),
-            Event("unit-awarded", job.info.job_id, unit.spec.index, agent, detail=detail),
-        ]
+        event = UnitAwarded(job.info.job_id, unit.spec.index, agent, unit.token, estimate, unit.attempts,
+                            unit.deadline)
+        return [Send(agent, award), event]
 
-    def _clear_award(self, unit: UnitState, status: UnitStatus) -> None:
-        unit.status = status
+    def _set_unit(self, job: Job, unit: UnitState, status: UnitStatus) -> None:
+        """The one place a unit's status changes: checked against `core.model.status.UNIT_TRANSITIONS`."""
+        where = f"job {job.info.job_id!r} unit {unit.spec.index}"
+        unit.status = unit_transition(where, unit.status, status)
+
+    def _set_job(self, job: Job, status: JobStatus) -> None:
+        """The one place a job's status changes: checked against `core.model.status.JOB_TRANSITIONS`."""
+        job.status = job_transition(f"job {job.info.job_id!r}", job.status, status)
+
+    def _clear_award(self, job: Job, unit: UnitState, status: UnitStatus) -> None:
+        self._set_unit(job, unit, status)
         unit.agent = unit.token = unit.conversation = None
         unit.deadline = math.inf
 
     def _requeue(self, key: tuple[str, int], reason: str) -> list[Command]:
         """Unit back to the auction without blaming its agent (the agent vanished, not the unit)."""
-        unit = self.jobs[key[0]].units[key[1]]
+        job = self.jobs[key[0]]
+        unit = job.units[key[1]]
         if unit.agent in self.agents:
             self.agents[unit.agent].holding.discard(key)
-        agent, token = unit.agent, unit.token
-        self._clear_award(unit, UnitStatus.PENDING)
-        return [Event("unit-requeued", key[0], key[1], agent, reason=reason, detail={"token": token})]
+        event = UnitRequeued(key[0], key[1], unit.agent, unit.token, reason)
+        self._clear_award(job, unit, UnitStatus.PENDING)
+        return [event]
 
     def _fail_unit(self, key: tuple[str, int], reason: str) -> list[Command]:
         """The unit failed on its agent: retry elsewhere; blocklist the agent after repeated failures."""
@@ -904,14 +1041,13 @@ class Auction:
         unit.failures += 1
         unit.failed_on.add(agent)
         unit.last_reason = reason
-        detail = {"token": unit.token, "credits": state.credits}
-        self._clear_award(unit, UnitStatus.PENDING)
-        out: list[Command] = [Event("unit-failed", key[0], key[1], agent, reason=reason, detail=detail)]
+        out: list[Command] = [UnitFailed(key[0], key[1], agent, unit.token, reason, state.credits)]
+        self._clear_award(job, unit, UnitStatus.PENDING)
         job.failures_by_agent[agent] += 1
         if job.failures_by_agent[agent] >= self.config.blocklist_after and agent not in job.blocklist:
             job.blocklist.add(agent)
             why = f"{job.failures_by_agent[agent]} failed units of this job"
-            out.append(Event("agent-blocklisted", key[0], agent=agent, reason=why))
+            out.append(AgentBlocklisted(key[0], agent, why))
         return out + self._fail_if_stuck(job)
 
     def _fail_if_stuck(self, job: Job) -> list[Command]:
@@ -932,13 +1068,14 @@ class Auction:
                 continue
             return [
                 *self._stop_job(job, JobStatus.FAILED, why),
-                Event("job-failed", job.info.job_id, reason=why),
+                JobFailed(job.info.job_id, why),
             ]
         return []
 
     def _stop_job(self, job: Job, status: JobStatus, reason: str) -> list[Command]:
         out: list[Command] = []
-        job.status, job.error = status, reason
+        self._set_job(job, status)
+        job.error = reason
         for unit in job.units.values():
             if unit.status == UnitStatus.AWARDED:
                 self.agents[unit.agent].holding.discard((job.info.job_id, unit.spec.index))
@@ -954,175 +1091,20 @@ class Auction:
                     )
                 )
             if unit.status != UnitStatus.DONE:
-                self._clear_award(unit, UnitStatus.FAILED)
+                self._clear_award(job, unit, UnitStatus.FAILED)
         return out
 
     def _finish_if_done(self, job: Job) -> list[Command]:
         if job.status == JobStatus.RUNNING and all(u.status == UnitStatus.DONE for u in job.units.values()):
-            job.status = JobStatus.DONE
-            return [Event("job-done", job.info.job_id)]
+            self._set_job(job, JobStatus.DONE)
+            return [JobDone(job.info.job_id)]
         return []
 
 
 _MIN_RATE, _MAX_RATE = 1e-9, 1e9  # seconds per unit of cost: the projection's arithmetic stays finite
 
 
-def _ignored(agent: str | None, reason: str, job_id: str | None = None, index: int | None = None) -> Event:
-    return Event("ignored", job_id, index, agent, reason=reason)
-
-
-# --- simulated clock: the same state machine, driven by discrete events -----------------------------------
-
-
-@dataclass(frozen=True)
-class SimResult:
-    makespan: float
-    units: int
-    agents: int
-    busy_s: dict[str, float]  # seconds each agent spent rendering
-    messages: int
-
-
-def simulate(
-    costs: Sequence[float],
-    speeds: Sequence[float],
-    latency: float = 0.002,
-    config: Config | None = None,
-    seed: int = 0,
-    heartbeat_s: float = 5.0,
-    jitter: float = 0.0,
-    delivery: float = 0.0,
-) -> SimResult:
-    """Makespan of one job of units with these costs on agents of these speeds, by discrete-event simulation.
-
-    Each message takes `latency` seconds one way; agents estimate cost / speed and render in that time
-    (times a uniform factor in [1 - jitter, 1 + jitter]); they beat every `heartbeat_s`. A tile's
-    `delivery` (writing, hashing and uploading it) starts when its render ends and delays the inform; the
-    agent's next render may start meanwhile if that unit was already awarded (a second slot). The agents register
-    at `latency` and the job is submitted at twice that, as a user submits to a running farm (were the job
-    first, the first agent to register would be alone to take the biggest unit, whatever its speed). The
-    master side is the real `Auction`, so the benchmark measures the award logic that the farm runs. The
-    makespan counts from the submission.
-    """
-    if not costs or not speeds:
-        raise ValueError("simulate needs at least one unit and one agent")
-    rng = random.Random(seed)
-    auction = Auction(config, rng=random.Random(seed + 1))
-    info = m.JobInfo(
-        job_id="sim",
-        scene_url="http://sim/scene",
-        scene_hash="0" * 64,
-        width=1,
-        height=1,
-        spp=1,
-        depth=1,
-        level="off",
-        ranges={},
-    )
-    specs = [
-        WorkUnit(index=i, rect=Rect(0, 0, 1, 1), C=0.0, S=1, Nd=0.0, cost=float(c))
-        for i, c in enumerate(costs)
-    ]
-    sim = _Sim(auction, latency, rng, jitter, {f"agent{i}": float(s) for i, s in enumerate(speeds)}, delivery)
-    submitted = 2 * latency
-    sim.push(submitted, "submit", "", (info, specs))
-    for name in sim.speeds:
-        sim.push(
-            latency,
-            "master",
-            name,
-            m.Register(conversation="r", speed=sim.speeds[name], threads=1, rules="r"),
-        )
-        sim.push(heartbeat_s, "beat", name, heartbeat_s)
-    makespan = sim.run() - submitted
-    return SimResult(makespan, len(costs), len(speeds), sim.busy, sim.messages)
-
-
-class _Sim:
-    """Event queue of the simulation: messages to the master or an agent, agent heartbeats, timers."""
-
-    def __init__(self, auction: Auction, latency: float, rng: random.Random, jitter: float,
-                 speeds: dict[str, float], delivery: float = 0.0) -> None:
-        self.auction, self.latency, self.rng, self.jitter, self.speeds = auction, latency, rng, jitter, speeds
-        self.delivery = delivery
-        self.queue: list[tuple[float, int, str, str, Any]] = []
-        self.seq = 0
-        self.busy = dict.fromkeys(speeds, 0.0)
-        self.render_end = dict.fromkeys(speeds, 0.0)
-        self.holding: dict[str, set[tuple[str, int]]] = {name: set() for name in speeds}
-        self.messages = 0
-        self.timer = math.inf
-
-    def push(self, t: float, kind: str, who: str, payload: Any) -> None:
-        self.seq += 1
-        heapq.heappush(self.queue, (t, self.seq, kind, who, payload))
-
-    def run(self) -> float:
-        job: Job | None = None
-        while self.queue:
-            now, _, kind, who, payload = heapq.heappop(self.queue)
-            if kind == "submit":
-                self.auction.add_job(*payload)
-                job = self.auction.jobs[payload[0].job_id]
-                self.deliver(self.auction.tick(now), now)
-            elif kind == "master":
-                self.messages += 1
-                # An inform here stands for the tile's upload, which the real master turns into on_inform.
-                handle = self.auction.on_inform if isinstance(payload, m.Inform) else self.auction.on_message
-                self.deliver(handle(who, payload, now) + self.auction.tick(now), now)
-            elif kind == "agent":
-                self.messages += 1
-                self.agent_receives(who, payload, now)
-            elif kind == "beat":
-                busy = tuple(m.HeldUnit(job_id=j, index=i) for j, i in sorted(self.holding[who]))
-                self.push(now + self.latency, "master", who, m.Heartbeat(conversation="hb", busy=busy))
-                if job is None or job.status == JobStatus.RUNNING:
-                    self.push(now + payload, "beat", who, payload)
-            elif kind == "release":
-                self.holding[who].discard(payload)
-            elif kind == "timer" and now >= self.timer:
-                self.timer = math.inf
-                self.deliver(self.auction.tick(now), now)
-            if job is not None and job.status != JobStatus.RUNNING:
-                if job.status != JobStatus.DONE:
-                    raise RuntimeError(f"simulated job ended {job.status.value}: {job.error}")
-                return now
-        raise RuntimeError("simulation ran out of events before the job finished")
-
-    def deliver(self, commands: list[Command], now: float) -> None:
-        for cmd in commands:
-            if isinstance(cmd, Send):
-                self.push(now + self.latency, "agent", cmd.to, cmd.message)
-        due = self.auction.next_deadline()
-        if due is not None and due < self.timer:
-            self.timer = max(due, now)
-            self.push(self.timer + 1e-9, "timer", "", None)
-
-    def agent_receives(self, name: str, msg: m.Message, now: float) -> None:
-        speed = self.speeds[name]
-        if isinstance(msg, m.CallForProposal):
-            est = tuple(m.Estimate(index=u.index, seconds=u.cost / speed) for u in msg.units)
-            reply = m.Propose(conversation=msg.conversation, job_id=msg.job.job_id, estimates=est)
-            self.push(now + self.latency, "master", name, reply)
-        elif isinstance(msg, m.Award):
-            seconds = msg.unit.cost / speed * (1 + self.rng.uniform(-self.jitter, self.jitter))
-            self.busy[name] += seconds
-            self.holding[name].add((msg.job.job_id, msg.unit.index))
-            inform = m.Inform(
-                conversation=msg.conversation,
-                job_id=msg.job.job_id,
-                index=msg.unit.index,
-                token=msg.token,
-                tile_hash="0" * 64,
-                depth=1,
-                spp=1,
-                band=0,
-                seconds=seconds,
-                nonfinite=0,
-            )
-            # A unit awarded into a free slot starts when the one rendering ends; the tile's delivery
-            # (upload) overlaps the next render, and the inform leaves when it is done.
-            end = max(now, self.render_end[name]) + seconds
-            self.render_end[name] = end
-            self.push(end + self.delivery, "release", name, (msg.job.job_id, msg.unit.index))
-            self.push(end + self.delivery + self.latency, "master", name, inform)
+def _ignored(
+    agent: str | None, reason: str, job_id: str | None = None, index: int | None = None
+) -> MessageIgnored:
+    return MessageIgnored(agent, reason, job_id, index)

@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import OpenEXR
 from aiohttp import web
 
 from core.errors import TileError
@@ -309,8 +310,6 @@ def _validate(path: Path, core: Rect, max_band: int, what: str, job: str, unit: 
 
 
 def _data_window(path: Path, what: str) -> Rect:
-    import OpenEXR
-
     with path.open("rb") as fh:
         if fh.read(4) != b"\x76\x2f\x31\x01":
             raise Refusal(422, f"{what}: the body is not an EXR file")

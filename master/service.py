@@ -30,6 +30,7 @@ from core.model import messages as m
 from core.model.hashing import sha256_file
 from core.model.job import JobPlan, JobSpec, RenderOptions, SceneSpec
 from core.model.seeds import plan_seed
+from core.model.status import JobStatus, UnitStatus
 from core.render.bundle import BundleLimits, bundle_hash, check_rules, check_unpacked, extract_bundle, read_manifest
 from core.render.tiles import read_tile, tile_source
 from core.supervision import die_with_parent
@@ -37,7 +38,7 @@ from core.transport.xmpp import FarmAgent
 from master import auction as au
 from master.api_jobs import add_job_routes
 from master.http_api import create_app, serve
-from master.store import JobRecord, JobStore, restore_auction
+from master.store import JobRecord, JobStore
 from planning.jobplan import farm_min_units, plan_job
 from planning.pipeline import assemble
 
@@ -114,7 +115,10 @@ class MasterService:
         self._repair_store(now)
         upload = f"{self.config.url}/jobs/{{job}}/units/{{index}}/tile"
         auction_config = dataclasses.replace(self.config.auction, upload_url=upload)
-        self.auction, events = restore_auction(self.store, self.job_info, now, auction_config)
+        self.store.resume(now)  # awarded units of running jobs back to pending: the old master's awards are void
+        self.auction, events = au.Auction.restore(
+            self.store.running_jobs(), lambda job_id: self.job_info(self.store.job(job_id)),
+            self.store.credits(), auction_config)
         self.store.apply(events, now)
         await self._start_http()
         await self._start_xmpp()
@@ -255,7 +259,7 @@ class MasterService:
     def _expected_upload(self, job_id: str, index: int) -> tuple[str, Any] | None:
         job = self.auction.jobs.get(job_id) if self.auction else None
         unit = job.units.get(index) if job else None
-        if unit is None or unit.status != au.UnitStatus.AWARDED or unit.token is None:
+        if unit is None or unit.status != UnitStatus.AWARDED or unit.token is None:
             return None
         return unit.token, unit.spec.rect
 
@@ -275,7 +279,7 @@ class MasterService:
         async with self._lock:
             job = self.auction.jobs.get(job_id)
             unit = job.units.get(index) if job else None
-            if unit is None or unit.status != au.UnitStatus.AWARDED:
+            if unit is None or unit.status != UnitStatus.AWARDED:
                 return
             meta = read_tile(path).meta
             params = _params_from_meta(meta)
@@ -348,16 +352,15 @@ class MasterService:
                     continue
                 await self.agent.send(cmd.to, performative, body, conversation_id=cmd.message.conversation,
                                       protocol=m.PROTOCOL, ontology=m.ONTOLOGY)
-            elif cmd.kind == "job-done":
+            elif isinstance(cmd, au.JobDone):
                 self._assemble_later(cmd.job_id)
-            elif cmd.kind != "ignored" or cmd.reason:
-                log.info("%s job=%s unit=%s agent=%s %s", cmd.kind, cmd.job_id, cmd.index, cmd.agent,
-                         cmd.reason)
+            else:
+                log.info("%r", cmd)  # the event's kind and fields (its repr leaves tokens out)
 
     async def _fail_job(self, job_id: str, exc: Exception) -> None:
         log.error("job %s: its messages cannot be encoded (%s): the job fails, the others go on", job_id, exc)
         reason = f"cannot send its messages: {exc}"
-        self.store.set_status(job_id, "failed", time.time(), reason)  # first: the cancel below keeps it failed
+        self.store.set_status(job_id, JobStatus.FAILED, time.time(), reason)  # first: the cancel below keeps it failed
         await self._execute(self.auction.cancel_job(job_id, reason))
 
     # ---- the final image ----------------------------------------------------------------------------

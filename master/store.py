@@ -4,38 +4,44 @@ SQLite (stdlib `sqlite3`) in WAL mode, so the CLI reads status while the master 
 a busy timeout rather than "database is locked" errors; synchronous=FULL because a unit counts as done
 only once its tile and the row saying so are both on disk. The schema version lives in `user_version`.
 
-The auction state machine (`master.auction`) never touches the store: the master applies the auction's
-events with `JobStore.apply`, and on restart `restore_auction` rebuilds the auction from the rows, with
-awarded-but-unfinished units back to pending and finished units left done.
+The auction state machine (`master.auction`) never touches the store: the master records the auction's
+events with `JobStore.apply`. On restart `resume` sends awarded-but-unfinished units back to pending, and the
+auction rebuilds itself (`Auction.restore`) from `running_jobs` and `credits`. Statuses, in the rows and in
+the schema's CHECK constraints, are those of `core.model.status`, and every change of one is checked
+against its transition table, as the auction's are.
 """
 
 from __future__ import annotations
 
 import json
-import random
 import sqlite3
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from core.errors import QuekaroError
-from core.model import messages as m
 from core.model.geometry import Rect
 from core.model.job import JobPlan, JobSpec, SceneSpec
+from core.model.status import STORED_UNIT_STATUSES, JobStatus, UnitStatus, job_transition, unit_transition
 from core.model.units import WorkUnit
 from master import auction as au
 
 SCHEMA_VERSION = 2
 
-_SCHEMA = """
+
+def _sql_set(statuses: Iterable[str]) -> str:
+    return ", ".join(f"'{s}'" for s in statuses)
+
+
+_SCHEMA = f"""
 CREATE TABLE jobs (
     id       TEXT PRIMARY KEY,
     scene    TEXT NOT NULL,
     spec     TEXT NOT NULL,                 -- JSON: JobSpec.to_dict() (-D parameters, options)
     plan     TEXT NOT NULL,                 -- JSON: JobPlan.to_dict() (size, effects, spp, depth, hashes)
-    status   TEXT NOT NULL CHECK (status IN ('running', 'done', 'failed', 'cancelled')),
+    status   TEXT NOT NULL CHECK (status IN ({_sql_set(JobStatus)})),
     created  REAL NOT NULL,
     finished REAL,
     error    TEXT NOT NULL DEFAULT ''
@@ -46,7 +52,7 @@ CREATE TABLE units (
     x INTEGER NOT NULL, y INTEGER NOT NULL, w INTEGER NOT NULL, h INTEGER NOT NULL,
     C REAL NOT NULL, S REAL NOT NULL, Nd REAL NOT NULL,
     cost     REAL NOT NULL CHECK (cost >= 0),
-    status   TEXT NOT NULL CHECK (status IN ('pending', 'awarded', 'done', 'failed')),
+    status   TEXT NOT NULL CHECK (status IN ({_sql_set(STORED_UNIT_STATUSES)})),
     attempts INTEGER NOT NULL DEFAULT 0,
     PRIMARY KEY (job_id, idx)
 );
@@ -95,7 +101,7 @@ class JobRecord:
     scene: str  # the main scene file inside the job's bundle
     spec: JobSpec
     plan: dict[str, Any]  # JobPlan.to_dict(); `JobStore.plan` rebuilds the JobPlan
-    status: str
+    status: JobStatus
     created: float
     finished: float | None
     error: str
@@ -110,7 +116,7 @@ class UnitRecord:
     S: float
     Nd: float
     cost: float
-    status: str
+    status: UnitStatus
     attempts: int
 
     def unit(self) -> WorkUnit:
@@ -124,6 +130,16 @@ class ResultRecord:
     tile_path: str
     hash: str
     params: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class RunningJob:
+    """A running job as a restarted master's auction takes it up (`master.auction.Auction.restore`)."""
+
+    job_id: str
+    units: list[WorkUnit]
+    done: list[int]  # indices of the units done
+    failures: list[tuple[int, str, str]]  # (unit index, agent, reason) of its failed attempts, oldest first
 
 
 @dataclass(frozen=True)
@@ -240,14 +256,13 @@ class JobStore:
             if db.execute("SELECT 1 FROM jobs WHERE id = ?", (job_id,)).fetchone():
                 raise StoreError(f"job {job_id!r} already exists")
             db.execute(
-                "INSERT INTO jobs (id, scene, spec, plan, status, created)"
-                " VALUES (?, ?, ?, ?, 'running', ?)",
-                (job_id, scene, json.dumps(spec.to_dict()), json.dumps(plan.to_dict()), now),
+                "INSERT INTO jobs (id, scene, spec, plan, status, created) VALUES (?, ?, ?, ?, ?, ?)",
+                (job_id, scene, json.dumps(spec.to_dict()), json.dumps(plan.to_dict()), JobStatus.RUNNING, now),
             )
             db.executemany(
                 "INSERT INTO units (job_id, idx, x, y, w, h, C, S, Nd, cost, status)"
-                " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, 'pending')",
-                [(job_id, u.index, *u.rect.as_list(), u.C, u.S, u.Nd, u.cost) for u in units],
+                " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                [(job_id, u.index, *u.rect.as_list(), u.C, u.S, u.Nd, u.cost, UnitStatus.PENDING) for u in units],
             )
 
     def job(self, job_id: str) -> JobRecord:
@@ -256,7 +271,7 @@ class JobStore:
             raise StoreError(f"no job {job_id!r} in {self.path}")
         return _job(row)
 
-    def list_jobs(self, status: str | None = None) -> list[JobRecord]:
+    def list_jobs(self, status: JobStatus | None = None) -> list[JobRecord]:
         sql, args = "SELECT * FROM jobs", ()
         if status is not None:
             sql, args = sql + " WHERE status = ?", (status,)
@@ -267,7 +282,7 @@ class JobStore:
         return [
             UnitRecord(
                 r["job_id"], r["idx"], Rect(r["x"], r["y"], r["w"], r["h"]),
-                r["C"], r["S"], r["Nd"], r["cost"], r["status"], r["attempts"],
+                r["C"], r["S"], r["Nd"], r["cost"], UnitStatus(r["status"]), r["attempts"],
             )
             for r in rows
         ]  # fmt: skip
@@ -285,16 +300,17 @@ class JobStore:
             for r in rows
         ]
 
-    def set_status(self, job_id: str, status: str, now: float, error: str = "") -> None:
-        """End a job (done, failed, cancelled); its unfinished units and attempts end with it."""
+    def set_status(self, job_id: str, status: JobStatus, now: float, error: str = "") -> None:
+        """End a running job (done, failed, cancelled); its unfinished units and attempts end with it. A job
+        that has ended already stays as it ended."""
         with self._tx() as db:
             self._end_job(db, job_id, status, now, error)
 
     def cancel(self, job_id: str, now: float) -> bool:
         """Cancel a running job; False if it had already ended."""
-        if self.job(job_id).status != "running":
+        if self.job(job_id).status != JobStatus.RUNNING:
             return False
-        self.set_status(job_id, "cancelled", now, "cancelled by the user")
+        self.set_status(job_id, JobStatus.CANCELLED, now, "cancelled by the user")
         return True
 
     # --- awards, attempts, results -------------------------------------------------------------------
@@ -325,7 +341,7 @@ class JobStore:
         the first finished result wins, and a late duplicate changes nothing."""
         with self._tx() as db:
             unit = self._unit(db, job_id, index)
-            if unit["status"] == "done":
+            if unit["status"] == UnitStatus.DONE:
                 return False
             db.execute(
                 "INSERT OR REPLACE INTO results (job_id, idx, tile_path, hash, params, recorded)"
@@ -374,15 +390,15 @@ class JobStore:
             (job_id,),
         ).fetchone()
         left = db.execute(
-            "SELECT COALESCE(SUM(cost), 0) FROM units WHERE job_id = ? AND status IN ('pending', 'awarded')",
-            (job_id,),
+            "SELECT COALESCE(SUM(cost), 0) FROM units WHERE job_id = ? AND status IN (?, ?)",
+            (job_id, UnitStatus.PENDING, UnitStatus.AWARDED),
         ).fetchone()[0]
         eta = None
         if rate[0] is not None and rate[1]:
             eta = left * (rate[0] / rate[1]) / max(1, busy)
         elif left == 0:
             eta = 0.0
-        return Progress(counts.get("done", 0), total, counts.get("failed", 0), busy, eta)
+        return Progress(counts.get(UnitStatus.DONE, 0), total, counts.get(UnitStatus.FAILED, 0), busy, eta)
 
     # --- restart and the auction's events ------------------------------------------------------------
 
@@ -395,11 +411,20 @@ class JobStore:
                 " WHERE outcome = 'running'",
                 (now,),
             )
-            db.execute(
-                "UPDATE units SET status = 'pending' WHERE status = 'awarded'"
-                " AND job_id IN (SELECT id FROM jobs WHERE status = 'running')"
-            )
-        return [j.id for j in self.list_jobs("running")]
+            self._move_units(db, UnitStatus.PENDING, [UnitStatus.AWARDED],
+                             "job_id IN (SELECT id FROM jobs WHERE status = ?)", (JobStatus.RUNNING,),
+                             "awarded units of running jobs, on restart")
+        return [j.id for j in self.list_jobs(JobStatus.RUNNING)]
+
+    def running_jobs(self) -> list[RunningJob]:
+        """Every running job with its units, those done and its past failures: what the auction rebuilds
+        itself from after a restart (with `credits`)."""
+        out = []
+        for record in self.list_jobs(JobStatus.RUNNING):
+            units = self.units(record.id)
+            done = [u.index for u in units if u.status == UnitStatus.DONE]
+            out.append(RunningJob(record.id, [u.unit() for u in units], done, self.failures(record.id)))
+        return out
 
     def repair(self, job_ids: list[str], now: float) -> list[tuple[str, int]]:
         """Units of these jobs marked done whose tile is gone (or never recorded) go back to pending, and a
@@ -409,12 +434,12 @@ class JobStore:
         for job_id in job_ids:
             tiles = {r.index: r.tile_path for r in self.results(job_id)}
             bad += [(job_id, u.index) for u in self.units(job_id)
-                    if u.status == "done" and not (u.index in tiles and Path(tiles[u.index]).is_file())]
+                    if u.status == UnitStatus.DONE and not (u.index in tiles and Path(tiles[u.index]).is_file())]
         with self._tx() as db:
             for job_id, index in bad:
                 db.execute("DELETE FROM results WHERE job_id = ? AND idx = ?", (job_id, index))
-                db.execute("UPDATE units SET status = 'pending' WHERE job_id = ? AND idx = ?", (job_id, index))
-                db.execute("UPDATE jobs SET status = 'running', finished = NULL WHERE id = ?", (job_id,))
+                self._set_unit(db, job_id, index, UnitStatus.PENDING)
+                self._reopen_job(db, job_id)
         return bad
 
     def failures(self, job_id: str) -> list[tuple[int, str, str]]:
@@ -432,20 +457,35 @@ class JobStore:
                     self._apply(db, cmd, now)
 
     def _apply(self, db: sqlite3.Connection, ev: au.Event, now: float) -> None:
-        d = ev.detail
-        if ev.kind == "unit-awarded":
-            self._award(db, ev.job_id, ev.index, ev.agent, d["token"], now, d["estimate"])
-        elif ev.kind == "unit-done":
-            self._finish(db, d["token"], "done", now, d["seconds"], d["params"], "")
-            if not self._done(db, ev.job_id, ev.index, now):
-                raise StoreError(f"job {ev.job_id!r} unit {ev.index}: done twice")
-        elif ev.kind in ("unit-failed", "unit-requeued"):
-            outcome = "failed" if ev.kind == "unit-failed" else "requeued"
-            self._finish(db, d["token"], outcome, now, None, None, ev.reason)
-        elif ev.kind in ("job-done", "job-failed", "job-cancelled"):
-            self._end_job(db, ev.job_id, ev.kind.removeprefix("job-"), now, ev.reason)
-        if ev.agent is not None and ev.kind != "ignored":
-            self._agent(db, ev.agent, now, d.get("credits"))
+        """One event: its unit, attempt or job; and the agent it names is seen now (with its credits, if the
+        event carries them)."""
+        match ev:
+            case au.UnitAwarded():
+                self._award(db, ev.job_id, ev.index, ev.agent, ev.token, now, ev.estimate)
+                self._agent(db, ev.agent, now, None)
+            case au.UnitDone():
+                self._finish(db, ev.token, "done", now, ev.seconds, ev.params, "")
+                if not self._done(db, ev.job_id, ev.index, now):
+                    raise StoreError(f"job {ev.job_id!r} unit {ev.index}: done twice")
+                self._agent(db, ev.agent, now, ev.credits)
+            case au.UnitFailed():
+                self._finish(db, ev.token, "failed", now, None, None, ev.reason)
+                self._agent(db, ev.agent, now, ev.credits)
+            case au.UnitRequeued():
+                self._finish(db, ev.token, "requeued", now, None, None, ev.reason)
+                self._agent(db, ev.agent, now, None)
+            case au.JobDone():
+                self._end_job(db, ev.job_id, JobStatus.DONE, now, "")
+            case au.JobFailed():
+                self._end_job(db, ev.job_id, JobStatus.FAILED, now, ev.reason)
+            case au.JobCancelled():
+                self._end_job(db, ev.job_id, JobStatus.CANCELLED, now, ev.reason)
+            case au.AgentRegistered() | au.AgentLost() | au.AgentBack() | au.AgentBlocklisted() | au.BidRefused():
+                self._agent(db, ev.agent, now, None)
+            case au.MessageIgnored():
+                pass  # changes nothing, by definition
+            case _:
+                raise TypeError(f"the job store has no record for a {type(ev).__name__} event")
 
     # --- statements shared by the public methods and `apply` -----------------------------------------
 
@@ -458,10 +498,11 @@ class JobStore:
     def _award(
         self, db, job_id: str, index: int, agent: str, token: str, started: float, estimate: float
     ) -> None:
-        self._unit(db, job_id, index)
+        status = self._unit(db, job_id, index)["status"]
+        to = unit_transition(f"job {job_id!r} unit {index}", status, UnitStatus.AWARDED)
         db.execute(
-            "UPDATE units SET status = 'awarded', attempts = attempts + 1 WHERE job_id = ? AND idx = ?",
-            (job_id, index),
+            "UPDATE units SET status = ?, attempts = attempts + 1 WHERE job_id = ? AND idx = ?",
+            (to, job_id, index),
         )
         db.execute(
             "INSERT INTO attempts (job_id, idx, agent, token, started, outcome, estimate)"
@@ -479,13 +520,11 @@ class JobStore:
             (outcome, finished, seconds, None if params is None else json.dumps(params), reason, token),
         )
         if outcome in ("failed", "requeued"):
-            db.execute(
-                "UPDATE units SET status = 'pending' WHERE job_id = ? AND idx = ? AND status = 'awarded'",
-                (row["job_id"], row["idx"]),
-            )
+            self._move_units(db, UnitStatus.PENDING, [UnitStatus.AWARDED], "job_id = ? AND idx = ?",
+                             (row["job_id"], row["idx"]), f"job {row['job_id']!r} unit {row['idx']}, {outcome}")
 
     def _done(self, db: sqlite3.Connection, job_id: str, index: int, now: float) -> bool:
-        if self._unit(db, job_id, index)["status"] == "done":
+        if self._unit(db, job_id, index)["status"] == UnitStatus.DONE:
             return False
         if (
             db.execute("SELECT 1 FROM results WHERE job_id = ? AND idx = ?", (job_id, index)).fetchone()
@@ -495,24 +534,46 @@ class JobStore:
             raise StoreError(
                 f"job {job_id!r} unit {index}: no durable result recorded before marking it done"
             )
-        db.execute("UPDATE units SET status = 'done' WHERE job_id = ? AND idx = ?", (job_id, index))
+        self._set_unit(db, job_id, index, UnitStatus.DONE)
         return True
 
-    def _end_job(self, db: sqlite3.Connection, job_id: str, status: str, now: float, error: str) -> None:
-        if status not in ("done", "failed", "cancelled"):
-            raise StoreError(f"job status {status!r} is not an end state")
+    def _set_unit(self, db: sqlite3.Connection, job_id: str, index: int, status: UnitStatus) -> None:
+        """One unit's status changes, checked against `core.model.status.UNIT_TRANSITIONS`."""
+        old = self._unit(db, job_id, index)["status"]
+        to = unit_transition(f"job {job_id!r} unit {index}", old, status)
+        db.execute("UPDATE units SET status = ? WHERE job_id = ? AND idx = ?", (to, job_id, index))
+
+    def _move_units(self, db: sqlite3.Connection, status: UnitStatus, sources: Sequence[UnitStatus], where: str,
+                    args: tuple[Any, ...], what: str) -> None:
+        """The units matching `where` whose status is one of `sources` go to `status`; each (source, status)
+        is checked against the transition table first, `what` naming the units in the error."""
+        for source in sources:
+            unit_transition(what, source, status)
+        marks = ", ".join("?" * len(sources))
+        db.execute(f"UPDATE units SET status = ? WHERE status IN ({marks}) AND {where}", (status, *sources, *args))
+
+    def _reopen_job(self, db: sqlite3.Connection, job_id: str) -> None:
+        """A job ended as done runs again (repair); a running job stays running."""
+        row = db.execute("SELECT status FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        if row is None:
+            raise StoreError(f"no job {job_id!r} in {self.path}")
+        if row["status"] != JobStatus.RUNNING:
+            to = job_transition(f"job {job_id!r}", row["status"], JobStatus.RUNNING)
+            db.execute("UPDATE jobs SET status = ?, finished = NULL WHERE id = ?", (to, job_id))
+
+    def _end_job(self, db: sqlite3.Connection, job_id: str, status: JobStatus, now: float, error: str) -> None:
+        """A running job ends as `status`; a job already ended stays as it ended."""
+        status = job_transition(f"job {job_id!r}", JobStatus.RUNNING, status)  # an end state, or this raises
         cur = db.execute(
-            "UPDATE jobs SET status = ?, finished = ?, error = ? WHERE id = ? AND status = 'running'",
-            (status, now, error, job_id),
+            "UPDATE jobs SET status = ?, finished = ?, error = ? WHERE id = ? AND status = ?",
+            (status, now, error, job_id, JobStatus.RUNNING),
         )
         if cur.rowcount == 0:
-            self.job(job_id)  # raises for an unknown job; a job already ended stays as it ended
+            self.job(job_id)  # raises for an unknown job
             return
-        if status != "done":
-            db.execute(
-                "UPDATE units SET status = 'failed' WHERE job_id = ? AND status IN ('pending', 'awarded')",
-                (job_id,),
-            )
+        if status != JobStatus.DONE:
+            self._move_units(db, UnitStatus.FAILED, [UnitStatus.PENDING, UnitStatus.AWARDED], "job_id = ?",
+                             (job_id,), f"unfinished units of job {job_id!r}, {status}")
             db.execute(
                 "UPDATE attempts SET outcome = 'cancelled', finished = ?, reason = ?"
                 " WHERE job_id = ? AND outcome = 'running'",
@@ -531,31 +592,6 @@ class JobStore:
 def _job(row: sqlite3.Row) -> JobRecord:
     return JobRecord(
         row["id"], row["scene"], JobSpec.from_dict(json.loads(row["spec"])), json.loads(row["plan"]),
-        row["status"], row["created"], row["finished"], row["error"],
+        JobStatus(row["status"]), row["created"], row["finished"], row["error"],
     )  # fmt: skip
 
-
-def restore_auction(
-    store: JobStore,
-    job_info: Callable[[JobRecord], m.JobInfo],
-    now: float,
-    config: au.Config | None = None,
-    rng: random.Random | None = None,
-) -> tuple[au.Auction, list[au.Command]]:
-    """Rebuild the auction after a master restart: every running job with its done units and past failures,
-    the agents' credits; awarded units are back to pending. `job_info` builds a job's CFP description (its
-    scene URL depends on where the master serves now). Returns the auction and the events of resuming
-    (e.g. a job that was in fact complete), which the caller should `apply`."""
-    store.resume(now)
-    auction = au.Auction(config, rng, credits=store.credits())
-    out: list[au.Command] = []
-    for record in store.list_jobs("running"):
-        units = store.units(record.id)
-        done = [u.index for u in units if u.status == "done"]
-        try:
-            info = job_info(record)
-        except Exception as exc:  # one job the master cannot describe must not stop the others
-            store.set_status(record.id, "failed", now, f"cannot resume the job: {type(exc).__name__}: {exc}")
-            continue
-        out += auction.add_job(info, [u.unit() for u in units], done, store.failures(record.id))
-    return auction, out

@@ -14,9 +14,11 @@ from core.errors import QuekaroError
 from core.model import integrators
 from core.model.job import Effects, JobPlan, RenderOptions, SceneSpec
 from core.model.units import WorkUnit
+from core.render import scene as scene_mod
 from core.render.effects import analyse
 from core.render.scene import expand, film_info, sensor_elements
-from planning.partition import equal_tiles
+from planning.complexity import prepass
+from planning.partition import equal_tiles, partition
 
 DEFAULT_SPP = 64  # when neither the user nor the scene's sampler says
 def scene_spp(spec: SceneSpec, sensor_index: int = 0) -> int | None:
@@ -89,9 +91,6 @@ def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: 
 
 def _planned_with_prepass(spec: SceneSpec, options: RenderOptions, effects: Effects, width: int,
                           height: int, spp: int, depth: int, target: int, seed: int) -> JobPlan:
-    from core.render import scene as scene_mod
-    from planning.complexity import prepass
-    from planning.partition import partition
 
     start = time.perf_counter()
     scene = scene_mod.load(spec, effects.variant, options.threads)

@@ -1,26 +1,23 @@
 """The `quekaro` command line: one sub-command family per module `quekaro/cmd_*.py`.
 
 Each `cmd_*` module exposes `register(subparsers)`, adding its sub-commands, each with a handler
-`func(args) -> int` (the exit status). Heavy imports (Mitsuba, SPADE) happen inside handlers so that
-`quekaro --help` stays fast.
+`func(args) -> int` (the exit status). Families installed beside the product (the benchmarks, `bench.cli`)
+register through the `quekaro.commands` entry point, so that nothing here imports them.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
+from collections.abc import Callable
+from importlib.metadata import EntryPoint, entry_points
 
 from core.errors import QuekaroError
 from fuzzy.errors import FuzzyInputError, RuleFileError
+from quekaro import cmd_diff, cmd_farm, cmd_render, cmd_rules
 
-COMMAND_MODULES = (
-    "quekaro.cmd_rules",
-    "quekaro.cmd_render",
-    "quekaro.cmd_diff",
-    "quekaro.cmd_farm",
-    "quekaro.cmd_bench",
-)
+COMMAND_MODULES = (cmd_rules, cmd_render, cmd_diff, cmd_farm)
+PLUGIN_GROUP = "quekaro.commands"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -29,21 +26,38 @@ def build_parser() -> argparse.ArgumentParser:
         description="QUEKARO render farm: fuzzy-rule driven Mitsuba 3 rendering on agents over XMPP.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in COMMAND_MODULES:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as exc:
-            if exc.name == name:
-                continue  # that command family is not built yet
-            raise
+    for module in COMMAND_MODULES:
         module.register(sub)
+    for entry in entry_points(group=PLUGIN_GROUP):
+        _register_plugin(sub, entry)
     return parser
+
+
+def _register_plugin(sub: argparse._SubParsersAction, entry: EntryPoint) -> None:
+    """A plugin's commands; one whose optional dependencies are missing answers with what to install."""
+    try:
+        register = entry.load()
+    except ModuleNotFoundError as exc:
+        parser = sub.add_parser(entry.name, help=f"(needs: pip install 'quekaro-farm[{entry.name}]')")
+        parser.add_argument("rest", nargs=argparse.REMAINDER)
+        parser.set_defaults(func=_missing(entry.name, exc.name or str(exc)))
+        return
+    register(sub)
+
+
+def _missing(extra: str, module: str) -> Callable[[argparse.Namespace], int]:
+    def refuse(args: argparse.Namespace) -> int:
+        raise QuekaroError(f"'quekaro {extra}' needs the optional module {module!r}: "
+                           f"pip install 'quekaro-farm[{extra}]'")
+
+    return refuse
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["agent"]:
-        # The render agent owns its options (python -m agents.render_agent takes the same ones).
+        # The render agent owns its options (python -m agents.render_agent takes the same ones). Lazy:
+        # SPADE takes ~0.6 s to import, which every other command would pay.
         from agents.render_agent import main as agent_main
 
         return int(agent_main(argv[1:]) or 0)

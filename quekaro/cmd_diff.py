@@ -6,6 +6,10 @@ import argparse
 import json
 from typing import Any
 
+import numpy as np
+
+from core.render import imageio, metrics
+
 
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
@@ -21,8 +25,6 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.render import imageio, metrics
-
     test, reference = imageio.read_exr(args.test), imageio.read_exr(args.reference)
     results = metrics.all_metrics(test, reference)
     if args.output:
@@ -40,8 +42,6 @@ def run(args: argparse.Namespace) -> int:
 
 def _grey_as_display(grey: Any) -> Any:
     """The difference image (display units) as linear values whose sRGB PNG shows that grey."""
-    import numpy as np
-
     # write_png sRGB-encodes; decode first so the PNG's pixel value equals the difference itself.
     g = np.clip(grey, 0.0, 1.0)
     linear = np.where(g <= 0.04045, g / 12.92, ((g + 0.055) / 1.055) ** 2.4)

@@ -5,9 +5,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from core.errors import QuekaroError
 from core.model.integrators import CATALOGUE
+from core.model.job import RenderOptions, SceneSpec
+from core.render.scene import parse_defines
 from fuzzy.engine import DEFUZZIFIERS
 from fuzzy.levels import LEVELS
+from planning.pipeline import render_job
 
 
 def add_job_arguments(parser: argparse.ArgumentParser) -> None:
@@ -34,8 +38,6 @@ def add_job_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def options_from_args(args: argparse.Namespace):
-    from core.model.job import RenderOptions
-
     return RenderOptions(level=args.level, spp=args.spp, depth=args.depth,
                          threads=getattr(args, "threads", None), rules=args.rules,
                          defuzzifier=args.defuzzifier, variant=args.variant,
@@ -44,8 +46,6 @@ def options_from_args(args: argparse.Namespace):
 
 def search_paths(args: argparse.Namespace) -> tuple[Path, ...]:
     """The -a folders, each checked to exist (Mitsuba would silently search nothing)."""
-    from core.errors import QuekaroError
-
     for folder in args.search_paths:
         if not folder.is_dir():
             raise QuekaroError(f"-a {folder}: not a folder")
@@ -62,9 +62,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.model.job import SceneSpec
-    from core.render.scene import parse_defines
-    from planning.pipeline import render_job
 
     spec = SceneSpec(args.scene, parse_defines(args.defines), search_paths(args))
     report = render_job(spec, options_from_args(args), args.out)

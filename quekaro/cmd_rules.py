@@ -10,6 +10,8 @@ import argparse
 import csv
 import sys
 
+from fuzzy import Engine, FuzzyInputError, RuleFileError, load_rulebase
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     rules = sub.add_parser("rules", help="check and evaluate fuzzy rule files")
@@ -35,8 +37,6 @@ class _UsageError(ValueError):
 
 
 def run_check(args: argparse.Namespace) -> int:
-    from fuzzy import RuleFileError, load_rulebase
-
     try:
         rb = load_rulebase(args.file)
     except RuleFileError as exc:
@@ -47,8 +47,6 @@ def run_check(args: argparse.Namespace) -> int:
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    from fuzzy import Engine, FuzzyInputError, RuleFileError, load_rulebase
-
     try:
         engine = Engine(load_rulebase(args.file), args.defuzzifier)
         ranges = dict(_parse_range(r) for r in args.range)

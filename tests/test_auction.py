@@ -1,4 +1,5 @@
-"""The auction state machine: awards, credits, timeouts, failures, ignored results, simulated clock."""
+"""The auction state machine: awards, credits, timeouts, failures, ignored results, typed events, simulated
+clock (`bench.simulate`)."""
 
 from __future__ import annotations
 
@@ -6,13 +7,16 @@ import dataclasses
 import itertools
 import random
 from collections import Counter
+from typing import TypeVar
 
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from bench.simulate import simulate
 from core.model import messages as m
 from core.model.geometry import Rect
+from core.model.status import JobStatus, UnitStatus
 from core.model.units import WorkUnit
 from master import auction as au
 
@@ -46,8 +50,11 @@ def sends(cmds: list[au.Command], kind: type | None = None, to: str | None = Non
     return [c for c in out if (kind is None or isinstance(c.message, kind)) and (to is None or c.to == to)]
 
 
-def events(cmds: list[au.Command], kind: str | None = None) -> list[au.Event]:
-    return [c for c in cmds if isinstance(c, au.Event) and (kind is None or c.kind == kind)]
+E = TypeVar("E", bound=au.Event)
+
+
+def events(cmds: list[au.Command], kind: type[E] = au.Event) -> list[E]:
+    return [c for c in cmds if isinstance(c, kind)]
 
 
 def make(costs: list[float], agents: list[str], config: au.Config | None = None) -> au.Auction:
@@ -120,12 +127,33 @@ def test_happy_path_most_costly_units_first_and_job_done() -> None:
     done = []
     for award in got.values():
         done += a.on_inform(award.to, inform(award, 1.0), 1.0)
-    assert len(events(done, "unit-done")) == 2 and not events(done, "job-done")
+    assert len(events(done, au.UnitDone)) == 2 and not events(done, au.JobDone)
     last = round_trip(a, 1.0)
     assert list(last) == [0]
     out = a.on_inform(last[0].to, inform(last[0], 1.0), 2.0)
-    assert events(out, "job-done") and a.jobs["job-1"].status == au.JobStatus.DONE
+    assert events(out, au.JobDone) and a.jobs["job-1"].status == JobStatus.DONE
     assert a.counts("job-1") == Counter(done=3)
+
+
+def test_events_are_typed_and_keep_tokens_out_of_their_repr() -> None:
+    a = make([1.0], ["A"])
+    bid_all(a, a.announce(0.0), 0.0)
+    out = a.decide(0.0)
+    award = awards(out)[0]
+    token = award.message.token
+    deadline = 1.0 * a.config.render_factor + a.config.render_slack_s
+    assert events(out) == [au.UnitAwarded("job-1", 0, "A", token, estimate=1.0, attempt=1, deadline=deadline)]
+    done = a.on_inform("A", inform(award, 1.05), 1.0)
+    assert [type(e) for e in done] == [au.UnitDone, au.JobDone]
+    ev = done[0]
+    assert (ev.token, ev.seconds, ev.tile_hash, ev.credits, ev.on_time) == (token, 1.05, HASH, 1, True)
+    assert ev.params == {"depth": 4, "spp": 8, "band": 2, "nonfinite": 0}
+    assert token not in repr(events(out)[0]) and token not in repr(ev)
+
+
+def test_add_job_refuses_done_units_it_does_not_have() -> None:
+    with pytest.raises(ValueError, match=r"done units \[7\] unknown"):
+        au.Auction().add_job(info(), specs([1.0]), done=[0, 7])
 
 
 def test_contested_unit_goes_to_best_record_and_others_are_rejected() -> None:
@@ -157,7 +185,7 @@ def test_credits_follow_the_ten_percent_rule() -> None:
     second = round_trip(a, 2.0)
     out = a.on_inform("A", inform(second[1], 1.2), 3.2)  # 20 % over
     assert a.agents["A"].credits == 0
-    assert events(out, "unit-done")[0].detail["on_time"] is False
+    assert events(out, au.UnitDone)[0].on_time is False
 
 
 def test_unanswered_cfp_is_announced_again() -> None:
@@ -185,14 +213,14 @@ def test_lost_agent_gives_its_units_to_another() -> None:
     t = a.config.heartbeat_timeout_s + 0.5
     a.on_heartbeat(other, m.Heartbeat(conversation="h", busy=()), t)
     out = a.expire(t)
-    assert [e.agent for e in events(out, "agent-lost")] == [holder_of_0]
-    assert [(e.index, e.reason) for e in events(out, "unit-requeued")] == [(0, f"agent {holder_of_0} lost")]
+    assert [e.agent for e in events(out, au.AgentLost)] == [holder_of_0]
+    assert [(e.index, e.reason) for e in events(out, au.UnitRequeued)] == [(0, f"agent {holder_of_0} lost")]
     again = round_trip(a, t)
     assert again[0].to == other
     # The lost agent's late result is harmless.
     late = a.on_inform(holder_of_0, inform(got[0], 1.0), t + 1)
-    assert events(late, "ignored")[0].reason == "unit not awarded to this agent"
-    assert a.on_inform(other, inform(again[0], 1.0), t + 1)[-1].kind == "job-done"
+    assert events(late, au.MessageIgnored)[0].reason == "unit not awarded to this agent"
+    assert a.on_inform(other, inform(again[0], 1.0), t + 1)[-1] == au.JobDone("job-1")
 
 
 def test_render_deadline_cancels_and_retries_elsewhere() -> None:
@@ -206,7 +234,7 @@ def test_render_deadline_cancels_and_retries_elsewhere() -> None:
     a.on_heartbeat("B", m.Heartbeat(conversation="h", busy=()), deadline - 1)
     out = a.expire(deadline + 0.1)
     assert [s.message.reason for s in sends(out, m.Cancel, to="A")] == ["render deadline passed"]
-    assert events(out, "unit-failed")[0].agent == "A"
+    assert events(out, au.UnitFailed)[0].agent == "A"
     cfps = sends(a.announce(deadline + 0.1), m.CallForProposal)
     assert [s.to for s in cfps] == ["B"]  # A is not offered the unit it failed
 
@@ -227,16 +255,16 @@ def test_failure_is_retried_on_another_agent_and_blocklists_after_three() -> Non
         now += 1
     assert len(failed_units) == 3
     assert a.jobs["job-1"].blocklist == {"bad"}
-    assert events(out, "agent-blocklisted")[0].reason == "3 failed units of this job"
+    assert events(out, au.AgentBlocklisted)[0].reason == "3 failed units of this job"
     for _ in range(10):
         got = round_trip(a, now)
         assert all(s.to == "good" for s in got.values())
         for award in got.values():
             out = a.on_inform("good", inform(award, 1.0), now)
         now += 1
-        if a.jobs["job-1"].status != au.JobStatus.RUNNING:
+        if a.jobs["job-1"].status != JobStatus.RUNNING:
             break
-    assert a.jobs["job-1"].status == au.JobStatus.DONE
+    assert a.jobs["job-1"].status == JobStatus.DONE
 
 
 def test_job_fails_with_a_reason_when_no_agent_can_take_a_unit() -> None:
@@ -247,14 +275,14 @@ def test_job_fails_with_a_reason_when_no_agent_can_take_a_unit() -> None:
     retry = round_trip(a, 1.0)
     assert retry[0].to != got[0].to
     out = a.on_failure(retry[0].to, failure(retry[0], "scene crashed"), 1.5)
-    failed = events(out, "job-failed")
+    failed = events(out, au.JobFailed)
     assert failed and "no agent can take unit 0" in failed[0].reason and "scene crashed" in failed[0].reason
-    assert a.jobs["job-1"].status == au.JobStatus.FAILED and a.announce(2.0) == []
+    assert a.jobs["job-1"].status == JobStatus.FAILED and a.announce(2.0) == []
 
 
 def test_no_agents_at_all_is_waiting_not_failing() -> None:
     a = make([1.0], [])
-    assert a.tick(1000.0) == [] and a.jobs["job-1"].status == au.JobStatus.RUNNING
+    assert a.tick(1000.0) == [] and a.jobs["job-1"].status == JobStatus.RUNNING
 
 
 def test_duplicate_forged_and_late_results_are_ignored() -> None:
@@ -272,8 +300,8 @@ def test_duplicate_forged_and_late_results_are_ignored() -> None:
         (a.on_inform(award.to, dataclasses.replace(good, conversation="x"), 0.5), "wrong conversation id"),
     ]
     for out, reason in checks:
-        assert [e.reason for e in events(out, "ignored")] == [reason]
-    assert events(a.on_inform(award.to, inform(award, 1.0), 1.0), "unit-done")
+        assert [e.reason for e in events(out, au.MessageIgnored)] == [reason]
+    assert events(a.on_inform(award.to, inform(award, 1.0), 1.0), au.UnitDone)
     again = a.on_inform(award.to, inform(award, 1.0), 1.1)
     assert [e.reason for e in again] == ["unit already done"]
     assert a.counts("job-1")["done"] == 1
@@ -298,7 +326,7 @@ def test_heartbeat_reconciles_lost_awards_and_stale_work() -> None:
     got = round_trip(a, 0.0)
     assert a.on_heartbeat("A", m.Heartbeat(conversation="h", busy=()), 1.0) == []  # within the grace
     out = a.on_heartbeat("A", m.Heartbeat(conversation="h", busy=()), a.config.award_grace_s + 1)
-    assert events(out, "unit-requeued")[0].reason == "award not acknowledged by the agent"
+    assert events(out, au.UnitRequeued)[0].reason == "award not acknowledged by the agent"
     assert not a.upload_allowed("job-1", 0, got[0].message.token)
     stale = a.on_heartbeat(
         "A", m.Heartbeat(conversation="h", busy=(m.HeldUnit(job_id="job-1", index=0),)), 20
@@ -322,7 +350,7 @@ def test_cancel_job_stops_its_agents() -> None:
     assert {s.to for s in sends(out, m.Cancel)} == {"A", "B"}
     assert a.counts("job-1") == Counter(failed=2)
     assert all(not s.holding for s in a.agents.values())
-    assert events(a.cancel_job("job-1"), "ignored")
+    assert events(a.cancel_job("job-1"), au.MessageIgnored)
 
 
 def test_resumed_job_keeps_done_units_and_past_failures() -> None:
@@ -364,12 +392,12 @@ def check_invariants(a: au.Auction) -> None:
     for job in a.jobs.values():
         for unit in job.units.values():
             key = (job.info.job_id, unit.spec.index)
-            if unit.status == au.UnitStatus.AWARDED:
+            if unit.status == UnitStatus.AWARDED:
                 assert holders[key] == 1 and key in a.agents[unit.agent].holding
             else:
                 assert holders[key] == 0
-            if job.status == au.JobStatus.RUNNING:
-                assert unit.status != au.UnitStatus.FAILED
+            if job.status == JobStatus.RUNNING:
+                assert unit.status != UnitStatus.FAILED
     for agent in a.agents.values():
         assert len(agent.holding) <= a.config.slots
         for rates in (agent.rates, agent.late_rates):
@@ -377,12 +405,12 @@ def check_invariants(a: au.Auction) -> None:
     # Safety of the look-ahead: every open unit is projected to some agent that may take it, if one exists.
     now = max((ag.last_seen for ag in a.agents.values()), default=0.0)
     for job in a.jobs.values():
-        if job.status != au.JobStatus.RUNNING:
+        if job.status != JobStatus.RUNNING:
             continue
         plan = a.projection(job.info.job_id, now)
         live = {ag.name for ag in a.agents.values() if not ag.lost} - job.blocklist
         for unit in job.units.values():
-            if unit.status in (au.UnitStatus.PENDING, au.UnitStatus.ANNOUNCED) and live - unit.failed_on:
+            if unit.status in (UnitStatus.PENDING, UnitStatus.ANNOUNCED) and live - unit.failed_on:
                 assert plan[unit.spec.index].agent in live - unit.failed_on
 
 
@@ -397,7 +425,7 @@ def test_random_event_sequences_never_lose_a_unit(sequence, n_units: int, slots:
     def feed(cmds: list[au.Command]) -> None:
         pending_cfps.extend(sends(cmds, m.CallForProposal))
         outstanding.extend(sends(cmds, m.Award))
-        done_events.update(e.index for e in events(cmds, "unit-done"))
+        done_events.update(e.index for e in events(cmds, au.UnitDone))
 
     for op, who, step in sequence:
         now += step
@@ -433,13 +461,13 @@ def test_random_event_sequences_never_lose_a_unit(sequence, n_units: int, slots:
         check_invariants(a)
     assert all(n == 1 for n in done_events.values())  # no unit done twice
     job = a.jobs["job-1"]
-    done = {i for i, u in job.units.items() if u.status == au.UnitStatus.DONE}
+    done = {i for i, u in job.units.items() if u.status == UnitStatus.DONE}
     assert done == set(done_events)
     # Liveness: with one reliable agent from now on, the job ends (done, or failed with a reason).
     helper = "reliable"
     a.register(helper, now)
     for _ in range(4 * n_units + 10):
-        if job.status != au.JobStatus.RUNNING:
+        if job.status != JobStatus.RUNNING:
             break
         now += a.config.heartbeat_timeout_s + a.config.render_slack_s + 100
         a.on_heartbeat(helper, m.Heartbeat(conversation="h", busy=()), now)
@@ -448,8 +476,8 @@ def test_random_event_sequences_never_lose_a_unit(sequence, n_units: int, slots:
         for award in awards(a.decide(now)).values():
             a.on_inform(award.to, inform(award, award.message.estimate_s), now)
         check_invariants(a)
-    assert job.status != au.JobStatus.RUNNING
-    assert job.status == au.JobStatus.DONE or job.error
+    assert job.status != JobStatus.RUNNING
+    assert job.status == JobStatus.DONE or job.error
 
 
 # --- the simulated clock ------------------------------------------------------------------------------------
@@ -457,7 +485,7 @@ def test_random_event_sequences_never_lose_a_unit(sequence, n_units: int, slots:
 
 def test_simulated_single_agent_makespan_is_the_sum_of_costs() -> None:
     costs = [random.Random(1).uniform(0.5, 3.0) for _ in range(40)]
-    result = au.simulate(costs, [1.0], latency=0.002)
+    result = simulate(costs, [1.0], latency=0.002)
     assert sum(costs) <= result.makespan <= sum(costs) * 1.01
     assert result.busy_s == {"agent0": pytest.approx(sum(costs))}
 
@@ -467,14 +495,14 @@ def test_simulated_equal_agents_are_efficient_with_many_similar_units() -> None:
     costs = [rng.uniform(0.9, 1.1) for _ in range(400)]
     t1 = sum(costs)
     for n in (2, 8):
-        result = au.simulate(costs, [1.0] * n, latency=0.002, jitter=0.05)
+        result = simulate(costs, [1.0] * n, latency=0.002, jitter=0.05)
         efficiency = t1 / (n * result.makespan)
         assert efficiency >= 0.9, (n, efficiency)
 
 
 def test_simulated_mixed_speeds_give_fast_agents_more_work() -> None:
     costs = [1.0] * 200
-    result = au.simulate(costs, [2.0, 1.0, 1.0, 0.5], latency=0.002)
+    result = simulate(costs, [2.0, 1.0, 1.0, 0.5], latency=0.002)
     ideal = 200 / 4.5
     assert result.makespan <= ideal * 1.1
     assert result.busy_s["agent0"] > 0 and result.busy_s["agent3"] > 0
@@ -482,7 +510,7 @@ def test_simulated_mixed_speeds_give_fast_agents_more_work() -> None:
 
 def test_simulate_needs_units_and_agents() -> None:
     with pytest.raises(ValueError):
-        au.simulate([], [1.0])
+        simulate([], [1.0])
 
 
 # --- the earliest-finish-time look-ahead --------------------------------------------------------------------
@@ -552,7 +580,7 @@ def test_lost_fast_agent_releases_its_projected_units() -> None:
     t = a.config.heartbeat_timeout_s + 0.5
     a.on_heartbeat("slow", m.Heartbeat(conversation="h", busy=()), t)
     out = a.tick(t)
-    assert [e.agent for e in events(out, "agent-lost")] == ["fast"]
+    assert [e.agent for e in events(out, au.AgentLost)] == ["fast"]
     assert a.projection("job-1", t)[0].agent == "slow"
     # The lost agent's own unit (job-0, submitted first) is offered first; once slow refuses it, job-1's.
     cfp = sends(out, m.CallForProposal, to="slow")[0].message
@@ -605,7 +633,7 @@ def test_simulated_mixed_speeds_end_near_the_lower_bound() -> None:
     costs = [12.0, 9.0, 8.0, 6.0, 5.0, 5.0, 4.0, 3.0, 3.0, 2.0, 2.0, 1.0, 1.0, 1.0]
     speeds = [2.0, 1.0, 0.5, 0.5]
     bound = max(sum(costs) / sum(speeds), max(costs) / max(speeds))
-    result = au.simulate(costs, speeds, latency=0.002)
+    result = simulate(costs, speeds, latency=0.002)
     assert result.makespan <= bound * 1.06, (result.makespan, bound)
     # Greedy awards without the look-ahead give a big unit to a slow agent (its 12 / 0.5 alone is 24 s).
     assert max(result.busy_s["agent2"], result.busy_s["agent3"]) <= bound * 1.06
@@ -635,16 +663,16 @@ def test_a_free_slot_does_not_win_over_an_idle_agent_that_finishes_sooner() -> N
 
 def test_slots_hide_the_message_latency_in_the_simulation() -> None:
     costs = [1.0] * 12
-    one = au.simulate(costs, [1.0], latency=0.2, config=au.Config(slots=1)).makespan
-    two = au.simulate(costs, [1.0], latency=0.2, config=au.Config(slots=2, queue_above=0)).makespan
+    one = simulate(costs, [1.0], latency=0.2, config=au.Config(slots=1)).makespan
+    two = simulate(costs, [1.0], latency=0.2, config=au.Config(slots=2, queue_above=0)).makespan
     assert two < one - 12 * 0.2  # one slot waits ~2 latencies a unit (inform, then CFP/award)
     assert two < 12.0 + 10 * 0.2  # the end game runs one unit at a time (no queueing), a few latencies
 
 
 def test_slots_hide_the_tile_delivery_in_the_simulation() -> None:
     costs = [1.0] * 12
-    one = au.simulate(costs, [1.0], latency=0.001, delivery=0.1, config=au.Config(slots=1)).makespan
-    two = au.simulate(costs, [1.0], latency=0.001, delivery=0.1).makespan  # the default: 2 slots
+    one = simulate(costs, [1.0], latency=0.001, delivery=0.1, config=au.Config(slots=1)).makespan
+    two = simulate(costs, [1.0], latency=0.001, delivery=0.1).makespan  # the default: 2 slots
     assert one >= 12 * 1.1  # each upload holds the agent's next render back
     # Queued while 4 or more units are open (Config.queue_above): 8 of the 12 deliveries overlap a render.
     assert two <= one - 8 * 0.1 + 0.05

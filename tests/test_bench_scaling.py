@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 from bench import scaling as bench_scaling
+from core.errors import QuekaroError
+from core.model.geometry import Rect
 
 pytestmark = pytest.mark.slow  # a pre-pass and ~20 real unit renders
 
@@ -49,9 +51,6 @@ def test_agent_counts_and_mixed_speeds():
 
 
 def test_cell_times_spread_by_cost_and_a_timeless_map_is_refused():
-    from core.errors import QuekaroError
-    from core.model.geometry import Rect
-
     cells = [Rect(0, 0, 2, 2), Rect(2, 0, 2, 2)]
     cost = np.array([[1.0, 3.0, 1.0, 1.0], [0.0, 0.0, 1.0, 1.0]])
     per_sample = bench_scaling.spread_cell_times(cells, [0.5, 0.1], fixed=0.1, spp=4, cost=cost)

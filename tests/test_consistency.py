@@ -6,11 +6,11 @@ from __future__ import annotations
 import random
 from pathlib import Path
 
-from test_store import HASH, info_of, new_store
+from test_store import HASH, new_store, restore
 
 from core.model import messages as m
+from core.model.status import UnitStatus
 from master import auction as au
-from master.store import restore_auction
 
 
 def _awarded(auction: au.Auction, store, now: float) -> list[au.Send]:
@@ -33,15 +33,15 @@ def _inform(award: au.Send) -> m.Inform:
 
 def test_an_inform_without_a_tile_changes_nothing(tmp_path: Path):
     with new_store(tmp_path / "farm.db", n=2) as store:
-        auction, events = restore_auction(store, info_of, 0.0, rng=random.Random(1))
+        auction, events = restore(store, 0.0, rng=random.Random(1))
         store.apply(events, 0.0)
         auction.register("agent-1@localhost", 0.0, speed=1.0)
         award = _awarded(auction, store, 1.0)[0]
         out = auction.on_message(award.to, _inform(award), 2.0)
-        assert [c.kind for c in out if isinstance(c, au.Event)] == ["ignored"]
+        assert [type(c) for c in out if isinstance(c, au.Event)] == [au.MessageIgnored]
         store.apply(out, 2.0)  # the store and the auction still agree: nothing is done
         unit = auction.jobs["job-1"].units[award.message.unit.index]
-        assert unit.status == au.UnitStatus.AWARDED
+        assert unit.status == UnitStatus.AWARDED
         assert {u.status for u in store.units("job-1")} <= {"pending", "awarded"}
 
 
@@ -49,11 +49,12 @@ def test_a_done_unit_whose_tile_is_gone_goes_back_to_auction(tmp_path: Path):
     tile = tmp_path / "0.exr"
     tile.write_bytes(b"tile")
     with new_store(tmp_path / "farm.db", n=2) as store:
+        store.record_award("job-1", 0, "A", "aa" * 16, 1.0, 1.0)  # a unit is done only from awarded
         store.record_result("job-1", 0, str(tile), HASH, {"spp": 8}, 1.0)
         assert store.mark_done("job-1", 0, 1.0)
         assert store.repair(["job-1"], 2.0) == []  # tile present: nothing to repair
         tile.unlink()
         assert store.repair(["job-1"], 3.0) == [("job-1", 0)]
         assert store.units("job-1")[0].status == "pending" and store.results("job-1") == []
-        auction, _ = restore_auction(store, info_of, 4.0, rng=random.Random(1))
-        assert auction.jobs["job-1"].units[0].status == au.UnitStatus.PENDING
+        auction, _ = restore(store, 4.0, rng=random.Random(1))
+        assert auction.jobs["job-1"].units[0].status == UnitStatus.PENDING

@@ -1,4 +1,5 @@
-"""The job store on real SQLite files: jobs and units, the auction's events, crash and resume, readers."""
+"""The job store on real SQLite files: jobs and units, the auction's typed events, status changes checked
+against the transition table, crash and resume (the auction rebuilding itself from the store), readers."""
 
 from __future__ import annotations
 
@@ -15,9 +16,10 @@ import pytest
 from core.model import messages as m
 from core.model.geometry import Rect
 from core.model.job import Effects, JobPlan, JobSpec, RenderOptions, SceneSpec
+from core.model.status import JobStatus, TransitionError, UnitStatus
 from core.model.units import WorkUnit
 from master import auction as au
-from master.store import _SCHEMA, JobStore, StoreError, restore_auction
+from master.store import _SCHEMA, JobStore, RunningJob, StoreError
 
 HASH = "ef" * 32
 
@@ -39,6 +41,13 @@ def info_of(record) -> m.JobInfo:
         job_id=record.id, scene_url="http://127.0.0.1:8765/scene", scene_hash=HASH, width=64, height=8,
         spp=record.plan["spp"], depth=8, level="S", ranges={},
     )  # fmt: skip
+
+
+def restore(store: JobStore, now: float, rng: random.Random | None = None) -> tuple[au.Auction, list[au.Command]]:
+    """What the master does on start: awarded units back to pending, then the auction rebuilds itself."""
+    store.resume(now)
+    return au.Auction.restore(store.running_jobs(), lambda job_id: info_of(store.job(job_id)), store.credits(),
+                              rng=rng)
 
 
 def new_store(path: Path, n: int = 4, job_id: str = "job-1") -> JobStore:
@@ -109,6 +118,7 @@ def test_bad_files_are_refused(tmp_path: Path) -> None:
 
 def test_done_needs_a_durable_result_and_happens_once(tmp_path: Path) -> None:
     store = new_store(tmp_path / "farm.db")
+    store.record_award("job-1", 0, "A", "aa" * 16, 1.0, 1.0)
     with pytest.raises(StoreError, match="no durable result"):
         store.mark_done("job-1", 0, now=1)
     assert store.record_result("job-1", 0, "/t/0.exr", HASH, {"spp": 8}, now=1)
@@ -199,7 +209,7 @@ def test_master_killed_mid_job_resumes_with_done_units_kept(tmp_path: Path) -> N
     store = JobStore(path)
     before = {u.index: u.status for u in store.units("job-1")}
     assert sorted(before.values()) == ["awarded", "awarded", "done", "done", "pending"]
-    auction, out = restore_auction(store, info_of, now=200.0, rng=random.Random(1))
+    auction, out = restore(store, 200.0, rng=random.Random(1))
     assert out == []
     after = {u.index: u.status for u in store.units("job-1")}
     assert after == {i: "done" if s == "done" else "pending" for i, s in before.items()}
@@ -224,12 +234,14 @@ def test_master_killed_mid_job_resumes_with_done_units_kept(tmp_path: Path) -> N
 
 def test_restored_job_that_was_complete_ends_at_once(tmp_path: Path) -> None:
     store = new_store(tmp_path / "farm.db", n=1)
+    store.record_award("job-1", 0, "A", "aa" * 16, 100.0, 1.0)
     store.record_result("job-1", 0, "/t/0.exr", HASH, {}, now=101)
     store.mark_done("job-1", 0, now=101)
-    _, out = restore_auction(store, info_of, now=200.0)
-    assert [e.kind for e in out] == ["job-done"]
+    assert store.running_jobs() == [RunningJob("job-1", specs(1), [0], [])]
+    _, out = restore(store, 200.0)
+    assert out == [au.JobDone("job-1")]
     store.apply(out, 200.0)
-    assert store.job("job-1").status == "done"
+    assert store.job("job-1").status == JobStatus.DONE
 
 
 def _writer(path: str, units: int) -> None:
@@ -289,3 +301,83 @@ def test_a_schema_1_store_is_migrated_with_its_jobs(tmp_path: Path) -> None:
         assert record.spec == JobSpec({"k": "v"}, RenderOptions("S", 16)) and record.plan == plan
         assert [u.unit() for u in store.units("job-1")] == specs(4)
         assert store.db.execute("PRAGMA foreign_keys").fetchone()[0] == 1
+
+
+def test_status_changes_are_checked_against_the_transition_table(tmp_path: Path) -> None:
+    store = new_store(tmp_path / "farm.db", n=2)
+    store.record_award("job-1", 0, "A", "aa" * 16, 101.0, 1.0)
+    with pytest.raises(TransitionError, match=r"job 'job-1' unit 0: awarded -> awarded is not an allowed"):
+        store.record_award("job-1", 0, "B", "bb" * 16, 101.0, 1.0)  # awarded twice without a requeue
+    with pytest.raises(TransitionError, match=r"job 'job-1': running -> running"):
+        store.set_status("job-1", JobStatus.RUNNING, 102.0)
+    tile = tmp_path / "0.exr"
+    tile.write_bytes(b"tile")
+    store.record_result("job-1", 0, str(tile), HASH, {}, 102.0)
+    store.mark_done("job-1", 0, 102.0)
+    store.cancel("job-1", 103.0)
+    tile.unlink()
+    # A cancelled job does not run again, whatever its tiles: the repair fails whole, nothing half done.
+    with pytest.raises(TransitionError, match=r"job 'job-1': cancelled -> running"):
+        store.repair(["job-1"], 104.0)
+    assert [u.status for u in store.units("job-1")] == [UnitStatus.DONE, UnitStatus.FAILED]
+    assert len(store.results("job-1")) == 1
+    # The schema's CHECK constraints hold the stored statuses only: ANNOUNCED is the auction's alone.
+    with pytest.raises(sqlite3.IntegrityError):
+        store.db.execute("UPDATE units SET status = ? WHERE idx = 1", (UnitStatus.ANNOUNCED,))
+
+
+def test_requeued_and_cancelled_units_are_recorded(tmp_path: Path) -> None:
+    store = new_store(tmp_path / "farm.db", n=2)
+    auction = au.Auction(rng=random.Random(5))
+    auction.add_job(info_of(store.job("job-1")), [u.unit() for u in store.units("job-1")])
+    for name in ("A", "B"):
+        store.apply(auction.register(name, 100.0), 100.0)
+    awarded = play(auction, store, 101.0, finish=0)
+    lost = awarded[0].to
+    survivor = next(a.to for a in awarded if a.to != lost)
+    late = 101.0 + auction.config.heartbeat_timeout_s + 1
+    auction.on_heartbeat(survivor, m.Heartbeat(conversation="h", busy=()), late - 1)
+    out = auction.expire(late)
+    assert [type(e) for e in out if isinstance(e, au.Event)] == [au.AgentLost, au.UnitRequeued]
+    store.apply(out, late)
+    index = awarded[0].message.unit.index
+    assert store.units("job-1")[index].status == UnitStatus.PENDING
+
+    def outcomes() -> list[str]:
+        return [dict(store.db.execute("SELECT token, outcome FROM attempts").fetchall())[a.message.token]
+                for a in awarded]
+
+    assert outcomes() == ["requeued", "running"]
+    store.apply(auction.cancel_job("job-1"), late + 1)
+    assert store.job("job-1").status == JobStatus.CANCELLED
+    assert {u.status for u in store.units("job-1")} == {UnitStatus.FAILED}
+    assert outcomes() == ["requeued", "cancelled"]
+
+
+def test_a_job_the_restarted_master_cannot_describe_fails_alone(tmp_path: Path) -> None:
+    store = new_store(tmp_path / "farm.db", n=2, job_id="job-1")
+    store.create_job("job-2", "scene.xml", JobSpec(), plan_of(specs(2)), now=100.0)
+
+    def describe(job_id: str) -> m.JobInfo:
+        if job_id == "job-1":
+            raise FileNotFoundError("bundle gone")
+        return info_of(store.job(job_id))
+
+    store.resume(200.0)
+    auction, out = au.Auction.restore(store.running_jobs(), describe, store.credits())
+    assert out == [au.JobFailed("job-1", "cannot resume the job: FileNotFoundError: bundle gone")]
+    assert list(auction.jobs) == ["job-2"]
+    store.apply(out, 200.0)
+    assert store.job("job-1").status == JobStatus.FAILED and store.job("job-2").status == JobStatus.RUNNING
+    assert {u.status for u in store.units("job-1")} == {UnitStatus.FAILED}
+
+
+def test_an_event_the_store_cannot_record_is_refused(tmp_path: Path) -> None:
+    @dataclasses.dataclass(frozen=True)
+    class Unheard(au.Event):
+        job_id: str
+
+    store = new_store(tmp_path / "farm.db", n=1)
+    with pytest.raises(TypeError, match="Unheard"):
+        store.apply([au.JobDone("job-1"), Unheard("job-1")], 101.0)
+    assert store.job("job-1").status == JobStatus.RUNNING  # one transaction: nothing of it recorded

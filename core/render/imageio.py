@@ -12,8 +12,13 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
+import OpenEXR
+from PIL import Image
 
 from core.errors import QuekaroError
+
+# Mitsuba and Dr.Jit are imported where used: `import mitsuba` costs ~0.35 s and 85 MB, must follow the
+# variant choice (core.render.mitsuba_env), and processes that never render must not pay for it.
 
 
 class ImageError(QuekaroError):
@@ -44,8 +49,6 @@ def write_exr(path: str | Path, image: np.ndarray, allow_nonfinite: bool = False
     images are (channels, H, W) and are written without a copy.
 
     Written to a temporary name beside `path` and renamed, so a failed write leaves no partial file."""
-    import OpenEXR
-
     path = Path(path)
     if planar:
         names = tuple(channels or ("R", "G", "B"))
@@ -96,8 +99,6 @@ def read_exr_channels(path: str | Path) -> tuple[np.ndarray, tuple[str, ...]]:
 
 
 def _read_planes(path: Path) -> dict[str, np.ndarray]:
-    import OpenEXR
-
     if not path.is_file():
         raise ImageError(f"{path}: no such file")
     if not OpenEXR.isOpenExrFile(str(path)):
@@ -156,8 +157,6 @@ def write_png_planar(path: str | Path, planar: np.ndarray, rows: int = 128) -> P
     """`write_png` of a planar (channels, H, W) image's first three channels, converted a band of rows at a
     time (the 8-bit copy is a quarter of the float image) and encoded by Pillow, which copies it once;
     Mitsuba's Bitmap made two more copies (a 4096^2 image's assembly went over twice its size)."""
-    from PIL import Image
-
     path = Path(path)
     _, height, width = planar.shape
     out = np.empty((height, width, 3), dtype=np.uint8)

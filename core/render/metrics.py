@@ -7,6 +7,7 @@ Non-finite input is an error, never a silent NaN result.
 
 from __future__ import annotations
 
+import flip_evaluator
 import numpy as np
 
 from core.render.imageio import ImageError, as_rgb, linear_to_srgb
@@ -73,8 +74,6 @@ def flip(test: np.ndarray, reference: np.ndarray, hdr: bool = True) -> float:
     its own exposure range. `hdr=False`: LDR-FLIP on the display values (clamped, sRGB encoded).
     A (near-)black reference, peak luminance under FLIP_HDR_MIN_PEAK, is always compared in LDR mode.
     """
-    import flip_evaluator
-
     a, b = _pair(test, reference)
     if np.array_equal(a, b):
         return 0.0  # FLIP's HDR exposure search is undefined on an all-black pair; identical is 0

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import OpenEXR
 
 from core.errors import TileError
 from core.model.geometry import Rect
@@ -69,8 +70,6 @@ def check_channels(channels: tuple[str, ...], name: str = "tile") -> None:
 
 
 def _header(tile: Tile) -> dict[str, Any]:
-    import OpenEXR
-
     r = tile.rect
     try:
         meta = json.dumps(tile.meta, allow_nan=False)
@@ -92,8 +91,6 @@ def write_tile(path: str | Path, tile: Tile, durable: bool = True) -> Path:
 
     `durable` also fsyncs the file and its folder, so that the tile survives a crash of the machine; an
     agent's tile, deleted once uploaded and rendered again if lost, does not need it."""
-    import OpenEXR
-
     path = Path(path)
     if tile.rect.area == 0:
         raise TileError(f"{path}: refusing to write an empty tile ({tile.rect})")
@@ -136,8 +133,6 @@ def _fsync(path: Path) -> None:
 def tile_source(path: str | Path, **meta: Any) -> TileSource:
     """The tile at `path` known by its header alone (its pixels are read when composition needs them);
     `meta` entries override the header's (the store knows which unit a tile is)."""
-    import OpenEXR
-
     path = Path(path)
     try:
         with OpenEXR.File(str(path), header_only=True) as exr:
@@ -170,8 +165,6 @@ def read_tile(path: str | Path) -> Tile:
 
 def read_tile_bytes(data: bytes, name: str = "<tile>") -> Tile:
     """Parse and validate a tile from its EXR bytes (an upload); errors name `name`."""
-    import OpenEXR
-
     if data[:4] != b"\x76\x2f\x31\x01":
         raise TileError(f"{name}: not an EXR file")
     try:

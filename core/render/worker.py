@@ -35,8 +35,12 @@ from core.errors import QuekaroError, RenderError, SceneError
 from core.model import integrators
 from core.model.geometry import Rect
 from core.model.job import SceneSpec
+from core.render import mitsuba_env, scene
 from core.render.tiles import Tile
 from core.supervision import die_with_parent
+
+# Mitsuba and Dr.Jit are imported where used: `import mitsuba` costs ~0.35 s and 85 MB, must follow the
+# variant choice (core.render.mitsuba_env), and processes that never render must not pay for it.
 
 STARTUP_TIMEOUT_S = 120.0
 _PP_KEYS = ("principal_point_offset_x", "principal_point_offset_y")
@@ -143,8 +147,6 @@ class _SceneCache:
 
     def scene_for(self, spec: SceneSpec, variant: str, threads: int | None) -> tuple[Any, float]:
         """(scene, seconds spent loading it now: 0 when cached)."""
-        from core.render import mitsuba_env, scene
-
         used = mitsuba_env.init(variant, threads)
         key = (spec.key(), used)
         if key == self.key:
@@ -284,9 +286,7 @@ def render_job_here(job: RenderRequest, cache: _SceneCache | None = None) -> Til
 def render_full(spec: SceneSpec, variant: str, integrator: str | None, depth: int | None, spp: int,
                 seed: int = 0, threads: int | None = None, sensor: int = 0) -> np.ndarray:
     """A plain render of the whole image in this process (the reference benchmarks compare against)."""
-    from core.render import scene as scene_mod
-
-    width, height = scene_mod.image_size(spec, sensor)
+    width, height = scene.image_size(spec, sensor)
     job = RenderRequest(spec, variant, integrator, depth, spp, seed, width, height, Rect(0, 0, width, height),
                   threads=threads, sensor=sensor)
     return render_job_here(job).pixels

@@ -42,8 +42,8 @@ def _sends(cmds: list[au.Command], kind: type) -> list[au.Send]:
     return [c for c in cmds if isinstance(c, au.Send) and isinstance(c.message, kind)]
 
 
-def _kinds(cmds: list[au.Command]) -> list[str]:
-    return [c.kind for c in cmds if isinstance(c, au.Event)]
+def _kinds(cmds: list[au.Command]) -> list[type[au.Event]]:
+    return [type(c) for c in cmds if isinstance(c, au.Event)]
 
 
 def _bid(a: au.Auction, now: float, who: set[str]) -> None:
@@ -76,7 +76,7 @@ def test_agent_dying_at_each_protocol_step_loses_nothing(step):
     late = a.config.heartbeat_timeout_s + 2.0
     a.on_heartbeat("spare", m.Heartbeat(conversation="h", busy=()), late)
     out = a.expire(late)
-    assert "agent-lost" in _kinds(out) and a.agents["doomed"].lost
+    assert au.AgentLost in _kinds(out) and a.agents["doomed"].lost
     assert a.counts("job-1") == Counter(pending=1)  # back in the auction, not failed, not lost
     first_token = (award.message.token if award else None)
     if first_token:
@@ -85,10 +85,10 @@ def test_agent_dying_at_each_protocol_step_loses_nothing(step):
     again = _sends(a.decide(late), m.Award)
     assert [s.to for s in again] == ["spare"] and again[0].message.token != first_token
     done = a.on_inform("spare", _inform(again[0].message), late + 1)
-    assert _kinds(done)[-1] == "job-done" and a.counts("job-1") == Counter(done=1)
+    assert _kinds(done)[-1] is au.JobDone and a.counts("job-1") == Counter(done=1)
     if award:  # a result from the dead agent arriving now changes nothing
         ghost = a.on_inform("doomed", _inform(award.message), late + 2)
-        assert _kinds(ghost) == ["ignored"] and a.counts("job-1") == Counter(done=1)
+        assert _kinds(ghost) == [au.MessageIgnored] and a.counts("job-1") == Counter(done=1)
 
 
 def test_same_result_delivered_twice_by_the_same_agent_counts_once():
@@ -98,7 +98,7 @@ def test_same_result_delivered_twice_by_the_same_agent_counts_once():
     inform = _inform(award.message)
     first = a.on_inform("doomed", inform, 1.0)
     second = a.on_inform("doomed", dataclasses.replace(inform, seconds=9.0), 1.1)
-    assert _kinds(first).count("unit-done") == 1 and "unit-done" not in _kinds(second)
+    assert _kinds(first).count(au.UnitDone) == 1 and au.UnitDone not in _kinds(second)
     assert a.agents["doomed"].credits == 6  # one credit for one result, not two
     assert a.counts("job-1") == Counter(done=1)
 

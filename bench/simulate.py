@@ -1,0 +1,175 @@
+"""The auction under a simulated clock: the master's real `Auction` driven by discrete events.
+
+Agents here are a few lines each (bid cost / speed, render that long, inform), messages take a fixed
+latency and time jumps from event to event, so the scaling benchmark (`bench.scaling`) measures the award
+logic that the farm runs, at any number of agents, without a farm. A benchmark's tool, not the product's.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import random
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from core.model import messages as m
+from core.model.geometry import Rect
+from core.model.status import JobStatus
+from core.model.units import WorkUnit
+from master.auction import Auction, Command, Config, Job, Send
+
+
+@dataclass(frozen=True)
+class SimResult:
+    makespan: float
+    units: int
+    agents: int
+    busy_s: dict[str, float]  # seconds each agent spent rendering
+    messages: int
+
+
+def simulate(
+    costs: Sequence[float],
+    speeds: Sequence[float],
+    latency: float = 0.002,
+    config: Config | None = None,
+    seed: int = 0,
+    heartbeat_s: float = 5.0,
+    jitter: float = 0.0,
+    delivery: float = 0.0,
+) -> SimResult:
+    """Makespan of one job of units with these costs on agents of these speeds, by discrete-event simulation.
+
+    Each message takes `latency` seconds one way; agents estimate cost / speed and render in that time
+    (times a uniform factor in [1 - jitter, 1 + jitter]); they beat every `heartbeat_s`. A tile's
+    `delivery` (writing, hashing and uploading it) starts when its render ends and delays the inform; the
+    agent's next render may start meanwhile if that unit was already awarded (a second slot). The agents register
+    at `latency` and the job is submitted at twice that, as a user submits to a running farm (were the job
+    first, the first agent to register would be alone to take the biggest unit, whatever its speed). The
+    master side is the real `Auction`, so the benchmark measures the award logic that the farm runs. The
+    makespan counts from the submission.
+    """
+    if not costs or not speeds:
+        raise ValueError("simulate needs at least one unit and one agent")
+    rng = random.Random(seed)
+    auction = Auction(config, rng=random.Random(seed + 1))
+    info = m.JobInfo(
+        job_id="sim",
+        scene_url="http://sim/scene",
+        scene_hash="0" * 64,
+        width=1,
+        height=1,
+        spp=1,
+        depth=1,
+        level="off",
+        ranges={},
+    )
+    specs = [
+        WorkUnit(index=i, rect=Rect(0, 0, 1, 1), C=0.0, S=1, Nd=0.0, cost=float(c))
+        for i, c in enumerate(costs)
+    ]
+    sim = _Sim(auction, latency, rng, jitter, {f"agent{i}": float(s) for i, s in enumerate(speeds)}, delivery)
+    submitted = 2 * latency
+    sim.push(submitted, "submit", "", (info, specs))
+    for name in sim.speeds:
+        sim.push(
+            latency,
+            "master",
+            name,
+            m.Register(conversation="r", speed=sim.speeds[name], threads=1, rules="r"),
+        )
+        sim.push(heartbeat_s, "beat", name, heartbeat_s)
+    makespan = sim.run() - submitted
+    return SimResult(makespan, len(costs), len(speeds), sim.busy, sim.messages)
+
+
+class _Sim:
+    """Event queue of the simulation: messages to the master or an agent, agent heartbeats, timers."""
+
+    def __init__(self, auction: Auction, latency: float, rng: random.Random, jitter: float,
+                 speeds: dict[str, float], delivery: float = 0.0) -> None:
+        self.auction, self.latency, self.rng, self.jitter, self.speeds = auction, latency, rng, jitter, speeds
+        self.delivery = delivery
+        self.queue: list[tuple[float, int, str, str, Any]] = []
+        self.seq = 0
+        self.busy = dict.fromkeys(speeds, 0.0)
+        self.render_end = dict.fromkeys(speeds, 0.0)
+        self.holding: dict[str, set[tuple[str, int]]] = {name: set() for name in speeds}
+        self.messages = 0
+        self.timer = math.inf
+
+    def push(self, t: float, kind: str, who: str, payload: Any) -> None:
+        self.seq += 1
+        heapq.heappush(self.queue, (t, self.seq, kind, who, payload))
+
+    def run(self) -> float:
+        job: Job | None = None
+        while self.queue:
+            now, _, kind, who, payload = heapq.heappop(self.queue)
+            if kind == "submit":
+                self.auction.add_job(*payload)
+                job = self.auction.jobs[payload[0].job_id]
+                self.deliver(self.auction.tick(now), now)
+            elif kind == "master":
+                self.messages += 1
+                # An inform here stands for the tile's upload, which the real master turns into on_inform.
+                handle = self.auction.on_inform if isinstance(payload, m.Inform) else self.auction.on_message
+                self.deliver(handle(who, payload, now) + self.auction.tick(now), now)
+            elif kind == "agent":
+                self.messages += 1
+                self.agent_receives(who, payload, now)
+            elif kind == "beat":
+                busy = tuple(m.HeldUnit(job_id=j, index=i) for j, i in sorted(self.holding[who]))
+                self.push(now + self.latency, "master", who, m.Heartbeat(conversation="hb", busy=busy))
+                if job is None or job.status == JobStatus.RUNNING:
+                    self.push(now + payload, "beat", who, payload)
+            elif kind == "release":
+                self.holding[who].discard(payload)
+            elif kind == "timer" and now >= self.timer:
+                self.timer = math.inf
+                self.deliver(self.auction.tick(now), now)
+            if job is not None and job.status != JobStatus.RUNNING:
+                if job.status != JobStatus.DONE:
+                    raise RuntimeError(f"simulated job ended {job.status.value}: {job.error}")
+                return now
+        raise RuntimeError("simulation ran out of events before the job finished")
+
+    def deliver(self, commands: list[Command], now: float) -> None:
+        for cmd in commands:
+            if isinstance(cmd, Send):
+                self.push(now + self.latency, "agent", cmd.to, cmd.message)
+        due = self.auction.next_deadline()
+        if due is not None and due < self.timer:
+            self.timer = max(due, now)
+            self.push(self.timer + 1e-9, "timer", "", None)
+
+    def agent_receives(self, name: str, msg: m.Message, now: float) -> None:
+        speed = self.speeds[name]
+        if isinstance(msg, m.CallForProposal):
+            est = tuple(m.Estimate(index=u.index, seconds=u.cost / speed) for u in msg.units)
+            reply = m.Propose(conversation=msg.conversation, job_id=msg.job.job_id, estimates=est)
+            self.push(now + self.latency, "master", name, reply)
+        elif isinstance(msg, m.Award):
+            seconds = msg.unit.cost / speed * (1 + self.rng.uniform(-self.jitter, self.jitter))
+            self.busy[name] += seconds
+            self.holding[name].add((msg.job.job_id, msg.unit.index))
+            inform = m.Inform(
+                conversation=msg.conversation,
+                job_id=msg.job.job_id,
+                index=msg.unit.index,
+                token=msg.token,
+                tile_hash="0" * 64,
+                depth=1,
+                spp=1,
+                band=0,
+                seconds=seconds,
+                nonfinite=0,
+            )
+            # A unit awarded into a free slot starts when the one rendering ends; the tile's delivery
+            # (upload) overlaps the next render, and the inform leaves when it is done.
+            end = max(now, self.render_end[name]) + seconds
+            self.render_end[name] = end
+            self.push(end + self.delivery, "release", name, (msg.job.job_id, msg.unit.index))
+            self.push(end + self.delivery + self.latency, "master", name, inform)
