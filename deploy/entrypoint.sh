@@ -36,6 +36,16 @@ agent)
         --master "master@$domain" \
         --register --threads "${QUEKARO_THREADS:-2}" --workdir "$HOME/agent" "$@"
     ;;
+health)
+    # A container's healthcheck: `health xmpp` (the client port accepts) or `health master` (the HTTP
+    # API answers /healthz), on the ports the role was given.
+    case "${1:-}" in
+    xmpp) exec python3 -c "import socket,sys; socket.create_connection(('127.0.0.1', int(sys.argv[1])), 3)" "$port" ;;
+    master) exec python3 -c "import urllib.request,sys; urllib.request.urlopen(sys.argv[1], timeout=3)" \
+        "http://127.0.0.1:${QUEKARO_HTTP_PORT:-8765}/healthz" ;;
+    *) echo "health: xmpp or master" >&2; exit 2 ;;
+    esac
+    ;;
 *)
     exec quekaro "$role" "$@"
     ;;

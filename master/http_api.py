@@ -112,7 +112,13 @@ def create_app(expected: Expected, bundle: BundleProvider, on_tile: OnTile, tile
     app[KEY] = plane
     app.router.add_get("/jobs/{job}/bundle", get_bundle)
     app.router.add_put("/jobs/{job}/units/{unit}/tile", put_tile)
+    app.router.add_get("/healthz", healthz)
     return app
+
+
+async def healthz(request: web.Request) -> web.Response:
+    """Up and serving (a container's healthcheck asks this): no token needed, nothing told."""
+    return web.json_response({"ok": True})
 
 
 async def serve(app: web.Application, host: str = DEFAULT_HOST,

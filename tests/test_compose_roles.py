@@ -63,5 +63,13 @@ def test_entrypoint_roles_render_a_job(tmp_path):
         while (job := client.status(job_id))["status"] == "running" and time.monotonic() < deadline:
             time.sleep(0.3)
         assert job["status"] == "done", (job, log_tails(tmp_path))
+        # docker-compose.yml's healthchecks, run as a container would, against the running roles.
+        master_env = {**base, "QUEKARO_HTTP_PORT": str(http_port)}
+        for name in ("xmpp", "master"):
+            assert subprocess.run([str(ENTRY), "health", name], env=master_env, timeout=30).returncode == 0
+        dead = {**base, "QUEKARO_HTTP_PORT": str(free_port()), "QUEKARO_XMPP_PORT": str(free_port())}
+        for name in ("xmpp", "master"):
+            assert subprocess.run([str(ENTRY), "health", name], env=dead, capture_output=True,
+                                  timeout=30).returncode != 0
     finally:
         stop_processes(list(reversed(procs)))

