@@ -17,12 +17,15 @@ master/auction.py expects it:
             upload it with the award's token, then Inform (tile sha256 and the parameters). Any error
             of that unit -> Failure with the reason; the agent itself carries on.
   cancel    the unit (or every unit of the job) is dropped: a render in flight finishes and is thrown
-            away, queued ones never start.
+            away, queued ones (and one whose bundle is still being fetched) never start.
 
 Duplicate awards (same unit, same token) are ignored; a re-award with a new token replaces the old one's
-token. Messages are handled one at a time on the XMPP loop and never wait for a render: renders run in a
-worker thread that talks to the render process (asyncio.to_thread), one at a time in award order; each
-finished tile is hashed, uploaded and informed by a task of its own while the next unit renders.
+token. Every decision (slots, awards, cancels, which unit renders next, heartbeats, estimates and their
+calibration) is agents.state.AgentState's, a pure state machine; `RenderAgent` is the I/O around it: each
+message, tick and end of an I/O step goes in as an event, and its commands are carried out. Messages are
+handled one at a time on the XMPP loop and never wait for a render: a bundle fetch, a render (in a worker
+thread that talks to the render process) and an upload each run as a task of their own, which feeds its
+end back as an event; units render one at a time, each tile uploading while the next unit renders.
 
 Run it with `python -m agents.render_agent --server HOST --port P --jid J --password PW --master M`.
 """
@@ -39,12 +42,36 @@ import signal
 import sys
 import tempfile
 import time
-from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from agents.speed import SpeedSample, estimate_seconds, measure_speed
+from agents.state import (
+    HEARTBEAT_S,
+    MAX_RENDER_S,
+    SLOTS,
+    AgentState,
+    BundleFailed,
+    BundleReady,
+    Calibration,
+    Command,
+    DiscardTile,
+    Event,
+    FetchBundle,
+    Log,
+    Measured,
+    Params,
+    RenderFailed,
+    RenderFinished,
+    Send,
+    StartRender,
+    Tick,
+    Upload,
+    UploadDone,
+    UploadFailed,
+    describe,
+)
 from agents.transfer import fetch_bundle, upload_tile
 from core.errors import QuekaroError
 from core.model import messages as m
@@ -53,7 +80,7 @@ from core.model.job import SceneSpec
 from core.model.units import WorkUnit
 from core.render.bundle import RULES_NAME, BundleLimits, check_unpacked, read_manifest
 from core.render.planner import Planner, RenderParams
-from core.render.tiles import Tile, write_tile
+from core.render.tiles import write_tile
 from core.render.worker import RenderRequest, RenderWorker
 from core.transport.credentials import xmpp_password
 from core.transport.xmpp import Envelope, FarmAgent
@@ -62,10 +89,8 @@ from fuzzy.errors import RuleFileError
 
 log = logging.getLogger(__name__)
 
-HEARTBEAT_S = 2.0
-POLL_S = 0.25  # how often the beat loop looks for a reconnect (to Register again at once)
+POLL_S = 0.25  # how often the beat loop ticks (to Register again at once after a reconnect)
 ACCEPTED = frozenset({"cfp", "accept-proposal", "reject-proposal", "cancel"})
-FINISHED_MEMORY = 4096  # (job, unit, token) of finished awards remembered to ignore their duplicates
 
 
 @dataclass
@@ -85,54 +110,18 @@ class AgentConfig:
     ca_file: str | None = None
     verify_security: bool = False
     heartbeat_s: float = HEARTBEAT_S
-    slots: int = 2  # units held at once (one rendering, the others waiting); 1: no overlap
-    max_render_s: float = 6 * 3600.0  # a render longer than this is killed whatever the estimate
+    slots: int = SLOTS  # units held at once (one rendering, the others waiting); 1: no overlap
+    max_render_s: float = MAX_RENDER_S  # a render longer than this is killed whatever the estimate
     bundle_limits: BundleLimits = field(default_factory=BundleLimits)
 
 
-@dataclass
-class Work:
-    """One awarded unit: the latest award for it, and whether the master took it back."""
-
-    award: m.Award
-    cancelled: bool = False
-
-    @property
-    def key(self) -> tuple[str, int]:
-        return self.award.job.job_id, self.award.unit.index
-
-
-class RenderFailed(QuekaroError):
+class UnitFailed(QuekaroError):
     """A unit that could not be rendered or delivered; the message is the Failure's reason."""
 
 
-class Calibration:
-    """Per job, the ratio of a unit's real wall time to its uncorrected estimate (moving average).
-
-    The base estimate (agents/speed.py) misses what the reference render cannot know: scene loading,
-    kernel compilation, bundle transfer, and a master cost scale that differs from rays (level off).
-    """
-
-    def __init__(self, alpha: float = 0.5, max_jobs: int = 64) -> None:
-        self.alpha = alpha
-        self.ratios: dict[str, float] = {}
-        self.max_jobs = max_jobs
-
-    def factor(self, job_id: str) -> float:
-        return self.ratios.get(job_id, 1.0)
-
-    def learn(self, job_id: str, base_estimate: float, actual: float) -> None:
-        if base_estimate <= 0 or actual <= 0:
-            return
-        ratio = actual / base_estimate
-        old = self.ratios.pop(job_id, None)
-        self.ratios[job_id] = ratio if old is None else old + self.alpha * (ratio - old)
-        while len(self.ratios) > self.max_jobs:  # oldest job first (dicts keep insertion order)
-            self.ratios.pop(next(iter(self.ratios)))
-
-
 class RenderAgent:
-    """A render agent; `await run()` serves until `await stop()` (or a signal, in `main`)."""
+    """A render agent; `await run()` serves until `await stop()` (or a signal, in `main`). Its decisions are
+    `self.state`'s (agents.state.AgentState); this class carries out their I/O."""
 
     def __init__(self, config: AgentConfig) -> None:
         self.config = config
@@ -146,24 +135,42 @@ class RenderAgent:
         )
         self.farm.set_handler(self._on_envelope)
         self.speed: SpeedSample | None = None
-        self.calibration = Calibration()
-        self.works: dict[tuple[str, int], Work] = {}
-        self.finished: deque[tuple[str, int, str]] = deque(maxlen=FINISHED_MEMORY)
-        self.kernels: set[tuple[Any, ...]] = set()  # what this agent's render process has compiled
-        self.rendering = False
-        self._deliveries: set[asyncio.Task] = set()
-        self._planned: dict[tuple[str, int], RenderParams] = {}  # the rules' choice per unit bid on
+        self.state = AgentState(self._plan, estimate_seconds, slots=config.slots, threads=config.threads,
+                                rules=self.planner.rules_path.name, heartbeat_s=config.heartbeat_s,
+                                max_render_s=config.max_render_s, session=_stamp())
         self._planners: dict[tuple[str | None, str | None], Planner] = {(None, config.defuzzifier): self.planner}
-        self.units_done = 0
-        self.units_failed = 0
-        self._queue: asyncio.Queue[Work] = asyncio.Queue()
         self._stop = asyncio.Event()
         self._tasks: list[asyncio.Task] = []
+        self._io: set[asyncio.Task] = set()  # bundle fetches, renders and uploads under way
         self._bundle_locks: dict[str, asyncio.Lock] = {}
 
     @property
     def jid(self) -> str:
         return self.farm.bare_jid
+
+    @property
+    def calibration(self) -> Calibration:
+        return self.state.calibration
+
+    @property
+    def units_done(self) -> int:
+        return self.state.units_done
+
+    @property
+    def units_failed(self) -> int:
+        return self.state.units_failed
+
+    def busy_units(self) -> tuple[m.HeldUnit, ...]:
+        """The units this agent holds: awarded, not finished, not cancelled."""
+        return self.state.busy_units()
+
+    def is_free(self) -> bool:
+        """Room for another unit (AgentState.is_free)."""
+        return self.state.is_free()
+
+    def estimate(self, job: m.JobInfo, unit: WorkUnit, params: RenderParams) -> float:
+        """Seconds this agent expects to spend on the unit (AgentState.estimate)."""
+        return self.state.estimate(job, unit, params)
 
     # ---- life-cycle ---------------------------------------------------------------------------------
 
@@ -176,9 +183,9 @@ class RenderAgent:
         self.speed = await asyncio.to_thread(measure_speed, self.worker, self.config.threads)
         log.info("%s: speed %.3f Mrays/s (reference render %.3f s, %s)", self.config.jid, self.speed.speed,
                  self.speed.seconds, self.speed.variant)
+        await self._feed(Measured(self.speed.speed, self.speed.compile_s))
         await self.farm.start(auto_register=self.config.auto_register)
-        self._tasks = [asyncio.create_task(self._beat_forever(), name="agent heartbeat"),
-                       asyncio.create_task(self._render_forever(), name="agent renders")]
+        self._tasks = [asyncio.create_task(self._beat_forever(), name="agent heartbeat")]
         try:
             await self._stop.wait()
         finally:
@@ -189,7 +196,7 @@ class RenderAgent:
         self._stop.set()
 
     async def _shutdown(self) -> None:
-        tasks = [*self._tasks, *self._deliveries]
+        tasks = [*self._tasks, *self._io]
         for task in tasks:
             task.cancel()
         for task in tasks:
@@ -200,41 +207,14 @@ class RenderAgent:
         with contextlib.suppress(Exception):
             await self.farm.stop()
 
-    # ---- messages out -------------------------------------------------------------------------------
-
-    async def _send(self, msg: m.Message) -> bool:
-        performative, body = m.encode(msg)
-        return await self.farm.send(self.config.master, performative, body, conversation_id=msg.conversation,
-                                    protocol=m.PROTOCOL, ontology=m.ONTOLOGY)
-
-    async def _register(self) -> None:
-        assert self.speed is not None
-        rules = self.planner.rules_path.name[:256]
-        await self._send(m.Register(conversation=f"register-{_stamp()}", speed=self.speed.speed,
-                                    threads=self.config.threads, rules=rules))
-
-    def busy_units(self) -> tuple[m.HeldUnit, ...]:
-        """The units this agent holds: awarded, not finished, not cancelled."""
-        keys = sorted(k for k, w in self.works.items() if not w.cancelled)
-        return tuple(m.HeldUnit(job_id=j, index=i) for j, i in keys)
-
     async def _beat_forever(self) -> None:
-        """Register now and after every reconnect; a heartbeat every `heartbeat_s` seconds."""
-        registered_at = -1
-        next_beat = 0.0
+        """Tick the state: it registers after every (re)connection and beats every `heartbeat_s` seconds."""
         while True:
-            if self.farm.online and registered_at != self.farm.reconnects:
-                with _logged("register"):
-                    await self._register()
-                    registered_at = self.farm.reconnects
-                    next_beat = 0.0
-            if self.farm.online and time.monotonic() >= next_beat:
-                with _logged("heartbeat"):
-                    await self._send(m.Heartbeat(conversation=f"hb-{_stamp()}", busy=self.busy_units()[:256]))
-                next_beat = time.monotonic() + self.config.heartbeat_s
+            with _logged("tick"):
+                await self._feed(Tick(online=self.farm.online, connection=self.farm.reconnects))
             await asyncio.sleep(POLL_S)
 
-    # ---- messages in --------------------------------------------------------------------------------
+    # ---- events in, commands out --------------------------------------------------------------------
 
     async def _on_envelope(self, env: Envelope) -> None:
         msg = m.parse(env.performative, env.body)  # the gate validated it already: this cannot fail
@@ -242,61 +222,47 @@ class RenderAgent:
             log.warning("%s from %s: conversation %r in the body, %r in the metadata: ignored",
                         env.performative, env.sender, msg.conversation, env.conversation_id)
             return
-        match msg:
-            case m.CallForProposal():
-                await self._on_cfp(msg)
-            case m.Award():
-                self._on_award(msg)
-            case m.Cancel():
-                self._on_cancel(msg)
-            case m.Reject():
-                log.debug("rejected in %s: %s", msg.conversation, msg.reason)
+        if isinstance(msg, m.CallForProposal | m.Award | m.Reject | m.Cancel):
+            await self._feed(msg)
 
-    def is_free(self) -> bool:
-        """Room for another unit: it holds fewer than `slots` (rendering, waiting or uploading). With one
-        slot, also not rendering at all (not even a cancelled unit)."""
-        held = sum(not w.cancelled for w in self.works.values())
-        if self.config.slots == 1:
-            return not self.rendering and held == 0
-        return held < self.config.slots
+    async def _feed(self, event: Event) -> None:
+        """One event into the state machine, and its commands carried out (long ones as tasks)."""
+        await self._execute(self.state.handle(event, time.monotonic()))
 
-    async def _on_cfp(self, cfp: m.CallForProposal) -> None:
-        job_id = cfp.job.job_id
-        if not self.is_free():
-            held = ", ".join(f"{j}/{i}" for j, i in self.works) or "a cancelled unit"
-            await self._send(m.Refuse(conversation=cfp.conversation, job_id=job_id,
-                                      reason=f"busy rendering {held}"[:1024]))
-            return
-        try:
-            plans = self._plan(cfp.job, cfp.units)
-        except Exception as exc:  # a rule base that cannot plan this job: say so rather than bid
-            await self._send(m.Refuse(conversation=cfp.conversation, job_id=job_id,
-                                      reason=f"cannot plan units: {type(exc).__name__}: {exc}"[:1024]))
-            return
-        for u, p in zip(cfp.units, plans, strict=True):
-            self._remember_plan(job_id, u.index, p)
-        estimates = tuple(m.Estimate(index=u.index, seconds=min(self.estimate(cfp.job, u, p), 1e9))
-                          for u, p in zip(cfp.units, plans, strict=True))
-        log.info("proposing for %s: %s", job_id, ", ".join(f"{e.index}: {e.seconds:.3f} s" for e in estimates))
-        await self._send(m.Propose(conversation=cfp.conversation, job_id=job_id, estimates=estimates))
+    async def _execute(self, commands: list[Command]) -> None:
+        for command in commands:
+            match command:
+                case Send(message=msg):
+                    with _logged(f"sending {msg.performative}"):
+                        await self._send(msg)
+                case Log(level=level, text=text):
+                    log.log(level, "%s", text)
+                case DiscardTile(job_id=job_id, index=index):
+                    self._remove_tile(job_id, index)
+                case FetchBundle() | StartRender() | Upload():
+                    name = f"{type(command).__name__} {command.ticket}"
+                    task = asyncio.create_task(self._perform(command), name=name)
+                    self._io.add(task)
+                    task.add_done_callback(self._io.discard)
 
-    def estimate(self, job: m.JobInfo, unit: WorkUnit, params: RenderParams) -> float:
-        """Seconds this agent expects to spend on the unit (see agents/speed.py for the units): the base
-        estimate, plus a kernel compilation if the window is new, times the job's learned correction."""
-        return self._uncorrected(job, unit, params) * self.calibration.factor(job.job_id)
+    async def _perform(self, command: FetchBundle | StartRender | Upload) -> None:
+        """One I/O step of a unit, as a task of its own; its end goes back to the state as an event."""
+        match command:
+            case FetchBundle():
+                event: Event = await self._fetch(command)
+            case StartRender():
+                event = await self._render(command)
+            case Upload():
+                event = await self._upload(command)
+        with _logged(f"handling {event!r}"):
+            await self._feed(event)
 
-    def _uncorrected(self, job: m.JobInfo, unit: WorkUnit, params: RenderParams) -> float:
-        return self._base_estimate(unit, params) + self._compile_estimate(job, unit, params)
+    async def _send(self, msg: m.Message) -> bool:
+        performative, body = m.encode(msg)
+        return await self.farm.send(self.config.master, performative, body, conversation_id=msg.conversation,
+                                    protocol=m.PROTOCOL, ontology=m.ONTOLOGY)
 
-    def _compile_estimate(self, job: m.JobInfo, unit: WorkUnit, params: RenderParams) -> float:
-        # Dr.Jit bakes the window size and the depth into the kernel (design.md section 3).
-        if self.speed is None or _kernel_key(job, unit, params) in self.kernels:
-            return 0.0
-        return self.speed.compile_s
-
-    def _base_estimate(self, unit: WorkUnit, params: RenderParams) -> float:
-        speed = self.speed.speed if self.speed else 1.0
-        return estimate_seconds(unit.cost, params.spp, speed)
+    # ---- planning (a computation the state machine calls) -------------------------------------------
 
     def _plan(self, job: m.JobInfo, units: tuple[WorkUnit, ...]) -> list[RenderParams]:
         features = {k: [float(getattr(u, k)) for u in units] for k in ("C", "S", "Nd")}
@@ -314,154 +280,59 @@ class RenderAgent:
             self._planners[key] = Planner(rules if own else self.config.rules, key[1])
         return self._planners[key]
 
-    def _remember_plan(self, job_id: str, index: int, params: RenderParams) -> None:
-        self._planned[(job_id, index)] = params
-        while len(self._planned) > FINISHED_MEMORY:
-            self._planned.pop(next(iter(self._planned)))  # the oldest first
+    # ---- the I/O steps of a unit: bundle, render, upload --------------------------------------------
 
-    def _on_award(self, award: m.Award) -> None:
-        key = (award.job.job_id, award.unit.index)
-        if (*key, award.token) in self.finished:
-            log.info("duplicate award of finished unit %s/%d ignored", *key)
-            return
-        work = self.works.get(key)
-        if work is not None and not work.cancelled:
-            if work.award.token != award.token:
-                log.info("unit %s/%d re-awarded: answering under the new award", *key)
-                work.award = award
-            return
-        work = Work(award)
-        self.works[key] = work
-        self._queue.put_nowait(work)
-
-    def _on_cancel(self, cancel: m.Cancel) -> None:
-        for key, work in list(self.works.items()):
-            if key[0] == cancel.job_id and cancel.index in (None, key[1]):
-                work.cancelled = True
-                del self.works[key]
-                log.info("unit %s/%d cancelled by the master: %s", *key, cancel.reason)
-
-    # ---- rendering ----------------------------------------------------------------------------------
-
-    async def _render_forever(self) -> None:
-        """Render awarded units one at a time; hand each tile to a delivery task and go on at once."""
-        while True:
-            work = await self._queue.get()
-            if work.cancelled:
-                continue
-            self.rendering = True
-            started = time.monotonic()
-            try:
-                rendered = await self._render_step(work)
-            finally:
-                self.rendering = False
-            if rendered is None:
-                self._forget(work)
-                continue
-            task = asyncio.create_task(self._deliver(work, *rendered, started), name=f"deliver {work.key}")
-            self._deliveries.add(task)
-            task.add_done_callback(self._deliveries.discard)
-
-    async def _render_step(self, work: Work) -> tuple[Tile, RenderParams, Path] | None:
-        """The unit rendered and its tile written; None if it failed (Failure sent) or was cancelled."""
+    async def _fetch(self, command: FetchBundle) -> BundleReady | BundleFailed:
         try:
-            rendered = await self._render(work)
+            return BundleReady(command.ticket, await self._scene_for(command.job, command.token))
         except Exception as exc:
-            self._remove_tile(work.key)
-            await self._failed(work, exc)
-            return None
-        if work.cancelled:
-            log.info("unit %s/%d rendered after its cancellation: discarded", *work.key)
-            self._remove_tile(work.key)
-            return None
-        return rendered
+            return BundleFailed(command.ticket, describe(exc))
 
-    async def _deliver(self, work: Work, tile: Tile, params: RenderParams, tile_path: Path, started: float) -> None:
-        """Hash and upload the tile, then Inform; the unit is held (heartbeats list it) until this ends."""
-        key = work.key
-        try:
-            try:
-                sha256 = await asyncio.to_thread(sha256_file, tile_path)
-                award = work.award  # the latest award: a re-award during the render changes the token
-                await self._upload(award, tile_path, sha256)
-            except Exception as exc:
-                await self._failed(work, exc)
-                return
-            finally:
-                self._remove_tile(key)
-            if not work.cancelled:
-                await self._done(work, award, tile, params, sha256, time.monotonic() - started)
-        finally:
-            self._forget(work)
-
-    async def _done(self, work: Work, award: m.Award, tile: Tile, params: RenderParams, sha256: str,
-                    wall: float) -> None:
-        key = work.key
-        self.units_done += 1
-        self.finished.append((*key, award.token))
-        predicted = self._uncorrected(award.job, award.unit, params)
-        log.info("unit %s/%d done: %.3f s in all, render %.3f s, spp %d depth %d band %d (award estimate %.3f s)",
-                 *key, wall, tile.meta["seconds"], params.spp, params.depth, params.band, award.estimate_s)
-        self.kernels.add(_kernel_key(award.job, award.unit, params))
-        self.calibration.learn(key[0], predicted, wall)
-        await self._send(m.Inform(
-            conversation=award.conversation, job_id=key[0], index=key[1], token=award.token,
-            tile_hash=sha256, depth=params.depth, spp=params.spp, band=params.band,
-            seconds=float(tile.meta["seconds"]), nonfinite=int(tile.meta.get("nonfinite", 0))))
-
-    async def _failed(self, work: Work, exc: BaseException) -> None:
-        if not work.cancelled:
-            self.units_failed += 1
-            await self._fail(work, exc)
-
-    def _forget(self, work: Work) -> None:
-        if self.works.get(work.key) is work:
-            del self.works[work.key]
-
-    def _remove_tile(self, key: tuple[str, int]) -> None:
-        for leftover in self.workdir.joinpath("tiles").glob(f"{_safe(key[0])}-{key[1]}.exr"):
-            leftover.unlink(missing_ok=True)
-
-    async def _fail(self, work: Work, exc: BaseException) -> None:
-        award = work.award
-        reason = str(exc) if isinstance(exc, QuekaroError) else f"{type(exc).__name__}: {exc}"
-        log.warning("unit %s/%d failed: %s", *work.key, reason)
-        with _logged("failure"):
-            await self._send(m.Failure(conversation=award.conversation, job_id=award.job.job_id,
-                                       index=award.unit.index, token=award.token,
-                                       reason=reason[:1024] or type(exc).__name__))
-
-    async def _render(self, work: Work) -> tuple[Tile, RenderParams, Path]:
-        award = work.award
+    async def _render(self, command: StartRender) -> RenderFinished | RenderFailed:
+        """Render the unit in the render process and write its tile EXR (meta: the unit, the parameters)."""
+        award, params = command.award, command.params
         job, unit = award.job, award.unit
-        spec = await self._scene_for(job, award.token)
-        # What it bid on (a job's units and their features never change); planned afresh if forgotten,
-        # and always with the job's own rules once its bundle is here.
-        remembered = self._planned.pop((job.job_id, unit.index), None)
-        params = remembered if remembered and not job.rules_sha256 else self._plan(job, (unit,))[0]
-        integrator = job.integrator
-        unit_job = RenderRequest(
-            scene=spec, variant=job.variant, integrator=integrator,
+        request = RenderRequest(
+            scene=command.scene, variant=job.variant, integrator=job.integrator,
             max_depth=params.depth, spp=params.spp, seed=award.seed, width=job.width, height=job.height,
             unit=unit.rect, band=params.band, threads=self.config.threads, job_id=job.job_id,
             unit_index=unit.index, sensor=job.sensor)
-        # Generous: the master's own deadline (estimate x 3 + 30 s) decides when it gives up.
-        timeout = min(self.config.max_render_s, 120.0 + 10.0 * self._base_estimate(unit, params))
         try:
-            tile = await asyncio.to_thread(self.worker.render, unit_job, timeout)
-        except QuekaroError as exc:
-            raise RenderFailed(f"render failed: {exc}") from exc
-        tile.meta.update({
-            "job_id": job.job_id, "unit_index": unit.index, "spp": params.spp, "depth": params.depth,
-            "band": params.band, "outputs": dict(params.outputs), "agent": self.jid, "level": job.level,
-            "rules": self._planner_for(job).rules_path.name, "integrator": integrator,
-        })
-        path = self.workdir / "tiles" / f"{_safe(job.job_id)}-{unit.index}.exr"
-        # Not fsynced: the file lives until its upload; a crash loses the unit, which is rendered again.
-        await asyncio.to_thread(write_tile, path, tile, durable=False)
-        return tile, params, path
+            try:
+                tile = await asyncio.to_thread(self.worker.render, request, command.timeout_s)
+            except QuekaroError as exc:
+                raise UnitFailed(f"render failed: {exc}") from exc
+            tile.meta.update(self._tile_meta(job, unit, params))
+            path = self._tile_path(job.job_id, unit.index)
+            # Not fsynced: the file lives until its upload; a crash loses the unit, which is rendered again.
+            await asyncio.to_thread(write_tile, path, tile, durable=False)
+        except Exception as exc:
+            return RenderFailed(command.ticket, describe(exc))
+        return RenderFinished(command.ticket, path, float(tile.meta["seconds"]), int(tile.meta.get("nonfinite", 0)))
 
-    # ---- the data plane -----------------------------------------------------------------------------
+    def _tile_meta(self, job: m.JobInfo, unit: WorkUnit, params: Params) -> dict[str, Any]:
+        return {"job_id": job.job_id, "unit_index": unit.index, "spp": params.spp, "depth": params.depth,
+                "band": params.band, "outputs": dict(getattr(params, "outputs", {})), "agent": self.jid,
+                "level": job.level, "rules": self._planner_for(job).rules_path.name, "integrator": job.integrator}
+
+    async def _upload(self, command: Upload) -> UploadDone | UploadFailed:
+        """Hash the tile and upload it with the award's token."""
+        award = command.award
+        try:
+            sha256 = await asyncio.to_thread(sha256_file, command.path)
+            try:
+                await upload_tile(award.upload_url, award.token, command.path, sha256, agent=self.jid)
+            except Exception as exc:
+                raise UnitFailed(f"tile upload to {award.upload_url} refused: {describe(exc)}") from exc
+        except Exception as exc:
+            return UploadFailed(command.ticket, describe(exc))
+        return UploadDone(command.ticket, sha256)
+
+    def _tile_path(self, job_id: str, index: int) -> Path:
+        return self.workdir / "tiles" / f"{_safe(job_id)}-{index}.exr"
+
+    def _remove_tile(self, job_id: str, index: int) -> None:
+        self._tile_path(job_id, index).unlink(missing_ok=True)
 
     async def _scene_for(self, job: m.JobInfo, token: str) -> SceneSpec:
         """The job's scene, unpacked from its bundle (fetched once per bundle hash, with an award's token)."""
@@ -473,34 +344,23 @@ class RenderAgent:
                 try:
                     await fetch_bundle(job.scene_url, digest, folder, self.config.bundle_limits, token=token)
                 except Exception as exc:
-                    raise RenderFailed(f"scene bundle {job.scene_url} refused: {_why(exc)}") from exc
+                    raise UnitFailed(f"scene bundle {job.scene_url} refused: {describe(exc)}") from exc
         manifest = read_manifest(folder)
         name = getattr(job, "scene_name", None) or manifest["scene"]
         scene = (folder / name).resolve()
         if not scene.is_file() and name != manifest["scene"]:
             scene = (folder / manifest["scene"]).resolve()
         if not scene.is_relative_to(folder.resolve()) or not scene.is_file():
-            raise RenderFailed(f"scene {name!r} not found in the bundle of job {job.job_id}")
+            raise UnitFailed(f"scene {name!r} not found in the bundle of job {job.job_id}")
         defines = {**manifest.get("defines", {}), **(getattr(job, "defines", None) or {})}
         try:
             check_unpacked(scene, defines)
         except QuekaroError as exc:
-            raise RenderFailed(f"scene bundle of job {job.job_id} refused: {exc}") from exc
+            raise UnitFailed(f"scene bundle of job {job.job_id} refused: {exc}") from exc
         return SceneSpec(scene, defines)
-
-    async def _upload(self, award: m.Award, path: Path, sha256: str) -> None:
-        try:
-            await upload_tile(award.upload_url, award.token, path, sha256, agent=self.jid)
-        except Exception as exc:
-            raise RenderFailed(f"tile upload to {award.upload_url} refused: {_why(exc)}") from exc
 
 
 # ---- small helpers ---------------------------------------------------------------------------------
-
-
-def _kernel_key(job: m.JobInfo, unit: WorkUnit, params: RenderParams) -> tuple[Any, ...]:
-    window = unit.rect.grow(params.band, job.width, job.height)
-    return job.scene_hash, window.w, window.h, params.depth, job.integrator
 
 
 def _safe(name: str) -> str:
@@ -512,17 +372,13 @@ def _stamp() -> str:
     return f"{time.time_ns():x}"
 
 
-def _why(exc: BaseException) -> str:
-    return str(exc) if isinstance(exc, QuekaroError) else f"{type(exc).__name__}: {exc}"
-
-
 @contextlib.contextmanager
 def _logged(what: str):
-    """Errors of one send are logged, never fatal (the next beat tries again)."""
+    """Errors of one send, tick or event are logged, never fatal (the next beat tries again)."""
     try:
         yield
     except Exception:
-        log.exception("sending %s failed", what)
+        log.exception("%s failed", what)
 
 
 # ---- command line ----------------------------------------------------------------------------------

@@ -1,47 +1,25 @@
-"""`quekaro bench ...`: benchmarks that print figures (and JSON with `--json`).
-
-The benchmarks sit above the product (they drive it from outside) and have their own optional
-dependencies (`pip install 'quekaro-farm[bench]'`). The command line finds this module through the
-`quekaro.commands` entry point, so the product never imports it. Each benchmark module exposes
-`add_arguments(parser)` (optional) and `run(args) -> dict`; this module wires them to the command line.
-"""
+"""`quekaro bench ...`: registered through the `quekaro.commands` entry point (so the product never
+imports the benchmarks), and light: the benchmarks themselves (`bench.commands`) load only when run."""
 
 from __future__ import annotations
 
 import argparse
-import json
-from collections.abc import Callable
-from types import ModuleType
 
-from bench import accuracy, allocation, fuzzy_engine, overhead, scaling
-from bench import farm as farm_bench
-
-BENCHMARKS: dict[str, tuple[ModuleType, str]] = {
-    "fuzzy": (fuzzy_engine, "fuzzy engine: evaluations/s against pyfuzzylite, centroid exactness"),
-    "overhead": (overhead, "pipeline overhead against one plain Mitsuba render"),
-    "farm": (farm_bench, "farm overhead and 2-agent speedup"),
-    "accuracy": (accuracy, "time and error per (agents, optimisation level)"),
-    "allocation": (allocation, "each level's render time and relMSE against uniform spp, predicted"),
-    "scaling": (scaling, "simulated auction scaling to 64 agents"),
-}
+from core.errors import QuekaroError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    bench = sub.add_parser("bench", help="benchmarks that print figures")
-    bench_sub = bench.add_subparsers(dest="bench", metavar="BENCHMARK", required=True)
-    for name, (module, help_text) in BENCHMARKS.items():
-        parser = bench_sub.add_parser(name, help=help_text)
-        parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
-        parser.set_defaults(func=_runner(module))
-        if hasattr(module, "add_arguments"):
-            module.add_arguments(parser)
+    bench = sub.add_parser("bench", help="benchmarks that print figures (quekaro bench --help)", add_help=False)
+    bench.add_argument("argv", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+    bench.set_defaults(func=run)
 
 
-def _runner(module: ModuleType) -> Callable[[argparse.Namespace], int]:
-    def run(args: argparse.Namespace) -> int:
-        result = module.run(args)
-        if args.json:
-            print(json.dumps(result, indent=2, sort_keys=True))
-        return 0
-
-    return run
+def run(args: argparse.Namespace) -> int:
+    try:
+        # Lazy: the benchmarks import matplotlib and pyfuzzylite (~0.3 s), and pyfuzzylite sets up the
+        # root logger when imported, which silenced the master's and agents' logs when every command paid it.
+        from bench import commands
+    except ModuleNotFoundError as exc:
+        raise QuekaroError(f"'quekaro bench' needs the optional module {exc.name!r}: "
+                           "pip install 'quekaro-farm[bench]'") from exc
+    return commands.main(args.argv)

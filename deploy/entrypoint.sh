@@ -10,10 +10,17 @@ role=${1:-}
 [ $# -gt 0 ] && shift
 
 case "$role" in
+ca)
+    # The farm's CA and the servers' certificates, made once into QUEKARO_CA_DIR (a shared volume).
+    dir=${QUEKARO_CA_DIR:-$HOME/ca}
+    [ -f "$dir/ca.pem" ] || quekaro ca init --dir "$dir"
+    [ -f "$dir/xmpp.pem" ] || quekaro ca issue xmpp "$domain" --dir "$dir"
+    [ -f "$dir/master.pem" ] || quekaro ca issue master ${QUEKARO_MASTER_HOSTS:-master 127.0.0.1 localhost} --dir "$dir"
+    ;;
 xmpp)
     data=${QUEKARO_PROSODY_DATA:-$HOME/prosody}
     mkdir -p "$data/data" "$data/certs"
-    cert="$data/certs/$domain.crt"; key="$data/certs/$domain.key"
+    cert=${QUEKARO_XMPP_CERT:-$data/certs/$domain.crt}; key=${QUEKARO_XMPP_KEY:-$data/certs/$domain.key}
     if [ ! -f "$cert" ]; then
         openssl req -x509 -newkey rsa:2048 -nodes -days 3650 -subj "/CN=$domain" \
             -addext "subjectAltName=DNS:$domain" -keyout "$key" -out "$cert" 2>/dev/null
@@ -24,6 +31,9 @@ xmpp)
     exec prosody --config "$here/prosody/prosody.cfg.lua" -F
     ;;
 master)
+    # TLS on the data plane and verification of Prosody's certificate when the farm's CA is given.
+    [ -n "${QUEKARO_TLS_CERT:-}" ] && set -- --tls-cert "$QUEKARO_TLS_CERT" --tls-key "$QUEKARO_TLS_KEY" "$@"
+    [ -n "${QUEKARO_CA_FILE:-}" ] && set -- --ca-file "$QUEKARO_CA_FILE" "$@"
     exec quekaro master --home "${QUEKARO_HOME:-$HOME/farm}" --jid "master@$domain" --server "$server" \
         --port "$port" --register --http-host "${QUEKARO_HTTP_HOST:-0.0.0.0}" \
         --http-port "${QUEKARO_HTTP_PORT:-8765}" \
@@ -32,6 +42,7 @@ master)
 agent)
     # Every replica gets its own JID (its container's host name) and registers it in-band: Prosody
     # allows that only from the compose network (QUEKARO_REGISTRATION_ALLOWLIST on the xmpp service).
+    [ -n "${QUEKARO_CA_FILE:-}" ] && set -- --ca-file "$QUEKARO_CA_FILE" "$@"
     exec quekaro agent --server "$server" --port "$port" --jid "agent-${QUEKARO_AGENT_NAME:-$(hostname)}@$domain" \
         --master "master@$domain" \
         --register --threads "${QUEKARO_THREADS:-2}" --workdir "$HOME/agent" "$@"

@@ -15,6 +15,7 @@ from core.errors import QuekaroError
 from core.home import ADMIN_TOKEN, FARM_FILE, default_home
 from core.model.job import JobSpec, RenderOptions
 from core.render.imageio import read_exr, write_png
+from core.transport.tls import client_context
 
 
 @dataclass(frozen=True)
@@ -24,11 +25,12 @@ class FarmClient:
     url: str
     token: str
     timeout: float = 600.0
+    ca_file: Path | None = None  # the farm's CA, to verify an https master (None: the system's CAs)
 
     @classmethod
     def from_home(cls, home: Path | None = None, url: str | None = None,
-                  token_file: Path | None = None) -> FarmClient:
-        """From the farm.json the master writes in its home, overridden by explicit url/token file."""
+                  token_file: Path | None = None, ca_file: Path | None = None) -> FarmClient:
+        """From the farm.json the master writes in its home, overridden by explicit url/token/CA file."""
         home = Path(home or default_home())
         info: dict[str, Any] = {}
         farm_file = home / FARM_FILE
@@ -41,14 +43,16 @@ class FarmClient:
                                "or give --url and --token-file)")
         if not token_path.exists():
             raise QuekaroError(f"admin token file {token_path} not found")
-        return cls(url.rstrip("/"), token_path.read_text().strip())
+        ca = ca_file or info.get("ca_file")
+        return cls(url.rstrip("/"), token_path.read_text().strip(), ca_file=Path(ca) if ca else None)
 
     def _request(self, method: str, path: str, body: bytes | None = None,
                  headers: dict[str, str] | None = None) -> bytes:
         req = urllib.request.Request(self.url + path, data=body, method=method, headers={
             "Authorization": f"Bearer {self.token}", **(headers or {})})
         try:
-            with urllib.request.urlopen(req, timeout=self.timeout) as resp:
+            context = client_context(self.ca_file) if self.url.startswith("https:") else None
+            with urllib.request.urlopen(req, timeout=self.timeout, context=context) as resp:
                 return resp.read()
         except urllib.error.HTTPError as exc:
             raise QuekaroError(f"{method} {path}: HTTP {exc.code}: {_reason(exc)}") from None
@@ -57,6 +61,10 @@ class FarmClient:
 
     def _json(self, method: str, path: str, **kw: Any) -> Any:
         return json.loads(self._request(method, path, **kw))
+
+    def farm(self) -> dict[str, Any]:
+        """The farm as the master describes it: its data plane, whether jobs are paused."""
+        return dict(self._json("GET", "/api/farm"))
 
     def submit(self, bundle: bytes, defines: dict[str, str], options: dict[str, Any]) -> str:
         header = json.dumps(JobSpec(defines, RenderOptions.from_dict(options)).to_dict())

@@ -38,6 +38,7 @@ class MasterService(Protocol):
     store: JobStore
     auction: Any
     paused: str | None
+    data_plane: str
 
     async def submit(self, bundle: Path, defines: dict[str, str], options: RenderOptions) -> str: ...
     async def cancel(self, job_id: str) -> bool: ...
@@ -58,6 +59,7 @@ def add_job_routes(app: web.Application, service: MasterService) -> None:
     app.router.add_get("/api/jobs/{job}/report", job_report)
     app.router.add_post("/api/jobs/{job}/cancel", job_cancel)
     app.router.add_get("/api/agents", agents)
+    app.router.add_get("/api/farm", farm)
 
 
 def _error(status: int, reason: str) -> web.Response:
@@ -177,6 +179,11 @@ async def job_cancel(request: web.Request) -> web.Response:
     except StoreError as exc:
         return _error(404, str(exc))
     return web.json_response({"job_id": job_id, "cancelled": cancelled})
+
+
+async def farm(request: web.Request) -> web.Response:
+    service = _service(request)
+    return web.json_response({"data_plane": service.data_plane, "paused": service.paused})
 
 
 async def agents(request: web.Request) -> web.Response:

@@ -39,6 +39,7 @@ import inspect
 import logging
 import os
 import re
+import ssl
 import tempfile
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
@@ -121,11 +122,11 @@ async def healthz(request: web.Request) -> web.Response:
     return web.json_response({"ok": True})
 
 
-async def serve(app: web.Application, host: str = DEFAULT_HOST,
-                port: int = DEFAULT_PORT) -> tuple[web.AppRunner, int]:
-    """Start `app` on host:port (0 picks a free port) behind master.http_guard's time limits; return the
-    runner (cleanup() stops) and the port."""
-    return await guarded_serve(app, host, port)
+async def serve(app: web.Application, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT,
+                ssl_context: ssl.SSLContext | None = None) -> tuple[web.AppRunner, int]:
+    """Start `app` on host:port (0 picks a free port; HTTPS with `ssl_context`) behind master.http_guard's
+    time limits; return the runner (cleanup() stops) and the port."""
+    return await guarded_serve(app, host, port, ssl_context=ssl_context)
 
 
 def _error(status: int, reason: str) -> web.Response:

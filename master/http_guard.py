@@ -11,6 +11,7 @@ a limit runs out. `read_body_chunks` applies the body limit where a route stream
 from __future__ import annotations
 
 import asyncio
+import ssl
 import time
 from collections.abc import AsyncIterator, Callable
 from typing import Any
@@ -68,10 +69,11 @@ class GuardedProtocol(asyncio.Protocol):
         self.inner.resume_writing()
 
 
-async def serve(app: web.Application, host: str, port: int,
-                header_timeout: float | None = None) -> tuple[web.AppRunner, int]:
-    """Serve `app` on host:port (0: a free port) behind the header guard, one request a connection;
-    returns the runner (its cleanup() stops everything) and the port."""
+async def serve(app: web.Application, host: str, port: int, header_timeout: float | None = None,
+                ssl_context: ssl.SSLContext | None = None) -> tuple[web.AppRunner, int]:
+    """Serve `app` on host:port (0: a free port) behind the header guard, one request a connection, over
+    TLS with `ssl_context` (its handshake within the header time limit); returns the runner (its
+    cleanup() stops everything) and the port."""
     header_timeout = HEADER_TIMEOUT_S if header_timeout is None else header_timeout
     listening: list[asyncio.AbstractServer] = []
 
@@ -88,7 +90,8 @@ async def serve(app: web.Application, host: str, port: int,
     loop = asyncio.get_running_loop()
     handler: Callable[[], Any] = runner.server  # aiohttp's protocol factory
     server = await loop.create_server(lambda: GuardedProtocol(handler(), loop, header_timeout), host, port,
-                                      reuse_address=True)
+                                      reuse_address=True, ssl=ssl_context,
+                                      ssl_handshake_timeout=header_timeout if ssl_context else None)
     listening.append(server)
     return runner, server.sockets[0].getsockname()[1]
 

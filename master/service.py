@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 from core.errors import MessageError, QuekaroError
 from core.home import ADMIN_TOKEN, FARM_FILE
@@ -34,6 +35,7 @@ from core.model.status import JobStatus, UnitStatus
 from core.render.bundle import BundleLimits, bundle_hash, check_rules, check_unpacked, extract_bundle, read_manifest
 from core.render.tiles import read_tile, tile_source
 from core.supervision import die_with_parent
+from core.transport.tls import is_loopback, server_context
 from core.transport.xmpp import FarmAgent
 from master import auction as au
 from master.api_jobs import add_job_routes
@@ -60,7 +62,10 @@ class MasterConfig:
     ca_file: str | None = None
     http_host: str = "127.0.0.1"
     http_port: int = 8765
-    public_url: str | None = None  # what agents use to reach the HTTP API (default http://host:port)
+    public_url: str | None = None  # what agents use to reach the HTTP API (default http(s)://host:port)
+    tls_cert: Path | None = None  # the data plane's HTTPS certificate and key (from the farm's CA)
+    tls_key: Path | None = None
+    insecure_http: bool = False  # plain HTTP although agents reach it over a network (said out loud)
     agent_pattern: str = r"^agent[-\w.]*@{domain}$"  # bare JIDs allowed to bid
     agent_allowlist: Path | None = None  # and, if given, only the bare JIDs listed in this file
     threads: int | None = None  # Dr.Jit threads of the pre-pass
@@ -69,7 +74,28 @@ class MasterConfig:
 
     @property
     def url(self) -> str:
-        return (self.public_url or f"http://{self.http_host}:{self.http_port}").rstrip("/")
+        scheme = "https" if self.tls_cert else "http"
+        return (self.public_url or f"{scheme}://{self.http_host}:{self.http_port}").rstrip("/")
+
+    def data_plane(self) -> str:
+        """How bundles and tiles travel: 'https', 'http (loopback)', or refused (QuekaroError) when plain
+        HTTP would cross a network without `insecure_http`, which then reads 'http (insecure: ...)'."""
+        public = urlsplit(self.url)
+        if bool(self.tls_cert) != bool(self.tls_key):
+            raise QuekaroError("--tls-cert and --tls-key go together")
+        if self.tls_cert:
+            if public.scheme != "https":
+                raise QuekaroError(f"--public-url {self.url}: the master serves HTTPS (--tls-cert), use https://")
+            return "https"
+        if public.scheme == "https":
+            raise QuekaroError(f"--public-url {self.url}: HTTPS needs --tls-cert and --tls-key")
+        if is_loopback(self.http_host) and is_loopback(public.hostname):
+            return "http (loopback)"
+        if self.insecure_http:
+            return "http (insecure: award tokens and tiles cross the network in clear, --insecure-http)"
+        raise QuekaroError(f"the data plane ({self.url}, bound to {self.http_host}) would be plain HTTP across "
+                           "a network: give --tls-cert/--tls-key from the farm's CA (quekaro ca) and an https "
+                           "--public-url, or say --insecure-http")
 
     @property
     def domain(self) -> str:
@@ -95,6 +121,7 @@ class MasterService:
         self.admin_token = _admin_token(self.home)
         self.auction: au.Auction | None = None
         self.agent = None
+        self.data_plane = ""  # how bundles and tiles travel, set by start()
         self._runner = None
         self._ticker: asyncio.Task | None = None
         self._planner = ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"),
@@ -110,6 +137,9 @@ class MasterService:
     # ---- life-cycle ---------------------------------------------------------------------------------
 
     async def start(self) -> None:
+        self.data_plane = self.config.data_plane()  # refuses plain HTTP across a network, before anything
+        if self.data_plane.startswith("http (insecure"):
+            log.warning("data plane: %s", self.data_plane)
         self.jobs_dir.mkdir(parents=True, exist_ok=True)
         now = time.time()
         self._repair_store(now)
@@ -153,7 +183,8 @@ class MasterService:
         app = create_app(expected=self._expected_upload, bundle=self._bundle_for, on_tile=self._on_tile,
                          tile_dir=self.jobs_dir, authorize_bundle=self._bundle_allowed)
         add_job_routes(app, self)
-        self._runner, _ = await serve(app, self.config.http_host, self.config.http_port)
+        tls = server_context(self.config.tls_cert, self.config.tls_key) if self.config.tls_cert else None
+        self._runner, _ = await serve(app, self.config.http_host, self.config.http_port, ssl_context=tls)
 
     async def _start_xmpp(self) -> None:
         self.agent = FarmAgent(
@@ -182,7 +213,8 @@ class MasterService:
         return jid in self._allowed
 
     def _write_farm_file(self) -> None:
-        info = {"url": self.config.url, "jid": self.config.jid, "token_file": str(self.home / ADMIN_TOKEN)}
+        info = {"url": self.config.url, "jid": self.config.jid, "token_file": str(self.home / ADMIN_TOKEN),
+                "data_plane": self.data_plane, "ca_file": self.config.ca_file and str(self.config.ca_file)}
         (self.home / FARM_FILE).write_text(json.dumps(info, indent=2))
 
     # ---- jobs ---------------------------------------------------------------------------------------

@@ -9,14 +9,13 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable
-from importlib.metadata import EntryPoint, entry_points
+from importlib.metadata import entry_points
 
 from core.errors import QuekaroError
 from fuzzy.errors import FuzzyInputError, RuleFileError
-from quekaro import cmd_diff, cmd_farm, cmd_render, cmd_rules
+from quekaro import cmd_ca, cmd_diff, cmd_farm, cmd_render, cmd_rules
 
-COMMAND_MODULES = (cmd_rules, cmd_render, cmd_diff, cmd_farm)
+COMMAND_MODULES = (cmd_rules, cmd_render, cmd_diff, cmd_farm, cmd_ca)
 PLUGIN_GROUP = "quekaro.commands"
 
 
@@ -29,28 +28,8 @@ def build_parser() -> argparse.ArgumentParser:
     for module in COMMAND_MODULES:
         module.register(sub)
     for entry in entry_points(group=PLUGIN_GROUP):
-        _register_plugin(sub, entry)
+        entry.load()(sub)
     return parser
-
-
-def _register_plugin(sub: argparse._SubParsersAction, entry: EntryPoint) -> None:
-    """A plugin's commands; one whose optional dependencies are missing answers with what to install."""
-    try:
-        register = entry.load()
-    except ModuleNotFoundError as exc:
-        parser = sub.add_parser(entry.name, help=f"(needs: pip install 'quekaro-farm[{entry.name}]')")
-        parser.add_argument("rest", nargs=argparse.REMAINDER)
-        parser.set_defaults(func=_missing(entry.name, exc.name or str(exc)))
-        return
-    register(sub)
-
-
-def _missing(extra: str, module: str) -> Callable[[argparse.Namespace], int]:
-    def refuse(args: argparse.Namespace) -> int:
-        raise QuekaroError(f"'quekaro {extra}' needs the optional module {module!r}: "
-                           f"pip install 'quekaro-farm[{extra}]'")
-
-    return refuse
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -62,7 +41,11 @@ def main(argv: list[str] | None = None) -> int:
 
         return int(agent_main(argv[1:]) or 0)
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra and not hasattr(args, "argv"):  # only pass-through commands (`bench`) take what is left
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    if extra:
+        args.argv = [*extra, *args.argv] if extra and extra[0].startswith("-") else [*args.argv, *extra]
     try:
         return int(args.func(args) or 0)
     except (QuekaroError, RuleFileError, FuzzyInputError) as exc:

@@ -35,6 +35,7 @@ def _add_farm_location(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--home", type=Path, help="farm directory (default: $QUEKARO_HOME or ~/.quekaro/farm)")
     parser.add_argument("--url", help="master URL (default: from HOME/farm.json)")
     parser.add_argument("--token-file", type=Path, help="admin token file (default: HOME/admin.token)")
+    parser.add_argument("--ca-file", type=Path, help="the farm's CA certificate, to verify an https master")
 
 
 def _register_up(sub: argparse._SubParsersAction) -> None:
@@ -65,7 +66,11 @@ def _register_master(sub: argparse._SubParsersAction) -> None:
     parser.add_argument("--ca-file", help="CA certificate to verify the XMPP server's TLS certificate")
     parser.add_argument("--http-host", default="127.0.0.1", help="address the HTTP API binds to")
     parser.add_argument("--http-port", type=int, default=8765)
-    parser.add_argument("--public-url", help="URL agents use to reach the HTTP API (default http://HOST:PORT)")
+    parser.add_argument("--public-url", help="URL agents use to reach the HTTP API (default http(s)://HOST:PORT)")
+    parser.add_argument("--tls-cert", type=Path, help="HTTPS certificate of the data plane (quekaro ca issue)")
+    parser.add_argument("--tls-key", type=Path, help="its private key")
+    parser.add_argument("--insecure-http", action="store_true",
+                        help="serve plain HTTP although agents reach it over a network (logged and shown by status)")
     parser.add_argument("--threads", type=int, help="Dr.Jit threads of the pre-pass")
     parser.add_argument("--slots", type=int,
                         help="units an agent may hold at once (default 2: its next unit is awarded while it "
@@ -148,7 +153,7 @@ def run_master(args: argparse.Namespace) -> int:
 
 
 def _client(args: argparse.Namespace):
-    return FarmClient.from_home(args.home, args.url, args.token_file)
+    return FarmClient.from_home(args.home, args.url, args.token_file, args.ca_file)
 
 
 def run_submit(args: argparse.Namespace) -> int:
@@ -173,6 +178,9 @@ def run_status(args: argparse.Namespace) -> int:
         print(json.dumps(jobs, indent=2))
         return 0
     _print_processes(Path(args.home or default_home()))
+    plane = client.farm()["data_plane"]
+    if "insecure" in plane:
+        print(f"WARNING: data plane {plane}")
     for job in jobs:
         eta = f"{job['eta_s']:.0f} s" if job.get("eta_s") is not None else "-"
         print(f"{job['job_id']}  {job['status']:<9} {job['units_done']}/{job['units_total']} units  "

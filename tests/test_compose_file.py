@@ -63,6 +63,19 @@ def test_healthchecks_and_start_order(farm: dict) -> None:
         assert services["agent"]["depends_on"][needed]["condition"] == "service_healthy"
 
 
+def test_tls_on_every_link(farm: dict) -> None:
+    services = farm["services"]
+    assert services["xmpp"]["depends_on"]["ca"]["condition"] == "service_completed_successfully"
+    ca_mount = {v["target"]: v for v in services["ca"]["volumes"]}[services["ca"]["environment"]["QUEKARO_CA_DIR"]]
+    for name in ("xmpp", "master", "agent"):
+        mounts = {v["source"]: v for v in services[name]["volumes"]}
+        assert mounts[ca_mount["source"]]["read_only"] is True
+    master = services["master"]["environment"]
+    assert master["QUEKARO_PUBLIC_URL"].startswith("https://") and master["QUEKARO_TLS_CERT"].endswith(".pem")
+    assert master["QUEKARO_CA_FILE"] == services["agent"]["environment"]["QUEKARO_CA_FILE"]
+    assert services["xmpp"]["environment"]["QUEKARO_XMPP_CERT"].startswith(ca_mount["target"])
+
+
 def test_the_image_copies_every_installed_package() -> None:
     include = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]["include"]
     packages = {name.rstrip("*") for name in include}

@@ -16,6 +16,8 @@ PACKAGES = ("fuzzy", "core", "planning", "master", "agents", "farm", "quekaro", 
 LAZY_PROJECT = {
     ("quekaro.cli", "agents.render_agent"): "SPADE takes ~0.6 s to import; only `quekaro agent` needs it",
     ("quekaro.cmd_farm", "master.run"): "SPADE and aiohttp take ~0.4 s; only `quekaro master` needs them",
+    ("bench.cli", "bench.commands"): "matplotlib and pyfuzzylite (~0.3 s; pyfuzzylite sets up the root logger "
+                                     "at import, which silenced every farm log): only `quekaro bench` loads them",
 }
 # Third-party modules that may be imported inside functions (the comment at each says why).
 LAZY_THIRD_PARTY = {"mitsuba", "drjit", "pyjabber", "loguru"}

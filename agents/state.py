@@ -1,0 +1,518 @@
+"""The render agent's decisions as a pure state machine: typed events in, typed commands out, no I/O.
+
+`AgentState.handle(event, now)` is the agent's one entry point, beside the master's `master.auction.Auction`
+and after dask.distributed's worker state machine: no asyncio, no clock (every call takes `now`), no
+network, no Mitsuba. `agents.render_agent.RenderAgent` turns XMPP messages and the ends of its own I/O
+(bundle fetched, unit rendered, tile uploaded) into events and carries out the commands; the unit tests
+(tests/test_agent_state.py) drive it with a fake clock.
+
+Events: the master's messages (`m.CallForProposal`, `m.Award`, `m.Reject`, `m.Cancel`, as parsed), `Measured`
+(the agent's speed), `Tick` (time passes; the connection's state), and the ends of the commands it gave:
+`BundleReady`/`BundleFailed`, `RenderFinished`/`RenderFailed`, `UploadDone`/`UploadFailed`. Commands:
+`Send` (a message to the master), `FetchBundle`, `StartRender`, `Upload`, `DiscardTile`, `Log`.
+
+What it decides (the protocol is in agents/render_agent.py's docstring):
+  slots      it holds at most `slots` units (awarded, not answered, not cancelled) and bids only below
+             that; with one slot, only when no render at all is in flight. One unit renders at a time,
+             in award order; the next starts as soon as the last one's tile is written, while it uploads.
+  awards     a duplicate (same unit, same token) is ignored, also after the unit is done; a re-award with
+             a new token replaces the token it answers under. A unit it never bid on is planned afresh.
+  cancel     one unit or a whole job: queued units never start, a unit whose bundle is being fetched is
+             not rendered, a render in flight runs to its end (the render process cannot be interrupted
+             without losing its compiled kernels) and its tile is thrown away; nothing is answered.
+  heartbeat  Register on every (re)connection, then a Heartbeat every `heartbeat_s` listing the held units.
+  estimates  base seconds (cost x spp / speed) + a kernel compilation for a window it has not rendered,
+             times the job's `Calibration`: the ratio of measured to estimated seconds of its done units.
+
+Planning a unit (the fuzzy rules) and the base estimate are computations, injected as functions.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+from core.errors import QuekaroError
+from core.model import messages as m
+from core.model.job import SceneSpec
+from core.model.units import WorkUnit
+
+HEARTBEAT_S = 2.0
+SLOTS = 2
+MAX_RENDER_S = 6 * 3600.0  # a render longer than this is killed whatever the estimate
+FINISHED_MEMORY = 4096  # (job, unit, token) of finished awards remembered to ignore their duplicates
+MAX_BUSY = 256  # units listed in one heartbeat (Heartbeat.busy's limit)
+MAX_REASON = 1024  # characters of a Refuse's or Failure's reason
+
+Key = tuple[str, int]
+
+
+class Params(Protocol):
+    """What the rules chose for one unit (core.render.planner.RenderParams fits)."""
+
+    @property
+    def depth(self) -> int: ...
+
+    @property
+    def spp(self) -> int: ...
+
+    @property
+    def band(self) -> int: ...
+
+
+PlanFn = Callable[[m.JobInfo, tuple[WorkUnit, ...]], Sequence[Params]]
+SecondsFn = Callable[[float, int, float], float]  # (unit cost, spp, speed) -> seconds: agents.speed.estimate_seconds
+
+
+# ---- events ----------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Measured:
+    """The agent's measured speed (mega-rays/s) and what compiling a new kernel costs on top (s)."""
+
+    speed: float
+    compile_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class Tick:
+    """Time passes. `online`: connected to the XMPP server now; `connection`: which connection (a number that
+    changes on every reconnect, so that the agent registers again)."""
+
+    online: bool = True
+    connection: int = 0
+
+
+@dataclass(frozen=True)
+class BundleReady:
+    """The scene of the unit under `ticket` is on disk."""
+
+    ticket: int
+    scene: SceneSpec
+
+
+@dataclass(frozen=True)
+class BundleFailed:
+    ticket: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class RenderFinished:
+    """The unit is rendered and its tile written at `path`; `seconds` the render's own time."""
+
+    ticket: int
+    path: Path
+    seconds: float
+    nonfinite: int = 0
+
+
+@dataclass(frozen=True)
+class RenderFailed:
+    ticket: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class UploadDone:
+    """The tile is uploaded; `sha256` its hash."""
+
+    ticket: int
+    sha256: str
+
+
+@dataclass(frozen=True)
+class UploadFailed:
+    ticket: int
+    reason: str
+
+
+Event = (m.CallForProposal | m.Award | m.Reject | m.Cancel | Measured | Tick | BundleReady | BundleFailed
+         | RenderFinished | RenderFailed | UploadDone | UploadFailed)
+
+
+# ---- commands --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Send:
+    """Send `message` to the master."""
+
+    message: m.Message
+
+
+@dataclass(frozen=True)
+class FetchBundle:
+    """Make the job's scene bundle available (fetch it with `token` unless cached); answer BundleReady or
+    BundleFailed."""
+
+    ticket: int
+    job: m.JobInfo
+    token: str = field(repr=False)
+
+
+@dataclass(frozen=True)
+class StartRender:
+    """Render the award's unit with `params` in the render process, killed after `timeout_s`; write its tile;
+    answer RenderFinished or RenderFailed."""
+
+    ticket: int
+    award: m.Award = field(repr=False)
+    scene: SceneSpec
+    params: Params
+    timeout_s: float
+
+
+@dataclass(frozen=True)
+class Upload:
+    """Hash the tile at `path` and upload it with the award's token; answer UploadDone or UploadFailed."""
+
+    ticket: int
+    award: m.Award = field(repr=False)
+    path: Path
+
+
+@dataclass(frozen=True)
+class DiscardTile:
+    """Delete the unit's tile file, if any (uploaded, failed or cancelled)."""
+
+    job_id: str
+    index: int
+
+
+@dataclass(frozen=True)
+class Log:
+    level: int
+    text: str
+
+
+Command = Send | FetchBundle | StartRender | Upload | DiscardTile | Log
+
+
+# ---- state -----------------------------------------------------------------------------------------
+
+
+@dataclass(eq=False)
+class Work:
+    """One awarded unit on its way: the latest award, and whether the master took it back. `ticket` names it
+    in events and commands (a unit awarded again after a cancel is a new Work with a new ticket)."""
+
+    ticket: int
+    award: m.Award
+    cancelled: bool = False
+    started: float = 0.0  # when its render step began (bundle, plan, render, tile)
+    params: Params | None = None
+    rendered: RenderFinished | None = None
+    uploaded_as: m.Award | None = None  # the award its tile was uploaded under (the latest at the time)
+
+    @property
+    def key(self) -> Key:
+        return self.award.job.job_id, self.award.unit.index
+
+
+class Calibration:
+    """Per job, the ratio of a unit's real wall time to its uncorrected estimate (moving average).
+
+    The base estimate (agents/speed.py) misses what the reference render cannot know: scene loading,
+    kernel compilation, bundle transfer, and a master cost scale that differs from rays (level off).
+    """
+
+    def __init__(self, alpha: float = 0.5, max_jobs: int = 64) -> None:
+        self.alpha = alpha
+        self.ratios: dict[str, float] = {}
+        self.max_jobs = max_jobs
+
+    def factor(self, job_id: str) -> float:
+        return self.ratios.get(job_id, 1.0)
+
+    def learn(self, job_id: str, base_estimate: float, actual: float) -> None:
+        if base_estimate <= 0 or actual <= 0:
+            return
+        ratio = actual / base_estimate
+        old = self.ratios.pop(job_id, None)
+        self.ratios[job_id] = ratio if old is None else old + self.alpha * (ratio - old)
+        while len(self.ratios) > self.max_jobs:  # oldest job first (dicts keep insertion order)
+            self.ratios.pop(next(iter(self.ratios)))
+
+
+class AgentState:
+    """One render agent's state; `handle(event, now)` returns what to do. `plan(job, units)` gives each unit's
+    parameters (the agent's rules), `seconds(cost, spp, speed)` a render's base estimate."""
+
+    def __init__(self, plan: PlanFn, seconds: SecondsFn, *, slots: int = SLOTS, threads: int = 1,
+                 rules: str = "", heartbeat_s: float = HEARTBEAT_S, max_render_s: float = MAX_RENDER_S,
+                 session: str = "0") -> None:
+        if slots < 1:
+            raise ValueError(f"slots must be at least 1, got {slots}")
+        self.plan, self.seconds = plan, seconds
+        self.slots, self.threads, self.rules = slots, threads, rules[:256]
+        self.heartbeat_s, self.max_render_s, self.session = heartbeat_s, max_render_s, session
+        self.speed: Measured | None = None
+        self.calibration = Calibration()
+        self.works: dict[Key, Work] = {}  # held: awarded, not answered, not cancelled (award order)
+        self.queue: deque[Work] = deque()  # held, waiting for the render process
+        self.rendering: Work | None = None  # in its render step (perhaps cancelled since)
+        self.delivering: dict[int, Work] = {}  # tiles uploading, by ticket
+        self.finished: dict[tuple[str, int, str], None] = {}  # (job, unit, token) answered, oldest first
+        self.planned: dict[Key, Params] = {}  # the rules' choice per unit bid on, oldest first
+        self.kernels: set[tuple[Any, ...]] = set()  # what the render process has compiled
+        self.units_done = 0
+        self.units_failed = 0
+        self._tickets = itertools.count(1)
+        self._conversations = itertools.count(1)
+        self._registered_on: int | None = None  # the connection it last registered on
+        self._next_beat = 0.0
+
+    def handle(self, event: Event, now: float) -> list[Command]:
+        """Apply one event at time `now` (seconds, any epoch); the commands to carry out, in order."""
+        match event:
+            case m.CallForProposal():
+                return self._on_cfp(event)
+            case m.Award():
+                return self._on_award(event, now)
+            case m.Cancel():
+                return self._on_cancel(event)
+            case m.Reject():
+                return [Log(logging.DEBUG, f"rejected in {event.conversation}: {event.reason}")]
+            case Tick():
+                return self._on_tick(event, now)
+            case Measured():
+                self.speed = event
+                return []
+            case BundleReady():
+                return self._on_bundle(event, now)
+            case BundleFailed() | RenderFailed():
+                return self._on_render_failed(event, now)
+            case RenderFinished():
+                return self._on_rendered(event, now)
+            case UploadDone() | UploadFailed():
+                return self._on_uploaded(event, now)
+            case m.Message():
+                return [Log(logging.WARNING, f"{event.performative} in {event.conversation}: not for an agent")]
+        raise TypeError(f"not an agent event: {type(event).__name__}")
+
+    # ---- what it holds --------------------------------------------------------------------------------
+
+    def busy_units(self) -> tuple[m.HeldUnit, ...]:
+        """The units this agent holds: awarded, not answered, not cancelled."""
+        return tuple(m.HeldUnit(job_id=j, index=i) for j, i in sorted(self.works))
+
+    def is_free(self) -> bool:
+        """Room for another unit: it holds fewer than `slots` (rendering, waiting or uploading). With one
+        slot, also not rendering at all (not even a cancelled unit)."""
+        if self.slots == 1:
+            return self.rendering is None and not self.works
+        return len(self.works) < self.slots
+
+    # ---- estimates ------------------------------------------------------------------------------------
+
+    def estimate(self, job: m.JobInfo, unit: WorkUnit, params: Params) -> float:
+        """Seconds this agent expects to spend on the unit: the base estimate, plus a kernel compilation if
+        the window is new, times the job's learned correction."""
+        return self.uncorrected(job, unit, params) * self.calibration.factor(job.job_id)
+
+    def uncorrected(self, job: m.JobInfo, unit: WorkUnit, params: Params) -> float:
+        compile_s = 0.0
+        if self.speed is not None and kernel_key(job, unit, params) not in self.kernels:
+            compile_s = self.speed.compile_s  # Dr.Jit bakes the window size and the depth into the kernel
+        return self.base_estimate(unit, params) + compile_s
+
+    def base_estimate(self, unit: WorkUnit, params: Params) -> float:
+        return self.seconds(unit.cost, params.spp, self.speed.speed if self.speed else 1.0)
+
+    # ---- messages in ----------------------------------------------------------------------------------
+
+    def _on_cfp(self, cfp: m.CallForProposal) -> list[Command]:
+        job_id = cfp.job.job_id
+        if not self.is_free():
+            held = ", ".join(f"{j}/{i}" for j, i in self.works) or "a cancelled unit"
+            return [self._refuse(cfp, f"busy rendering {held}")]
+        try:
+            plans = list(self.plan(cfp.job, cfp.units))
+        except Exception as exc:  # a rule base that cannot plan this job: say so rather than bid
+            return [self._refuse(cfp, f"cannot plan units: {type(exc).__name__}: {exc}")]
+        for unit, params in zip(cfp.units, plans, strict=True):
+            _remember(self.planned, (job_id, unit.index), params)
+        estimates = tuple(m.Estimate(index=u.index, seconds=min(self.estimate(cfp.job, u, p), 1e9))
+                          for u, p in zip(cfp.units, plans, strict=True))
+        text = ", ".join(f"{e.index}: {e.seconds:.3f} s" for e in estimates)
+        return [Log(logging.INFO, f"proposing for {job_id}: {text}"),
+                Send(m.Propose(conversation=cfp.conversation, job_id=job_id, estimates=estimates))]
+
+    @staticmethod
+    def _refuse(cfp: m.CallForProposal, reason: str) -> Send:
+        return Send(m.Refuse(conversation=cfp.conversation, job_id=cfp.job.job_id, reason=reason[:MAX_REASON]))
+
+    def _on_award(self, award: m.Award, now: float) -> list[Command]:
+        key = (award.job.job_id, award.unit.index)
+        if (*key, award.token) in self.finished:
+            return [Log(logging.INFO, f"duplicate award of finished unit {key[0]}/{key[1]} ignored")]
+        work = self.works.get(key)
+        if work is not None:
+            if work.award.token == award.token:
+                return []  # a duplicate of the award it holds
+            work.award = award
+            return [Log(logging.INFO, f"unit {key[0]}/{key[1]} re-awarded: answering under the new award")]
+        work = Work(next(self._tickets), award)
+        self.works[key] = work
+        self.queue.append(work)
+        return self._start_next(now)
+
+    def _on_cancel(self, cancel: m.Cancel) -> list[Command]:
+        out: list[Command] = []
+        for key, work in list(self.works.items()):
+            if key[0] == cancel.job_id and cancel.index in (None, key[1]):
+                work.cancelled = True
+                del self.works[key]
+                out.append(Log(logging.INFO, f"unit {key[0]}/{key[1]} cancelled by the master: {cancel.reason}"))
+        self.queue = deque(w for w in self.queue if not w.cancelled)
+        return out
+
+    def _on_tick(self, tick: Tick, now: float) -> list[Command]:
+        """Register on a new connection (once the speed is known); a heartbeat when one is due."""
+        if not tick.online:
+            return []
+        out: list[Command] = []
+        if tick.connection != self._registered_on and self.speed is not None:
+            out.append(Send(m.Register(conversation=self._conversation("register"), speed=self.speed.speed,
+                                       threads=self.threads, rules=self.rules)))
+            self._registered_on, self._next_beat = tick.connection, now
+        if self._registered_on is not None and now >= self._next_beat:
+            busy = self.busy_units()[:MAX_BUSY]
+            out.append(Send(m.Heartbeat(conversation=self._conversation("hb"), busy=busy)))
+            self._next_beat = now + self.heartbeat_s
+        return out
+
+    def _conversation(self, kind: str) -> str:
+        return f"{kind}-{self.session}-{next(self._conversations):x}"
+
+    # ---- a unit's way: bundle, plan, render, upload ---------------------------------------------------
+
+    def _start_next(self, now: float) -> list[Command]:
+        """The render process is free and a unit waits: the oldest award goes first."""
+        if self.rendering is not None or not self.queue:
+            return []
+        work = self.rendering = self.queue.popleft()
+        work.started = now
+        return [FetchBundle(work.ticket, work.award.job, work.award.token)]
+
+    def _on_bundle(self, ready: BundleReady, now: float) -> list[Command]:
+        work = self._rendering(ready.ticket)
+        if work is None:
+            return [Log(logging.DEBUG, f"bundle of ticket {ready.ticket}: no such render")]
+        key, job, unit = work.key, work.award.job, work.award.unit
+        if work.cancelled:
+            self.rendering = None
+            return [Log(logging.INFO, f"unit {key[0]}/{key[1]} cancelled before its render: not rendered"),
+                    *self._start_next(now)]
+        # What it bid on (a job's units and their features never change); planned afresh if forgotten or
+        # never bid on, and always with the job's own rules (in the bundle) when it has some.
+        remembered = self.planned.pop(key, None)
+        try:
+            params = remembered if remembered is not None and not job.rules_sha256 else self.plan(job, (unit,))[0]
+        except Exception as exc:
+            return self._on_render_failed(RenderFailed(work.ticket, describe(exc)), now)
+        work.params = params
+        # Generous: the master's own deadline (estimate x 3 + 30 s) decides when it gives up.
+        timeout = min(self.max_render_s, 120.0 + 10.0 * self.base_estimate(unit, params))
+        return [StartRender(work.ticket, work.award, ready.scene, params, timeout)]
+
+    def _on_render_failed(self, failed: BundleFailed | RenderFailed, now: float) -> list[Command]:
+        work = self._rendering(failed.ticket)
+        if work is None:
+            return [Log(logging.DEBUG, f"failure of ticket {failed.ticket}: no such render")]
+        self.rendering = None
+        out: list[Command] = [DiscardTile(*work.key), *self._fail(work, failed.reason)]
+        self._forget(work)
+        return out + self._start_next(now)
+
+    def _on_rendered(self, rendered: RenderFinished, now: float) -> list[Command]:
+        work = self._rendering(rendered.ticket)
+        if work is None:
+            return [Log(logging.DEBUG, f"render of ticket {rendered.ticket}: no such render")]
+        self.rendering = None
+        key = work.key
+        if work.cancelled:
+            out: list[Command] = [Log(logging.INFO, f"unit {key[0]}/{key[1]} rendered after its cancellation: "
+                                                    "discarded"), DiscardTile(*key)]
+        else:  # held (heartbeats list it) until its upload ends; the next unit renders meanwhile
+            work.rendered, work.uploaded_as = rendered, work.award
+            self.delivering[work.ticket] = work
+            out = [Upload(work.ticket, work.award, rendered.path)]
+        return out + self._start_next(now)
+
+    def _on_uploaded(self, result: UploadDone | UploadFailed, now: float) -> list[Command]:
+        work = self.delivering.pop(result.ticket, None)
+        if work is None:
+            return [Log(logging.DEBUG, f"upload of ticket {result.ticket}: no such upload")]
+        out: list[Command] = [DiscardTile(*work.key)]
+        if isinstance(result, UploadFailed):
+            out += self._fail(work, result.reason)
+        elif not work.cancelled:
+            out += self._done(work, result.sha256, now)
+        self._forget(work)
+        return out
+
+    def _done(self, work: Work, sha256: str, now: float) -> list[Command]:
+        """Learn from the unit (kernel compiled, time taken), remember its award, and Inform."""
+        award, rendered, params = work.uploaded_as, work.rendered, work.params
+        assert award is not None and rendered is not None and params is not None
+        key, wall = work.key, now - work.started
+        self.units_done += 1
+        _remember(self.finished, (*key, award.token), None)
+        predicted = self.uncorrected(award.job, award.unit, params)
+        self.kernels.add(kernel_key(award.job, award.unit, params))
+        self.calibration.learn(key[0], predicted, wall)
+        text = (f"unit {key[0]}/{key[1]} done: {wall:.3f} s in all, render {rendered.seconds:.3f} s, spp "
+                f"{params.spp} depth {params.depth} band {params.band} (award estimate {award.estimate_s:.3f} s)")
+        return [Log(logging.INFO, text), Send(m.Inform(
+            conversation=award.conversation, job_id=key[0], index=key[1], token=award.token, tile_hash=sha256,
+            depth=params.depth, spp=params.spp, band=params.band, seconds=rendered.seconds,
+            nonfinite=rendered.nonfinite))]
+
+    def _fail(self, work: Work, reason: str) -> list[Command]:
+        """Failure under the latest award, unless the master cancelled the unit."""
+        if work.cancelled:
+            return []
+        self.units_failed += 1
+        award, key = work.award, work.key
+        return [Log(logging.WARNING, f"unit {key[0]}/{key[1]} failed: {reason}"),
+                Send(m.Failure(conversation=award.conversation, job_id=key[0], index=key[1], token=award.token,
+                               reason=reason[:MAX_REASON] or "failed"))]
+
+    def _rendering(self, ticket: int) -> Work | None:
+        work = self.rendering
+        return work if work is not None and work.ticket == ticket else None
+
+    def _forget(self, work: Work) -> None:
+        if self.works.get(work.key) is work:
+            del self.works[work.key]
+
+
+# ---- pure helpers ------------------------------------------------------------------------------------
+
+
+def kernel_key(job: m.JobInfo, unit: WorkUnit, params: Params) -> tuple[Any, ...]:
+    """What Dr.Jit compiles a kernel for: the scene, the window's size, the depth and the integrator."""
+    window = unit.rect.grow(params.band, job.width, job.height)
+    return job.scene_hash, window.w, window.h, params.depth, job.integrator
+
+
+def describe(exc: BaseException) -> str:
+    """An error as a Failure's reason: a QuekaroError's own words, else its type and message."""
+    text = str(exc) if isinstance(exc, QuekaroError) else f"{type(exc).__name__}: {exc}"
+    return text or type(exc).__name__
+
+
+def _remember(memory: dict[Any, Any], key: Any, value: Any) -> None:
+    """Store in a bounded memory, forgetting the oldest entries beyond FINISHED_MEMORY."""
+    memory.pop(key, None)
+    memory[key] = value
+    while len(memory) > FINISHED_MEMORY:
+        memory.pop(next(iter(memory)))

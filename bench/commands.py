@@ -1,0 +1,49 @@
+"""The benchmarks' command line (`quekaro bench BENCHMARK ...`, via `bench.cli`): each benchmark module
+exposes `add_arguments(parser)` (optional) and `run(args) -> dict`; this wires them to a parser and
+prints the result (one JSON object with `--json`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Callable
+from types import ModuleType
+
+from bench import accuracy, allocation, fuzzy_engine, overhead, scaling
+from bench import farm as farm_bench
+
+BENCHMARKS: dict[str, tuple[ModuleType, str]] = {
+    "fuzzy": (fuzzy_engine, "fuzzy engine: evaluations/s against pyfuzzylite, centroid exactness"),
+    "overhead": (overhead, "pipeline overhead against one plain Mitsuba render"),
+    "farm": (farm_bench, "farm overhead and 2-agent speedup"),
+    "accuracy": (accuracy, "time and error per (agents, optimisation level)"),
+    "allocation": (allocation, "each level's render time and relMSE against uniform spp, predicted"),
+    "scaling": (scaling, "simulated auction scaling to 64 agents"),
+}
+
+
+def main(argv: list[str]) -> int:
+    args = build_parser().parse_args(argv)
+    return args.func(args)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="quekaro bench", description="benchmarks that print figures")
+    bench_sub = parser.add_subparsers(dest="bench", metavar="BENCHMARK", required=True)
+    for name, (module, help_text) in BENCHMARKS.items():
+        one = bench_sub.add_parser(name, help=help_text)
+        one.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+        one.set_defaults(func=_runner(module))
+        if hasattr(module, "add_arguments"):
+            module.add_arguments(one)
+    return parser
+
+
+def _runner(module: ModuleType) -> Callable[[argparse.Namespace], int]:
+    def run(args: argparse.Namespace) -> int:
+        result = module.run(args)
+        if args.json:
+            print(json.dumps(result, indent=2, sort_keys=True))
+        return 0
+
+    return run

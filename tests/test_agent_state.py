@@ -1,0 +1,550 @@
+"""The render agent's state machine (agents.state.AgentState), driven with events and a fake clock: no network,
+no render process, no Mitsuba. What tests/test_auction.py is to the master's auction.
+
+Covered: slots (a second award queues, one render at a time, a full agent refuses), duplicate awards and
+re-awards, awards never bid on, cancel of a queued, a fetching, a rendering and an uploading unit and of a
+whole job, heartbeats and registration, estimates and their calibration, Failure on every kind of error.
+"""
+
+from __future__ import annotations
+
+import logging
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+from agents.state import (
+    AgentState,
+    BundleFailed,
+    BundleReady,
+    Calibration,
+    Command,
+    DiscardTile,
+    Event,
+    FetchBundle,
+    Log,
+    Measured,
+    RenderFailed,
+    RenderFinished,
+    Send,
+    StartRender,
+    Tick,
+    Upload,
+    UploadDone,
+    UploadFailed,
+    describe,
+    kernel_key,
+)
+from core.errors import QuekaroError
+from core.model import messages as m
+from core.model.geometry import Rect
+from core.model.job import SceneSpec
+from core.model.units import WorkUnit
+
+REPO = Path(__file__).resolve().parent.parent
+SCENE = SceneSpec(Path("/bundles/cbox/scene.xml"), {})
+SPEED = 2.0  # mega-rays/s; the fake estimator below reads it as cost units per second
+COMPILE_S = 0.5
+
+
+@dataclass(frozen=True)
+class Params:
+    depth: int
+    spp: int
+    band: int
+
+
+@dataclass
+class Rules:
+    """A fake planner: spp 4 x the unit's index + 4, depth 6, band 2; counts its calls, fails on demand."""
+
+    calls: list[tuple[int, ...]] = field(default_factory=list)
+    fail: bool = False
+
+    def __call__(self, job: m.JobInfo, units: tuple[WorkUnit, ...]) -> list[Params]:
+        self.calls.append(tuple(u.index for u in units))
+        if self.fail:
+            raise ValueError("no rule fires")
+        return [Params(depth=6, spp=4 * u.index + 4, band=2) for u in units]
+
+
+def seconds(cost: float, spp: int, speed: float) -> float:
+    return cost * spp / speed
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def advance(self, dt: float) -> float:
+        self.now += dt
+        return self.now
+
+
+class Agent:
+    """An AgentState, its fake clock, and the renders it has in flight (asserted never more than one)."""
+
+    def __init__(self, slots: int = 2, rules: Rules | None = None) -> None:
+        self.rules = rules or Rules()
+        self.state = AgentState(self.rules, seconds, slots=slots, threads=1, rules="test.xml", heartbeat_s=2.0,
+                                session="s")
+        self.clock = Clock()
+        self.in_flight: set[int] = set()  # tickets between FetchBundle and the render's end
+        self.state.handle(Measured(SPEED, COMPILE_S), self.clock.now)
+
+    def __call__(self, event: Event, dt: float = 0.0) -> list[Command]:
+        if isinstance(event, RenderFinished | RenderFailed | BundleFailed):
+            self.in_flight.discard(event.ticket)
+        out = self.state.handle(event, self.clock.advance(dt))
+        if isinstance(event, BundleReady) and not any(isinstance(c, StartRender) for c in out):
+            self.in_flight.discard(event.ticket)  # not rendered (cancelled, or no plan)
+        self.in_flight |= {c.ticket for c in out if isinstance(c, FetchBundle)}
+        assert len(self.in_flight) <= 1, f"renders in flight at once: {sorted(self.in_flight)}"
+        return out
+
+    def held(self) -> list[tuple[str, int]]:
+        return [(h.job_id, h.index) for h in self.state.busy_units()]
+
+
+def job(job_id: str = "job-1", rules_sha256: str | None = None) -> m.JobInfo:
+    return m.JobInfo(job_id=job_id, scene_url=f"http://127.0.0.1:1/jobs/{job_id}/bundle", scene_hash="ab" * 32,
+                     width=32, height=32, spp=16, depth=6, level="N", ranges={"C": (0.0, 1.0)},
+                     rules_sha256=rules_sha256)
+
+
+def unit(index: int, rect: Rect | None = None) -> WorkUnit:
+    rect = rect or Rect(0, 0, 8, 8)
+    return WorkUnit(index=index, rect=rect, C=0.5, S=rect.area, Nd=0.1, cost=10.0 * (index + 1))
+
+
+def award(info: m.JobInfo, u: WorkUnit, token: str = "a1" * 16, conversation: str | None = None) -> m.Award:
+    return m.Award(conversation=conversation or f"award-{info.job_id}-{u.index}", job=info, unit=u, token=token,
+                   upload_url=f"http://127.0.0.1:1/jobs/{info.job_id}/units/{u.index}/tile", seed=u.index,
+                   estimate_s=1.0)
+
+
+def cfp(info: m.JobInfo, *units: WorkUnit, conversation: str = "cfp-1") -> m.CallForProposal:
+    return m.CallForProposal(conversation=conversation, job=info, units=units, reply_within_s=2.0)
+
+
+def sent(out: list[Command], kind: type[m.Message] = m.Message) -> list[m.Message]:
+    return [c.message for c in out if isinstance(c, Send) and isinstance(c.message, kind)]
+
+
+def only(out: list[Command], kind: type) -> object:
+    found = [c for c in out if isinstance(c, kind)]
+    assert len(found) == 1, f"expected one {kind.__name__} in {out}"
+    return found[0]
+
+
+def render(agent: Agent, fetch: FetchBundle, render_s: float = 1.0) -> Upload:
+    """The fetched unit's bundle arrives, it renders for `render_s`: the Upload the agent asks for."""
+    start = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
+    out = agent(RenderFinished(start.ticket, Path(f"/tiles/{start.ticket}.exr"), render_s, 0), dt=render_s)
+    return only(out, Upload)
+
+
+def deliver(agent: Agent, fetch: FetchBundle, wall: float = 1.0) -> m.Inform:
+    """A unit through render and upload, `wall` seconds in all: the Inform it sends."""
+    upload = render(agent, fetch, wall / 2)
+    (inform,) = sent(agent(UploadDone(upload.ticket, "cd" * 32), dt=wall / 2), m.Inform)
+    return inform
+
+
+# ---- bids and slots --------------------------------------------------------------------------------------
+
+
+def test_a_free_agent_proposes_its_estimates_and_remembers_the_plans() -> None:
+    agent = Agent()
+    info = job()
+    out = agent(cfp(info, unit(0), unit(1, Rect(8, 0, 8, 8))))
+    (propose,) = sent(out, m.Propose)
+    assert (propose.conversation, propose.job_id) == ("cfp-1", "job-1")
+    # cost x spp / speed, + a compilation: no kernel compiled yet.
+    assert [(e.index, e.seconds) for e in propose.estimates] == [(0, 10 * 4 / SPEED + COMPILE_S),
+                                                                 (1, 20 * 8 / SPEED + COMPILE_S)]
+    assert set(agent.state.planned) == {("job-1", 0), ("job-1", 1)}
+    assert any(isinstance(c, Log) and "proposing for job-1" in c.text for c in out)
+
+
+def test_a_second_award_queues_and_renders_when_the_first_is_rendered() -> None:
+    agent = Agent()
+    info = job()
+    first = only(agent(award(info, unit(0))), FetchBundle)
+    assert agent(award(info, unit(1))) == []  # queued: the render process is busy
+    assert agent.held() == [("job-1", 0), ("job-1", 1)]
+    start = only(agent(BundleReady(first.ticket, SCENE)), StartRender)
+    out = agent(RenderFinished(start.ticket, Path("/tiles/0.exr"), 1.0), dt=1.0)
+    # The first tile uploads while the second unit goes to the render process.
+    assert only(out, Upload).award.unit.index == 0
+    assert only(out, FetchBundle).job.job_id == "job-1" and agent.state.rendering.key == ("job-1", 1)
+
+
+def test_never_more_renders_than_one_and_units_render_in_award_order() -> None:
+    agent = Agent(slots=3)
+    info = job()
+    outs = [agent(award(info, unit(i))) for i in (2, 0, 1)]
+    assert [len(out) for out in outs] == [1, 0, 0]
+    fetch: FetchBundle | None = outs[0][0]
+    order = []
+    while fetch is not None:
+        start = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
+        order.append(start.award.unit.index)
+        out = agent(RenderFinished(start.ticket, Path("/t.exr"), 1.0))
+        fetch = next((c for c in out if isinstance(c, FetchBundle)), None)
+    assert order == [2, 0, 1]
+    assert agent.held() == [("job-1", 0), ("job-1", 1), ("job-1", 2)]  # all three uploading
+
+
+def test_a_full_agent_refuses_and_frees_up_after_an_answer() -> None:
+    agent = Agent()
+    info = job()
+    fetch = only(agent(award(info, unit(0))), FetchBundle)
+    assert sent(agent(cfp(info, unit(2), conversation="cfp-a")), m.Propose)  # one slot left
+    agent(award(info, unit(1)))
+    (refuse,) = sent(agent(cfp(info, unit(2), conversation="cfp-b")), m.Refuse)
+    assert refuse.conversation == "cfp-b" and refuse.reason == "busy rendering job-1/0, job-1/1"
+    deliver(agent, fetch)
+    assert sent(agent(cfp(info, unit(2), conversation="cfp-c")), m.Propose)
+
+
+def test_one_slot_means_no_bid_while_any_render_runs_even_a_cancelled_one() -> None:
+    agent = Agent(slots=1)
+    info = job()
+    fetch = only(agent(award(info, unit(0))), FetchBundle)
+    start = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
+    agent(m.Cancel(conversation="c-1", job_id="job-1", index=0, reason="test"))
+    assert agent.held() == []
+    (refuse,) = sent(agent(cfp(info, unit(1))), m.Refuse)
+    assert refuse.reason == "busy rendering a cancelled unit"
+    agent(RenderFinished(start.ticket, Path("/tiles/0.exr"), 1.0))
+    assert sent(agent(cfp(info, unit(1))), m.Propose)
+
+
+def test_a_planner_that_fails_refuses_the_call() -> None:
+    agent = Agent(rules=Rules(fail=True))
+    (refuse,) = sent(agent(cfp(job(), unit(0))), m.Refuse)
+    assert refuse.reason == "cannot plan units: ValueError: no rule fires"
+
+
+# ---- awards ------------------------------------------------------------------------------------------
+
+
+def test_a_duplicate_award_renders_once_also_after_the_unit_is_done() -> None:
+    agent = Agent()
+    info = job()
+    the_award = award(info, unit(0))
+    fetch = only(agent(the_award), FetchBundle)
+    assert agent(the_award) == []
+    assert agent.held() == [("job-1", 0)]
+    inform = deliver(agent, fetch)
+    assert inform.token == the_award.token and agent.state.units_done == 1
+    out = agent(the_award)
+    assert not [c for c in out if not isinstance(c, Log)]
+    assert "duplicate award of finished unit job-1/0 ignored" in only(out, Log).text
+    assert agent.held() == []
+
+
+def test_a_re_award_with_a_new_token_is_answered_under_the_new_award() -> None:
+    agent = Agent()
+    info = job()
+    fetch = only(agent(award(info, unit(0), token="a1" * 16)), FetchBundle)
+    out = agent(award(info, unit(0), token="b2" * 16, conversation="award-2"))
+    assert not [c for c in out if not isinstance(c, Log)]  # no second render
+    inform = deliver(agent, fetch)
+    assert (inform.token, inform.conversation) == ("b2" * 16, "award-2")
+
+
+@pytest.mark.parametrize("upload_ok", [True, False])
+def test_a_re_award_during_the_upload(upload_ok: bool) -> None:
+    """The Inform goes under the award the tile was uploaded with; a Failure under the latest award."""
+    agent = Agent()
+    info = job()
+    fetch = only(agent(award(info, unit(0), token="a1" * 16)), FetchBundle)
+    upload = render(agent, fetch)
+    assert upload.award.token == "a1" * 16
+    agent(award(info, unit(0), token="b2" * 16, conversation="award-2"))
+    result = UploadDone(upload.ticket, "cd" * 32) if upload_ok else UploadFailed(upload.ticket, "refused")
+    (answer,) = sent(agent(result))
+    assert type(answer) is (m.Inform if upload_ok else m.Failure)
+    assert answer.token == ("a1" * 16 if upload_ok else "b2" * 16)
+
+
+def test_an_award_never_bid_on_is_planned_afresh_a_bid_on_one_is_not() -> None:
+    rules = Rules()
+    agent = Agent(rules=rules)
+    info = job()
+    agent(cfp(info, unit(0)))
+    assert rules.calls == [(0,)]
+    fetch = only(agent(award(info, unit(0))), FetchBundle)
+    start = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
+    assert rules.calls == [(0,)] and start.params == Params(6, 4, 2)  # the bid's plan
+    agent(RenderFinished(start.ticket, Path("/t.exr"), 1.0))
+    fetch = only(agent(award(info, unit(3, Rect(8, 8, 8, 8)))), FetchBundle)  # never called for
+    start = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
+    assert rules.calls == [(0,), (3,)] and start.params == Params(6, 16, 2)
+    assert start.timeout_s == pytest.approx(120.0 + 10.0 * 40 * 16 / SPEED)
+
+
+def test_a_job_with_its_own_rules_is_planned_again_once_its_bundle_is_here() -> None:
+    rules = Rules()
+    agent = Agent(rules=rules)
+    info = job(rules_sha256="ef" * 32)
+    agent(cfp(info, unit(0)))
+    fetch = only(agent(award(info, unit(0))), FetchBundle)
+    agent(BundleReady(fetch.ticket, SCENE))
+    assert rules.calls == [(0,), (0,)]
+
+
+def test_an_award_that_cannot_be_planned_fails() -> None:
+    rules = Rules()
+    agent = Agent(rules=rules)
+    info = job()
+    the_award = award(info, unit(0))
+    fetch = only(agent(the_award), FetchBundle)
+    rules.fail = True
+    out = agent(BundleReady(fetch.ticket, SCENE))
+    (failure,) = sent(out, m.Failure)
+    assert failure.reason == "ValueError: no rule fires" and failure.token == the_award.token
+    assert not [c for c in out if isinstance(c, StartRender)] and agent.held() == []
+
+
+# ---- failures ----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("stage", ["bundle", "render", "upload"])
+def test_a_failure_sends_failure_and_the_agent_goes_on(stage: str) -> None:
+    agent = Agent()
+    info = job("job-9")
+    the_award = award(info, unit(2))
+    fetch = only(agent(the_award), FetchBundle)
+    agent(award(info, unit(3)))
+    reason = f"{stage} broke"
+    if stage == "bundle":
+        out = agent(BundleFailed(fetch.ticket, reason))
+    elif stage == "render":
+        start = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
+        out = agent(RenderFailed(start.ticket, reason))
+    else:
+        upload = render(agent, fetch)
+        out = agent(UploadFailed(upload.ticket, reason))
+    (failure,) = sent(out, m.Failure)
+    assert (failure.conversation, failure.job_id, failure.index, failure.token, failure.reason) == \
+        (the_award.conversation, "job-9", 2, the_award.token, reason)
+    assert DiscardTile("job-9", 2) in out
+    assert agent.state.units_failed == 1 and agent.held() == [("job-9", 3)]
+    assert agent.state.rendering is not None and agent.state.rendering.key == ("job-9", 3)  # it goes on
+
+
+def test_failure_reasons_are_cut_to_the_message_limit() -> None:
+    agent = Agent()
+    fetch = only(agent(award(job(), unit(0))), FetchBundle)
+    (failure,) = sent(agent(BundleFailed(fetch.ticket, "x" * 5000)), m.Failure)
+    assert failure.reason == "x" * 1024
+
+
+def test_describe_names_foreign_errors_by_type() -> None:
+    assert describe(QuekaroError("scene not found")) == "scene not found"
+    assert describe(OSError("disk full")) == "OSError: disk full"
+    assert describe(RuntimeError()) == "RuntimeError: "
+    assert describe(QuekaroError()) == "QuekaroError"
+
+
+def test_events_of_unknown_tickets_change_nothing() -> None:
+    agent = Agent()
+    agent(award(job(), unit(0)))
+    for event in (BundleReady(99, SCENE), RenderFinished(99, Path("/t.exr"), 1.0), UploadDone(99, "cd" * 32),
+                  UploadFailed(99, "x"), RenderFailed(99, "x")):
+        assert all(isinstance(c, Log) for c in agent(event))
+    assert agent.held() == [("job-1", 0)] and agent.state.units_failed == 0
+    with pytest.raises(TypeError):
+        agent.state.handle("not an event", 0.0)  # type: ignore[arg-type]
+
+
+# ---- cancel ------------------------------------------------------------------------------------------
+
+
+def test_cancel_of_a_queued_unit_drops_it() -> None:
+    agent = Agent()
+    info = job()
+    fetch = only(agent(award(info, unit(0))), FetchBundle)
+    agent(award(info, unit(1)))
+    out = agent(m.Cancel(conversation="c-1", job_id="job-1", index=1, reason="gone"))
+    assert "unit job-1/1 cancelled by the master: gone" in only(out, Log).text
+    assert agent.held() == [("job-1", 0)]
+    upload = render(agent, fetch)
+    assert agent.state.rendering is None  # the cancelled unit never starts
+    assert sent(agent(UploadDone(upload.ticket, "cd" * 32)), m.Inform)
+    assert agent.held() == []
+
+
+def test_cancel_of_a_rendering_unit_discards_its_tile_and_answers_nothing() -> None:
+    agent = Agent()
+    info = job()
+    fetch = only(agent(award(info, unit(0))), FetchBundle)
+    agent(award(info, unit(1)))
+    start = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
+    assert agent(m.Cancel(conversation="c-1", job_id="job-1", index=0, reason="x")) != []
+    assert agent.held() == [("job-1", 1)]
+    out = agent(RenderFinished(start.ticket, Path("/tiles/0.exr"), 1.0))
+    assert DiscardTile("job-1", 0) in out and not sent(out) and not [c for c in out if isinstance(c, Upload)]
+    assert only(out, FetchBundle).ticket != fetch.ticket  # the next unit renders
+    assert agent.state.units_done == agent.state.units_failed == 0
+
+
+def test_a_failure_of_a_cancelled_render_is_not_reported() -> None:
+    agent = Agent()
+    fetch = only(agent(award(job(), unit(0))), FetchBundle)
+    start = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
+    agent(m.Cancel(conversation="c-1", job_id="job-1", index=None, reason="x"))
+    out = agent(RenderFailed(start.ticket, "crashed"))
+    assert not sent(out) and DiscardTile("job-1", 0) in out and agent.state.units_failed == 0
+
+
+def test_a_unit_cancelled_while_its_bundle_is_fetched_is_not_rendered() -> None:
+    agent = Agent()
+    fetch = only(agent(award(job(), unit(0))), FetchBundle)
+    agent(m.Cancel(conversation="c-1", job_id="job-1", index=0, reason="x"))
+    out = agent(BundleReady(fetch.ticket, SCENE))
+    assert not [c for c in out if isinstance(c, StartRender)] and agent.state.rendering is None
+
+
+def test_cancel_of_an_uploading_unit_sends_no_inform() -> None:
+    agent = Agent()
+    fetch = only(agent(award(job(), unit(0))), FetchBundle)
+    upload = render(agent, fetch)
+    assert agent.held() == [("job-1", 0)]  # held while its tile uploads
+    agent(m.Cancel(conversation="c-1", job_id="job-1", index=0, reason="x"))
+    out = agent(UploadDone(upload.ticket, "cd" * 32))
+    assert not sent(out) and agent.state.units_done == 0 and not agent.state.finished
+
+
+def test_cancel_of_a_whole_job_leaves_the_other_jobs_units() -> None:
+    agent = Agent(slots=4)
+    one, two = job("job-1"), job("job-2")
+    fetch = only(agent(award(one, unit(0))), FetchBundle)
+    agent(award(two, unit(0)))
+    agent(award(one, unit(1)))
+    start = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
+    agent(m.Cancel(conversation="c-1", job_id="job-1", index=5, reason="x"))  # not one it holds
+    assert agent.held() == [("job-1", 0), ("job-1", 1), ("job-2", 0)]
+    out = agent(m.Cancel(conversation="c-2", job_id="job-1", index=None, reason="job cancelled"))
+    assert len([c for c in out if isinstance(c, Log)]) == 2
+    assert agent.held() == [("job-2", 0)]
+    out = agent(RenderFinished(start.ticket, Path("/t.exr"), 1.0))  # the abandoned render ends: discarded
+    assert DiscardTile("job-1", 0) in out and not sent(out)
+    assert only(out, FetchBundle).job.job_id == "job-2"  # ... job-1/1 never starts
+
+
+def test_a_unit_awarded_again_after_its_cancel_renders_again() -> None:
+    agent = Agent()
+    info = job()
+    fetch = only(agent(award(info, unit(0))), FetchBundle)
+    start = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
+    agent(m.Cancel(conversation="c-1", job_id="job-1", index=0, reason="x"))
+    assert agent(award(info, unit(0), token="b2" * 16)) == []  # waits for the abandoned render
+    out = agent(RenderFinished(start.ticket, Path("/t.exr"), 1.0))
+    again = only(out, FetchBundle)
+    assert again.ticket != fetch.ticket and agent.held() == [("job-1", 0)]
+    assert deliver(agent, again).token == "b2" * 16
+
+
+# ---- heartbeats and registration -----------------------------------------------------------------------
+
+
+def test_registers_on_every_connection_and_beats_the_held_units() -> None:
+    agent = Agent()
+    assert agent(Tick(online=False)) == []
+    reg, beat = sent(agent(Tick(connection=0)))
+    assert isinstance(reg, m.Register) and (reg.speed, reg.threads, reg.rules) == (SPEED, 1, "test.xml")
+    assert isinstance(beat, m.Heartbeat) and beat.busy == ()
+    assert agent(Tick(), dt=1.0) == []  # the next beat is due 2 s later
+    info = job()
+    fetch = only(agent(award(info, unit(1))), FetchBundle)
+    agent(award(info, unit(0)))
+    (beat,) = sent(agent(Tick(), dt=1.0))
+    assert [(h.job_id, h.index) for h in beat.busy] == [("job-1", 0), ("job-1", 1)]
+    deliver(agent, fetch)
+    agent(m.Cancel(conversation="c-1", job_id="job-1", index=0, reason="x"))
+    (beat,) = sent(agent(Tick(), dt=2.0))
+    assert beat.busy == ()
+    reg, beat = sent(agent(Tick(connection=1)))  # reconnected: at once, both
+    assert isinstance(reg, m.Register) and isinstance(beat, m.Heartbeat)
+    assert len({reg.conversation, beat.conversation}) == 2
+
+
+def test_no_registration_before_the_speed_is_known() -> None:
+    state = AgentState(Rules(), seconds)
+    assert state.handle(Tick(), 0.0) == []
+    state.handle(Measured(3.0), 0.1)
+    assert [type(c.message) for c in state.handle(Tick(), 0.2) if isinstance(c, Send)] == [m.Register, m.Heartbeat]
+
+
+def test_a_heartbeat_lists_at_most_256_units() -> None:
+    agent = Agent(slots=300)
+    info = job()
+    for i in range(300):
+        agent(award(info, unit(i)))
+    beats = sent(agent(Tick()), m.Heartbeat)
+    assert len(beats[0].busy) == 256
+
+
+# ---- estimates and calibration -----------------------------------------------------------------------------
+
+
+def test_calibration_moves_estimates_toward_measured_times() -> None:
+    agent = Agent()
+    info, other = job("job-1"), job("job-2")
+    u = unit(1)
+    (first,) = sent(agent(cfp(info, u)), m.Propose)
+    assert first.estimates[0].seconds == pytest.approx(20 * 8 / SPEED + COMPILE_S)
+    fetch = only(agent(award(info, u)), FetchBundle)
+    predicted = 20 * 8 / SPEED + COMPILE_S  # uncorrected, the kernel not compiled yet
+    deliver(agent, fetch, wall=3 * predicted)  # three times slower than estimated
+    assert agent.state.calibration.factor("job-1") == pytest.approx(3.0)
+    (second,) = sent(agent(cfp(info, u, conversation="cfp-2")), m.Propose)
+    # The same window: compiled now; and corrected by what the job showed.
+    assert second.estimates[0].seconds == pytest.approx(3.0 * 20 * 8 / SPEED)
+    (elsewhere,) = sent(agent(cfp(other, u, conversation="cfp-3")), m.Propose)
+    assert elsewhere.estimates[0].seconds == pytest.approx(20 * 8 / SPEED)  # same kernel, no correction
+
+
+def test_a_kernel_is_compiled_once_per_window_size_and_depth() -> None:
+    info = job()
+    small, big = unit(0, Rect(0, 0, 8, 8)), unit(1, Rect(0, 0, 16, 16))
+    moved = unit(2, Rect(8, 8, 8, 8))  # same size away from the border: the band widens it the same
+    inner = unit(3, Rect(4, 4, 8, 8))
+    p = Params(6, 4, 2)
+    assert kernel_key(info, moved, p) == kernel_key(info, inner, p) != kernel_key(info, small, p)
+    assert kernel_key(info, small, p) != kernel_key(info, big, p) != kernel_key(info, big, Params(3, 4, 2))
+
+
+def test_calibration_is_a_moving_average_that_forgets_old_jobs() -> None:
+    cal = Calibration(alpha=0.5, max_jobs=2)
+    cal.learn("a", 1.0, 3.0)
+    cal.learn("a", 1.0, 1.0)
+    assert cal.factor("a") == pytest.approx(2.0)
+    cal.learn("b", 2.0, 1.0)
+    cal.learn("c", 1.0, 0.0)  # nothing measured: ignored
+    cal.learn("d", 1.0, 4.0)
+    assert cal.factor("a") == 1.0 and cal.factor("b") == 0.5 and cal.factor("d") == 4.0
+
+
+# ---- the module itself -------------------------------------------------------------------------------------
+
+
+def test_the_state_machine_imports_no_io() -> None:
+    code = ("import sys, agents.state\n"
+            "heavy = {'mitsuba', 'drjit', 'spade', 'aiohttp', 'asyncio', 'core.render', 'core.transport'}\n"
+            "print(sorted(heavy & set(sys.modules)))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def test_logs_go_out_as_commands_with_levels() -> None:
+    agent = Agent()
+    out = agent(m.Reject(conversation="cfp-1", job_id="job-1", reason="lost"))
+    assert out == [Log(logging.DEBUG, "rejected in cfp-1: lost")]
