@@ -45,6 +45,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 from agents.speed import SpeedSample, estimate_seconds, measure_speed
 from agents.state import (
@@ -83,6 +84,7 @@ from core.render.planner import Planner, RenderParams
 from core.render.tiles import write_tile
 from core.render.worker import RenderRequest, RenderWorker
 from core.transport.credentials import xmpp_password
+from core.transport.tls import client_context, is_loopback
 from core.transport.xmpp import Envelope, FarmAgent
 from fuzzy.engine import DEFUZZIFIERS
 from fuzzy.errors import RuleFileError
@@ -107,8 +109,9 @@ class AgentConfig:
     defuzzifier: str | None = None  # None: the rule file's dialect decides (centroid, or MASYRO's centre of sums)
     workdir: Path = field(default_factory=lambda: Path(tempfile.gettempdir()) / "quekaro-agent")
     auto_register: bool = False  # in-band registration: the embedded server only
-    ca_file: str | None = None
+    ca_file: str | None = None  # the farm's CA: verifies the XMPP server and the master's HTTPS
     verify_security: bool = False
+    insecure_http: bool = False  # accept a plain-HTTP data plane across a network (said in every refusal)
     heartbeat_s: float = HEARTBEAT_S
     slots: int = SLOTS  # units held at once (one rendering, the others waiting); 1: no overlap
     max_render_s: float = MAX_RENDER_S  # a render longer than this is killed whatever the estimate
@@ -137,7 +140,8 @@ class RenderAgent:
         self.speed: SpeedSample | None = None
         self.state = AgentState(self._plan, estimate_seconds, slots=config.slots, threads=config.threads,
                                 rules=self.planner.rules_path.name, heartbeat_s=config.heartbeat_s,
-                                max_render_s=config.max_render_s, session=_stamp())
+                                max_render_s=config.max_render_s, session=_stamp(), check_url=self._url_refusal)
+        self._tls = client_context(Path(config.ca_file) if config.ca_file else None)
         self._planners: dict[tuple[str | None, str | None], Planner] = {(None, config.defuzzifier): self.planner}
         self._stop = asyncio.Event()
         self._tasks: list[asyncio.Task] = []
@@ -264,6 +268,12 @@ class RenderAgent:
 
     # ---- planning (a computation the state machine calls) -------------------------------------------
 
+    def _url_refusal(self, url: str) -> str | None:
+        refused = url_refusal(url, self.config.insecure_http)
+        if refused is None and not url.startswith("https:") and not is_loopback(urlsplit(url).hostname):
+            log.warning("job data at %s travels in plain HTTP (--insecure-http)", url)
+        return refused
+
     def _plan(self, job: m.JobInfo, units: tuple[WorkUnit, ...]) -> list[RenderParams]:
         features = {k: [float(getattr(u, k)) for u in units] for k in ("C", "S", "Nd")}
         ranges = dict(job.ranges) or None
@@ -321,7 +331,8 @@ class RenderAgent:
         try:
             sha256 = await asyncio.to_thread(sha256_file, command.path)
             try:
-                await upload_tile(award.upload_url, award.token, command.path, sha256, agent=self.jid)
+                await upload_tile(award.upload_url, award.token, command.path, sha256, agent=self.jid,
+                                  ssl_context=self._tls)
             except Exception as exc:
                 raise UnitFailed(f"tile upload to {award.upload_url} refused: {describe(exc)}") from exc
         except Exception as exc:
@@ -342,7 +353,8 @@ class RenderAgent:
         async with lock:
             if not (folder / "QUEKARO-MANIFEST.json").is_file():
                 try:
-                    await fetch_bundle(job.scene_url, digest, folder, self.config.bundle_limits, token=token)
+                    await fetch_bundle(job.scene_url, digest, folder, self.config.bundle_limits, token=token,
+                                       ssl_context=self._tls)
                 except Exception as exc:
                     raise UnitFailed(f"scene bundle {job.scene_url} refused: {describe(exc)}") from exc
         manifest = read_manifest(folder)
@@ -384,6 +396,15 @@ def _logged(what: str):
 # ---- command line ----------------------------------------------------------------------------------
 
 
+def url_refusal(url: str, insecure_http: bool) -> str | None:
+    """Why a job's data plane is refused: plain HTTP to another host, unless `insecure_http`."""
+    parts = urlsplit(url)
+    if parts.scheme == "https" or is_loopback(parts.hostname) or insecure_http:
+        return None
+    return (f"refusing a plain-HTTP data plane ({parts.scheme}://{parts.hostname}) across a network: the "
+            "master needs --tls-cert (quekaro ca), or this agent --insecure-http")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="quekaro agent",
                                 description="A QUEKARO render agent: bids on units, renders them, uploads tiles.")
@@ -399,7 +420,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="default for jobs that name none (default: centroid; centre of sums for MASYRO's dialect)")
     p.add_argument("--workdir", type=Path, default=None, help="bundle cache and tiles (default: a temp dir)")
     p.add_argument("--register", action="store_true", help="create the XMPP account in-band (embedded server)")
-    p.add_argument("--ca-file", default=None, help="CA certificate to verify the XMPP server's TLS with")
+    p.add_argument("--ca-file", default=None,
+                   help="the farm's CA certificate: verifies the XMPP server's TLS and the master's HTTPS")
+    p.add_argument("--insecure-http", action="store_true",
+                   help="accept a master serving plain HTTP across a network (award tokens and tiles in clear)")
     p.add_argument("--heartbeat", type=float, default=HEARTBEAT_S, help="seconds between heartbeats")
     p.add_argument("--slots", type=int, default=2,
                    help="units held at once: 2 (default) renders the next while the last uploads; 1 none")
@@ -417,7 +441,8 @@ def config_from_args(args: argparse.Namespace) -> AgentConfig:
     return AgentConfig(jid=args.jid, password=password, master=args.master, server=args.server,
                        port=args.port, threads=args.threads, rules=args.rules, defuzzifier=args.defuzzifier,
                        workdir=workdir, auto_register=args.register, ca_file=args.ca_file,
-                       verify_security=bool(args.ca_file), heartbeat_s=args.heartbeat, slots=args.slots)
+                       verify_security=bool(args.ca_file), heartbeat_s=args.heartbeat, slots=args.slots,
+                       insecure_http=args.insecure_http)
 
 
 async def serve(config: AgentConfig) -> None:

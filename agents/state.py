@@ -247,10 +247,11 @@ class AgentState:
 
     def __init__(self, plan: PlanFn, seconds: SecondsFn, *, slots: int = SLOTS, threads: int = 1,
                  rules: str = "", heartbeat_s: float = HEARTBEAT_S, max_render_s: float = MAX_RENDER_S,
-                 session: str = "0") -> None:
+                 session: str = "0", check_url: Callable[[str], str | None] = lambda _url: None) -> None:
         if slots < 1:
             raise ValueError(f"slots must be at least 1, got {slots}")
         self.plan, self.seconds = plan, seconds
+        self.check_url = check_url  # why a job's data plane URL is refused (plain HTTP across a network), or None
         self.slots, self.threads, self.rules = slots, threads, rules[:256]
         self.heartbeat_s, self.max_render_s, self.session = heartbeat_s, max_render_s, session
         self.speed: Measured | None = None
@@ -330,6 +331,9 @@ class AgentState:
 
     def _on_cfp(self, cfp: m.CallForProposal) -> list[Command]:
         job_id = cfp.job.job_id
+        refused = self.check_url(cfp.job.scene_url)
+        if refused:
+            return [self._refuse(cfp, refused)]
         if not self.is_free():
             held = ", ".join(f"{j}/{i}" for j, i in self.works) or "a cancelled unit"
             return [self._refuse(cfp, f"busy rendering {held}")]

@@ -16,6 +16,7 @@ import asyncio
 import hashlib
 import logging
 import os
+import ssl
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -53,7 +54,8 @@ async def _reason(resp: aiohttp.ClientResponse) -> str:
 
 
 async def fetch_bundle(url: str, expected_sha256: str, dest: str | Path, limits: BundleLimits | None = None,
-                       *, token: str | None = None, timeout_s: float = 300.0) -> Path:
+                       *, token: str | None = None, timeout_s: float = 300.0,
+                       ssl_context: ssl.SSLContext | None = None) -> Path:
     """Download and unpack the bundle at `url` into the new folder `dest`; return the scene file's path."""
     limits = limits or BundleLimits()
     dest = Path(dest)
@@ -64,7 +66,7 @@ async def fetch_bundle(url: str, expected_sha256: str, dest: str | Path, limits:
     tmp = Path(name)
     try:
         with os.fdopen(fd, "wb") as out:
-            digest = await _download(url, out, limits.max_bundle_bytes, token, timeout_s)
+            digest = await _download(url, out, limits.max_bundle_bytes, token, timeout_s, ssl_context)
         if digest != expected_sha256.lower():
             raise TransferError(url, f"bundle sha256 {digest} differs from the job's {expected_sha256}")
         return await asyncio.to_thread(extract_bundle, tmp, dest, limits)
@@ -72,12 +74,13 @@ async def fetch_bundle(url: str, expected_sha256: str, dest: str | Path, limits:
         tmp.unlink(missing_ok=True)
 
 
-async def _download(url: str, out: Any, cap: int, token: str | None, timeout_s: float) -> str:
+async def _download(url: str, out: Any, cap: int, token: str | None, timeout_s: float,
+                    ssl_context: ssl.SSLContext | None) -> str:
     headers = {TOKEN_HEADER: token} if token else {}
     digest, size = hashlib.sha256(), 0
     try:
         async with aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=timeout_s)) as session, \
-                session.get(url, headers=headers) as resp:
+                session.get(url, headers=headers, ssl=ssl_context or True) as resp:
             if resp.status != 200:
                 raise TransferError(url, await _reason(resp), resp.status)
             if resp.content_length is not None and resp.content_length > cap:
@@ -98,7 +101,8 @@ async def _download(url: str, out: Any, cap: int, token: str | None, timeout_s: 
 
 async def upload_tile(url: str, token: str, path: str | Path, sha256: str | None = None, *,
                       agent: str | None = None, retries: int = 4, backoff_s: float = 0.5,
-                      timeout_s: float = 300.0, disk_full_wait_s: float = 600.0) -> dict[str, Any]:
+                      timeout_s: float = 300.0, disk_full_wait_s: float = 600.0,
+                      ssl_context: ssl.SSLContext | None = None) -> dict[str, Any]:
     """PUT the tile at `path` to `url`; return the server's JSON answer ("accepted" or "duplicate").
 
     A master whose disk is full (507) is asked again every few seconds for up to `disk_full_wait_s`
@@ -117,7 +121,7 @@ async def upload_tile(url: str, token: str, path: str | Path, sha256: str | None
         try:
             async with aiohttp.ClientSession(timeout=timeout) as session:
                 with path.open("rb") as body:  # reopened per attempt: a retry resends from the start
-                    async with session.put(url, data=body, headers=headers) as resp:
+                    async with session.put(url, data=body, headers=headers, ssl=ssl_context or True) as resp:
                         if resp.status in (200, 201):
                             return await resp.json(content_type=None)
                         reason = await _reason(resp)

@@ -87,10 +87,10 @@ class Clock:
 class Agent:
     """An AgentState, its fake clock, and the renders it has in flight (asserted never more than one)."""
 
-    def __init__(self, slots: int = 2, rules: Rules | None = None) -> None:
+    def __init__(self, slots: int = 2, rules: Rules | None = None, refuse_url: str | None = None) -> None:
         self.rules = rules or Rules()
         self.state = AgentState(self.rules, seconds, slots=slots, threads=1, rules="test.xml", heartbeat_s=2.0,
-                                session="s")
+                                session="s", check_url=lambda url: refuse_url and f"{refuse_url}: {url}")
         self.clock = Clock()
         self.in_flight: set[int] = set()  # tickets between FetchBundle and the render's end
         self.state.handle(Measured(SPEED, COMPILE_S), self.clock.now)
@@ -228,6 +228,12 @@ def test_a_planner_that_fails_refuses_the_call() -> None:
     agent = Agent(rules=Rules(fail=True))
     (refuse,) = sent(agent(cfp(job(), unit(0))), m.Refuse)
     assert refuse.reason == "cannot plan units: ValueError: no rule fires"
+
+
+def test_a_refused_data_plane_url_refuses_the_call_without_planning() -> None:
+    agent = Agent(refuse_url="plain HTTP")
+    (refuse,) = sent(agent(cfp(job(), unit(0))), m.Refuse)
+    assert refuse.reason == f"plain HTTP: {job().scene_url}" and agent.rules.calls == []
 
 
 # ---- awards ------------------------------------------------------------------------------------------

@@ -12,6 +12,7 @@ import aiohttp
 import pytest
 from aiohttp import web
 
+from agents.render_agent import url_refusal
 from core.errors import QuekaroError
 from core.transport.tls import TlsError, client_context, is_loopback, issue, make_ca, server_context
 from master.http_api import serve
@@ -96,3 +97,10 @@ def test_the_master_says_how_its_data_plane_travels(ca: Path, tmp_path: Path) ->
         MasterConfig(tmp_path, tls_cert=cert).data_plane()
     with pytest.raises(QuekaroError, match="use https"):
         MasterConfig(tmp_path, tls_cert=cert, tls_key=key, public_url="http://127.0.0.1:1").data_plane()
+
+
+def test_an_agent_refuses_plain_http_across_a_network_unless_told() -> None:
+    assert url_refusal("https://10.0.0.2:8765/jobs/j/bundle", False) is None
+    assert url_refusal("http://127.0.0.1:8765/jobs/j/bundle", False) is None
+    assert "--insecure-http" in url_refusal("http://10.0.0.2:8765/jobs/j/bundle", False)
+    assert url_refusal("http://10.0.0.2:8765/jobs/j/bundle", True) is None
