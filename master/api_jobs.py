@@ -43,6 +43,7 @@ class MasterService(Protocol):
     async def submit(self, bundle: Path, defines: dict[str, str], options: RenderOptions) -> str: ...
     async def cancel(self, job_id: str) -> bool: ...
     async def ensure_assembled(self, job_id: str) -> Path: ...
+    def auction_now(self) -> float: ...
     def result_path(self, job_id: str) -> Path: ...
 
 MAX_BUNDLE_BYTES = 1 << 30
@@ -187,9 +188,17 @@ async def farm(request: web.Request) -> web.Response:
 
 
 async def agents(request: web.Request) -> web.Response:
+    """Every agent the master knows: its state (lost, rendering, idle), speed, credits, the units it holds,
+    units done and failed, and seconds since it was last heard from."""
     service = _service(request)
+    counts = service.store.agent_counts()
+    now = service.auction_now()
     rows = []
     for agent in (service.auction.agents.values() if service.auction else ()):
-        rows.append({"jid": agent.name, "lost": agent.lost, "credits": agent.credits,
-                     "speed": agent.speed, "holding": sorted(f"{j}/{i}" for j, i in agent.holding)})
+        done, failed = counts.get(agent.name, (0, 0))
+        state = "lost" if agent.lost else "rendering" if agent.holding else "idle"
+        rows.append({"jid": agent.name, "state": state, "lost": agent.lost, "credits": agent.credits,
+                     "speed": agent.speed, "holding": sorted(f"{j}/{i}" for j, i in agent.holding),
+                     "units_done": done, "units_failed": failed,
+                     "last_seen_s": round(max(0.0, now - agent.last_seen), 1)})
     return web.json_response({"agents": rows})

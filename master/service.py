@@ -384,10 +384,10 @@ class MasterService:
                     continue
                 await self.agent.send(cmd.to, performative, body, conversation_id=cmd.message.conversation,
                                       protocol=m.PROTOCOL, ontology=m.ONTOLOGY)
-            elif isinstance(cmd, au.JobDone):
-                self._assemble_later(cmd.job_id)
             else:
                 log.info("%r", cmd)  # the event's kind and fields (its repr leaves tokens out)
+                if isinstance(cmd, au.JobDone):
+                    self._assemble_later(cmd.job_id)
 
     async def _fail_job(self, job_id: str, exc: Exception) -> None:
         log.error("job %s: its messages cannot be encoded (%s): the job fails, the others go on", job_id, exc)

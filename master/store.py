@@ -367,6 +367,12 @@ class JobStore:
         with self._tx() as db:
             self._agent(db, name, now, credits)
 
+    def agent_counts(self) -> dict[str, tuple[int, int]]:
+        """Units each agent finished and failed, over every job: agent -> (done, failed)."""
+        rows = self.db.execute("SELECT agent, SUM(outcome = 'done'), SUM(outcome = 'failed') FROM attempts"
+                               " GROUP BY agent")
+        return {r[0]: (int(r[1]), int(r[2])) for r in rows}
+
     def credits(self) -> dict[str, int]:
         return {r["name"]: r["credits"] for r in self.db.execute("SELECT name, credits FROM agents")}
 

@@ -12,7 +12,8 @@ import logging
 import os
 import time
 import uuid
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -98,18 +99,37 @@ def assemble(plan: JobPlan, tiles: Iterable[Tile | TileSource], params: dict[int
     return report
 
 
-def render_job(spec: SceneSpec, options: RenderOptions, out: Path, job_id: str | None = None) -> dict:
-    """Render the scene as units in one process; write OUT.exr/.png/.json and return the report."""
+@dataclass(frozen=True)
+class Progress:
+    """How far a job in one process is: units rendered, and samples (spp x pixels) rendered of all;
+    `pixels` the image's, so that samples / pixels is the mean spp rendered so far."""
+
+    units_done: int
+    units_total: int
+    samples_done: int
+    samples_total: int
+    pixels: int
+
+
+def render_job(spec: SceneSpec, options: RenderOptions, out: Path, job_id: str | None = None,
+               progress: Callable[[Progress], None] | None = None) -> dict:
+    """Render the scene as units in one process; write OUT.exr/.png/.json and return the report.
+    `progress` hears after the plan and after every unit."""
     start = time.perf_counter()
     job_id = job_id or uuid.uuid4().hex[:12]
     seed = plan_seed(sha256_file(spec.path), spec.defines, options.to_dict())
     plan = plan_job(spec, options, seed=seed)
     planner = Planner(options.rules, options.defuzzifier)
     chosen = plan_params(plan, planner)
+    samples = [p.spp * u.rect.area for u, p in zip(plan.units, chosen, strict=True)]
+    report = progress or (lambda _p: None)
+    report(Progress(0, len(plan.units), 0, sum(samples), plan.width * plan.height))
     tiles, params = [], {}
     with RenderWorker() as worker:
         for unit, p in zip(plan.units, chosen, strict=True):
             job = unit_job(plan, unit.index, p, job_id, options.threads)
             tiles.append(worker.render(job, timeout=UNIT_TIMEOUT_S))
             params[unit.index] = {**p.to_dict(), "rules": planner.rules_path.name}
+            report(Progress(len(tiles), len(plan.units), sum(samples[:len(tiles)]), sum(samples),
+                            plan.width * plan.height))
     return assemble(plan, tiles, params, out, start, {"job_id": job_id})

@@ -14,6 +14,7 @@ from pathlib import Path
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from core.data import DEMO_SCENE
+from core.errors import QuekaroError
 from core.home import PROCESSES_FILE, default_home
 from core.render.bundle import make_bundle
 from core.render.scene import parse_defines
@@ -106,6 +107,16 @@ def _register_client(sub: argparse._SubParsersAction) -> None:
     cancel.add_argument("job")
     _add_farm_location(cancel)
     cancel.set_defaults(func=run_cancel)
+    agents = sub.add_parser("agents", help="the agents the master knows: state, speed, units done, last heard")
+    agents.add_argument("--json", action="store_true")
+    _add_farm_location(agents)
+    agents.set_defaults(func=run_agents)
+    logs = sub.add_parser("logs", help="a local farm's process logs (HOME/logs): one process, or the list")
+    logs.add_argument("process", nargs="?", help="master, xmpp or agent-N (default: list the logs)")
+    logs.add_argument("-f", "--follow", action="store_true", help="keep printing what is written (Ctrl-C stops)")
+    logs.add_argument("-n", "--lines", type=int, default=40, help="lines from the end to start with (default 40)")
+    logs.add_argument("--home", type=Path, help="farm directory (default: $QUEKARO_HOME or ~/.quekaro/farm)")
+    logs.set_defaults(func=run_logs)
 
 
 # ---- running processes ---------------------------------------------------------------------------------
@@ -157,18 +168,20 @@ def _client(args: argparse.Namespace):
 
 
 def run_submit(args: argparse.Namespace) -> int:
+    """One job per scene (its bundle carries the files it reads and the rule file); with --wait, watch each."""
     defines = parse_defines(args.defines)
     options = options_from_args(args).to_dict()
     options["rules"] = None  # the rule file travels inside the bundle, to every agent
-    with tempfile.TemporaryDirectory() as tmp:
-        bundle = Path(make_bundle(args.scene, defines, Path(tmp) / "bundle.tar", search_paths=search_paths(args),
-                                  rules=args.rules).path).read_bytes()
     client = _client(args)
-    job_id = client.submit(bundle, defines, options)
-    print(job_id)
-    if args.wait:
-        return watch(client, job_id)
-    return 0
+    jobs = []
+    for scene in args.scenes:
+        with tempfile.TemporaryDirectory() as tmp:
+            bundle = Path(make_bundle(scene, defines, Path(tmp) / "bundle.tar", search_paths=search_paths(args),
+                                      rules=args.rules).path).read_bytes()
+        jobs.append(client.submit(bundle, defines, options))
+        print(jobs[-1])
+    statuses = [watch(client, job_id) for job_id in jobs] if args.wait else [0]
+    return max(statuses)
 
 
 def run_status(args: argparse.Namespace) -> int:
@@ -192,15 +205,19 @@ def run_status(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print_processes(home: Path) -> None:
-    """A local farm's processes that are not running (restarting, or failed after a crash loop)."""
+def _not_running(home: Path) -> dict[str, str]:
+    """A local farm's processes that are not running: name -> state (restarting, or failed)."""
     try:
         processes = json.loads((home / PROCESSES_FILE).read_text())["processes"]
     except (OSError, ValueError, KeyError):
-        return
-    for proc in processes:
-        if proc.get("state") != "running":
-            print(f"process {proc['name']}: {proc['state']} after {proc.get('restarts', 0)} restart(s)")
+        return {}
+    return {p["name"]: f"{p['state']} ({p.get('restarts', 0)} restarts)" for p in processes
+            if p.get("state") != "running"}
+
+
+def _print_processes(home: Path) -> None:
+    for name, state in _not_running(home).items():
+        print(f"process {name}: {state}")
 
 
 def print_effects(effects: dict) -> None:
@@ -242,6 +259,52 @@ def run_result(args: argparse.Namespace) -> int:
     out = _client(args).result(args.job, args.out)
     print(f"{out}  report: {out.with_suffix('.json')}")
     return 0
+
+
+def run_agents(args: argparse.Namespace) -> int:
+    rows = _client(args).agents()
+    restarting = _not_running(Path(args.home or default_home()))
+    for row in rows:
+        name = row["jid"].split("@", 1)[0].rsplit("-", 1)[0]  # agent-0-a1b2c3@host -> agent-0
+        if name in restarting:
+            row["state"] = restarting[name]
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return 0
+    print(f"{'agent':<32} {'state':<10} {'speed':>6} {'done':>5} {'failed':>6} {'credits':>7} {'heard':>7}  holding")
+    for row in rows:
+        print(f"{row['jid']:<32} {row['state']:<10} {row['speed']:>6.2f} {row['units_done']:>5} "
+              f"{row['units_failed']:>6} {row['credits']:>7} {row['last_seen_s']:>6.1f}s  {' '.join(row['holding'])}")
+    return 0
+
+
+def run_logs(args: argparse.Namespace) -> int:
+    folder = Path(args.home or default_home()) / "logs"
+    if args.process is None:
+        for path in sorted(folder.glob("*.log")):
+            print(f"{path.stem:<12} {path.stat().st_size:>10} bytes  {path}")
+        return 0
+    path = folder / f"{args.process}.log"
+    if not path.is_file():
+        known = ", ".join(sorted(p.stem for p in folder.glob("*.log"))) or "none"
+        raise QuekaroError(f"no log {path} (logs here: {known})")
+    follow_log(path, args.lines, args.follow)
+    return 0
+
+
+def follow_log(path: Path, lines: int, follow: bool, poll_s: float = 0.25) -> None:
+    """The last `lines` lines of the file, then (with `follow`) what is appended, as `tail -f` does."""
+    with path.open("rb") as log:
+        tail = log.read().splitlines()[-lines:] if lines > 0 else []
+        for line in tail:
+            print(line.decode(errors="replace"), flush=True)
+        while follow:
+            chunk = log.read()
+            if chunk:
+                sys.stdout.write(chunk.decode(errors="replace"))
+                sys.stdout.flush()
+            else:
+                time.sleep(poll_s)
 
 
 def run_cancel(args: argparse.Namespace) -> int:

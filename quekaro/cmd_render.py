@@ -1,9 +1,14 @@
-"""`quekaro render`: the whole job in one process, exactly as the farm does it unit by unit."""
+"""`quekaro render`: the whole job in one process, exactly as the farm does it unit by unit, with
+Mitsuba's own flags where they mean the same (-m, -t, -a, -s, -o, -D, several scenes in one call)."""
 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
+
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from core.errors import QuekaroError
 from core.model.integrators import CATALOGUE
@@ -11,12 +16,14 @@ from core.model.job import RenderOptions, SceneSpec
 from core.render.scene import parse_defines
 from fuzzy.engine import DEFUZZIFIERS
 from fuzzy.levels import LEVELS
+from planning.pipeline import Progress as RenderProgress
 from planning.pipeline import render_job
 
 
 def add_job_arguments(parser: argparse.ArgumentParser) -> None:
     """The options a job takes, shared by `render` and `submit`."""
-    parser.add_argument("scene", type=Path, help="Mitsuba 3 scene file (XML)")
+    parser.add_argument("scenes", type=Path, nargs="+", metavar="SCENE",
+                        help="Mitsuba 3 scene file(s) (XML); several render (or are submitted) one after another")
     parser.add_argument("-D", dest="defines", action="append", default=[], metavar="NAME=VALUE",
                         help="set a scene <default> parameter, as Mitsuba's -D (repeatable)")
     parser.add_argument("--opt", dest="level", choices=LEVELS, default="off",
@@ -53,18 +60,60 @@ def search_paths(args: argparse.Namespace) -> tuple[Path, ...]:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    parser = sub.add_parser("render", help="render a scene in one process (no agents)")
+    parser = sub.add_parser("render", help="render scenes in one process (no agents)")
     add_job_arguments(parser)
-    parser.add_argument("-o", "--out", type=Path, default=Path("out/render.exr"),
-                        help="output EXR; the PNG and the JSON report go beside it")
-    parser.add_argument("--threads", type=int, help="Dr.Jit threads (default: QUEKARO_THREADS or all cores)")
+    parser.add_argument("-o", "--out", type=Path, default=Path("out"),
+                        help="output EXR file, or a folder for SCENE.exr (default: out/); the PNG and the JSON "
+                             "report go beside it; several scenes need a folder")
+    parser.add_argument("-t", "--threads", type=int, help="Dr.Jit threads (Mitsuba's -t; default: all cores)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar (e.g. in logs)")
     parser.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
+def outputs(scenes: list[Path], out: Path) -> list[Path]:
+    """Where each scene's EXR goes: `out` itself for one scene named *.exr, else `out`/SCENE.exr (refused
+    when two scenes would write the same file)."""
+    if len(scenes) == 1 and out.suffix.lower() == ".exr" and not out.is_dir():
+        return [out]
+    if out.suffix.lower() == ".exr" and not out.is_dir():
+        raise QuekaroError(f"-o {out}: {len(scenes)} scenes need a folder, not one file")
+    paths = [out / f"{scene.stem}.exr" for scene in scenes]
+    clash = sorted({p.name for p in paths if paths.count(p) > 1})
+    if clash:
+        raise QuekaroError(f"-o {out}: several scenes would write {', '.join(clash)}; render them one at a time")
+    return paths
 
-    spec = SceneSpec(args.scene, parse_defines(args.defines), search_paths(args))
-    report = render_job(spec, options_from_args(args), args.out)
+
+def run(args: argparse.Namespace) -> int:
+    defines, paths = parse_defines(args.defines), search_paths(args)
+    options = options_from_args(args)
+    for scene, out in zip(args.scenes, outputs(args.scenes, args.out), strict=True):
+        spec = SceneSpec(scene, defines, paths)
+        with render_progress(scene.name, enabled=not args.no_progress) as progress:
+            report = render_job(spec, options, out, progress=progress)
+        print_report(report, out)
+    return 0
+
+
+@contextmanager
+def render_progress(name: str, enabled: bool = True) -> Iterator[Callable[[RenderProgress], None]]:
+    """A rich progress bar over the samples rendered, with units done, mean spp done and the ETA."""
+    if not enabled:
+        yield lambda _p: None
+        return
+    columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[units]} units"),
+               TextColumn("{task.fields[spp]} spp"), TimeRemainingColumn(), TimeElapsedColumn())
+    with Progress(*columns, transient=False) as bar:
+        task = bar.add_task(f"{name} planning", total=None, units="-", spp="-")
+
+        def update(p: RenderProgress) -> None:
+            bar.update(task, description=name, total=p.samples_total, completed=p.samples_done,
+                       units=f"{p.units_done}/{p.units_total}", spp=f"{p.samples_done / max(1, p.pixels):.0f}")
+
+        yield update
+
+
+def print_report(report: dict, out: Path) -> None:
     totals, effects = report["totals"], report["effects"]
     print(f"{report['image']['exr']}  ({report['image']['width']}x{report['image']['height']}, "
           f"{len(report['image']['channels'])} channels, {totals['units']} units, {totals['seconds']:.2f} s, "
@@ -72,7 +121,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"effects: {effects['variant']} / {effects['integrator']} / max_depth {effects['max_depth']}")
     for reason in effects["reasons"]:
         print(f"  - {reason}")
-    print(f"png: {report['image']['png']}  report: {Path(args.out).with_suffix('.json')}")
+    print(f"png: {report['image']['png']}  report: {out.with_suffix('.json')}")
     if totals["nonfinite"]:
         print(f"warning: {totals['nonfinite']} non-finite pixels were replaced (see the report's units)")
-    return 0

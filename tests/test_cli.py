@@ -1,0 +1,118 @@
+"""The command line a Mitsuba user expects: every `--help` names itself `quekaro ...`; `render` takes
+several scenes, -o as a file or a folder, -t, and shows a progress bar; `agents` and `logs` read a real
+local farm."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from core.errors import QuekaroError
+from farm.local import LocalFarm
+from quekaro.cli import build_parser
+from quekaro.cmd_farm import follow_log
+from quekaro.cmd_render import outputs
+
+REPO = Path(__file__).resolve().parent.parent
+SCENES = REPO / "scenes"
+
+
+def quekaro(*args: str, cwd: Path | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "quekaro", *args], capture_output=True, text=True, cwd=cwd,
+                          timeout=timeout)
+
+
+def subcommands(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
+    found = []
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                found.append((*path, name))
+                found += subcommands(sub, (*path, name))
+    return found
+
+
+def test_every_help_names_itself_quekaro() -> None:
+    commands = subcommands(build_parser())
+    assert ("agent",) in commands and ("ca", "issue") in commands and ("rules", "check") in commands
+    for command in [*commands, ("bench", "fuzzy")]:
+        done = quekaro(*command, "--help", timeout=60)
+        assert done.returncode == 0, (command, done.stderr)
+        usage = done.stdout.split("\n", 1)[0]
+        assert usage.startswith(f"usage: quekaro {' '.join(command)}"), (command, usage)
+
+
+def test_outputs_for_one_scene_a_folder_and_several() -> None:
+    a, b = Path("s/a.xml"), Path("t/b.xml")
+    assert outputs([a], Path("x/one.exr")) == [Path("x/one.exr")]
+    assert outputs([a, b], Path("renders")) == [Path("renders/a.exr"), Path("renders/b.exr")]
+    with pytest.raises(QuekaroError, match="need a folder"):
+        outputs([a, b], Path("x/one.exr"))
+    with pytest.raises(QuekaroError, match=r"a\.exr"):
+        outputs([a, Path("u/a.xml")], Path("renders"))
+
+
+@pytest.mark.slow
+def test_render_several_scenes_into_a_folder_with_progress(tmp_path: Path) -> None:
+    done = quekaro("render", str(SCENES / "cbox.xml"), str(SCENES / "glass-corner.xml"), "-D", "res=32",
+                   "--spp", "4", "-t", "1", "--units", "4", "-o", str(tmp_path / "out"), cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    for stem in ("cbox", "glass-corner"):
+        report = json.loads((tmp_path / "out" / f"{stem}.json").read_text())
+        assert report["image"]["width"] == 32 and (tmp_path / "out" / f"{stem}.exr").is_file()
+    assert "4/4 units" in done.stdout and "spp" in done.stdout
+
+
+def test_logs_lists_tails_and_follows(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    (logs / "master.log").write_text("".join(f"line {i}\n" for i in range(100)))
+    (logs / "agent-0.log").write_text("agent\n")
+    listed = quekaro("logs", "--home", str(tmp_path))
+    assert listed.returncode == 0 and "master" in listed.stdout and "agent-0" in listed.stdout
+    tail = quekaro("logs", "master", "-n", "3", "--home", str(tmp_path))
+    assert tail.stdout.split() == ["line", "97", "line", "98", "line", "99"]
+    missing = quekaro("logs", "agent-9", "--home", str(tmp_path))
+    assert missing.returncode == 2 and "agent-0" in missing.stderr
+    follow = subprocess.Popen([sys.executable, "-m", "quekaro", "logs", "agent-0", "-f", "--home", str(tmp_path)],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert follow.stdout.readline() == "agent\n"
+        with (logs / "agent-0.log").open("a") as log:
+            log.write("appended later\n")
+        assert follow.stdout.readline() == "appended later\n"
+    finally:
+        follow.kill()
+        follow.wait()
+
+
+@pytest.mark.slow
+def test_agents_lists_a_real_farms_agents(tmp_path: Path) -> None:
+    with LocalFarm(tmp_path / "farm", agents=2, threads=1) as farm:
+        farm.wait_for_agents()
+        done = quekaro("submit", str(SCENES / "cbox.xml"), "-D", "res=32", "--spp", "4", "--units", "4", "--wait",
+                       "--home", str(farm.home))
+        assert done.returncode == 0, done.stderr
+        time.sleep(0.5)
+        listed = quekaro("agents", "--json", "--home", str(farm.home))
+        assert listed.returncode == 0, listed.stderr
+        agents = json.loads(listed.stdout)
+        assert len(agents) == 2 and sum(a["units_done"] for a in agents) == 4
+        assert {a["state"] for a in agents} == {"idle"} and all(a["last_seen_s"] < 15 for a in agents)
+        table = quekaro("agents", "--home", str(farm.home))
+        assert table.stdout.count("idle") == 2
+        master = quekaro("logs", "master", "-n", "1000", "--home", str(farm.home))
+        assert master.returncode == 0 and "up: HTTP" in master.stdout and "JobDone" in master.stdout
+
+
+def test_follow_log_prints_the_last_lines(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    path = tmp_path / "x.log"
+    path.write_text("a\nb\nc\n")
+    follow_log(path, 2, follow=False)
+    assert capsys.readouterr().out == "b\nc\n"
