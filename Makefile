@@ -3,7 +3,7 @@ PY ?= python3.11
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup system-deps demo test lint bench clean
+.PHONY: setup system-deps demo test lint bench clean docs-figures
 
 # Debian packages: libllvm19 for Mitsuba's llvm variants, prosody (+ openssl for its certificates) for the
 # multi-host XMPP server and its tests.
@@ -39,6 +39,10 @@ test: setup
 
 lint: setup
 	$(BIN)/ruff check .
+
+# README.md's figure blocks, copied again from the files the benchmarks wrote (docs/benchmarks/).
+docs-figures: setup
+	$(BIN)/python -m bench.docs
 
 clean:
 	rm -rf $(VENV) out var .pytest_cache .ruff_cache

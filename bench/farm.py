@@ -27,6 +27,7 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
+from bench.report import DEFAULT_OUT, write_report
 from core.render.bundle import make_bundle
 from farm.local import LocalFarm
 
@@ -37,6 +38,7 @@ JOB_TIMEOUT_S = 3600.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder for farm.md")
     parser.add_argument("--scene", type=Path, default=DEFAULT_SCENE)
     parser.add_argument("--res", type=int, default=384)
     parser.add_argument("--spp", type=int, default=320, help="chosen so that the render takes ~30 s on 2 threads")
@@ -109,8 +111,10 @@ def run(args: argparse.Namespace) -> dict:
             second = alternate({"one": lambda: job.farm_seconds(one), "two": lambda: job.farm_seconds(two)},
                                args.repeats)
     result = _result(args, first, second)
+    text = format_report(result)
+    write_report(args.out, "farm", "Farm overhead and 2-agent speedup", text, "quekaro bench farm")
     if not args.json:
-        print(format_report(result))
+        print(text)
     return result
 
 

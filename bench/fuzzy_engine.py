@@ -17,6 +17,7 @@ from pathlib import Path
 import fuzzylite as fl
 import numpy as np
 
+from bench.report import DEFAULT_OUT, write_report
 from core.data import default_rules_path
 from fuzzy.defuzzify import centroid, numeric_centroid, plan_centroid
 from fuzzy.engine import Engine
@@ -37,6 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--check-units", type=int, default=20, help="units for the centroid check")
     parser.add_argument("--check-points", type=int, default=1_000_000, help="samples per numerical centroid")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder for fuzzy.md")
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -58,8 +60,10 @@ def run(args: argparse.Namespace) -> dict:
         "centroid_check_points": args.check_points,
     }
     result.update(_pyfuzzylite(rb, engine, x, ranges, ours))
+    text = format_table(result)
+    write_report(args.out, "fuzzy", "Fuzzy engine against pyfuzzylite", text, "quekaro bench fuzzy")
     if not getattr(args, "json", False):
-        _print_table(result)
+        print(text)
     return result
 
 
@@ -146,7 +150,7 @@ def _rule_text(rule) -> str:
     return f"if {' and '.join(antes)} then {cons}"
 
 
-def _print_table(r: dict) -> None:
+def format_table(r: dict) -> str:
     fl_rate = r.get("pyfuzzylite_evals_per_s")
     rows = [
         ("rule base", f"{r['rules']} rules, {r['units']} random units"),
@@ -162,5 +166,4 @@ def _print_table(r: dict) -> None:
         diff = r["pyfuzzylite_max_abs_diff"]
         rows.append(("max |ours - pyfuzzylite|", f"{diff:.2e} (its centroid samples)"))
     width = max(len(k) for k, _ in rows)
-    for k, v in rows:
-        print(f"{k:<{width}}  {v}")
+    return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)

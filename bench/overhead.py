@@ -17,6 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench.report import DEFAULT_OUT, write_report
 from core.model.job import SceneSpec
 from core.render.effects import analyse
 from core.render.imageio import read_exr
@@ -35,6 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--spp", type=int, default=256)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder for overhead.md")
 
 
 def plain_render(scene: str, defines: dict[str, str], spp: int, threads: int, out: str) -> None:
@@ -82,14 +84,26 @@ def run(args: argparse.Namespace) -> dict:
         "mean_plain": float(a.mean()), "mean_quekaro": float(b.mean()), "relmse_between": relmse(b, a),
         "mean_rel_diff": float(abs(a.mean() - b.mean()) / max(a.mean(), 1e-12)),
     }
+    text = format_report(result)
+    write_report(args.out, "overhead", "Pipeline overhead against plain Mitsuba", text, "quekaro bench overhead")
     if not args.json:
-        print(f"plain Mitsuba     {result['plain_seconds']:7.2f} s   (runs {', '.join(f'{s:.2f}' for s in plain_s)})")
-        print(f"quekaro render    {result['quekaro_seconds']:7.2f} s   (runs {', '.join(f'{s:.2f}' for s in ours_s)}), "
-              f"{result['units']} units")
-        print(f"ratio             {result['ratio']:7.3f}   (target <= 1.05)")
-        print(f"image means       {result['mean_plain']:.5f} vs {result['mean_quekaro']:.5f} "
-              f"(rel. diff {result['mean_rel_diff']:.4f}); relMSE between them {result['relmse_between']:.2e}")
+        print(text)
     return result
+
+
+def format_report(r: dict) -> str:
+    def runs(key: str) -> str:
+        return ", ".join(f"{s:.2f}" for s in r[key])
+
+    return "\n".join([
+        f"{Path(r['scene']).name} {r['res']}x{r['res']}, {r['spp']} spp, {r['threads']} threads, "
+        f"{r['integrator']} max_depth {r['max_depth']}; fastest of the runs",
+        f"plain Mitsuba     {r['plain_seconds']:7.2f} s   (runs {runs('plain_all')})",
+        f"quekaro render    {r['quekaro_seconds']:7.2f} s   (runs {runs('quekaro_all')}), {r['units']} units",
+        f"ratio             {r['ratio']:7.3f}   (target <= 1.05) {'PASS' if r['ratio'] <= 1.05 else 'MISS'}",
+        f"image means       {r['mean_plain']:.5f} vs {r['mean_quekaro']:.5f} (rel. diff {r['mean_rel_diff']:.4f}); "
+        f"relMSE between them {r['relmse_between']:.2e}",
+    ])
 
 
 def _plain_main(argv: list[str]) -> None:

@@ -43,10 +43,11 @@ def test_ratios_use_each_sides_fastest_run() -> None:
 @pytest.mark.slow
 def test_tiny_real_run_prints_json_with_the_issues_keys(tmp_path: Path) -> None:
     out = subprocess.run([sys.executable, "-m", "quekaro", "bench", "farm", "--json", "--res", "32", "--spp", "2",
-                          "--units", "4", "--repeats", "1"], cwd=REPO, capture_output=True, text=True,
-                         timeout=300)
+                          "--units", "4", "--repeats", "1", "--out", str(tmp_path)], cwd=REPO, capture_output=True,
+                         text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     result = json.loads(out.stdout)
     for key in ("overhead_ratio", "speedup_2_agents"):
         assert math.isfinite(result[key]) and result[key] > 0
     assert all(len(v) == 1 and v[0] > 0 for v in result["runs"].values())
+    assert bench_farm.format_report(result) in (tmp_path / "farm.md").read_text()

@@ -5,6 +5,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+from bench.docs import BLOCK, blocks, included, refresh
+
 REPO = Path(__file__).resolve().parent.parent
 
 
@@ -16,3 +18,30 @@ def test_readme_compat_line_is_the_one_the_report_wrote():
     readme = (REPO / "README.md").read_text()
     marker = readme.index("<!-- compat-summary")
     assert readme[marker:].splitlines()[1] == line.group(0)
+
+
+def test_every_included_figure_block_is_its_file() -> None:
+    readme = (REPO / "README.md").read_text()
+    found = blocks(readme)
+    assert len(found) >= 4, "README.md includes no benchmark files"
+    for path, body in found:
+        assert (REPO / path).is_file(), f"README.md includes {path}, which does not exist"
+        assert body == included(REPO / path), f"README.md's block of {path} differs from it: make docs-figures"
+
+
+def test_no_figure_is_typed_in_the_benchmarks_section() -> None:
+    """Outside the included blocks and the command block, the Benchmarks section holds no table, no target
+    line and no decimal number: figures come from files."""
+    section = (REPO / "README.md").read_text().split("## Benchmarks", 1)[1]
+    prose = BLOCK.sub("", section)
+    prose = re.sub(r"```.*?```", "", prose, flags=re.S)
+    typed = [line for line in prose.splitlines()
+             if line.startswith("|") or "target:" in line or re.search(r"\d+\.\d+", line)]
+    assert not typed, f"figures typed by hand in README.md: {typed}"
+
+
+def test_refresh_rewrites_a_stale_block(tmp_path: Path) -> None:
+    (tmp_path / "fig.md").write_text("# Title (`cmd`)\n\n| a |\n|---|\n| 1.5 |\n")
+    readme = tmp_path / "README.md"
+    readme.write_text("x\n<!-- include fig.md -->\n| a |\n| 9.9 |\n<!-- /include -->\ny\n")
+    assert refresh(readme, tmp_path) == "x\n<!-- include fig.md -->\n| a |\n|---|\n| 1.5 |\n<!-- /include -->\ny\n"
