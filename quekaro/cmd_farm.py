@@ -172,16 +172,20 @@ def run_submit(args: argparse.Namespace) -> int:
     defines = parse_defines(args.defines)
     options = options_from_args(args).to_dict()
     options["rules"] = None  # the rule file travels inside the bundle, to every agent
+    bundles = [_bundle_bytes(scene, defines, args) for scene in args.scenes]  # every input checked first
     client = _client(args)
     jobs = []
-    for scene in args.scenes:
-        with tempfile.TemporaryDirectory() as tmp:
-            bundle = Path(make_bundle(scene, defines, Path(tmp) / "bundle.tar", search_paths=search_paths(args),
-                                      rules=args.rules).path).read_bytes()
+    for bundle in bundles:
         jobs.append(client.submit(bundle, defines, options))
         print(jobs[-1])
     statuses = [watch(client, job_id) for job_id in jobs] if args.wait else [0]
     return max(statuses)
+
+
+def _bundle_bytes(scene: Path, defines: dict[str, str], args: argparse.Namespace) -> bytes:
+    with tempfile.TemporaryDirectory() as tmp:
+        return Path(make_bundle(scene, defines, Path(tmp) / "bundle.tar", search_paths=search_paths(args),
+                                rules=args.rules).path).read_bytes()
 
 
 def run_status(args: argparse.Namespace) -> int:
