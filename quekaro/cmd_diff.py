@@ -1,4 +1,5 @@
-"""`quekaro diff A.exr B.exr`: compare an image with a reference (paper metric, RMSE, relMSE, FLIP)."""
+"""`quekaro diff A.exr B.exr`: compare an image with a reference (paper metric, RMSE, relMSE, FLIP), and
+with `--units REPORT.json` measure seams at the units' borders (core.render.seams)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,10 @@ from typing import Any
 
 import numpy as np
 
+from core.errors import QuekaroError
+from core.model.geometry import Rect
 from core.render import imageio, metrics
+from core.render.seams import seam_measure
 
 
 def register(subparsers: Any) -> None:
@@ -21,6 +25,9 @@ def register(subparsers: Any) -> None:
     parser.add_argument("reference", help="the reference image (EXR)")
     parser.add_argument("-o", "--output", help="write the per-pixel difference as a grey PNG here")
     parser.add_argument("--json", action="store_true", help="print the metrics as one JSON object")
+    parser.add_argument("--units", metavar="REPORT.json",
+                        help="a job's report (quekaro render or quekaro result): measure seams at its units' borders")
+    parser.add_argument("--seam-width", type=int, default=3, help="pixels on each side of a border (default 3)")
     parser.set_defaults(func=run)
 
 
@@ -30,6 +37,8 @@ def run(args: argparse.Namespace) -> int:
     if args.output:
         imageio.write_png(args.output, _grey_as_display(metrics.diff_image(test, reference)))
         results["diff_png"] = args.output
+    if args.units:
+        results["seams"] = seam_measure(test, reference, read_unit_rects(args.units), args.seam_width).to_dict()
     if args.json:
         print(json.dumps(results, indent=2))
     else:
@@ -37,6 +46,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"RMSE:                  {results['rmse']:.6g}")
         print(f"relative MSE:          {results['relmse']:.6g}")
         print(f"FLIP (HDR, mean):      {results['flip']:.4f}")
+        if "seams" in results:
+            print(seam_line(results["seams"]))
     return 0
 
 
@@ -46,3 +57,17 @@ def _grey_as_display(grey: Any) -> Any:
     g = np.clip(grey, 0.0, 1.0)
     linear = np.where(g <= 0.04045, g / 12.92, ((g + 0.055) / 1.055) ** 2.4)
     return linear.astype(np.float32)
+
+
+def read_unit_rects(path: str) -> list[Rect]:
+    """The units' rectangles from a job report's `units` list."""
+    try:
+        return [Rect.from_list(u["rect"]) for u in json.loads(open(path).read())["units"]]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise QuekaroError(f"--units {path}: not a job report with units and their rects ({exc})") from exc
+
+
+def seam_line(seams: dict[str, Any]) -> str:
+    verdict = "SEAM" if seams["seam"] else "no seam"
+    return (f"seams:                 {verdict} (border strips' z^2 {seams['ratio']:.2f}x noise, z {seams['z']:.1f}; "
+            f"worst unit {seams['worst_unit']} z {seams['unit_z']:.1f} of {seams['unit_threshold']:.1f})")

@@ -1,0 +1,177 @@
+"""A seam measure: whether an image's error against a reference is biased along work-unit borders.
+
+The error e = mean over RGB of (test - reference) has expectation 0 everywhere when both images are
+unbiased renders of the same scene; noise alone makes it wander around 0. A compositor or band defect,
+or a unit rendered biased (e.g. too shallow a depth), shifts it near the unit's borders.
+
+Every border between two units is cut into pieces of PIECE pixels along it; each piece has a strip of
+`width` pixels on either side. A strip's mean error is tested against 0 with Student's t from the strip's
+own pixels (noise differs with brightness and each unit's spp), turned into a standard normal deviate
+(Wallace's approximation, within 0.02 for 10 or more pixels). Pixel filters (Mitsuba's default gaussian)
+correlate neighbouring pixels, which makes a strip's mean vary more than its pixels' variance says: the
+error's correlation at lags up to MAX_LAG pixels is measured inside the units (each unit's error less its
+own mean, over its own deviation, so a biased unit does not count; units under MIN_UNIT_PIXELS are left
+out, and with none left pixels count as independent) and each strip's t is corrected by the variance that
+correlation adds to a mean of its shape, with the degrees of freedom of its effective pixel count. Under noise alone each strip's z^2 is then
+chi-square with one degree of freedom, and:
+  - `ratio`: the border strips' mean z^2 (1: no seam);
+  - `z`: their sum as a normal deviate (Wilson-Hilferty), one degree of freedom per strip;
+  - `worst_unit`, `unit_z`: the same over the strips on one unit's side of its borders, for the unit
+    where it is largest, against the threshold SEAM_Z Bonferroni-corrected for the number of units.
+A seam is reported when z >= SEAM_Z or unit_z >= that threshold (about one false alarm in 30,000 images
+of pure noise either way). Strips whose pixels do not vary (black background in both images) carry no
+information and are left out.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from statistics import NormalDist
+
+import numpy as np
+
+from core.errors import QuekaroError
+from core.model.geometry import Rect
+
+SEAM_Z = 4.0
+PIECE = 8  # pixels along a border per piece: long enough for a variance, short enough to localise
+MIN_PIXELS = 6  # fewer pixels in a strip give no usable variance
+MAX_LAG = 2  # Mitsuba's gaussian filter reaches 2 pixels: farther neighbours are uncorrelated
+MIN_UNIT_PIXELS = 256  # smaller units bias the correlation (by -1/(n-1), their mean taken out): not used
+_NORMAL = NormalDist()
+
+
+@dataclass(frozen=True)
+class SeamMeasure:
+    ratio: float  # border strips' mean calibrated z^2; 1 under noise alone
+    z: float  # the border strips' chi-square as a normal deviate
+    worst_unit: int  # the unit whose border strips are least like noise (-1: none)
+    unit_z: float  # that unit's chi-square as a normal deviate
+    unit_threshold: float  # unit_z at or above this is a seam (Bonferroni over the units)
+    correlation: float  # the error's correlation between horizontal neighbours, measured inside units
+    border_strips: int
+
+    @property
+    def seam(self) -> bool:
+        return self.z >= SEAM_Z or self.unit_z >= self.unit_threshold
+
+    def to_dict(self) -> dict[str, float | int | bool]:
+        return {"ratio": self.ratio, "z": self.z, "seam": self.seam, "worst_unit": self.worst_unit,
+                "unit_z": self.unit_z, "unit_threshold": self.unit_threshold, "correlation": self.correlation,
+                "border_strips": self.border_strips}
+
+
+def unit_map(rects: Iterable[Rect], width: int, height: int) -> np.ndarray:
+    """Each pixel's unit index (int32, -1 where no unit covers it); rects are the units' core rectangles."""
+    ids = np.full((height, width), -1, dtype=np.int32)
+    for i, r in enumerate(rects):
+        if r.x < 0 or r.y < 0 or r.x + r.w > width or r.y + r.h > height:
+            raise QuekaroError(f"unit {i} {r.as_list()} lies outside the {width}x{height} image")
+        ids[r.y:r.y + r.h, r.x:r.x + r.w] = i
+    return ids
+
+
+def seam_measure(test: np.ndarray, reference: np.ndarray, rects: Iterable[Rect], width: int = 3) -> SeamMeasure:
+    """The seam measure of `test` against `reference` (H x W x C, RGB first) over the units `rects`;
+    `width` is the strip's depth in pixels on each side of a border."""
+    if test.shape[:2] != reference.shape[:2]:
+        raise QuekaroError(f"images differ in size: {test.shape[:2]} vs {reference.shape[:2]}")
+    if width < 1:
+        raise QuekaroError(f"seam strip width {width}: must be at least 1 pixel")
+    rects = list(rects)
+    error = (np.asarray(test[..., :3], np.float64) - np.asarray(reference[..., :3], np.float64)).mean(axis=-1)
+    ids = unit_map(rects, error.shape[1], error.shape[0])
+    rho = _correlation(error, ids)
+    border = [(unit, z) for unit, strip in _border_strips(rects, width) if (z := _z(error[strip], rho)) is not None]
+    return _judge(border, rho.get((0, 1), 0.0), len(rects))
+
+
+def _judge(border: list[tuple[int, float]], correlation: float, units: int) -> SeamMeasure:
+    threshold = -_NORMAL.inv_cdf(_NORMAL.cdf(-SEAM_Z) / max(units, 1))
+    if not border:
+        return SeamMeasure(1.0, 0.0, -1, 0.0, threshold, correlation, 0)
+    z2 = np.array([z for _, z in border]) ** 2
+    owners = np.array([u for u, _ in border])
+    per_unit = {int(u): _chi2_as_z(float(z2[owners == u].sum()), int((owners == u).sum())) for u in set(owners)}
+    worst = max(per_unit, key=per_unit.__getitem__)
+    return SeamMeasure(float(z2.mean()), _chi2_as_z(float(z2.sum()), z2.size), worst, per_unit[worst],
+                       threshold, correlation, int(z2.size))
+
+
+def _z(strip: np.ndarray, rho: dict[tuple[int, int], float]) -> float | None:
+    """A strip's mean error as a standard normal deviate; None where its pixels do not vary."""
+    n = strip.size
+    if n < MIN_PIXELS:
+        return None
+    var = float(strip.var(ddof=1))
+    if not var > 0:
+        return None
+    inflation = _inflation(strip.shape, rho, n)
+    # With correlated pixels the mean varies `inflation` times more, and the sample variance reads low.
+    t = float(strip.mean()) / math.sqrt(var / n) * math.sqrt(max(n - inflation, 1.0) / ((n - 1) * inflation))
+    nu = max(n / inflation - 1.0, 1.0)  # correlated pixels: fewer independent ones, heavier tails
+    return math.copysign(math.sqrt(nu * math.log1p(t * t / nu)) * (8 * nu + 1) / (8 * nu + 3), t)
+
+
+def _inflation(shape: tuple[int, ...], rho: dict[tuple[int, int], float], n: int) -> float:
+    """How many times more a mean over an h x w block varies than over n independent pixels."""
+    h, w = shape
+    pairs = sum(max(h - dy, 0) * max(w - abs(dx), 0) * r for (dy, dx), r in rho.items())
+    return max(1.0 + 2.0 * pairs / n, 0.2)
+
+
+def _correlation(error: np.ndarray, ids: np.ndarray) -> dict[tuple[int, int], float]:
+    """The error's correlation at each lag (dy >= 0, half-plane) up to MAX_LAG, between pixels of one unit,
+    each unit's error standardised by its own mean and deviation."""
+    flat = ids.ravel()
+    covered = flat >= 0
+    count = np.bincount(flat[covered], minlength=int(ids.max()) + 1).astype(np.float64)
+    mean = np.bincount(flat[covered], error.ravel()[covered], minlength=count.size) / np.maximum(count, 1)
+    sq = np.bincount(flat[covered], error.ravel()[covered] ** 2, minlength=count.size) / np.maximum(count, 1)
+    std = np.where(count >= MIN_UNIT_PIXELS, np.sqrt(np.maximum(sq - mean ** 2, 0.0)), 0.0)
+    safe = np.where(ids >= 0, ids, 0)
+    r = np.where((ids >= 0) & (std[safe] > 0), (error - mean[safe]) / np.where(std[safe] > 0, std[safe], 1), 0)
+    rho = {}
+    h, w = error.shape
+    for dy in range(MAX_LAG + 1):
+        for dx in range(-MAX_LAG, MAX_LAG + 1):
+            if (dy, dx) <= (0, 0) or dy >= h or abs(dx) >= w:
+                continue
+            a = (slice(0, h - dy), slice(max(0, -dx), w - max(0, dx)))
+            b = (slice(dy, h), slice(max(0, dx), w - max(0, -dx)))
+            same = (ids[a] == ids[b]) & (r[a] != 0)
+            rho[(dy, dx)] = float((r[a] * r[b])[same].mean()) if same.any() else 0.0
+    return rho
+
+
+def _chi2_as_z(total: float, dof: int) -> float:
+    """A chi-square value with `dof` degrees of freedom as a standard normal deviate (Wilson-Hilferty)."""
+    k = 2.0 / (9.0 * dof)
+    return ((total / dof) ** (1.0 / 3.0) - (1.0 - k)) / math.sqrt(k)
+
+
+def _border_strips(rects: list[Rect], width: int) -> Iterator[tuple[int, tuple[slice, slice]]]:
+    """(unit, strip) for each side of each piece of every border between two units."""
+    for a, ra in enumerate(rects):
+        for b, rb in enumerate(rects):
+            if rb.x == ra.x + ra.w:  # b lies right of a
+                wa, wb = min(width, ra.w), min(width, rb.w)
+                for y0, y1 in _pieces(max(ra.y, rb.y), min(ra.y + ra.h, rb.y + rb.h)):
+                    yield a, (slice(y0, y1), slice(rb.x - wa, rb.x))
+                    yield b, (slice(y0, y1), slice(rb.x, rb.x + wb))
+            if rb.y == ra.y + ra.h:  # b lies below a
+                ha, hb = min(width, ra.h), min(width, rb.h)
+                for x0, x1 in _pieces(max(ra.x, rb.x), min(ra.x + ra.w, rb.x + rb.w)):
+                    yield a, (slice(rb.y - ha, rb.y), slice(x0, x1))
+                    yield b, (slice(rb.y, rb.y + hb), slice(x0, x1))
+
+
+def _pieces(lo: int, hi: int) -> Iterator[tuple[int, int]]:
+    """[lo, hi) cut into PIECE-long pieces; a last piece shorter than half of one joins the one before."""
+    starts = list(range(lo, hi, PIECE))
+    if len(starts) > 1 and hi - starts[-1] < PIECE // 2:
+        starts.pop()
+    for i, s in enumerate(starts):
+        yield s, (starts[i + 1] if i + 1 < len(starts) else hi)

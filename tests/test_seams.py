@@ -1,0 +1,141 @@
+"""The seam measure: noise alone (equal or different per unit, independent or correlated between
+neighbours as a pixel filter makes it) reads as no seam; a bias inside one unit or a band defect reads as
+one and names the unit; degenerate layouts are handled."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from core.errors import QuekaroError
+from core.model.geometry import Rect
+from core.render import imageio
+from core.render.seams import SEAM_Z, seam_measure, unit_map
+
+REPO = Path(__file__).resolve().parent.parent
+SIDE = 128
+
+
+def grid(n: int, side: int = SIDE) -> list[Rect]:
+    step = side // n
+    return [Rect(x * step, y * step, step, step) for y in range(n) for x in range(n)]
+
+
+def noisy(rects: list[Rect], sigmas: list[float], seed: int, side: int = SIDE) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    reference = np.full((side, side, 3), 0.5, np.float32)
+    test = reference.copy()
+    for r, sigma in zip(rects, sigmas, strict=True):
+        test[r.y:r.y + r.h, r.x:r.x + r.w] += rng.normal(0, sigma, (r.h, r.w, 1)).astype(np.float32)
+    return test, reference
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), spread=st.floats(1.0, 8.0))
+def test_noise_alone_is_no_seam_whatever_each_units_noise(seed: int, spread: float) -> None:
+    rects = grid(4)
+    sigmas = list(np.random.default_rng(seed).uniform(0.01, 0.01 * spread, len(rects)))
+    measure = seam_measure(*noisy(rects, sigmas, seed), rects)
+    assert not measure.seam and abs(measure.ratio - 1) < 0.35 and abs(measure.correlation) < 0.05, measure
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_noise_correlated_between_neighbours_is_calibrated_away(seed: int) -> None:
+    """A 3x3 box filter over white noise (as Mitsuba's gaussian pixel filter correlates neighbours)
+    would inflate every strip's z^2 about 4 times; the measured correlation corrects it."""
+    rects = grid(4)
+    test, reference = noisy(rects, [0.05] * len(rects), seed)
+    err = test - reference
+    padded = np.pad(err, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    smooth = sum(padded[dy:dy + SIDE, dx:dx + SIDE] for dy in range(3) for dx in range(3)) / 9
+    measure = seam_measure(reference + smooth, reference, rects)
+    assert not measure.seam and measure.correlation > 0.5 and abs(measure.ratio - 1) < 0.35, measure
+
+
+@pytest.mark.parametrize("width", [3, 4])
+def test_a_bias_inside_one_unit_is_a_seam_and_names_it(width: int) -> None:
+    rects = grid(4)
+    test, reference = noisy(rects, [0.02] * len(rects), seed=1)
+    r = rects[5]
+    test[r.y:r.y + r.h, r.x:r.x + r.w] += 0.01  # half the noise's sigma: invisible pixel by pixel
+    measure = seam_measure(test, reference, rects, width=width)
+    assert measure.seam and measure.worst_unit == 5 and measure.unit_z > measure.unit_threshold, measure
+    assert measure.ratio > 1.2, measure
+
+
+def test_a_bias_over_the_whole_image_is_reported_too() -> None:
+    """The strips test the error's mean against 0: a bias everywhere (a wrong exposure, a missing
+    light) shows at every border; `quekaro diff`'s other metrics say it is not only there."""
+    rects = grid(4)
+    test, reference = noisy(rects, [0.02] * len(rects), seed=4)
+    assert seam_measure(test + 0.01, reference, rects).z > SEAM_Z
+
+
+def test_a_smeared_band_step_is_caught_with_a_band_wide_border() -> None:
+    """A defect spread over a 4-pixel band (as blended bands would spread it) at every vertical border."""
+    rects = grid(4)
+    test, reference = noisy(rects, [0.02] * len(rects), seed=2)
+    for x in range(SIDE // 4, SIDE, SIDE // 4):
+        test[:, x - 2:x + 2] += np.linspace(0.0, 0.02, 4, dtype=np.float32)[None, :, None]
+    assert seam_measure(test, reference, rects, width=3).seam
+
+
+def test_one_unit_black_images_tiny_units_and_bad_input() -> None:
+    test, reference = noisy([Rect(0, 0, SIDE, SIDE)], [0.02], seed=3)
+    single = seam_measure(test, reference, [Rect(0, 0, SIDE, SIDE)])
+    assert single.border_strips == 0 and not single.seam and single.worst_unit == -1
+    black = np.zeros((SIDE, SIDE, 3), np.float32)
+    assert seam_measure(black, black, grid(4)).border_strips == 0  # no variance: no information
+    tiny = grid(32)  # 4-pixel units: strips of 12 pixels
+    measure = seam_measure(*noisy(tiny, [0.02] * len(tiny), seed=5), tiny)
+    assert not measure.seam and abs(measure.ratio - 1) < 0.2, measure
+    with pytest.raises(QuekaroError, match="outside"):
+        unit_map([Rect(100, 0, 40, 10)], SIDE, SIDE)
+    with pytest.raises(QuekaroError, match="differ in size"):
+        seam_measure(black, black[:10], grid(2))
+    with pytest.raises(QuekaroError, match="width 0"):
+        seam_measure(black, black, grid(2), width=0)
+    assert (unit_map(grid(2), SIDE, SIDE)[SIDE // 2:, :SIDE // 2] == 2).all()
+
+
+@pytest.mark.slow
+def test_a_real_composed_render_has_no_seam_and_a_unit_scaled_by_20_percent_has_one(tmp_path) -> None:
+    """cbox rendered as units at level off (`quekaro render`) against plain Mitsuba's long render: the
+    compositor leaves no seam. The same image with one unit's pixels scaled by 1.2 (at 16 spp, under a
+    pixel's noise) has one, and `quekaro diff --units` names that unit."""
+    from render_check import reference_renders  # imports Mitsuba: only this test pays for it
+
+    scene = REPO / "scenes" / "cbox.xml"
+    out = tmp_path / "job.exr"
+    done = run_quekaro("render", str(scene), "-D", "res=128", "-D", "spp=16", "--opt", "off", "--units", "16",
+                       "-o", str(out), "-t", "2")
+    assert done.returncode == 0, done.stderr
+    reference, _ = reference_renders(scene, "llvm_ad_rgb", 512, defines={"res": "128"}, renders=1)
+    imageio.write_exr(tmp_path / "ref.exr", reference[0][..., :3])
+    clean = diff_json(out, tmp_path / "ref.exr", out.with_suffix(".json"))
+    assert not clean["seam"], clean
+    units = json.loads(out.with_suffix(".json").read_text())["units"]
+    victim = max(units, key=lambda u: u["rect"][2] * u["rect"][3])
+    x, y, w, h = victim["rect"]
+    image = imageio.read_exr(out)
+    image[y:y + h, x:x + w, :3] *= 1.2
+    imageio.write_exr(tmp_path / "scaled.exr", image[..., :3])
+    scaled = diff_json(tmp_path / "scaled.exr", tmp_path / "ref.exr", out.with_suffix(".json"))
+    assert scaled["seam"] and scaled["worst_unit"] == units.index(victim), scaled
+
+
+def run_quekaro(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "quekaro", *args], capture_output=True, text=True, timeout=600)
+
+
+def diff_json(test: Path, reference: Path, report: Path) -> dict:
+    done = run_quekaro("diff", str(test), str(reference), "--units", str(report), "--json")
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)["seams"]
