@@ -12,8 +12,9 @@ correlate neighbouring pixels, which makes a strip's mean vary more than its pix
 error's correlation at lags up to MAX_LAG pixels is measured inside the units (each unit's error less its
 own mean, over its own deviation, so a biased unit does not count; units under MIN_UNIT_PIXELS are left
 out, and with none left pixels count as independent) and each strip's t is corrected by the variance that
-correlation adds to a mean of its shape, with the degrees of freedom of its effective pixel count. Under noise alone each strip's z^2 is then
-chi-square with one degree of freedom, and:
+correlation adds to a mean of its shape, with the degrees of freedom of its effective pixel count (strong
+correlation makes the test conservative). Under noise alone each strip's z^2 is then chi-square with one
+degree of freedom, and:
   - `ratio`: the border strips' mean z^2 (1: no seam);
   - `z`: their sum as a normal deviate (Wilson-Hilferty), one degree of freedom per strip;
   - `worst_unit`, `unit_z`: the same over the strips on one unit's side of its borders, for the unit
