@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from pathlib import Path
 
 import pytest
 
@@ -24,8 +25,12 @@ def args_for(tmp_path, *extra: str) -> argparse.Namespace:
 
 @pytest.mark.slow
 def test_inprocess_grid_json_has_cells_and_baseline(tmp_path):
-    result = bench_accuracy.run(args_for(tmp_path, "--inprocess"))
-    cells = result["cells"]
+    """A suite name and a user's scene file (the volumetric one, by path, with its -D), in one run."""
+    volume = Path(bench_accuracy.__file__).parent / "scenes" / "volume.xml"
+    result = bench_accuracy.run(args_for(tmp_path, "--inprocess", "caustic-corner", str(volume), "-D", "spp=4"))
+    cells = [c for c in result["cells"] if c["scene"] == "caustic-corner"]
+    assert [c["scene"] for c in result["cells"]][2:] == ["volume", "volume"]
+    assert result["scenes"]["volume"]["defines"] == {"res": "32", "spp": "4"}
     assert [(c["agents"], c["level"]) for c in cells] == [(1, "off"), (1, "S")]
     for c in cells:
         assert c["seconds"] > 0 and c["cpu_seconds"] > 0
@@ -33,6 +38,8 @@ def test_inprocess_grid_json_has_cells_and_baseline(tmp_path):
         assert 0 < c["mean_pixel_diff_percent"] < 50 and 0 < c["relmse"] < 10 and 0 <= c["flip"] <= 1
         assert c["uniform_spp"] >= 1 and 0 < c["uniform_relmse"] < 10
         assert c["spp_min"] >= 1 and c["units"] >= 1
+        assert c["seam_border_strips"] > 0 or c["units"] == 1, c
+        assert isinstance(c["seam_seam"], bool)
     off = cells[0]
     assert off["spp_min"] == off["spp_max"] == 4  # level off applies no rules
     assert list((tmp_path / "cache" / "references").glob("caustic-corner-*.exr"))  # cached for next time
@@ -45,12 +52,16 @@ def test_grid_arguments_are_checked(tmp_path):
         bench_accuracy.parse_grid(args_for(tmp_path, "--levels", "off,XL"))
     with pytest.raises(QuekaroError, match="--agents"):
         bench_accuracy.parse_grid(args_for(tmp_path, "--agents", "1,x"))
-    with pytest.raises(QuekaroError, match="unknown scene"):
-        bench_accuracy.parse_grid(args_for(tmp_path, "--scenes", "nope"))
+    with pytest.raises(QuekaroError, match="neither a suite scene"):
+        bench_accuracy.parse_grid(args_for(tmp_path, "nope"))
+    with pytest.raises(QuekaroError, match="-D 'res'"):
+        bench_accuracy.parse_grid(args_for(tmp_path, "-D", "res"))
     with pytest.raises(QuekaroError, match="--runs 0"):
         bench_accuracy.parse_grid(args_for(tmp_path, "--runs", "0"))
     scenes, agents, levels = bench_accuracy.parse_grid(args_for(tmp_path, "--agents", "2,1,2", "--inprocess"))
-    assert (scenes, agents, levels) == (["caustic-corner"], [1], ["off", "S"])
+    assert ([s.name for s in scenes], agents, levels) == (["caustic-corner"], [1], ["off", "S"])
+    suite, _, _ = bench_accuracy.parse_grid(args_for(tmp_path, "--suite"))
+    assert len(suite) >= 6 and {s.role for s in suite} == {"tune", "report"}
 
 
 def test_tree_cpu_seconds_counts_a_busy_child():
