@@ -39,18 +39,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder for overhead.md")
 
 
-def plain_render(scene: str, defines: dict[str, str], spp: int, threads: int, out: str) -> None:
-    """One ordinary Mitsuba render of the whole image with the scene's own integrator (the baseline)."""
-    import drjit as dr
-    import mitsuba as mi
-
-    mi.set_variant("llvm_ad_rgb")
-    dr.set_thread_count(threads)
-    loaded = mi.load_file(scene, **defines)
-    image = mi.render(loaded, spp=spp)
-    mi.Bitmap(image).write(out)
-
-
 def _timed(cmd: list[str]) -> float:
     start = time.perf_counter()
     subprocess.run(cmd, check=True, cwd=REPO, capture_output=True)
@@ -63,8 +51,8 @@ def run(args: argparse.Namespace) -> dict:
     effects = analyse(SceneSpec(args.scene, defines))
     with tempfile.TemporaryDirectory() as tmp:
         plain_out, farm_out = Path(tmp) / "plain.exr", Path(tmp) / "quekaro.exr"
-        plain_cmd = [sys.executable, "-m", "bench.overhead", "plain", str(args.scene),
-                     json.dumps(defines), str(args.spp), str(args.threads), str(plain_out)]
+        plain_cmd = [sys.executable, "-m", "bench.plain", str(args.scene), "--spp", str(args.spp), "-t",
+                     str(args.threads), "-o", str(plain_out), *(f"-D{k}={v}" for k, v in defines.items())]
         ours_cmd = [sys.executable, "-m", "quekaro", "render", str(args.scene), "--opt", "off", "--spp",
                     str(args.spp), "--threads", str(args.threads), "-o", str(farm_out)]
         ours_cmd += [arg for k, v in defines.items() for arg in ("-D", f"{k}={v}")]
@@ -104,12 +92,3 @@ def format_report(r: dict) -> str:
         f"image means       {r['mean_plain']:.5f} vs {r['mean_quekaro']:.5f} (rel. diff {r['mean_rel_diff']:.4f}); "
         f"relMSE between them {r['relmse_between']:.2e}",
     ])
-
-
-def _plain_main(argv: list[str]) -> None:
-    scene, defines, spp, threads, out = argv
-    plain_render(scene, json.loads(defines), int(spp), int(threads), out)
-
-
-if __name__ == "__main__" and len(sys.argv) > 1 and sys.argv[1] == "plain":
-    _plain_main(sys.argv[2:])
