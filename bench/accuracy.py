@@ -12,7 +12,7 @@ seconds; the errors against the reference (`core.render.metrics`, averaged over 
 included: seeds follow the job id), the seam measure of the last image at the units' borders
 (`core.render.seams`), and how the rules spent samples.
 
-The uniform baseline is plain Mitsuba as a user runs it (`python -m bench.plain`: import, load, render,
+The uniform baseline is plain Mitsuba as a user runs it (`python -m planning.plain`: import, load, render,
 write; the whole process timed) at the single spp whose time equals the cell's. Its time is linear in
 spp: two timings give t(spp) = t0 + k spp, and the spp for a time follows. Two matchings per level, both
 against the level's cell with the fewest agents: `uniform_spp` matches the job's wall time (what a user
@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import hashlib
 import json
 import os
 import resource
@@ -44,20 +43,19 @@ from matplotlib.figure import Figure
 from bench.suite import SUITE, SuiteScene, scene_from_argument
 from core.errors import QuekaroError
 from core.model.geometry import Rect
-from core.model.hashing import sha256_file
 from core.model.job import SceneSpec
-from core.render.bundle import make_bundle, scene_members
-from core.render.imageio import read_exr, write_exr
+from core.render.bundle import make_bundle
+from core.render.imageio import read_exr
 from core.render.metrics import all_metrics, diff_image
 from core.render.seams import seam_measure
 from farm.local import LocalFarm
 from fuzzy.levels import LEVELS
+from planning.accuracy import plain_render, reference, spp_timing
 
 REPO = Path(__file__).resolve().parent.parent
 HETEROGENEOUS = "caustic-corner"  # the project's own scene the rules were tuned on
 SCENES = {"caustic-corner": REPO / "scenes" / "caustic-corner.xml"}
 DEFAULT_OUT = REPO / "docs" / "benchmarks"
-VARIANT = "llvm_ad_rgb"
 JOB_TIMEOUT_S = 900.0
 S_TIME_RATIO, S_DIFF_PERCENT, RELMSE_RATIO = 0.75, 1.21, 0.8  # the targets (issue 15)
 DIFF_WHITE = 0.10  # a display difference of 10 % is white in the grey difference images
@@ -122,81 +120,6 @@ def parse_grid(args: argparse.Namespace) -> tuple[list[SuiteScene], list[int], l
     if args.inprocess:
         agents = agents[:1]
     return scenes, agents, levels
-
-
-# ---- plain renders: reference, uniform baseline ------------------------------------------------------
-
-
-def plain_render(spec: Any, spp: int, threads: int, seed: int = 0) -> tuple[np.ndarray, float]:
-    """Plain Mitsuba on the whole image at `spp`, the whole process timed (`python -m bench.plain`):
-    (RGB pixels, wall seconds)."""
-    with tempfile.TemporaryDirectory(prefix="quekaro-plain-") as tmp:
-        out = Path(tmp) / "plain.exr"
-        cmd = [sys.executable, "-m", "bench.plain", str(spec.path), "--spp", str(spp), "--seed", str(seed),
-               "-t", str(threads), "-m", VARIANT, "-o", str(out),
-               *(f"-D{k}={v}" for k, v in spec.defines.items())]
-        start = time.perf_counter()
-        done = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
-        seconds = time.perf_counter() - start
-        if done.returncode != 0:
-            raise QuekaroError(f"plain Mitsuba on {spec.path} failed: {done.stderr.strip()[-600:]}")
-        return read_exr(out)[..., :3], seconds
-
-
-def content_key(spec: Any, *extra: Any) -> str:
-    """A hash of every file the scene reads (the scene as rewritten with its -D parameters, meshes,
-    textures, includes) and `extra`: what a cached render of it depends on."""
-    digest = hashlib.sha256(json.dumps([sorted(spec.defines.items()), *extra], default=str).encode())
-    for name, content in sorted(scene_members(spec.path, spec.defines, tuple(spec.search_paths)).items()):
-        digest.update(name.encode())
-        digest.update(content if isinstance(content, bytes) else sha256_file(content).encode())
-    return digest.hexdigest()[:16]
-
-
-def reference(spec: Any, spp: int, threads: int, cache: Path) -> np.ndarray:
-    """The scene at `spp`, plain Mitsuba; cached under `cache` by content (`content_key`)."""
-    path = cache / "references" / f"{spec.path.stem}-{content_key(spec, spp, VARIANT)}.exr"
-    if path.exists():
-        return read_exr(path)[..., :3]
-    pixels, _ = plain_render(spec, spp, threads, seed=987654)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_exr(path, pixels)
-    return pixels
-
-
-#: The sample count's share of a render's time must exceed this (and MIN_SPP_SECONDS) before the line
-#: t0 + k spp is trusted: below it, the two timings differ by noise and k could be ~0, which made the
-#: uniform baseline ask Mitsuba for billions of samples on a 32 px image.
-MIN_SPP_SHARE = 0.5
-MIN_SPP_SECONDS = 0.02
-MAX_TIMING_SPP = 1 << 14
-
-
-def spp_timing(spec: Any, spp: int, threads: int) -> tuple[float, float]:
-    """(t0, k) of t(spp) = t0 + k spp for the plain Mitsuba process, from the faster of two runs at two spp."""
-    size = ", ".join(f"{k}={v}" for k, v in spec.defines.items())
-    return fit_spp_line(lambda n: min(plain_render(spec, n, threads, seed=s)[1] for s in (1, 2)), spp,
-                        what=f"{spec.path.name} ({size})")
-
-
-def fit_spp_line(seconds_at: Callable[[int], float], spp: int, what: str = "the scene") -> tuple[float, float]:
-    """(t0, k) through two timings, the higher spp raised 4x at a time until samples cost a measurable
-    share of its time (MIN_SPP_SHARE of t0, at least MIN_SPP_SECONDS); QuekaroError past MAX_TIMING_SPP."""
-    lo = max(1, spp // 4)
-    t_lo = seconds_at(lo)
-    hi = max(spp, lo + 1)
-    while True:
-        t_hi = seconds_at(hi)
-        grown = t_hi - t_lo
-        if grown >= max(MIN_SPP_SECONDS, MIN_SPP_SHARE * t_lo):
-            k = grown / (hi - lo)
-            return max(t_lo - k * lo, 0.0), k
-        if hi * 4 > MAX_TIMING_SPP:
-            raise QuekaroError(
-                f"{what}: a render at {hi} spp took {t_hi:.3f} s against {t_lo:.3f} s at {lo} spp; the cost "
-                f"of a sample is too small to time, so no uniform spp can be matched to a cell's time "
-                f"(raise --res)")
-        hi *= 4
 
 
 # ---- CPU time --------------------------------------------------------------------------------------

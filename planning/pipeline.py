@@ -58,6 +58,7 @@ def unit_record(plan: JobPlan, tile: Tile, params: dict[str, Any]) -> dict[str, 
         "outputs": params.get("outputs", {}), "seconds": float(tile.meta.get("seconds", 0.0)),
         "nonfinite": int(tile.meta.get("nonfinite", 0)), "agent": params.get("agent"),
         "rules": params.get("rules"),
+        **({"emulated": True} if params.get("emulated") else {}),  # slept by an emulated agent, not rendered
     }
 
 
@@ -88,15 +89,20 @@ def assemble(plan: JobPlan, tiles: Iterable[Tile | TileSource], params: dict[int
             "render_seconds": sum(u["seconds"] for u in units),
             "samples": sum(u["spp"] * u["rect"][2] * u["rect"][3] for u in units),
             "nonfinite": sum(u["nonfinite"] for u in units),
+            "emulated_units": sum(bool(u.get("emulated")) for u in units),
         },
     }
     report.update(extra or {})
     report["totals"]["seconds"] = time.perf_counter() - started
-    report_path = out.with_suffix(".json")
-    tmp = report_path.with_name(f".{report_path.name}.part")
-    tmp.write_text(json.dumps(report, indent=2))  # a full disk leaves the .part, never a torn report
-    os.replace(tmp, report_path)
+    write_json_atomic(out.with_suffix(".json"), report)
     return report
+
+
+def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
+    """Write JSON through a .part file: a full disk leaves the .part, never a torn file."""
+    tmp = path.with_name(f".{path.name}.part")
+    tmp.write_text(json.dumps(data, indent=2))
+    os.replace(tmp, path)
 
 
 @dataclass(frozen=True)
@@ -117,19 +123,23 @@ def render_job(spec: SceneSpec, options: RenderOptions, out: Path, job_id: str |
     `progress` hears after the plan and after every unit."""
     start = time.perf_counter()
     job_id = job_id or uuid.uuid4().hex[:12]
-    seed = plan_seed(sha256_file(spec.path), spec.defines, options.to_dict())
-    plan = plan_job(spec, options, seed=seed)
-    planner = Planner(options.rules, options.defuzzifier)
-    chosen = plan_params(plan, planner)
-    samples = [p.spp * u.rect.area for u, p in zip(plan.units, chosen, strict=True)]
-    report = progress or (lambda _p: None)
-    report(Progress(0, len(plan.units), 0, sum(samples), plan.width * plan.height))
-    tiles, params = [], {}
-    with RenderWorker() as worker:
+    worker = RenderWorker()
+    worker.launch()  # the child imports Mitsuba while this process plans; its first render waits for it
+    try:
+        seed = plan_seed(sha256_file(spec.path), spec.defines, options.to_dict())
+        plan = plan_job(spec, options, seed=seed)
+        planner = Planner(options.rules, options.defuzzifier)
+        chosen = plan_params(plan, planner)
+        samples = [p.spp * u.rect.area for u, p in zip(plan.units, chosen, strict=True)]
+        report = progress or (lambda _p: None)
+        report(Progress(0, len(plan.units), 0, sum(samples), plan.width * plan.height))
+        tiles, params = [], {}
         for unit, p in zip(plan.units, chosen, strict=True):
             job = unit_job(plan, unit.index, p, job_id, options.threads)
             tiles.append(worker.render(job, timeout=UNIT_TIMEOUT_S))
             params[unit.index] = {**p.to_dict(), "rules": planner.rules_path.name}
             report(Progress(len(tiles), len(plan.units), sum(samples[:len(tiles)]), sum(samples),
                             plan.width * plan.height))
+    finally:
+        worker.stop()
     return assemble(plan, tiles, params, out, start, {"job_id": job_id})

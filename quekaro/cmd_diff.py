@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"relative MSE:          {results['relmse']:.6g}")
         print(f"FLIP (HDR, mean):      {results['flip']:.4f}")
         if "seams" in results:
-            print(seam_line(results["seams"]))
+            print(f"seams:                 {seam_line(results['seams'])}")
     return 0
 
 
@@ -69,5 +69,5 @@ def read_unit_rects(path: str) -> list[Rect]:
 
 def seam_line(seams: dict[str, Any]) -> str:
     verdict = "SEAM" if seams["seam"] else "no seam"
-    return (f"seams:                 {verdict} (border strips' z^2 {seams['ratio']:.2f}x noise, z {seams['z']:.1f}; "
+    return (f"{verdict} (border strips' z^2 {seams['ratio']:.2f}x noise, z {seams['z']:.1f}; "
             f"worst unit {seams['worst_unit']} z {seams['unit_z']:.1f} of {seams['unit_threshold']:.1f})")

@@ -4,6 +4,8 @@ Mitsuba's own flags where they mean the same (-m, -t, -a, -s, -o, -D, several sc
 from __future__ import annotations
 
 import argparse
+import os
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -13,11 +15,14 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 from core.errors import QuekaroError
 from core.model.integrators import CATALOGUE
 from core.model.job import RenderOptions, SceneSpec
+from core.render.imageio import read_exr
 from core.render.scene import parse_defines
 from fuzzy.engine import DEFUZZIFIERS
 from fuzzy.levels import LEVELS
+from planning.accuracy import REF_SPP, accuracy_report
 from planning.pipeline import Progress as RenderProgress
-from planning.pipeline import render_job
+from planning.pipeline import render_job, write_json_atomic
+from quekaro.cmd_diff import seam_line
 
 
 def add_job_arguments(parser: argparse.ArgumentParser) -> None:
@@ -67,6 +72,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                              "report go beside it; several scenes need a folder")
     parser.add_argument("-t", "--threads", type=int, help="Dr.Jit threads (Mitsuba's -t; default: all cores)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (e.g. in logs)")
+    parser.add_argument("--report-accuracy", action="store_true",
+                        help="afterwards, compare the image with a long plain-Mitsuba reference (cached) and with "
+                             "plain Mitsuba at the spp taking the same wall time; printed and in the report")
+    parser.add_argument("--ref-spp", type=int, default=REF_SPP,
+                        help=f"with --report-accuracy: the reference's spp (default {REF_SPP})")
     parser.set_defaults(func=run)
 
 
@@ -85,14 +95,47 @@ def outputs(scenes: list[Path], out: Path) -> list[Path]:
 
 
 def run(args: argparse.Namespace) -> int:
+    startup = process_age()  # the interpreter's start and imports, paid once, by the first scene
     defines, paths = parse_defines(args.defines), search_paths(args)
     options = options_from_args(args)
+    if args.ref_spp < 1:
+        raise QuekaroError(f"--ref-spp {args.ref_spp}: must be at least 1")
     for scene, out in zip(args.scenes, outputs(args.scenes, args.out), strict=True):
         spec = SceneSpec(scene, defines, paths)
+        started = time.perf_counter()
         with render_progress(scene.name, enabled=not args.no_progress) as progress:
             report = render_job(spec, options, out, progress=progress)
         print_report(report, out)
+        if args.report_accuracy:
+            wall, startup = time.perf_counter() - started + startup, 0.0
+            add_accuracy(report, spec, out, wall, args)
     return 0
+
+
+def process_age() -> float:
+    """Seconds since this process started (Linux /proc), 0 where that cannot be read."""
+    try:
+        start_ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+        return max(uptime - start_ticks / os.sysconf("SC_CLK_TCK"), 0.0)
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+def add_accuracy(report: dict, spec: SceneSpec, out: Path, wall: float, args: argparse.Namespace) -> None:
+    """`planning.accuracy`'s comparison, printed and written into OUT.json under "accuracy"."""
+    print(f"accuracy: reference {args.ref_spp} spp (cached), uniform spp for {wall:.2f} s ...")
+    image = read_exr(out)
+    accuracy = accuracy_report(spec, image, wall, report, args.threads or os.cpu_count() or 1, args.ref_spp)
+    report["accuracy"] = accuracy
+    write_json_atomic(out.with_suffix(".json"), report)
+    uniform, seams = accuracy["uniform"], accuracy["seams"]
+    print(f"  this job   {wall:7.2f} s  mean pixel diff {accuracy['mean_pixel_diff_percent']:.3f} %  "
+          f"relMSE {accuracy['relmse']:.5f}")
+    print(f"  uniform    {uniform['seconds']:7.2f} s  mean pixel diff {uniform['mean_pixel_diff_percent']:.3f} %  "
+          f"relMSE {uniform['relmse']:.5f}  ({uniform['spp']} spp, plain Mitsuba)")
+    print(f"  relMSE ratio {accuracy['relmse'] / max(uniform['relmse'], 1e-30):.3f} (below 1: the job wins); seams: "
+          + seam_line(seams))
 
 
 @contextmanager

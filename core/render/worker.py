@@ -344,6 +344,7 @@ class RenderWorker:
         self._conn: Connection | None = None
         self.startup_timeout = startup_timeout
         self.starts = 0
+        self._ready = False
         self.import_seconds: float | None = None
 
     @property
@@ -355,6 +356,14 @@ class RenderWorker:
 
     def start(self) -> None:
         """Start the child (if not running) and wait until Mitsuba is imported in it."""
+        if not self.alive():
+            self.launch()
+        if not self._ready:
+            self._wait_ready()
+
+    def launch(self) -> None:
+        """Start the child without waiting for it: it imports Mitsuba while the caller does other work
+        (`quekaro render` plans the job meanwhile); the first `render` waits for it."""
         if self.alive():
             return
         self._discard()
@@ -369,7 +378,10 @@ class RenderWorker:
                                       stdin=subprocess.DEVNULL, preexec_fn=die_with_parent)
         theirs.close()
         self._conn = Connection(ours.detach())
+        self._ready = False
         self.starts += 1
+
+    def _wait_ready(self) -> None:
         if not self._conn.poll(self.startup_timeout):
             self._kill()
             raise RenderError(f"render process did not start within {self.startup_timeout:.0f} s")
@@ -379,6 +391,7 @@ class RenderWorker:
             reason = _death_reason(self._reap())
             raise RenderError(f"render process failed to start ({reason})") from None
         self.import_seconds = float(info["import_seconds"])
+        self._ready = True
 
     def stop(self) -> None:
         """Ask the child to exit; kill it if it does not within a few seconds."""

@@ -1,8 +1,8 @@
 """Plain Mitsuba, as a user runs it: one process that imports Mitsuba, loads the scene, renders it at a
-given spp and writes an EXR. `quekaro bench accuracy` times this whole process for its uniform baseline,
-as it times the whole `quekaro render` process for a fuzzy job, so both pay the same start-up.
+given spp and writes an EXR. `planning.accuracy` times this whole process for its uniform baseline, as
+`quekaro bench accuracy` times the whole `quekaro render` process, so both pay the same start-up.
 
-    python -m bench.plain SCENE.xml -D name=value ... --spp N --seed S -t THREADS -o OUT.exr
+    python -m planning.plain SCENE.xml -D name=value ... --spp N --seed S -t THREADS -o OUT.exr
 
 The film's RGB is written (the accuracy metrics compare RGB). The scene's own integrator, sensor 0.
 """
@@ -21,7 +21,7 @@ from core.render.scene import load
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.plain", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m planning.plain", description=__doc__)
     parser.add_argument("scene")
     parser.add_argument("-D", dest="defines", action="append", default=[], metavar="NAME=VALUE")
     parser.add_argument("--spp", type=int, required=True)

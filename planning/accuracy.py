@@ -1,0 +1,134 @@
+"""What a job's accuracy cost: its image against a long plain-Mitsuba reference, and against plain
+Mitsuba at the uniform spp that takes the same wall time (`quekaro render --report-accuracy`, and the
+benchmark `quekaro bench accuracy` built on it).
+
+Plain Mitsuba runs as a user runs it (`python -m planning.plain`: import, load, render, write) and the
+whole process is timed. Its time is linear in spp (design.md section 3): two timings give
+t(spp) = t0 + k spp, and the spp for a time follows. The reference is cached by the content of every
+file the scene reads, its -D parameters, spp and variant.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from core.errors import QuekaroError
+from core.model.geometry import Rect
+from core.model.hashing import sha256_file
+from core.model.job import SceneSpec
+from core.render.bundle import scene_members
+from core.render.imageio import read_exr, write_exr
+from core.render.metrics import all_metrics
+from core.render.seams import seam_measure
+
+VARIANT = "llvm_ad_rgb"
+REF_SPP = 1024
+
+
+def plain_render(spec: Any, spp: int, threads: int, seed: int = 0) -> tuple[np.ndarray, float]:
+    """Plain Mitsuba on the whole image at `spp`, the whole process timed (`python -m planning.plain`):
+    (RGB pixels, wall seconds)."""
+    with tempfile.TemporaryDirectory(prefix="quekaro-plain-") as tmp:
+        out = Path(tmp) / "plain.exr"
+        cmd = [sys.executable, "-m", "planning.plain", str(spec.path), "--spp", str(spp), "--seed", str(seed),
+               "-t", str(threads), "-m", VARIANT, "-o", str(out),
+               *(f"-D{k}={v}" for k, v in spec.defines.items())]
+        start = time.perf_counter()
+        done = subprocess.run(cmd, capture_output=True, text=True, cwd=Path.cwd())
+        seconds = time.perf_counter() - start
+        if done.returncode != 0:
+            raise QuekaroError(f"plain Mitsuba on {spec.path} failed: {done.stderr.strip()[-600:]}")
+        return read_exr(out)[..., :3], seconds
+
+
+def content_key(spec: Any, *extra: Any) -> str:
+    """A hash of every file the scene reads (the scene as rewritten with its -D parameters, meshes,
+    textures, includes) and `extra`: what a cached render of it depends on."""
+    digest = hashlib.sha256(json.dumps([sorted(spec.defines.items()), *extra], default=str).encode())
+    for name, content in sorted(scene_members(spec.path, spec.defines, tuple(spec.search_paths)).items()):
+        digest.update(name.encode())
+        digest.update(content if isinstance(content, bytes) else sha256_file(content).encode())
+    return digest.hexdigest()[:16]
+
+
+def reference(spec: Any, spp: int, threads: int, cache: Path) -> np.ndarray:
+    """The scene at `spp`, plain Mitsuba; cached under `cache` by content (`content_key`)."""
+    path = cache / "references" / f"{spec.path.stem}-{content_key(spec, spp, VARIANT)}.exr"
+    if path.exists():
+        return read_exr(path)[..., :3]
+    pixels, _ = plain_render(spec, spp, threads, seed=987654)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_exr(path, pixels)
+    return pixels
+
+
+#: The sample count's share of a render's time must exceed this (and MIN_SPP_SECONDS) before the line
+#: t0 + k spp is trusted: below it, the two timings differ by noise and k could be ~0, which made the
+#: uniform baseline ask Mitsuba for billions of samples on a 32 px image.
+MIN_SPP_SHARE = 0.5
+MIN_SPP_SECONDS = 0.02
+MAX_TIMING_SPP = 1 << 14
+
+
+def spp_timing(spec: Any, spp: int, threads: int) -> tuple[float, float]:
+    """(t0, k) of t(spp) = t0 + k spp for the plain Mitsuba process, from the faster of two runs at two spp."""
+    size = ", ".join(f"{k}={v}" for k, v in spec.defines.items())
+    return fit_spp_line(lambda n: min(plain_render(spec, n, threads, seed=s)[1] for s in (1, 2)), spp,
+                        what=f"{spec.path.name} ({size})")
+
+
+def fit_spp_line(seconds_at: Callable[[int], float], spp: int, what: str = "the scene") -> tuple[float, float]:
+    """(t0, k) through two timings, the higher spp raised 4x at a time until samples cost a measurable
+    share of its time (MIN_SPP_SHARE of t0, at least MIN_SPP_SECONDS); QuekaroError past MAX_TIMING_SPP."""
+    lo = max(1, spp // 4)
+    t_lo = seconds_at(lo)
+    hi = max(spp, lo + 1)
+    while True:
+        t_hi = seconds_at(hi)
+        grown = t_hi - t_lo
+        if grown >= max(MIN_SPP_SECONDS, MIN_SPP_SHARE * t_lo):
+            k = grown / (hi - lo)
+            return max(t_lo - k * lo, 0.0), k
+        if hi * 4 > MAX_TIMING_SPP:
+            raise QuekaroError(
+                f"{what}: a render at {hi} spp took {t_hi:.3f} s against {t_lo:.3f} s at {lo} spp; the cost "
+                f"of a sample is too small to time, so no uniform spp can be matched to a cell's time "
+                f"(raise --res)")
+        hi *= 4
+
+
+def default_cache() -> Path:
+    return Path.home() / ".cache" / "quekaro"
+
+
+def uniform_at(spec: SceneSpec, seconds: float, line: tuple[float, float], threads: int, ref: np.ndarray,
+               seed: int = 4242) -> dict[str, Any]:
+    """Plain Mitsuba at the spp whose whole-process time, by the line, is `seconds`: spp, its measured
+    seconds and its errors against `ref`."""
+    t0, k = line
+    spp = max(1, round((seconds - t0) / k))
+    pixels, took = plain_render(spec, spp, threads, seed=seed + spp)
+    return {"spp": spp, "seconds": took, **all_metrics(pixels, ref)}
+
+
+def accuracy_report(spec: SceneSpec, image: np.ndarray, wall_seconds: float, report: dict[str, Any],
+                    threads: int, ref_spp: int = REF_SPP, cache: Path | None = None) -> dict[str, Any]:
+    """The job's image (RGB first) against the reference, its seams at the units' borders, and the
+    uniform baseline at equal wall time."""
+    ref = reference(spec, ref_spp, threads, cache or default_cache())
+    rgb = np.asarray(image[..., :3], dtype=np.float32)
+    rects = [Rect.from_list(u["rect"]) for u in report["units"]]
+    line = spp_timing(spec, max(1, int(report.get("spp") or 16)), threads)
+    return {"reference_spp": ref_spp, "seconds": wall_seconds, **all_metrics(rgb, ref),
+            "seams": seam_measure(rgb, ref, rects).to_dict(),
+            "uniform": uniform_at(spec, wall_seconds, line, threads, ref), "line": {"t0": line[0], "k": line[1]}}

@@ -1,0 +1,67 @@
+"""planning.accuracy: the reference's cache key follows every file the scene reads; the spp line; and
+`quekaro render --report-accuracy` end to end against plain Mitsuba."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from core.errors import QuekaroError
+from core.model.job import SceneSpec
+from planning import accuracy
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def test_content_key_follows_included_files_and_defines(tmp_path):
+    (tmp_path / "part.xml").write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
+    scene = tmp_path / "scene.xml"
+    scene.write_text('<scene version="3.0.0"><default name="res" value="8"/><include filename="part.xml"/></scene>')
+    spec = SceneSpec(scene, {"res": "8"})
+    key = accuracy.content_key(spec, 64)
+    assert key == accuracy.content_key(spec, 64)
+    assert key != accuracy.content_key(SceneSpec(scene, {"res": "9"}), 64)
+    assert key != accuracy.content_key(spec, 128)
+    (tmp_path / "part.xml").write_text('<scene version="3.0.0"><shape type="cube"/></scene>')
+    assert key != accuracy.content_key(spec, 64)  # an included file changed: a new reference
+
+
+def test_spp_line_raises_the_high_count_until_samples_cost_measurable_time():
+    # 2 ms per spp on top of 0.1 s: at 4 spp the samples are noise, at 64 spp they are 0.128 s.
+    asked = []
+
+    def seconds_at(spp: int) -> float:
+        asked.append(spp)
+        return 0.1 + 0.002 * spp
+
+    t0, k = accuracy.fit_spp_line(seconds_at, 4)
+    assert asked == [1, 4, 16, 64]
+    assert t0 == pytest.approx(0.1) and k == pytest.approx(0.002)
+
+
+def test_spp_line_refuses_a_scene_whose_samples_cost_nothing_measurable():
+    # The failure a fresh CI met: equal timings gave k ~ 0 and a uniform baseline of billions of spp.
+    with pytest.raises(QuekaroError, match=r"too small to time.*--res"):
+        accuracy.fit_spp_line(lambda spp: 0.01, 4, what="tiny.xml at 8x8")
+
+
+@pytest.mark.slow
+def test_render_report_accuracy_compares_with_plain_mitsuba(tmp_path):
+    out = tmp_path / "job.exr"
+    env = {**os.environ, "HOME": str(tmp_path)}  # the reference cache lands in the test's folder
+    cmd = [sys.executable, "-m", "quekaro", "render", str(REPO / "scenes" / "cbox.xml"), "-D", "res=48",
+           "--spp", "16", "--opt", "S", "-t", "2", "--no-progress", "-o", str(out), "--report-accuracy",
+           "--ref-spp", "256"]
+    done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    assert done.returncode == 0, done.stderr
+    report = json.loads(out.with_suffix(".json").read_text())["accuracy"]
+    assert report["reference_spp"] == 256 and 0 < report["relmse"] < 1 and report["seconds"] > 0
+    assert report["uniform"]["spp"] >= 1 and 0 < report["uniform"]["relmse"] < 1
+    assert report["line"]["k"] > 0 and "seam" in report["seams"]
+    assert list((tmp_path / ".cache" / "quekaro" / "references").glob("cbox-*.exr"))
+    assert "relMSE ratio" in done.stdout and "uniform" in done.stdout
