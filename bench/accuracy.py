@@ -315,7 +315,7 @@ def write_diff_images(name: str, diffs: dict[str, np.ndarray], out: Path) -> Non
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     scenes, agents, levels = parse_grid(args)
-    started = time.perf_counter()
+    started, load_before = time.perf_counter(), os.getloadavg()[0]
     cells: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="quekaro-bench-") as tmp:
         for scene in scenes:
@@ -325,6 +325,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                    for s in scenes}, "spp": args.spp, "ref_spp": args.ref_spp, "threads": args.threads,
         "mode": "inprocess" if args.inprocess else "farm", "agents": agents, "levels": levels,
         "cells": cells, "targets": targets(cells, agents[0]), "seconds": time.perf_counter() - started,
+        "load": [load_before, os.getloadavg()[0]],
     }
     result["outputs"] = [str(p) for p in write_outputs(result, Path(args.out))]
     if not args.json:
@@ -399,7 +400,8 @@ def spending_lines(cells: list[dict[str, Any]]) -> list[str]:
 
 def format_report(result: dict[str, Any]) -> str:
     lines = [f"mode {result['mode']}, user spp {result['spp']}, reference {result['ref_spp']} spp, "
-             f"{result['threads']} threads; took {result['seconds']:.0f} s", ""]
+             f"{result['threads']} threads; took {result['seconds']:.0f} s; load average (1 min) "
+             f"{result['load'][0]:.1f} at the start, {result['load'][1]:.1f} at the end", ""]
     for scene in dict.fromkeys(c["scene"] for c in result["cells"]):
         about = result["scenes"][scene]
         lines += [f"## {scene} ({about['role']}: {about['path']} {about['defines']})", "",
