@@ -426,26 +426,35 @@ def write_outputs(result: dict[str, Any], out: Path) -> list[Path]:
 
 
 def plot(cells: list[dict[str, Any]], path: Path) -> None:
-    """relMSE against seconds, a Pareto view: fuzzy cells at their wall time (filled, per agent count) and
-    at their render time (hollow, fewest agents), and every uniform-spp render at its render time."""
-    fig = Figure(figsize=(6.4, 4.2), dpi=100)  # no pyplot: no GUI backend, no global figure state
-    ax = fig.subplots()
-    for i, (scene, n) in enumerate(dict.fromkeys((c["scene"], c["agents"]) for c in cells)):
-        sel = sorted((c for c in cells if c["scene"] == scene and c["agents"] == n), key=lambda c: c["seconds"])
-        ax.plot([c["seconds"] for c in sel], [c["relmse"] for c in sel], "o-", color=f"C{i}",
-                label=f"fuzzy, {scene}, {n} agent(s), wall time")
-        for c in sel:
-            ax.annotate(c["level"], (c["seconds"], c["relmse"]), fontsize=7)
-        if n != min(c["agents"] for c in cells if c["scene"] == scene):
-            continue
-        ax.plot([c["render_seconds"] for c in sel], [c["relmse"] for c in sel], "o", mfc="none", color=f"C{i}",
-                label=f"fuzzy, {scene}, {n} agent(s), render time")
-        uniform = sorted((c[f"{p}_seconds"], c[f"{p}_relmse"]) for c in sel for p in ("uniform", "render_uniform"))
-        ax.plot(*zip(*uniform, strict=True), "s--", color="grey", alpha=0.7, label=f"uniform spp, {scene}")
-    ax.set_xlabel("seconds")
-    ax.set_ylabel("relative MSE against the reference")
-    ax.set_yscale("log")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=6.5)
+    """One panel per scene: relMSE against seconds, the fuzzy levels (filled, per agent count, at wall
+    time; hollow, fewest agents, at render time) against the line of uniform-spp plain renders."""
+    scenes = list(dict.fromkeys(c["scene"] for c in cells))
+    cols = min(3, len(scenes))
+    rows = (len(scenes) + cols - 1) // cols
+    fig = Figure(figsize=(4.2 * cols, 3.4 * rows), dpi=100)  # no pyplot: no GUI backend, no global state
+    for k, scene in enumerate(scenes):
+        ax = fig.add_subplot(rows, cols, k + 1)
+        mine = [c for c in cells if c["scene"] == scene]
+        first = min(c["agents"] for c in mine)
+        for i, n in enumerate(sorted({c["agents"] for c in mine})):
+            sel = sorted((c for c in mine if c["agents"] == n), key=lambda c: c["seconds"])
+            ax.plot([c["seconds"] for c in sel], [c["relmse"] for c in sel], "o", color=f"C{i}",
+                    label=f"fuzzy, {n} agent(s), wall")
+            for c in sel:
+                ax.annotate(c["level"], (c["seconds"], c["relmse"]), fontsize=7)
+            if n == first:
+                ax.plot([c["render_seconds"] for c in sel], [c["relmse"] for c in sel], "o", mfc="none",
+                        color=f"C{i}", label="fuzzy, render time")
+        uniform = sorted((c[f"{p}_seconds"], c[f"{p}_relmse"]) for c in mine if c["agents"] == first
+                         for p in ("uniform", "render_uniform"))
+        ax.plot(*zip(*uniform, strict=True), "s--", color="grey", alpha=0.7, label="uniform spp (plain)")
+        ax.set_title(scene, fontsize=9)
+        ax.set_xlabel("seconds", fontsize=8)
+        ax.set_ylabel("relMSE", fontsize=8)
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+        ax.tick_params(labelsize=7)
+        if k == 0:
+            ax.legend(fontsize=6)
     fig.tight_layout()
     fig.savefig(path)
