@@ -6,12 +6,14 @@ BIN := $(VENV)/bin
 .PHONY: setup system-deps demo test lint bench clean docs-figures
 
 # Debian packages: libllvm19 for Mitsuba's llvm variants, prosody (+ openssl for its certificates) for the
-# multi-host XMPP server and its tests.
+# multi-host XMPP server and its tests, chromium + chromium-driver for the web page's browser tests.
 system-deps:
 	@need=""; \
 	[ -e /usr/lib/x86_64-linux-gnu/libLLVM-19.so.1 ] || [ -e /usr/lib/x86_64-linux-gnu/libLLVM.so.19.1 ] || ls /usr/lib/*/libLLVM*19* >/dev/null 2>&1 || need="$$need libllvm19"; \
 	command -v prosody >/dev/null 2>&1 || need="$$need prosody"; \
 	command -v openssl >/dev/null 2>&1 || need="$$need openssl"; \
+	[ -x /usr/bin/chromium ] || need="$$need chromium"; \
+	[ -x /usr/bin/chromedriver ] || need="$$need chromium-driver"; \
 	if [ -n "$$need" ]; then \
 	  if [ "$$(id -u)" = 0 ]; then \
 	    echo "installing Debian packages:$$need"; \

@@ -188,10 +188,15 @@ async def farm(request: web.Request) -> web.Response:
 
 
 async def agents(request: web.Request) -> web.Response:
+    """Every agent the master knows (`agent_rows`)."""
+    return web.json_response({"agents": agent_rows(_service(request))})
+
+
+def agent_rows(service: MasterService, counts: dict[str, tuple[int, int]] | None = None) -> list[dict[str, Any]]:
     """Every agent the master knows: its state (lost, rendering, idle), speed, credits, the units it holds,
-    units done and failed, and seconds since it was last heard from."""
-    service = _service(request)
-    counts = service.store.agent_counts()
+    units done and failed (`counts`: the store's `agent_counts`, read if not given), and seconds since it
+    was last heard from (the web page shows the same rows)."""
+    counts = service.store.agent_counts() if counts is None else counts
     now = service.auction_now()
     rows = []
     for agent in (service.auction.agents.values() if service.auction else ()):
@@ -201,4 +206,4 @@ async def agents(request: web.Request) -> web.Response:
                      "speed": agent.speed, "holding": sorted(f"{j}/{i}" for j, i in agent.holding),
                      "units_done": done, "units_failed": failed,
                      "last_seen_s": round(max(0.0, now - agent.last_seen), 1)})
-    return web.json_response({"agents": rows})
+    return rows

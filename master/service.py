@@ -41,6 +41,7 @@ from master import auction as au
 from master.api_jobs import add_job_routes
 from master.http_api import create_app, serve
 from master.store import JobRecord, JobStore
+from master.web import add_web_routes
 from planning.jobplan import farm_min_units, plan_job
 from planning.pipeline import assemble
 
@@ -183,6 +184,7 @@ class MasterService:
         app = create_app(expected=self._expected_upload, bundle=self._bundle_for, on_tile=self._on_tile,
                          tile_dir=self.jobs_dir, authorize_bundle=self._bundle_allowed)
         add_job_routes(app, self)
+        add_web_routes(app, self)  # the web page: same application, same bind address
         tls = server_context(self.config.tls_cert, self.config.tls_key) if self.config.tls_cert else None
         self._runner, _ = await serve(app, self.config.http_host, self.config.http_port, ssl_context=tls)
 

@@ -133,6 +133,20 @@ class ResultRecord:
 
 
 @dataclass(frozen=True)
+class AttemptRecord:
+    """One award of a unit to an agent and how it ended (the web page shows a unit's attempts)."""
+
+    index: int
+    agent: str
+    started: float
+    finished: float | None
+    outcome: str  # running, done, failed, requeued, cancelled, interrupted
+    estimate: float | None
+    seconds: float | None
+    reason: str
+
+
+@dataclass(frozen=True)
 class RunningJob:
     """A running job as a restarted master's auction takes it up (`master.auction.Auction.restore`)."""
 
@@ -375,6 +389,15 @@ class JobStore:
 
     def credits(self) -> dict[str, int]:
         return {r["name"]: r["credits"] for r in self.db.execute("SELECT name, credits FROM agents")}
+
+    def attempts(self, job_id: str, index: int | None = None) -> list[AttemptRecord]:
+        """A job's attempts (one unit's with `index`), oldest first; tokens stay in the store."""
+        sql = ("SELECT idx, agent, started, finished, outcome, estimate, seconds, reason FROM attempts"
+               " WHERE job_id = ?")
+        args: tuple[Any, ...] = (job_id,)
+        if index is not None:
+            sql, args = sql + " AND idx = ?", (job_id, index)
+        return [AttemptRecord(*row) for row in self.db.execute(sql + " ORDER BY id", args)]
 
     # --- progress ------------------------------------------------------------------------------------
 

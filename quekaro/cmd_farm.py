@@ -15,7 +15,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from core.data import DEMO_SCENE
 from core.errors import QuekaroError
-from core.home import PROCESSES_FILE, default_home
+from core.home import ADMIN_TOKEN, PROCESSES_FILE, default_home
 from core.render.bundle import make_bundle
 from core.render.scene import parse_defines
 from farm.client import FarmClient
@@ -133,6 +133,8 @@ def run_demo(args: argparse.Namespace) -> int:
     """Start a farm, render the demo scene on it, fetch the image, and say where everything is."""
     with LocalFarm(args.home, args.agents, args.threads, args.rules, args.http_port, supervise=True) as farm:
         print(f"farm up: master {farm.url}, {farm.n_agents} agents, home {farm.home}")
+        print(f"web page: {farm.url}/ui/ (log in with the admin token in {farm.home / ADMIN_TOKEN}; "
+              "up while the demo runs)", flush=True)
         farm.wait_for_agents()
         with tempfile.TemporaryDirectory() as tmp:
             bundle = make_bundle(DEMO_SCENE, {}, Path(tmp) / "bundle.tar").path.read_bytes()

@@ -1,0 +1,106 @@
+"""Live updates of the page by server-sent events (`GET /ui/events[?job=ID]`).
+
+One stream per open page. Once a second (`TICK_S`; the page itself never polls) the stream looks whether
+anything changed and sends only what did, each as a named event whose data is one JSON object:
+
+- `jobs`: the jobs table (`views.jobs_view`);
+- `job`: the job the page shows, with its units (`views.job_view`), when `?job=` names one;
+- `agents`: the agents table (`views.agents_view`) with `server_now`, so the page can age "last heard".
+
+Whether jobs changed is read from the job store's own change counter (`sqlite3.Connection.total_changes`
+of the master's connection: every award, tile, status change and submission is a row written through it)
+and from the reports still being assembled, so an idle farm costs a counter read a second, not queries.
+A stream ends when its session ends (log out, expiry) or the master stops (`closing`), and a comment every
+`KEEPALIVE_S` shows a dead connection to both sides.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from aiohttp import web
+
+from master.store import StoreError
+from master.web.views import WebService, agents_view, job_view, jobs_view
+
+TICK_S = 1.0
+KEEPALIVE_S = 15.0
+
+
+def sse(event: str, data: dict[str, Any]) -> bytes:
+    """One server-sent event: its name and its data as one line of JSON."""
+    return f"event: {event}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n".encode()
+
+
+@dataclass
+class Watcher:
+    """What one stream last sent, to send again only what changed."""
+
+    service: WebService
+    job_id: str | None
+    key: tuple[Any, ...] | None = None
+    counts: dict[str, tuple[int, int]] = field(default_factory=dict)  # units done/failed per agent, at `key`
+    sent: dict[str, str] = field(default_factory=dict)
+    waiting: set[str] = field(default_factory=set)  # jobs done whose report is not written yet
+
+    def _change_key(self) -> tuple[Any, ...]:
+        ready = sum(self.service.result_path(j).with_suffix(".json").exists() for j in self.waiting)
+        return self.service.store.db.total_changes, ready
+
+    def changes(self) -> list[bytes]:
+        """The events whose data differ from what this stream sent last."""
+        out = []
+        key = self._change_key()
+        if key != self.key:
+            self.key = key
+            self.counts = self.service.store.agent_counts()  # a scan of every attempt: only when rows changed
+            jobs = jobs_view(self.service)
+            self.waiting = {j["job_id"] for j in jobs if j["status"] == "done" and not j["result_ready"]}
+            out += self._if_new("jobs", {"jobs": jobs})
+            if self.job_id is not None:
+                out += self._if_new("job", self._job())
+        agents = agents_view(self.service, self.counts)  # every tick: heartbeats change no row
+        out += self._if_new("agents", {"agents": agents}, extra={"server_now": time.time()})
+        return out
+
+    def _job(self) -> dict[str, Any]:
+        try:
+            return job_view(self.service, str(self.job_id))
+        except StoreError as exc:
+            return {"job_id": self.job_id, "error": str(exc)}
+
+    def _if_new(self, event: str, data: dict[str, Any], extra: dict[str, Any] | None = None) -> list[bytes]:
+        text = json.dumps(data, sort_keys=True)
+        if self.sent.get(event) == text:
+            return []
+        self.sent[event] = text
+        return [sse(event, {**data, **(extra or {})})]
+
+
+async def stream(request: web.Request, watcher: Watcher, alive: Callable[[], bool],
+                 closing: asyncio.Event) -> web.StreamResponse:
+    """Send `watcher`'s changes every TICK_S until the client goes, `alive()` turns false or `closing` is set."""
+    response = web.StreamResponse(headers={"Content-Type": "text/event-stream", "Cache-Control": "no-store",
+                                           "X-Accel-Buffering": "no"})
+    await response.prepare(request)
+    last_write = time.monotonic()
+    try:
+        await response.write(b"retry: 3000\n\n")
+        while alive() and not closing.is_set():
+            chunks = watcher.changes()
+            if not chunks and time.monotonic() - last_write >= KEEPALIVE_S:
+                chunks = [b": keepalive\n\n"]
+            for chunk in chunks:
+                await response.write(chunk)
+                last_write = time.monotonic()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(closing.wait(), TICK_S)
+    except ConnectionError:
+        pass  # the browser went away: nothing to answer
+    return response

@@ -1,0 +1,68 @@
+"""The image of a job as far as its tiles have landed: a PNG the page reloads when a tile arrives.
+
+The tiles recorded so far are blended by `core.render.compose` (the final assembly's own weights, pixels
+no tile covers left black) and written as an 8-bit sRGB PNG by `core.render.imageio.write_png_planar`,
+which encodes with Pillow (already a dependency of the master for the final PNG; no other image library
+is needed). A finished job's own result.png is served as it is.
+
+Composing costs time on large images, so it runs in a thread, once at a time per job, and a job's
+preview is composed again only after `MIN_INTERVAL_S` or twice the last composition's time, whichever
+is longer; the PNG is kept beside the job (`preview.png`) with the set of tiles it shows.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from core.render.compose import compose_planar
+from core.render.imageio import write_png_planar
+from core.render.tiles import tile_source
+from master.store import ResultRecord
+
+MIN_INTERVAL_S = 1.0
+PREVIEW_NAME = "preview.png"
+
+
+@dataclass
+class _JobPreview:
+    lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+    shows: frozenset[int] | None = None  # unit indices in the PNG on disk
+    done_at: float = 0.0  # monotonic time the last composition ended
+    took_s: float = 0.0
+
+
+@dataclass
+class Previews:
+    """The previews of every job the page has asked for."""
+
+    jobs: dict[str, _JobPreview] = field(default_factory=dict)
+
+    async def png(self, job_id: str, folder: Path, width: int, height: int, results: list[ResultRecord]) -> Path:
+        """The PNG showing `results`' tiles (composed again if a tile was added since the last one)."""
+        state = self.jobs.setdefault(job_id, _JobPreview())
+        path = folder / PREVIEW_NAME
+        wanted = frozenset(r.index for r in results)
+        async with state.lock:
+            if state.shows == wanted and path.is_file():
+                return path
+            wait = state.done_at + max(MIN_INTERVAL_S, 2 * state.took_s) - time.monotonic()
+            if wait > 0:
+                await asyncio.sleep(wait)
+            started = time.monotonic()
+            await asyncio.to_thread(write_preview, path, width, height, results)
+            state.shows, state.done_at, state.took_s = wanted, time.monotonic(), time.monotonic() - started
+        return path
+
+    def forget(self, job_id: str) -> None:
+        self.jobs.pop(job_id, None)
+
+
+def write_preview(path: Path, width: int, height: int, results: list[ResultRecord]) -> Path:
+    """Blend the tiles of `results` into a (width x height) PNG at `path`; uncovered pixels are black."""
+    tiles = [tile_source(r.tile_path, unit_index=r.index) for r in results if Path(r.tile_path).is_file()]
+    planar, _ = compose_planar(tiles, width, height, allow_uncovered=True)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return write_png_planar(path, planar)

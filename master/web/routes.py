@@ -1,0 +1,314 @@
+"""The web page's routes on the master's aiohttp application (the job API's bind address and port).
+
+    GET  /                                  -> /ui/
+    GET  /ui/                               the page (a session), else -> /ui/login
+    GET  /ui/login, POST /ui/login          the login form; POST its `token` field (the admin token)
+    POST /ui/logout                         ends the session (CSRF)
+    GET  /ui/static/...                     the page's CSS and JavaScript (no data in them: no session)
+    GET  /ui/api/jobs[/{job}]               jobs table; one job with its units
+    GET  /ui/api/jobs/{job}/units/{unit}    one unit: attempts, and the rules that fired with their strengths
+    GET  /ui/api/jobs/{job}/preview.png     the image so far
+    GET  /ui/api/jobs/{job}/report          a finished job's report
+    POST /ui/api/jobs/{job}/cancel          (CSRF)
+    POST /ui/api/jobs/{job}/resubmit        the job again: same bundle, -D parameters and options (CSRF)
+    GET  /ui/api/agents                     agents table
+    GET  /ui/events[?job=ID]                server-sent events (master.web.events)
+
+Every /ui response but the static files is `no-store`, framed by nobody, and under a Content-Security-Policy
+that allows this origin's own scripts, styles, images and connections only (no inline script).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import html
+import logging
+import re
+import secrets
+import shutil
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from aiohttp import web
+
+from core.errors import QuekaroError
+from core.model.status import JobStatus
+from master.store import JobRecord, StoreError
+from master.web import auth
+from master.web.events import Watcher, stream
+from master.web.preview import Previews
+from master.web.rules import fired_rules, planner_for
+from master.web.views import WebService, agents_view, job_view, jobs_view, report_view, unit_view
+
+log = logging.getLogger(__name__)
+
+STATIC = Path(str(resources.files("master.web") / "static"))
+_JOB_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
+FAILED_LOGIN_DELAY_S = 0.3  # a wrong token waits a little: guessing stays slow (the token has 192 bits anyway)
+SECURITY_HEADERS = {
+    "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; style-src 'self'; script-src 'self'; "
+                               "connect-src 'self'; frame-ancestors 'none'; base-uri 'none'; form-action 'self'",
+    "X-Content-Type-Options": "nosniff",
+    "Referrer-Policy": "no-referrer",
+    "X-Frame-Options": "DENY",
+}
+
+
+@dataclass
+class WebState:
+    """The page's state on the app: the master, sessions, previews, and whether the master is stopping."""
+
+    service: WebService
+    sessions: auth.Sessions = field(default_factory=auth.Sessions)
+    previews: Previews = field(default_factory=Previews)
+    closing: asyncio.Event = field(default_factory=asyncio.Event)
+
+
+KEY: web.AppKey[WebState] = web.AppKey("quekaro_web", WebState)
+
+
+def add_web_routes(app: web.Application, service: WebService) -> WebState:
+    """Mount the page on the master's application (beside the job API, on its bind address)."""
+    state = WebState(service)
+    app[KEY] = state
+    r = app.router
+    r.add_get("/", to_page)
+    r.add_get("/ui", to_page)
+    r.add_get("/ui/", index)
+    r.add_get("/ui/login", login_form)
+    r.add_post("/ui/login", login)
+    r.add_post("/ui/logout", logout)
+    r.add_static("/ui/static", STATIC, follow_symlinks=False)
+    r.add_get("/ui/api/jobs", api_jobs)
+    r.add_get("/ui/api/jobs/{job}", api_job)
+    r.add_get("/ui/api/jobs/{job}/units/{unit}", api_unit)
+    r.add_get("/ui/api/jobs/{job}/preview.png", api_preview)
+    r.add_get("/ui/api/jobs/{job}/report", api_report)
+    r.add_post("/ui/api/jobs/{job}/cancel", api_cancel)
+    r.add_post("/ui/api/jobs/{job}/resubmit", api_resubmit)
+    r.add_get("/ui/api/agents", api_agents)
+    r.add_get("/ui/events", events)
+    app.on_response_prepare.append(_secure_headers)
+    app.on_shutdown.append(_closing)
+    return state
+
+
+async def _closing(app: web.Application) -> None:
+    app[KEY].closing.set()  # open event streams end, so the master stops at once
+
+
+async def _secure_headers(request: web.Request, response: web.StreamResponse) -> None:
+    if request.path == "/" or request.path.startswith("/ui"):
+        response.headers.update(SECURITY_HEADERS)
+        if not request.path.startswith("/ui/static/"):
+            response.headers["Cache-Control"] = "no-store"
+
+
+async def to_page(_request: web.Request) -> web.Response:
+    """The master's root and /ui lead to the page (which asks for a login first if need be)."""
+    return _redirect("/ui/")
+
+
+def _redirect(location: str) -> web.Response:
+    return web.Response(status=303, headers={"Location": location})
+
+
+def _state(request: web.Request) -> WebState:
+    return request.app[KEY]
+
+
+def _page(name: str, **values: str) -> str:
+    """A static HTML file with its {{name}} slots filled (HTML-escaped)."""
+    text = (STATIC / name).read_text()
+    for key, value in values.items():
+        text = text.replace("{{" + key + "}}", html.escape(value, quote=True))
+    return text
+
+
+# ---- login ----------------------------------------------------------------------------------------------
+
+
+async def login_form(request: web.Request, message: str = "", status: int = 200) -> web.Response:
+    """The login form (a POST of the token in its body: no token ever in a URL), with `message` if any."""
+    return web.Response(text=_page("login.html", message=message), content_type="text/html", status=status)
+
+
+async def login(request: web.Request) -> web.Response:
+    """The admin token from the form's body opens a session (cookie); anything else gets the form again."""
+    state = _state(request)
+    form = await request.post()
+    if not auth.token_matches(str(form.get("token", "")), state.service.admin_token):
+        log.warning("web page: a wrong token was posted to the login form from %s", request.remote)
+        await asyncio.sleep(FAILED_LOGIN_DELAY_S)
+        return await login_form(request, "That is not the admin token of this farm.", status=401)
+    session = state.sessions.open()
+    response = _redirect("/ui/")
+    auth.set_cookie(response, request, session)
+    return response
+
+
+async def logout(request: web.Request) -> web.Response:
+    """End the session (a POST with its CSRF token, so no other site can log the user out)."""
+    state = _state(request)
+    state.sessions.close(await auth.require_action(request, state.sessions))
+    response = web.json_response({"logged_out": True})
+    auth.clear_cookie(response)
+    return response
+
+
+async def index(request: web.Request) -> web.Response:
+    """The page, its session's CSRF token in a meta tag; without a session, the login form."""
+    state = _state(request)
+    session = auth.session_of(request, state.sessions)
+    if session is None:
+        return _redirect("/ui/login")
+    return web.Response(text=_page("index.html", csrf=session.csrf), content_type="text/html")
+
+
+# ---- data -----------------------------------------------------------------------------------------------
+
+
+def _job_id(request: web.Request) -> str:
+    job_id = request.match_info["job"]
+    if not _JOB_RE.match(job_id):
+        raise web.HTTPNotFound(reason="no such job")
+    return job_id
+
+
+def _authorized(request: web.Request) -> WebService:
+    state = _state(request)
+    auth.require(request, state.sessions)
+    return state.service
+
+
+async def api_jobs(request: web.Request) -> web.Response:
+    return web.json_response({"jobs": jobs_view(_authorized(request))})
+
+
+async def api_job(request: web.Request) -> web.Response:
+    service = _authorized(request)
+    try:
+        return web.json_response(job_view(service, _job_id(request)))
+    except StoreError as exc:
+        raise web.HTTPNotFound(reason=str(exc)) from None
+
+
+async def api_unit(request: web.Request) -> web.Response:
+    """One unit, with the rules that fired for it (evaluated in a thread: a rule file may need parsing)."""
+    service = _authorized(request)
+    job_id, unit = _job_id(request), request.match_info["unit"]
+    if not unit.isdigit() or len(unit) > 9:
+        raise web.HTTPNotFound(reason="no such unit")
+    try:
+        record = service.store.job(job_id)
+        view = unit_view(service, job_id, int(unit))
+    except (StoreError, KeyError) as exc:
+        raise web.HTTPNotFound(reason=str(exc).strip("'\"")) from None
+    view["rules"] = await asyncio.to_thread(_rules_of, record, view)
+    return web.json_response(view)
+
+
+def _rules_of(record: JobRecord, unit: dict[str, Any]) -> dict[str, Any]:
+    """The rules that fired for the unit, by the job's rule file, or the default one when it brought none."""
+    options = record.spec.options
+    rules = options.rules if options.rules is not None and Path(options.rules).is_file() else None
+    agent_rules = unit.get("agent_rules")
+    if rules is not None:
+        note = f"the job's rule file {rules.name} (from its bundle), which every agent used"
+    else:
+        note = ("the job brought no rule file: evaluated here with the default one; each agent used its own"
+                + (f" (this unit's agent: {agent_rules})" if agent_rules else ""))
+    try:
+        planner = planner_for(rules, options.defuzzifier)
+        ranges = {k: (float(v[0]), float(v[1])) for k, v in record.plan.get("ranges", {}).items()}
+        return fired_rules(planner, unit, options.level, ranges, note).to_dict()
+    except (QuekaroError, ValueError, KeyError) as exc:
+        return {"error": f"the rules could not be evaluated here: {exc}", "note": note}
+
+
+async def api_preview(request: web.Request) -> web.StreamResponse:
+    """The finished job's PNG, or the tiles landed so far composed (`master.web.preview`)."""
+    state = _state(request)
+    service = _authorized(request)
+    job_id = _job_id(request)
+    try:
+        record = service.store.job(job_id)
+    except StoreError as exc:
+        raise web.HTTPNotFound(reason=str(exc)) from None
+    final = service.result_path(job_id).with_suffix(".png")
+    if record.status == JobStatus.DONE and final.is_file():
+        state.previews.forget(job_id)
+        return web.FileResponse(final, headers={"Content-Type": "image/png"})
+    path = await state.previews.png(job_id, service.job_dir(job_id), int(record.plan["width"]),
+                                    int(record.plan["height"]), service.store.results(job_id))
+    return web.FileResponse(path, headers={"Content-Type": "image/png"})
+
+
+async def api_report(request: web.Request) -> web.Response:
+    service = _authorized(request)
+    try:
+        return web.json_response(report_view(service, _job_id(request)))
+    except StoreError as exc:
+        raise web.HTTPNotFound(reason=str(exc)) from None
+
+
+async def api_agents(request: web.Request) -> web.Response:
+    return web.json_response({"agents": agents_view(_authorized(request))})
+
+
+# ---- actions (POST, CSRF) -------------------------------------------------------------------------------
+
+
+async def api_cancel(request: web.Request) -> web.Response:
+    """Cancel a job, as `quekaro cancel` does (the master's own cancel)."""
+    state = _state(request)
+    await auth.require_action(request, state.sessions)
+    job_id = _job_id(request)
+    try:
+        cancelled = await state.service.cancel(job_id)
+    except StoreError as exc:
+        raise web.HTTPNotFound(reason=str(exc)) from None
+    log.info("web page: job %s %s", job_id, "cancelled" if cancelled else "had already ended")
+    return web.json_response({"job_id": job_id, "cancelled": cancelled})
+
+
+async def api_resubmit(request: web.Request) -> web.Response:
+    """Submit the job's bundle again with its -D parameters and options (its rule file is in the bundle)."""
+    state = _state(request)
+    await auth.require_action(request, state.sessions)
+    service, job_id = state.service, _job_id(request)
+    try:
+        record = service.store.job(job_id)
+    except StoreError as exc:
+        raise web.HTTPNotFound(reason=str(exc)) from None
+    bundle = service.job_dir(job_id) / "bundle.tar"
+    if not bundle.is_file():
+        raise web.HTTPConflict(reason=f"job {job_id}'s bundle is no longer on the master")
+    copy = service.jobs_dir / f".resubmit-{secrets.token_hex(6)}.tar"
+    await asyncio.to_thread(shutil.copyfile, bundle, copy)
+    try:
+        options = dataclasses.replace(record.spec.options, rules=None)
+        new_id = await service.submit(copy, dict(record.spec.defines), options)
+    except QuekaroError as exc:
+        raise web.HTTPUnprocessableEntity(reason=str(exc).replace("\n", " ")[:500]) from None
+    finally:
+        copy.unlink(missing_ok=True)
+    log.info("web page: job %s submitted again as %s", job_id, new_id)
+    return web.json_response({"job_id": new_id, "from": job_id}, status=201)
+
+
+# ---- live updates ---------------------------------------------------------------------------------------
+
+
+async def events(request: web.Request) -> web.StreamResponse:
+    """The page's live updates (`master.web.events`), for as long as its session lives."""
+    state = _state(request)
+    session = auth.require(request, state.sessions)
+    job_id = request.query.get("job") or None
+    if job_id is not None and not _JOB_RE.match(job_id):
+        raise web.HTTPNotFound(reason="no such job")
+    watcher = Watcher(state.service, job_id)
+    return await stream(request, watcher, lambda: state.sessions.alive(session), state.closing)

@@ -1,0 +1,479 @@
+// The farm's page: jobs, one job's image and partition, agents. Plain JavaScript, no framework, no build.
+// Data arrives by server-sent events (/ui/events); the only timer is a 1 s one that ages "last heartbeat"
+// locally. Every value from the server is put in the page as text (textContent), never as HTML.
+"use strict";
+
+const CSRF = document.querySelector('meta[name="csrf-token"]').content;
+const STATE_COLOURS = { pending: "#6b7280", awarded: "#d97706", done: "#15803d", failed: "#b91c1c" };
+const VIRIDIS = [[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]];
+
+const state = {
+  view: "jobs", jobId: null, source: null, jobs: [], agents: [], agentsAt: 0, job: null,
+  colour: "status", showGrid: true, selected: null, selectedKey: null, shownPreview: null, reportFor: null,
+  armed: new Map(),
+};
+
+// ---- small helpers ----------------------------------------------------------------------------------
+
+function el(tag, attrs, ...children) {
+  const node = document.createElement(tag);
+  for (const [key, value] of Object.entries(attrs || {})) {
+    if (key === "class") node.className = value;
+    else if (key === "style") node.style.cssText = value;  // CSSOM: allowed by the page's CSP, a style attribute is not
+    else if (key === "dataset") Object.assign(node.dataset, value);
+    else if (key.startsWith("on")) node.addEventListener(key.slice(2), value);
+    else node.setAttribute(key, value);
+  }
+  for (const child of children.flat()) {
+    if (child === null || child === undefined) continue;
+    node.append(child instanceof Node ? child : document.createTextNode(String(child)));
+  }
+  return node;
+}
+
+function fill(node, ...children) {
+  // replaceChildren would write null as the text "null": leave the empty parts out.
+  node.replaceChildren(...children.flat().filter((c) => c !== null && c !== undefined));
+}
+
+function fmtTime(epoch) {
+  if (!epoch) return "";
+  return new Date(epoch * 1000).toLocaleTimeString();
+}
+
+function fmtSeconds(s) {
+  if (s === null || s === undefined) return "";
+  if (s < 60) return `${s.toFixed(1)} s`;
+  const m = Math.floor(s / 60);
+  return m < 60 ? `${m} min ${Math.round(s % 60)} s` : `${Math.floor(m / 60)} h ${m % 60} min`;
+}
+
+function fmtNumber(v, digits = 3) {
+  if (v === null || v === undefined) return "";
+  if (typeof v !== "number") return String(v);
+  return Number.isInteger(v) ? String(v) : Number(v).toPrecision(digits);
+}
+
+function eta(job) {
+  if (job.status !== "running") return "";
+  return job.eta_s === null || job.eta_s === undefined ? "after the first unit" : fmtSeconds(job.eta_s);
+}
+
+function badge(text) {
+  return el("span", { class: `badge ${text.split(" ")[0]}` }, text);
+}
+
+function say(text, isError = false) {
+  const box = document.getElementById("message");
+  box.textContent = text;
+  box.className = isError ? "message error" : "message";
+  box.hidden = !text;
+}
+
+async function post(url) {
+  const response = await fetch(url, { method: "POST", headers: { "X-CSRF-Token": CSRF }, credentials: "same-origin" });
+  const body = await response.json().catch(() => ({}));
+  if (response.status === 401) window.location.assign("/ui/login");
+  if (!response.ok) throw new Error(body.error || `HTTP ${response.status}`);
+  return body;
+}
+
+async function getJSON(url) {
+  const response = await fetch(url, { credentials: "same-origin" });
+  if (response.status === 401) window.location.assign("/ui/login");
+  const body = await response.json();
+  if (!response.ok) throw new Error(body.error || `HTTP ${response.status}`);
+  return body;
+}
+
+// ---- routing and the event stream ---------------------------------------------------------------------
+
+function route() {
+  const hash = window.location.hash || "#/jobs";
+  const job = hash.match(/^#\/job\/([A-Za-z0-9_.-]+)$/);
+  state.view = job ? "job" : hash === "#/agents" ? "agents" : "jobs";
+  const jobId = job ? job[1] : null;
+  if (jobId !== state.jobId || state.source === null) {
+    state.jobId = jobId;
+    state.job = null;
+    state.selected = null;
+    state.selectedKey = null;
+    state.shownPreview = null;
+    state.reportFor = null;
+    fill(document.getElementById("unit-details"),
+      el("p", { class: "muted" }, "Click a unit of the partition to see its features, the rules that fired, its agent and its attempts."));
+    document.getElementById("report").hidden = true;
+    connect();
+  }
+  for (const name of ["jobs", "job", "agents"]) document.getElementById(`${name}-view`).hidden = state.view !== name;
+  document.getElementById("nav-jobs").classList.toggle("active", state.view !== "agents");
+  document.getElementById("nav-agents").classList.toggle("active", state.view === "agents");
+  render();
+}
+
+function connect() {
+  if (state.source) state.source.close();
+  const live = document.getElementById("live");
+  const url = "/ui/events" + (state.jobId ? `?job=${encodeURIComponent(state.jobId)}` : "");
+  const source = new EventSource(url);
+  source.addEventListener("open", () => { live.textContent = "live"; live.className = "live ok"; });
+  source.addEventListener("jobs", (e) => { state.jobs = JSON.parse(e.data).jobs; renderJobs(); });
+  source.addEventListener("job", (e) => { state.job = JSON.parse(e.data); renderJob(); });
+  source.addEventListener("agents", (e) => {
+    const data = JSON.parse(e.data);
+    state.agents = data.agents;
+    state.agentsAt = Date.now() / 1000;
+    renderAgents();
+  });
+  source.addEventListener("error", () => {
+    live.textContent = "reconnecting";
+    live.className = "live";
+    if (source.readyState === EventSource.CLOSED) {
+      // A refused stream (session gone) is not retried by the browser: ask once whether we are logged out.
+      fetch("/ui/api/agents", { credentials: "same-origin" }).then((r) => {
+        if (r.status === 401) window.location.assign("/ui/login");
+        else setTimeout(connect, 3000);
+      }).catch(() => setTimeout(connect, 3000));
+    }
+  });
+  state.source = source;
+}
+
+function render() {
+  if (state.view === "jobs") renderJobs();
+  else if (state.view === "job") renderJob();
+  else renderAgents();
+}
+
+// ---- jobs ---------------------------------------------------------------------------------------------
+
+function progressBar(job) {
+  const total = job.units_total || 0;
+  const share = total ? (100 * job.units_done) / total : 0;
+  return el("div", {},
+    el("div", { class: "bar" }, el("span", { style: `width: ${share.toFixed(1)}%` })),
+    el("span", { class: "bar-text" }, `${job.units_done}/${total} units` + (job.units_failed ? `, ${job.units_failed} failed` : "")));
+}
+
+function effectsCell(effects) {
+  if (!effects || !effects.variant) return "";
+  const head = `${effects.variant} / ${effects.integrator} / depth ${effects.max_depth}`;
+  return el("details", {}, el("summary", {}, head), el("ul", {}, (effects.reasons || []).map((r) => el("li", {}, r))));
+}
+
+function actionButtons(job) {
+  const buttons = [];
+  if (job.status === "running") {
+    const key = `cancel-${job.job_id}`;
+    const armed = state.armed.has(key);
+    buttons.push(el("button", {
+      type: "button", class: armed ? "danger armed" : "danger", "data-action": "cancel", "data-job": job.job_id,
+      onclick: () => cancelJob(job.job_id),
+    }, armed ? "Confirm cancel" : "Cancel"));
+  }
+  buttons.push(el("button", {
+    type: "button", "data-action": "resubmit", "data-job": job.job_id, onclick: () => resubmitJob(job.job_id),
+  }, "Re-submit"));
+  return buttons;
+}
+
+function cancelJob(jobId) {
+  // Two clicks: the first arms the button for 4 s, the second cancels (no browser dialog).
+  const key = `cancel-${jobId}`;
+  if (!state.armed.has(key)) {
+    state.armed.set(key, setTimeout(() => { state.armed.delete(key); render(); }, 4000));
+    render();
+    return;
+  }
+  clearTimeout(state.armed.get(key));
+  state.armed.delete(key);
+  post(`/ui/api/jobs/${encodeURIComponent(jobId)}/cancel`)
+    .then((r) => say(r.cancelled ? `Job ${jobId} cancelled.` : `Job ${jobId} had already ended.`))
+    .catch((e) => say(`Cancel failed: ${e.message}`, true));
+}
+
+function resubmitJob(jobId) {
+  say(`Submitting job ${jobId} again (planning its pre-pass)...`);
+  post(`/ui/api/jobs/${encodeURIComponent(jobId)}/resubmit`)
+    .then((r) => say(`Job ${jobId} submitted again as ${r.job_id}.`))
+    .catch((e) => say(`Re-submit failed: ${e.message}`, true));
+}
+
+function renderJobs() {
+  if (state.view !== "jobs") return;
+  const rows = state.jobs.map((job) => el("tr", { "data-job": job.job_id, "data-status": job.status },
+    el("td", {}, el("a", { href: `#/job/${job.job_id}`, class: "job-link" }, job.job_id)),
+    el("td", {}, job.scene),
+    el("td", {}, badge(job.paused ? `${job.status} (paused)` : job.status), job.error ? el("div", { class: "muted" }, job.error) : null),
+    el("td", {}, job.level),
+    el("td", {}, progressBar(job)),
+    el("td", {}, eta(job)),
+    el("td", {}, fmtTime(job.created)),
+    el("td", {}, fmtSeconds(job.elapsed_s) + (job.finished ? ` (ended ${fmtTime(job.finished)})` : "")),
+    el("td", {}, effectsCell(job.effects)),
+    el("td", {}, actionButtons(job))));
+  fill(document.querySelector("#jobs-table tbody"), ...rows);
+  document.getElementById("jobs-empty").hidden = state.jobs.length > 0;
+}
+
+// ---- one job ------------------------------------------------------------------------------------------
+
+function renderJob() {
+  if (state.view !== "job") return;
+  const job = state.job;
+  const view = document.getElementById("job-view");
+  if (!job) return;
+  if (job.error && !job.units) {
+    document.getElementById("job-title").textContent = `Job ${state.jobId}`;
+    fill(document.getElementById("job-summary"), el("div", {}, job.error));
+    return;
+  }
+  view.dataset.status = job.status;
+  view.dataset.unitsDone = job.units_done;
+  view.dataset.unitsTotal = job.units_total;
+  document.getElementById("job-title").textContent = `Job ${job.job_id}: ${job.scene}`;
+  const item = (label, value) => el("div", {}, el("b", {}, label), value);
+  fill(document.getElementById("job-summary"),
+    item("state", badge(job.status)), item("level", job.level),
+    item("progress", progressBar(job)),
+    item("ETA", eta(job) || "-"),
+    item("image", `${job.width} x ${job.height}, spp ${job.spp}, depth ${job.depth}`),
+    item("submitted", fmtTime(job.created)), item("time", fmtSeconds(job.elapsed_s)),
+    item("effects", effectsCell(job.effects)),
+    el("div", {}, actionButtons(job)),
+    job.error ? item("error", job.error) : null);
+  refreshPreview(job);
+  drawOverlay();
+  refreshSelected(job);
+  if (job.status === "done" && job.result_ready && state.reportFor !== job.job_id) loadReport(job.job_id);
+  if (job.status !== "done") document.getElementById("report").hidden = true;
+}
+
+function refreshPreview(job) {
+  const version = `${job.tiles}-${job.result_ready ? 1 : 0}`;
+  if (state.shownPreview === version) return;
+  state.shownPreview = version;
+  const img = document.getElementById("preview");
+  const next = new Image();
+  next.onload = () => {
+    img.src = next.src;
+    img.dataset.tiles = String(job.tiles);
+    img.dataset.final = job.result_ready ? "1" : "0";
+    layoutStage(job);
+  };
+  next.src = `/ui/api/jobs/${encodeURIComponent(job.job_id)}/preview.png?v=${version}`;
+  layoutStage(job);
+}
+
+function scaleOf(job) {
+  // Small images are shown enlarged (pixelated), large ones fit the window.
+  const roomW = Math.max(320, Math.min(window.innerWidth - 480, 1100));
+  const roomH = Math.max(320, window.innerHeight - 240);
+  const fit = Math.min(roomW / job.width, roomH / job.height);
+  return fit >= 1 ? Math.min(16, Math.floor(fit)) : fit;
+}
+
+function layoutStage(job) {
+  const scale = scaleOf(job);
+  const width = Math.round(job.width * scale), height = Math.round(job.height * scale);
+  const img = document.getElementById("preview"), canvas = document.getElementById("overlay");
+  img.style.width = `${width}px`;
+  img.style.height = `${height}px`;
+  canvas.style.width = `${width}px`;
+  canvas.style.height = `${height}px`;
+  const ratio = window.devicePixelRatio || 1;
+  if (canvas.width !== Math.round(width * ratio)) canvas.width = Math.round(width * ratio);
+  if (canvas.height !== Math.round(height * ratio)) canvas.height = Math.round(height * ratio);
+}
+
+function unitValue(unit) {
+  const v = unit[state.colour];
+  return v === null || v === undefined ? null : Number(v);
+}
+
+function viridis(t) {
+  const x = Math.min(1, Math.max(0, t)) * (VIRIDIS.length - 1);
+  const i = Math.min(VIRIDIS.length - 2, Math.floor(x)), f = x - i;
+  const c = VIRIDIS[i].map((a, k) => Math.round(a + f * (VIRIDIS[i + 1][k] - a)));
+  return `rgb(${c[0]}, ${c[1]}, ${c[2]})`;
+}
+
+function valueRange(units) {
+  const values = units.map(unitValue).filter((v) => v !== null && Number.isFinite(v));
+  if (!values.length) return null;
+  return [Math.min(...values), Math.max(...values)];
+}
+
+function unitFill(unit, range) {
+  if (state.colour === "status") return { colour: STATE_COLOURS[unit.status] || "#000", alpha: unit.status === "done" ? 0.12 : 0.5 };
+  const v = unitValue(unit);
+  if (v === null || !range) return { colour: "#9ca3af", alpha: 0.55 };
+  const t = range[1] > range[0] ? (v - range[0]) / (range[1] - range[0]) : 0.5;
+  return { colour: viridis(t), alpha: 0.7 };
+}
+
+function drawOverlay() {
+  const job = state.job;
+  if (!job || !job.units) return;
+  layoutStage(job);
+  const canvas = document.getElementById("overlay");
+  const ctx = canvas.getContext("2d");
+  const k = canvas.width / job.width;
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  const range = state.colour === "status" ? null : valueRange(job.units);
+  for (const unit of job.units) {
+    const [x, y, w, h] = unit.rect;
+    const fill = unitFill(unit, range);
+    ctx.globalAlpha = fill.alpha;
+    ctx.fillStyle = fill.colour;
+    ctx.fillRect(x * k, y * k, w * k, h * k);
+    ctx.globalAlpha = 1;
+    if (state.showGrid) {
+      ctx.strokeStyle = state.colour === "status" ? STATE_COLOURS[unit.status] || "#000" : "#ffffffaa";
+      ctx.lineWidth = 1;
+      ctx.strokeRect(x * k + 0.5, y * k + 0.5, w * k - 1, h * k - 1);
+    }
+  }
+  if (state.selected !== null) {
+    const unit = job.units.find((u) => u.index === state.selected);
+    if (unit) {
+      const [x, y, w, h] = unit.rect;
+      ctx.strokeStyle = "#22d3ee";
+      ctx.lineWidth = 3;
+      ctx.strokeRect(x * k + 1.5, y * k + 1.5, w * k - 3, h * k - 3);
+    }
+  }
+  canvas.dataset.units = String(job.units.length);
+  canvas.dataset.done = String(job.units.filter((u) => u.status === "done").length);
+  canvas.dataset.colour = state.colour;
+  renderLegend(range);
+}
+
+function renderLegend(range) {
+  const legend = document.getElementById("legend");
+  if (state.colour === "status") {
+    fill(legend, ...Object.entries(STATE_COLOURS).map(([name, colour]) =>
+      el("span", {}, el("span", { class: "swatch", style: `background: ${colour}` }), ` ${name} `)));
+    return;
+  }
+  const lo = range ? fmtNumber(range[0]) : "-", hi = range ? fmtNumber(range[1]) : "-";
+  fill(legend, el("span", { id: "legend-min" }, lo), el("span", { class: "ramp" }),
+    el("span", { id: "legend-max" }, hi),
+    el("span", {}, el("span", { class: "swatch", style: "background: #9ca3af" }), " no value yet"));
+}
+
+function unitAt(event) {
+  const job = state.job;
+  if (!job || !job.units) return null;
+  const canvas = document.getElementById("overlay");
+  const box = canvas.getBoundingClientRect();
+  const px = ((event.clientX - box.left) / box.width) * job.width;
+  const py = ((event.clientY - box.top) / box.height) * job.height;
+  return job.units.find((u) => px >= u.rect[0] && px < u.rect[0] + u.rect[2] && py >= u.rect[1] && py < u.rect[1] + u.rect[3]) || null;
+}
+
+function refreshSelected(job) {
+  if (state.selected === null) return;
+  const unit = job.units.find((u) => u.index === state.selected);
+  const key = unit ? `${unit.status}-${unit.attempts}-${unit.agent}` : null;
+  if (key !== state.selectedKey) loadUnit(state.selected);
+}
+
+function loadUnit(index) {
+  const job = state.job;
+  state.selected = index;
+  const unit = job.units.find((u) => u.index === index);
+  state.selectedKey = unit ? `${unit.status}-${unit.attempts}-${unit.agent}` : null;
+  drawOverlay();
+  getJSON(`/ui/api/jobs/${encodeURIComponent(job.job_id)}/units/${index}`)
+    .then(renderUnit)
+    .catch((e) => say(`Unit ${index}: ${e.message}`, true));
+}
+
+function renderUnit(unit) {
+  const rows = [
+    ["state", badge(unit.status)], ["rectangle", unit.rect.join(", ")],
+    ["C (complexity)", fmtNumber(unit.C, 4)], ["S (size, px)", unit.S], ["Nd (neighbour difference)", fmtNumber(unit.Nd, 4)],
+    ["cost", fmtNumber(unit.cost, 4)], ["agent", unit.agent || "-"], ["attempts", unit.attempts],
+    ["spp", unit.spp ?? "-"], ["depth", unit.depth ?? "-"], ["band", unit.band ?? "-"],
+    ["render seconds", unit.seconds ?? "-"],
+    ["Rl, Ls, Ibs", Object.keys(unit.outputs || {}).length ? Object.entries(unit.outputs).map(([k, v]) => `${k} ${fmtNumber(v, 3)}`).join(", ") : "-"],
+  ];
+  const table = el("table", { id: "unit-table" }, rows.map(([k, v]) => el("tr", {}, el("th", {}, k), el("td", { "data-field": k }, v))));
+  const rules = unit.rules || {};
+  let rulesPart;
+  if (rules.error) rulesPart = el("p", { class: "error" }, rules.error);
+  else if (!rules.fired || !rules.fired.length) rulesPart = el("p", { class: "muted" }, rules.note || "No rule fired.");
+  else {
+    rulesPart = el("div", {},
+      el("p", { class: "muted" }, `${rules.rules_file}, level ${rules.level} (Op ${fmtNumber(rules.inputs.Op, 3)}): ${rules.note}`),
+      el("ul", { class: "rules", id: "fired-rules" }, rules.fired.map((r) => el("li", {},
+        el("span", { class: "strength", style: `width: ${Math.round(r.strength * 60)}px` }),
+        el("b", {}, `${r.name} ${r.strength.toFixed(3)}`), ` IF ${r.if} THEN ${r.then}`))));
+  }
+  const attempts = el("table", { id: "attempts-table" },
+    el("tr", {}, ["agent", "started", "finished", "outcome", "seconds", "reason"].map((h) => el("th", {}, h))),
+    (unit.attempt_list || []).map((a) => el("tr", {}, el("td", {}, a.agent), el("td", {}, fmtTime(a.started)),
+      el("td", {}, fmtTime(a.finished)), el("td", {}, a.outcome), el("td", {}, a.seconds ?? ""), el("td", {}, a.reason))));
+  fill(document.getElementById("unit-details"),
+    el("h3", { id: "unit-title", "data-unit": unit.index }, `Unit ${unit.index}`), table,
+    el("h3", {}, "Rules that fired"), rulesPart, el("h3", {}, "Attempts"), attempts);
+}
+
+function accuracyPart(report) {
+  // A report that carries an accuracy comparison shows it; the farm's own reports say why they have none.
+  if (!report.accuracy) return el("p", { class: "muted", id: "accuracy-note" }, report.accuracy_note);
+  const entries = Object.entries(report.accuracy);
+  return el("div", { id: "accuracy" }, el("h3", {}, "Accuracy"),
+    el("dl", {}, entries.flatMap(([k, v]) => [el("dt", {}, k),
+      el("dd", {}, typeof v === "object" && v !== null ? JSON.stringify(v) : fmtNumber(v, 4))])));
+}
+
+function loadReport(jobId) {
+  state.reportFor = jobId;
+  getJSON(`/ui/api/jobs/${encodeURIComponent(jobId)}/report`).then((report) => {
+    const box = document.getElementById("report");
+    if (!report.available) { box.hidden = true; state.reportFor = null; return; }
+    const totals = report.totals || {}, compose = report.compose || {};
+    const pairs = [
+      ["units", totals.units], ["render seconds (agents)", fmtNumber(totals.render_seconds, 4)],
+      ["samples", totals.samples], ["non-finite pixels", totals.nonfinite],
+      ["pre-pass seconds", fmtNumber(totals.prepass_seconds, 3)], ["compose seconds", fmtNumber(totals.seconds, 3)],
+      ["tiles used", compose.tiles_used], ["pixels filled", compose.filled], ["pixels uncovered", compose.uncovered],
+    ];
+    fill(box, el("h3", {}, "Report"),
+      el("dl", {}, pairs.flatMap(([k, v]) => [el("dt", {}, k), el("dd", {}, v ?? "-")])),
+      accuracyPart(report));
+    box.hidden = false;
+  }).catch((e) => { state.reportFor = null; say(`Report: ${e.message}`, true); });
+}
+
+// ---- agents -------------------------------------------------------------------------------------------
+
+function renderAgents() {
+  if (state.view !== "agents") return;
+  const age = Date.now() / 1000 - state.agentsAt;
+  const rows = state.agents.map((a) => el("tr", { "data-agent": a.jid, "data-state": a.state },
+    el("td", {}, a.jid), el("td", {}, badge(a.state), a.blocklisted_for && a.blocklisted_for.length ? el("div", { class: "muted" }, `for ${a.blocklisted_for.join(", ")}`) : null),
+    el("td", {}, fmtNumber(a.speed, 3)), el("td", {}, a.units_done), el("td", {}, a.units_failed),
+    el("td", {}, a.holding.join(" ")), el("td", {}, a.credits),
+    el("td", {}, `${(a.last_seen_s + age).toFixed(0)} s ago`), el("td", {}, a.restarts)));
+  fill(document.querySelector("#agents-table tbody"), ...rows);
+  document.getElementById("agents-empty").hidden = state.agents.length > 0;
+}
+
+// ---- start --------------------------------------------------------------------------------------------
+
+document.getElementById("overlay").addEventListener("click", (event) => {
+  const unit = unitAt(event);
+  if (unit) loadUnit(unit.index);
+});
+document.getElementById("colour-by").addEventListener("change", (event) => { state.colour = event.target.value; drawOverlay(); });
+document.getElementById("show-grid").addEventListener("change", (event) => { state.showGrid = event.target.checked; drawOverlay(); });
+document.getElementById("logout").addEventListener("click", () => {
+  post("/ui/logout").finally(() => window.location.assign("/ui/login"));
+});
+window.addEventListener("hashchange", route);
+window.addEventListener("resize", () => drawOverlay());
+setInterval(() => { if (state.view === "agents") renderAgents(); }, 1000);  // ages the heartbeats; no request
+route();

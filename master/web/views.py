@@ -1,0 +1,141 @@
+"""What the web page shows, as plain dicts read from the job store and the auction (no HTTP here).
+
+- `jobs_view`: every job with its state, level, progress, ETA, times and effect decisions (the job API's
+  `job_summary`, plus the options and image size the page shows);
+- `job_view`: one job and its units, each with its rectangle, features (C, S, Nd), state, the agent
+  holding or having rendered it, and the parameters the rules chose (spp, depth, band, Rl/Ls/Ibs);
+- `unit_view`: one unit's attempts (agent, times, outcome) beside the same;
+- `agents_view`: the job API's agent rows, with a local farm's restarting processes and blocklists;
+- `report_view`: a finished job's report, without its per-unit list (the units are on the page already).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any, Protocol
+
+from core.home import PROCESSES_FILE
+from core.model.status import JobStatus
+from master.api_jobs import MasterService, agent_rows, job_summary
+from master.store import JobRecord, UnitRecord
+
+ACCURACY_NOTE = ("The farm keeps no per-job accuracy report yet (no reference render is made for a job; "
+                 "`quekaro bench accuracy` measures levels against references): shown is what the job's "
+                 "report has.")
+
+
+class WebService(MasterService, Protocol):
+    """What the page needs of the master beyond the job API: its home and each job's folder."""
+
+    home: Path
+
+    def job_dir(self, job_id: str) -> Path: ...
+
+
+def _round(value: float | None, digits: int = 4) -> float | None:
+    return None if value is None else round(float(value), digits)
+
+
+def job_row(service: WebService, record: JobRecord, now: float) -> dict[str, Any]:
+    """One job as the jobs table shows it."""
+    row = job_summary(service, record.id)
+    options = record.spec.options
+    end = record.finished if record.finished is not None else now
+    row.update({
+        "width": record.plan.get("width"), "height": record.plan.get("height"), "spp": record.plan.get("spp"),
+        "depth": record.plan.get("depth"), "defines": dict(record.spec.defines),
+        "options": {"spp": options.spp, "depth": options.depth, "units": options.units,
+                    "integrator": options.integrator, "variant": options.variant,
+                    "defuzzifier": options.defuzzifier, "sensor": options.sensor,
+                    "rules": options.rules.name if options.rules else None},
+        "elapsed_s": round(max(0.0, end - record.created), 1),
+    })
+    return row
+
+
+def jobs_view(service: WebService) -> list[dict[str, Any]]:
+    """Every job, newest first."""
+    now = time.time()
+    return [job_row(service, r, now) for r in reversed(service.store.list_jobs())]
+
+
+def _unit_row(unit: UnitRecord, params: dict[str, Any] | None, agent: str | None) -> dict[str, Any]:
+    params = params or {}
+    outputs = params.get("outputs") or {}
+    return {"index": unit.index, "rect": unit.rect.as_list(), "C": _round(unit.C, 6), "S": int(unit.S),
+            "Nd": _round(unit.Nd, 6), "cost": _round(unit.cost), "status": str(unit.status),
+            "attempts": unit.attempts, "agent": agent or params.get("agent"),
+            "spp": params.get("spp"), "depth": params.get("depth"), "band": params.get("band"),
+            "seconds": _round(params.get("seconds"), 3),
+            "outputs": {k: _round(v) for k, v in outputs.items() if isinstance(v, int | float)}}
+
+
+def job_view(service: WebService, job_id: str) -> dict[str, Any]:
+    """One job and every unit of it (raises StoreError for an unknown job)."""
+    record = service.store.job(job_id)
+    params = {r.index: r.params for r in service.store.results(job_id)}
+    holding = {a.index: a.agent for a in service.store.attempts(job_id) if a.outcome == "running"}
+    units = [_unit_row(u, params.get(u.index), holding.get(u.index)) for u in service.store.units(job_id)]
+    return {**job_row(service, record, time.time()), "ranges": record.plan.get("ranges", {}),
+            "tiles": len(params), "units": units}
+
+
+def unit_view(service: WebService, job_id: str, index: int) -> dict[str, Any]:
+    """One unit: its row, and every attempt at it (agent, started, finished, outcome, seconds, reason)."""
+    units = [u for u in service.store.units(job_id) if u.index == index]
+    if not units:
+        raise KeyError(f"job {job_id!r} has no unit {index}")
+    params = {r.index: r.params for r in service.store.results(job_id)}.get(index)
+    attempts = service.store.attempts(job_id, index)
+    holding = next((a.agent for a in attempts if a.outcome == "running"), None)
+    # C and Nd unrounded: the rules are evaluated on them (the job view rounds them for the partition)
+    return {**_unit_row(units[0], params, holding), "C": units[0].C, "Nd": units[0].Nd, "job_id": job_id,
+            "agent_rules": (params or {}).get("rules"),
+            "attempt_list": [{"agent": a.agent, "started": a.started, "finished": a.finished,
+                              "outcome": a.outcome, "estimate_s": _round(a.estimate, 2),
+                              "seconds": _round(a.seconds, 3), "reason": a.reason} for a in attempts]}
+
+
+def _process_states(home: Path) -> dict[str, dict[str, Any]]:
+    """A local farm's processes as its supervisor last wrote them (none for a farm run by hand)."""
+    try:
+        processes = json.loads((home / PROCESSES_FILE).read_text())["processes"]
+        return {str(p["name"]): p for p in processes}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+
+
+def agents_view(service: WebService, counts: dict[str, tuple[int, int]] | None = None) -> list[dict[str, Any]]:
+    """The job API's agent rows; state is restarting (the supervisor's word), lost, blocklisted (for a
+    running job), rendering or idle; `heard_at` is the wall-clock time of the last message. `counts` are
+    the store's units done and failed per agent (read if not given)."""
+    processes = _process_states(service.home)
+    jobs = service.auction.jobs if service.auction else {}
+    now = time.time()
+    rows = agent_rows(service, counts)
+    for row in rows:
+        name = row["jid"].split("@", 1)[0].rsplit("-", 1)[0]  # agent-0-a1b2c3@host -> agent-0
+        process = processes.get(name, {})
+        row["restarts"] = int(process.get("restarts", 0) or 0)
+        row["blocklisted_for"] = sorted(j for j, job in jobs.items() if row["jid"] in job.blocklist)
+        row["heard_at"] = round(now - row["last_seen_s"], 1)
+        if process.get("state", "running") != "running":
+            row["state"] = str(process["state"])  # restarting, or failed for good
+        elif not row["lost"] and row["blocklisted_for"]:
+            row["state"] = "blocklisted"
+    return rows
+
+
+def report_view(service: WebService, job_id: str) -> dict[str, Any]:
+    """A finished job's report (its totals, composition, pre-pass, effects), or why there is none yet."""
+    record = service.store.job(job_id)
+    path = service.result_path(job_id).with_suffix(".json")
+    if record.status != JobStatus.DONE or not path.is_file():
+        return {"job_id": job_id, "available": False, "status": str(record.status),
+                "accuracy": None, "accuracy_note": ACCURACY_NOTE}
+    report = json.loads(path.read_text())
+    keep = ("totals", "compose", "prepass", "effects", "user", "options", "image", "created", "finished")
+    return {"job_id": job_id, "available": True, **{k: report.get(k) for k in keep},
+            "accuracy": report.get("accuracy"), "accuracy_note": None if report.get("accuracy") else ACCURACY_NOTE}

@@ -1,0 +1,241 @@
+"""The web page in a real browser (headless Debian chromium, see tests/web_support.py) against a real local
+farm: the embedded XMPP server, the master and two render agents as processes (1 Dr.Jit thread each), tiny
+scenes. The tests log in through the form, watch a job render until its image is complete (the page
+updated by server-sent events, never reloaded), click a unit and read its features, fired rules, agent and
+attempts, colour the partition by the rules' outputs and inputs, read the report and the agents, cancel and
+re-submit jobs from the page, and check the refusals: no cookie, an agent's award token, no CSRF token.
+Screenshots go to each test's temporary folder."""
+
+from __future__ import annotations
+
+import io
+import json
+import sqlite3
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+from selenium.webdriver.common.action_chains import ActionChains
+from selenium.webdriver.common.by import By
+from selenium.webdriver.remote.webdriver import WebDriver
+from selenium.webdriver.support.ui import Select
+from web_support import click, http, no_downloads, require_browser, rows, screenshot, start_browser, wait_until
+
+from core.render.bundle import make_bundle
+from farm.local import LocalFarm
+from master.web.auth import COOKIE, CSRF_HEADER
+
+pytestmark = pytest.mark.slow
+
+REPO = Path(__file__).resolve().parent.parent
+SCENE = REPO / "scenes" / "cbox.xml"
+SMALL = {"res": "128", "spp": "1024"}  # the job watched to the end (~10 units at level S)
+LONG = {"res": "256", "spp": "1024"}  # a job that is still running when the page cancels it
+JOB_TIMEOUT_S = 300.0
+
+
+def bundle_of(defines: dict[str, str]) -> bytes:
+    with tempfile.TemporaryDirectory() as tmp:
+        return make_bundle(SCENE, defines, Path(tmp) / "b.tar").path.read_bytes()
+
+
+@pytest.fixture(scope="module")
+def farm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LocalFarm]:
+    require_browser()
+    with LocalFarm(tmp_path_factory.mktemp("farm"), agents=2, threads=1) as farm:
+        farm.wait_for_agents()
+        yield farm
+
+
+@pytest.fixture(scope="module")
+def browser(farm: LocalFarm, tmp_path_factory: pytest.TempPathFactory) -> Iterator[WebDriver]:
+    with pytest.MonkeyPatch.context() as patch:
+        no_downloads(patch)
+        driver = start_browser(tmp_path_factory.mktemp("chromium-profile"))
+        try:
+            yield driver
+        finally:
+            driver.quit()
+
+
+def admin_token(farm: LocalFarm) -> str:
+    return (farm.home / "admin.token").read_text().strip()
+
+
+def log_in(driver: WebDriver, farm: LocalFarm, token: str | None = None) -> None:
+    """Through the login form, as a person does."""
+    driver.get(farm.url + "/ui/")
+    wait_until(lambda: driver.find_element(By.ID, "token"), 20, "the login form")
+    field = driver.find_element(By.ID, "token")
+    field.clear()
+    field.send_keys(token if token is not None else admin_token(farm))
+    driver.find_element(By.ID, "login-button").click()
+
+
+def logged_in(driver: WebDriver, farm: LocalFarm) -> None:
+    """The page open with a session (logging in if the browser has none)."""
+    driver.get(farm.url + "/ui/#/jobs")
+    if "/ui/login" in driver.current_url:
+        log_in(driver, farm)
+    wait_until(lambda: driver.find_element(By.ID, "live").text == "live", 20, "the event stream")
+
+
+def session_cookie(driver: WebDriver) -> str:
+    cookie = driver.get_cookie(COOKIE)
+    assert cookie is not None, driver.get_cookies()
+    return f"{COOKIE}={cookie['value']}"
+
+
+def job_row(driver: WebDriver, job_id: str):
+    return driver.find_element(By.CSS_SELECTOR, f'#jobs-table tr[data-job="{job_id}"]')
+
+
+def test_login_form_refuses_a_wrong_token_and_sets_a_strict_httponly_cookie(farm, browser, tmp_path):
+    browser.delete_all_cookies()
+    log_in(browser, farm, token="not-the-token")
+    error = wait_until(lambda: browser.find_element(By.ID, "login-error").text, 20, "the login error")
+    assert "not the admin token" in error and browser.get_cookie(COOKIE) is None
+    screenshot(browser, tmp_path, "login-refused")
+    log_in(browser, farm)
+    wait_until(lambda: browser.find_element(By.ID, "live").text == "live", 20, "the page and its event stream")
+    assert browser.current_url.startswith(farm.url + "/ui/") and admin_token(farm) not in browser.current_url
+    cookie = browser.get_cookie(COOKIE)
+    assert cookie["httpOnly"] is True and cookie["sameSite"] == "Strict" and cookie["path"] == "/ui"
+    assert browser.execute_script("return document.cookie") == ""  # HttpOnly: no script reads it
+    screenshot(browser, tmp_path, "jobs-empty")
+
+
+def test_watch_a_job_render_until_its_image_is_complete_then_click_a_unit(farm, browser, tmp_path):
+    logged_in(browser, farm)
+    browser.execute_script("window.__notReloaded = true;")
+    browser.get_log("browser")  # drained: what an earlier test logged (a refused login) is not this one's
+    job_id = farm.client().submit(bundle_of(SMALL), SMALL, {"level": "S", "units": 8})
+    click(browser, f'#jobs-table tr[data-job="{job_id}"] a.job-link', 30)  # the new job, pushed by the events
+    view = browser.find_element(By.ID, "job-view")
+    preview = browser.find_element(By.ID, "preview")
+    seen: list[int] = []
+    deadline = time.monotonic() + JOB_TIMEOUT_S
+    while time.monotonic() < deadline:
+        tiles = int(preview.get_attribute("data-tiles") or 0)
+        if not seen or tiles != seen[-1]:
+            seen.append(tiles)
+            if 0 < tiles < int(view.get_attribute("data-units-total") or 0):
+                screenshot(browser, tmp_path, f"job-partial-{tiles}")
+        if preview.get_attribute("data-final") == "1":
+            seen.append(int(preview.get_attribute("data-tiles")))  # the final image (read after the flag)
+            break
+        time.sleep(0.2)
+    else:
+        raise AssertionError(f"the page never showed job {job_id}'s final image (tiles seen: {seen})")
+    screenshot(browser, tmp_path, "job-done")
+    total = int(view.get_attribute("data-units-total"))
+    assert view.get_attribute("data-status") == "done" and int(view.get_attribute("data-units-done")) == total
+    assert seen == sorted(seen) and len(set(seen)) >= 2 and seen[-1] == total, seen  # it grew, live
+    assert browser.execute_script("return window.__notReloaded === true")  # by events, not reloads
+    assert browser.execute_script("return document.getElementById('preview').naturalWidth") == 128
+    canvas = browser.find_element(By.ID, "overlay")
+    assert canvas.get_attribute("data-done") == str(total)
+
+    # the image the page shows is the job's final image, complete (no unit of it left black)
+    cookie = {"Cookie": session_cookie(browser)}
+    status, _, png = http("GET", f"{farm.url}/ui/api/jobs/{job_id}/preview.png", headers=cookie)
+    assert status == 200 and png == (farm.home / "jobs" / job_id / "result.png").read_bytes()
+    image = np.asarray(Image.open(io.BytesIO(png)))
+    assert image.shape == (128, 128, 3)
+    units = json.loads(http("GET", f"{farm.url}/ui/api/jobs/{job_id}", headers=cookie)[2])["units"]
+    assert len(units) == total
+    for unit in units:
+        x, y, w, h = unit["rect"]
+        assert image[y:y + h, x:x + w].max() > 0, unit
+
+    # a click on the partition: that unit's features, rules, agent and attempts
+    ActionChains(browser).move_to_element_with_offset(canvas, 0, 0).click().perform()
+    wait_until(lambda: rows(browser, "#unit-table tr"), 20, "the unit's details")
+    cells = {row["cells"][0]: row["cells"][1] for row in rows(browser, "#unit-table tr")}
+    for field in ("C (complexity)", "S (size, px)", "Nd (neighbour difference)", "spp", "depth", "band"):
+        assert cells[field] not in ("", "-"), (field, cells)
+    assert cells["agent"].startswith("agent-") and cells["state"] == "done", cells
+    fired = [row["text"] for row in rows(browser, "#fired-rules li")]
+    assert fired and all(" IF " in li and " THEN " in li for li in fired), fired
+    attempts = [row["cells"] for row in rows(browser, "#attempts-table tr")][1:]
+    assert attempts and any(row[3] == "done" for row in attempts), attempts
+    assert browser.execute_script("return document.getElementById('unit-title').textContent").startswith("Unit ")
+    screenshot(browser, tmp_path, "unit-details")
+
+    # colour by the rules' outputs and inputs
+    for mode in ("spp", "depth", "band", "C", "Nd"):
+        Select(browser.find_element(By.ID, "colour-by")).select_by_value(mode)
+        assert canvas.get_attribute("data-colour") == mode
+        assert browser.execute_script("return document.getElementById('legend-min').textContent") != "-"
+        screenshot(browser, tmp_path, f"colour-{mode}")
+
+    # the report of the finished job (and what the farm does not measure per job)
+    report = wait_until(lambda: browser.find_element(By.ID, "report").is_displayed()
+                        and browser.find_element(By.ID, "report").text, 30, "the report")
+    assert "units" in report and "no per-job accuracy report" in report
+
+    # the agents: both registered, the units shared between them
+    click(browser, "#nav-agents")
+    agents = wait_until(lambda: len(found := rows(browser, "#agents-table tbody tr")) == 2 and found, 20,
+                        "two agents")
+    assert {a["data"]["state"] for a in agents} <= {"idle", "rendering"}, agents
+    assert sum(int(a["cells"][3]) for a in agents) >= total  # units done, over both
+    assert all(a["cells"][7].endswith("s ago") for a in agents), agents
+    screenshot(browser, tmp_path, "agents")
+    errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
+    assert not errors, errors  # no script error, no resource the page's CSP refused
+
+
+def test_cancel_and_resubmit_from_the_page(farm, browser, tmp_path):
+    logged_in(browser, farm)
+    client = farm.client()
+    job_id = client.submit(bundle_of(LONG), LONG, {"level": "off", "units": 24})
+    wait_until(lambda: job_row(browser, job_id).get_attribute("data-status") == "running", 30,
+               "the long job running in the table")
+    cancel = f'#jobs-table tr[data-job="{job_id}"] button[data-action="cancel"]'
+    click(browser, cancel)  # arms the button
+    wait_until(lambda: browser.find_element(By.CSS_SELECTOR, cancel).text == "Confirm cancel", 10, "armed cancel")
+    screenshot(browser, tmp_path, "cancel-armed")
+    click(browser, cancel)
+    wait_until(lambda: job_row(browser, job_id).get_attribute("data-status") == "cancelled", 30,
+               "the job cancelled on the page")
+    assert client.status(job_id)["status"] == "cancelled"
+    screenshot(browser, tmp_path, "cancelled")
+
+    before = {j["job_id"] for j in client.jobs()}
+    click(browser, f'#jobs-table tr[data-job="{job_id}"] button[data-action="resubmit"]')
+    again = wait_until(lambda: {j["job_id"] for j in client.jobs()} - before, 120, "the job submitted again")
+    [new_id] = again
+    new = client.status(new_id)
+    assert new["scene"] == client.status(job_id)["scene"] and new["level"] == "off"
+    wait_until(lambda: job_row(browser, new_id), 30, "the re-submitted job on the page")
+    assert new_id in browser.execute_script("return document.getElementById('message').textContent")
+    screenshot(browser, tmp_path, "resubmitted")
+    client.cancel(new_id)  # the farm has nothing left to render after this test
+
+
+def test_no_cookie_no_page_and_an_award_token_or_a_missing_csrf_token_gets_nothing(farm, browser):
+    logged_in(browser, farm)
+    with sqlite3.connect(f"file:{farm.home / 'jobs.sqlite'}?mode=ro", uri=True) as db:
+        award, job_id = db.execute("SELECT token, job_id FROM attempts ORDER BY id LIMIT 1").fetchone()
+    status, headers, _ = http("GET", farm.url + "/ui/")
+    assert status == 303 and headers["Location"] == "/ui/login"
+    for path in ("/ui/api/jobs", "/ui/api/agents", f"/ui/api/jobs/{job_id}", "/ui/events"):
+        for token_headers in ({}, {"X-Quekaro-Token": award}, {"Authorization": f"Bearer {award}"}):
+            status, _, body = http("GET", farm.url + path, headers=token_headers)
+            assert status == 401 and b"log in first" in body, (path, token_headers, status)
+    status, headers, _ = http("POST", farm.url + "/ui/login", data=f"token={award}".encode(),
+                              headers={"Content-Type": "application/x-www-form-urlencoded"})
+    assert status == 401 and "Set-Cookie" not in headers
+    cookie = session_cookie(browser)
+    cancel = f"{farm.url}/ui/api/jobs/{job_id}/cancel"
+    for extra in ({}, {CSRF_HEADER: "forged"}):
+        status, _, body = http("POST", cancel, headers={"Cookie": cookie, **extra})
+        assert status == 403 and b"CSRF" in body
+    csrf = browser.find_element(By.CSS_SELECTOR, 'meta[name="csrf-token"]').get_attribute("content")
+    status, _, _ = http("POST", cancel, headers={CSRF_HEADER: csrf})  # the token without the cookie
+    assert status == 401
