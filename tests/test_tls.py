@@ -5,12 +5,14 @@ master refusing plain HTTP across a network unless told --insecure-http."""
 from __future__ import annotations
 
 import asyncio
+import datetime as dt
 import ssl
 from pathlib import Path
 
 import aiohttp
 import pytest
 from aiohttp import web
+from cryptography import x509
 
 from agents.render_agent import url_refusal
 from core.errors import QuekaroError
@@ -104,3 +106,13 @@ def test_an_agent_refuses_plain_http_across_a_network_unless_told() -> None:
     assert url_refusal("http://127.0.0.1:8765/jobs/j/bundle", False) is None
     assert "--insecure-http" in url_refusal("http://10.0.0.2:8765/jobs/j/bundle", False)
     assert url_refusal("http://10.0.0.2:8765/jobs/j/bundle", True) is None
+
+
+def test_certificates_hold_for_hosts_whose_clocks_are_off(ca: Path) -> None:
+    """A host whose clock is 10 minutes behind (or ahead) still accepts the farm's certificates
+    (tests/test_multihost.py runs such agents under libfaketime): valid from a day before issuance."""
+    now = dt.datetime.now(dt.UTC)
+    for name in ("ca.pem", "master.pem"):
+        cert = x509.load_pem_x509_certificate((ca / name).read_bytes())
+        assert cert.not_valid_before_utc <= now - dt.timedelta(minutes=10)
+        assert cert.not_valid_after_utc >= now + dt.timedelta(days=365)

@@ -3,6 +3,8 @@ through SPADE's embedded server and through a real Prosody with TLS; refusals; a
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import json
 import os
 import queue
@@ -15,7 +17,8 @@ from pathlib import Path
 import pytest
 from prosody_support import needs_prosody
 
-from core.transport.xmpp_server import EmbeddedXmppServer, ProsodyServer
+from core.transport.xmpp import FarmAgent
+from core.transport.xmpp_server import EmbeddedXmppServer, ProsodyServer, free_port
 
 REPO = Path(__file__).resolve().parent.parent
 PEER = REPO / "tests" / "xmpp_peer.py"
@@ -221,3 +224,90 @@ def test_two_processes_through_prosody_with_tls_and_closed_registration(tmp_path
         assert "login refused" in wrong.wait_for("error", timeout=30)["reason"]
     finally:
         server.stop()
+
+
+class FreezingRelay:
+    """A TCP relay to a server on 127.0.0.1 that can go dead the way a pulled cable does: while frozen, bytes
+    of open connections are held (neither delivered nor refused: no FIN, no RST) and new connections are
+    refused; thawed, it relays again on the same port."""
+
+    def __init__(self, target: int) -> None:
+        self.target, self.port = target, free_port()
+        self.flowing = asyncio.Event()
+        self.server: asyncio.Server | None = None
+        self.tasks: set[asyncio.Task] = set()
+
+    async def thaw(self) -> None:
+        self.server = await asyncio.start_server(self._relay, "127.0.0.1", self.port)
+        self.flowing.set()
+
+    def freeze(self) -> None:
+        self.flowing.clear()
+        self.server.close()
+
+    async def stop(self) -> None:
+        self.freeze()
+        for task in self.tasks:
+            task.cancel()
+        await asyncio.gather(*self.tasks, return_exceptions=True)
+
+    async def _relay(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        self.tasks.add(task)
+        try:
+            up_reader, up_writer = await asyncio.open_connection("127.0.0.1", self.target)
+            await asyncio.gather(self._pipe(reader, up_writer), self._pipe(up_reader, writer), return_exceptions=True)
+        finally:
+            self.tasks.discard(task)
+
+    async def _pipe(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            while data := await reader.read(65536):
+                await self.flowing.wait()
+                writer.write(data)
+                await writer.drain()
+        finally:
+            writer.close()
+
+
+@pytest.mark.slow
+@needs_prosody
+def test_a_dead_link_is_noticed_by_the_keepalive_and_the_agent_reconnects(tmp_path) -> None:
+    """A link that goes silent without closing (a pulled cable, a host cut off) is noticed by the ping
+    keepalive within its timeout, and the agent is back as soon as the server can be reached again. With
+    SPADE's own keepalive (55 s) the agent stayed 'online' on the dead link and came back only when the
+    kernel's retransmission happened to get through (~25 s after a 30 s outage, tests/test_multihost.py)."""
+
+    server = ProsodyServer(tmp_path / "prosody")
+    password = server.register("alive")
+
+    async def scenario() -> tuple[float, float, int]:
+        relay = FreezingRelay(server.port)
+        await relay.thaw()
+        agent = FarmAgent("alive@localhost", password, port=relay.port, server="127.0.0.1",
+                          keepalive_s=0.5, keepalive_timeout_s=1.0)
+        try:
+            await agent.start()
+            await asyncio.sleep(1.5)  # pings answered: a live link is left alone
+            assert agent.online and agent.reconnects == 0
+            relay.freeze()
+            frozen_at = time.monotonic()
+            while agent.online and time.monotonic() - frozen_at < 10:
+                await asyncio.sleep(0.05)
+            noticed = time.monotonic() - frozen_at
+            await asyncio.sleep(2.0)
+            assert not agent.online  # still cut off: no session
+            await relay.thaw()
+            thawed_at = time.monotonic()
+            assert await agent.wait_online(timeout=15)
+            return noticed, time.monotonic() - thawed_at, agent.reconnects
+        finally:
+            with contextlib.suppress(Exception):
+                await agent.stop()
+            await relay.stop()
+
+    with server:
+        noticed, back, reconnects = asyncio.run(scenario())
+    print(f"\ndead link noticed after {noticed:.2f} s; back {back:.2f} s after the link")
+    assert noticed < 3.0  # keepalive 0.5 s + timeout 1 s, not SPADE's 55 s
+    assert back < 5.0 and reconnects == 1

@@ -9,8 +9,12 @@ typically `core.model.messages.parse`, may refuse it.
 
 Pitfalls it exists to avoid (design.md section 4): empty bodies vanish over XMPP; two agents in one
 process bypass XMPP (here `send` always goes through the socket); SPADE reconnects only at its 55 s
-keepalive (here the `disconnected` event starts a reconnect loop); SPADE's web interface can stop an
-agent with one unauthenticated GET (here it is never started).
+keepalive (here the `disconnected` event starts a reconnect loop); a dead link (a pulled cable, a host
+cut off: no FIN, no RST) leaves the TCP session open while the kernel retransmits with backoff, so that
+a host back after 30 s was heard again only ~25 s later (measured, tests/test_multihost.py): here the
+server is pinged every `keepalive_s` and a ping unanswered for `keepalive_timeout_s` drops the connection,
+so the reconnect loop, which polls the server's port, is back within a second or two of the link; SPADE's
+web interface can stop an agent with one unauthenticated GET (here it is never started).
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from collections.abc import Awaitable, Callable, Collection, Iterable
 from dataclasses import dataclass
 
 from slixmpp import JID
+from slixmpp.exceptions import IqError, IqTimeout
 from spade.agent import Agent, AuthenticationFailure, DisconnectedException
 from spade.message import Message
 
@@ -40,6 +45,11 @@ DEFAULT_MAX_BODY = 64 * 1024
 INBOX_SIZE = 1000
 TLS_SETTLE_S = 0.05
 SESSION_TIMEOUT_S = 8.0
+# A ping to the server every KEEPALIVE_S; no answer within KEEPALIVE_TIMEOUT_S: the link is dead, reconnect.
+# Within the master's heartbeat timeout (15 s, master/auction.py), so a silent agent is reconnecting by the
+# time the master gives its units back. (SPADE's own keepalive, every 55 s, is replaced.)
+KEEPALIVE_S = 5.0
+KEEPALIVE_TIMEOUT_S = 10.0
 
 
 @dataclass(frozen=True)
@@ -118,6 +128,8 @@ class FarmAgent(Agent):
         ca_file: str | None = None,
         reconnect: bool = True,
         reconnect_max_delay: float = 1.0,
+        keepalive_s: float = KEEPALIVE_S,
+        keepalive_timeout_s: float = KEEPALIVE_TIMEOUT_S,
     ) -> None:
         super().__init__(jid, password, port=port, verify_security=verify_security)
         self.server = server or self.jid.host
@@ -130,6 +142,7 @@ class FarmAgent(Agent):
         self.ca_file = ca_file
         self.reconnect = reconnect
         self.reconnect_max_delay = reconnect_max_delay
+        self.keepalive_s, self.keepalive_timeout_s = keepalive_s, keepalive_timeout_s
         self.refusals: collections.Counter[str] = collections.Counter()
         self.recent_refusals: collections.deque[Refusal] = collections.deque(maxlen=100)
         self.on_refusal: Callable[[Refusal], None] | None = None
@@ -143,6 +156,8 @@ class FarmAgent(Agent):
         self._stopping = False
         self._down_since: float | None = None
         self._reconnect_task: asyncio.Task | None = None
+        self._keepalive_task: asyncio.Task | None = None
+        self._sessions = 0  # sessions started so far: a ping's answer counts for the session it was sent in
 
     # ---- public API -------------------------------------------------------------------------------
 
@@ -227,10 +242,12 @@ class FarmAgent(Agent):
         if self._inbox_task is None or self._inbox_task.done():
             self._inbox = asyncio.Queue(maxsize=INBOX_SIZE)
             self._inbox_task = asyncio.create_task(self._drain_inbox(), name=f"inbox {self.bare_jid}")
+        if self._keepalive_task is None or self._keepalive_task.done():
+            self._keepalive_task = asyncio.create_task(self._keepalive(), name=f"keepalive {self.bare_jid}")
 
     async def stop(self) -> None:
         self._stopping = True
-        for task in (self._reconnect_task, self._inbox_task):
+        for task in (self._reconnect_task, self._inbox_task, self._keepalive_task):
             if task and not task.done():
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError, Exception):
@@ -245,7 +262,9 @@ class FarmAgent(Agent):
         client = self.client
         if self.ca_file:
             client.ssl_context = ssl.create_default_context(cafile=self.ca_file)
-        # SPADE registers xep_0199 keepalive every 55 s; kept as the detector of half-dead links.
+        # SPADE's keepalive (xep_0199, every 55 s, 30 s timeout, then slixmpp's own reconnect with its backoff)
+        # is replaced by `_keepalive`, which hands a dead link to the reconnect loop.
+        client.cancel_schedule("Ping keepalive")
         # A client from a failed start attempt may still fire events: only the current one counts.
         def current(handler: Callable[[object], None]) -> Callable[[object], None]:
             return lambda event: handler(event) if client is self.client else None
@@ -281,6 +300,7 @@ class FarmAgent(Agent):
         self.tls = True
 
     def _on_session_start(self, _event: object) -> None:
+        self._sessions += 1
         if self._down_since is not None:
             self.last_outage_s = time.monotonic() - self._down_since
             self.reconnects += 1
@@ -316,6 +336,26 @@ class FarmAgent(Agent):
                 self.client.abort()
             await asyncio.sleep(delay)
             delay = min(delay * 2, self.reconnect_max_delay)
+
+    async def _keepalive(self) -> None:
+        """Ping the server every `keepalive_s` while online; a ping unanswered for `keepalive_timeout_s` in the
+        same session means a dead link: the connection is dropped, and `_on_disconnected` reconnects."""
+        while not self._stopping:
+            await asyncio.sleep(self.keepalive_s)
+            client, session = self.client, self._sessions
+            if not self.online or client is None:
+                continue
+            try:
+                await client["xep_0199"].ping(client.boundjid.host, timeout=self.keepalive_timeout_s)
+            except IqTimeout:
+                if client is self.client and session == self._sessions and self.online and not self._stopping:
+                    log.warning("%s: no answer from %s:%d to a ping within %.0f s: dropping the connection",
+                                self.bare_jid, self.server, self.xmpp_port, self.keepalive_timeout_s)
+                    client.abort()
+            except IqError:
+                pass  # an answer, even an error, comes over a live link
+            except Exception as exc:  # a ping that cannot be sent (disconnecting meanwhile): the next one tells
+                log.debug("%s: keepalive ping failed: %s", self.bare_jid, exc)
 
     async def _drop_client(self) -> None:
         if self.client is None:
