@@ -318,8 +318,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     started, load_before = time.perf_counter(), os.getloadavg()[0]
     cells: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="quekaro-bench-") as tmp:
-        for scene in scenes:
+        for scene in scenes:  # every scene's cells are written as they come: a late failure keeps them
             cells += scene_cells(scene, agents, levels, args, Path(tmp))
+            write_partial(cells, Path(args.out))
     result = {
         "scenes": {s.name: {"role": s.role, "path": _shown(s.path), "defines": scene_spec(s, args).defines}
                    for s in scenes}, "spp": args.spp, "ref_spp": args.ref_spp, "threads": args.threads,
@@ -331,6 +332,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if not args.json:
         print(format_report(result))
     return result
+
+
+def write_partial(cells: list[dict[str, Any]], out: Path) -> None:
+    """The cells so far, as JSON lines beside the outputs (accuracy.partial.jsonl)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "accuracy.partial.jsonl").write_text("".join(json.dumps(c) + "\n" for c in cells))
 
 
 def _shown(path: Path) -> str:
