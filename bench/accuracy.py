@@ -50,7 +50,7 @@ from core.render.metrics import all_metrics, diff_image
 from core.render.seams import seam_measure
 from farm.local import LocalFarm
 from fuzzy.levels import LEVELS
-from planning.accuracy import plain_render, reference, spp_timing
+from planning.accuracy import job_variant, plain_render, reference, spp_timing
 
 REPO = Path(__file__).resolve().parent.parent
 HETEROGENEOUS = "caustic-corner"  # the project's own scene the rules were tuned on
@@ -88,6 +88,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="time each cell's first run (cold kernels) instead of a second, warm one")
     parser.add_argument("--inprocess", action="store_true",
                         help="time the whole `quekaro render` process instead of a farm (smallest agent count)")
+    parser.add_argument("--resume", action="store_true",
+                        help="keep the scenes already finished in OUT/accuracy.partial.jsonl by a run with the "
+                             "same settings, and measure only the others")
 
 
 def _csv_list(text: str, what: str) -> list[str]:
@@ -234,8 +237,9 @@ def scene_cells(scene: SuiteScene, agents: list[int], levels: list[str], args: a
                 work: Path) -> list[dict[str, Any]]:
     """Every (agents, level) cell of one scene, with errors, seams and the uniform baseline."""
     spec = scene_spec(scene, args)
-    ref = reference(spec, args.ref_spp, args.threads, Path(args.cache))
-    t0, k = spp_timing(spec, args.spp, args.threads)
+    variant = job_variant(spec)  # the jobs' own: plain Mitsuba renders in it too
+    ref = reference(spec, args.ref_spp, args.threads, Path(args.cache), variant)
+    t0, k = spp_timing(spec, args.spp, args.threads, variant)
     cells, diffs = [], {}
     for n in agents:
         runner = (inprocess_runner(args.threads, args.units) if args.inprocess
@@ -243,10 +247,13 @@ def scene_cells(scene: SuiteScene, agents: list[int], levels: list[str], args: a
         with runner as run_job:
             for level in levels:
                 cell, image = run_cell(run_job, spec, level, args, work / f"{scene.name}-{n}-{level}", ref)
+                if cell["variant"] != variant:
+                    raise QuekaroError(f"{scene.name} level {level}: the job rendered in {cell['variant']}, "
+                                       f"the reference in {variant}")
                 cells.append({"scene": scene.name, "role": scene.role, "agents": n, **cell})
                 if n == agents[0]:
                     diffs[level] = diff_image(image, ref)
-    uniform = uniform_baseline(spec, cells, agents[0], args, (t0, k), ref)
+    uniform = uniform_baseline(spec, cells, agents[0], args, (t0, k), ref, variant)
     for cell in cells:
         cell.update(uniform[cell["level"]])
     write_diff_images(scene.name, diffs, Path(args.out))
@@ -268,7 +275,8 @@ def run_cell(run_job: Callable, spec: SceneSpec, level: str, args: argparse.Name
     report = timed[-1][0]
     used = [spent(rep) for rep, _, _ in timed]
     seams = seam_measure(images[-1], ref, [Rect.from_list(u["rect"]) for u in report["units"]])
-    return {"level": level, "seconds": float(np.median([wall for _, wall, _ in timed])),
+    return {"level": level, "variant": report["effects"]["variant"],
+            "seconds": float(np.median([wall for _, wall, _ in timed])),
             "cpu_seconds": float(np.median([cpu for _, _, cpu in timed])),
             "seconds_runs": [wall for _, wall, _ in timed], **mean_metrics(images, ref), **used[-1],
             "render_seconds": float(np.median([u["render_seconds"] for u in used])),
@@ -284,7 +292,7 @@ def mean_metrics(images: list[np.ndarray], ref: np.ndarray) -> dict[str, float]:
 
 
 def uniform_baseline(spec: Any, cells: list[dict[str, Any]], n: int, args: argparse.Namespace,
-                     line: tuple[float, float], ref: np.ndarray) -> dict[str, dict[str, Any]]:
+                     line: tuple[float, float], ref: np.ndarray, variant: str) -> dict[str, dict[str, Any]]:
     """Per level: plain renders at the spp taking the wall time and the render time of its n-agent cell."""
     t0, k = line
     out = {}
@@ -293,7 +301,8 @@ def uniform_baseline(spec: Any, cells: list[dict[str, Any]], n: int, args: argpa
         for prefix, seconds in (("uniform", cell["seconds"]), ("render_uniform", cell["render_seconds"])):
             spp = max(1, round((seconds - t0) / k))
             runs = args.runs + int(args.warmup)  # as many images as the cell's errors average
-            renders = [plain_render(spec, spp, args.threads, seed=4242 + spp + 7919 * i) for i in range(runs)]
+            renders = [plain_render(spec, spp, args.threads, variant, seed=4242 + spp + 7919 * i)
+                       for i in range(runs)]
             secs = min(t for _, t in renders)
             metrics = mean_metrics([pixels for pixels, _ in renders], ref)
             entry.update({f"{prefix}_spp": spp, f"{prefix}_seconds": secs,
@@ -316,11 +325,15 @@ def write_diff_images(name: str, diffs: dict[str, np.ndarray], out: Path) -> Non
 def run(args: argparse.Namespace) -> dict[str, Any]:
     scenes, agents, levels = parse_grid(args)
     started, load_before = time.perf_counter(), os.getloadavg()[0]
-    cells: list[dict[str, Any]] = []
+    settings = run_settings(args, agents, levels)
+    cells = resumed_cells(Path(args.out), settings) if args.resume else []
+    done = {c["scene"] for c in cells}
     with tempfile.TemporaryDirectory(prefix="quekaro-bench-") as tmp:
-        for scene in scenes:  # every scene's cells are written as they come: a late failure keeps them
+        for scene in (s for s in scenes if s.name not in done):  # each scene's cells are kept as they come
             cells += scene_cells(scene, agents, levels, args, Path(tmp))
-            write_partial(cells, Path(args.out))
+            write_partial(settings, cells, Path(args.out))
+    names = [s.name for s in scenes]
+    cells = [c for c in cells if c["scene"] in names]
     result = {
         "scenes": {s.name: {"role": s.role, "path": _shown(s.path), "defines": scene_spec(s, args).defines}
                    for s in scenes}, "spp": args.spp, "ref_spp": args.ref_spp, "threads": args.threads,
@@ -334,10 +347,34 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     return result
 
 
-def write_partial(cells: list[dict[str, Any]], out: Path) -> None:
-    """The cells so far, as JSON lines beside the outputs (accuracy.partial.jsonl)."""
+def run_settings(args: argparse.Namespace, agents: list[int], levels: list[str]) -> dict[str, Any]:
+    """What makes two runs' cells comparable (a resumed run must match every one)."""
+    return {"spp": args.spp, "ref_spp": args.ref_spp, "threads": args.threads, "res": args.res,
+            "defines": sorted(args.defines), "agents": agents, "levels": levels, "runs": args.runs,
+            "warmup": args.warmup, "inprocess": args.inprocess, "units": args.units}
+
+
+def write_partial(settings: dict[str, Any], cells: list[dict[str, Any]], out: Path) -> None:
+    """The settings, then the cells so far, as JSON lines beside the outputs (accuracy.partial.jsonl)."""
     out.mkdir(parents=True, exist_ok=True)
-    (out / "accuracy.partial.jsonl").write_text("".join(json.dumps(c) + "\n" for c in cells))
+    lines = [{"settings": settings}, *cells]
+    (out / "accuracy.partial.jsonl").write_text("".join(json.dumps(c) + "\n" for c in lines))
+
+
+def resumed_cells(out: Path, settings: dict[str, Any]) -> list[dict[str, Any]]:
+    """The cells of a partial run with these settings; refused, naming the field, when they differ."""
+    path = out / "accuracy.partial.jsonl"
+    if not path.exists():
+        raise QuekaroError(f"--resume: {path} does not exist (no partial run to resume)")
+    lines = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    saved = lines[0].get("settings") if lines else None
+    if saved is None:
+        raise QuekaroError(f"--resume: {path} has no settings line (written by an older version)")
+    for key, value in settings.items():
+        if saved.get(key) != value:
+            raise QuekaroError(f"--resume: {path} was written with {key}={saved.get(key)!r}, "
+                               f"this run asks for {value!r}")
+    return lines[1:]
 
 
 def _shown(path: Path) -> str:
@@ -425,7 +462,8 @@ def write_outputs(result: dict[str, Any], out: Path) -> list[Path]:
     md, csv_path, png = out / "accuracy.md", out / "accuracy.csv", out / "accuracy.png"
     md.write_text("# Accuracy against time (`quekaro bench accuracy`)\n\n" + format_report(result) + "\n")
     with csv_path.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(result["cells"][0]))
+        fields = list(dict.fromkeys(k for cell in result["cells"] for k in cell))  # resumed cells may lack some
+        writer = csv.DictWriter(fh, fieldnames=fields)
         writer.writeheader()
         writer.writerows(result["cells"])
     plot(result["cells"], png)

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.accuracy import DEFAULT_OUT, HETEROGENEOUS, SCENES, plain_render, reference
+from bench.accuracy import DEFAULT_OUT, HETEROGENEOUS, SCENES
 from bench.scaling import measure_cached
 from core.model.geometry import Rect
 from core.model.hashing import sha256_file
@@ -37,6 +37,7 @@ from core.render.compose import blend_weights
 from core.render.metrics import RELMSE_EPSILON
 from core.render.planner import Planner
 from fuzzy.levels import RULE_LEVELS
+from planning.accuracy import job_variant, plain_render, reference
 from planning.jobplan import plan_job
 from planning.pipeline import plan_params
 
@@ -61,13 +62,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def noise_map(spec: Any, spp: int, renders: int, threads: int, cache: Path) -> np.ndarray:
     """Per-pixel, per-channel variance of one sample (cached by scene content, defines, spp, renders)."""
-    key = hashlib.sha256(spec.path.read_bytes() + json.dumps([spec.defines, spp, renders]).encode())
+    variant = job_variant(spec)
+    key = hashlib.sha256(spec.path.read_bytes() + json.dumps([spec.defines, spp, renders, variant]).encode())
     path = cache / f"allocation-noise-{key.hexdigest()[:16]}.npy"
     if path.exists():
         return np.load(path)
     if renders < 2:
         raise ValueError(f"--renders {renders}: a variance needs at least 2 renders")
-    images = np.stack([plain_render(spec, spp, threads, seed=101 + i)[0] for i in range(renders)])
+    images = np.stack([plain_render(spec, spp, threads, variant, seed=101 + i)[0] for i in range(renders)])
     sigma2 = spp * images.var(axis=0, ddof=1)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.save(path, sigma2)
@@ -122,7 +124,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     spec = SceneSpec(args.scene.resolve(), {"res": str(args.res)})  # as `bench accuracy`: one reference
     sigma2 = noise_map(spec, args.spp, args.renders, args.threads, args.cache_dir)
-    ref = reference(spec, args.ref_spp, args.threads, args.cache_dir)
+    ref = reference(spec, args.ref_spp, args.threads, args.cache_dir, job_variant(spec))
     weight = sigma2 / (ref**2 + RELMSE_EPSILON)
     tmap, _, _ = measure_cached(spec.path, args.res, args.cell, args.measure_spp, args.threads,
                                 args.cache_dir)

@@ -1,6 +1,8 @@
 """What a job's accuracy cost: its image against a long plain-Mitsuba reference, and against plain
 Mitsuba at the uniform spp that takes the same wall time (`quekaro render --report-accuracy`, and the
-benchmark `quekaro bench accuracy` built on it).
+benchmark `quekaro bench accuracy` built on it). Plain Mitsuba renders in the variant the job rendered in
+(the effect analysis's, or the user's `-m`): a spectral scene against an rgb reference would count the
+variant's difference as the job's error.
 
 Plain Mitsuba runs as a user runs it (`python -m planning.plain`: import, load, render, write) and the
 whole process is timed. Its time is linear in spp (design.md section 3): two timings give
@@ -27,21 +29,26 @@ from core.model.geometry import Rect
 from core.model.hashing import sha256_file
 from core.model.job import SceneSpec
 from core.render.bundle import scene_members
+from core.render.effects import analyse
 from core.render.imageio import read_exr, write_exr
 from core.render.metrics import all_metrics
 from core.render.seams import seam_measure
 
-VARIANT = "llvm_ad_rgb"
 REF_SPP = 1024
 
 
-def plain_render(spec: Any, spp: int, threads: int, seed: int = 0) -> tuple[np.ndarray, float]:
-    """Plain Mitsuba on the whole image at `spp`, the whole process timed (`python -m planning.plain`):
-    (RGB pixels, wall seconds)."""
+def job_variant(spec: SceneSpec) -> str:
+    """The variant a job of this scene renders in when the user names none (core.render.effects)."""
+    return analyse(spec).variant
+
+
+def plain_render(spec: Any, spp: int, threads: int, variant: str, seed: int = 0) -> tuple[np.ndarray, float]:
+    """Plain Mitsuba on the whole image at `spp` in `variant`, the whole process timed
+    (`python -m planning.plain`): (RGB pixels, wall seconds)."""
     with tempfile.TemporaryDirectory(prefix="quekaro-plain-") as tmp:
         out = Path(tmp) / "plain.exr"
         cmd = [sys.executable, "-m", "planning.plain", str(spec.path), "--spp", str(spp), "--seed", str(seed),
-               "-t", str(threads), "-m", VARIANT, "-o", str(out),
+               "-t", str(threads), "-m", variant, "-o", str(out),
                *(f"-D{k}={v}" for k, v in spec.defines.items())]
         start = time.perf_counter()
         done = subprocess.run(cmd, capture_output=True, text=True, cwd=Path.cwd())
@@ -61,12 +68,12 @@ def content_key(spec: Any, *extra: Any) -> str:
     return digest.hexdigest()[:16]
 
 
-def reference(spec: Any, spp: int, threads: int, cache: Path) -> np.ndarray:
-    """The scene at `spp`, plain Mitsuba; cached under `cache` by content (`content_key`)."""
-    path = cache / "references" / f"{spec.path.stem}-{content_key(spec, spp, VARIANT)}.exr"
+def reference(spec: Any, spp: int, threads: int, cache: Path, variant: str) -> np.ndarray:
+    """The scene at `spp` in `variant`, plain Mitsuba; cached under `cache` by content (`content_key`)."""
+    path = cache / "references" / f"{spec.path.stem}-{content_key(spec, spp, variant)}.exr"
     if path.exists():
         return read_exr(path)[..., :3]
-    pixels, _ = plain_render(spec, spp, threads, seed=987654)
+    pixels, _ = plain_render(spec, spp, threads, variant, seed=987654)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_exr(path, pixels)
     return pixels
@@ -80,10 +87,10 @@ MIN_SPP_SECONDS = 0.02
 MAX_TIMING_SPP = 1 << 14
 
 
-def spp_timing(spec: Any, spp: int, threads: int) -> tuple[float, float]:
+def spp_timing(spec: Any, spp: int, threads: int, variant: str) -> tuple[float, float]:
     """(t0, k) of t(spp) = t0 + k spp for the plain Mitsuba process, from the faster of two runs at two spp."""
     size = ", ".join(f"{k}={v}" for k, v in spec.defines.items())
-    return fit_spp_line(lambda n: min(plain_render(spec, n, threads, seed=s)[1] for s in (1, 2)), spp,
+    return fit_spp_line(lambda n: min(plain_render(spec, n, threads, variant, seed=s)[1] for s in (1, 2)), spp,
                         what=f"{spec.path.name} ({size})")
 
 
@@ -112,23 +119,25 @@ def default_cache() -> Path:
 
 
 def uniform_at(spec: SceneSpec, seconds: float, line: tuple[float, float], threads: int, ref: np.ndarray,
-               seed: int = 4242) -> dict[str, Any]:
+               variant: str, seed: int = 4242) -> dict[str, Any]:
     """Plain Mitsuba at the spp whose whole-process time, by the line, is `seconds`: spp, its measured
     seconds and its errors against `ref`."""
     t0, k = line
     spp = max(1, round((seconds - t0) / k))
-    pixels, took = plain_render(spec, spp, threads, seed=seed + spp)
+    pixels, took = plain_render(spec, spp, threads, variant, seed=seed + spp)
     return {"spp": spp, "seconds": took, **all_metrics(pixels, ref)}
 
 
 def accuracy_report(spec: SceneSpec, image: np.ndarray, wall_seconds: float, report: dict[str, Any],
                     threads: int, ref_spp: int = REF_SPP, cache: Path | None = None) -> dict[str, Any]:
     """The job's image (RGB first) against the reference, its seams at the units' borders, and the
-    uniform baseline at equal wall time."""
-    ref = reference(spec, ref_spp, threads, cache or default_cache())
+    uniform baseline at equal wall time, in the variant the job rendered in."""
+    variant = report["effects"]["variant"]
+    ref = reference(spec, ref_spp, threads, cache or default_cache(), variant)
     rgb = np.asarray(image[..., :3], dtype=np.float32)
     rects = [Rect.from_list(u["rect"]) for u in report["units"]]
-    line = spp_timing(spec, max(1, int(report.get("spp") or 16)), threads)
-    return {"reference_spp": ref_spp, "seconds": wall_seconds, **all_metrics(rgb, ref),
+    line = spp_timing(spec, max(1, int(report.get("spp") or 16)), threads, variant)
+    return {"reference_spp": ref_spp, "variant": variant, "seconds": wall_seconds, **all_metrics(rgb, ref),
             "seams": seam_measure(rgb, ref, rects).to_dict(),
-            "uniform": uniform_at(spec, wall_seconds, line, threads, ref), "line": {"t0": line[0], "k": line[1]}}
+            "uniform": uniform_at(spec, wall_seconds, line, threads, ref, variant),
+            "line": {"t0": line[0], "k": line[1]}}

@@ -45,6 +45,21 @@ def test_inprocess_grid_json_has_cells_and_baseline(tmp_path):
     assert list((tmp_path / "cache" / "references").glob("caustic-corner-*.exr"))  # cached for next time
     assert (tmp_path / "out" / "accuracy-diff" / "caustic-corner-S.png").exists()
     assert "| 1 |" in (tmp_path / "out" / "accuracy.md").read_text()
+    again = bench_accuracy.run(args_for(tmp_path, "--inprocess", "--resume", "caustic-corner", str(volume),
+                                        "-D", "spp=4"))
+    assert again["cells"] == result["cells"]  # both scenes were kept, none measured again
+
+
+def test_resume_refuses_other_settings_and_missing_files(tmp_path):
+    with pytest.raises(QuekaroError, match="does not exist"):
+        bench_accuracy.run(args_for(tmp_path, "--resume"))
+    args = args_for(tmp_path)
+    settings = bench_accuracy.run_settings(args, [1], ["off", "S"])
+    cell = {"scene": "caustic-corner", "level": "off", "seconds": 1.0}
+    bench_accuracy.write_partial(settings, [cell], args.out)
+    assert bench_accuracy.resumed_cells(args.out, settings) == [cell]
+    with pytest.raises(QuekaroError, match="spp=4, this run asks for 8"):
+        bench_accuracy.resumed_cells(args.out, {**settings, "spp": 8})
 
 
 def test_grid_arguments_are_checked(tmp_path):
