@@ -47,6 +47,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
+from agents.emulate import MARK, Emulation
 from agents.speed import SpeedSample, estimate_seconds, measure_speed
 from agents.state import (
     HEARTBEAT_S,
@@ -116,6 +117,8 @@ class AgentConfig:
     slots: int = SLOTS  # units held at once (one rendering, the others waiting); 1: no overlap
     max_render_s: float = MAX_RENDER_S  # a render longer than this is killed whatever the estimate
     bundle_limits: BundleLimits = field(default_factory=BundleLimits)
+    emulate: Path | None = None  # a cost map (agents/emulate.py): renders are slept, Mitsuba never loads
+    emulate_speed: float = 1.0  # the emulated agent's speed, as a factor of the map's
 
 
 class UnitFailed(QuekaroError):
@@ -130,13 +133,17 @@ class RenderAgent:
         self.config = config
         self.workdir = Path(config.workdir)
         self.planner = Planner(config.rules, config.defuzzifier)
-        self.worker = RenderWorker()
+        # --emulate: the render process and the speed measurement are the emulation's (agents/emulate.py).
+        self.emulation = Emulation.load(config.emulate, config.emulate_speed, self.workdir) if config.emulate else None
+        self.worker = self.emulation.worker if self.emulation else RenderWorker()
         self.farm = FarmAgent(
             config.jid, config.password, port=config.port, server=config.server, ontology=m.ONTOLOGY,
             peers=[config.master], validate=m.parse, performatives=ACCEPTED, ca_file=config.ca_file,
             verify_security=config.verify_security,
         )
         self.farm.set_handler(self._on_envelope)
+        if self.emulation:
+            self.emulation.watch(self.farm, self._on_envelope)
         self.speed: SpeedSample | None = None
         self.state = AgentState(self._plan, estimate_seconds, slots=config.slots, threads=config.threads,
                                 rules=self.planner.rules_path.name, heartbeat_s=config.heartbeat_s,
@@ -184,7 +191,8 @@ class RenderAgent:
         (self.workdir / "tiles").mkdir(exist_ok=True)
         (self.workdir / "bundles").mkdir(exist_ok=True)
         await asyncio.to_thread(self.worker.start)
-        self.speed = await asyncio.to_thread(measure_speed, self.worker, self.config.threads)
+        measure = self.emulation.measure_speed if self.emulation else measure_speed
+        self.speed = await asyncio.to_thread(measure, self.worker, self.config.threads)
         log.info("%s: speed %.3f Mrays/s (reference render %.3f s, %s)", self.config.jid, self.speed.speed,
                  self.speed.seconds, self.speed.variant)
         await self._feed(Measured(self.speed.speed, self.speed.compile_s))
@@ -312,7 +320,8 @@ class RenderAgent:
                 tile = await asyncio.to_thread(self.worker.render, request, command.timeout_s)
             except QuekaroError as exc:
                 raise UnitFailed(f"render failed: {exc}") from exc
-            tile.meta.update(self._tile_meta(job, unit, params))
+            meta = self._tile_meta(job, unit, params)
+            tile.meta.update(self.emulation.mark(meta) if self.emulation else meta)
             path = self._tile_path(job.job_id, unit.index)
             # Not fsynced: the file lives until its upload; a crash loses the unit, which is rendered again.
             await asyncio.to_thread(write_tile, path, tile, durable=False)
@@ -428,6 +437,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--slots", type=int, default=2,
                    help="units held at once: 2 (default) renders the next while the last uploads; 1 none")
     p.add_argument("--log-level", default=os.environ.get("QUEKARO_LOG", "INFO"))
+    p.add_argument("--emulate", type=Path, metavar="COSTS.json",
+                   help="emulate the renders: sleep each unit's time from this cost map (agents/emulate.py)")
+    p.add_argument("--speed", type=float, default=None, help="with --emulate: this agent's speed factor (default 1)")
     return p
 
 
@@ -437,12 +449,15 @@ def config_from_args(args: argparse.Namespace) -> AgentConfig:
         raise QuekaroError(f"--threads {args.threads}: must be at least 1")
     if args.slots < 1:
         raise QuekaroError(f"--slots {args.slots}: must be at least 1")
+    if args.speed is not None and (args.emulate is None or not args.speed > 0):
+        raise QuekaroError(f"--speed {args.speed}: a factor above 0, and only with --emulate")
     workdir = args.workdir or Path(tempfile.gettempdir()) / "quekaro-agent" / _safe(args.jid)
     return AgentConfig(jid=args.jid, password=password, master=args.master, server=args.server,
                        port=args.port, threads=args.threads, rules=args.rules, defuzzifier=args.defuzzifier,
                        workdir=workdir, auto_register=args.register, ca_file=args.ca_file,
                        verify_security=bool(args.ca_file), heartbeat_s=args.heartbeat, slots=args.slots,
-                       insecure_http=args.insecure_http)
+                       insecure_http=args.insecure_http, emulate=args.emulate,
+                       emulate_speed=args.speed or 1.0)
 
 
 async def serve(config: AgentConfig) -> None:
@@ -457,11 +472,11 @@ async def serve(config: AgentConfig) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO), stream=sys.stderr,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+                        format=(f"{MARK} " if args.emulate else "") + "%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         asyncio.run(serve(config_from_args(args)))
     except (QuekaroError, RuleFileError, ValueError) as exc:  # a bad option, rule file or login
-        print(f"render agent: {exc}", file=sys.stderr)
+        print(f"{MARK} " * bool(args.emulate) + f"render agent: {exc}", file=sys.stderr)
         return 2
     return 0
 

@@ -9,7 +9,7 @@ import json
 from collections.abc import Callable
 from types import ModuleType
 
-from bench import accuracy, allocation, fuzzy_engine, overhead, scaling
+from bench import accuracy, allocation, fuzzy_engine, hosts, overhead, scaling
 from bench import farm as farm_bench
 
 BENCHMARKS: dict[str, tuple[ModuleType, str]] = {
@@ -19,6 +19,7 @@ BENCHMARKS: dict[str, tuple[ModuleType, str]] = {
     "accuracy": (accuracy, "time and error per (agents, optimisation level)"),
     "allocation": (allocation, "each level's render time and relMSE against uniform spp, predicted"),
     "scaling": (scaling, "simulated auction scaling to 64 agents"),
+    "hosts": (hosts, "the real protocol (XMPP server, master, agent processes) at 8-64 emulated agents"),
 }
 
 

@@ -119,18 +119,22 @@ def scene_integrator(spec: Any) -> tuple[str, int]:
     return kind, depth
 
 
-def measure(scene_path: Path, res: int, cell: int, spp: int, threads: int) -> tuple[TimeMap, Any]:
-    """The pre-pass complexity map and the measured per-pixel time map of the scene at res x res."""
-    spec = SceneSpec(scene_path, {"res": str(res)})
+def measure(scene_path: Path, res: int, cell: int, spp: int, threads: int,
+            height: int | None = None) -> tuple[TimeMap, Any]:
+    """The pre-pass complexity map and the measured per-pixel time map of the scene at res x res, or res x
+    height when `height` is given (the scene then reads `-D height=...`, as bench.hosts's wide scene does)."""
+    width, height = res, height or res
+    spec = SceneSpec(scene_path, {"res": str(res)} if height == res else {"res": str(res), "height": str(height)})
     kind, depth = scene_integrator(spec)
     loaded = scene_mod.load(spec, "llvm_ad_rgb", threads)
-    cmap = prepass(loaded, res, res, integrator=kind, max_depth=depth, threads=threads)
-    cells = [Rect(x, y, min(cell, res - x), min(cell, res - y))
-             for y in range(0, res, cell) for x in range(0, res, cell)]
+    cmap = prepass(loaded, width, height, integrator=kind, max_depth=depth, threads=threads)
+    cells = [Rect(x, y, min(cell, width - x), min(cell, height - y))
+             for y in range(0, height, cell) for x in range(0, width, cell)]
 
     def job(rect: Rect, n: int, seed: int) -> RenderRequest:
         # Cells are timed without a band: the map holds what each pixel costs; units pay their band.
-        return RenderRequest(spec, "llvm_ad_rgb", kind, depth, n, seed, res, res, rect, band=0, threads=threads)
+        return RenderRequest(spec, "llvm_ad_rgb", kind, depth, n, seed, width, height, rect, band=0,
+                             threads=threads)
 
     started = time.perf_counter()
     with RenderWorker() as worker:
@@ -145,7 +149,8 @@ def measure(scene_path: Path, res: int, cell: int, spp: int, threads: int) -> tu
         passes = [[worker.render(job(r, spp, MEASURE_PASSES * i + j + 1)).meta["seconds"]
                    for i, r in enumerate(cells)] for j in range(MEASURE_PASSES)]
         seconds = [min(runs) for runs in zip(*passes, strict=True)]
-        whole = worker.render(job(Rect(0, 0, res, res), spp, 0)).meta["seconds"]
+        # Twice, the faster kept: the first compiles the whole image's kernel (~2 s on caustic-corner 500x300).
+        whole = min(worker.render(job(Rect(0, 0, width, height), spp, s)).meta["seconds"] for s in (0, 1))
     per_sample = spread_cell_times(cells, seconds, fixed, spp, cmap.cost)
     cell_cost = [float(cmap.cost[r.slices()].sum()) for r in cells]
     tmap = TimeMap(per_sample, fixed, {
@@ -175,7 +180,8 @@ def spread_cell_times(cells: Sequence[Rect], seconds: Sequence[float], fixed: fl
     return per_sample
 
 
-def cache_file(cache_dir: Path | None, scene_path: Path, res: int, cell: int, spp: int, threads: int) -> Path:
+def cache_file(cache_dir: Path | None, scene_path: Path, res: int, cell: int, spp: int, threads: int,
+               height: int | None = None) -> Path:
     """Where the measurement of these inputs is cached: keyed by the scene file's sha256 (not the files it
     includes: remeasure after editing a mesh or texture), the image side, the cell side, spp, threads,
     the pre-pass's sample split (the cached complexity map, hence the partition, depends on it) and the
@@ -183,14 +189,16 @@ def cache_file(cache_dir: Path | None, scene_path: Path, res: int, cell: int, sp
     base = cache_dir or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "quekaro"
     digest = sha256_file(scene_path)[:16]
     prepass = f"p{PREPASS_SPP}-{COST_SPP}-{NOISE_SHARE}"
-    return Path(base) / f"scaling-{digest}-r{res}-c{cell}-s{spp}-t{threads}-{prepass}-m{MEASURE_PASSES}.npz"
+    size = f"r{res}" if height in (None, res) else f"r{res}x{height}"
+    return Path(base) / f"scaling-{digest}-{size}-c{cell}-s{spp}-t{threads}-{prepass}-m{MEASURE_PASSES}.npz"
 
 
 def measure_cached(scene_path: Path, res: int, cell: int, spp: int, threads: int,
-                   cache_dir: Path | None = None, remeasure: bool = False) -> tuple[TimeMap, Any, bool]:
+                   cache_dir: Path | None = None, remeasure: bool = False,
+                   height: int | None = None) -> tuple[TimeMap, Any, bool]:
     """`measure`, read from the cache when it holds these inputs (and `remeasure` is false); the third value
     says whether it came from the cache. A cache file that cannot be read is measured again."""
-    path = cache_file(cache_dir, scene_path, res, cell, spp, threads)
+    path = cache_file(cache_dir, scene_path, res, cell, spp, threads, height)
     if path.exists() and not remeasure:
         try:
             with np.load(path, allow_pickle=False) as data:
@@ -201,7 +209,7 @@ def measure_cached(scene_path: Path, res: int, cell: int, spp: int, threads: int
             return tmap, cmap, True
         except (OSError, KeyError, ValueError) as exc:
             print(f"cache {path} unreadable ({exc}); measuring again")
-    tmap, cmap = measure(scene_path, res, cell, spp, threads)
+    tmap, cmap = measure(scene_path, res, cell, spp, threads, height)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.stem + ".tmp.npz")
     np.savez(tmp, per_sample=tmap.per_sample, fixed_s=tmap.fixed_s, tmap_info=json.dumps(tmap.info),

@@ -458,6 +458,8 @@ def _params_from_meta(meta: dict[str, Any]) -> dict[str, Any]:
     params["outputs"] = meta.get("outputs") if isinstance(meta.get("outputs"), dict) else {}
     params["agent"] = meta.get("agent")
     params["rules"] = str(meta.get("rules", ""))[:256] or None
+    if meta.get("emulated") is True:  # an emulated agent's (agents/emulate.py): slept, not rendered
+        params["emulated"] = True
     return params
 
 
