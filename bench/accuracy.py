@@ -334,12 +334,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             write_partial(settings, cells, Path(args.out))
     names = [s.name for s in scenes]
     cells = [c for c in cells if c["scene"] in names]
+    resumed = [n for n in names if n in done]
     result = {
         "scenes": {s.name: {"role": s.role, "path": _shown(s.path), "defines": scene_spec(s, args).defines}
                    for s in scenes}, "spp": args.spp, "ref_spp": args.ref_spp, "threads": args.threads,
         "mode": "inprocess" if args.inprocess else "farm", "agents": agents, "levels": levels,
         "cells": cells, "targets": targets(cells, agents[0]), "seconds": time.perf_counter() - started,
-        "load": [load_before, os.getloadavg()[0]],
+        "load": [load_before, os.getloadavg()[0]], "resumed": resumed,
     }
     result["outputs"] = [str(p) for p in write_outputs(result, Path(args.out))]
     if not args.json:
@@ -445,7 +446,9 @@ def spending_lines(cells: list[dict[str, Any]]) -> list[str]:
 def format_report(result: dict[str, Any]) -> str:
     lines = [f"mode {result['mode']}, user spp {result['spp']}, reference {result['ref_spp']} spp, "
              f"{result['threads']} threads; took {result['seconds']:.0f} s; load average (1 min) "
-             f"{result['load'][0]:.1f} at the start, {result['load'][1]:.1f} at the end", ""]
+             f"{result['load'][0]:.1f} at the start, {result['load'][1]:.1f} at the end"
+             + (f"; kept from a partial run (--resume): {', '.join(result['resumed'])}" if result.get("resumed")
+                else ""), ""]
     for scene in dict.fromkeys(c["scene"] for c in result["cells"]):
         about = result["scenes"][scene]
         lines += [f"## {scene} ({about['role']}: {about['path']} {about['defines']})", "",

@@ -48,6 +48,8 @@ def test_inprocess_grid_json_has_cells_and_baseline(tmp_path):
     again = bench_accuracy.run(args_for(tmp_path, "--inprocess", "--resume", "caustic-corner", str(volume),
                                         "-D", "spp=4"))
     assert again["cells"] == result["cells"]  # both scenes were kept, none measured again
+    assert again["resumed"] == ["caustic-corner", "volume"]
+    assert "--resume" in (tmp_path / "out" / "accuracy.md").read_text()
 
 
 def test_resume_refuses_other_settings_and_missing_files(tmp_path):
