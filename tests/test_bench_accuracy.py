@@ -40,6 +40,7 @@ def test_inprocess_grid_json_has_cells_and_baseline(tmp_path):
         assert c["spp_min"] >= 1 and c["units"] >= 1
         assert c["seam_border_strips"] > 0 or c["units"] == 1, c
         assert isinstance(c["seam_seam"], bool)
+        assert c["units"] == 1 or c["uniform_seam_border_strips"] > 0  # plain Mitsuba measured at its borders
     off = cells[0]
     assert off["spp_min"] == off["spp_max"] == 4  # level off applies no rules
     assert list((tmp_path / "cache" / "references").glob("caustic-corner-*.exr"))  # cached for next time
