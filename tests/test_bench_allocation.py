@@ -71,6 +71,31 @@ def test_band_overlap_averages_two_estimates_and_lowers_the_variance() -> None:
     assert np.allclose(no_band[:, :4], 0.1) and np.allclose(no_band[:, 4:], 0.025)
 
 
+def test_the_pixel_bound_by_hand() -> None:
+    tmap = TimeMap(np.array([[1.0, 1.0]]), 0.0, {})
+    # all the error in one pixel of two equally costly ones: give it all the samples, half uniform's error
+    assert ba.pixel_bound(np.array([[[1.0], [0.0]]]), tmap) == pytest.approx(0.5)
+    # error in proportion to time: uniform spp is already the best allocation
+    tmap = TimeMap(np.array([[1.0, 4.0], [2.0, 0.5]]), 0.0, {})
+    assert ba.pixel_bound(np.array([[[3.0], [12.0]], [[6.0], [1.5]]]), tmap) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_no_allocation_over_units_beats_the_pixel_bound(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    tmap = TimeMap(rng.uniform(1e-4, 5e-3, size=(8, 8)), 0.0, {})
+    weight = rng.lognormal(0.0, 1.5, size=(8, 8, 3))
+    bound = ba.pixel_bound(weight, tmap)
+    assert 0.0 < bound <= 1.0 + 1e-12
+    # Neyman over two units, no bands and no fixed cost, is one of the allocations the bound ranges over
+    assert bound <= ba.neyman_ratio(_plan(HALVES), _params([16, 16]), weight, tmap) + 1e-12
+
+
+def test_the_pixel_bound_refuses_maps_of_other_shapes() -> None:
+    with pytest.raises(ValueError, match="differ in shape"):
+        ba.pixel_bound(np.ones((4, 4, 3)), TimeMap(np.ones((8, 8)), 0.0, {}))
+
+
 @pytest.mark.slow  # six small real renders, a reference, a time map and 5 levels x 1 plan
 def test_small_real_run(tmp_path) -> None:
     parser = argparse.ArgumentParser()
@@ -85,5 +110,6 @@ def test_small_real_run(tmp_path) -> None:
         assert 0.0 < r["time_vs_off"] < 3.0 and np.isfinite(r["ratio"]) and r["ratio"] > 0, r
         assert 1 <= r["spp_min"] <= r["spp_max"] <= 3 * 16
     assert 0.0 < result["neyman_ratio_S"] <= 1.0 + 1e-6  # float sums of per-pixel seconds
+    assert 0.0 < result["pixel_bound"] <= min(1.0, result["neyman_ratio_S"]) + 1e-9
     assert list(tmp_path.glob("allocation-noise-*.npy"))  # the noise map is cached
     assert "| S |" in (tmp_path / "allocation.md").read_text()
