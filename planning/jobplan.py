@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from typing import Any
 
 from core.errors import QuekaroError
 from core.model import integrators
 from core.model.job import Effects, JobPlan, RenderOptions, SceneSpec
 from core.model.units import WorkUnit
-from core.render import scene as scene_mod
-from core.render.effects import analyse
+from core.render.effects import analyse_loaded
 from core.render.scene import expand, film_info, sensor_elements
 from planning.complexity import prepass
 from planning.partition import equal_tiles, partition
@@ -68,9 +68,10 @@ def default_unit_count(width: int, height: int, level: str, min_units: int = 1) 
 
 
 def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: int = 1) -> JobPlan:
-    """Analyse the scene's effects, run the pre-pass (optimised levels only) and partition the image
-    (into `options.units` units, else the default count and at least `min_units`)."""
-    effects = analyse(spec, options.overrides())
+    """Analyse the scene's effects, run the pre-pass (optimised levels only) on the scene as the analysis
+    loaded it, and partition the image (into `options.units` units, else the default count and at least
+    `min_units`)."""
+    effects, loaded = analyse_loaded(spec, options.overrides())
     info = film_info(spec, options.sensor)
     width, height = info.width, info.height
     spp = options.spp or scene_spp(spec, options.sensor) or DEFAULT_SPP
@@ -86,14 +87,13 @@ def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: 
         # The rules need no features at level off, so the pre-pass would be pure overhead.
         units = _plain_units(width, height, target)
         return JobPlan(spec, options, width, height, effects, spp, depth, units)
-    return _planned_with_prepass(spec, options, effects, width, height, spp, depth, target, seed)
+    return _planned_with_prepass(spec, options, effects, width, height, spp, depth, target, seed, loaded)
 
 
 def _planned_with_prepass(spec: SceneSpec, options: RenderOptions, effects: Effects, width: int,
-                          height: int, spp: int, depth: int, target: int, seed: int) -> JobPlan:
-
+                          height: int, spp: int, depth: int, target: int, seed: int, scene: Any) -> JobPlan:
+    """The pre-pass on `scene` (as the analysis loaded it) and the partition of its complexity map."""
     start = time.perf_counter()
-    scene = scene_mod.load(spec, effects.variant, options.threads)
     own = integrators.scene_element(expand(spec).root)
     radiance = effects.override or integrators.radiance_xml(own, depth)
     cmap = prepass(scene, width, height, integrator=radiance, max_depth=depth,

@@ -7,7 +7,7 @@ import pytest
 
 from core.errors import SceneError
 from core.model.job import SceneSpec
-from core.render.effects import analyse, depth_cap
+from core.render.effects import analyse, analyse_loaded, depth_cap
 from core.render.worker import render_full
 
 REPO = Path(__file__).resolve().parent.parent
@@ -23,6 +23,16 @@ def test_depth_cap_formula():
     assert depth_cap(0.0) == 2 and depth_cap(1.0) is None
     cap = depth_cap(0.73)
     assert 0.73 ** (cap - 1) / (1 - 0.73) <= 5e-3 < 0.73 ** (cap - 2) / (1 - 0.73)
+
+
+def test_the_analysis_hands_over_the_scene_it_loaded_in_the_chosen_variant():
+    import mitsuba as mi
+
+    spec = SceneSpec(DATA / "tiny.xml", SMALL)
+    effects, scene = analyse_loaded(spec, {"variant": "llvm_ad_spectral"})
+    assert effects == analyse(spec, {"variant": "llvm_ad_spectral"}) and effects.variant == "llvm_ad_spectral"
+    assert mi.variant() == "llvm_ad_spectral" and isinstance(scene, mi.Scene)
+    assert [int(v) for v in scene.sensors()[0].film().size()] == [24, 24]
 
 
 def test_the_scenes_integrator_is_kept_even_where_direct_would_be_cheaper():

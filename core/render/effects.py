@@ -85,6 +85,12 @@ def depth_cap(albedo: float, tail: float = DEPTH_TAIL) -> int | None:
 
 def analyse(spec: SceneSpec, overrides: dict[str, Any] | None = None) -> Effects:
     """Decide variant, depth and tiling for the scene; `overrides` (variant/integrator/max_depth) win."""
+    return analyse_loaded(spec, overrides)[0]
+
+
+def analyse_loaded(spec: SceneSpec, overrides: dict[str, Any] | None = None) -> tuple[Effects, Any]:
+    """`analyse`, and the scene as it loaded in the chosen variant, for a caller that renders it next
+    (the pre-pass) and need not load it twice."""
     overrides = {k: v for k, v in (overrides or {}).items() if v is not None}
     unknown = set(overrides) - set(_OVERRIDABLE)
     if unknown:
@@ -115,7 +121,7 @@ def analyse(spec: SceneSpec, overrides: dict[str, Any] | None = None) -> Effects
         media = root.find(".//medium") is not None
         depth = _choose_depth(_surface_facts(loaded), elem, depth, media, reasons)
     depth = int(_override(overrides, "max_depth", depth, reasons))
-    return Effects(variant, name, depth, reasons, override, split)
+    return Effects(variant, name, depth, reasons, override, split), loaded
 
 
 def _override(overrides: dict[str, Any], key: str, chosen: Any, reasons: list[str]) -> Any:
