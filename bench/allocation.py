@@ -28,14 +28,15 @@ from typing import Any
 import numpy as np
 
 from bench.accuracy import DEFAULT_OUT, HETEROGENEOUS, SCENES
-from bench.scaling import measure_cached
+from bench.scaling import measure_cached, measured_spec
 from core.model.geometry import Rect
 from core.model.hashing import sha256_file
-from core.model.job import RenderOptions, SceneSpec
+from core.model.job import RenderOptions
 from core.model.seeds import plan_seed
 from core.render.compose import blend_weights
 from core.render.metrics import RELMSE_EPSILON
 from core.render.planner import Planner
+from core.render.scene import film_info, parse_defines
 from fuzzy.levels import RULE_LEVELS
 from planning.accuracy import job_variant, plain_render, reference
 from planning.jobplan import plan_job
@@ -46,7 +47,10 @@ LEVELS = RULE_LEVELS  # every level that runs the rules
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", type=Path, default=SCENES[HETEROGENEOUS])
-    parser.add_argument("--res", type=int, default=320, help="image side")
+    parser.add_argument("--res", type=int, default=320, help="image side (-D res), unless -D is given")
+    parser.add_argument("-D", dest="defines", action="append", default=[], metavar="NAME=VALUE",
+                        help="a scene parameter, as Mitsuba's -D; with -D the scene is taken at its film's size "
+                             "and --res is not passed")
     parser.add_argument("--spp", type=int, default=128, help="the user's spp (level off)")
     parser.add_argument("--renders", type=int, default=6, help="independent renders for the noise map")
     parser.add_argument("--ref-spp", type=int, default=2048, help="spp of the reference")
@@ -138,13 +142,15 @@ def pixel_bound(weight: np.ndarray, tmap: Any) -> float:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
 
-    spec = SceneSpec(args.scene.resolve(), {"res": str(args.res)})  # as `bench accuracy`: one reference
+    defines = parse_defines(args.defines) if args.defines else None
+    spec = measured_spec(args.scene.resolve(), args.res, defines=defines)  # as `bench accuracy`: one reference
+    size = film_info(spec)
     sigma2 = noise_map(spec, args.spp, args.renders, args.threads, args.cache_dir)
     ref = reference(spec, args.ref_spp, args.threads, args.cache_dir, job_variant(spec))
     weight = sigma2 / (ref**2 + RELMSE_EPSILON)
     tmap, _, _ = measure_cached(spec.path, args.res, args.cell, args.measure_spp, args.threads,
-                                args.cache_dir)
-    off_seconds = tmap.unit_seconds(_whole(args.res), args.spp, band=0)
+                                args.cache_dir, defines=defines)
+    off_seconds = tmap.unit_seconds(Rect(0, 0, size.width, size.height), args.spp, band=0)
     planner = Planner(args.rules, "centroid")
     digest = sha256_file(spec.path)
     rows, bounds = [], []
@@ -166,7 +172,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             if level == "S":
                 bounds.append(neyman_ratio(plan, params, weight, tmap))
         rows.append(_summary(level, runs))
-    result = {"scene": str(args.scene), "res": args.res, "spp": args.spp, "renders": args.renders,
+    result = {"scene": str(args.scene), "size": [size.width, size.height], "defines": spec.defines,
+              "spp": args.spp, "renders": args.renders,
               "rules": str(planner.rules_path), "seeds": args.seeds, "off_render_seconds": off_seconds,
               "rows": rows, "neyman_ratio_S": float(np.mean(bounds)), "pixel_bound": pixel_bound(weight, tmap)}
     report = format_report(result)
@@ -191,12 +198,9 @@ def _summary(level: str, runs: list[dict[str, Any]]) -> dict[str, Any]:
     return row
 
 
-def _whole(res: int) -> Any:
-    return Rect(0, 0, res, res)
-
-
 def format_report(result: dict[str, Any]) -> str:
-    lines = [f"{Path(result['scene']).name} {result['res']}x{result['res']}, user spp {result['spp']}, "
+    width, height = result["size"]
+    lines = [f"{Path(result['scene']).name} {width}x{height}, user spp {result['spp']}, "
              f"rules {Path(result['rules']).name}; level off renders {result['off_render_seconds']:.2f} s "
              "(predicted)",
              "| level | units | render s | x off | spp mean (min-max) | relMSE | uniform spp | uniform relMSE "

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import json
 import os
 import time
@@ -47,8 +48,10 @@ from core.model.geometry import Rect
 from core.model.hashing import sha256_file
 from core.model.job import SceneSpec
 from core.render import scene as scene_mod
+from core.render.scene import film_info
 from core.render.worker import RenderRequest, RenderWorker
 from master.auction import Config
+from planning.accuracy import job_variant
 from planning.complexity import COST_SPP, NOISE_SHARE, PREPASS_SPP, ComplexityMap, prepass
 from planning.jobplan import farm_min_units
 from planning.partition import equal_tiles, partition
@@ -119,21 +122,20 @@ def scene_integrator(spec: Any) -> tuple[str, int]:
     return kind, depth
 
 
-def measure(scene_path: Path, res: int, cell: int, spp: int, threads: int,
-            height: int | None = None) -> tuple[TimeMap, Any]:
-    """The pre-pass complexity map and the measured per-pixel time map of the scene at res x res, or res x
-    height when `height` is given (the scene then reads `-D height=...`, as bench.hosts's wide scene does)."""
-    width, height = res, height or res
-    spec = SceneSpec(scene_path, {"res": str(res)} if height == res else {"res": str(res), "height": str(height)})
+def measure(spec: SceneSpec, cell: int, spp: int, threads: int) -> tuple[TimeMap, Any]:
+    """The pre-pass complexity map and the measured per-pixel time map of the scene at its film's size."""
+    info = film_info(spec)
+    width, height = info.width, info.height
+    variant = job_variant(spec)  # a job of this scene renders in it (spectral data: the spectral variant)
     kind, depth = scene_integrator(spec)
-    loaded = scene_mod.load(spec, "llvm_ad_rgb", threads)
+    loaded = scene_mod.load(spec, variant, threads)
     cmap = prepass(loaded, width, height, integrator=kind, max_depth=depth, threads=threads)
     cells = [Rect(x, y, min(cell, width - x), min(cell, height - y))
              for y in range(0, height, cell) for x in range(0, width, cell)]
 
     def job(rect: Rect, n: int, seed: int) -> RenderRequest:
         # Cells are timed without a band: the map holds what each pixel costs; units pay their band.
-        return RenderRequest(spec, "llvm_ad_rgb", kind, depth, n, seed, width, height, rect, band=0,
+        return RenderRequest(spec, variant, kind, depth, n, seed, width, height, rect, band=0,
                              threads=threads)
 
     started = time.perf_counter()
@@ -154,7 +156,7 @@ def measure(scene_path: Path, res: int, cell: int, spp: int, threads: int,
     per_sample = spread_cell_times(cells, seconds, fixed, spp, cmap.cost)
     cell_cost = [float(cmap.cost[r.slices()].sum()) for r in cells]
     tmap = TimeMap(per_sample, fixed, {
-        "cells": len(cells), "cell": cell, "measure_spp": spp, "fixed_s": fixed,
+        "cells": len(cells), "cell": cell, "measure_spp": spp, "fixed_s": fixed, "variant": variant,
         "measure_seconds": time.perf_counter() - started, "prepass_seconds": cmap.seconds,
         "cell_seconds_min": min(seconds), "cell_seconds_max": max(seconds),
         "cost_time_rank_corr": _rank_corr(cell_cost, seconds),
@@ -162,6 +164,16 @@ def measure(scene_path: Path, res: int, cell: int, spp: int, threads: int,
         "whole_image_predicted_s": tmap_whole(per_sample, fixed, spp),
     })
     return tmap, cmap
+
+
+def measured_spec(scene_path: Path, res: int, height: int | None = None,
+                  defines: dict[str, str] | None = None) -> SceneSpec:
+    """The scene as measured: its `defines` when given (the size is then the film's), else `-D res`, and
+    `-D height` when it differs (as bench.hosts's wide scene reads)."""
+    if defines is not None:
+        return SceneSpec(scene_path, dict(defines))
+    height = height or res
+    return SceneSpec(scene_path, {"res": str(res)} if height == res else {"res": str(res), "height": str(height)})
 
 
 def spread_cell_times(cells: Sequence[Rect], seconds: Sequence[float], fixed: float, spp: int,
@@ -181,24 +193,30 @@ def spread_cell_times(cells: Sequence[Rect], seconds: Sequence[float], fixed: fl
 
 
 def cache_file(cache_dir: Path | None, scene_path: Path, res: int, cell: int, spp: int, threads: int,
-               height: int | None = None) -> Path:
+               height: int | None = None, variant: str = "llvm_ad_rgb",
+               defines: dict[str, str] | None = None) -> Path:
     """Where the measurement of these inputs is cached: keyed by the scene file's sha256 (not the files it
     includes: remeasure after editing a mesh or texture), the image side, the cell side, spp, threads,
-    the pre-pass's sample split (the cached complexity map, hence the partition, depends on it) and the
-    timing passes per cell."""
+    the pre-pass's sample split (the cached complexity map, hence the partition, depends on it), the
+    timing passes per cell and the variant the cells rendered in."""
     base = cache_dir or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "quekaro"
     digest = sha256_file(scene_path)[:16]
     prepass = f"p{PREPASS_SPP}-{COST_SPP}-{NOISE_SHARE}"
     size = f"r{res}" if height in (None, res) else f"r{res}x{height}"
-    return Path(base) / f"scaling-{digest}-{size}-c{cell}-s{spp}-t{threads}-{prepass}-m{MEASURE_PASSES}.npz"
+    if defines is not None:  # the size is the film's under these parameters
+        size = "d" + hashlib.sha256(json.dumps(sorted(defines.items())).encode()).hexdigest()[:12]
+    return Path(base) / f"scaling-{digest}-{size}-c{cell}-s{spp}-t{threads}-{prepass}-m{MEASURE_PASSES}-{variant}.npz"
 
 
 def measure_cached(scene_path: Path, res: int, cell: int, spp: int, threads: int,
                    cache_dir: Path | None = None, remeasure: bool = False,
-                   height: int | None = None) -> tuple[TimeMap, Any, bool]:
-    """`measure`, read from the cache when it holds these inputs (and `remeasure` is false); the third value
-    says whether it came from the cache. A cache file that cannot be read is measured again."""
-    path = cache_file(cache_dir, scene_path, res, cell, spp, threads, height)
+                   height: int | None = None, defines: dict[str, str] | None = None) -> tuple[TimeMap, Any, bool]:
+    """`measure` of the scene at `measured_spec(scene_path, res, height, defines)`, read from the cache when
+    it holds these inputs (and `remeasure` is false); the third value says whether it came from the
+    cache. A cache file that cannot be read is measured again."""
+    spec = measured_spec(scene_path, res, height, defines)
+    variant = job_variant(spec)
+    path = cache_file(cache_dir, scene_path, res, cell, spp, threads, height, variant, defines)
     if path.exists() and not remeasure:
         try:
             with np.load(path, allow_pickle=False) as data:
@@ -209,7 +227,7 @@ def measure_cached(scene_path: Path, res: int, cell: int, spp: int, threads: int
             return tmap, cmap, True
         except (OSError, KeyError, ValueError) as exc:
             print(f"cache {path} unreadable ({exc}); measuring again")
-    tmap, cmap = measure(scene_path, res, cell, spp, threads, height)
+    tmap, cmap = measure(spec, cell, spp, threads)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.stem + ".tmp.npz")
     np.savez(tmp, per_sample=tmap.per_sample, fixed_s=tmap.fixed_s, tmap_info=json.dumps(tmap.info),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 
 from bench import allocation as ba
 from bench.scaling import TimeMap
+from core.errors import SceneError
 from core.model.geometry import Rect
 
 
@@ -113,3 +115,30 @@ def test_small_real_run(tmp_path) -> None:
     assert 0.0 < result["pixel_bound"] <= min(1.0, result["neyman_ratio_S"]) + 1e-9
     assert list(tmp_path.glob("allocation-noise-*.npy"))  # the noise map is cached
     assert "| S |" in (tmp_path / "allocation.md").read_text()
+
+
+@pytest.mark.slow  # small real renders, a reference and a time map of a 40x24 scene
+def test_any_scene_with_its_parameters(tmp_path) -> None:
+    """-D takes the scene at its own film size: a scene whose size comes from width and height, not res."""
+    parser = argparse.ArgumentParser()
+    ba.add_arguments(parser)
+    scene = Path(__file__).resolve().parent / "data" / "scenes" / "tiny.xml"
+    args = parser.parse_args(["--scene", str(scene), "-D", "width=40", "-D", "height=24", "--spp", "8",
+                              "--renders", "2", "--ref-spp", "64", "--seeds", "1", "--threads", "1",
+                              "--cell", "8", "--measure-spp", "16", "--cache-dir", str(tmp_path),
+                              "--out", str(tmp_path)])
+    args.json = True
+    result = ba.run(args)
+    assert result["size"] == [40, 24] and result["defines"] == {"width": "40", "height": "24"}
+    assert (tmp_path / "allocation.md").read_text().splitlines()[2].startswith("tiny.xml 40x24, user spp 8")
+    names = [p.name for p in tmp_path.glob("scaling-*.npz")]
+    assert len(names) == 1 and names[0].split("-")[2].startswith("d")  # the size part is the -D key
+
+
+def test_a_bad_define_is_refused_naming_it(tmp_path) -> None:
+    parser = argparse.ArgumentParser()
+    ba.add_arguments(parser)
+    args = parser.parse_args(["-D", "width", "--cache-dir", str(tmp_path), "--out", str(tmp_path)])
+    args.json = True
+    with pytest.raises(SceneError, match="-D 'width': expected NAME=VALUE"):
+        ba.run(args)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,6 +11,8 @@ import pytest
 from bench import scaling as bench_scaling
 from core.errors import QuekaroError
 from core.model.geometry import Rect
+
+REPO = Path(__file__).resolve().parent.parent
 
 pytestmark = pytest.mark.slow  # a pre-pass and ~20 real unit renders
 
@@ -59,3 +62,13 @@ def test_cell_times_spread_by_cost_and_a_timeless_map_is_refused():
     assert per_sample[:, 2:].sum() == 0.0  # as fast as a 1-spp render: nothing per sample
     with pytest.raises(QuekaroError, match="--measure-spp"):
         bench_scaling.spread_cell_times(cells, [0.1, 0.09], fixed=0.1, spp=4, cost=cost)
+
+
+def test_cells_are_timed_in_the_variant_a_job_of_the_scene_renders_in(tmp_path):
+    """A spectral scene's cells are timed spectral (as its jobs render), and cached apart from rgb."""
+    cbox = REPO.parent / "shared" / "scenes" / "mitsuba-data" / "cbox" / "cbox.xml"
+    tmap, _, cached = bench_scaling.measure_cached(cbox, 32, 16, 2, 1, tmp_path)
+    assert not cached and tmap.info["variant"] == "llvm_ad_spectral"
+    assert [p.name.endswith("-llvm_ad_spectral.npz") for p in tmp_path.glob("scaling-*.npz")] == [True]
+    again, _, cached = bench_scaling.measure_cached(cbox, 32, 16, 2, 1, tmp_path)
+    assert cached and again.info["variant"] == "llvm_ad_spectral"
