@@ -128,19 +128,23 @@ def parse_grid(args: argparse.Namespace) -> tuple[list[SuiteScene], list[int], l
 # ---- CPU time --------------------------------------------------------------------------------------
 
 
+def proc_stat(pid: int) -> tuple[int, float]:
+    """(parent pid, user + system CPU seconds) of a live process, from /proc (psutil is not a dependency)."""
+    text = Path(f"/proc/{pid}/stat").read_text()
+    fields = text[text.rindex(")") + 2:].split()  # after the command name, which may hold spaces
+    return int(fields[1]), (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def _proc_table() -> dict[int, tuple[int, float]]:
     """pid -> (parent pid, user + system CPU seconds) of every process readable in /proc."""
-    tick = os.sysconf("SC_CLK_TCK")
     out = {}
     for entry in os.listdir("/proc"):
         if not entry.isdigit():
             continue
         try:
-            text = Path(f"/proc/{entry}/stat").read_text()
+            out[int(entry)] = proc_stat(int(entry))
         except OSError:
             continue
-        fields = text[text.rindex(")") + 2:].split()  # after the command name, which may hold spaces
-        out[int(entry)] = (int(fields[1]), (int(fields[11]) + int(fields[12])) / tick)
     return out
 
 
@@ -450,15 +454,19 @@ def spending_lines(cells: list[dict[str, Any]]) -> list[str]:
              "| depth | diff % | RMSE | relMSE | FLIP | seam z (worst unit) | plain Mitsuba's seam z there |",
              "|" + "---|" * 16]
     for c in cells:
-        plain = (f"{c['uniform_seam_z']:.1f} ({c['uniform_seam_unit_z']:.1f}"
-                 f"{' SEAM' if c['uniform_seam_seam'] else ''})" if "uniform_seam_z" in c else "-")
+        plain = _seam_text(c, "uniform_seam_") if "uniform_seam_z" in c else "-"
         lines.append(
             f"| {c['scene']} | {c['agents']} | {c['level']} | {c['seconds']:.1f} | {c['cpu_seconds']:.1f} "
             f"| {c['render_seconds']:.1f} | {c['prepass_seconds']:.2f} | {c['units']} "
             f"| {c['spp_mean']:.0f} ({c['spp_min']}-{c['spp_max']}) | {c['depth_min']}-{c['depth_max']} "
             f"| {c['mean_pixel_diff_percent']:.2f} | {c['rmse']:.4f} | {c['relmse']:.4f} | {c['flip']:.4f} "
-            f"| {c['seam_z']:.1f} ({c['seam_unit_z']:.1f}{' SEAM' if c['seam_seam'] else ''}) | {plain} |")
+            f"| {_seam_text(c, 'seam_')} | {plain} |")
     return lines
+
+
+def _seam_text(cell: dict[str, Any], prefix: str) -> str:
+    """"z (worst unit's z[ SEAM])" of the seam figures stored under `prefix` in a cell."""
+    return f"{cell[prefix + 'z']:.1f} ({cell[prefix + 'unit_z']:.1f}{' SEAM' if cell[prefix + 'seam'] else ''})"
 
 
 def format_report(result: dict[str, Any]) -> str:

@@ -64,9 +64,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder for allocation.md")
 
 
-def noise_map(spec: Any, spp: int, renders: int, threads: int, cache: Path) -> np.ndarray:
-    """Per-pixel, per-channel variance of one sample (cached by scene content, defines, spp, renders)."""
-    variant = job_variant(spec)
+def noise_map(spec: Any, spp: int, renders: int, threads: int, cache: Path, variant: str) -> np.ndarray:
+    """Per-pixel, per-channel variance of one sample in `variant` (cached by scene content, defines, spp,
+    renders and variant)."""
     key = hashlib.sha256(spec.path.read_bytes() + json.dumps([spec.defines, spp, renders, variant]).encode())
     path = cache / f"allocation-noise-{key.hexdigest()[:16]}.npy"
     if path.exists():
@@ -132,7 +132,7 @@ def pixel_bound(weight: np.ndarray, tmap: Any) -> float:
     render time, whatever decides it (rules, variance or an oracle). It is optimistic: spp may be
     fractional, and a noise map from a few renders varies more across pixels than the true noise does.
     So where it is above a target, no allocation meets that target on the scene."""
-    err = np.asarray(weight, dtype=np.float64).mean(axis=-1) if np.ndim(weight) == 3 else np.asarray(weight)
+    err = np.asarray(weight, dtype=np.float64).mean(axis=-1)  # (H, W, C) -> per pixel, as relMSE averages
     per = np.asarray(tmap.per_sample, dtype=np.float64)
     if err.shape != per.shape:
         raise ValueError(f"error map {err.shape} and time map {per.shape} differ in shape")
@@ -145,8 +145,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     defines = parse_defines(args.defines) if args.defines else None
     spec = measured_spec(args.scene.resolve(), args.res, defines=defines)  # as `bench accuracy`: one reference
     size = film_info(spec)
-    sigma2 = noise_map(spec, args.spp, args.renders, args.threads, args.cache_dir)
-    ref = reference(spec, args.ref_spp, args.threads, args.cache_dir, job_variant(spec))
+    variant = job_variant(spec)
+    sigma2 = noise_map(spec, args.spp, args.renders, args.threads, args.cache_dir, variant)
+    ref = reference(spec, args.ref_spp, args.threads, args.cache_dir, variant)
     weight = sigma2 / (ref**2 + RELMSE_EPSILON)
     tmap, _, _ = measure_cached(spec.path, args.res, args.cell, args.measure_spp, args.threads,
                                 args.cache_dir, defines=defines)

@@ -51,8 +51,9 @@ from typing import Any
 
 from agents.emulate import CostMap
 from agents.state import HEARTBEAT_S
+from bench.accuracy import proc_stat
 from bench.report import DEFAULT_OUT, write_report
-from bench.scaling import measure_cached
+from bench.scaling import default_cache_dir, measure_cached
 from bench.simulate import simulate
 from core.errors import QuekaroError
 from core.model.geometry import Rect
@@ -67,7 +68,7 @@ from master.auction import Config
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_SCENE = REPO / "scenes" / "caustic-corner.xml"
-CACHE = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "quekaro"
+CACHE = default_cache_dir()
 DEFAULT_COSTS = CACHE / "hosts-costs.json"
 DOMAIN = "localhost"
 MASTER_JID = f"master@{DOMAIN}"
@@ -308,12 +309,6 @@ def wait_for_idle() -> tuple[float, float]:
     return time.monotonic() - started, busy
 
 
-def proc_cpu(pid: int) -> float:
-    """User + system CPU seconds of a live process (/proc: psutil is not a dependency)."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
 def proc_memory(pid: int) -> dict[str, float]:
     """Resident and peak resident MiB of a live process (VmRSS, VmHWM)."""
     values = {}
@@ -422,11 +417,11 @@ def _run_job(farm: EmulatedFarm, client: FarmClient, job: BenchJob) -> dict[str,
     """Submit the job and wait for it, timing the master's CPU; then fetch its report."""
     pid = farm.master.pid
     load = os.getloadavg()[0]  # the machine is shared: what else ran is part of the figures
-    cpu0, submitted = proc_cpu(pid), time.time()
+    cpu0, submitted = proc_stat(pid)[1], time.time()
     job_id = client.submit(job.bundle, job.defines, job.options)
     timeout = max(600.0, 4 * job.t1 / len(farm.agents))
     status = client.wait(job_id, timeout, poll=0.5, while_waiting=farm.check_alive)
-    cpu1 = proc_cpu(pid)
+    cpu1 = proc_stat(pid)[1]
     if status["status"] != "done":
         raise QuekaroError(f"benchmark job {job_id} {status['status']}: {status.get('error')}")
     agents_mib = [proc_memory(p.pid)["rss_mib"] for p in farm.agents]

@@ -192,20 +192,21 @@ def spread_cell_times(cells: Sequence[Rect], seconds: Sequence[float], fixed: fl
     return per_sample
 
 
-def cache_file(cache_dir: Path | None, scene_path: Path, res: int, cell: int, spp: int, threads: int,
-               height: int | None = None, variant: str = "llvm_ad_rgb",
-               defines: dict[str, str] | None = None) -> Path:
+def default_cache_dir() -> Path:
+    """$XDG_CACHE_HOME/quekaro, else ~/.cache/quekaro: where the benches keep their measurements."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "quekaro"
+
+
+def cache_file(cache_dir: Path | None, spec: SceneSpec, cell: int, spp: int, threads: int, variant: str) -> Path:
     """Where the measurement of these inputs is cached: keyed by the scene file's sha256 (not the files it
-    includes: remeasure after editing a mesh or texture), the image side, the cell side, spp, threads,
-    the pre-pass's sample split (the cached complexity map, hence the partition, depends on it), the
-    timing passes per cell and the variant the cells rendered in."""
-    base = cache_dir or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "quekaro"
-    digest = sha256_file(scene_path)[:16]
+    includes: remeasure after editing a mesh or texture), its -D parameters (hence its size), the cell
+    side, spp, threads, the pre-pass's sample split (the cached complexity map, hence the partition,
+    depends on it), the timing passes per cell and the variant the cells rendered in."""
+    digest = sha256_file(spec.path)[:16]
+    defines = hashlib.sha256(json.dumps(sorted(spec.defines.items())).encode()).hexdigest()[:12]
     prepass = f"p{PREPASS_SPP}-{COST_SPP}-{NOISE_SHARE}"
-    size = f"r{res}" if height in (None, res) else f"r{res}x{height}"
-    if defines is not None:  # the size is the film's under these parameters
-        size = "d" + hashlib.sha256(json.dumps(sorted(defines.items())).encode()).hexdigest()[:12]
-    return Path(base) / f"scaling-{digest}-{size}-c{cell}-s{spp}-t{threads}-{prepass}-m{MEASURE_PASSES}-{variant}.npz"
+    return (Path(cache_dir or default_cache_dir())
+            / f"scaling-{digest}-d{defines}-c{cell}-s{spp}-t{threads}-{prepass}-m{MEASURE_PASSES}-{variant}.npz")
 
 
 def measure_cached(scene_path: Path, res: int, cell: int, spp: int, threads: int,
@@ -216,7 +217,7 @@ def measure_cached(scene_path: Path, res: int, cell: int, spp: int, threads: int
     cache. A cache file that cannot be read is measured again."""
     spec = measured_spec(scene_path, res, height, defines)
     variant = job_variant(spec)
-    path = cache_file(cache_dir, scene_path, res, cell, spp, threads, height, variant, defines)
+    path = cache_file(cache_dir, spec, cell, spp, threads, variant)
     if path.exists() and not remeasure:
         try:
             with np.load(path, allow_pickle=False) as data:
