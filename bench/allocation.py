@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from bench.accuracy import DEFAULT_OUT, HETEROGENEOUS, SCENES
+from bench.report import publish_markdown
 from bench.scaling import measure_cached, measured_spec
 from core.model.geometry import Rect
 from core.model.hashing import sha256_file
@@ -178,11 +179,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
               "rules": str(planner.rules_path), "seeds": args.seeds, "off_render_seconds": off_seconds,
               "rows": rows, "neyman_ratio_S": float(np.mean(bounds)), "pixel_bound": pixel_bound(weight, tmap)}
     report = format_report(result)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "allocation.md").write_text(
-        "# Each level's allocation against uniform spp (`quekaro bench allocation`)\n\n" + report + "\n")
-    if not args.json:
-        print(report)
+    publish_markdown(args.out, "allocation", "Each level's allocation against uniform spp",
+                     "quekaro bench allocation", report, show=not args.json)
     return result
 
 

@@ -9,7 +9,7 @@ import json
 from collections.abc import Callable
 from types import ModuleType
 
-from bench import accuracy, allocation, fuzzy_engine, hosts, overhead, scaling
+from bench import accuracy, adaptive, allocation, fuzzy_engine, hosts, overhead, scaling
 from bench import farm as farm_bench
 
 BENCHMARKS: dict[str, tuple[ModuleType, str]] = {
@@ -18,6 +18,7 @@ BENCHMARKS: dict[str, tuple[ModuleType, str]] = {
     "farm": (farm_bench, "farm overhead and 2-agent speedup"),
     "accuracy": (accuracy, "time and error per (agents, optimisation level)"),
     "allocation": (allocation, "each level's render time and relMSE against uniform spp, predicted"),
+    "adaptive": (adaptive, "the two-pass per-pixel adaptive render against uniform spp at equal render time"),
     "scaling": (scaling, "simulated auction scaling to 64 agents"),
     "hosts": (hosts, "the real protocol (XMPP server, master, agent processes) at 8-64 emulated agents"),
 }

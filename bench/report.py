@@ -14,3 +14,14 @@ def write_report(out: Path, name: str, title: str, body: str, command: str) -> P
     path = out / f"{name}.md"
     path.write_text(f"# {title} (`{command}`)\n\n```\n{body.rstrip()}\n```\n")
     return path
+
+
+def publish_markdown(out: Path, name: str, title: str, command: str, body: str, show: bool) -> Path:
+    """`out`/`name`.md: the title naming the command, then `body` as markdown (tables render in README);
+    `body` is also printed when `show`."""
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"{name}.md"
+    path.write_text(f"# {title} (`{command}`)\n\n{body}\n")
+    if show:
+        print(body)
+    return path

@@ -1,0 +1,146 @@
+"""`quekaro bench adaptive`: the two-pass per-pixel adaptive render (core.render.adaptive) against plain
+Mitsuba at uniform spp, measured in one process at equal render time.
+
+Per scene (the suite's, or files given) and seed, with the scene loaded once and its kernels warmed:
+plain Mitsuba at `--spp` (time T), the adaptive render at `--spp` (time A), and plain Mitsuba again at
+round(spp x A / T), the uniform spp that takes the adaptive render's time. Each image's relMSE is taken
+against the scene's cached reference (`quekaro bench accuracy`'s). The ratio relMSE(adaptive) /
+relMSE(uniform at equal time) is the figure; below 1 the adaptive render pays for itself.
+
+This is render time inside one process: no planning, units, bands or farm (the adaptive render is not
+yet what the units render). The accuracy benchmark measures whole jobs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench.accuracy import DEFAULT_OUT, REPO
+from bench.report import publish_markdown
+from bench.scaling import default_cache_dir, measured_spec
+from bench.suite import SUITE, scene_from_argument
+from core.errors import QuekaroError
+from core.render.adaptive import BLUR_PX, FIRST_SHARE, PAYS_BELOW, render_adaptive
+from core.render.metrics import relmse
+from core.render.scene import load
+from core.render.worker import film_channels, sanitize
+from planning.accuracy import job_variant, reference
+
+TARGET = 0.8  # the issue's target for the optimised levels, here at equal render time
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("scenes", nargs="*", help="suite names or scene files (default: the whole suite)")
+    parser.add_argument("--res", type=int, default=512, help="image width (each scene keeps its aspect)")
+    parser.add_argument("--spp", type=int, default=64)
+    parser.add_argument("--ref-spp", type=int, default=1024)
+    parser.add_argument("--seeds", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--cache-dir", type=Path, default=default_cache_dir())
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT / "adaptive", help="folder for adaptive.md")
+
+
+def uniform(loaded: Any, spp: int, seed: int) -> tuple[np.ndarray, float]:
+    """Plain Mitsuba's render of the loaded scene at `spp`: (RGB, seconds including the readback)."""
+    import mitsuba as mi
+
+    start = time.perf_counter()
+    mi.render(loaded, spp=spp, seed=seed)
+    pixels, _ = film_channels(loaded.sensors()[0].film())
+    return sanitize(pixels)[0][..., :3], time.perf_counter() - start
+
+
+def adaptive(loaded: Any, spp: int, seed: int) -> tuple[np.ndarray, float, Any]:
+    """The adaptive render: (RGB, seconds, the AdaptiveRender with its prediction and choice)."""
+    start = time.perf_counter()
+    result = render_adaptive(loaded, spp, seed)
+    return result.pixels[..., :3], time.perf_counter() - start, result
+
+
+def measure_scene(spec: Any, args: argparse.Namespace) -> dict[str, Any]:
+    """The rows of one scene: per seed, both renders' times and relMSE, and the ratio at equal time."""
+    variant = job_variant(spec)
+    ref = reference(spec, args.ref_spp, args.threads, args.cache_dir, variant)
+    loaded = load(spec, variant, threads=args.threads)
+    uniform(loaded, args.spp, 1)  # warm the kernels of both, so neither pays a compilation
+    adaptive(loaded, args.spp, 2)
+    runs = []
+    for k in range(args.seeds):
+        u_img, u_s = uniform(loaded, args.spp, 1000 + k)
+        a_img, a_s, made = adaptive(loaded, args.spp, 2000 + 2 * k)
+        eq_spp = max(1, round(args.spp * a_s / u_s))
+        e_img, e_s = uniform(loaded, eq_spp, 3000 + k)
+        runs.append({"uniform_s": u_s, "adaptive_s": a_s, "equal_spp": eq_spp, "equal_s": e_s,
+                     "relmse_uniform": relmse(u_img, ref), "relmse_adaptive": relmse(a_img, ref),
+                     "relmse_equal": relmse(e_img, ref), "predicted_equal_spp": made.predicted,
+                     "adapted": bool(made.adapted)})
+    for r in runs:
+        r["ratio_equal_spp"] = r["relmse_adaptive"] / r["relmse_uniform"]
+        r["ratio_equal_time"] = r["relmse_adaptive"] / r["relmse_equal"]
+    return {"variant": variant, "runs": runs,
+            "ratio_equal_time": float(np.median([r["ratio_equal_time"] for r in runs])),
+            "time_ratio": float(np.median([r["adaptive_s"] / r["uniform_s"] for r in runs]))}
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    chosen = [scene_from_argument(s) for s in args.scenes] if args.scenes else list(SUITE)
+    if len(chosen) == 1:
+        entry = chosen[0]
+        defines = entry.with_size(args.res)
+        spec = measured_spec(entry.path.resolve(), args.res, defines=defines if "width" in defines else None)
+        scenes = {entry.name: {"role": entry.role, **measure_scene(spec, args)}}
+    else:  # one process per scene: a suite in one process crashed Dr.Jit (SIGSEGV) after a few scenes
+        scenes = {e.name: _scene_in_child(e, args) for e in chosen}
+    ratios = [s["ratio_equal_time"] for s in scenes.values()]
+    result = {"spp": args.spp, "ref_spp": args.ref_spp, "res": args.res, "seeds": args.seeds,
+              "first_share": FIRST_SHARE, "blur_px": BLUR_PX, "pays_below": PAYS_BELOW, "scenes": scenes,
+              "median_ratio_equal_time": float(np.median(ratios))}
+    report = format_report(result)
+    publish_markdown(args.out, "adaptive", "The two-pass adaptive render against uniform spp",
+                     "quekaro bench adaptive", report, show=not args.json)
+    return result
+
+
+def _scene_in_child(entry: Any, args: argparse.Namespace) -> dict[str, Any]:
+    """One scene's measurement by `quekaro bench adaptive SCENE --json` in a process of its own."""
+    name = entry.name if scene_from_argument(entry.name) == entry else str(entry.path)
+    with tempfile.TemporaryDirectory(prefix="quekaro-adaptive-") as tmp:
+        cmd = [sys.executable, "-m", "quekaro", "bench", "adaptive", name, "--json", "--res", str(args.res),
+               "--spp", str(args.spp), "--ref-spp", str(args.ref_spp), "--seeds", str(args.seeds),
+               "--threads", str(args.threads), "--cache-dir", str(args.cache_dir), "--out", tmp]
+        done = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
+    if done.returncode != 0:
+        raise QuekaroError(f"bench adaptive {name}: exit {done.returncode}: {done.stderr.strip()[-800:]}")
+    return json.loads(done.stdout)["scenes"][entry.name]
+
+
+def format_report(result: dict[str, Any]) -> str:
+    lines = [
+        f"{result['res']} px wide, {result['spp']} spp, reference {result['ref_spp']} spp, {result['seeds']} seeds; "
+        f"first pass {result['first_share']:.0%} of the samples, noise blurred over {result['blur_px']:g} px, "
+        f"adapted where it predicts relMSE below {result['pays_below']:g} of uniform's at the same spp. "
+        "One process, render time only, kernels warm.",
+        "",
+        "| scene | role | adapted (predicted) | adaptive time / uniform | relMSE / uniform, same spp "
+        "| relMSE / uniform, equal time |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, s in result["scenes"].items():
+        same = np.median([r["ratio_equal_spp"] for r in s["runs"]])
+        runs = ", ".join(f"{r['ratio_equal_time']:.2f}" for r in s["runs"])
+        chose = ", ".join(f"{'yes' if r['adapted'] else 'no'} ({r['predicted_equal_spp']:.2f})" for r in s["runs"])
+        lines.append(f"| {name} | {s['role']} | {chose} | {s['time_ratio']:.2f} | {same:.2f} | "
+                     f"{s['ratio_equal_time']:.2f} ({runs}) |")
+    median = result["median_ratio_equal_time"]
+    verdict = "PASS" if median <= TARGET else "MISS"
+    lines += ["", f"Median relMSE / uniform at equal render time: {median:.2f} (target: <= {TARGET}, {verdict})"]
+    return "\n".join(lines)

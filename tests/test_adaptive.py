@@ -1,0 +1,163 @@
+"""The per-pixel sample-count render (core.render.adaptive) against plain Mitsuba rendering the same file:
+the same image statistically at uniform counts (means and variance), the same means with counts that
+vary per pixel (and the variance each pixel's count predicts), and refusals that say why."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from render_check import VARIANCE_BOUNDS, by_name, compare, reference_renders
+from scipy import stats
+
+from core.errors import RenderError
+from core.model.job import SceneSpec
+from core.render.adaptive import PAYS_BELOW, neyman_counts, render_adaptive, render_counts, second_pass
+from core.render.scene import load
+
+SCENES = Path(__file__).resolve().parent / "compat" / "scenes"
+RGB, SPECTRAL = "llvm_ad_rgb", "llvm_ad_spectral"
+SPP = 16
+KINDS = [("rgba.xml", RGB), ("aov.xml", RGB), ("spectral_spiky.xml", SPECTRAL), ("medium_homogeneous.xml", RGB)]
+
+
+def _loaded(name: str, variant: str):
+    return load(SceneSpec(SCENES / name, {}, ()), variant, threads=2)
+
+
+def _window(loaded) -> tuple[int, int]:
+    w, h = (int(v) for v in loaded.sensors()[0].film().crop_size())
+    return h, w
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("name", "variant"), KINDS)
+def test_uniform_counts_are_mitsubas_render(name, variant):
+    """Every channel the film writes (alpha, AOVs, spectral to RGB, a medium), means and variance."""
+    ref, names = reference_renders(SCENES / name, variant, SPP)
+    loaded = _loaded(name, variant)
+    out = render_counts(loaded, np.full(_window(loaded), SPP), seed=555)
+    assert out.channels == names
+    verdict = compare(by_name(out.pixels, out.channels, names), ref)
+    assert verdict.passed, f"{name}: {verdict}"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("name", "variant"), [KINDS[0], KINDS[2]])
+def test_varying_counts_keep_the_means_and_cut_the_variance_as_counted(name, variant):
+    """Blocks of 8 px at SPP/2 .. 4 SPP: the means are Mitsuba's at every pixel (several renders against
+    32 of Mitsuba's), and inside the blocks (away from the filter's reach into a neighbour) each pixel's
+    squared deviation scaled by count / SPP has the median an independent render at SPP has."""
+    ref, names = reference_renders(SCENES / name, variant, SPP)
+    loaded = _loaded(name, variant)
+    h, w = _window(loaded)
+    rng = np.random.default_rng(7)
+    blocks = rng.choice([SPP // 2, SPP, 2 * SPP, 4 * SPP], size=(-(-h // 8), -(-w // 8)))
+    counts = np.kron(blocks, np.ones((8, 8), dtype=np.int64))[:h, :w]
+    images = [by_name(render_counts(loaded, counts, seed=900 + k).pixels, names, names) for k in range(6)]
+    means = compare(images, ref)
+    assert means.failing <= 2, f"{name}: {means}"
+    m, v = ref.mean(axis=0), ref.var(axis=0, ddof=1)
+    inner = np.zeros((h, w), dtype=bool)
+    for y in range(0, h, 8):
+        for x in range(0, w, 8):
+            inner[y + 2:y + 6, x + 2:x + 6] = True
+    real = inner[..., None] & (v > 1e-8)
+    scaled = ((images[0] - m) ** 2 * (counts / SPP)[..., None])[real] / (v[real] * (1 + 1 / ref.shape[0]))
+    ratio = np.median(scaled) / stats.f.median(1, ref.shape[0] - 1)
+    assert VARIANCE_BOUNDS[0] <= ratio <= VARIANCE_BOUNDS[1], f"{name}: variance ratio {ratio:.3f}"
+
+
+@pytest.mark.slow
+def test_two_pass_render_keeps_mitsubas_means_with_less_noise():
+    """The adaptive render at SPP on average against 32 of Mitsuba's renders at SPP: the same means (4
+    renders), and its median squared deviation below an SPP render's (samples went where the noise is)."""
+    ref, names = reference_renders(SCENES / "rgba.xml", RGB, SPP)
+    loaded = _loaded("rgba.xml", RGB)
+    runs = [render_adaptive(loaded, SPP, seed=40 + 2 * k) for k in range(4)]
+    assert all(r.channels == names for r in runs)
+    assert abs(runs[0].counts.mean() - SPP) < 0.05 * SPP
+    verdict = compare([r.pixels for r in runs], ref)
+    assert verdict.failing <= 2, str(verdict)
+    m = ref.mean(axis=0)
+    ours = np.mean([((r.pixels - m) ** 2).mean() for r in runs])
+    theirs = np.mean([((img - m) ** 2).mean() for img in ref[:4]])
+    assert ours < theirs, f"adaptive mean squared deviation {ours:.3g} not below uniform's {theirs:.3g}"
+
+
+def test_counts_must_match_the_window_and_be_whole():
+    loaded = _loaded("rgba.xml", RGB)
+    h, w = _window(loaded)
+    with pytest.raises(RenderError, match="do not match the film window"):
+        render_counts(loaded, np.ones((h + 1, w), dtype=np.int64), seed=0)
+    with pytest.raises(RenderError, match="non-negative integers"):
+        render_counts(loaded, np.full((h, w), 1.5), seed=0)
+    with pytest.raises(RenderError, match="non-negative integers"):
+        render_counts(loaded, np.full((h, w), -1), seed=0)
+
+
+def test_zero_counts_give_an_empty_window():
+    loaded = _loaded("rgba.xml", RGB)
+    out = render_counts(loaded, np.zeros(_window(loaded), dtype=np.int64), seed=0)
+    assert not out.pixels.any() and not out.sum.any()
+    assert not out.relative_variance().any()
+
+
+@pytest.mark.parametrize(("xml", "reason"), [
+    ('<sampler type="stratified"><integer name="sample_count" value="4"/></sampler>', "independent sampler"),
+    ('<sampler type="independent"/><film type="hdrfilm"><integer name="width" value="8"/>'
+     '<integer name="height" value="8"/><boolean name="sample_border" value="true"/></film>', "sample_border"),
+])
+def test_refused_with_the_reason(tmp_path, xml, reason):
+    scene = tmp_path / "scene.xml"
+    scene.write_text(f'<scene version="3.0.0"><integrator type="path"/><sensor type="perspective">{xml}'
+                     '</sensor><shape type="sphere"/><emitter type="constant"/></scene>')
+    loaded = load(SceneSpec(scene, {}, ()), RGB, threads=1)
+    with pytest.raises(RenderError, match=reason):
+        render_counts(loaded, np.ones(_window(loaded), dtype=np.int64), seed=0)
+
+
+def test_a_particle_tracer_is_refused():
+    loaded = _loaded("ptracer.xml", RGB)
+    with pytest.raises(RenderError, match="not a sampling integrator"):
+        render_counts(loaded, np.ones(_window(loaded), dtype=np.int64), seed=0)
+
+
+def test_neyman_counts_spend_the_budget_where_the_noise_is():
+    rng = np.random.default_rng(0)
+    variance = np.array([[0.0, 1.0], [4.0, 16.0]])
+    extra = np.mean([neyman_counts(variance, 2, 4 * 40, rng) for _ in range(400)], axis=0)
+    totals = 2 + extra
+    assert abs(totals.sum() - 160) < 1.0  # the expectation of the stochastic rounding keeps the budget
+    assert totals[0, 0] == pytest.approx(2.0)  # a pixel without noise keeps its first pass only
+    # the rest in proportion to sqrt(variance): 1 : 2 : 4 over the budget left, 160 - 2
+    assert totals[0, 1] / totals[1, 1] == pytest.approx(0.25, rel=0.05)
+    assert totals[1, 0] / totals[1, 1] == pytest.approx(0.5, rel=0.05)
+
+
+def test_neyman_counts_edges():
+    rng = np.random.default_rng(1)
+    flat = np.zeros((3, 3))
+    assert (neyman_counts(flat, 4, 4 * 9, rng) == 0).all()  # the first pass spent the budget
+    assert (neyman_counts(flat, 1, 4 * 9, rng) == 3).all()  # no noise anywhere: the rest uniformly
+    cost = np.array([[1.0, 4.0]])
+    extra = np.mean([neyman_counts(np.ones((1, 2)), 1, 2 * 10, rng, cost) for _ in range(400)], axis=0)
+    spent = ((1 + extra) * cost).sum()
+    assert spent == pytest.approx(10 * cost.sum(), rel=0.02)  # totals cost what uniform 10 spp would
+    assert (1 + extra[0, 0]) / (1 + extra[0, 1]) == pytest.approx(2.0, rel=0.05)  # sqrt(1 / cost)
+    with pytest.raises(RenderError, match="cost map"):
+        neyman_counts(np.ones((2, 2)), 1, 40, rng, np.ones((1, 2)))
+
+
+def test_second_pass_adapts_only_where_the_first_predicts_a_gain():
+    rng = np.random.default_rng(2)
+    flat = np.full((8, 8), 0.3)
+    extra, predicted = second_pass(flat, 8, 16, rng)
+    assert predicted == pytest.approx(1.0) and (extra == 8).all()  # nothing to gain: uniform
+    spot = np.full((8, 8), 0.01)
+    spot[:2, :2] = 10.0
+    extra, predicted = second_pass(spot, 8, 16, rng)
+    assert predicted < PAYS_BELOW
+    assert extra[:2, :2].min() > 8 > extra[4:, 4:].max()  # the noisy corner takes the samples
+    assert abs(extra.sum() - 8 * 64) < 0.05 * 8 * 64
