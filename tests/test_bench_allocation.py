@@ -125,7 +125,7 @@ def test_any_scene_with_its_parameters(tmp_path) -> None:
     scene = Path(__file__).resolve().parent / "data" / "scenes" / "tiny.xml"
     args = parser.parse_args(["--scene", str(scene), "-D", "width=40", "-D", "height=24", "--spp", "8",
                               "--renders", "2", "--ref-spp", "64", "--seeds", "1", "--threads", "1",
-                              "--cell", "8", "--measure-spp", "16", "--cache-dir", str(tmp_path),
+                              "--cell", "20", "--measure-spp", "256", "--cache-dir", str(tmp_path),
                               "--out", str(tmp_path)])
     args.json = True
     result = ba.run(args)

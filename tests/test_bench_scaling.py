@@ -67,8 +67,8 @@ def test_cell_times_spread_by_cost_and_a_timeless_map_is_refused():
 def test_cells_are_timed_in_the_variant_a_job_of_the_scene_renders_in(tmp_path):
     """A spectral scene's cells are timed spectral (as its jobs render), and cached apart from rgb."""
     cbox = REPO.parent / "shared" / "scenes" / "mitsuba-data" / "cbox" / "cbox.xml"
-    tmap, _, cached = bench_scaling.measure_cached(cbox, 32, 16, 2, 1, tmp_path)
+    tmap, _, cached = bench_scaling.measure_cached(cbox, 32, 16, 64, 1, tmp_path)
     assert not cached and tmap.info["variant"] == "llvm_ad_spectral"
     assert [p.name.endswith("-llvm_ad_spectral.npz") for p in tmp_path.glob("scaling-*.npz")] == [True]
-    again, _, cached = bench_scaling.measure_cached(cbox, 32, 16, 2, 1, tmp_path)
+    again, _, cached = bench_scaling.measure_cached(cbox, 32, 16, 64, 1, tmp_path)
     assert cached and again.info["variant"] == "llvm_ad_spectral"

@@ -1,4 +1,5 @@
-"""Rendering the film's window with its own sample count per pixel, as Mitsuba's own render loop would.
+"""Adaptive sampling at pixel scale: the film's window rendered with its own sample count per pixel, as
+Mitsuba's own render loop would (`render_counts`), and the two-pass render built on it (`render_adaptive`).
 
 Mitsuba's `render` gives every pixel the same spp. Adaptive sampling needs more samples where the noise
 is, so this is Mitsuba's sampling loop (the steps of `SamplingIntegrator::render_sample`, as Mitsuba's own
@@ -9,7 +10,7 @@ over its pixel's count, every pixel's expectation is the one Mitsuba's filter gi
 so the image is statistically Mitsuba's (tests/test_adaptive.py), only less noisy where counts are high.
 
 Beside the image it returns each pixel's sample moments (sums of the samples' RGB and squares, by the
-pixel the sample was drawn in), from which a caller estimates per-pixel variance for the next pass.
+pixel the sample was drawn in), from which the two-pass render estimates where the next pass's go.
 
 Refused, with the reason: samplers other than `independent` (stratified, multijitter, low-discrepancy
 samplers stratify over a pixel's fixed spp, which varying counts break), films that sample their border,
@@ -258,9 +259,10 @@ def neyman_counts(relative_variance: np.ndarray, first: int, total: float, rng: 
 def render_adaptive(scene: Any, spp: int, seed: int, sensor: int = 0, integrator: Any = None,
                     cost: np.ndarray | None = None, first_share: float = FIRST_SHARE,
                     blur_px: float = BLUR_PX) -> AdaptiveRender:
-    """Render the film window in the time `spp` uniform samples per pixel take, placing the second pass's
-    samples where the noise is; `cost` (the window's shape) is each pixel's relative time per sample,
-    e.g. the complexity pre-pass's ray counts (planning.complexity), None for equal.
+    """Render the film window with `spp` samples per pixel on average, the second pass's placed where the
+    noise is. `cost` (the window's shape) is each pixel's relative time per sample, e.g. the complexity
+    pre-pass's ray counts (planning.complexity): with it the samples cost what `spp` uniform ones would;
+    None counts every sample the same.
 
     The two passes are independent renders of the same pixels; each pixel's value is their average
     weighted by its sample count in each, so its expectation is Mitsuba's at any split.
