@@ -27,7 +27,7 @@ import numpy as np
 from bench.accuracy import DEFAULT_OUT, REPO
 from bench.report import publish_markdown
 from bench.scaling import default_cache_dir, measured_spec
-from bench.suite import SUITE, scene_from_argument
+from bench.suite import BY_NAME, SUITE, scene_from_argument
 from core.errors import QuekaroError
 from core.render.adaptive import BLUR_PX, FIRST_SHARE, PAYS_BELOW, render_adaptive
 from core.render.metrics import relmse
@@ -79,13 +79,12 @@ def measure_scene(spec: Any, args: argparse.Namespace) -> dict[str, Any]:
         a_img, a_s, made = adaptive(loaded, args.spp, 2000 + 2 * k)
         eq_spp = max(1, round(args.spp * a_s / u_s))
         e_img, e_s = uniform(loaded, eq_spp, 3000 + k)
-        runs.append({"uniform_s": u_s, "adaptive_s": a_s, "equal_spp": eq_spp, "equal_s": e_s,
-                     "relmse_uniform": relmse(u_img, ref), "relmse_adaptive": relmse(a_img, ref),
-                     "relmse_equal": relmse(e_img, ref), "predicted_equal_spp": made.predicted,
-                     "adapted": bool(made.adapted)})
-    for r in runs:
-        r["ratio_equal_spp"] = r["relmse_adaptive"] / r["relmse_uniform"]
-        r["ratio_equal_time"] = r["relmse_adaptive"] / r["relmse_equal"]
+        errors = {"relmse_uniform": relmse(u_img, ref), "relmse_adaptive": relmse(a_img, ref),
+                  "relmse_equal": relmse(e_img, ref)}
+        runs.append({"uniform_s": u_s, "adaptive_s": a_s, "equal_spp": eq_spp, "equal_s": e_s, **errors,
+                     "ratio_equal_spp": errors["relmse_adaptive"] / errors["relmse_uniform"],
+                     "ratio_equal_time": errors["relmse_adaptive"] / errors["relmse_equal"],
+                     "predicted_equal_spp": made.predicted, "adapted": bool(made.adapted)})
     return {"variant": variant, "runs": runs,
             "ratio_equal_time": float(np.median([r["ratio_equal_time"] for r in runs])),
             "time_ratio": float(np.median([r["adaptive_s"] / r["uniform_s"] for r in runs]))}
@@ -112,7 +111,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 def _scene_in_child(entry: Any, args: argparse.Namespace) -> dict[str, Any]:
     """One scene's measurement by `quekaro bench adaptive SCENE --json` in a process of its own."""
-    name = entry.name if scene_from_argument(entry.name) == entry else str(entry.path)
+    name = entry.name if entry.name in BY_NAME else str(entry.path)  # a suite name, else the file
     with tempfile.TemporaryDirectory(prefix="quekaro-adaptive-") as tmp:
         cmd = [sys.executable, "-m", "quekaro", "bench", "adaptive", name, "--json", "--res", str(args.res),
                "--spp", str(args.spp), "--ref-spp", str(args.ref_spp), "--seeds", str(args.seeds),

@@ -8,20 +8,18 @@ from pathlib import Path
 DEFAULT_OUT = Path(__file__).resolve().parent.parent / "docs" / "benchmarks"
 
 
-def write_report(out: Path, name: str, title: str, body: str, command: str) -> Path:
-    """`out`/`name`.md: a title naming the command that wrote it, then `body` (as printed, in a block)."""
+def write_report(out: Path, name: str, title: str, body: str, command: str, fenced: bool = True) -> Path:
+    """`out`/`name`.md: a title naming the command that wrote it, then `body` (as printed, in a block, or
+    as markdown when not `fenced`: tables then render in README)."""
     out.mkdir(parents=True, exist_ok=True)
     path = out / f"{name}.md"
-    path.write_text(f"# {title} (`{command}`)\n\n```\n{body.rstrip()}\n```\n")
+    text = f"```\n{body.rstrip()}\n```" if fenced else body
+    path.write_text(f"# {title} (`{command}`)\n\n{text}\n")
     return path
 
 
 def publish_markdown(out: Path, name: str, title: str, command: str, body: str, show: bool) -> Path:
-    """`out`/`name`.md: the title naming the command, then `body` as markdown (tables render in README);
-    `body` is also printed when `show`."""
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / f"{name}.md"
-    path.write_text(f"# {title} (`{command}`)\n\n{body}\n")
+    """`write_report` of a markdown `body`, also printed when `show`."""
     if show:
         print(body)
-    return path
+    return write_report(out, name, title, body, command, fenced=False)

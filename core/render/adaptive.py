@@ -27,6 +27,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from core.errors import RenderError
+from core.render.metrics import RELMSE_EPSILON
 from core.render.worker import film_channels, sanitize
 
 # Mitsuba and Dr.Jit are imported where used (core.render.worker explains why).
@@ -45,7 +46,7 @@ class WindowRender:
     sum: np.ndarray
     sum_sq: np.ndarray
 
-    def relative_variance(self, epsilon: float = 0.01) -> np.ndarray:
+    def relative_variance(self, epsilon: float = RELMSE_EPSILON) -> np.ndarray:
         """Per pixel, the per-sample variance (mean over RGB) over (mean^2 + epsilon): the relMSE one
         sample adds there (core.render.metrics.relmse's weighting). Pixels with < 2 samples: 0."""
         n = np.maximum(self.counts, 1)[..., None].astype(np.float64)
@@ -60,7 +61,7 @@ def check_renderable(scene: Any, sensor: int = 0, integrator: Any = None) -> Non
     import mitsuba as mi
 
     cam = scene.sensors()[sensor]
-    kind = str(cam.sampler()).split("[", 1)[0]
+    kind = cam.sampler().class_name()
     if kind not in SAMPLERS:
         raise RenderError(f"sampler {kind}: per-pixel sample counts need the independent sampler (a "
                           "stratified sampler spreads a fixed spp over each pixel)")
@@ -68,7 +69,7 @@ def check_renderable(scene: Any, sensor: int = 0, integrator: Any = None) -> Non
         raise RenderError("film with sample_border=true: per-pixel counts cover the window only")
     integ = integrator if integrator is not None else scene.integrator()
     if not isinstance(integ, mi.SamplingIntegrator):
-        raise RenderError(f"integrator {str(integ).split('[', 1)[0]} is not a sampling integrator "
+        raise RenderError(f"integrator {integ.class_name()} is not a sampling integrator "
                           "(it does not draw its samples per pixel)")
 
 
