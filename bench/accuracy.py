@@ -88,6 +88,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="time each cell's first run (cold kernels) instead of a second, warm one")
     parser.add_argument("--inprocess", action="store_true",
                         help="time the whole `quekaro render` process instead of a farm (smallest agent count)")
+    parser.add_argument("--adaptive", action="store_true",
+                        help="with --inprocess: the optimised levels as two-round jobs (`quekaro render --adaptive`)")
     parser.add_argument("--resume", action="store_true",
                         help="keep the scenes already finished in OUT/accuracy.partial.jsonl by a run with the "
                              "same settings, and measure only the others")
@@ -114,6 +116,8 @@ def parse_grid(args: argparse.Namespace) -> tuple[list[SuiteScene], list[int], l
         raise QuekaroError(f"--agents {args.agents!r}: expected integers like 1,2") from None
     if agents[0] < 1:
         raise QuekaroError(f"--agents {args.agents!r}: counts must be at least 1")
+    if args.adaptive and not args.inprocess:
+        raise QuekaroError("--adaptive needs --inprocess: a farm refuses two-round jobs")
     levels = _csv_list(args.levels, "levels")
     for level in levels:
         if level not in LEVELS:
@@ -199,11 +203,13 @@ def farm_runner(agents: int, threads: int, home: Path, units: int | None = None)
 
 
 @contextmanager
-def inprocess_runner(threads: int, units: int | None = None) -> Iterator[Any]:
-    """The same function as `farm_runner`, timing the whole `quekaro render` process a user runs."""
+def inprocess_runner(threads: int, units: int | None = None, adaptive: bool = False) -> Iterator[Any]:
+    """The same function as `farm_runner`, timing the whole `quekaro render` process a user runs
+    (`adaptive`: the optimised levels in two rounds)."""
 
     def run_job(spec: Any, level: str, spp: int, out: Path) -> tuple[dict, float, float]:
         chosen = ["--units", str(units)] if units and level != "off" else []
+        chosen += ["--adaptive"] if adaptive and level != "off" else []
         cmd = [sys.executable, "-m", "quekaro", "render", str(spec.path), "--opt", level, "--spp", str(spp),
                "-t", str(threads), "-o", str(out), *chosen, *(f"-D{k}={v}" for k, v in spec.defines.items())]
         cpu0, start = _self_cpu(), time.perf_counter()
@@ -246,7 +252,7 @@ def scene_cells(scene: SuiteScene, agents: list[int], levels: list[str], args: a
     t0, k = spp_timing(spec, args.spp, args.threads, variant)
     cells, diffs, units = [], {}, {}
     for n in agents:
-        runner = (inprocess_runner(args.threads, args.units) if args.inprocess
+        runner = (inprocess_runner(args.threads, args.units, args.adaptive) if args.inprocess
                   else farm_runner(n, args.threads, work / f"farm-{scene.name}-{n}", args.units))
         with runner as run_job:
             for level in levels:
@@ -354,7 +360,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     result = {
         "scenes": {s.name: {"role": s.role, "path": _shown(s.path), "defines": scene_spec(s, args).defines}
                    for s in scenes}, "spp": args.spp, "ref_spp": args.ref_spp, "threads": args.threads,
-        "mode": "inprocess" if args.inprocess else "farm", "agents": agents, "levels": levels,
+        "mode": mode(args), "agents": agents, "levels": levels,
         "cells": cells, "targets": targets(cells, agents[0]), "seconds": time.perf_counter() - started,
         "load": [load_before, os.getloadavg()[0]], "resumed": resumed,
     }
@@ -368,7 +374,12 @@ def run_settings(args: argparse.Namespace, agents: list[int], levels: list[str])
     """What makes two runs' cells comparable (a resumed run must match every one)."""
     return {"spp": args.spp, "ref_spp": args.ref_spp, "threads": args.threads, "res": args.res,
             "defines": sorted(args.defines), "agents": agents, "levels": levels, "runs": args.runs,
-            "warmup": args.warmup, "inprocess": args.inprocess, "units": args.units}
+            "warmup": args.warmup, "inprocess": args.inprocess, "units": args.units, "adaptive": args.adaptive}
+
+
+def mode(args: argparse.Namespace) -> str:
+    """How the jobs ran: through a farm, or in one process (in two rounds with --adaptive)."""
+    return "farm" if not args.inprocess else "inprocess, two rounds" if args.adaptive else "inprocess"
 
 
 def write_partial(settings: dict[str, Any], cells: list[dict[str, Any]], out: Path) -> None:

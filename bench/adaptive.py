@@ -30,9 +30,9 @@ from bench.scaling import default_cache_dir, measured_spec
 from bench.suite import BY_NAME, SUITE, scene_from_argument
 from core.errors import QuekaroError
 from core.render.adaptive import BLUR_PX, FIRST_SHARE, PAYS_BELOW, render_adaptive
+from core.render.film import film_channels, sanitize
 from core.render.metrics import relmse
 from core.render.scene import load
-from core.render.worker import film_channels, sanitize
 from planning.accuracy import job_variant, reference
 
 TARGET = 0.8  # the target for the optimised levels, here at equal render time

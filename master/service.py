@@ -245,6 +245,9 @@ class MasterService:
     async def submit(self, bundle: bytes | Path, defines: dict[str, str], options: RenderOptions) -> str:
         """Accept a job: keep its bundle (bytes, or a file of the jobs folder, moved), plan it (pre-pass in a
         child process), auction its units."""
+        if options.adaptive:
+            raise QuekaroError("option adaptive: two-round jobs render in one process only (quekaro render "
+                               "--adaptive); the farm's auction renders every unit in one round")
         job_id = uuid.uuid4().hex[:12]
         job_dir = self.job_dir(job_id)
         job_dir.mkdir(parents=True)

@@ -34,7 +34,7 @@ from core.errors import QuekaroError
 from core.model.job import SceneSpec
 from core.render import mitsuba_env
 from core.render import scene as scene_mod
-from core.render.worker import film_channels
+from core.render.film import film_channels
 
 # Mitsuba and Dr.Jit are imported where used: `import mitsuba` costs ~0.35 s and 85 MB, must follow the
 # variant choice (core.render.mitsuba_env), and processes that never render must not pay for it.

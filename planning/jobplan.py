@@ -17,6 +17,7 @@ from core.model.job import Effects, JobPlan, RenderOptions, SceneSpec
 from core.model.units import WorkUnit
 from core.render.effects import analyse_loaded
 from core.render.scene import expand, film_info, sensor_elements
+from fuzzy.levels import OFF
 from planning.complexity import prepass
 from planning.partition import equal_tiles, partition
 
@@ -76,13 +77,15 @@ def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: 
     width, height = info.width, info.height
     spp = options.spp or scene_spp(spec, options.sensor) or DEFAULT_SPP
     depth = effects.max_depth
-    target = options.units or default_unit_count(width, height, options.level, min_units)
+    # A two-round job's --units are its render units (render_units); its rules see the level's own partition.
+    chosen = None if options.adaptive else options.units
+    target = chosen or default_unit_count(width, height, options.level, min_units)
     if not effects.splittable:
         if options.level != "off":
             effects.reasons.append(f"level {options.level} not applied: the rules choose per unit, and this "
                                    "integrator renders as one unit at the user's spp and depth")
-        return JobPlan(spec, dataclasses.replace(options, level="off"), width, height, effects, spp, depth,
-                       _plain_units(width, height, 1))
+        return JobPlan(spec, dataclasses.replace(options, level=OFF, adaptive=False), width, height, effects, spp,
+                       depth, _plain_units(width, height, 1))
     if options.level == "off":
         # The rules need no features at level off, so the pre-pass would be pure overhead.
         units = _plain_units(width, height, target)
@@ -101,6 +104,13 @@ def _planned_with_prepass(spec: SceneSpec, options: RenderOptions, effects: Effe
     units = partition(cmap, target_units=target)
     seconds = time.perf_counter() - start
     return JobPlan(spec, options, width, height, effects, spp, depth, units, seconds, dict(cmap.info))
+
+
+def render_units(plan: JobPlan) -> list[WorkUnit]:
+    """The units a two-round job renders (planning.rounds): level off's grid. Its samples are placed per
+    pixel, not per unit, so units only need to be few (every render call costs ~0.05 s and its bands)."""
+    count = plan.options.units or default_unit_count(plan.width, plan.height, OFF)
+    return _plain_units(plan.width, plan.height, count)
 
 
 def _plain_units(width: int, height: int, target: int) -> list[WorkUnit]:

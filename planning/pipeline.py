@@ -7,25 +7,31 @@ EXR, PNG and report) is shared with the master agent.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
 import time
 import uuid
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from core.errors import RenderError
 from core.model.hashing import sha256_file
 from core.model.job import JobPlan, RenderOptions, SceneSpec
 from core.model.seeds import plan_seed, unit_seed
+from core.model.units import WorkUnit
 from core.render.compose import TileSource, compose_planar
 from core.render.imageio import write_exr, write_png_planar
 from core.render.planner import Planner, RenderParams
 from core.render.tiles import Tile
 from core.render.worker import RenderRequest, RenderWorker
-from planning.jobplan import plan_job
+from planning import rounds
+from planning.jobplan import plan_job, render_units
 
 log = logging.getLogger(__name__)
 
@@ -38,20 +44,19 @@ def plan_params(plan: JobPlan, planner: Planner) -> list[RenderParams]:
                         user_depth=plan.depth, user_spp=plan.spp, ranges=plan.ranges())
 
 
-def unit_job(plan: JobPlan, index: int, params: RenderParams, job_id: str, threads: int | None) -> RenderRequest:
+def unit_job(plan: JobPlan, unit: WorkUnit, params: RenderParams, job_id: str, threads: int | None,
+             pass_: int = 0) -> RenderRequest:
     """The render order for one unit, with a seed unique to (job, unit, pass)."""
-    unit = plan.units[index]
     return RenderRequest(
         scene=plan.spec, variant=plan.effects.variant, integrator=plan.effects.override,
-        max_depth=params.depth, spp=params.spp, seed=unit_seed(job_id, unit.index, 0),
+        max_depth=params.depth, spp=params.spp, seed=unit_seed(job_id, unit.index, pass_),
         width=plan.width, height=plan.height, unit=unit.rect, band=params.band, threads=threads,
         job_id=job_id, unit_index=unit.index, sensor=plan.options.sensor,
     )
 
 
-def unit_record(plan: JobPlan, tile: Tile, params: dict[str, Any]) -> dict[str, Any]:
+def unit_record(unit: WorkUnit, tile: Tile | TileSource, params: dict[str, Any]) -> dict[str, Any]:
     """One unit's line in the report: where it is, what the rules saw and chose, what it cost."""
-    unit = plan.units[int(tile.meta.get("unit_index", -1))]
     return {
         "index": unit.index, "rect": unit.rect.as_list(), "C": unit.C, "S": unit.S, "Nd": unit.Nd,
         "depth": params.get("depth"), "spp": params.get("spp"), "band": params.get("band"),
@@ -68,22 +73,46 @@ def assemble(plan: JobPlan, tiles: Iterable[Tile | TileSource], params: dict[int
     OUT.png and OUT.json; return the report.
 
     `started` is the job's start on the `time.perf_counter` clock (for the total seconds)."""
+    return write_outputs(plan, composed(plan, plan.units, tiles, params), out, started, extra)
+
+
+@dataclass
+class Composed:
+    """A job's image before it is written: planar (channels, H, W), the channel names, what composing did
+    and each unit's line in the report."""
+
+    image: np.ndarray
+    channels: tuple[str, ...]
+    compose: dict[str, Any]
+    units: list[dict[str, Any]]
+
+
+def composed(plan: JobPlan, units: Sequence[WorkUnit], tiles: Iterable[Tile | TileSource],
+             params: dict[int, dict[str, Any]]) -> Composed:
+    """The tiles of `units` (the plan's, or a two-round job's render units) blended into one image, with
+    the units' report lines."""
     tiles = list(tiles)
     image, compose_report = compose_planar(tiles, plan.width, plan.height)
-    channels = tiles[0].channels if tiles else ("R", "G", "B")
+    channels = tuple(tiles[0].channels) if tiles else ("R", "G", "B")
+    records = (unit_record(units[int(t.meta["unit_index"])], t, params[int(t.meta["unit_index"])]) for t in tiles)
+    units = sorted(records, key=lambda u: u["index"])
+    return Composed(image, channels, compose_report.to_dict(), units)
+
+
+def write_outputs(plan: JobPlan, job: Composed, out: Path, started: float,
+                  extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Write OUT.exr (every channel), OUT.png and the report OUT.json; return the report."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_exr(out, image, channels=channels, planar=True)
-    write_png_planar(out.with_suffix(".png"), image)
-    del image
-    units = sorted((unit_record(plan, t, params[int(t.meta["unit_index"])]) for t in tiles),
-                   key=lambda u: u["index"])
+    write_exr(out, job.image, channels=job.channels, planar=True)
+    write_png_planar(out.with_suffix(".png"), job.image)
+    units = job.units
     report = {
         "scene": plan.spec.to_dict(), "options": plan.options.to_dict(),
         "image": {"width": plan.width, "height": plan.height, "exr": str(out),
-                  "png": str(out.with_suffix(".png")), "channels": list(channels), "sensor": plan.options.sensor},
+                  "png": str(out.with_suffix(".png")), "channels": list(job.channels), "sensor": plan.options.sensor},
         "effects": plan.effects.to_dict(), "user": {"spp": plan.spp, "depth": plan.depth},
-        "prepass": plan.prepass_info, "units": units, "compose": compose_report.to_dict(),
+        "prepass": plan.prepass_info, "units": units, "compose": job.compose,
         "totals": {
             "units": len(units), "prepass_seconds": plan.prepass_seconds,
             "render_seconds": sum(u["seconds"] for u in units),
@@ -119,8 +148,8 @@ class Progress:
 
 def render_job(spec: SceneSpec, options: RenderOptions, out: Path, job_id: str | None = None,
                progress: Callable[[Progress], None] | None = None) -> dict:
-    """Render the scene as units in one process; write OUT.exr/.png/.json and return the report.
-    `progress` hears after the plan and after every unit."""
+    """Render the scene as units in one process (in two rounds with `options.adaptive`); write
+    OUT.exr/.png/.json and return the report. `progress` hears after the plan and after every unit."""
     start = time.perf_counter()
     job_id = job_id or uuid.uuid4().hex[:12]
     worker = RenderWorker()
@@ -130,16 +159,88 @@ def render_job(spec: SceneSpec, options: RenderOptions, out: Path, job_id: str |
         plan = plan_job(spec, options, seed=seed)
         planner = Planner(options.rules, options.defuzzifier)
         chosen = plan_params(plan, planner)
-        samples = [p.spp * u.rect.area for u, p in zip(plan.units, chosen, strict=True)]
-        report = progress or (lambda _p: None)
-        report(Progress(0, len(plan.units), 0, sum(samples), plan.width * plan.height))
-        tiles, params = [], {}
-        for unit, p in zip(plan.units, chosen, strict=True):
-            job = unit_job(plan, unit.index, p, job_id, options.threads)
-            tiles.append(worker.render(job, timeout=UNIT_TIMEOUT_S))
-            params[unit.index] = {**p.to_dict(), "rules": planner.rules_path.name}
-            report(Progress(len(tiles), len(plan.units), sum(samples[:len(tiles)]), sum(samples),
-                            plan.width * plan.height))
+        run = UnitRun(plan, chosen, job_id, options.threads, worker, planner.rules_path.name, planner.min_band,
+                      progress)
+        extra: dict[str, Any] = {"job_id": job_id}
+        if options.adaptive:
+            job, extra["rounds"] = run.two_rounds()
+        else:
+            job = run.one_round()
     finally:
         worker.stop()
-    return assemble(plan, tiles, params, out, start, {"job_id": job_id})
+    return write_outputs(plan, job, out, start, extra)
+
+
+@dataclass
+class UnitRun:
+    """The units of one planned job rendered in order by one render process, with progress."""
+
+    plan: JobPlan
+    chosen: list[RenderParams]
+    job_id: str
+    threads: int | None
+    worker: RenderWorker
+    rules: str
+    band: int
+    progress: Callable[[Progress], None] | None = None
+    samples_done: int = 0
+
+    def one_round(self) -> Composed:
+        """Every unit at the spp the rules chose for it."""
+        samples = [p.spp * u.rect.area for u, p in zip(self.plan.units, self.chosen, strict=True)]
+        self._tell(0, sum(samples))
+        tiles, params = [], {}
+        for unit, p, n in zip(self.plan.units, self.chosen, samples, strict=True):
+            tiles.append(self._render(unit_job(self.plan, unit, p, self.job_id, self.threads)))
+            params[unit.index] = {**p.to_dict(), "rules": self.rules}
+            self.samples_done += n
+            self._tell(len(tiles), sum(samples))
+        return composed(self.plan, self.plan.units, tiles, params)
+
+    def two_rounds(self) -> tuple[Composed, dict[str, Any]]:
+        """Round one uniform with each pixel's noise, round two where that noise is (planning.rounds), on
+        the render units at the scene's depth and the smallest band."""
+        plan, pixels = self.plan, self.plan.width * self.plan.height
+        spend = rounds.budget(plan, self.chosen)
+        units = render_units(plan)
+        total = spend.mean_spp * pixels
+        self._tell(0, total, 2 * len(units))
+        first_params = RenderParams(plan.depth, spend.first, self.band)
+        first_tiles = []
+        for unit in units:
+            job = dataclasses.replace(unit_job(plan, unit, first_params, self.job_id, self.threads), noise=True)
+            first_tiles.append(self._render(job))
+            self.samples_done += spend.first * unit.rect.area
+            self._tell(len(first_tiles), total, 2 * len(units))
+        first = composed(plan, units, first_tiles, {u.index: {} for u in units})
+        image, channels, noise = rounds.split_noise(first.image, first.channels)
+        reach = max(float(t.meta.get("filter_radius", 0.0)) for t in first_tiles)
+        second = rounds.second_round(noise, spend, unit_seed(self.job_id, -1, 1), reach)
+        tiles, params = [], {}
+        for unit in units:
+            base = unit_job(plan, unit, first_params, self.job_id, self.threads, pass_=1)
+            counts = second.window(base.window)
+            tiles.append(self._render(dataclasses.replace(base, spp=max(1, round(float(counts.mean()))),
+                                                          counts=counts)))
+            done = second.window(unit.rect)
+            params[unit.index] = {**first_params.to_dict(), "spp": round(spend.first + float(done.mean())),
+                                  "rules": self.rules}
+            self.samples_done += int(done.sum())
+            self._tell(len(units) + len(tiles), total, 2 * len(units))
+        job = composed(plan, units, tiles, params)
+        if job.channels != channels:
+            raise RenderError(f"round two's tiles have channels {list(job.channels)}, round one's {list(channels)}")
+        job.image = rounds.combine(image, job.image, spend, second)
+        for record, tile in zip(job.units, first_tiles, strict=True):
+            record["seconds"] += float(tile.meta.get("seconds", 0.0))
+            record["nonfinite"] = max(record["nonfinite"], int(tile.meta.get("nonfinite", 0)))
+        job.compose = {"first_round": first.compose, "second_round": job.compose}
+        return job, {**spend.to_dict(), **second.to_dict(), "rule_units": len(plan.units)}
+
+    def _render(self, job: RenderRequest) -> Tile:
+        return self.worker.render(job, timeout=UNIT_TIMEOUT_S)
+
+    def _tell(self, done: int, samples_total: int, units_total: int | None = None) -> None:
+        if self.progress is not None:
+            self.progress(Progress(done, units_total or len(self.plan.units), self.samples_done, samples_total,
+                                   self.plan.width * self.plan.height))

@@ -44,6 +44,9 @@ def add_job_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--integrator", choices=sorted(CATALOGUE),
                         help="replace the scene's integrator by this type (default: the scene's own, as written)")
     parser.add_argument("--units", type=int, help="target number of work units")
+    parser.add_argument("--adaptive", action="store_true",
+                        help="two rounds at a rule level: half the level's samples uniformly, the rest per pixel "
+                             "where the first round measured noise (one process only; a farm refuses it)")
     parser.add_argument("-s", "--sensor", type=int, default=0, help="index of the sensor to render (Mitsuba's -s)")
     parser.add_argument("-a", dest="search_paths", action="append", default=[], type=Path, metavar="PATH",
                         help="add a folder to the file search path, searched last (Mitsuba's -a; repeatable)")
@@ -53,7 +56,8 @@ def options_from_args(args: argparse.Namespace):
     return RenderOptions(level=args.level, spp=args.spp, depth=args.depth,
                          threads=getattr(args, "threads", None), rules=args.rules,
                          defuzzifier=args.defuzzifier, variant=args.variant,
-                         integrator=args.integrator, units=args.units, sensor=args.sensor)
+                         integrator=args.integrator, units=args.units, sensor=args.sensor,
+                         adaptive=args.adaptive)
 
 
 def search_paths(args: argparse.Namespace) -> tuple[Path, ...]:

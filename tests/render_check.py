@@ -64,8 +64,8 @@ def reference_renders(scene: Path, variant: str, spp: int, sensor: int = 0, defi
     import mitsuba as mi
 
     from core.model.job import SceneSpec
+    from core.render.film import film_channels
     from core.render.scene import load
-    from core.render.worker import film_channels
 
     # core.render.scene.load is mi.load_file with the -a folders appended to Mitsuba's resolver meanwhile.
     loaded = load(SceneSpec(scene, defines or {}, search_paths), variant, threads=2)

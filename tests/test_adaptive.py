@@ -13,7 +13,8 @@ from scipy import stats
 
 from core.errors import RenderError
 from core.model.job import SceneSpec
-from core.render.adaptive import PAYS_BELOW, neyman_counts, render_adaptive, render_counts, second_pass
+from core.render.adaptive import PAYS_BELOW, neyman_counts, render_adaptive, second_pass
+from core.render.counts import render_counts
 from core.render.scene import load
 
 SCENES = Path(__file__).resolve().parent / "compat" / "scenes"

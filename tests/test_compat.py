@@ -68,6 +68,13 @@ def test_a_jobs_rule_file_reaches_the_agents(farm_jobs, tmp_path):
     assert all(32 <= u["spp"] <= 64 for u in units), [u["spp"] for u in units]
 
 
+def test_a_two_round_job_is_refused_by_the_farm_saying_why(farm_jobs):
+    _, home, _ = farm_jobs
+    done = quekaro("submit", str(CASES[0].scene), "--opt", "S", "--adaptive", "--home", str(home))
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert "option adaptive: two-round jobs render in one process only" in done.stderr
+
+
 def test_a_bad_rule_file_is_refused_at_submit_naming_its_fault(tmp_path):
     bad = REPO / "tests" / "data" / "rules" / "masyro_original.xml"  # MASYRO's published typo
     done = quekaro("submit", str(CASES[0].scene), "--rules", str(bad), "--home", str(tmp_path))

@@ -20,7 +20,7 @@ from core.errors import QuekaroError, SceneError
 from core.model.integrators import CATALOGUE
 from core.model.units import WorkUnit
 from fuzzy.engine import DEFUZZIFIERS
-from fuzzy.levels import LEVELS
+from fuzzy.levels import LEVELS, OFF, RULE_LEVELS
 
 VARIANT_PATTERN = re.compile(r"(scalar|llvm|cuda)(_ad)?_(rgb|spectral|mono)[a-z_]*")  # a Mitsuba variant name
 
@@ -83,10 +83,17 @@ class RenderOptions:
     integrator: str | None = None
     units: int | None = None  # target number of work units; None: chosen from the image size
     sensor: int = 0  # which of the scene's sensors renders (Mitsuba's -s)
+    # Two rounds (planning.rounds): the rules set the level's samples, a measured first round places them.
+    adaptive: bool = False
 
     def __post_init__(self) -> None:
         if self.level not in LEVELS:
             raise QuekaroError(f"--opt {self.level!r}: expected one of {', '.join(LEVELS)}")
+        if type(self.adaptive) is not bool:
+            raise QuekaroError(f"option adaptive: {self.adaptive!r} is not true or false")
+        if self.adaptive and self.level == OFF:
+            raise QuekaroError("--adaptive: level off renders the user's spp everywhere; adaptive sampling "
+                               f"places a rule level's samples (--opt {'/'.join(RULE_LEVELS)})")
         for name, (lo, hi) in _INT_RANGES.items():
             value = getattr(self, name)
             if value is None:
@@ -112,7 +119,7 @@ class RenderOptions:
         return {"level": self.level, "spp": self.spp, "depth": self.depth, "threads": self.threads,
                 "rules": str(self.rules) if self.rules else None, "defuzzifier": self.defuzzifier,
                 "variant": self.variant, "integrator": self.integrator, "units": self.units,
-                "sensor": self.sensor}
+                "sensor": self.sensor, "adaptive": self.adaptive}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> RenderOptions:
@@ -129,7 +136,8 @@ class RenderOptions:
         return cls(level=data.get("level", "off"), spp=data.get("spp"), depth=data.get("depth"),
                    threads=data.get("threads"), rules=Path(rules) if rules else None,
                    defuzzifier=data.get("defuzzifier"), variant=data.get("variant"),
-                   integrator=data.get("integrator"), units=data.get("units"), sensor=data.get("sensor", 0))
+                   integrator=data.get("integrator"), units=data.get("units"), sensor=data.get("sensor", 0),
+                   adaptive=data.get("adaptive", False))
 
 
 @dataclass

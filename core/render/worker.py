@@ -36,6 +36,8 @@ from core.model import integrators
 from core.model.geometry import Rect
 from core.model.job import SceneSpec
 from core.render import mitsuba_env, scene
+from core.render.counts import NOISE_CHANNEL, render_counts
+from core.render.film import film_channels, sanitize
 from core.render.tiles import Tile
 from core.supervision import die_with_parent
 
@@ -48,11 +50,15 @@ _PP_KEYS = ("principal_point_offset_x", "principal_point_offset_y")
 
 @dataclass(frozen=True)
 class RenderRequest:
-    """Everything a process needs to render one unit; JSON-serialisable through to_dict/from_dict.
+    """Everything a process needs to render one unit; to_dict/from_dict give plain values (and `counts`
+    as an array) for the render process's pipe.
 
     `integrator=None` renders with the scene's own integrator; a plugin name is the user's override.
     `max_depth=None` keeps the depth the scene wrote; a number replaces it on every depth-bearing
-    integrator of the tree. `sensor` indexes the scene's sensors (Mitsuba's `-s`).
+    integrator of the tree. `sensor` indexes the scene's sensors (Mitsuba's `-s`). `counts` (the
+    window's shape) gives each pixel its own sample count instead of `spp` everywhere; `noise` adds the
+    tile channel NOISE_CHANNEL, each pixel's relative variance per sample (core.render.counts). Both
+    render through `render_counts`, whose image is statistically Mitsuba's.
     """
 
     scene: SceneSpec
@@ -70,6 +76,8 @@ class RenderRequest:
     unit_index: int = -1
     extra: dict[str, Any] = field(default_factory=dict)
     sensor: int = 0
+    counts: np.ndarray | None = None
+    noise: bool = False
 
     def __post_init__(self) -> None:
         _check_job(self)
@@ -85,7 +93,7 @@ class RenderRequest:
             "max_depth": self.max_depth, "spp": self.spp, "seed": self.seed, "width": self.width,
             "height": self.height, "unit": self.unit.as_list(), "band": self.band,
             "threads": self.threads, "job_id": self.job_id, "unit_index": self.unit_index,
-            "extra": dict(self.extra), "sensor": self.sensor,
+            "extra": dict(self.extra), "sensor": self.sensor, "counts": self.counts, "noise": self.noise,
         }
 
     @classmethod
@@ -99,6 +107,7 @@ class RenderRequest:
                 band=int(data.get("band", 0)), threads=_opt_int(data.get("threads")),
                 job_id=str(data.get("job_id", "")), unit_index=int(data.get("unit_index", -1)),
                 extra=dict(data.get("extra") or {}), sensor=int(data.get("sensor", 0)),
+                counts=_opt_counts(data.get("counts")), noise=bool(data.get("noise", False)),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise RenderError(f"malformed unit job ({type(exc).__name__}: {exc})") from exc
@@ -106,6 +115,10 @@ class RenderRequest:
 
 def _opt_int(value: Any) -> int | None:
     return None if value is None else int(value)
+
+
+def _opt_counts(value: Any) -> np.ndarray | None:
+    return None if value is None else np.asarray(value)
 
 
 def _check_job(job: RenderRequest) -> None:
@@ -127,8 +140,18 @@ def _check_job(job: RenderRequest) -> None:
     image = Rect(0, 0, job.width, job.height)
     if job.unit.area == 0 or image.intersect(job.unit) != job.unit:
         problems.append(f"unit {job.unit.as_list()} is empty or outside the {job.width}x{job.height} image")
+    elif job.counts is not None:
+        problems += _counts_problems(job.counts, job.window)
     if problems:
         raise RenderError("bad unit job: " + "; ".join(problems))
+
+
+def _counts_problems(counts: np.ndarray, window: Rect) -> list[str]:
+    if counts.shape != (window.h, window.w):
+        return [f"counts {counts.shape} do not match the window {window.h}x{window.w} (unit grown by its band)"]
+    if not np.issubdtype(counts.dtype, np.integer) or (counts < 0).any():
+        return ["counts must be non-negative integers"]
+    return []
 
 
 # ---- rendering, in whichever process calls it ------------------------------------------------------
@@ -232,29 +255,6 @@ def set_window(scene: Any, window: Rect, base: tuple[float, float] | None, senso
     return method
 
 
-def sanitize(pixels: np.ndarray) -> tuple[np.ndarray, int]:
-    """(pixels with every non-finite value set to 0, number of pixels that had one)."""
-    bad = ~np.isfinite(pixels)
-    count = int(bad.any(axis=-1).sum())
-    if count:
-        pixels = np.where(bad, np.float32(0.0), pixels).astype(np.float32)
-    return pixels, count
-
-
-def film_channels(film: Any) -> tuple[np.ndarray, tuple[str, ...]]:
-    """Every channel the film holds after a render, as `mitsuba` writes them: (H x W x C, names)."""
-    bitmap = film.bitmap()
-    names = tuple(bitmap.struct_()[i].name for i in range(bitmap.channel_count()))
-    array = np.array(bitmap, dtype=np.float32, copy=True)
-    if array.ndim == 2:
-        array = array[..., None]
-    if names[:3] != ("R", "G", "B"):
-        if names[:1] in (("Y",), ("L",)):  # a mono film: its one channel is the image
-            return np.repeat(array[..., :1], 3, axis=-1), ("R", "G", "B")
-        raise RenderError(f"film channels {list(names)[:8]} do not start with R, G, B")
-    return np.ascontiguousarray(array), names
-
-
 def render_job_here(job: RenderRequest, cache: _SceneCache | None = None) -> Tile:
     """Render the unit in this process (the child calls this; so can a test or a benchmark)."""
     import mitsuba as mi
@@ -270,17 +270,32 @@ def render_job_here(job: RenderRequest, cache: _SceneCache | None = None) -> Til
     method = set_window(scene, window, cache.principal_point(job.sensor), job.sensor)
     integrator = cache.integrator(job.integrator, job.max_depth)
     start = time.perf_counter()
-    mi.render(scene, sensor=job.sensor, integrator=integrator, spp=job.spp, seed=job.seed)
-    raw, channels = film_channels(film)
+    raw, channels = _render_window(scene, film, job, integrator)
     pixels, nonfinite = sanitize(raw)
     seconds = time.perf_counter() - start
     meta = {
         "job_id": job.job_id, "unit_index": job.unit_index, "seconds": seconds, "load_seconds": load_s,
         "nonfinite": nonfinite, "spp": job.spp, "depth": job.max_depth, "integrator": job.integrator,
         "variant": mi.variant(), "seed": job.seed, "band": job.band, "window_method": method,
-        "pid": os.getpid(), "sensor": job.sensor,
+        "pid": os.getpid(), "sensor": job.sensor, "filter_radius": float(film.rfilter().radius()),
     }
     return Tile(pixels, window, job.unit, meta, channels)
+
+
+def _render_window(scene: Any, film: Any, job: RenderRequest, integrator: Any) -> tuple[np.ndarray, tuple[str, ...]]:
+    """The window's pixels and channel names: Mitsuba's render, or with counts or noise `render_counts`."""
+    import mitsuba as mi
+
+    if job.counts is None and not job.noise:
+        mi.render(scene, sensor=job.sensor, integrator=integrator, spp=job.spp, seed=job.seed)
+        return film_channels(film)
+    window = job.window
+    counts = job.counts if job.counts is not None else np.full((window.h, window.w), job.spp, dtype=np.int64)
+    out = render_counts(scene, counts, job.seed, job.sensor, integrator, moments=job.noise)
+    if not job.noise:
+        return out.pixels, out.channels
+    noise = out.relative_variance().astype(np.float32)[..., None]
+    return np.concatenate([out.pixels, noise], axis=-1), (*out.channels, NOISE_CHANNEL)
 
 
 def render_full(spec: SceneSpec, variant: str, integrator: str | None, depth: int | None, spp: int,
