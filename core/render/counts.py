@@ -120,14 +120,23 @@ def render_counts(scene: Any, counts: np.ndarray, seed: int, sensor: int = 0, in
     return _result(film, counts, *sums)
 
 
+def counts_problem(counts: np.ndarray, width: int, height: int, window: str = "the film window") -> str | None:
+    """What makes `counts` unfit for a `window` of width x height, or None: its shape, or values that are
+    not non-negative integers, or more samples than one wavefront holds."""
+    if counts.shape != (height, width):
+        return f"counts {counts.shape} do not match {window} {height}x{width}"
+    if not np.issubdtype(counts.dtype, np.integer) or (counts < 0).any():
+        return "counts must be non-negative integers"
+    if int(counts.sum()) >= 2**32:
+        return f"{int(counts.sum())} samples in one wavefront (at most 2^32 - 1)"
+    return None
+
+
 def _checked_counts(counts: np.ndarray, width: int, height: int) -> np.ndarray:
     counts = np.asarray(counts)
-    if counts.shape != (height, width):
-        raise RenderError(f"counts {counts.shape} do not match the film window {height}x{width}")
-    if not np.issubdtype(counts.dtype, np.integer) or (counts < 0).any():
-        raise RenderError("counts must be non-negative integers")
-    if int(counts.sum()) >= 2**32:
-        raise RenderError(f"{int(counts.sum())} samples in one wavefront (at most 2^32 - 1)")
+    problem = counts_problem(counts, width, height)
+    if problem:
+        raise RenderError(problem)
     return counts.astype(np.uint32)
 
 

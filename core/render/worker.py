@@ -36,7 +36,7 @@ from core.model import integrators
 from core.model.geometry import Rect
 from core.model.job import SceneSpec
 from core.render import mitsuba_env, scene
-from core.render.counts import NOISE_CHANNEL, render_counts
+from core.render.counts import NOISE_CHANNEL, counts_problem, render_counts
 from core.render.film import film_channels, sanitize
 from core.render.tiles import Tile
 from core.supervision import die_with_parent
@@ -141,17 +141,10 @@ def _check_job(job: RenderRequest) -> None:
     if job.unit.area == 0 or image.intersect(job.unit) != job.unit:
         problems.append(f"unit {job.unit.as_list()} is empty or outside the {job.width}x{job.height} image")
     elif job.counts is not None:
-        problems += _counts_problems(job.counts, job.window)
+        window = job.window  # the unit grown by its band
+        problems += filter(None, [counts_problem(job.counts, window.w, window.h, "the window")])
     if problems:
         raise RenderError("bad unit job: " + "; ".join(problems))
-
-
-def _counts_problems(counts: np.ndarray, window: Rect) -> list[str]:
-    if counts.shape != (window.h, window.w):
-        return [f"counts {counts.shape} do not match the window {window.h}x{window.w} (unit grown by its band)"]
-    if not np.issubdtype(counts.dtype, np.integer) or (counts < 0).any():
-        return ["counts must be non-negative integers"]
-    return []
 
 
 # ---- rendering, in whichever process calls it ------------------------------------------------------
