@@ -286,7 +286,8 @@ class RenderAgent:
         features = {k: [float(getattr(u, k)) for u in units] for k in ("C", "S", "Nd")}
         ranges = dict(job.ranges) or None
         planner = self._planner_for(job)
-        return planner.plan(features, job.level, user_depth=job.depth, user_spp=job.spp, ranges=ranges)
+        return planner.plan(features, job.level, user_depth=job.depth, user_spp=job.spp, ranges=ranges,
+                            min_band=job.min_band)
 
     def _planner_for(self, job: m.JobInfo) -> Planner:
         """The job's own rules once its bundle is here (else this agent's, for a bid's estimate only), with

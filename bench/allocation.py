@@ -88,7 +88,8 @@ def composed_inverse_spp(plan: Any, spps: Any, bands: Any) -> np.ndarray:
     and the variance falls (a band's samples are not wasted)."""
     geometry = [(u.rect.grow(int(b), plan.width, plan.height), u.rect) for u, b in zip(plan.units, bands, strict=True)]
     factor = np.zeros((plan.height, plan.width))
-    for (rect, _), w, n in zip(geometry, blend_weights(geometry, plan.width, plan.height), spps, strict=True):
+    for (rect, _), w, n in zip(geometry, blend_weights(geometry, plan.width, plan.height, plan.reach), spps,
+                               strict=True):
         factor[rect.slices()] += w * w / float(n)
     return factor
 

@@ -240,6 +240,7 @@ class MasterService:
             depth=plan.depth, level=plan.options.level, ranges=plan.ranges(), scene_name=record.scene,
             defines=dict(record.spec.defines), variant=plan.effects.variant, integrator=plan.effects.override,
             sensor=plan.options.sensor, rules_sha256=plan.rules_sha256, defuzzifier=plan.options.defuzzifier,
+            min_band=plan.reach,
         )
 
     async def submit(self, bundle: bytes | Path, defines: dict[str, str], options: RenderOptions) -> str:

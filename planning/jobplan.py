@@ -85,12 +85,13 @@ def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: 
             effects.reasons.append(f"level {options.level} not applied: the rules choose per unit, and this "
                                    "integrator renders as one unit at the user's spp and depth")
         return JobPlan(spec, dataclasses.replace(options, level=OFF, adaptive=False), width, height, effects, spp,
-                       depth, _plain_units(width, height, 1))
+                       depth, _plain_units(width, height, 1), filter_radius=info.filter_radius)
     if options.level == "off":
         # The rules need no features at level off, so the pre-pass would be pure overhead.
         units = _plain_units(width, height, target)
-        return JobPlan(spec, options, width, height, effects, spp, depth, units)
-    return _planned_with_prepass(spec, options, effects, width, height, spp, depth, target, seed, loaded)
+        return JobPlan(spec, options, width, height, effects, spp, depth, units, filter_radius=info.filter_radius)
+    plan = _planned_with_prepass(spec, options, effects, width, height, spp, depth, target, seed, loaded)
+    return dataclasses.replace(plan, filter_radius=info.filter_radius)
 
 
 def _planned_with_prepass(spec: SceneSpec, options: RenderOptions, effects: Effects, width: int,

@@ -41,7 +41,7 @@ UNIT_TIMEOUT_S = 3600.0
 def plan_params(plan: JobPlan, planner: Planner) -> list[RenderParams]:
     """Each unit's depth, spp and band, from the rules at the job's optimisation level."""
     return planner.plan({k: list(v) for k, v in plan.features().items()}, plan.options.level,
-                        user_depth=plan.depth, user_spp=plan.spp, ranges=plan.ranges())
+                        user_depth=plan.depth, user_spp=plan.spp, ranges=plan.ranges(), min_band=plan.reach)
 
 
 def unit_job(plan: JobPlan, unit: WorkUnit, params: RenderParams, job_id: str, threads: int | None,
@@ -92,7 +92,7 @@ def composed(plan: JobPlan, units: Sequence[WorkUnit], tiles: Iterable[Tile | Ti
     """The tiles of `units` (the plan's, or a two-round job's render units) blended into one image, with
     the units' report lines."""
     tiles = list(tiles)
-    image, compose_report = compose_planar(tiles, plan.width, plan.height)
+    image, compose_report = compose_planar(tiles, plan.width, plan.height, reach=plan.reach)
     channels = tuple(tiles[0].channels) if tiles else ("R", "G", "B")
     records = (unit_record(units[int(t.meta["unit_index"])], t, params[int(t.meta["unit_index"])]) for t in tiles)
     units = sorted(records, key=lambda u: u["index"])
@@ -159,8 +159,7 @@ def render_job(spec: SceneSpec, options: RenderOptions, out: Path, job_id: str |
         plan = plan_job(spec, options, seed=seed)
         planner = Planner(options.rules, options.defuzzifier)
         chosen = plan_params(plan, planner)
-        run = UnitRun(plan, chosen, job_id, options.threads, worker, planner.rules_path.name, planner.min_band,
-                      progress)
+        run = UnitRun(plan, chosen, job_id, options.threads, worker, planner.rules_path.name, progress)
         extra: dict[str, Any] = {"job_id": job_id}
         if options.adaptive:
             job, extra["rounds"] = run.two_rounds()
@@ -181,7 +180,6 @@ class UnitRun:
     threads: int | None
     worker: RenderWorker
     rules: str
-    band: int
     progress: Callable[[Progress], None] | None = None
     samples_done: int = 0
 
@@ -205,7 +203,7 @@ class UnitRun:
         units = render_units(plan)
         total = spend.mean_spp * pixels
         self._tell(0, total, 2 * len(units))
-        first_params = RenderParams(plan.depth, spend.first, self.band)
+        first_params = RenderParams(plan.depth, spend.first, plan.reach)
         first_tiles = []
         for unit in units:
             job = dataclasses.replace(unit_job(plan, unit, first_params, self.job_id, self.threads), noise=True)
@@ -214,8 +212,7 @@ class UnitRun:
             self._tell(len(first_tiles), total, 2 * len(units))
         first = composed(plan, units, first_tiles, {u.index: {} for u in units})
         image, channels, noise = rounds.split_noise(first.image, first.channels)
-        reach = max(float(t.meta.get("filter_radius", 0.0)) for t in first_tiles)
-        second = rounds.second_round(noise, spend, unit_seed(self.job_id, -1, 1), reach)
+        second = rounds.second_round(noise, spend, unit_seed(self.job_id, -1, 1), plan.filter_radius)
         tiles, params = [], {}
         for unit in units:
             base = unit_job(plan, unit, first_params, self.job_id, self.threads, pass_=1)

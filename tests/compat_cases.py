@@ -51,6 +51,7 @@ CASES = (
     Case("orthographic", "orthographic.xml"),
     Case("second-sensor", "two_sensors.xml", sensor=1),
     Case("rgba", "rgba.xml"),
+    Case("lanczos", "lanczos.xml"),
     Case("ptracer", "ptracer.xml"),  # must come back as one unit whatever is asked
 )
 

@@ -16,7 +16,7 @@ from core.model.geometry import Rect
 
 
 def _plan(rects: list[Rect]) -> SimpleNamespace:
-    return SimpleNamespace(units=[SimpleNamespace(rect=r) for r in rects], width=8, height=8)
+    return SimpleNamespace(units=[SimpleNamespace(rect=r) for r in rects], width=8, height=8, reach=0)
 
 
 def _params(spps: list[int], band: int = 0) -> list[SimpleNamespace]:

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core.errors import TileError
-from core.model.geometry import Rect
+from core.model.geometry import Rect, filter_reach
 from core.render.compose import blend_weights, compose, tile_weight
 from core.render.tiles import Tile
 from planning.complexity import ComplexityMap
@@ -73,6 +73,60 @@ def test_tiles_cut_from_one_image_compose_back_to_it(layout) -> None:
     assert out.dtype == np.float32 and out.shape == (height, width, 3)
     np.testing.assert_allclose(out, image, rtol=1e-5, atol=1e-5)
     assert report.filled == 0 and report.uncovered == 0 and not report.nonfinite
+
+
+@settings(max_examples=150, deadline=None)
+@given(layouts(), st.integers(0, 3))
+def test_weights_with_a_reach_sum_to_one_and_never_use_cut_pixels(layout, reach) -> None:
+    width, height, cores, bands = layout
+    geometry = [(c.grow(max(b, reach), width, height), c) for c, b in zip(cores, bands, strict=True)]
+    total = np.zeros((height, width))
+    for (rect, _), w in zip(geometry, blend_weights(geometry, width, height, reach), strict=True):
+        assert np.all(w >= 0) and np.all(w <= 1 + 1e-12)
+        x0, y0 = reach * (rect.x > 0), reach * (rect.y > 0)
+        x1, y1 = rect.w - reach * (rect.x1 < width), rect.h - reach * (rect.y1 < height)
+        outside = np.ones((rect.h, rect.w), dtype=bool)
+        outside[y0:y1, x0:x1] = False
+        assert np.all(w[outside] == 0)  # the reach at every side that is not the image's edge
+        total[rect.slices()] += w
+    np.testing.assert_allclose(total, 1.0, atol=1e-6)
+
+
+@settings(max_examples=60, deadline=None)
+@given(layouts(), st.integers(1, 3))
+def test_cut_pixels_never_reach_the_image(layout, reach) -> None:
+    """Tiles whose `reach` outer pixels hold garbage (as a truncated filter's would be, only worse) compose
+    to the image they were cut from."""
+    width, height, cores, bands = layout
+    image = smooth_image(width, height)
+    tiles = tiles_of(image, cores, [max(b, reach) for b in bands])
+    for t in tiles:
+        r = t.rect
+        if r.x > 0:
+            t.pixels[:, :reach] = 1e6
+        if r.x1 < width:
+            t.pixels[:, r.w - reach:] = -1e6
+        if r.y > 0:
+            t.pixels[:reach] = 1e6
+        if r.y1 < height:
+            t.pixels[r.h - reach:] = -1e6
+    out, report = compose(tiles, width, height, reach=reach)
+    np.testing.assert_allclose(out, image, rtol=1e-5, atol=1e-5)
+    assert report.filled == 0 and report.uncovered == 0
+
+
+def test_filter_reach_is_where_a_pixel_misses_samples_past_the_edge() -> None:
+    # a pixel d inside the edge has its centre at d + 0.5: box 0.5, tent 1, gaussian 2, lanczos 3
+    assert [filter_reach(r) for r in (0.5, 1.0, 1.6, 2.0, 2.5, 3.0)] == [0, 1, 2, 2, 2, 3]
+
+
+def test_the_reach_is_cut_inside_the_image_only() -> None:
+    w = tile_weight(Rect(2, 0, 12, 4), Rect(6, 0, 4, 4), reach=2, image=(20, 4))
+    np.testing.assert_allclose(w[0], [0, 0, 1 / 3, 2 / 3, 1, 1, 1, 1, 2 / 3, 1 / 3, 0, 0])
+    edge = tile_weight(Rect(0, 0, 8, 4), Rect(0, 0, 4, 4), reach=2, image=(8, 4))
+    np.testing.assert_allclose(edge[0], [1, 1, 1, 1, 0.8, 0.6, 0.4, 0.2])  # the image's edge: no cut
+    with pytest.raises(ValueError, match="image size"):
+        tile_weight(Rect(2, 0, 12, 4), Rect(6, 0, 4, 4), reach=2)
 
 
 def test_weight_is_one_on_the_core_and_ramps_across_the_band() -> None:

@@ -27,15 +27,16 @@ def test_default_rules_are_the_repository_file():
 
 
 def test_level_off_keeps_the_users_values(planner):
-    plans = planner.plan(FEATURES, "off", user_depth=6, user_spp=32)
+    plans = planner.plan(FEATURES, "off", user_depth=6, user_spp=32, min_band=2)
     assert plans == [RenderParams(6, 32, 2)] * 4
+    assert planner.plan(FEATURES, "off", user_depth=6, user_spp=32, min_band=0) == [RenderParams(6, 32, 0)] * 4
 
 
 def test_plans_are_bounded_and_banded(planner):
     for level in ("VS", "S", "N", "B", "VB"):
-        for p in planner.plan(FEATURES, level, user_depth=8, user_spp=32):
+        for p in planner.plan(FEATURES, level, user_depth=8, user_spp=32, min_band=3):
             assert p.depth in (8, 6, 4)  # quantised to 1, 3/4, 1/2 of the user's depth
-            assert 1 <= p.spp <= LS_MAX * 32 and p.band >= 2
+            assert 1 <= p.spp <= LS_MAX * 32 and p.band >= 3
             assert set(p.outputs) == {"Rl", "Ls", "Ibs"}
 
 
@@ -82,6 +83,7 @@ def test_min_band_and_to_dict_is_json():
     planner = Planner(min_band=5)
     plans = planner.plan(FEATURES, "VB", 8, 64)
     assert min(p.band for p in plans) >= 5
+    assert min(p.band for p in planner.plan(FEATURES, "VB", 8, 64, min_band=7)) >= 7  # the larger floor
     assert json.loads(json.dumps(plans[0].to_dict()))["depth"] == plans[0].depth
 
 

@@ -41,16 +41,14 @@ def _render(case, out, units: int = 1) -> subprocess.CompletedProcess:
 def test_a_two_round_job_keeps_mitsubas_means(name, tmp_path):
     """RUNS jobs (each its own job id, so its own seeds) against 32 of plain Mitsuba's renders: no pixel
     channel's mean differs beyond the fireflies render_check tolerates; the channels are the film's.
-
-    One unit: with bands, eight averaged jobs also tell apart a few band pixels at strong edges, at level
-    off too (a tile's outer band pixels lack the samples beyond its window that their filter reaches, and
-    are blended in with weights 1/3 and 2/3: issue 15's note); that is the compositor's, not the rounds'."""
+    Four units, so that both rounds' bands meet at unit borders (composition cuts each band's filter
+    reach: core.render.compose)."""
     case = BY_CASE[name]
     refs, ref_names = reference(case)
     images = []
     for k in range(RUNS):
         out = tmp_path / f"job{k}.exr"
-        done = _render(case, out)
+        done = _render(case, out, units=4)
         assert done.returncode == 0, done.stderr[-2000:]
         image, names = read_exr_channels(out)
         assert sorted(names) == sorted(ref_names) and NOISE_CHANNEL not in names

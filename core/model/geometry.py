@@ -1,7 +1,9 @@
-"""Pixel rectangles: the one geometry type that every part of the farm passes around."""
+"""Pixel rectangles, the one geometry type that every part of the farm passes around, and how far a
+reconstruction filter reaches past a rectangle's edge."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 
@@ -52,3 +54,10 @@ class Rect:
     def from_list(cls, values: list[int] | tuple[int, int, int, int]) -> Rect:
         x, y, w, h = (int(v) for v in values)
         return cls(x, y, w, h)
+
+
+def filter_reach(radius: float) -> int:
+    """Pixels at a window's edge whose reconstruction filter (of `radius`) reaches past it: a pixel d whole
+    pixels inside the edge has its centre at d + 0.5, so it misses samples when d + 0.5 < radius (gaussian
+    r = 2: 2 pixels, tent: 1, box: 0, lanczos r = 3: 3)."""
+    return max(0, math.ceil(radius - 0.5))

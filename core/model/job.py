@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from core.errors import QuekaroError, SceneError
+from core.model.geometry import filter_reach
 from core.model.integrators import CATALOGUE
 from core.model.units import WorkUnit
 from fuzzy.engine import DEFUZZIFIERS
@@ -209,6 +210,14 @@ class JobPlan:
     prepass_info: dict[str, Any] = field(default_factory=dict)
     bundle_sha256: str | None = None
     rules_sha256: str | None = None
+    # The film's reconstruction filter radius (what composition must cut from each band); Mitsuba's default
+    # gaussian's for plans stored before it was recorded, all of which used that filter's band.
+    filter_radius: float = 2.0
+
+    @property
+    def reach(self) -> int:
+        """Band pixels that composition cuts (core.model.geometry.filter_reach): no unit's band may be less."""
+        return filter_reach(self.filter_radius)
 
     def features(self) -> dict[str, list[float]]:
         """The fuzzy inputs of every unit, in unit order."""
@@ -227,7 +236,8 @@ class JobPlan:
                 "ranges": {k: list(v) for k, v in self.ranges().items()},
                 "prepass_seconds": self.prepass_seconds, "prepass_info": dict(self.prepass_info),
                 "neighbours": {str(u.index): list(u.neighbours) for u in self.units},
-                "bundle_sha256": self.bundle_sha256, "rules_sha256": self.rules_sha256}
+                "bundle_sha256": self.bundle_sha256, "rules_sha256": self.rules_sha256,
+                "filter_radius": self.filter_radius}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], spec: SceneSpec, units: list[WorkUnit]) -> JobPlan:
@@ -238,6 +248,6 @@ class JobPlan:
             return cls(spec, RenderOptions.from_dict(data["options"]), int(data["width"]), int(data["height"]),
                        Effects.from_dict(data["effects"]), int(data["spp"]), int(data["depth"]), units,
                        float(data.get("prepass_seconds", 0.0)), dict(data.get("prepass_info", {})),
-                       data.get("bundle_sha256"), data.get("rules_sha256"))
+                       data.get("bundle_sha256"), data.get("rules_sha256"), float(data.get("filter_radius", 2.0)))
         except (KeyError, TypeError, ValueError) as exc:
             raise QuekaroError(f"stored job plan is malformed: {type(exc).__name__}: {exc}") from exc

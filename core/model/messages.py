@@ -72,6 +72,9 @@ class JobInfo:
     # The job's own rule file, inside the bundle (its sha256); None: each agent's default rules.
     rules_sha256: str | None = constrained(pattern=_HEX, default=None)
     defuzzifier: str | None = constrained(choices=DEFUZZIFIERS, default=None)  # None: each agent's own
+    # No unit's band below this: the film filter's reach, the band pixels the master's composition cuts
+    # (core.model.geometry.filter_reach). 2 is Mitsuba's default gaussian's.
+    min_band: int = constrained(lo=0, hi=64, default=2)
 
     def check(self) -> None:
         for name, (lo, hi) in self.ranges.items():

@@ -1,10 +1,16 @@
 """Composition: blend the returned tiles (unit core plus interpolation band) into one image.
 
 Every tile gets a separable weight w(x) * w(y) over its rendered rectangle: 1 inside its core, falling
-linearly across the band to a small positive value at the band's outer edge (distance d outside the core
-on a side with band b gets 1 - d / (b + 1)). The composed pixel is the weighted mean of the tiles that
-cover it, so the normalised weights sum to one at every covered pixel, horizontally, vertically and at
-corners alike, and a pixel covered by a single tile takes that tile's value.
+linearly across the band's usable part to a small positive value, and 0 on the `reach` pixels at its
+outer edge (distance d outside the core on a side with band b and usable part u = b - reach gets
+1 - d / (u + 1) for d <= u, else 0). The reach (core.model.geometry.filter_reach) is where the film's
+reconstruction filter needs samples from beyond the rendered window: those pixels have a truncated
+filter, so their mean is not Mitsuba's, and they must not enter the image. At the image's own edge
+plain Mitsuba lacks those samples too, so nothing is cut there. The cut never enters a core: a tile's
+band must be at least the reach (the planners make it so) for its core to be exact. The composed pixel
+is the weighted mean of the tiles that cover it with weight > 0, so the normalised weights sum to one at
+every covered pixel, horizontally, vertically and at corners alike, and a pixel covered by a single tile
+takes that tile's value.
 
 Rules for the awkward cases (counted in `ComposeReport`):
   - a non-finite pixel (any channel NaN or Inf) gets weight 0 in that tile, so it never spreads;
@@ -61,30 +67,40 @@ class ComposeReport:
         }
 
 
-def ramp(start: int, stop: int, core_start: int, core_stop: int) -> np.ndarray:
-    """1-D weights over [start, stop): 1 on [core_start, core_stop), linear fall-off across each band."""
+def ramp(start: int, stop: int, core_start: int, core_stop: int, cut_before: int = 0,
+         cut_after: int = 0) -> np.ndarray:
+    """1-D weights over [start, stop): 1 on [core_start, core_stop), linear fall-off across each band's
+    usable part, 0 on the `cut_*` outermost pixels of each band (never inside the core)."""
     pos = np.arange(start, stop, dtype=np.float64)
     before = np.maximum(core_start - pos, 0.0)  # distance outside the core, left/top
     after = np.maximum(pos - (core_stop - 1), 0.0)  # distance outside the core, right/bottom
-    band_before = max(core_start - start, 0)
-    band_after = max(stop - core_stop, 0)
-    return (1.0 - before / (band_before + 1)) * (1.0 - after / (band_after + 1))
+    usable_before = max(core_start - start - cut_before, 0)
+    usable_after = max(stop - core_stop - cut_after, 0)
+    w = (1.0 - before / (usable_before + 1)) * (1.0 - after / (usable_after + 1))
+    w[(before > usable_before) | (after > usable_after)] = 0.0  # the cut pixels (and nothing negative)
+    return w
 
 
-def tile_weight(rect: Rect, core: Rect) -> np.ndarray:
-    """Un-normalised weight (h, w) of a tile over its rendered rectangle: > 0 everywhere, 1 on its core."""
-    wx = ramp(rect.x, rect.x1, core.x, core.x1)
-    wy = ramp(rect.y, rect.y1, core.y, core.y1)
+def tile_weight(rect: Rect, core: Rect, reach: int = 0, image: tuple[int, int] | None = None) -> np.ndarray:
+    """Un-normalised weight (h, w) of a tile over its rendered rectangle: 1 on its core, 0 on the `reach`
+    outer pixels of each side that is not the edge of the `image` (width, height), > 0 between."""
+    width, height = image if image is not None else (rect.x1, rect.y1)
+    if reach and image is None:
+        raise ValueError("tile_weight: a reach needs the image size, to know which sides are its edges")
+    wx = ramp(rect.x, rect.x1, core.x, core.x1, reach * (rect.x > 0), reach * (rect.x1 < width))
+    wy = ramp(rect.y, rect.y1, core.y, core.y1, reach * (rect.y > 0), reach * (rect.y1 < height))
     return np.outer(wy, wx)
 
 
-def blend_weights(geometry: Sequence[tuple[Rect, Rect]], width: int, height: int) -> list[np.ndarray]:
+def blend_weights(geometry: Sequence[tuple[Rect, Rect]], width: int, height: int,
+                  reach: int = 0) -> list[np.ndarray]:
     """Normalised weights of each (rect, core) tile over its rect; they sum to one at every covered pixel."""
     total = np.zeros((height, width), dtype=np.float64)
-    raw = [tile_weight(rect, core) for rect, core in geometry]
+    raw = [tile_weight(rect, core, reach, (width, height)) for rect, core in geometry]
     for (rect, _), w in zip(geometry, raw, strict=True):
         total[rect.slices()] += w
-    return [w / total[rect.slices()] for (rect, _), w in zip(geometry, raw, strict=True)]
+    return [np.divide(w, total[rect.slices()], out=np.zeros_like(w), where=w > 0)
+            for (rect, _), w in zip(geometry, raw, strict=True)]
 
 
 @dataclass(frozen=True)
@@ -105,16 +121,18 @@ def _as_source(tile: TileLike | TileSource) -> TileSource:
 
 
 def compose(
-    tiles: Iterable[TileLike], width: int, height: int, allow_uncovered: bool = False
+    tiles: Iterable[TileLike], width: int, height: int, allow_uncovered: bool = False, reach: int = 0
 ) -> tuple[np.ndarray, ComposeReport]:
     """Blend tiles into a float32 (height, width, channels) image; see the module docstring for the rules."""
-    planar, report = compose_planar(tiles, width, height, allow_uncovered)
+    planar, report = compose_planar(tiles, width, height, allow_uncovered, reach=reach)
     return np.ascontiguousarray(planar.transpose(1, 2, 0)), report
 
 
 def compose_planar(tiles: Iterable[TileLike | TileSource], width: int, height: int,
-                   allow_uncovered: bool = False, band_rows: int = 128) -> tuple[np.ndarray, ComposeReport]:
-    """Blend tiles into a float32 (channels, height, width) image, a band of rows at a time."""
+                   allow_uncovered: bool = False, band_rows: int = 128,
+                   reach: int = 0) -> tuple[np.ndarray, ComposeReport]:
+    """Blend tiles into a float32 (channels, height, width) image, a band of rows at a time; `reach` is
+    core.model.geometry.filter_reach of the film's filter (0: every band pixel blends, for tiles without a filter)."""
     report = ComposeReport()
     chosen = _dedupe([_as_source(t) for t in tiles], width, height, report)
     depth = len(chosen[0].channels) if chosen else 3
@@ -129,7 +147,7 @@ def compose_planar(tiles: Iterable[TileLike | TileSource], width: int, height: i
         for i, source in enumerate(chosen):
             if source.rect.y < y1 and source.rect.y1 > y0:
                 tile = loaded.get(i) or loaded.setdefault(i, _loaded(source, report))
-                _accumulate(tile, y0, y1, acc, wsum, covered)
+                _accumulate(tile, y0, y1, acc, wsum, covered, reach, (width, height))
                 if source.rect.y1 <= y1:
                     loaded.pop(i)  # no later band needs it
         band_has = wsum > 0
@@ -158,18 +176,20 @@ def _loaded(source: TileSource, report: ComposeReport) -> TileLike:
     return tile
 
 
-def _accumulate(tile: TileLike, y0: int, y1: int, acc: np.ndarray, wsum: np.ndarray, covered: np.ndarray) -> None:
+def _accumulate(tile: TileLike, y0: int, y1: int, acc: np.ndarray, wsum: np.ndarray, covered: np.ndarray,
+                reach: int, image: tuple[int, int]) -> None:
     """Add the rows [y0, y1) of a tile, weighted, to a band's sums (non-finite pixels weigh 0)."""
     rect = tile.rect
     top, bottom = max(y0, rect.y), min(y1, rect.y1)
     rows = slice(top - rect.y, bottom - rect.y)
     pixels = np.asarray(tile.pixels[rows], dtype=np.float64)
     finite = np.all(np.isfinite(pixels), axis=2)
-    w = tile_weight(rect, tile.core)[rows] * finite
+    placed = tile_weight(rect, tile.core, reach, image)[rows]
+    w = placed * finite
     cols = slice(rect.x, rect.x1)
     acc[:, top - y0:bottom - y0, cols] += np.moveaxis(np.where(finite[..., None], pixels, 0.0) * w[..., None], 2, 0)
     wsum[top - y0:bottom - y0, cols] += w
-    covered[top:bottom, cols] = True
+    covered[top:bottom, cols] |= placed > 0  # a cut band pixel covers nothing; a non-finite one is a hole
 
 
 def _dedupe(tiles: Iterable[TileSource], width: int, height: int, report: ComposeReport) -> list[TileSource]:

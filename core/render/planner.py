@@ -3,8 +3,9 @@
 Used by the render agents (each with its own rule file) and by the in-process pipeline. Level `off`
 applies no rules at all: every unit renders at the user's depth and spp, with the minimum band.
 Otherwise the fuzzy rule base (rules/pathtracing.xml unless told) weights the user's values, as
-`fuzzy.render_params` documents; the band never drops below `min_band`, the reach of the gaussian
-reconstruction filter (2 px), so that neighbouring tiles always overlap enough to blend.
+`fuzzy.render_params` documents; the band never drops below the job's `min_band`, the reach of its film's
+reconstruction filter (2 px for Mitsuba's gaussian), so that every unit's core is rendered with all the
+samples its filter sees; composition blends only the band beyond that reach.
 
 A user depth of -1 (unbounded, or an integrator that takes no depth) is kept as it is: there is no
 depth to weight. Depth is quantised: the crisp Rl is rounded to the nearest of DEPTH_STEPS (1, 3/4, 1/2 of the user's
@@ -64,7 +65,7 @@ class Planner:
         self,
         rules_path: str | os.PathLike[str] | None = None,
         defuzzifier: str | None = None,
-        min_band: int = 2,
+        min_band: int = 0,
     ) -> None:
         if min_band < 0:
             raise ValueError(f"min_band must be >= 0, got {min_band}")
@@ -88,12 +89,16 @@ class Planner:
         user_depth: int,
         user_spp: int,
         ranges: Mapping[str, tuple[float, float]] | None = None,
+        min_band: int = 0,
     ) -> list[RenderParams]:
-        """One `RenderParams` per unit; `ranges` defaults to the min/max of the given features."""
+        """One `RenderParams` per unit; `ranges` defaults to the min/max of the given features. No band is
+        below `min_band` (the job's: its film filter's reach, core.render.compose.filter_reach) nor the
+        planner's own."""
         cols = _feature_columns(features)
         n = len(cols["C"])
+        floor = max(self.min_band, int(min_band))
         if level == "off":
-            return [RenderParams(int(user_depth), int(user_spp), self.min_band) for _ in range(n)]
+            return [RenderParams(int(user_depth), int(user_spp), floor) for _ in range(n)]
         if level not in RULE_LEVELS:
             choices = ", ".join(RULE_LEVELS)
             raise ValueError(f"unknown optimisation level {level!r}; expected off or one of {choices}")
@@ -112,7 +117,7 @@ class Planner:
             depth, spp, band = to_render_params(quantised, max(user_depth, 0), user_spp)
         if user_depth < 1:  # unbounded (-1), or an integrator without depth: nothing to weight
             depth = np.full(n, user_depth, dtype=np.int64)
-        band = np.maximum(band, self.min_band)
+        band = np.maximum(band, floor)
         crisp = [{k: float(outputs[k][i]) for k in ("Rl", "Ls", "Ibs")} for i in range(n)]
         return [RenderParams(int(depth[i]), int(spp[i]), int(band[i]), crisp[i]) for i in range(n)]
 

@@ -40,8 +40,10 @@ class Previews:
 
     jobs: dict[str, _JobPreview] = field(default_factory=dict)
 
-    async def png(self, job_id: str, folder: Path, width: int, height: int, results: list[ResultRecord]) -> Path:
-        """The PNG showing `results`' tiles (composed again if a tile was added since the last one)."""
+    async def png(self, job_id: str, folder: Path, width: int, height: int, results: list[ResultRecord],
+                  reach: int = 0) -> Path:
+        """The PNG showing `results`' tiles (composed again if a tile was added since the last one), their
+        bands cut by `reach` as in the final image (core.render.compose)."""
         state = self.jobs.setdefault(job_id, _JobPreview())
         path = folder / PREVIEW_NAME
         wanted = frozenset(r.index for r in results)
@@ -52,7 +54,7 @@ class Previews:
             if wait > 0:
                 await asyncio.sleep(wait)
             started = time.monotonic()
-            await asyncio.to_thread(write_preview, path, width, height, results)
+            await asyncio.to_thread(write_preview, path, width, height, results, reach)
             state.shows, state.done_at, state.took_s = wanted, time.monotonic(), time.monotonic() - started
         return path
 
@@ -60,9 +62,9 @@ class Previews:
         self.jobs.pop(job_id, None)
 
 
-def write_preview(path: Path, width: int, height: int, results: list[ResultRecord]) -> Path:
+def write_preview(path: Path, width: int, height: int, results: list[ResultRecord], reach: int = 0) -> Path:
     """Blend the tiles of `results` into a (width x height) PNG at `path`; uncovered pixels are black."""
     tiles = [tile_source(r.tile_path, unit_index=r.index) for r in results if Path(r.tile_path).is_file()]
-    planar, _ = compose_planar(tiles, width, height, allow_uncovered=True)
+    planar, _ = compose_planar(tiles, width, height, allow_uncovered=True, reach=reach)
     path.parent.mkdir(parents=True, exist_ok=True)
     return write_png_planar(path, planar)

@@ -35,6 +35,7 @@ from typing import Any
 from aiohttp import web
 
 from core.errors import QuekaroError
+from core.model.geometry import filter_reach
 from core.model.status import JobStatus
 from master.store import JobRecord, StoreError
 from master.web import auth
@@ -242,8 +243,9 @@ async def api_preview(request: web.Request) -> web.StreamResponse:
     if record.status == JobStatus.DONE and final.is_file():
         state.previews.forget(job_id)
         return web.FileResponse(final, headers={"Content-Type": "image/png"})
+    reach = filter_reach(float(record.plan.get("filter_radius", 2.0)))  # JobPlan.from_dict's default
     path = await state.previews.png(job_id, service.job_dir(job_id), int(record.plan["width"]),
-                                    int(record.plan["height"]), service.store.results(job_id))
+                                    int(record.plan["height"]), service.store.results(job_id), reach)
     return web.FileResponse(path, headers={"Content-Type": "image/png"})
 
 

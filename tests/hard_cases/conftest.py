@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from core.model.geometry import filter_reach
 from core.model.job import SceneSpec
 from core.model.seeds import unit_seed
 from core.render.compose import compose
@@ -87,7 +88,8 @@ def render_units(worker: RenderWorker, spec: SceneSpec, level: str, spp: int, de
     plan = _plan_units(spec, level, spp, depth, units)
     features = {"C": [u.C for u in plan], "S": [float(u.S) for u in plan], "Nd": [u.Nd for u in plan]}
     ranges = {k: (min(v), max(v)) for k, v in features.items()}
-    chosen = Planner(rules).plan(features, level, user_depth=depth, user_spp=spp, ranges=ranges)
+    reach = filter_reach(info.filter_radius)
+    chosen = Planner(rules).plan(features, level, user_depth=depth, user_spp=spp, ranges=ranges, min_band=reach)
     tiles, records = [], []
     for unit, p in zip(plan, chosen, strict=True):
         job = RenderRequest(spec, VARIANT, "path", p.depth, p.spp, unit_seed("hard", unit.index, 0), info.width,
@@ -97,7 +99,7 @@ def render_units(worker: RenderWorker, spec: SceneSpec, level: str, spp: int, de
         records.append({"rect": unit.rect.as_list(), "window": tile.rect.as_list(), "depth": p.depth,
                         "spp": p.spp, "band": p.band, "C": unit.C, "Nd": unit.Nd,
                         "nonfinite": int(tile.meta["nonfinite"])})
-    image, report = compose(tiles, info.width, info.height)
+    image, report = compose(tiles, info.width, info.height, reach=reach)
     return Run(image, sum(r["nonfinite"] for r in records), records, report.to_dict())
 
 
