@@ -15,7 +15,7 @@ import pytest
 
 from core.errors import QuekaroError
 from farm.local import LocalFarm
-from quekaro.cli import build_parser
+from quekaro.cli import OWNERS, build_parser
 from quekaro.cmd_farm import follow_log
 from quekaro.cmd_render import outputs
 
@@ -46,6 +46,19 @@ def test_every_help_names_itself_quekaro() -> None:
         assert done.returncode == 0, (command, done.stderr)
         usage = done.stdout.split("\n", 1)[0]
         assert usage.startswith(f"usage: quekaro {' '.join(command)}"), (command, usage)
+
+
+def test_each_command_imports_the_module_that_registers_it() -> None:
+    """OWNERS names, for each built-in command, the one module a run of it imports: it must register that
+    command, and no built-in command may be missing from it."""
+    everything = {c[0] for c in subcommands(build_parser())}
+    assert set(OWNERS) == everything - {"bench"}  # bench comes through the entry point
+    for name in OWNERS:
+        assert (name,) in subcommands(build_parser(name)), name
+    done = subprocess.run([sys.executable, "-c", "import sys; from quekaro.cli import build_parser; "
+                           "build_parser('render'); print('farm.local' in sys.modules)"],
+                          capture_output=True, text=True, cwd=REPO, timeout=60)
+    assert done.stdout.strip() == "False", done.stderr  # `quekaro render` leaves the farm unloaded
 
 
 def test_outputs_for_one_scene_a_folder_and_several() -> None:
