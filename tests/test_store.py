@@ -105,6 +105,16 @@ def test_schema_pragmas_and_records(tmp_path: Path) -> None:
     assert [j.id for j in JobStore(tmp_path / "farm.db").list_jobs()] == ["job-1"]
 
 
+def test_a_plan_keeps_its_filter_and_an_old_one_gets_mitsubas_default() -> None:
+    """The filter radius decides which band pixels composition cuts (JobPlan.reach): it survives the store,
+    and a plan stored before it was recorded composes as those jobs were planned, with the gaussian's 2."""
+    lanczos = dataclasses.replace(plan_of(specs(2)), filter_radius=3.0)
+    again = JobPlan.from_dict(lanczos.to_dict(), lanczos.spec, specs(2))
+    assert again.filter_radius == 3.0 and again.reach == 3
+    old = {k: v for k, v in lanczos.to_dict().items() if k != "filter_radius"}
+    assert JobPlan.from_dict(old, lanczos.spec, specs(2)).reach == 2
+
+
 def test_bad_files_are_refused(tmp_path: Path) -> None:
     junk = tmp_path / "junk.db"
     junk.write_bytes(b"this is not sqlite" * 100)

@@ -56,6 +56,10 @@ class Rect:
         return cls(x, y, w, h)
 
 
+# Mitsuba's default reconstruction filter, a gaussian of standard deviation 0.5 px cut at 4 of them.
+DEFAULT_FILTER_RADIUS = 2.0
+
+
 def filter_reach(radius: float) -> int:
     """Pixels at a window's edge whose reconstruction filter (of `radius`) reaches past it: a pixel d whole
     pixels inside the edge has its centre at d + 0.5, so it misses samples when d + 0.5 < radius (gaussian

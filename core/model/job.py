@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from core.errors import QuekaroError, SceneError
-from core.model.geometry import filter_reach
+from core.model.geometry import DEFAULT_FILTER_RADIUS, filter_reach
 from core.model.integrators import CATALOGUE
 from core.model.units import WorkUnit
 from fuzzy.engine import DEFUZZIFIERS
@@ -211,8 +211,8 @@ class JobPlan:
     bundle_sha256: str | None = None
     rules_sha256: str | None = None
     # The film's reconstruction filter radius (what composition must cut from each band); Mitsuba's default
-    # gaussian's for plans stored before it was recorded, all of which used that filter's band.
-    filter_radius: float = 2.0
+    # for plans stored before it was recorded, all of which used that filter's band.
+    filter_radius: float = DEFAULT_FILTER_RADIUS
 
     @property
     def reach(self) -> int:
@@ -248,6 +248,7 @@ class JobPlan:
             return cls(spec, RenderOptions.from_dict(data["options"]), int(data["width"]), int(data["height"]),
                        Effects.from_dict(data["effects"]), int(data["spp"]), int(data["depth"]), units,
                        float(data.get("prepass_seconds", 0.0)), dict(data.get("prepass_info", {})),
-                       data.get("bundle_sha256"), data.get("rules_sha256"), float(data.get("filter_radius", 2.0)))
+                       data.get("bundle_sha256"), data.get("rules_sha256"),
+                       float(data.get("filter_radius", DEFAULT_FILTER_RADIUS)))
         except (KeyError, TypeError, ValueError) as exc:
             raise QuekaroError(f"stored job plan is malformed: {type(exc).__name__}: {exc}") from exc

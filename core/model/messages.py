@@ -23,7 +23,7 @@ from typing import Any, ClassVar, Union
 
 from core.errors import MessageError
 from core.model.fields import constrained
-from core.model.geometry import Rect
+from core.model.geometry import DEFAULT_FILTER_RADIUS, Rect, filter_reach
 from core.model.job import VARIANT_PATTERN
 from core.model.units import WorkUnit
 from fuzzy.engine import DEFUZZIFIERS
@@ -73,8 +73,8 @@ class JobInfo:
     rules_sha256: str | None = constrained(pattern=_HEX, default=None)
     defuzzifier: str | None = constrained(choices=DEFUZZIFIERS, default=None)  # None: each agent's own
     # No unit's band below this: the film filter's reach, the band pixels the master's composition cuts
-    # (core.model.geometry.filter_reach). 2 is Mitsuba's default gaussian's.
-    min_band: int = constrained(lo=0, hi=64, default=2)
+    # (core.model.geometry.filter_reach); a master that does not send it composes with Mitsuba's default.
+    min_band: int = constrained(lo=0, hi=64, default=filter_reach(DEFAULT_FILTER_RADIUS))
 
     def check(self) -> None:
         for name, (lo, hi) in self.ranges.items():

@@ -92,7 +92,7 @@ class Planner:
         min_band: int = 0,
     ) -> list[RenderParams]:
         """One `RenderParams` per unit; `ranges` defaults to the min/max of the given features. No band is
-        below `min_band` (the job's: its film filter's reach, core.render.compose.filter_reach) nor the
+        below `min_band` (the job's: its film filter's reach, core.model.geometry.filter_reach) nor the
         planner's own."""
         cols = _feature_columns(features)
         n = len(cols["C"])

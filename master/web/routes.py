@@ -35,7 +35,7 @@ from typing import Any
 from aiohttp import web
 
 from core.errors import QuekaroError
-from core.model.geometry import filter_reach
+from core.model.geometry import DEFAULT_FILTER_RADIUS, filter_reach
 from core.model.status import JobStatus
 from master.store import JobRecord, StoreError
 from master.web import auth
@@ -243,7 +243,7 @@ async def api_preview(request: web.Request) -> web.StreamResponse:
     if record.status == JobStatus.DONE and final.is_file():
         state.previews.forget(job_id)
         return web.FileResponse(final, headers={"Content-Type": "image/png"})
-    reach = filter_reach(float(record.plan.get("filter_radius", 2.0)))  # JobPlan.from_dict's default
+    reach = filter_reach(float(record.plan.get("filter_radius", DEFAULT_FILTER_RADIUS)))  # as JobPlan.from_dict
     path = await state.previews.png(job_id, service.job_dir(job_id), int(record.plan["width"]),
                                     int(record.plan["height"]), service.store.results(job_id), reach)
     return web.FileResponse(path, headers={"Content-Type": "image/png"})
