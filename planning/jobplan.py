@@ -13,7 +13,7 @@ from typing import Any
 
 from core.errors import QuekaroError
 from core.model import integrators
-from core.model.job import Effects, JobPlan, RenderOptions, SceneSpec
+from core.model.job import JobPlan, RenderOptions, SceneSpec
 from core.model.units import WorkUnit
 from core.render.effects import analyse_loaded
 from core.render.scene import expand, film_info, sensor_elements
@@ -76,7 +76,8 @@ def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: 
     info = film_info(spec, options.sensor)
     width, height = info.width, info.height
     spp = options.spp or scene_spp(spec, options.sensor) or DEFAULT_SPP
-    depth = effects.max_depth
+    plan = JobPlan(spec, options, width, height, effects, spp, effects.max_depth, [],
+                   filter_radius=info.filter_radius)
     # A two-round job's --units are its render units (render_units); its rules see the level's own partition.
     chosen = None if options.adaptive else options.units
     target = chosen or default_unit_count(width, height, options.level, min_units)
@@ -84,27 +85,25 @@ def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: 
         if options.level != "off":
             effects.reasons.append(f"level {options.level} not applied: the rules choose per unit, and this "
                                    "integrator renders as one unit at the user's spp and depth")
-        return JobPlan(spec, dataclasses.replace(options, level=OFF, adaptive=False), width, height, effects, spp,
-                       depth, _plain_units(width, height, 1), filter_radius=info.filter_radius)
+        return dataclasses.replace(plan, options=dataclasses.replace(options, level=OFF, adaptive=False),
+                                   units=_plain_units(width, height, 1))
     if options.level == "off":
         # The rules need no features at level off, so the pre-pass would be pure overhead.
-        units = _plain_units(width, height, target)
-        return JobPlan(spec, options, width, height, effects, spp, depth, units, filter_radius=info.filter_radius)
-    plan = _planned_with_prepass(spec, options, effects, width, height, spp, depth, target, seed, loaded)
-    return dataclasses.replace(plan, filter_radius=info.filter_radius)
+        return dataclasses.replace(plan, units=_plain_units(width, height, target))
+    return _with_prepass(plan, target, seed, loaded)
 
 
-def _planned_with_prepass(spec: SceneSpec, options: RenderOptions, effects: Effects, width: int,
-                          height: int, spp: int, depth: int, target: int, seed: int, scene: Any) -> JobPlan:
-    """The pre-pass on `scene` (as the analysis loaded it) and the partition of its complexity map."""
+def _with_prepass(plan: JobPlan, target: int, seed: int, scene: Any) -> JobPlan:
+    """The plan with units from the pre-pass on `scene` (as the analysis loaded it), partitioned."""
     start = time.perf_counter()
-    own = integrators.scene_element(expand(spec).root)
-    radiance = effects.override or integrators.radiance_xml(own, depth)
-    cmap = prepass(scene, width, height, integrator=radiance, max_depth=depth,
-                   threads=options.threads, full_spp=spp, seed=seed, sensor=options.sensor)
+    options, depth = plan.options, plan.depth
+    own = integrators.scene_element(expand(plan.spec).root)
+    radiance = plan.effects.override or integrators.radiance_xml(own, depth)
+    cmap = prepass(scene, plan.width, plan.height, integrator=radiance, max_depth=depth,
+                   threads=options.threads, full_spp=plan.spp, seed=seed, sensor=options.sensor)
     units = partition(cmap, target_units=target)
-    seconds = time.perf_counter() - start
-    return JobPlan(spec, options, width, height, effects, spp, depth, units, seconds, dict(cmap.info))
+    return dataclasses.replace(plan, units=units, prepass_seconds=time.perf_counter() - start,
+                               prepass_info=dict(cmap.info))
 
 
 def render_units(plan: JobPlan) -> list[WorkUnit]:

@@ -95,8 +95,7 @@ def composed(plan: JobPlan, units: Sequence[WorkUnit], tiles: Iterable[Tile | Ti
     image, compose_report = compose_planar(tiles, plan.width, plan.height, reach=plan.reach)
     channels = tuple(tiles[0].channels) if tiles else ("R", "G", "B")
     records = (unit_record(units[int(t.meta["unit_index"])], t, params[int(t.meta["unit_index"])]) for t in tiles)
-    units = sorted(records, key=lambda u: u["index"])
-    return Composed(image, channels, compose_report.to_dict(), units)
+    return Composed(image, channels, compose_report.to_dict(), sorted(records, key=lambda u: u["index"]))
 
 
 def write_outputs(plan: JobPlan, job: Composed, out: Path, started: float,

@@ -17,13 +17,13 @@ from importlib.metadata import entry_points
 from core.errors import QuekaroError
 from fuzzy.errors import FuzzyInputError, RuleFileError
 
-COMMAND_MODULES = ("quekaro.cmd_rules", "quekaro.cmd_render", "quekaro.cmd_diff", "quekaro.cmd_farm",
-                   "quekaro.cmd_ca")
-# The module that registers each top-level command (tests/test_cli.py checks it against COMMAND_MODULES).
+# The module that registers each top-level command (tests/test_cli.py checks it against what they register),
+# in the order `quekaro --help` lists them.
 OWNERS = {"rules": "quekaro.cmd_rules", "render": "quekaro.cmd_render", "diff": "quekaro.cmd_diff",
-          "ca": "quekaro.cmd_ca",
           **dict.fromkeys(("up", "demo", "master", "agent", "submit", "status", "watch", "result", "cancel",
-                           "agents", "logs"), "quekaro.cmd_farm")}
+                           "agents", "logs"), "quekaro.cmd_farm"),
+          "ca": "quekaro.cmd_ca"}
+COMMAND_MODULES = tuple(dict.fromkeys(OWNERS.values()))
 PLUGIN_GROUP = "quekaro.commands"
 
 
