@@ -162,3 +162,51 @@ def test_second_pass_adapts_only_where_the_first_predicts_a_gain():
     assert predicted < PAYS_BELOW
     assert extra[:2, :2].min() > 8 > extra[4:, 4:].max()  # the noisy corner takes the samples
     assert abs(extra.sum() - 8 * 64) < 0.05 * 8 * 64
+
+
+CBOX = Path(__file__).resolve().parents[1].parent / "shared" / "scenes" / "mitsuba-data" / "cbox" / "cbox.xml"
+# A child that renders cbox at 128 px with 2^19 - 7 samples: 32 a pixel, one pixel none, the difference
+# spread one sample each over the pixels from index 1000. Unpadded, this wavefront faulted Dr.Jit's kernel.
+_FAULTING_TOTAL = f"""
+import numpy as np
+from core.model.job import SceneSpec
+from core.render.counts import render_counts
+from core.render.scene import load
+counts = np.full(128 * 128, 32, dtype=np.int64)
+counts[100] = 0
+diff = 2**19 - 7 - int(counts.sum())
+counts[1000:1000 + abs(diff)] += int(np.sign(diff))
+loaded = load(SceneSpec({str(CBOX)!r}, {{"res": "128"}}), "llvm_ad_spectral", threads=2)
+out = render_counts(loaded, counts.reshape(128, 128), seed=2001, moments=False)
+print("rendered", int(out.counts.sum()), float(out.pixels[..., :3].mean()))
+"""
+
+
+def test_a_sample_total_that_faulted_the_kernel_renders():
+    """The wavefront is padded (core.render.counts.LANE_MULTIPLE): a total that crashed the render process
+    now renders, in a process of its own so that a fault fails this test, not the run."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", _FAULTING_TOTAL], capture_output=True, text=True, timeout=300,
+                          cwd=Path(__file__).resolve().parents[1])
+    assert done.returncode == 0, f"exit {done.returncode}: {done.stderr[-1500:]}"
+    assert f"rendered {2**19 - 7} " in done.stdout
+
+
+def test_padding_lanes_add_nothing(tmp_path):
+    """One sample in the last pixel of a film that sees a constant emitter (radiance 1 everywhere): the
+    wavefront's 1023 padding lanes sit on that pixel, and neither its moments nor its value count them."""
+    scene = tmp_path / "scene.xml"
+    scene.write_text('<scene version="3.0.0"><integrator type="path"/><sensor type="perspective">'
+                     '<sampler type="independent"/><film type="hdrfilm"><integer name="width" value="8"/>'
+                     '<integer name="height" value="8"/><rfilter type="box"/></film></sensor>'
+                     '<emitter type="constant"/></scene>')
+    loaded = load(SceneSpec(scene, {}, ()), RGB, threads=1)
+    counts = np.zeros((8, 8), dtype=np.int64)
+    counts[-1, -1] = 1
+    out = render_counts(loaded, counts, seed=3)
+    assert out.sum[-1, -1] == pytest.approx([1.0, 1.0, 1.0], rel=1e-5)
+    assert out.sum_sq[-1, -1] == pytest.approx([1.0, 1.0, 1.0], rel=1e-5)
+    assert not out.sum[:-1].any() and not out.sum[-1, :-1].any()
+    assert out.pixels[-1, -1, :3] == pytest.approx([1.0, 1.0, 1.0], rel=1e-5)

@@ -10,11 +10,13 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.ndimage import correlate1d, gaussian_filter
 
 from core.errors import RenderError
 from core.render.counts import render_counts
 from core.render.film import sanitize
+
+# scipy.ndimage is imported where used: ~0.1 s at import that every one-round `quekaro render` job (and its
+# --help) would pay for a blur only two-round jobs run.
 
 # The two-pass render. FIRST_SHARE of the samples go to a uniform first pass, whose per-pixel variance,
 # blurred over BLUR_PX (a pixel's own estimate from a few dozen samples misses rare bright paths), sets
@@ -118,6 +120,8 @@ def blurred(noise: np.ndarray, blur_px: float = BLUR_PX, exclude_px: int = 0) ->
     a spectral test scene's pixels off by 2 standard errors). Without them the count is independent of it."""
     if blur_px <= 0:
         return noise
+    from scipy.ndimage import correlate1d, gaussian_filter
+
     full = gaussian_filter(noise, blur_px, mode="nearest")
     if exclude_px <= 0:
         return full

@@ -34,6 +34,11 @@ from core.render.metrics import RELMSE_EPSILON
 # from a unit's first round to the master, which places the second round's samples by it.
 NOISE_CHANNEL = "quekaro.noise"
 SAMPLERS = ("IndependentSampler",)  # samplers whose samples do not depend on a fixed spp per pixel
+# The wavefront is padded with masked lanes (no radiance, zero weight, left out of the moments) to a
+# multiple of this: with Dr.Jit 1.5's LLVM backend the render kernel faulted (SIGSEGV in a worker thread)
+# for some sample totals just below a multiple of 1024 (e.g. 2^19 - 7 on cbox at 128 px), and never with
+# padded totals (tests/test_adaptive.py renders one such total in a child process).
+LANE_MULTIPLE = 1024
 
 
 @dataclass
@@ -97,25 +102,30 @@ def render_counts(scene: Any, counts: np.ndarray, seed: int, sensor: int = 0, in
         film.put_block(block)
         return _result(film, counts)
     uniform = int(counts.flat[0]) if (counts == counts.flat[0]).all() else 0
+    lanes = -(-total // LANE_MULTIPLE) * LANE_MULTIPLE
     sampler = cam.sampler().clone()
     sampler.set_sample_count(max(1, round(total / counts.size)))
     sampler.set_samples_per_wavefront(1)
-    sampler.seed(seed, total)
+    sampler.seed(seed, lanes)
+    live = dr.arange(mi.UInt32, lanes) < dr.opaque(mi.UInt32, total)
     if uniform:  # consecutive samples share a pixel: no index array
-        pixel = dr.arange(mi.UInt32, total) // dr.opaque(mi.UInt32, uniform)
+        pixel = dr.minimum(dr.arange(mi.UInt32, lanes) // dr.opaque(mi.UInt32, uniform),
+                           dr.opaque(mi.UInt32, counts.size - 1))
         count_of = dr.opaque(mi.Float, uniform)
     else:
-        pixel = mi.UInt32(np.repeat(np.arange(width * height, dtype=np.uint32), counts.ravel()))
+        index = np.repeat(np.arange(width * height, dtype=np.uint32), counts.ravel())
+        pixel = mi.UInt32(np.pad(index, (0, lanes - total), mode="edge"))
         count_of = dr.gather(mi.Float, mi.Float(counts.ravel().astype(np.float32)), pixel)
     pos, pos_f, ray, ray_weight = _sample_rays(cam, film, sampler, pixel, width)
     if ray.has_differentials:
         ray.scale_differential(dr.rsqrt(count_of))
-    spec, valid, aovs = integ.sample(scene, sampler, ray, cam.get_medium(), mi.Bool(True))
+    spec, valid, aovs = integ.sample(scene, sampler, ray, cam.get_medium(), live)
     # The splat weight, mean count / this pixel's count; opaque, so that a new mean is not a new kernel.
-    share = dr.rcp(count_of) * dr.opaque(mi.Float, total / counts.size)
+    share = dr.select(live, dr.rcp(count_of) * dr.opaque(mi.Float, total / counts.size), 0.0)
     splat = mi.Vector2f(pos) if film.rfilter().is_box_filter() else pos_f
-    rgb = _put(block, film, splat, ray_weight * spec, ray.wavelengths, share, dr.select(valid, 1.0, 0.0), aovs)
-    sums = _moments(rgb, pixel, width * height) if moments else (None, None)
+    rgb = _put(block, film, splat, ray_weight * spec, ray.wavelengths, share, dr.select(valid, 1.0, 0.0), aovs,
+               live)
+    sums = _moments(rgb, pixel, width * height, live) if moments else (None, None)
     film.put_block(block)
     return _result(film, counts, *sums)
 
@@ -160,7 +170,7 @@ def _sample_rays(cam: Any, film: Any, sampler: Any, pixel: Any, width: int) -> t
 
 
 def _put(block: Any, film: Any, pos: Any, value: Any, wavelengths: Any, share: Any, alpha: Any,
-         aovs: list[Any]) -> Any:
+         aovs: list[Any], live: Any) -> Any:
     """Splat the samples, each weighted by `share`; return their RGB (for the moments)."""
     import drjit as dr
     import mitsuba as mi
@@ -183,11 +193,11 @@ def _put(block: Any, film: Any, pos: Any, value: Any, wavelengths: Any, share: A
         if mi.has_flag(film.flags(), mi.FilmFlags.Alpha):
             head.append(alpha * share)
         channels = head + [share] + [a * share for a in aovs]
-    block.put(pos, channels)
+    block.put(pos, channels, live)
     return rgb
 
 
-def _moments(rgb: Any, pixel: Any, size: int) -> tuple[np.ndarray, np.ndarray]:
+def _moments(rgb: Any, pixel: Any, size: int, live: Any) -> tuple[np.ndarray, np.ndarray]:
     """Per pixel, the sum and the sum of squares of its samples' RGB: (size x 3) each. (Atomic scatters
     in the render's own kernel: dr.block_sum over uniform counts measured ~2.5x slower here.)"""
     import drjit as dr
@@ -196,8 +206,8 @@ def _moments(rgb: Any, pixel: Any, size: int) -> tuple[np.ndarray, np.ndarray]:
     sums, squares = [], []
     for c in (rgb.x, rgb.y, rgb.z):
         acc, acc2 = dr.zeros(mi.Float, size), dr.zeros(mi.Float, size)
-        dr.scatter_reduce(dr.ReduceOp.Add, acc, c, pixel)
-        dr.scatter_reduce(dr.ReduceOp.Add, acc2, c * c, pixel)
+        dr.scatter_reduce(dr.ReduceOp.Add, acc, c, pixel, live)
+        dr.scatter_reduce(dr.ReduceOp.Add, acc2, c * c, pixel, live)
         sums.append(acc)
         squares.append(acc2)
     dr.eval(*sums, *squares)
