@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         defines = entry.with_size(args.res)
         spec = measured_spec(entry.path.resolve(), args.res, defines=defines if "width" in defines else None)
         scenes = {entry.name: {"role": entry.role, **measure_scene(spec, args)}}
-    else:  # one process per scene: a suite in one process crashed Dr.Jit (SIGSEGV) after a few scenes
+    else:  # one process per scene, so that a crash costs one scene (the SIGSEGV once seen here: LANE_MULTIPLE)
         scenes = {e.name: _scene_in_child(e, args) for e in chosen}
     ratios = [s["ratio_equal_time"] for s in scenes.values()]
     result = {"spp": args.spp, "ref_spp": args.ref_spp, "res": args.res, "seeds": args.seeds,
