@@ -4,6 +4,8 @@ vary per pixel (and the variance each pixel's count predicts), and refusals that
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -185,9 +187,6 @@ print("rendered", int(out.counts.sum()), float(out.pixels[..., :3].mean()))
 def test_a_sample_total_that_faulted_the_kernel_renders():
     """The wavefront is padded (core.render.counts.LANE_MULTIPLE): a total that crashed the render process
     now renders, in a process of its own so that a fault fails this test, not the run."""
-    import subprocess
-    import sys
-
     done = subprocess.run([sys.executable, "-c", _FAULTING_TOTAL], capture_output=True, text=True, timeout=300,
                           cwd=Path(__file__).resolve().parents[1])
     assert done.returncode == 0, f"exit {done.returncode}: {done.stderr[-1500:]}"

@@ -102,7 +102,7 @@ def render_counts(scene: Any, counts: np.ndarray, seed: int, sensor: int = 0, in
         film.put_block(block)
         return _result(film, counts)
     uniform = int(counts.flat[0]) if (counts == counts.flat[0]).all() else 0
-    lanes = -(-total // LANE_MULTIPLE) * LANE_MULTIPLE
+    lanes = padded(total)
     sampler = cam.sampler().clone()
     sampler.set_sample_count(max(1, round(total / counts.size)))
     sampler.set_samples_per_wavefront(1)
@@ -121,7 +121,7 @@ def render_counts(scene: Any, counts: np.ndarray, seed: int, sensor: int = 0, in
         ray.scale_differential(dr.rsqrt(count_of))
     spec, valid, aovs = integ.sample(scene, sampler, ray, cam.get_medium(), live)
     # The splat weight, mean count / this pixel's count; opaque, so that a new mean is not a new kernel.
-    share = dr.select(live, dr.rcp(count_of) * dr.opaque(mi.Float, total / counts.size), 0.0)
+    share = dr.rcp(count_of) * dr.opaque(mi.Float, total / counts.size)
     splat = mi.Vector2f(pos) if film.rfilter().is_box_filter() else pos_f
     rgb = _put(block, film, splat, ray_weight * spec, ray.wavelengths, share, dr.select(valid, 1.0, 0.0), aovs,
                live)
@@ -137,9 +137,14 @@ def counts_problem(counts: np.ndarray, width: int, height: int, window: str = "t
         return f"counts {counts.shape} do not match {window} {height}x{width}"
     if not np.issubdtype(counts.dtype, np.integer) or (counts < 0).any():
         return "counts must be non-negative integers"
-    if int(counts.sum()) >= 2**32:
-        return f"{int(counts.sum())} samples in one wavefront (at most 2^32 - 1)"
+    if padded(int(counts.sum())) >= 2**32:
+        return f"{int(counts.sum())} samples in one wavefront (at most 2^32 - {LANE_MULTIPLE}, padded)"
     return None
+
+
+def padded(total: int) -> int:
+    """The wavefront's lanes for `total` samples: the next multiple of LANE_MULTIPLE."""
+    return -(-total // LANE_MULTIPLE) * LANE_MULTIPLE
 
 
 def _checked_counts(counts: np.ndarray, width: int, height: int) -> np.ndarray:
