@@ -7,8 +7,10 @@ job's report. A cost map that cannot be used is refused, naming its file."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -78,6 +80,20 @@ def test_speed_needs_emulate():
         config_from_args(args)
 
 
+def _wait_for_informs(logs: Path, job_id: str, units: int, timeout: float = 30.0) -> None:
+    """Wait until the agents have logged `units` units of the job done. The master counts a unit done once
+    its tile is on disk, and the agent informs after its upload: its state machine logs the unit done and
+    sends the Inform in one step of its event loop, so a logged unit's Inform is counted before a SIGTERM
+    can stop the agent."""
+    pattern = re.compile(rf"unit {re.escape(job_id)}/\d+ done:")
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if sum(len(pattern.findall(log.read_text())) for log in logs.glob("agent-*.log")) >= units:
+            return
+        time.sleep(0.1)
+    raise AssertionError(f"the agents logged fewer than {units} units of job {job_id} done within {timeout} s")
+
+
 def test_two_emulated_agents_complete_a_job(tmp_path):
     costs = CostMap.from_file(_costs(tmp_path))
     job = make_job(costs, REPO / "scenes" / "caustic-corner.xml", spp=64, width=W, height=H, units=6)
@@ -87,6 +103,7 @@ def test_two_emulated_agents_complete_a_job(tmp_path):
         status = client.wait(job_id, 120, poll=0.2, while_waiting=farm.check_alive)
         assert status["status"] == "done", status
         client.result(job_id, tmp_path / "result.exr")
+        _wait_for_informs(tmp_path / "farm" / "logs", job_id, 6)
         farm.stop_agents()
         store = StoreView.read(farm.home, job_id)
         workdirs = [farm.workdir(i) for i in range(2)]
