@@ -173,7 +173,7 @@ class EmulatedWorker:
                 "nonfinite": 0, "spp": job.spp, "depth": job.max_depth, "integrator": job.integrator,
                 "variant": "emulated", "seed": job.seed, "band": job.band, "window_method": "emulated",
                 "pid": os.getpid(), "sensor": job.sensor, "emulated": True, "emulated_speed": emu.factor,
-                "rendered_at": rendered_at}
+                "rendered_at": rendered_at, **({"first_spp": job.first} if job.first is not None else {})}
         log.info("%s render of %s/%d: window %dx%d, %d spp, slept %.3f s (planned %.3f s)", MARK, job.job_id,
                  job.unit_index, window.w, window.h, job.spp, seconds, planned)
         return Tile(pixels, window, job.unit, meta, emu.costs.channels)

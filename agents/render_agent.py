@@ -81,7 +81,7 @@ from core.model.hashing import sha256_file
 from core.model.job import SceneSpec
 from core.model.units import WorkUnit
 from core.render.bundle import RULES_NAME, BundleLimits, check_unpacked, read_manifest
-from core.render.planner import Planner, RenderParams
+from core.render.planner import Planner, RenderParams, adaptive_params
 from core.render.tiles import write_tile
 from core.render.worker import RenderRequest, RenderWorker
 from core.transport.credentials import xmpp_password
@@ -283,6 +283,8 @@ class RenderAgent:
         return refused
 
     def _plan(self, job: m.JobInfo, units: tuple[WorkUnit, ...]) -> list[RenderParams]:
+        if job.first_spp is not None:  # an adaptive job: the master's plan set each unit's samples
+            return adaptive_params(units, job.depth, job.min_band)
         features = {k: [float(getattr(u, k)) for u in units] for k in ("C", "S", "Nd")}
         ranges = dict(job.ranges) or None
         planner = self._planner_for(job)
@@ -315,7 +317,7 @@ class RenderAgent:
             scene=command.scene, variant=job.variant, integrator=job.integrator,
             max_depth=params.depth, spp=params.spp, seed=award.seed, width=job.width, height=job.height,
             unit=unit.rect, band=params.band, threads=self.config.threads, job_id=job.job_id,
-            unit_index=unit.index, sensor=job.sensor)
+            unit_index=unit.index, sensor=job.sensor, first=job.first_spp)
         try:
             try:
                 tile = await asyncio.to_thread(self.worker.render, request, command.timeout_s)

@@ -89,7 +89,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--inprocess", action="store_true",
                         help="time the whole `quekaro render` process instead of a farm (smallest agent count)")
     parser.add_argument("--adaptive", action="store_true",
-                        help="with --inprocess: the optimised levels as two-round jobs (`quekaro render --adaptive`)")
+                        help="the optimised levels as adaptive jobs (`--adaptive`), through the farm or in one process")
     parser.add_argument("--resume", action="store_true",
                         help="keep the scenes already finished in OUT/accuracy.partial.jsonl by a run with the "
                              "same settings, and measure only the others")
@@ -116,8 +116,6 @@ def parse_grid(args: argparse.Namespace) -> tuple[list[SuiteScene], list[int], l
         raise QuekaroError(f"--agents {args.agents!r}: expected integers like 1,2") from None
     if agents[0] < 1:
         raise QuekaroError(f"--agents {args.agents!r}: counts must be at least 1")
-    if args.adaptive and not args.inprocess:
-        raise QuekaroError("--adaptive needs --inprocess: a farm refuses two-round jobs")
     levels = _csv_list(args.levels, "levels")
     for level in levels:
         if level not in LEVELS:
@@ -178,8 +176,10 @@ def _self_cpu() -> float:
 
 
 @contextmanager
-def farm_runner(agents: int, threads: int, home: Path, units: int | None = None) -> Iterator[Any]:
-    """A function (spec, level, spp, out) -> (report, wall s, CPU s) running jobs on a real local farm."""
+def farm_runner(agents: int, threads: int, home: Path, units: int | None = None,
+                adaptive: bool = False) -> Iterator[Any]:
+    """A function (spec, level, spp, out) -> (report, wall s, CPU s) running jobs on a real local farm
+    (`adaptive`: the optimised levels as adaptive jobs)."""
 
     with LocalFarm(home, agents=agents, threads=max(1, threads // agents)) as farm:
         farm.wait_for_agents()
@@ -190,6 +190,7 @@ def farm_runner(agents: int, threads: int, home: Path, units: int | None = None)
             roots = [p.pid for _, p in farm.procs]  # this process (and the XMPP server in it): _self_cpu
             cpu0, start = tree_cpu_seconds(roots) + _self_cpu(), time.perf_counter()
             options = {"level": level, "spp": spp} | ({"units": units} if units and level != "off" else {})
+            options |= {"adaptive": True} if adaptive and level != "off" else {}
             job_id = client.submit(bundle, spec.defines, options)
             status = client.wait(job_id, JOB_TIMEOUT_S, while_waiting=farm.check_alive)
             wall = time.perf_counter() - start
@@ -205,7 +206,7 @@ def farm_runner(agents: int, threads: int, home: Path, units: int | None = None)
 @contextmanager
 def inprocess_runner(threads: int, units: int | None = None, adaptive: bool = False) -> Iterator[Any]:
     """The same function as `farm_runner`, timing the whole `quekaro render` process a user runs
-    (`adaptive`: the optimised levels in two rounds)."""
+    (`adaptive`: the optimised levels as adaptive jobs)."""
 
     def run_job(spec: Any, level: str, spp: int, out: Path) -> tuple[dict, float, float]:
         chosen = ["--units", str(units)] if units and level != "off" else []
@@ -253,7 +254,7 @@ def scene_cells(scene: SuiteScene, agents: list[int], levels: list[str], args: a
     cells, diffs, units = [], {}, {}
     for n in agents:
         runner = (inprocess_runner(args.threads, args.units, args.adaptive) if args.inprocess
-                  else farm_runner(n, args.threads, work / f"farm-{scene.name}-{n}", args.units))
+                  else farm_runner(n, args.threads, work / f"farm-{scene.name}-{n}", args.units, args.adaptive))
         with runner as run_job:
             for level in levels:
                 cell, image, rects = run_cell(run_job, spec, level, args, work / f"{scene.name}-{n}-{level}", ref)
@@ -378,8 +379,8 @@ def run_settings(args: argparse.Namespace, agents: list[int], levels: list[str])
 
 
 def mode(args: argparse.Namespace) -> str:
-    """How the jobs ran: through a farm, or in one process (in two rounds with --adaptive)."""
-    return "farm" if not args.inprocess else "inprocess, two rounds" if args.adaptive else "inprocess"
+    """How the jobs ran: through a farm or in one process, and whether the optimised levels were adaptive."""
+    return ("inprocess" if args.inprocess else "farm") + (", adaptive" if args.adaptive else "")
 
 
 def write_partial(settings: dict[str, Any], cells: list[dict[str, Any]], out: Path) -> None:

@@ -32,6 +32,7 @@ from core.model.hashing import sha256_file
 from core.model.job import JobPlan, JobSpec, RenderOptions, SceneSpec
 from core.model.seeds import plan_seed
 from core.model.status import JobStatus, UnitStatus
+from core.model.units import WorkUnit
 from core.render.bundle import BundleLimits, bundle_hash, check_rules, check_unpacked, extract_bundle, read_manifest
 from core.render.tiles import read_tile, tile_source
 from core.supervision import die_with_parent
@@ -240,15 +241,12 @@ class MasterService:
             depth=plan.depth, level=plan.options.level, ranges=plan.ranges(), scene_name=record.scene,
             defines=dict(record.spec.defines), variant=plan.effects.variant, integrator=plan.effects.override,
             sensor=plan.options.sensor, rules_sha256=plan.rules_sha256, defuzzifier=plan.options.defuzzifier,
-            min_band=plan.reach,
+            min_band=plan.reach, first_spp=plan.first_spp,
         )
 
     async def submit(self, bundle: bytes | Path, defines: dict[str, str], options: RenderOptions) -> str:
         """Accept a job: keep its bundle (bytes, or a file of the jobs folder, moved), plan it (pre-pass in a
         child process), auction its units."""
-        if options.adaptive:
-            raise QuekaroError("option adaptive: two-round jobs render in one process only (quekaro render "
-                               "--adaptive); the farm's auction renders every unit in one round")
         job_id = uuid.uuid4().hex[:12]
         job_dir = self.job_dir(job_id)
         job_dir.mkdir(parents=True)
@@ -321,6 +319,7 @@ class MasterService:
                 return
             meta = read_tile(path).meta
             params = _params_from_meta(meta)
+            _check_planned(job.info, unit.spec, params)
             self.store.record_result(job_id, index, str(path), sha256, params, time.time())
             inform = m.Inform(
                 conversation=unit.conversation, job_id=job_id, index=index, token=unit.token,
@@ -464,7 +463,23 @@ def _params_from_meta(meta: dict[str, Any]) -> dict[str, Any]:
     params["rules"] = str(meta.get("rules", ""))[:256] or None
     if meta.get("emulated") is True:  # an emulated agent's (agents/emulate.py): slept, not rendered
         params["emulated"] = True
+    if meta.get("first_spp") is not None:  # an adaptive job's two-pass render (core.render.worker)
+        try:
+            params["first_spp"] = int(meta["first_spp"])
+        except (TypeError, ValueError) as exc:
+            raise QuekaroError(f"tile header's first_spp {meta['first_spp']!r} is not a sample count") from exc
     return params
+
+
+def _check_planned(job: m.JobInfo, unit: WorkUnit, params: dict[str, Any]) -> None:
+    """An adaptive job's tile must say it rendered the unit's planned share in two passes (its image is
+    averaged with the others' as if it had): else it is refused, naming what differs."""
+    if job.first_spp is None:
+        return
+    said = (params["spp"], params.get("first_spp"))
+    if said != (unit.spp, job.first_spp):
+        raise QuekaroError(f"unit {unit.index} of adaptive job {job.job_id}: tile header says spp {said[0]}, first "
+                           f"pass {said[1]}; the plan gives spp {unit.spp}, first pass {job.first_spp}")
 
 
 def _admin_token(home: Path) -> str:

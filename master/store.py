@@ -28,7 +28,7 @@ from core.model.status import STORED_UNIT_STATUSES, JobStatus, UnitStatus, job_t
 from core.model.units import WorkUnit
 from master import auction as au
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 
 def _sql_set(statuses: Iterable[str]) -> str:
@@ -54,6 +54,7 @@ CREATE TABLE units (
     cost     REAL NOT NULL CHECK (cost >= 0),
     status   TEXT NOT NULL CHECK (status IN ({_sql_set(STORED_UNIT_STATUSES)})),
     attempts INTEGER NOT NULL DEFAULT 0,
+    spp      INTEGER CHECK (spp IS NULL OR spp >= 1),  -- WorkUnit.spp (adaptive jobs), NULL where rules choose
     PRIMARY KEY (job_id, idx)
 );
 CREATE TABLE attempts (
@@ -118,9 +119,11 @@ class UnitRecord:
     cost: float
     status: UnitStatus
     attempts: int
+    spp: int | None = None
 
     def unit(self) -> WorkUnit:
-        return WorkUnit(index=self.index, rect=self.rect, C=self.C, S=int(self.S), Nd=self.Nd, cost=self.cost)
+        return WorkUnit(index=self.index, rect=self.rect, C=self.C, S=int(self.S), Nd=self.Nd, cost=self.cost,
+                        spp=self.spp)
 
 
 @dataclass(frozen=True)
@@ -208,6 +211,8 @@ class JobStore:
                     version = SCHEMA_VERSION
         if version == 1 and not readonly:
             version = self._migrate_from_1()
+        if version == 2 and not readonly:
+            version = self._migrate_from_2()
         if version != SCHEMA_VERSION:
             raise StoreError(f"{self.path}: schema version {version}, this program reads {SCHEMA_VERSION}")
 
@@ -233,10 +238,18 @@ class JobStore:
                 db.execute("ALTER TABLE jobs_v2 RENAME TO jobs")
                 if db.execute("PRAGMA foreign_key_check").fetchall():
                     raise StoreError(f"{self.path}: migrating from schema 1 broke a foreign key")
-                db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+                db.execute("PRAGMA user_version = 2")
         finally:
             self.db.execute("PRAGMA foreign_keys = ON")
-        return SCHEMA_VERSION
+        return 2
+
+    def _migrate_from_2(self) -> int:
+        """Schema 3 adds each unit's planned spp (adaptive jobs); the units stored before have none."""
+        with self._tx() as db:
+            if db.execute("PRAGMA user_version").fetchone()[0] == 2:
+                db.execute("ALTER TABLE units ADD COLUMN spp INTEGER CHECK (spp IS NULL OR spp >= 1)")
+                db.execute("PRAGMA user_version = 3")
+        return 3
 
     @contextmanager
     def _tx(self) -> Iterator[sqlite3.Connection]:
@@ -274,9 +287,10 @@ class JobStore:
                 (job_id, scene, json.dumps(spec.to_dict()), json.dumps(plan.to_dict()), JobStatus.RUNNING, now),
             )
             db.executemany(
-                "INSERT INTO units (job_id, idx, x, y, w, h, C, S, Nd, cost, status)"
-                " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                [(job_id, u.index, *u.rect.as_list(), u.C, u.S, u.Nd, u.cost, UnitStatus.PENDING) for u in units],
+                "INSERT INTO units (job_id, idx, x, y, w, h, C, S, Nd, cost, status, spp)"
+                " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                [(job_id, u.index, *u.rect.as_list(), u.C, u.S, u.Nd, u.cost, UnitStatus.PENDING, u.spp)
+                 for u in units],
             )
 
     def job(self, job_id: str) -> JobRecord:
@@ -296,7 +310,7 @@ class JobStore:
         return [
             UnitRecord(
                 r["job_id"], r["idx"], Rect(r["x"], r["y"], r["w"], r["h"]),
-                r["C"], r["S"], r["Nd"], r["cost"], UnitStatus(r["status"]), r["attempts"],
+                r["C"], r["S"], r["Nd"], r["cost"], UnitStatus(r["status"]), r["attempts"], r["spp"],
             )
             for r in rows
         ]  # fmt: skip

@@ -1,7 +1,8 @@
 """Planning a job: from a scene and the user's options to the effects to simulate and the work units.
 
 This is the master's half of the pipeline before any unit renders: effect analysis, the complexity
-pre-pass, and the partition into units with their features (C, S, Nd). The in-process pipeline
+pre-pass, and the partition into units with their features (C, S, Nd); for an adaptive job, the render
+units with their shares of the level's samples (planning.budgets). The in-process pipeline
 (`quekaro render`) and the farm's master both start from a `JobPlan`.
 """
 
@@ -16,9 +17,11 @@ from core.model import integrators
 from core.model.job import JobPlan, RenderOptions, SceneSpec
 from core.model.units import WorkUnit
 from core.render.effects import analyse_loaded
+from core.render.planner import Planner, RenderParams, adaptive_params
 from core.render.scene import expand, film_info, sensor_elements
 from fuzzy.levels import OFF
-from planning.complexity import prepass
+from planning import budgets
+from planning.complexity import ComplexityMap, prepass
 from planning.partition import equal_tiles, partition
 
 DEFAULT_SPP = 64  # when neither the user nor the scene's sampler says
@@ -78,7 +81,7 @@ def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: 
     spp = options.spp or scene_spp(spec, options.sensor) or DEFAULT_SPP
     plan = JobPlan(spec, options, width, height, effects, spp, effects.max_depth, [],
                    filter_radius=info.filter_radius)
-    # A two-round job's --units are its render units (render_units); its rules see the level's own partition.
+    # An adaptive job's --units are its render units (render_units); its rules see the level's own partition.
     chosen = None if options.adaptive else options.units
     target = chosen or default_unit_count(width, height, options.level, min_units)
     if not effects.splittable:
@@ -90,10 +93,11 @@ def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: 
     if options.level == "off":
         # The rules need no features at level off, so the pre-pass would be pure overhead.
         return dataclasses.replace(plan, units=_plain_units(width, height, target))
-    return _with_prepass(plan, target, seed, loaded)
+    plan, cmap = _with_prepass(plan, target, seed, loaded)
+    return _adaptive(plan, cmap, min_units) if options.adaptive else plan
 
 
-def _with_prepass(plan: JobPlan, target: int, seed: int, scene: Any) -> JobPlan:
+def _with_prepass(plan: JobPlan, target: int, seed: int, scene: Any) -> tuple[JobPlan, ComplexityMap]:
     """The plan with units from the pre-pass on `scene` (as the analysis loaded it), partitioned."""
     start = time.perf_counter()
     options, depth = plan.options, plan.depth
@@ -103,14 +107,30 @@ def _with_prepass(plan: JobPlan, target: int, seed: int, scene: Any) -> JobPlan:
                    threads=options.threads, full_spp=plan.spp, seed=seed, sensor=options.sensor)
     units = partition(cmap, target_units=target)
     return dataclasses.replace(plan, units=units, prepass_seconds=time.perf_counter() - start,
-                               prepass_info=dict(cmap.info))
+                               prepass_info=dict(cmap.info)), cmap
 
 
-def render_units(plan: JobPlan) -> list[WorkUnit]:
-    """The units a two-round job renders (planning.rounds): level off's grid. Its samples are placed per
-    pixel, not per unit, so units only need to be few (every render call costs ~0.05 s and its bands)."""
-    count = plan.options.units or default_unit_count(plan.width, plan.height, OFF)
-    return _plain_units(plan.width, plan.height, count)
+def _adaptive(plan: JobPlan, cmap: ComplexityMap, min_units: int) -> JobPlan:
+    """An adaptive job's plan: the level's samples (the rules on the level's partition) shared among the
+    render units by the pre-pass's noise (planning.budgets). Its samples are placed per pixel inside each
+    unit, so units only need to be few (every render call costs ~0.05 s and its bands)."""
+    mean = budgets.level_spp(plan.units, plan_params(plan, Planner(plan.options.rules, plan.options.defuzzifier)))
+    count = plan.options.units or default_unit_count(plan.width, plan.height, OFF, min_units)
+    grid = _plain_units(plan.width, plan.height, count)
+    split = budgets.shares(cmap.relative_noise(), [u.rect for u in grid], mean)
+    units = [dataclasses.replace(u, spp=spp, cost=float(cmap.cost[u.rect.y:u.rect.y1, u.rect.x:u.rect.x1].sum()))
+             for u, spp in zip(grid, split.spp, strict=True)]  # cost as the partition's: rays at 1 spp
+    return dataclasses.replace(plan, units=units, first_spp=split.first,
+                               shares={**split.to_dict(), "rule_units": len(plan.units)})
+
+
+def plan_params(plan: JobPlan, planner: Planner) -> list[RenderParams]:
+    """Each unit's depth, spp and band: the plan's own shares in an adaptive job, else the rules' at the
+    job's optimisation level."""
+    if plan.first_spp is not None:
+        return adaptive_params(plan.units, plan.depth, plan.reach)
+    return planner.plan({k: list(v) for k, v in plan.features().items()}, plan.options.level,
+                        user_depth=plan.depth, user_spp=plan.spp, ranges=plan.ranges(), min_band=plan.reach)
 
 
 def _plain_units(width: int, height: int, target: int) -> list[WorkUnit]:

@@ -7,7 +7,6 @@ EXR, PNG and report) is shared with the master agent.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import os
@@ -20,7 +19,6 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import RenderError
 from core.model.hashing import sha256_file
 from core.model.job import JobPlan, RenderOptions, SceneSpec
 from core.model.seeds import plan_seed, unit_seed
@@ -30,28 +28,22 @@ from core.render.imageio import write_exr, write_png_planar
 from core.render.planner import Planner, RenderParams
 from core.render.tiles import Tile
 from core.render.worker import RenderRequest, RenderWorker
-from planning import rounds
-from planning.jobplan import plan_job, render_units
+from planning.jobplan import plan_job, plan_params
 
 log = logging.getLogger(__name__)
 
 UNIT_TIMEOUT_S = 3600.0
+# What a unit's two-pass render reports (core.render.worker), kept in its report line.
+ADAPTIVE_META = ("first_spp", "adapted", "predicted_relmse_ratio", "pass_seconds")
 
 
-def plan_params(plan: JobPlan, planner: Planner) -> list[RenderParams]:
-    """Each unit's depth, spp and band, from the rules at the job's optimisation level."""
-    return planner.plan({k: list(v) for k, v in plan.features().items()}, plan.options.level,
-                        user_depth=plan.depth, user_spp=plan.spp, ranges=plan.ranges(), min_band=plan.reach)
-
-
-def unit_job(plan: JobPlan, unit: WorkUnit, params: RenderParams, job_id: str, threads: int | None,
-             pass_: int = 0) -> RenderRequest:
-    """The render order for one unit, with a seed unique to (job, unit, pass)."""
+def unit_job(plan: JobPlan, unit: WorkUnit, params: RenderParams, job_id: str, threads: int | None) -> RenderRequest:
+    """The render order for one unit (in two passes in an adaptive job), with a seed unique to (job, unit)."""
     return RenderRequest(
         scene=plan.spec, variant=plan.effects.variant, integrator=plan.effects.override,
-        max_depth=params.depth, spp=params.spp, seed=unit_seed(job_id, unit.index, pass_),
+        max_depth=params.depth, spp=params.spp, seed=unit_seed(job_id, unit.index, 0),
         width=plan.width, height=plan.height, unit=unit.rect, band=params.band, threads=threads,
-        job_id=job_id, unit_index=unit.index, sensor=plan.options.sensor,
+        job_id=job_id, unit_index=unit.index, sensor=plan.options.sensor, first=plan.first_spp,
     )
 
 
@@ -63,6 +55,7 @@ def unit_record(unit: WorkUnit, tile: Tile | TileSource, params: dict[str, Any])
         "outputs": params.get("outputs", {}), "seconds": float(tile.meta.get("seconds", 0.0)),
         "nonfinite": int(tile.meta.get("nonfinite", 0)), "agent": params.get("agent"),
         "rules": params.get("rules"),
+        **{k: tile.meta[k] for k in ADAPTIVE_META if k in tile.meta},
         **({"emulated": True} if params.get("emulated") else {}),  # slept by an emulated agent, not rendered
     }
 
@@ -89,8 +82,7 @@ class Composed:
 
 def composed(plan: JobPlan, units: Sequence[WorkUnit], tiles: Iterable[Tile | TileSource],
              params: dict[int, dict[str, Any]]) -> Composed:
-    """The tiles of `units` (the plan's, or a two-round job's render units) blended into one image, with
-    the units' report lines."""
+    """The tiles of the plan's `units` blended into one image, with the units' report lines."""
     tiles = list(tiles)
     image, compose_report = compose_planar(tiles, plan.width, plan.height, reach=plan.reach)
     channels = tuple(tiles[0].channels) if tiles else ("R", "G", "B")
@@ -112,6 +104,7 @@ def write_outputs(plan: JobPlan, job: Composed, out: Path, started: float,
                   "png": str(out.with_suffix(".png")), "channels": list(job.channels), "sensor": plan.options.sensor},
         "effects": plan.effects.to_dict(), "user": {"spp": plan.spp, "depth": plan.depth},
         "prepass": plan.prepass_info, "units": units, "compose": job.compose,
+        **({"adaptive": dict(plan.shares)} if plan.first_spp is not None else {}),
         "totals": {
             "units": len(units), "prepass_seconds": plan.prepass_seconds,
             "render_seconds": sum(u["seconds"] for u in units),
@@ -147,7 +140,7 @@ class Progress:
 
 def render_job(spec: SceneSpec, options: RenderOptions, out: Path, job_id: str | None = None,
                progress: Callable[[Progress], None] | None = None) -> dict:
-    """Render the scene as units in one process (in two rounds with `options.adaptive`); write
+    """Render the scene as units in one process (each in two passes with `options.adaptive`); write
     OUT.exr/.png/.json and return the report. `progress` hears after the plan and after every unit."""
     start = time.perf_counter()
     job_id = job_id or uuid.uuid4().hex[:12]
@@ -158,15 +151,10 @@ def render_job(spec: SceneSpec, options: RenderOptions, out: Path, job_id: str |
         plan = plan_job(spec, options, seed=seed)
         planner = Planner(options.rules, options.defuzzifier)
         chosen = plan_params(plan, planner)
-        run = UnitRun(plan, chosen, job_id, options.threads, worker, planner.rules_path.name, progress)
-        extra: dict[str, Any] = {"job_id": job_id}
-        if options.adaptive:
-            job, extra["rounds"] = run.two_rounds()
-        else:
-            job = run.one_round()
+        job = UnitRun(plan, chosen, job_id, options.threads, worker, planner.rules_path.name, progress).render()
     finally:
         worker.stop()
-    return write_outputs(plan, job, out, start, extra)
+    return write_outputs(plan, job, out, start, {"job_id": job_id})
 
 
 @dataclass
@@ -182,8 +170,8 @@ class UnitRun:
     progress: Callable[[Progress], None] | None = None
     samples_done: int = 0
 
-    def one_round(self) -> Composed:
-        """Every unit at the spp the rules chose for it."""
+    def render(self) -> Composed:
+        """Every unit at the spp its plan or the rules chose for it."""
         samples = [p.spp * u.rect.area for u, p in zip(self.plan.units, self.chosen, strict=True)]
         self._tell(0, sum(samples))
         tiles, params = [], {}
@@ -194,49 +182,10 @@ class UnitRun:
             self._tell(len(tiles), sum(samples))
         return composed(self.plan, self.plan.units, tiles, params)
 
-    def two_rounds(self) -> tuple[Composed, dict[str, Any]]:
-        """Round one uniform with each pixel's noise, round two where that noise is (planning.rounds), on
-        the render units at the scene's depth and the smallest band."""
-        plan, pixels = self.plan, self.plan.width * self.plan.height
-        spend = rounds.budget(plan, self.chosen)
-        units = render_units(plan)
-        total = spend.mean_spp * pixels
-        self._tell(0, total, 2 * len(units))
-        first_params = RenderParams(plan.depth, spend.first, plan.reach)
-        first_tiles = []
-        for unit in units:
-            job = dataclasses.replace(unit_job(plan, unit, first_params, self.job_id, self.threads), noise=True)
-            first_tiles.append(self._render(job))
-            self.samples_done += spend.first * unit.rect.area
-            self._tell(len(first_tiles), total, 2 * len(units))
-        first = composed(plan, units, first_tiles, {u.index: {} for u in units})
-        image, channels, noise = rounds.split_noise(first.image, first.channels)
-        second = rounds.second_round(noise, spend, unit_seed(self.job_id, -1, 1), plan.filter_radius)
-        tiles, params = [], {}
-        for unit in units:
-            base = unit_job(plan, unit, first_params, self.job_id, self.threads, pass_=1)
-            counts = second.window(base.window)
-            tiles.append(self._render(dataclasses.replace(base, spp=max(1, round(float(counts.mean()))),
-                                                          counts=counts)))
-            done = second.window(unit.rect)
-            params[unit.index] = {**first_params.to_dict(), "spp": round(spend.first + float(done.mean())),
-                                  "rules": self.rules}
-            self.samples_done += int(done.sum())
-            self._tell(len(units) + len(tiles), total, 2 * len(units))
-        job = composed(plan, units, tiles, params)
-        if job.channels != channels:
-            raise RenderError(f"round two's tiles have channels {list(job.channels)}, round one's {list(channels)}")
-        job.image = rounds.combine(image, job.image, spend, second)
-        for record, tile in zip(job.units, first_tiles, strict=True):
-            record["seconds"] += float(tile.meta.get("seconds", 0.0))
-            record["nonfinite"] = max(record["nonfinite"], int(tile.meta.get("nonfinite", 0)))
-        job.compose = {"first_round": first.compose, "second_round": job.compose}
-        return job, {**spend.to_dict(), **second.to_dict(), "rule_units": len(plan.units)}
-
     def _render(self, job: RenderRequest) -> Tile:
         return self.worker.render(job, timeout=UNIT_TIMEOUT_S)
 
-    def _tell(self, done: int, samples_total: int, units_total: int | None = None) -> None:
+    def _tell(self, done: int, samples_total: int) -> None:
         if self.progress is not None:
-            self.progress(Progress(done, units_total or len(self.plan.units), self.samples_done, samples_total,
+            self.progress(Progress(done, len(self.plan.units), self.samples_done, samples_total,
                                    self.plan.width * self.plan.height))

@@ -45,8 +45,9 @@ def add_job_arguments(parser: argparse.ArgumentParser) -> None:
                         help="replace the scene's integrator by this type (default: the scene's own, as written)")
     parser.add_argument("--units", type=int, help="target number of work units")
     parser.add_argument("--adaptive", action="store_true",
-                        help="two rounds at a rule level: half the level's samples uniformly, the rest per pixel "
-                             "where the first round measured noise (one process only; a farm refuses it)")
+                        help="at a rule level: the rules set the level's samples, the pre-pass's noise shares them "
+                             "among the units, and each unit renders half its share uniformly and the rest "
+                             "per pixel where that first pass measured noise")
     parser.add_argument("-s", "--sensor", type=int, default=0, help="index of the sensor to render (Mitsuba's -s)")
     parser.add_argument("-a", dest="search_paths", action="append", default=[], type=Path, metavar="PATH",
                         help="add a folder to the file search path, searched last (Mitsuba's -a; repeatable)")

@@ -72,6 +72,31 @@ def job_args(case: Case) -> list[str]:
     return args
 
 
+# Level S spends about a sixth of the user's spp on these scenes: 320 gives adaptive jobs about the
+# reference's 64, so that pixels lit by rare paths are seen by both sides (at 11 spp eight jobs saw none of a few).
+ADAPTIVE_SPP = 320
+
+
+def adaptive_args(case: Case, units: int) -> list[str]:
+    """The case as an adaptive job (`--adaptive`) at level S in `units` units, for render and submit alike."""
+    args = job_args(case)
+    args[args.index("--opt") + 1], args[args.index("--units") + 1] = "S", str(units)
+    return [*args, "--adaptive", "--spp", str(ADAPTIVE_SPP)]
+
+
+def check_adaptive_report(report: dict, units: int) -> None:
+    """An adaptive job's report: the plan's shares, each unit rendered in two passes at its share, and the
+    shares spending the level's samples."""
+    shared = report["adaptive"]
+    assert report["options"]["adaptive"] is True and len(report["units"]) == units
+    assert shared["first_spp"] == max(1, round(shared["mean_spp"] * 0.5)) and shared["rule_units"] >= 1
+    assert [u["spp"] for u in report["units"]] == shared["unit_spp"]
+    assert all(u["first_spp"] == shared["first_spp"] <= u["spp"] and u["seconds"] > 0 for u in report["units"])
+    areas = [u["rect"][2] * u["rect"][3] for u in report["units"]]
+    spent = sum(a * s for a, s in zip(areas, shared["unit_spp"], strict=True)) / sum(areas)
+    assert abs(spent - shared["mean_spp"]) <= max(1.0, 0.05 * shared["mean_spp"]), (spent, shared)
+
+
 def quekaro(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
     """Run the real command line."""
     return subprocess.run([sys.executable, "-m", "quekaro", *args], cwd=REPO, capture_output=True, text=True,

@@ -7,7 +7,17 @@ from __future__ import annotations
 import json
 
 import pytest
-from compat_cases import CASES, REPO, job_args, problems, quekaro, reference, wait_done
+from compat_cases import (
+    CASES,
+    REPO,
+    adaptive_args,
+    check_adaptive_report,
+    job_args,
+    problems,
+    quekaro,
+    reference,
+    wait_done,
+)
 from render_check import FIREFLY_PIXELS, by_name, compare
 
 from core.render.imageio import read_exr_channels
@@ -94,11 +104,32 @@ def test_a_jobs_rule_file_reaches_the_agents(farm_jobs, tmp_path):
     assert all(32 <= u["spp"] <= 64 for u in units), [u["spp"] for u in units]
 
 
-def test_a_two_round_job_is_refused_by_the_farm_saying_why(farm_jobs):
-    _, home, _ = farm_jobs
-    done = quekaro("submit", str(CASES[0].scene), "--opt", "S", "--adaptive", "--home", str(home))
-    assert done.returncode == 2, done.stderr[-2000:]
-    assert "option adaptive: two-round jobs render in one process only" in done.stderr
+FARM_ADAPTIVE_JOBS = 8  # as tests/test_adaptive_jobs.py's RUNS: the jobs' own variance enters the test
+
+
+@pytest.mark.parametrize("name", ["aov", "medium-homogeneous"])
+def test_an_adaptive_farm_job_keeps_mitsubas_means(name, farm_jobs, tmp_path):
+    """`quekaro submit --adaptive`: the agents render each unit's planned share in two passes; eight jobs
+    (each its own job id, so its own seeds) keep plain Mitsuba's means in every channel, and the report
+    says each unit rendered its share."""
+    farm, home, _ = farm_jobs
+    case = next(c for c in CASES if c.name == name)
+    refs, ref_names = reference(case)
+    jobs = []
+    for _ in range(FARM_ADAPTIVE_JOBS):
+        done = quekaro("submit", *adaptive_args(case, 4), "--home", str(home))
+        assert done.returncode == 0, done.stderr[-2000:]
+        jobs.append(done.stdout.strip().splitlines()[-1])
+    images = []
+    for k, job_id in enumerate(jobs):
+        assert wait_done(farm.client(), job_id)["status"] == "done"
+        out = tmp_path / f"farm{k}.exr"
+        assert quekaro("result", job_id, "-o", str(out), "--home", str(home)).returncode == 0
+        image, names = read_exr_channels(out)
+        images.append(by_name(image, names, ref_names))
+        check_adaptive_report(json.loads(out.with_suffix(".json").read_text()), units=4)
+    verdict = compare(images, refs)
+    assert verdict.failing <= FIREFLY_PIXELS, f"{name}: {verdict}"
 
 
 def test_a_bad_rule_file_is_refused_at_submit_naming_its_fault(tmp_path):

@@ -87,7 +87,7 @@ def test_schema_pragmas_and_records(tmp_path: Path) -> None:
     with new_store(tmp_path / "farm.db") as store:
         assert store.db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
         assert store.db.execute("PRAGMA foreign_keys").fetchone()[0] == 1
-        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 2
+        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 3
         job = store.job("job-1")
         assert (job.scene, job.spec, job.status) == ("scene.xml", JobSpec({"k": "v"}, RenderOptions("S", 16)),
                                                      "running")
@@ -101,7 +101,7 @@ def test_schema_pragmas_and_records(tmp_path: Path) -> None:
         with pytest.raises(StoreError, match="no job 'nope'"):
             store.job("nope")
         with pytest.raises(sqlite3.IntegrityError):  # foreign keys hold
-            store.db.execute("INSERT INTO units VALUES ('nope', 0, 0, 0, 1, 1, 0, 0, 0, 1, 'pending', 0)")
+            store.db.execute("INSERT INTO units VALUES ('nope', 0, 0, 0, 1, 1, 0, 0, 0, 1, 'pending', 0, NULL)")
     assert [j.id for j in JobStore(tmp_path / "farm.db").list_jobs()] == ["job-1"]
 
 
@@ -283,6 +283,10 @@ def test_readers_see_progress_while_the_master_writes(tmp_path: Path) -> None:
         reader.db.execute("UPDATE jobs SET status = 'failed'")
 
 
+# Schema 2's tables: schema 3 added the units' spp column.
+SPP_COLUMN = ("    spp      INTEGER CHECK (spp IS NULL OR spp >= 1),"
+              "  -- WorkUnit.spp (adaptive jobs), NULL where rules choose\n")
+SCHEMA_2 = [s.replace(SPP_COLUMN, "") for s in _SCHEMA.split(";")]
 SCHEMA_1_JOBS = """CREATE TABLE jobs (id TEXT PRIMARY KEY, scene TEXT NOT NULL, defines TEXT NOT NULL,
     options TEXT NOT NULL, status TEXT NOT NULL, created REAL NOT NULL, finished REAL,
     error TEXT NOT NULL DEFAULT '')"""
@@ -296,7 +300,8 @@ def test_a_schema_1_store_is_migrated_with_its_jobs(tmp_path: Path) -> None:
     old = {"options": plan["options"], "plan": {k: v for k, v in plan.items() if k != "options"}}
     path.unlink()
     db = sqlite3.connect(path, isolation_level=None)
-    for statement in [SCHEMA_1_JOBS, *_SCHEMA.split(";")[1:]]:
+    assert all("spp      INTEGER" not in statement for statement in SCHEMA_2)
+    for statement in [SCHEMA_1_JOBS, *SCHEMA_2[1:]]:
         db.execute(statement)
     db.execute("INSERT INTO jobs VALUES ('job-1', 'scene.xml', ?, ?, 'running', 100.0, NULL, '')",
                (json.dumps({"k": "v"}), json.dumps(old)))
@@ -306,11 +311,38 @@ def test_a_schema_1_store_is_migrated_with_its_jobs(tmp_path: Path) -> None:
     db.execute("PRAGMA user_version = 1")
     db.close()
     with JobStore(path) as store:
-        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 2
+        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 3
         record = store.job("job-1")
         assert record.spec == JobSpec({"k": "v"}, RenderOptions("S", 16)) and record.plan == plan
         assert [u.unit() for u in store.units("job-1")] == specs(4)
         assert store.db.execute("PRAGMA foreign_keys").fetchone()[0] == 1
+
+
+def test_a_schema_2_store_gains_the_units_spp(tmp_path: Path) -> None:
+    """A schema 2 home opens as schema 3: its units keep everything and have no planned spp; an adaptive
+    job's units then keep theirs through the store (what the auction is rebuilt from after a restart)."""
+    path = tmp_path / "farm.db"
+    with new_store(path) as store:
+        plan, spec = store.job("job-1").plan, store.job("job-1").spec
+    path.unlink()
+    db = sqlite3.connect(path, isolation_level=None)
+    for statement in SCHEMA_2:
+        db.execute(statement)
+    db.execute("INSERT INTO jobs VALUES ('job-1', 'scene.xml', ?, ?, 'running', 100.0, NULL, '')",
+               (json.dumps(spec.to_dict()), json.dumps(plan)))
+    db.executemany("INSERT INTO units (job_id, idx, x, y, w, h, C, S, Nd, cost, status)"
+                   " VALUES ('job-1', ?, ?, ?, ?, ?, ?, ?, ?, ?, 'pending')",
+                   [(u.index, *u.rect.as_list(), u.C, u.S, u.Nd, u.cost) for u in specs(4)])
+    db.execute("PRAGMA user_version = 2")
+    db.close()
+    with JobStore(path) as store:
+        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 3
+        assert [u.unit() for u in store.units("job-1")] == specs(4)
+        shared = [dataclasses.replace(u, spp=10 + u.index) for u in specs(3)]
+        store.create_job("job-2", "scene.xml", spec, plan_of(shared), 101.0)
+        assert [u.spp for u in store.running_jobs()[1].units] == [10, 11, 12]
+        with pytest.raises(sqlite3.IntegrityError):
+            store.db.execute("UPDATE units SET spp = 0 WHERE job_id = 'job-2'")
 
 
 def test_status_changes_are_checked_against_the_transition_table(tmp_path: Path) -> None:

@@ -84,7 +84,7 @@ class RenderOptions:
     integrator: str | None = None
     units: int | None = None  # target number of work units; None: chosen from the image size
     sensor: int = 0  # which of the scene's sensors renders (Mitsuba's -s)
-    # Two rounds (planning.rounds): the rules set the level's samples, a measured first round places them.
+    # Adaptive (planning.budgets): the rules set the level's samples, measured noise places them.
     adaptive: bool = False
 
     def __post_init__(self) -> None:
@@ -213,6 +213,10 @@ class JobPlan:
     # The film's reconstruction filter radius (what composition must cut from each band); Mitsuba's default
     # for plans stored before it was recorded, all of which used that filter's band.
     filter_radius: float = DEFAULT_FILTER_RADIUS
+    # Adaptive jobs: every unit's first pass in samples per pixel (each unit's mean is its WorkUnit.spp),
+    # and how the level's samples were shared among the units (planning.budgets.Shares.to_dict).
+    first_spp: int | None = None
+    shares: dict[str, Any] = field(default_factory=dict)
 
     @property
     def reach(self) -> int:
@@ -237,7 +241,7 @@ class JobPlan:
                 "prepass_seconds": self.prepass_seconds, "prepass_info": dict(self.prepass_info),
                 "neighbours": {str(u.index): list(u.neighbours) for u in self.units},
                 "bundle_sha256": self.bundle_sha256, "rules_sha256": self.rules_sha256,
-                "filter_radius": self.filter_radius}
+                "filter_radius": self.filter_radius, "first_spp": self.first_spp, "shares": dict(self.shares)}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], spec: SceneSpec, units: list[WorkUnit]) -> JobPlan:
@@ -249,6 +253,8 @@ class JobPlan:
                        Effects.from_dict(data["effects"]), int(data["spp"]), int(data["depth"]), units,
                        float(data.get("prepass_seconds", 0.0)), dict(data.get("prepass_info", {})),
                        data.get("bundle_sha256"), data.get("rules_sha256"),
-                       float(data.get("filter_radius", DEFAULT_FILTER_RADIUS)))
+                       float(data.get("filter_radius", DEFAULT_FILTER_RADIUS)),
+                       None if data.get("first_spp") is None else int(data["first_spp"]),
+                       dict(data.get("shares") or {}))
         except (KeyError, TypeError, ValueError) as exc:
             raise QuekaroError(f"stored job plan is malformed: {type(exc).__name__}: {exc}") from exc

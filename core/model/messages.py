@@ -75,11 +75,22 @@ class JobInfo:
     # No unit's band below this: the film filter's reach, the band pixels the master's composition cuts
     # (core.model.geometry.filter_reach); a master that does not send it composes with Mitsuba's default.
     min_band: int = constrained(lo=0, hi=64, default=filter_reach(DEFAULT_FILTER_RADIUS))
+    # Adaptive jobs: the first pass's samples per pixel in every unit, whose own mean spp the plan set
+    # (WorkUnit.spp); the agent renders each unit in two passes (core.render.adaptive), not by its rules.
+    first_spp: int | None = constrained(lo=1, hi=1 << 20, default=None)
 
     def check(self) -> None:
         for name, (lo, hi) in self.ranges.items():
             if lo > hi:
                 raise MessageError(f"range lower bound {lo} above upper bound {hi}", f"ranges.{name}")
+
+    def check_unit(self, unit: WorkUnit, field: str) -> None:
+        """An adaptive job's units carry their mean spp, at least the first pass's; other jobs' none."""
+        if self.first_spp is None and unit.spp is not None:
+            raise MessageError(f"unit {unit.index} has spp {unit.spp} in a job whose rules choose it", field)
+        if self.first_spp is not None and (unit.spp is None or unit.spp < self.first_spp):
+            raise MessageError(f"unit {unit.index} of an adaptive job needs spp >= first_spp {self.first_spp}, "
+                               f"has {unit.spp}", field)
 
 
 # --- messages ------------------------------------------------------------------------------------------
@@ -116,6 +127,7 @@ class CallForProposal(Message):
             seen.add(unit.index)
             if unit.rect.area == 0 or unit.rect.intersect(image) != unit.rect:
                 raise MessageError(f"unit {unit.index} rectangle {unit.rect} outside the image", "units.rect")
+            self.job.check_unit(unit, "units.spp")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -162,6 +174,7 @@ class Award(Message):
 
     def check(self) -> None:
         self.job.check()
+        self.job.check_unit(self.unit, "unit.spp")
 
 
 @dataclass(frozen=True, kw_only=True)

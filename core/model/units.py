@@ -23,7 +23,9 @@ class WorkUnit:
     `C` is the unit's complexity (mean per-sample noise of its pixels), `S` its size in pixels
     (its area), `Nd` the largest absolute difference between its C and a neighbour's C, `cost` its
     estimated relative render time (sum of per-pixel time per sample), `neighbours` the indices of
-    the units that share a border of positive length with it.
+    the units that share a border of positive length with it. `spp` is the mean samples per pixel the
+    plan gives the unit (an adaptive job's share of the level's samples: planning.budgets), None where
+    the agent's rules choose.
     """
 
     index: int = constrained(lo=0, hi=10**7)
@@ -34,6 +36,7 @@ class WorkUnit:
     cost: float = constrained(lo=0.0, hi=1e12)  # seconds on a reference agent of speed 1
     # The partition's adjacency: the planner's business, not the agents' (so never on the wire).
     neighbours: tuple[int, ...] = constrained(wire=False, default=())
+    spp: int | None = constrained(lo=1, hi=1 << 20, default=None)
 
     def __post_init__(self) -> None:
         area = self.rect.area
@@ -53,6 +56,7 @@ class WorkUnit:
             "Nd": self.Nd,
             "cost": self.cost,
             "neighbours": list(self.neighbours),
+            **({"spp": self.spp} if self.spp is not None else {}),
         }
 
     @classmethod
@@ -69,6 +73,7 @@ class WorkUnit:
                 Nd=float(_field(data, "Nd")),
                 cost=float(_field(data, "cost")),
                 neighbours=tuple(int(n) for n in data.get("neighbours", ())),
+                spp=None if data.get("spp") is None else int(data["spp"]),
             )
         except UnitError:
             raise

@@ -16,7 +16,7 @@ from core.render.counts import render_counts
 from core.render.film import sanitize
 
 # scipy.ndimage is imported where used: ~0.1 s at import that every one-round `quekaro render` job (and its
-# --help) would pay for a blur only two-round jobs run.
+# --help) would pay for a blur only adaptive jobs run.
 
 # The two-pass render. FIRST_SHARE of the samples go to a uniform first pass, whose per-pixel variance,
 # blurred over BLUR_PX (a pixel's own estimate from a few dozen samples misses rare bright paths), sets
@@ -71,30 +71,39 @@ def neyman_counts(relative_variance: np.ndarray, first: int, total: float, rng: 
     return (whole + (rng.random(extra.shape) < extra - whole)).astype(np.int64)
 
 
+def first_spp(spp: int) -> int:
+    """The first pass's samples per pixel for a mean of `spp`."""
+    return max(1, round(spp * FIRST_SHARE))
+
+
 def render_adaptive(scene: Any, spp: int, seed: int, sensor: int = 0, integrator: Any = None,
-                    cost: np.ndarray | None = None, first_share: float = FIRST_SHARE,
+                    cost: np.ndarray | None = None, first: int | None = None,
                     blur_px: float = BLUR_PX) -> AdaptiveRender:
-    """Render the film window with `spp` samples per pixel on average, the second pass's placed where the
-    noise is. `cost` (the window's shape) is each pixel's relative time per sample, e.g. the complexity
-    pre-pass's ray counts (planning.complexity): with it the samples cost what `spp` uniform ones would;
-    None counts every sample the same.
+    """Render the film window with `spp` samples per pixel on average, `first` of them (default
+    `first_spp(spp)`) in a uniform first pass and the rest placed where its noise is. `cost` (the window's
+    shape) is each pixel's relative time per sample, e.g. the complexity pre-pass's ray counts
+    (planning.complexity): with it the samples cost what `spp` uniform ones would; None counts every sample
+    the same. With `first` >= `spp` there is no second pass.
 
     The two passes are independent renders of the same pixels; each pixel's value is their average
     weighted by its sample count in each, so its expectation is Mitsuba's at any split.
     """
-    if not 0 < first_share <= 1:
-        raise RenderError(f"first_share {first_share} (must be in (0, 1])")
+    first = first_spp(spp) if first is None else first
+    if first < 1:
+        raise RenderError(f"first pass of {first} samples per pixel (must be >= 1)")
     cam = scene.sensors()[sensor]
     width, height = (int(v) for v in cam.film().crop_size())
-    first = max(1, round(spp * first_share))
     start = time.perf_counter()
     one = render_counts(scene, np.full((height, width), first, dtype=np.int64), seed, sensor, integrator)
     noise = blurred(one.relative_variance(), blur_px, exclusion_px(cam.film().rfilter().radius()))
     extra, predicted = second_pass(noise, first, spp, np.random.default_rng(seed), cost)
     middle = time.perf_counter()
+    a, bad_a = sanitize(one.pixels)
+    if not extra.any():  # the first pass spent the budget
+        return AdaptiveRender(a, one.channels, np.full(extra.shape, first), (middle - start, 0.0), bad_a,
+                              predicted, False)
     two = render_counts(scene, extra, (seed + 1) % 2**32, sensor, integrator, moments=False)
     end = time.perf_counter()
-    a, bad_a = sanitize(one.pixels)
     b, bad_b = sanitize(two.pixels)
     pixels = combine_passes(a, b, first, extra)
     return AdaptiveRender(pixels, one.channels, first + extra, (middle - start, end - middle), max(bad_a, bad_b),

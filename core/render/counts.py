@@ -1,5 +1,5 @@
 """The film's window rendered with its own sample count per pixel, as Mitsuba's own render loop would
-(`render_counts`): the primitive of adaptive sampling (core.render.adaptive) and of two-round units.
+(`render_counts`): the primitive of adaptive sampling (core.render.adaptive).
 
 Mitsuba's `render` gives every pixel the same spp. This is Mitsuba's sampling loop (the steps of
 `SamplingIntegrator::render_sample`, as Mitsuba's own Python integrators spell them in
@@ -30,9 +30,6 @@ from core.render.metrics import RELMSE_EPSILON
 
 # Mitsuba and Dr.Jit are imported where used (core.render.worker explains why).
 
-# The tile channel that carries each pixel's relative variance per sample (WindowRender.relative_variance)
-# from a unit's first round to the master, which places the second round's samples by it.
-NOISE_CHANNEL = "quekaro.noise"
 SAMPLERS = ("IndependentSampler",)  # samplers whose samples do not depend on a fixed spp per pixel
 # The wavefront is padded with masked lanes (no radiance, zero weight, left out of the moments) to a
 # multiple of this: with Dr.Jit 1.5's LLVM backend the render kernel faulted (SIGSEGV in a worker thread)

@@ -21,13 +21,14 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from core.data import default_rules_path
+from core.model.units import WorkUnit
 from fuzzy import Engine, load_rulebase
 from fuzzy.levels import RULE_LEVELS
 from fuzzy.render_params import masyro_render_params, to_render_params
@@ -56,6 +57,15 @@ class RenderParams:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+def adaptive_params(units: Sequence[WorkUnit], depth: int, band: int) -> list[RenderParams]:
+    """An adaptive job's units (planning.budgets): each at the mean spp its plan gave it, the job's depth
+    and the least band; the rules set the level's samples when the job was planned, not per unit."""
+    missing = [u.index for u in units if u.spp is None]
+    if missing:
+        raise ValueError(f"units {missing[:8]} of an adaptive job carry no planned spp")
+    return [RenderParams(int(depth), int(u.spp), int(band)) for u in units]
 
 
 class Planner:

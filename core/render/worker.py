@@ -36,7 +36,7 @@ from core.model import integrators
 from core.model.geometry import Rect
 from core.model.job import SceneSpec
 from core.render import mitsuba_env, scene
-from core.render.counts import NOISE_CHANNEL, counts_problem, render_counts
+from core.render.adaptive import render_adaptive
 from core.render.film import film_channels, sanitize
 from core.render.tiles import Tile
 from core.supervision import die_with_parent
@@ -50,15 +50,14 @@ _PP_KEYS = ("principal_point_offset_x", "principal_point_offset_y")
 
 @dataclass(frozen=True)
 class RenderRequest:
-    """Everything a process needs to render one unit; to_dict/from_dict give plain values (and `counts`
-    as an array) for the render process's pipe.
+    """Everything a process needs to render one unit; to_dict/from_dict give plain values for the render
+    process's pipe.
 
     `integrator=None` renders with the scene's own integrator; a plugin name is the user's override.
     `max_depth=None` keeps the depth the scene wrote; a number replaces it on every depth-bearing
-    integrator of the tree. `sensor` indexes the scene's sensors (Mitsuba's `-s`). `counts` (the
-    window's shape) gives each pixel its own sample count instead of `spp` everywhere; `noise` adds the
-    tile channel NOISE_CHANNEL, each pixel's relative variance per sample (core.render.counts). Both
-    render through `render_counts`, whose image is statistically Mitsuba's.
+    integrator of the tree. `sensor` indexes the scene's sensors (Mitsuba's `-s`). `first` (adaptive
+    jobs) renders the window in two passes, `first` samples per pixel and then the rest of a mean of `spp`
+    where the first pass's noise is (core.render.adaptive.render_adaptive, statistically Mitsuba's image).
     """
 
     scene: SceneSpec
@@ -76,8 +75,7 @@ class RenderRequest:
     unit_index: int = -1
     extra: dict[str, Any] = field(default_factory=dict)
     sensor: int = 0
-    counts: np.ndarray | None = None
-    noise: bool = False
+    first: int | None = None
 
     def __post_init__(self) -> None:
         _check_job(self)
@@ -93,7 +91,7 @@ class RenderRequest:
             "max_depth": self.max_depth, "spp": self.spp, "seed": self.seed, "width": self.width,
             "height": self.height, "unit": self.unit.as_list(), "band": self.band,
             "threads": self.threads, "job_id": self.job_id, "unit_index": self.unit_index,
-            "extra": dict(self.extra), "sensor": self.sensor, "counts": self.counts, "noise": self.noise,
+            "extra": dict(self.extra), "sensor": self.sensor, "first": self.first,
         }
 
     @classmethod
@@ -107,7 +105,7 @@ class RenderRequest:
                 band=int(data.get("band", 0)), threads=_opt_int(data.get("threads")),
                 job_id=str(data.get("job_id", "")), unit_index=int(data.get("unit_index", -1)),
                 extra=dict(data.get("extra") or {}), sensor=int(data.get("sensor", 0)),
-                counts=_opt_counts(data.get("counts")), noise=bool(data.get("noise", False)),
+                first=_opt_int(data.get("first")),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise RenderError(f"malformed unit job ({type(exc).__name__}: {exc})") from exc
@@ -117,14 +115,12 @@ def _opt_int(value: Any) -> int | None:
     return None if value is None else int(value)
 
 
-def _opt_counts(value: Any) -> np.ndarray | None:
-    return None if value is None else np.asarray(value)
-
-
 def _check_job(job: RenderRequest) -> None:
     problems = []
     if job.spp < 1:
         problems.append(f"spp={job.spp} (must be >= 1; Mitsuba reads 0 as 'sampler default')")
+    if job.first is not None and not 1 <= job.first <= job.spp:
+        problems.append(f"first={job.first} (the first pass's spp: must be in 1..spp={job.spp})")
     if job.max_depth is not None and job.max_depth < -1:
         problems.append(f"max_depth={job.max_depth} (must be >= -1)")
     if job.sensor < 0:
@@ -140,9 +136,6 @@ def _check_job(job: RenderRequest) -> None:
     image = Rect(0, 0, job.width, job.height)
     if job.unit.area == 0 or image.intersect(job.unit) != job.unit:
         problems.append(f"unit {job.unit.as_list()} is empty or outside the {job.width}x{job.height} image")
-    elif job.counts is not None:
-        window = job.window  # the unit grown by its band
-        problems += filter(None, [counts_problem(job.counts, window.w, window.h, "the window")])
     if problems:
         raise RenderError("bad unit job: " + "; ".join(problems))
 
@@ -263,32 +256,32 @@ def render_job_here(job: RenderRequest, cache: _SceneCache | None = None) -> Til
     method = set_window(scene, window, cache.principal_point(job.sensor), job.sensor)
     integrator = cache.integrator(job.integrator, job.max_depth)
     start = time.perf_counter()
-    raw, channels = _render_window(scene, film, job, integrator)
+    raw, channels, passes = _render_window(scene, film, job, integrator)
     pixels, nonfinite = sanitize(raw)
+    nonfinite = max(nonfinite, passes.pop("nonfinite", 0))
     seconds = time.perf_counter() - start
     meta = {
         "job_id": job.job_id, "unit_index": job.unit_index, "seconds": seconds, "load_seconds": load_s,
         "nonfinite": nonfinite, "spp": job.spp, "depth": job.max_depth, "integrator": job.integrator,
         "variant": mi.variant(), "seed": job.seed, "band": job.band, "window_method": method,
-        "pid": os.getpid(), "sensor": job.sensor, "filter_radius": float(film.rfilter().radius()),
+        "pid": os.getpid(), "sensor": job.sensor, "filter_radius": float(film.rfilter().radius()), **passes,
     }
     return Tile(pixels, window, job.unit, meta, channels)
 
 
-def _render_window(scene: Any, film: Any, job: RenderRequest, integrator: Any) -> tuple[np.ndarray, tuple[str, ...]]:
-    """The window's pixels and channel names: Mitsuba's render, or with counts or noise `render_counts`."""
+def _render_window(scene: Any, film: Any, job: RenderRequest,
+                   integrator: Any) -> tuple[np.ndarray, tuple[str, ...], dict[str, Any]]:
+    """The window's pixels, channel names and what its passes did: Mitsuba's render, or with `first` the
+    two-pass adaptive render (its pixels come sanitised: their non-finite count is in the dict)."""
     import mitsuba as mi
 
-    if job.counts is None and not job.noise:
+    if job.first is None:
         mi.render(scene, sensor=job.sensor, integrator=integrator, spp=job.spp, seed=job.seed)
-        return film_channels(film)
-    window = job.window
-    counts = job.counts if job.counts is not None else np.full((window.h, window.w), job.spp, dtype=np.int64)
-    out = render_counts(scene, counts, job.seed, job.sensor, integrator, moments=job.noise)
-    if not job.noise:
-        return out.pixels, out.channels
-    noise = out.relative_variance().astype(np.float32)[..., None]
-    return np.concatenate([out.pixels, noise], axis=-1), (*out.channels, NOISE_CHANNEL)
+        return (*film_channels(film), {})
+    made = render_adaptive(scene, job.spp, job.seed, job.sensor, integrator, first=job.first)
+    return made.pixels, made.channels, {
+        "nonfinite": made.nonfinite, "first_spp": job.first, "adapted": made.adapted,
+        "predicted_relmse_ratio": made.predicted, "pass_seconds": list(made.seconds)}
 
 
 def render_full(spec: SceneSpec, variant: str, integrator: str | None, depth: int | None, spp: int,
