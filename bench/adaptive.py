@@ -7,8 +7,9 @@ round(spp x A / T), the uniform spp that takes the adaptive render's time. Each 
 against the scene's cached reference (`quekaro bench accuracy`'s). The ratio relMSE(adaptive) /
 relMSE(uniform at equal time) is the figure; below 1 the adaptive render pays for itself.
 
-This is render time inside one process: no planning, units, bands or farm (the adaptive render is not
-yet what the units render). The accuracy benchmark measures whole jobs.
+This is render time inside one process over the whole frame: no planning, units, bands or farm (an
+adaptive job renders the same two passes per unit, with the unit's share: planning.budgets). The
+accuracy benchmark measures whole jobs.
 """
 
 from __future__ import annotations

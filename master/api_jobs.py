@@ -125,7 +125,7 @@ def job_summary(service: MasterService, job_id: str) -> dict[str, Any]:
         "units_done": progress.done, "units_total": progress.total, "units_failed": progress.failed,
         "agents_busy": progress.agents_busy, "eta_s": progress.eta_s,
         "result_ready": service.result_path(job_id).with_suffix(".json").exists(),
-        "effects": record.plan.get("effects", {}),
+        "effects": record.plan.get("effects", {}), "adaptive": record.plan.get("shares") or None,
         "paused": service.paused if record.status == "running" else None,
     }
 

@@ -20,7 +20,7 @@ from core.render.bundle import make_bundle
 from core.render.scene import parse_defines
 from farm.client import FarmClient
 from farm.local import LocalFarm
-from quekaro.cmd_render import add_job_arguments, options_from_args, search_paths
+from quekaro.cmd_render import add_job_arguments, options_from_args, search_paths, shares_line
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -208,6 +208,8 @@ def run_status(args: argparse.Namespace) -> int:
               + (f"  PAUSED: {job['paused']}" if job.get("paused") else ""))
         if args.job:
             print_effects(job.get("effects") or {})
+            if job.get("adaptive"):
+                print(shares_line(job["adaptive"]))
     return 0
 
 

@@ -161,6 +161,16 @@ def render_progress(name: str, enabled: bool = True) -> Iterator[Callable[[Rende
         yield update
 
 
+def shares_line(shares: dict) -> str:
+    """An adaptive job's plan in one line (planning.budgets.Shares.to_dict)."""
+    spp = shares["unit_spp"]
+    how = (f"shared by the pre-pass's noise ({min(spp)}-{max(spp)} spp; it predicted "
+           f"{shares['predicted_relmse_ratio']:.2f} of uniform's relMSE)" if shares["adapted"]
+           else f"shared equally (the pre-pass predicted {shares['predicted_relmse_ratio']:.2f} of uniform's relMSE)")
+    return (f"adaptive: {shares['mean_spp']} spp per pixel from the rules, {how}; each unit renders "
+            f"{shares['first_spp']} spp uniformly, then the rest where that pass is noisy")
+
+
 def print_report(report: dict, out: Path) -> None:
     totals, effects = report["totals"], report["effects"]
     print(f"{report['image']['exr']}  ({report['image']['width']}x{report['image']['height']}, "
@@ -169,6 +179,8 @@ def print_report(report: dict, out: Path) -> None:
     print(f"effects: {effects['variant']} / {effects['integrator']} / max_depth {effects['max_depth']}")
     for reason in effects["reasons"]:
         print(f"  - {reason}")
+    if report.get("adaptive"):
+        print(shares_line(report["adaptive"]))
     print(f"png: {report['image']['png']}  report: {out.with_suffix('.json')}")
     if totals["nonfinite"]:
         print(f"warning: {totals['nonfinite']} non-finite pixels were replaced (see the report's units)")

@@ -59,7 +59,9 @@ def test_an_adaptive_job_renders_its_units_in_two_passes(tmp_path):
     out = tmp_path / "job.exr"
     done = _render(BY_CASE["aov"], out, units=4)
     assert done.returncode == 0, done.stderr[-2000:]
-    check_adaptive_report(json.loads(out.with_suffix(".json").read_text()), units=4)
+    report = json.loads(out.with_suffix(".json").read_text())
+    check_adaptive_report(report, units=4)
+    assert f"adaptive: {report['adaptive']['mean_spp']} spp per pixel from the rules" in done.stdout
     _, names = read_exr_channels(out)
     assert len(names) == 11  # the film's channels, nothing added
 

@@ -130,6 +130,8 @@ def test_an_adaptive_farm_job_keeps_mitsubas_means(name, farm_jobs, tmp_path):
         check_adaptive_report(json.loads(out.with_suffix(".json").read_text()), units=4)
     verdict = compare(images, refs)
     assert verdict.failing <= FIREFLY_PIXELS, f"{name}: {verdict}"
+    shown = quekaro("status", jobs[0], "--home", str(home)).stdout
+    assert "adaptive: " in shown and "spp per pixel from the rules" in shown, shown
 
 
 def test_a_bad_rule_file_is_refused_at_submit_naming_its_fault(tmp_path):

@@ -112,10 +112,14 @@ def test_agent_killed_mid_job_the_job_completes(farm3, tmp_path):
     assert np.isfinite(image).all() and (image.mean(axis=2) > 0).mean() > 0.9
 
 
-def test_master_restarted_mid_job_resumes_without_rerendering(farm3, tmp_path):
+@pytest.mark.parametrize("options", [{"level": "off", "units": 9}, {"level": "S", "units": 9, "adaptive": True}],
+                         ids=["off", "adaptive"])
+def test_master_restarted_mid_job_resumes_without_rerendering(farm3, tmp_path, options):
+    """An adaptive job's units keep their shares and its agents their first pass through the restart
+    (the store's rows and plan): the units rendered after it render the same plan."""
     client = farm3.client()
     defines = {"res": "96", "spp": "64"}
-    job_id = client.submit(bundle_of(SCENE, defines), defines, {"level": "off", "units": 9})
+    job_id = client.submit(bundle_of(SCENE, defines), defines, options)
     wait_job(farm3, job_id, until=lambda j: j["units_done"] >= 2)
     master = farm3.children[0]
     master.proc.kill()
@@ -128,8 +132,13 @@ def test_master_restarted_mid_job_resumes_without_rerendering(farm3, tmp_path):
     attempts = _attempts(farm3.home, job_id)
     for index in done_before:
         assert sum(1 for a in attempts if a[0] == index and a[1] == "done") == 1, (index, attempts)
-    image = read_exr(client.result(job_id, tmp_path / "r.exr"))
+    out = client.result(job_id, tmp_path / "r.exr")
+    image = read_exr(out)
     assert np.isfinite(image).all() and (image.mean(axis=2) > 0).mean() > 0.9
+    if options.get("adaptive"):
+        report = json.loads(out.with_suffix(".json").read_text())
+        first, shares = report["adaptive"]["first_spp"], report["adaptive"]["unit_spp"]
+        assert [(u["spp"], u["first_spp"]) for u in report["units"]] == [(spp, first) for spp in shares]
 
 
 def test_xmpp_server_restart_mid_job(farm3, tmp_path):

@@ -115,6 +115,16 @@ def test_a_plan_keeps_its_filter_and_an_old_one_gets_mitsubas_default() -> None:
     assert JobPlan.from_dict(old, lanczos.spec, specs(2)).reach == 2
 
 
+def test_an_adaptive_plan_keeps_its_first_pass_and_shares() -> None:
+    """After a restart the master rebuilds the agents' JobInfo from the stored plan: an adaptive job's first
+    pass must survive it (its units' shares live in the units' rows); a plan stored before has none."""
+    shared = dataclasses.replace(plan_of(specs(2)), first_spp=8, shares={"mean_spp": 16, "unit_spp": [12, 20]})
+    again = JobPlan.from_dict(json.loads(json.dumps(shared.to_dict())), shared.spec, specs(2))
+    assert (again.first_spp, again.shares) == (8, {"mean_spp": 16, "unit_spp": [12, 20]})
+    old = {k: v for k, v in shared.to_dict().items() if k not in ("first_spp", "shares")}
+    assert JobPlan.from_dict(old, shared.spec, specs(2)).first_spp is None
+
+
 def test_bad_files_are_refused(tmp_path: Path) -> None:
     junk = tmp_path / "junk.db"
     junk.write_bytes(b"this is not sqlite" * 100)
@@ -292,6 +302,20 @@ SCHEMA_1_JOBS = """CREATE TABLE jobs (id TEXT PRIMARY KEY, scene TEXT NOT NULL, 
     error TEXT NOT NULL DEFAULT '')"""
 
 
+def write_old_store(path: Path, version: int, schema: list[str], job_columns: tuple[str, str]) -> None:
+    """A job store as an older version wrote it: its tables, job-1 (its two JSON columns) and 4 units."""
+    assert all("spp      INTEGER" not in statement for statement in schema)
+    db = sqlite3.connect(path, isolation_level=None)
+    for statement in schema:
+        db.execute(statement)
+    db.execute("INSERT INTO jobs VALUES ('job-1', 'scene.xml', ?, ?, 'running', 100.0, NULL, '')", job_columns)
+    db.executemany("INSERT INTO units (job_id, idx, x, y, w, h, C, S, Nd, cost, status)"
+                   " VALUES ('job-1', ?, ?, ?, ?, ?, ?, ?, ?, ?, 'pending')",
+                   [(u.index, *u.rect.as_list(), u.C, u.S, u.Nd, u.cost) for u in specs(4)])
+    db.execute(f"PRAGMA user_version = {version}")
+    db.close()
+
+
 def test_a_schema_1_store_is_migrated_with_its_jobs(tmp_path: Path) -> None:
     """A farm home written by schema 1 (options and plan in one column) opens, every job and unit kept."""
     path = tmp_path / "farm.db"
@@ -299,17 +323,7 @@ def test_a_schema_1_store_is_migrated_with_its_jobs(tmp_path: Path) -> None:
         plan = store.job("job-1").plan
     old = {"options": plan["options"], "plan": {k: v for k, v in plan.items() if k != "options"}}
     path.unlink()
-    db = sqlite3.connect(path, isolation_level=None)
-    assert all("spp      INTEGER" not in statement for statement in SCHEMA_2)
-    for statement in [SCHEMA_1_JOBS, *SCHEMA_2[1:]]:
-        db.execute(statement)
-    db.execute("INSERT INTO jobs VALUES ('job-1', 'scene.xml', ?, ?, 'running', 100.0, NULL, '')",
-               (json.dumps({"k": "v"}), json.dumps(old)))
-    db.executemany("INSERT INTO units (job_id, idx, x, y, w, h, C, S, Nd, cost, status)"
-                   " VALUES ('job-1', ?, ?, ?, ?, ?, ?, ?, ?, ?, 'pending')",
-                   [(u.index, *u.rect.as_list(), u.C, u.S, u.Nd, u.cost) for u in specs(4)])
-    db.execute("PRAGMA user_version = 1")
-    db.close()
+    write_old_store(path, 1, [SCHEMA_1_JOBS, *SCHEMA_2[1:]], (json.dumps({"k": "v"}), json.dumps(old)))
     with JobStore(path) as store:
         assert store.db.execute("PRAGMA user_version").fetchone()[0] == 3
         record = store.job("job-1")
@@ -325,16 +339,7 @@ def test_a_schema_2_store_gains_the_units_spp(tmp_path: Path) -> None:
     with new_store(path) as store:
         plan, spec = store.job("job-1").plan, store.job("job-1").spec
     path.unlink()
-    db = sqlite3.connect(path, isolation_level=None)
-    for statement in SCHEMA_2:
-        db.execute(statement)
-    db.execute("INSERT INTO jobs VALUES ('job-1', 'scene.xml', ?, ?, 'running', 100.0, NULL, '')",
-               (json.dumps(spec.to_dict()), json.dumps(plan)))
-    db.executemany("INSERT INTO units (job_id, idx, x, y, w, h, C, S, Nd, cost, status)"
-                   " VALUES ('job-1', ?, ?, ?, ?, ?, ?, ?, ?, ?, 'pending')",
-                   [(u.index, *u.rect.as_list(), u.C, u.S, u.Nd, u.cost) for u in specs(4)])
-    db.execute("PRAGMA user_version = 2")
-    db.close()
+    write_old_store(path, 2, SCHEMA_2, (json.dumps(spec.to_dict()), json.dumps(plan)))
     with JobStore(path) as store:
         assert store.db.execute("PRAGMA user_version").fetchone()[0] == 3
         assert [u.unit() for u in store.units("job-1")] == specs(4)
