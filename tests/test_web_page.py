@@ -190,6 +190,23 @@ def test_watch_a_job_render_until_its_image_is_complete_then_click_a_unit(farm, 
     assert not errors, errors  # no script error, no resource the page's CSP refused
 
 
+def test_an_adaptive_jobs_page_says_how_its_samples_were_shared(farm, browser, tmp_path):
+    """An adaptive job's page says what `quekaro status JOB` says of its plan: the level's samples from the
+    rules, how the pre-pass shared them, and each unit's first pass."""
+    logged_in(browser, farm)
+    client = farm.client()
+    job_id = client.submit(bundle_of(SMALL), SMALL, {"level": "S", "units": 4, "adaptive": True})
+    click(browser, f'#jobs-table tr[data-job="{job_id}"] a.job-link', 30)
+    shown = wait_until(lambda: browser.find_element(By.ID, "job-adaptive").text, 30, "the job's shares")
+    shares = client.status(job_id)["adaptive"]
+    assert shares["unit_spp"] and len(shares["unit_spp"]) == 4, shares
+    assert f"{shares['mean_spp']} spp per pixel from the rules" in shown, shown
+    assert f"each unit renders {shares['first_spp']} spp uniformly" in shown, shown
+    assert ("shared by the pre-pass's noise" in shown) == shares["adapted"], shown
+    screenshot(browser, tmp_path, "adaptive-job")
+    assert client.wait(job_id, JOB_TIMEOUT_S)["status"] == "done"
+
+
 def test_cancel_and_resubmit_from_the_page(farm, browser, tmp_path):
     logged_in(browser, farm)
     client = farm.client()
