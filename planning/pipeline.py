@@ -27,14 +27,12 @@ from core.render.compose import TileSource, compose_planar
 from core.render.imageio import write_exr, write_png_planar
 from core.render.planner import Planner, RenderParams
 from core.render.tiles import Tile
-from core.render.worker import RenderRequest, RenderWorker
+from core.render.worker import ADAPTIVE_META, RenderRequest, RenderWorker
 from planning.jobplan import plan_job, plan_params
 
 log = logging.getLogger(__name__)
 
 UNIT_TIMEOUT_S = 3600.0
-# What a unit's two-pass render reports (core.render.worker), kept in its report line.
-ADAPTIVE_META = ("first_spp", "adapted", "predicted_relmse_ratio", "pass_seconds")
 
 
 def unit_job(plan: JobPlan, unit: WorkUnit, params: RenderParams, job_id: str, threads: int | None) -> RenderRequest:
@@ -55,7 +53,7 @@ def unit_record(unit: WorkUnit, tile: Tile | TileSource, params: dict[str, Any])
         "outputs": params.get("outputs", {}), "seconds": float(tile.meta.get("seconds", 0.0)),
         "nonfinite": int(tile.meta.get("nonfinite", 0)), "agent": params.get("agent"),
         "rules": params.get("rules"),
-        **{k: tile.meta[k] for k in ADAPTIVE_META if k in tile.meta},
+        **{k: tile.meta[k] for k in ADAPTIVE_META if k in tile.meta},  # a two-pass render's own account
         **({"emulated": True} if params.get("emulated") else {}),  # slept by an emulated agent, not rendered
     }
 

@@ -45,6 +45,8 @@ from core.supervision import die_with_parent
 # variant choice (core.render.mitsuba_env), and processes that never render must not pay for it.
 
 STARTUP_TIMEOUT_S = 120.0
+# What a unit's two-pass render (RenderRequest.first) adds to its tile's header.
+ADAPTIVE_META = ("first_spp", "adapted", "predicted_relmse_ratio", "pass_seconds")
 _PP_KEYS = ("principal_point_offset_x", "principal_point_offset_y")
 
 
@@ -279,9 +281,8 @@ def _render_window(scene: Any, film: Any, job: RenderRequest,
         mi.render(scene, sensor=job.sensor, integrator=integrator, spp=job.spp, seed=job.seed)
         return (*film_channels(film), {})
     made = render_adaptive(scene, job.spp, job.seed, job.sensor, integrator, first=job.first)
-    return made.pixels, made.channels, {
-        "nonfinite": made.nonfinite, "first_spp": job.first, "adapted": made.adapted,
-        "predicted_relmse_ratio": made.predicted, "pass_seconds": list(made.seconds)}
+    said = dict(zip(ADAPTIVE_META, (job.first, made.adapted, made.predicted, list(made.seconds)), strict=True))
+    return made.pixels, made.channels, {"nonfinite": made.nonfinite, **said}
 
 
 def render_full(spec: SceneSpec, variant: str, integrator: str | None, depth: int | None, spp: int,
