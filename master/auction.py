@@ -11,12 +11,12 @@ transition table of `core.model.status`, which the job store checks too.
 The award rule is MAgArRO's (design.md section 2) with an earliest-finish-time look-ahead. Before each
 call for proposals the master projects a list schedule of the job's open units, most costly first, over
 its live agents, each available now or when the unit it holds should end, each unit on the agent where
-it would finish earliest (`project`, at the agent's seconds per unit of cost, learnt from its bids). A
-free agent is called only to the units the projection gives it, plus those given to another agent free
-now that it would finish about as soon (so that records still decide among equals); a free agent given
-nothing is not called, since any unit it took would end later than on an agent about to be free: with
-agents of mixed speeds, a slow agent that happens to be free would otherwise take a big unit at the end
-and become the job's tail. The projection is made afresh at every tick, so a unit projected to an agent
+it would finish earliest (`project`, at the agent's seconds per unit of work, `WorkUnit.work`, learnt
+from its bids). A free agent is called only to the units the projection gives it, plus those given to
+another agent free now that it would finish about as soon (so that records still decide among equals); a
+free agent given nothing is not called, since any unit it took would end later than on an agent about to
+be free: with agents of mixed speeds, a slow agent that happens to be free would otherwise take a big unit
+at the end and become the job's tail. The projection is made afresh at every tick, so a unit projected to an agent
 that is lost, blocklisted or late moves on. A contested unit goes to the agent with the best record,
 credits plus recent successes, among the bidders that would finish within `finish_tolerance` of the
 fastest, and an agent that finishes within 10 % of its estimate gains a credit, else loses one.
@@ -627,8 +627,8 @@ class Auction:
         state.credits += 1 if on_time else -1
         if on_time:
             state.late_rates.pop(msg.job_id, None)
-        elif unit.spec.cost > 0:
-            state.late_rates[msg.job_id] = _round_rate(min(msg.seconds / unit.spec.cost, _MAX_RATE))
+        elif unit.spec.work > 0:
+            state.late_rates[msg.job_id] = _round_rate(min(msg.seconds / unit.spec.work, _MAX_RATE))
         state.recent.append(True)
         done = UnitDone(
             msg.job_id, msg.index, agent, unit.token, seconds=msg.seconds, estimate=unit.estimate,
@@ -714,7 +714,7 @@ class Auction:
             agents = [a for a in free if a.name in callable_now and a.name not in job.blocklist]
             pending = sorted(
                 (u for u in job.units.values() if u.status == UnitStatus.PENDING),
-                key=lambda u: (-u.spec.cost, u.spec.index),
+                key=lambda u: (-u.spec.work, u.spec.index),
             )
             if not agents or not pending:
                 continue
@@ -849,7 +849,7 @@ class Auction:
             return []
         out: list[Command] = []
         winners: set[str] = set()
-        units = sorted((job.units[i] for i in round_.units), key=lambda u: (-u.spec.cost, u.spec.index))
+        units = sorted((job.units[i] for i in round_.units), key=lambda u: (-u.spec.work, u.spec.index))
         for unit in units:
             if unit.status != UnitStatus.ANNOUNCED:
                 continue
@@ -873,7 +873,7 @@ class Auction:
 
     def _project(self, job: Job, now: float, rates: dict[str, float]) -> dict[int, Placement]:
         units = [
-            ProjectedUnit(u.spec.index, u.spec.cost, frozenset(u.failed_on))
+            ProjectedUnit(u.spec.index, u.spec.work, frozenset(u.failed_on))
             for u in job.units.values()
             if u.status in (UnitStatus.PENDING, UnitStatus.ANNOUNCED)
         ]
@@ -911,7 +911,7 @@ class Auction:
 
     def _learn_rate(self, agent: Agent, job: Job, bids: dict[int, float]) -> None:
         """The agent's rate on the job from its bids: seconds over cost, summed (big units weigh most)."""
-        costs = {i: job.units[i].spec.cost for i in bids if i in job.units and job.units[i].spec.cost > 0}
+        costs = {i: job.units[i].spec.work for i in bids if i in job.units and job.units[i].spec.work > 0}
         if not costs:
             return
         seconds = sum(max(bids[i], self.config.min_estimate_s) for i in costs)
@@ -954,7 +954,7 @@ class Auction:
         if place.agent == name:
             return True
         # Contested among agents free now, when this one would finish about as soon (records decide).
-        duration = rates[name] * unit.spec.cost
+        duration = rates[name] * unit.spec.work
         return (
             place.agent in callable_now
             and place.start <= now

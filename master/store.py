@@ -416,7 +416,8 @@ class JobStore:
     # --- progress ------------------------------------------------------------------------------------
 
     def progress(self, job_id: str) -> Progress:
-        """Units done/total, agents rendering now, and an ETA from the finished units' seconds per cost."""
+        """Units done/total, agents rendering now, and an ETA from the finished units' seconds per unit of
+        work (WorkUnit.work)."""
         self.job(job_id)
         db = self.db
         counts = dict(
@@ -427,13 +428,13 @@ class JobStore:
             "SELECT COUNT(DISTINCT agent) FROM attempts WHERE job_id = ? AND outcome = 'running'", (job_id,)
         ).fetchone()[0]
         rate = db.execute(
-            "SELECT SUM(a.seconds), SUM(u.cost) FROM attempts a"
+            "SELECT SUM(a.seconds), SUM(u.cost * COALESCE(u.spp, 1)) FROM attempts a"
             " JOIN units u ON (a.job_id, a.idx) = (u.job_id, u.idx)"
             " WHERE a.job_id = ? AND a.outcome = 'done'",
             (job_id,),
         ).fetchone()
         left = db.execute(
-            "SELECT COALESCE(SUM(cost), 0) FROM units WHERE job_id = ? AND status IN (?, ?)",
+            "SELECT COALESCE(SUM(cost * COALESCE(spp, 1)), 0) FROM units WHERE job_id = ? AND status IN (?, ?)",
             (job_id, UnitStatus.PENDING, UnitStatus.AWARDED),
         ).fetchone()[0]
         eta = None

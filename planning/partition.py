@@ -250,15 +250,46 @@ def _neighbours(labels: np.ndarray, n: int) -> list[set[int]]:
 
 
 def equal_tiles(width: int, height: int, n: int) -> list[Rect]:
-    """The naive baseline: a grid of about n near-square tiles whose sides differ by at most one pixel."""
+    """Exactly min(n, width x height) tiles of near-equal area covering the image: a grid whose tiles are at
+    most 2:1 where n factors so, else rows of near-square tiles whose row heights follow their tile counts.
+    Exactly n, not "about n": a farm asks for a multiple of its agents, and 9 equal units on 2 agents end
+    with one agent idle for a unit's time (measured: cbox, 2 agents, level off, 9 units ended 1 s after the
+    other agent)."""
     if n < 1 or width < 1 or height < 1:
         raise PartitionError(f"equal_tiles needs positive width, height and n, got {width}, {height}, {n}")
-    cols = min(width, max(1, round(math.sqrt(n * width / height))))
-    rows = min(height, max(1, round(n / cols)))
-    xs = [round(i * width / cols) for i in range(cols + 1)]
-    ys = [round(j * height / rows) for j in range(rows + 1)]
-    return [Rect(xs[i], ys[j], xs[i + 1] - xs[i], ys[j + 1] - ys[j])
-            for j in range(rows) for i in range(cols)]
+    n = min(n, width * height)
+    rows = _grid_rows(width, height, n)
+    if rows is not None:
+        return _rows_of(width, height, [n // rows] * rows)
+    rows = min(max(round(math.sqrt(n * height / width)), -(-n // width), 1), n, height)
+    counts = [n // rows + (i < n % rows) for i in range(rows)]
+    return _rows_of(width, height, counts)
+
+
+def _grid_rows(width: int, height: int, n: int) -> int | None:
+    """The row count of the rows x cols = n grid whose tiles are closest to square, if within 2:1."""
+    best: tuple[float, int] | None = None
+    for rows in range(1, n + 1):
+        if n % rows or rows > height or n // rows > width:
+            continue
+        skew = abs(math.log((width / (n // rows)) / (height / rows)))
+        if skew <= math.log(2.0) + 1e-12 and (best is None or skew < best[0]):
+            best = (skew, rows)
+    return None if best is None else best[1]
+
+
+def _rows_of(width: int, height: int, counts: list[int]) -> list[Rect]:
+    """Rows holding counts[i] tiles each, a row's height in proportion to its count (at least 1 px)."""
+    total = sum(counts)
+    ys = [0]
+    for i in range(len(counts)):
+        ideal = round(height * sum(counts[: i + 1]) / total)
+        ys.append(min(max(ideal, ys[-1] + 1), height - (len(counts) - 1 - i)))
+    rects = []
+    for row, k in enumerate(counts):
+        xs = [round(i * width / k) for i in range(k + 1)]
+        rects += [Rect(xs[i], ys[row], xs[i + 1] - xs[i], ys[row + 1] - ys[row]) for i in range(k)]
+    return rects
 
 
 def distinct_sizes(units: Sequence[WorkUnit] | Sequence[Rect]) -> set[tuple[int, int]]:

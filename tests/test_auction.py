@@ -690,3 +690,21 @@ def test_no_unit_is_queued_behind_another_in_the_end_game() -> None:
     assert round_trip(a, 11.0) == {}  # three open: the end game, nothing is queued behind unit 2
     a.on_inform("A", inform(third[2], 4.0), 15.0)
     assert list(round_trip(a, 15.0)) == [3]
+
+
+def test_an_adaptive_jobs_units_are_scheduled_by_their_share_of_samples() -> None:
+    # cost is at 1 spp; a unit given 8x the samples of a costlier one is the job's biggest unit, and its
+    # agent's rate is learnt per unit of work (seconds per cost x spp), not per cost.
+    a = au.Auction(None, rng=random.Random(7))
+    units = [dataclasses.replace(u, spp=spp) for u, spp in zip(specs([4.0, 1.0, 1.0]), [8, 64, 8], strict=True)]
+    a.add_job(dataclasses.replace(info(), first_spp=4), units)
+    a.register("A", 0.0)
+    a.register("B", 0.0)
+    cfps = sends(a.announce(0.0), m.CallForProposal)
+    assert [u.index for u in cfps[0].message.units] == [1, 0]  # work 64, 32, 8
+    for send in cfps:
+        est = tuple(m.Estimate(index=u.index, seconds=u.work / 100) for u in send.message.units)
+        a.on_propose(send.to, m.Propose(conversation=send.message.conversation, job_id="job-1", estimates=est), 0.0)
+    assert a.rate("A", "job-1") == pytest.approx(0.01, rel=0.01)
+    got = awards(a.decide(0.0))
+    assert sorted(got) == [0, 1]

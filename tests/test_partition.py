@@ -190,9 +190,17 @@ def test_bad_target_is_refused() -> None:
 def test_equal_tiles_cover_exactly_once(width: int, height: int, n: int) -> None:
     rects = equal_tiles(width, height, n)
     label_image(rects, width, height)
-    ws, hs = {r.w for r in rects}, {r.h for r in rects}
-    assert max(ws) - min(ws) <= 1 and max(hs) - min(hs) <= 1
-    assert len(rects) <= max(n, 1) * 2 or len(rects) <= width or len(rects) <= height
+    assert len(rects) == min(n, width * height)
+    # Near-equal areas: a tile is off the mean by at most a pixel's row or column of rounding each way.
+    mean = width * height / len(rects)
+    for r in rects:
+        assert abs(r.area - mean) <= r.w + r.h + 1 + (mean if mean < 2 else 0)
+
+
+def test_equal_tiles_prefer_one_grid_then_rows() -> None:
+    assert {(r.w, r.h) for r in equal_tiles(512, 512, 8)} == {(128, 256)}  # a 4 x 2 grid: one kernel size
+    rows = equal_tiles(512, 512, 7)  # 7 has no grid within 2:1: rows of 3, 2 and 2 tiles
+    assert len(rows) == 7 and sorted({r.y for r in rows}) == [0, 219, 366]
 
 
 def test_label_image_finds_gaps_and_overlaps() -> None:

@@ -47,6 +47,13 @@ class WorkUnit:
             if not math.isfinite(value) or value < 0:
                 raise UnitError(f"unit {self.index}: field {name!r} must be finite and >= 0, got {value!r}")
 
+    @property
+    def work(self) -> float:
+        """The unit's render time relative to its job's other units, as the master can know it: its cost
+        times its planned spp where the plan sets one (cost is at 1 spp; shares differ up to several fold),
+        else its cost (every unit's spp is then its agent's rules' choice)."""
+        return self.cost * self.spp if self.spp is not None else self.cost
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "index": self.index,
