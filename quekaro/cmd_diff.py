@@ -69,5 +69,5 @@ def read_unit_rects(path: str) -> list[Rect]:
 
 def seam_line(seams: dict[str, Any]) -> str:
     verdict = "SEAM" if seams["seam"] else "no seam"
-    return (f"{verdict} (border strips' z^2 {seams['ratio']:.2f}x noise, z {seams['z']:.1f}; "
+    return (f"{verdict} (steps across borders: z^2 {seams['ratio']:.2f}x noise, z {seams['z']:.1f}; "
             f"worst unit {seams['worst_unit']} z {seams['unit_z']:.1f} of {seams['unit_threshold']:.1f})")

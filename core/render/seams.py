@@ -1,26 +1,32 @@
-"""A seam measure: whether an image's error against a reference is biased along work-unit borders.
+"""A seam measure: whether an image's error against a reference steps across work-unit borders.
 
 The error e = mean over RGB of (test - reference) has expectation 0 everywhere when both images are
 unbiased renders of the same scene; noise alone makes it wander around 0. A compositor or band defect,
-or a unit rendered biased (e.g. too shallow a depth), shifts it near the unit's borders.
+or a unit rendered biased (e.g. too shallow a depth), makes it jump where one unit meets the next.
 
 Every border between two units is cut into pieces of PIECE pixels along it; each piece has a strip of
-`width` pixels on either side. A strip's mean error is tested against 0 with Student's t from the strip's
-own pixels (noise differs with brightness and each unit's spp), turned into a standard normal deviate
-(Wallace's approximation, within 0.02 for 10 or more pixels). Pixel filters (Mitsuba's default gaussian)
-correlate neighbouring pixels, which makes a strip's mean vary more than its pixels' variance says: the
-error's correlation at lags up to MAX_LAG pixels is measured inside the units (each unit's error less its
-own mean, over its own deviation, so a biased unit does not count; units under MIN_UNIT_PIXELS are left
-out, and with none left pixels count as independent) and each strip's t is corrected by the variance that
-correlation adds to a mean of its shape, with the degrees of freedom of its effective pixel count (strong
-correlation makes the test conservative). Under noise alone each strip's z^2 is then chi-square with one
+`width` pixels on either side. The step, the difference of the two strips' mean errors, is tested against
+0 with Welch's t (noise differs with brightness and each unit's spp) and turned into a standard normal
+deviate (Wallace's approximation, within 0.02 for 10 or more pixels). The step, not each strip's mean
+against 0: at a few samples per pixel a glossy or caustic region's error is skewed (most pixels miss the
+rare bright paths and read low), so a strip's mean error is off 0 wherever a border crosses such a region,
+even in plain Mitsuba's own image (measured: still-life at 12 spp read as a seam on the 3 x 3 grid in 4 of
+4 seeds). Both sides of a border share that region, so their step keeps expectation 0. A bias over the
+whole image is no seam, and the other metrics of `quekaro diff` report it.
+
+Pixel filters (Mitsuba's default gaussian) correlate neighbouring pixels, which makes a strip's mean vary
+more than its pixels' variance says: the error's correlation at lags up to MAX_LAG pixels is measured
+inside the units (each unit's error less its own mean, over its own deviation, so a biased unit does not
+count; units under MIN_UNIT_PIXELS are left out, and with none left pixels count as independent), each
+side's variance is corrected by what that correlation adds to a mean of its shape, and the step's degrees
+of freedom are those of the effective pixel counts. Under noise alone each piece's z^2 is then chi-square with one
 degree of freedom, and:
-  - `ratio`: the border strips' mean z^2 (1: no seam);
-  - `z`: their sum as a normal deviate (Wilson-Hilferty), one degree of freedom per strip;
-  - `worst_unit`, `unit_z`: the same over the strips on one unit's side of its borders, for the unit
-    where it is largest, against the threshold SEAM_Z Bonferroni-corrected for the number of units.
+  - `ratio`: the pieces' mean z^2 (1: no seam);
+  - `z`: their sum as a normal deviate (Wilson-Hilferty), one degree of freedom per piece;
+  - `worst_unit`, `unit_z`: the same over the pieces of one unit's borders, for the unit where it is
+    largest, against the threshold SEAM_Z Bonferroni-corrected for the number of units.
 A seam is reported when z >= SEAM_Z or unit_z >= that threshold (about one false alarm in 30,000 images
-of pure noise either way). Strips whose pixels do not vary (black background in both images) carry no
+of pure noise either way). Pieces whose pixels do not vary (black background in both images) carry no
 information and are left out.
 """
 
@@ -46,13 +52,13 @@ _NORMAL = NormalDist()
 
 @dataclass(frozen=True)
 class SeamMeasure:
-    ratio: float  # border strips' mean calibrated z^2; 1 under noise alone
-    z: float  # the border strips' chi-square as a normal deviate
-    worst_unit: int  # the unit whose border strips are least like noise (-1: none)
+    ratio: float  # the border pieces' mean calibrated z^2; 1 under noise alone
+    z: float  # the border pieces' chi-square as a normal deviate
+    worst_unit: int  # the unit whose border pieces are least like noise (-1: none)
     unit_z: float  # that unit's chi-square as a normal deviate
     unit_threshold: float  # unit_z at or above this is a seam (Bonferroni over the units)
     correlation: float  # the error's correlation between horizontal neighbours, measured inside units
-    border_strips: int
+    border_strips: int  # border pieces tested (a strip on each side)
 
     @property
     def seam(self) -> bool:
@@ -85,35 +91,55 @@ def seam_measure(test: np.ndarray, reference: np.ndarray, rects: Iterable[Rect],
     error = (np.asarray(test[..., :3], np.float64) - np.asarray(reference[..., :3], np.float64)).mean(axis=-1)
     ids = unit_map(rects, error.shape[1], error.shape[0])
     rho = _correlation(error, ids)
-    border = [(unit, z) for unit, strip in _border_strips(rects, width) if (z := _z(error[strip], rho)) is not None]
-    return _judge(border, rho.get((0, 1), 0.0), len(rects))
+    steps = [(ua, ub, z) for ua, ub, block, in_a in _border_pieces(rects, width)
+             if (z := _step_z(error[block], in_a, rho)) is not None]
+    return _judge(steps, rho.get((0, 1), 0.0), len(rects))
 
 
-def _judge(border: list[tuple[int, float]], correlation: float, units: int) -> SeamMeasure:
+def _judge(steps: list[tuple[int, int, float]], correlation: float, units: int) -> SeamMeasure:
     threshold = -_NORMAL.inv_cdf(_NORMAL.cdf(-SEAM_Z) / max(units, 1))
-    if not border:
+    if not steps:
         return SeamMeasure(1.0, 0.0, -1, 0.0, threshold, correlation, 0)
-    z2 = np.array([z for _, z in border]) ** 2
-    owners = np.array([u for u, _ in border])
-    per_unit = {int(u): _chi2_as_z(float(z2[owners == u].sum()), int((owners == u).sum())) for u in set(owners)}
+    z2 = np.array([z for _, _, z in steps]) ** 2
+    owners = [(ua, ub) for ua, ub, _ in steps]
+    per_unit = {}
+    for unit in {u for pair in owners for u in pair}:
+        mine = np.array([unit in pair for pair in owners])
+        per_unit[unit] = _chi2_as_z(float(z2[mine].sum()), int(mine.sum()))
     worst = max(per_unit, key=per_unit.__getitem__)
     return SeamMeasure(float(z2.mean()), _chi2_as_z(float(z2.sum()), z2.size), worst, per_unit[worst],
                        threshold, correlation, int(z2.size))
 
 
-def _z(strip: np.ndarray, rho: dict[tuple[int, int], float]) -> float | None:
-    """A strip's mean error as a standard normal deviate; None where its pixels do not vary."""
-    n = strip.size
-    if n < MIN_PIXELS:
+def _step_z(block: np.ndarray, in_a: np.ndarray, rho: dict[tuple[int, int], float]) -> float | None:
+    """The step between a border piece's two strips (`in_a` marks side a's pixels of `block`) as a
+    standard normal deviate; None where a strip is too small or neither side's pixels vary."""
+    sides = [block[in_a], block[~in_a]]
+    if min(side.size for side in sides) < MIN_PIXELS:
         return None
-    var = float(strip.var(ddof=1))
-    if not var > 0:
+    shapes = [_strip_shape(in_a), _strip_shape(~in_a)]
+    inflation = [_inflation(shape, rho, side.size) for shape, side in zip(shapes, sides, strict=True)]
+    # With correlated pixels the sample variance reads low: (n - inflation) / (n - 1) of the pixels' variance.
+    sigma2 = [float(side.var(ddof=1)) * (side.size - 1) / max(side.size - k, 1.0)
+              for side, k in zip(sides, inflation, strict=True)]
+    # Each side's mean varies `inflation` times more than independent pixels'. Covariance across the border
+    # is left out: it would shrink the variance only where the compositor blends the two sides, and
+    # assuming it where it does not (a hard cut) would read noise as a step.
+    parts = [s2 * k / side.size for s2, k, side in zip(sigma2, inflation, sides, strict=True)]
+    variance = sum(parts)
+    if not variance > 0:
         return None
-    inflation = _inflation(strip.shape, rho, n)
-    # With correlated pixels the mean varies `inflation` times more, and the sample variance reads low.
-    t = float(strip.mean()) / math.sqrt(var / n) * math.sqrt(max(n - inflation, 1.0) / ((n - 1) * inflation))
-    nu = max(n / inflation - 1.0, 1.0)  # correlated pixels: fewer independent ones, heavier tails
+    t = (float(sides[0].mean()) - float(sides[1].mean())) / math.sqrt(variance)
+    # Welch-Satterthwaite over the effective (independent) pixel counts n / inflation.
+    effective = [max(side.size / k - 1.0, 1.0) for side, k in zip(sides, inflation, strict=True)]
+    nu = max(sum(parts) ** 2 / sum(q * q / e for q, e in zip(parts, effective, strict=True) if q > 0), 1.0)
     return math.copysign(math.sqrt(nu * math.log1p(t * t / nu)) * (8 * nu + 1) / (8 * nu + 3), t)
+
+
+def _strip_shape(mask: np.ndarray) -> tuple[int, int]:
+    """The h x w of the rectangle a strip's mask marks in its block."""
+    rows, cols = mask.any(axis=1).sum(), mask.any(axis=0).sum()
+    return int(rows), int(cols)
 
 
 def _inflation(shape: tuple[int, ...], rho: dict[tuple[int, int], float], n: int) -> float:
@@ -153,20 +179,23 @@ def _chi2_as_z(total: float, dof: int) -> float:
     return ((total / dof) ** (1.0 / 3.0) - (1.0 - k)) / math.sqrt(k)
 
 
-def _border_strips(rects: list[Rect], width: int) -> Iterator[tuple[int, tuple[slice, slice]]]:
-    """(unit, strip) for each side of each piece of every border between two units."""
+def _border_pieces(rects: list[Rect], width: int) -> Iterator[tuple[int, int, tuple[slice, slice], np.ndarray]]:
+    """(unit a, unit b, block, mask of a's strip in the block) for each piece of every border between two
+    units: the block is a's strip and b's beside it."""
     for a, ra in enumerate(rects):
         for b, rb in enumerate(rects):
             if rb.x == ra.x + ra.w:  # b lies right of a
                 wa, wb = min(width, ra.w), min(width, rb.w)
                 for y0, y1 in _pieces(max(ra.y, rb.y), min(ra.y + ra.h, rb.y + rb.h)):
-                    yield a, (slice(y0, y1), slice(rb.x - wa, rb.x))
-                    yield b, (slice(y0, y1), slice(rb.x, rb.x + wb))
+                    in_a = np.zeros((y1 - y0, wa + wb), dtype=bool)
+                    in_a[:, :wa] = True
+                    yield a, b, (slice(y0, y1), slice(rb.x - wa, rb.x + wb)), in_a
             if rb.y == ra.y + ra.h:  # b lies below a
                 ha, hb = min(width, ra.h), min(width, rb.h)
                 for x0, x1 in _pieces(max(ra.x, rb.x), min(ra.x + ra.w, rb.x + rb.w)):
-                    yield a, (slice(rb.y - ha, rb.y), slice(x0, x1))
-                    yield b, (slice(rb.y, rb.y + hb), slice(x0, x1))
+                    in_a = np.zeros((ha + hb, x1 - x0), dtype=bool)
+                    in_a[:ha] = True
+                    yield a, b, (slice(rb.y - ha, rb.y + hb), slice(x0, x1)), in_a
 
 
 def _pieces(lo: int, hi: int) -> Iterator[tuple[int, int]]:
