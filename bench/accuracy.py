@@ -50,7 +50,7 @@ from core.render.metrics import all_metrics, diff_image
 from core.render.seams import seam_measure
 from farm.local import LocalFarm
 from fuzzy.levels import LEVELS
-from planning.accuracy import job_variant, plain_render, reference, spp_timing
+from planning.accuracy import default_cache, job_variant, plain_render, reference, spp_timing
 
 REPO = Path(__file__).resolve().parent.parent
 HETEROGENEOUS = "caustic-corner"  # the project's own scene the rules were tuned on
@@ -63,8 +63,8 @@ DIFF_WHITE = 0.10  # a display difference of 10 % is white in the grey differenc
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder for table, CSV, plot, images")
-    parser.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "quekaro",
-                        help="where references are cached")
+    parser.add_argument("--cache", type=Path, default=default_cache(),
+                        help="where references are cached (default $XDG_CACHE_HOME/quekaro or ~/.cache/quekaro)")
     parser.add_argument("scenes", nargs="*", metavar="SCENE",
                         help=f"scene files or suite names ({', '.join(s.name for s in SUITE)}); "
                              f"default {HETEROGENEOUS} (the scene the rules were tuned on)")

@@ -32,7 +32,6 @@ import argparse
 import csv
 import hashlib
 import json
-import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -51,6 +50,7 @@ from core.render import scene as scene_mod
 from core.render.scene import film_info
 from core.render.worker import RenderRequest, RenderWorker
 from master.auction import Config
+from planning.accuracy import default_cache as default_cache_dir
 from planning.accuracy import job_variant
 from planning.complexity import COST_SPP, NOISE_SHARE, PREPASS_SPP, ComplexityMap, prepass
 from planning.jobplan import farm_min_units
@@ -192,9 +192,6 @@ def spread_cell_times(cells: Sequence[Rect], seconds: Sequence[float], fixed: fl
     return per_sample
 
 
-def default_cache_dir() -> Path:
-    """$XDG_CACHE_HOME/quekaro, else ~/.cache/quekaro: where the benches keep their measurements."""
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "quekaro"
 
 
 def cache_file(cache_dir: Path | None, spec: SceneSpec, cell: int, spp: int, threads: int, variant: str) -> Path:

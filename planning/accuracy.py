@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -115,7 +116,9 @@ def fit_spp_line(seconds_at: Callable[[int], float], spp: int, what: str = "the 
 
 
 def default_cache() -> Path:
-    return Path.home() / ".cache" / "quekaro"
+    """$XDG_CACHE_HOME/quekaro, else ~/.cache/quekaro: where references and the benches' measurements
+    are kept."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "quekaro"
 
 
 def uniform_at(spec: SceneSpec, seconds: float, line: tuple[float, float], threads: int, ref: np.ndarray,

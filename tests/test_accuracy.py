@@ -31,6 +31,13 @@ def test_content_key_follows_included_files_and_defines(tmp_path):
     assert key != accuracy.content_key(spec, 64)  # an included file changed: a new reference
 
 
+def test_the_reference_cache_follows_xdg_cache_home(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert accuracy.default_cache() == tmp_path / "quekaro"
+    monkeypatch.delenv("XDG_CACHE_HOME")
+    assert accuracy.default_cache() == Path.home() / ".cache" / "quekaro"
+
+
 def test_spp_line_raises_the_high_count_until_samples_cost_measurable_time():
     # 2 ms per spp on top of 0.1 s: at 4 spp the samples are noise, at 64 spp they are 0.128 s.
     asked = []
