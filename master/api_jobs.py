@@ -27,6 +27,7 @@ from core.errors import QuekaroError
 from core.model.job import JobSpec, RenderOptions
 from master.http_guard import read_body_chunks
 from master.store import JobStore, StoreError
+from planning import budgets
 
 
 class MasterService(Protocol):
@@ -118,6 +119,7 @@ async def submit(request: web.Request) -> web.Response:
 def job_summary(service: MasterService, job_id: str) -> dict[str, Any]:
     """Status and progress of one job, as the CLI shows it."""
     record = service.store.job(job_id)
+    shares = record.plan.get("shares") or None
     progress = service.store.progress(job_id)
     return {
         "job_id": record.id, "scene": record.scene, "status": record.status, "error": record.error,
@@ -125,7 +127,8 @@ def job_summary(service: MasterService, job_id: str) -> dict[str, Any]:
         "units_done": progress.done, "units_total": progress.total, "units_failed": progress.failed,
         "agents_busy": progress.agents_busy, "eta_s": progress.eta_s,
         "result_ready": service.result_path(job_id).with_suffix(".json").exists(),
-        "effects": record.plan.get("effects", {}), "adaptive": record.plan.get("shares") or None,
+        "effects": record.plan.get("effects", {}), "adaptive": shares,
+        "adaptive_text": budgets.describe(shares) if shares else None,
         "paused": service.paused if record.status == "running" else None,
     }
 

@@ -29,6 +29,8 @@ from core.model.units import WorkUnit
 from master import auction as au
 
 SCHEMA_VERSION = 3
+# A unit row's WorkUnit.work in SQL ({t}: the table's alias and a dot, or nothing).
+_WORK = "{t}cost * COALESCE({t}spp, 1)"
 
 
 def _sql_set(statuses: Iterable[str]) -> str:
@@ -428,13 +430,13 @@ class JobStore:
             "SELECT COUNT(DISTINCT agent) FROM attempts WHERE job_id = ? AND outcome = 'running'", (job_id,)
         ).fetchone()[0]
         rate = db.execute(
-            "SELECT SUM(a.seconds), SUM(u.cost * COALESCE(u.spp, 1)) FROM attempts a"
+            f"SELECT SUM(a.seconds), SUM({_WORK.format(t='u.')}) FROM attempts a"
             " JOIN units u ON (a.job_id, a.idx) = (u.job_id, u.idx)"
             " WHERE a.job_id = ? AND a.outcome = 'done'",
             (job_id,),
         ).fetchone()
         left = db.execute(
-            "SELECT COALESCE(SUM(cost * COALESCE(spp, 1)), 0) FROM units WHERE job_id = ? AND status IN (?, ?)",
+            f"SELECT COALESCE(SUM({_WORK.format(t='')}), 0) FROM units WHERE job_id = ? AND status IN (?, ?)",
             (job_id, UnitStatus.PENDING, UnitStatus.AWARDED),
         ).fetchone()[0]
         eta = None

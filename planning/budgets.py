@@ -66,3 +66,14 @@ def shares(noise: np.ndarray, rects: Sequence[Rect], mean_spp: int) -> Shares:
         return Shares(tuple(mean_spp for _ in rects), mean_spp, first, predicted, False)
     split = tuple(first + round(float(extra[r.y:r.y1, r.x:r.x1].mean())) for r in rects)
     return Shares(split, mean_spp, first, predicted, True)
+
+
+def describe(shares: dict[str, Any]) -> str:
+    """An adaptive job's plan (`Shares.to_dict`, as reports and the job API carry it) in one sentence, as
+    `quekaro render`, `quekaro status JOB` and the job's web page show it."""
+    spp, predicted = shares["unit_spp"], shares["predicted_relmse_ratio"]
+    how = (f"shared by the pre-pass's noise ({min(spp)}-{max(spp)} spp; it predicted {predicted:.2f} of "
+           f"uniform's relMSE)" if shares["adapted"]
+           else f"shared equally (the pre-pass predicted {predicted:.2f} of uniform's relMSE)")
+    return (f"{shares['mean_spp']} spp per pixel from the rules, {how}; each unit renders "
+            f"{shares['first_spp']} spp uniformly, then the rest where that pass is noisy")

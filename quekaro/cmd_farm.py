@@ -20,7 +20,8 @@ from core.render.bundle import make_bundle
 from core.render.scene import parse_defines
 from farm.client import FarmClient
 from farm.local import LocalFarm
-from quekaro.cmd_render import add_job_arguments, options_from_args, search_paths, shares_line
+from planning import budgets
+from quekaro.cmd_render import add_job_arguments, options_from_args, search_paths
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -209,7 +210,7 @@ def run_status(args: argparse.Namespace) -> int:
         if args.job:
             print_effects(job.get("effects") or {})
             if job.get("adaptive"):
-                print(shares_line(job["adaptive"]))
+                print(f"adaptive: {budgets.describe(job['adaptive'])}")
     return 0
 
 

@@ -19,6 +19,7 @@ from core.render.imageio import read_exr
 from core.render.scene import parse_defines
 from fuzzy.engine import DEFUZZIFIERS
 from fuzzy.levels import LEVELS
+from planning import budgets
 from planning.accuracy import REF_SPP, accuracy_report
 from planning.pipeline import Progress as RenderProgress
 from planning.pipeline import render_job, write_json_atomic
@@ -161,16 +162,6 @@ def render_progress(name: str, enabled: bool = True) -> Iterator[Callable[[Rende
         yield update
 
 
-def shares_line(shares: dict) -> str:
-    """An adaptive job's plan in one line (planning.budgets.Shares.to_dict)."""
-    spp = shares["unit_spp"]
-    how = (f"shared by the pre-pass's noise ({min(spp)}-{max(spp)} spp; it predicted "
-           f"{shares['predicted_relmse_ratio']:.2f} of uniform's relMSE)" if shares["adapted"]
-           else f"shared equally (the pre-pass predicted {shares['predicted_relmse_ratio']:.2f} of uniform's relMSE)")
-    return (f"adaptive: {shares['mean_spp']} spp per pixel from the rules, {how}; each unit renders "
-            f"{shares['first_spp']} spp uniformly, then the rest where that pass is noisy")
-
-
 def print_report(report: dict, out: Path) -> None:
     totals, effects = report["totals"], report["effects"]
     print(f"{report['image']['exr']}  ({report['image']['width']}x{report['image']['height']}, "
@@ -180,7 +171,7 @@ def print_report(report: dict, out: Path) -> None:
     for reason in effects["reasons"]:
         print(f"  - {reason}")
     if report.get("adaptive"):
-        print(shares_line(report["adaptive"]))
+        print(f"adaptive: {budgets.describe(report['adaptive'])}")
     print(f"png: {report['image']['png']}  report: {out.with_suffix('.json')}")
     if totals["nonfinite"]:
         print(f"warning: {totals['nonfinite']} non-finite pixels were replaced (see the report's units)")

@@ -43,7 +43,11 @@ def test_noise_alone_is_no_seam_whatever_each_units_noise(seed: int, spread: flo
     rects = grid(4)
     sigmas = list(np.random.default_rng(seed).uniform(0.01, 0.01 * spread, len(rects)))
     measure = seam_measure(*noisy(rects, sigmas, seed), rects)
-    assert not measure.seam and abs(measure.ratio - 1) < 0.35 and abs(measure.correlation) < 0.05, measure
+    # The mean of n chi-square(1) values has a deviation of sqrt(2 / n): 0.14 over this grid's 96 pieces, so a
+    # fixed 0.35 failed about one example in a hundred; 4 deviations fail one in 30,000.
+    spread_of_ratio = (2 / measure.border_strips) ** 0.5
+    assert not measure.seam and abs(measure.ratio - 1) < 4 * spread_of_ratio, measure
+    assert abs(measure.correlation) < 0.05, measure
 
 
 @pytest.mark.parametrize("seed", range(5))

@@ -91,8 +91,8 @@ def seam_measure(test: np.ndarray, reference: np.ndarray, rects: Iterable[Rect],
     error = (np.asarray(test[..., :3], np.float64) - np.asarray(reference[..., :3], np.float64)).mean(axis=-1)
     ids = unit_map(rects, error.shape[1], error.shape[0])
     rho = _correlation(error, ids)
-    steps = [(ua, ub, z) for ua, ub, block, in_a in _border_pieces(rects, width)
-             if (z := _step_z(error[block], in_a, rho)) is not None]
+    steps = [(ua, ub, z) for ua, ub, strip_a, strip_b in _border_pieces(rects, width)
+             if (z := _step_z(error[strip_a], error[strip_b], rho)) is not None]
     return _judge(steps, rho.get((0, 1), 0.0), len(rects))
 
 
@@ -100,25 +100,24 @@ def _judge(steps: list[tuple[int, int, float]], correlation: float, units: int) 
     threshold = -_NORMAL.inv_cdf(_NORMAL.cdf(-SEAM_Z) / max(units, 1))
     if not steps:
         return SeamMeasure(1.0, 0.0, -1, 0.0, threshold, correlation, 0)
-    z2 = np.array([z for _, _, z in steps]) ** 2
-    owners = [(ua, ub) for ua, ub, _ in steps]
+    a, b, z = (np.array(column) for column in zip(*steps, strict=True))
+    z2 = z * z
     per_unit = {}
-    for unit in {u for pair in owners for u in pair}:
-        mine = np.array([unit in pair for pair in owners])
+    for unit in set(a.tolist()) | set(b.tolist()):
+        mine = (a == unit) | (b == unit)
         per_unit[unit] = _chi2_as_z(float(z2[mine].sum()), int(mine.sum()))
     worst = max(per_unit, key=per_unit.__getitem__)
     return SeamMeasure(float(z2.mean()), _chi2_as_z(float(z2.sum()), z2.size), worst, per_unit[worst],
                        threshold, correlation, int(z2.size))
 
 
-def _step_z(block: np.ndarray, in_a: np.ndarray, rho: dict[tuple[int, int], float]) -> float | None:
-    """The step between a border piece's two strips (`in_a` marks side a's pixels of `block`) as a
-    standard normal deviate; None where a strip is too small or neither side's pixels vary."""
-    sides = [block[in_a], block[~in_a]]
+def _step_z(side_a: np.ndarray, side_b: np.ndarray, rho: dict[tuple[int, int], float]) -> float | None:
+    """The step between a border piece's two strips (2-D, a's and b's side) as a standard normal deviate;
+    None where a strip is too small or neither side's pixels vary."""
+    sides = [side_a, side_b]
     if min(side.size for side in sides) < MIN_PIXELS:
         return None
-    shapes = [_strip_shape(in_a), _strip_shape(~in_a)]
-    inflation = [_inflation(shape, rho, side.size) for shape, side in zip(shapes, sides, strict=True)]
+    inflation = [_inflation(side.shape, rho, side.size) for side in sides]
     # With correlated pixels the sample variance reads low: (n - inflation) / (n - 1) of the pixels' variance.
     sigma2 = [float(side.var(ddof=1)) * (side.size - 1) / max(side.size - k, 1.0)
               for side, k in zip(sides, inflation, strict=True)]
@@ -129,17 +128,11 @@ def _step_z(block: np.ndarray, in_a: np.ndarray, rho: dict[tuple[int, int], floa
     variance = sum(parts)
     if not variance > 0:
         return None
-    t = (float(sides[0].mean()) - float(sides[1].mean())) / math.sqrt(variance)
+    t = (float(side_a.mean()) - float(side_b.mean())) / math.sqrt(variance)
     # Welch-Satterthwaite over the effective (independent) pixel counts n / inflation.
     effective = [max(side.size / k - 1.0, 1.0) for side, k in zip(sides, inflation, strict=True)]
-    nu = max(sum(parts) ** 2 / sum(q * q / e for q, e in zip(parts, effective, strict=True) if q > 0), 1.0)
+    nu = max(variance ** 2 / sum(q * q / e for q, e in zip(parts, effective, strict=True) if q > 0), 1.0)
     return math.copysign(math.sqrt(nu * math.log1p(t * t / nu)) * (8 * nu + 1) / (8 * nu + 3), t)
-
-
-def _strip_shape(mask: np.ndarray) -> tuple[int, int]:
-    """The h x w of the rectangle a strip's mask marks in its block."""
-    rows, cols = mask.any(axis=1).sum(), mask.any(axis=0).sum()
-    return int(rows), int(cols)
 
 
 def _inflation(shape: tuple[int, ...], rho: dict[tuple[int, int], float], n: int) -> float:
@@ -179,23 +172,23 @@ def _chi2_as_z(total: float, dof: int) -> float:
     return ((total / dof) ** (1.0 / 3.0) - (1.0 - k)) / math.sqrt(k)
 
 
-def _border_pieces(rects: list[Rect], width: int) -> Iterator[tuple[int, int, tuple[slice, slice], np.ndarray]]:
-    """(unit a, unit b, block, mask of a's strip in the block) for each piece of every border between two
-    units: the block is a's strip and b's beside it."""
+_Strip = tuple[slice, slice]
+
+
+def _border_pieces(rects: list[Rect], width: int) -> Iterator[tuple[int, int, _Strip, _Strip]]:
+    """(unit a, unit b, a's strip, b's strip) for each piece of every border between two units."""
     for a, ra in enumerate(rects):
         for b, rb in enumerate(rects):
             if rb.x == ra.x + ra.w:  # b lies right of a
                 wa, wb = min(width, ra.w), min(width, rb.w)
                 for y0, y1 in _pieces(max(ra.y, rb.y), min(ra.y + ra.h, rb.y + rb.h)):
-                    in_a = np.zeros((y1 - y0, wa + wb), dtype=bool)
-                    in_a[:, :wa] = True
-                    yield a, b, (slice(y0, y1), slice(rb.x - wa, rb.x + wb)), in_a
+                    rows = slice(y0, y1)
+                    yield a, b, (rows, slice(rb.x - wa, rb.x)), (rows, slice(rb.x, rb.x + wb))
             if rb.y == ra.y + ra.h:  # b lies below a
                 ha, hb = min(width, ra.h), min(width, rb.h)
                 for x0, x1 in _pieces(max(ra.x, rb.x), min(ra.x + ra.w, rb.x + rb.w)):
-                    in_a = np.zeros((ha + hb, x1 - x0), dtype=bool)
-                    in_a[:ha] = True
-                    yield a, b, (slice(rb.y - ha, rb.y + hb), slice(x0, x1)), in_a
+                    cols = slice(x0, x1)
+                    yield a, b, (slice(rb.y - ha, rb.y), cols), (slice(rb.y, rb.y + hb), cols)
 
 
 def _pieces(lo: int, hi: int) -> Iterator[tuple[int, int]]:

@@ -155,16 +155,6 @@ function progressBar(job) {
     el("span", { class: "bar-text" }, `${job.units_done}/${total} units` + (job.units_failed ? `, ${job.units_failed} failed` : "")));
 }
 
-function sharesText(shares) {
-  // An adaptive job's plan (planning.budgets.Shares.to_dict), as `quekaro status JOB` prints it.
-  const spp = shares.unit_spp || [];
-  const how = shares.adapted
-    ? `shared by the pre-pass's noise (${Math.min(...spp)}-${Math.max(...spp)} spp)`
-    : "shared equally";
-  return `${shares.mean_spp} spp per pixel from the rules, ${how}; each unit renders ${shares.first_spp} spp `
-    + "uniformly, then the rest where that pass is noisy";
-}
-
 function effectsCell(effects) {
   if (!effects || !effects.variant) return "";
   const head = `${effects.variant} / ${effects.integrator} / depth ${effects.max_depth}`;
@@ -250,7 +240,7 @@ function renderJob() {
     item("image", `${job.width} x ${job.height}, spp ${job.spp}, depth ${job.depth}`),
     item("submitted", fmtTime(job.created)), item("time", fmtSeconds(job.elapsed_s)),
     item("effects", effectsCell(job.effects)),
-    job.adaptive ? el("div", { id: "job-adaptive" }, el("b", {}, "adaptive"), sharesText(job.adaptive)) : null,
+    job.adaptive_text ? el("div", { id: "job-adaptive" }, el("b", {}, "adaptive"), " " + job.adaptive_text) : null,
     el("div", {}, actionButtons(job)),
     job.error ? item("error", job.error) : null);
   refreshPreview(job);
