@@ -20,7 +20,7 @@ onto the grid; a pixel costs what the grid says at its place). A unit then sleep
 
     (fixed_s + spp x sum of seconds_per_sample over the unit's window) / speed factor
 
-where the window is the unit grown by the band its rules chose (`bench.scaling.TimeMap.unit_seconds`).
+where the window is the unit's window for the band its rules chose (`bench.scaling.TimeMap.unit_seconds`).
 
 Mitsuba and Dr.Jit are never imported on this path (tests/test_emulate.py checks `sys.modules`). Every log
 line of an emulated agent starts with EMULATED (render_agent's log format), and on stop it logs and writes

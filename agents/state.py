@@ -504,7 +504,7 @@ class AgentState:
 
 def kernel_key(job: m.JobInfo, unit: WorkUnit, params: Params) -> tuple[Any, ...]:
     """What Dr.Jit compiles a kernel for: the scene, the window's size, the depth and the integrator."""
-    window = unit.rect.grow(params.band, job.width, job.height)
+    window = unit.rect.window(params.band, job.width, job.height)
     return job.scene_hash, window.w, window.h, params.depth, job.integrator
 
 

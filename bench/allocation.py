@@ -86,7 +86,8 @@ def composed_inverse_spp(plan: Any, spps: Any, bands: Any) -> np.ndarray:
     of w^2 / n, w its normalised blend weight (core.render.compose) and n the tile's spp. A pixel in one
     tile's core only is 1 / n; where a neighbour's band overlaps, the two independent estimates average
     and the variance falls (a band's samples are not wasted)."""
-    geometry = [(u.rect.grow(int(b), plan.width, plan.height), u.rect) for u, b in zip(plan.units, bands, strict=True)]
+    geometry = [(u.rect.window(int(b), plan.width, plan.height), u.rect)
+                for u, b in zip(plan.units, bands, strict=True)]
     factor = np.zeros((plan.height, plan.width))
     for (rect, _), w, n in zip(geometry, blend_weights(geometry, plan.width, plan.height, plan.reach), spps,
                                strict=True):

@@ -345,8 +345,8 @@ class StoreView:
         return min(a["started"] for a in self.attempts)
 
     def windows(self, width: int, height: int) -> list[Rect]:
-        """Each unit's rendered window: its rectangle grown by the band its agent chose."""
-        return [Rect(r["x"], r["y"], r["w"], r["h"]).grow(int(json.loads(r["params"])["band"]), width, height)
+        """Each unit's rendered window: its window for the band its agent chose."""
+        return [Rect(r["x"], r["y"], r["w"], r["h"]).window(int(json.loads(r["params"])["band"]), width, height)
                 for r in self.results]
 
 

@@ -5,7 +5,7 @@ scene, and the real render time of every cell of a fixed grid (`--cell` px) in a
 modest spp (`--measure-spp`, the fastest of MEASURE_PASSES runs), plus the fixed cost of one unit render (a cell
 at 1 spp). From these, a per-pixel time map: each cell's time above the fixed cost, divided by its
 spp, spread over its pixels in proportion to the pre-pass cost (rays per sample). A unit of any rectangle then takes
-`fixed + job_spp * sum(time map over the unit grown by its band)` on an agent of speed 1; render time
+`fixed + job_spp * sum(time map over the unit's window)` on an agent of speed 1; render time
 is linear in spp (design.md section 3), so the job's spp need not be rendered here.
 
 The measurement takes ~60 s, so it is cached (an .npz under ~/.cache/quekaro, keyed by the scene file's
@@ -107,7 +107,7 @@ class TimeMap:
 
     def unit_seconds(self, rect: Rect, spp: int, band: int = BAND) -> float:
         h, w = self.per_sample.shape
-        window = rect.grow(band, w, h)
+        window = rect.window(band, w, h)
         return self.fixed_s + spp * float(self.per_sample[window.slices()].sum())
 
 

@@ -69,7 +69,7 @@ _CHUNK = 1 << 20
 _EXR_SLACK = 1 << 20
 DISK_FULL = "disk full on the master: nothing was stored; send it again once space is freed"
 
-Expected = Callable[[str, int], Any]
+Expected = Callable[[str, int], Any]  # (job, unit) -> (token, unit Rect, image (width, height)) or None
 BundleProvider = Callable[[str], Any]
 OnTile = Callable[[str, int, Path, str, "str | None"], Any]
 
@@ -198,12 +198,13 @@ def _not_yours(job: str, unit: int) -> Refusal:
     return Refusal(403, f"no current award of unit {unit} of job {job!r} matches the {TOKEN_HEADER} sent")
 
 
-def _expected_rect(value: Any, job: str, unit: int) -> tuple[str, Rect]:
-    token, rect = value[0], value[1]
+def _expected_rect(value: Any, job: str, unit: int) -> tuple[str, Rect, tuple[int, int]]:
+    """(token, unit rectangle, image (width, height)) from the `expected` callback's answer."""
+    token, rect, (width, height) = value
     rect = rect if isinstance(rect, Rect) else Rect.from_list(rect)
     if not token:
         raise _not_yours(job, unit)
-    return str(token), rect
+    return str(token), rect, (int(width), int(height))
 
 
 def _size_cap(plane: DataPlane, rect: Rect) -> int:
@@ -221,7 +222,7 @@ async def put_tile(request: web.Request) -> web.Response:
     slot = await _call(plane.expected, job, unit)
     if slot is None:
         return _late_upload(plane, job, unit, declared, _token(request))
-    token, rect = _expected_rect(slot, job, unit)
+    token, rect, _ = _expected_rect(slot, job, unit)
     if not hmac.compare_digest(_token(request).encode(), token.encode()):
         raise _not_yours(job, unit)
     cap = _size_cap(plane, rect)
@@ -277,12 +278,12 @@ async def _accept(request: web.Request, plane: DataPlane, job: str, unit: int, t
         slot = await _call(plane.expected, job, unit)
         if slot is None:
             return _late_upload(plane, job, unit, sha256, _token(request))
-        token, rect = _expected_rect(slot, job, unit)
+        token, rect, image = _expected_rect(slot, job, unit)
         if not hmac.compare_digest(_token(request).encode(), token.encode()):
             raise _not_yours(job, unit)  # awarded to another token meanwhile
         if plane.accepted.get((job, unit)) == (sha256, token):  # a repeat the master has not acted on yet
             return web.json_response({"status": "duplicate", "job": job, "unit": unit, "sha256": sha256})
-        await asyncio.to_thread(_validate, tmp, rect, plane.max_band, f"unit {unit} of job {job!r}", job, unit)
+        await asyncio.to_thread(_validate, tmp, rect, image, plane.max_band, f"unit {unit} of job {job!r}", job, unit)
         final = plane.tile_path(job, unit)
         await asyncio.to_thread(durable_replace, tmp, final)
         agent = request.headers.get(AGENT_HEADER, "")[:256] or None
@@ -298,12 +299,13 @@ async def _accept(request: web.Request, plane: DataPlane, job: str, unit: int, t
                               "bytes": final.stat().st_size})
 
 
-def _validate(path: Path, core: Rect, max_band: int, what: str, job: str, unit: int) -> None:
+def _validate(path: Path, core: Rect, image: tuple[int, int], max_band: int, what: str, job: str,
+              unit: int) -> None:
     """Header first (no pixel decoded for a wrong window), then the whole tile through core.render.tiles, and
     the unit and job its header names (assembly reads them)."""
 
     window = _data_window(path, what)
-    band = _band_of(window, core, max_band, what)
+    band = _band_of(window, core, image, max_band, what)
     try:
         tile = read_tile(path)
     except TileError as exc:
@@ -334,17 +336,16 @@ def _data_window(path: Path, what: str) -> Rect:
     return Rect(x0, y0, x1 - x0 + 1, y1 - y0 + 1)
 
 
-def _band_of(window: Rect, core: Rect, max_band: int, what: str) -> int:
-    """The band a window adds around the unit: equal on every side, less only where the image's
-    top or left edge clips it (the right and bottom edges are not known here, so they may clip too)."""
+def _band_of(window: Rect, core: Rect, image: tuple[int, int], max_band: int, what: str) -> int:
+    """The band of a unit's window: the one whose core.model.geometry.Rect.window it is. Its margins give
+    the candidates (an axis's two margins add up to twice the band unless the axis is the whole image)."""
     left, top = core.x - window.x, core.y - window.y
     right, bottom = window.x1 - core.x1, window.y1 - core.y1
-    band = max(left, top, right, bottom)
-    clipped_ok = (left == band or window.x == 0) and (top == band or window.y == 0)
-    if min(left, top, right, bottom) < 0 or band > max_band or not clipped_ok:
-        raise Refusal(422, f"{what}: EXR dataWindow {window.as_list()} is not unit {core.as_list()} "
-                           f"grown by one band of at most {max_band} px")
-    return band
+    for band in sorted({(left + right) // 2, (top + bottom) // 2, max(left, top, right, bottom)}):
+        if 0 <= band <= max_band and core.window(band, *image) == window:
+            return band
+    raise Refusal(422, f"{what}: EXR dataWindow {window.as_list()} is not the window of unit {core.as_list()} "
+                       f"for one band of at most {max_band} px in a {image[0]}x{image[1]} image")
 
 
 async def close(runner: web.AppRunner) -> None:

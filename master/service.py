@@ -292,12 +292,12 @@ class MasterService:
 
     # ---- the data plane's callbacks -----------------------------------------------------------------
 
-    def _expected_upload(self, job_id: str, index: int) -> tuple[str, Any] | None:
+    def _expected_upload(self, job_id: str, index: int) -> tuple[str, Any, tuple[int, int]] | None:
         job = self.auction.jobs.get(job_id) if self.auction else None
         unit = job.units.get(index) if job else None
         if unit is None or unit.status != UnitStatus.AWARDED or unit.token is None:
             return None
-        return unit.token, unit.spec.rect
+        return unit.token, unit.spec.rect, (job.info.width, job.info.height)
 
     def _bundle_allowed(self, job_id: str, token: str) -> bool:
         """A scene goes only to an agent holding a current award of its job (the award's token)."""

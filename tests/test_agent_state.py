@@ -521,10 +521,12 @@ def test_calibration_moves_estimates_toward_measured_times() -> None:
 def test_a_kernel_is_compiled_once_per_window_size_and_depth() -> None:
     info = job()
     small, big = unit(0, Rect(0, 0, 8, 8)), unit(1, Rect(0, 0, 16, 16))
-    moved = unit(2, Rect(8, 8, 8, 8))  # same size away from the border: the band widens it the same
+    moved = unit(2, Rect(8, 8, 8, 8))  # same size elsewhere: the band widens it the same
     inner = unit(3, Rect(4, 4, 8, 8))
     p = Params(6, 4, 2)
-    assert kernel_key(info, moved, p) == kernel_key(info, inner, p) != kernel_key(info, small, p)
+    # at the image's corner the window is shifted inside, not clipped: one size, one kernel
+    assert kernel_key(info, moved, p) == kernel_key(info, inner, p) == kernel_key(info, small, p)
+    assert kernel_key(info, small, p) != kernel_key(info, small, Params(6, 4, 3))  # another band
     assert kernel_key(info, small, p) != kernel_key(info, big, p) != kernel_key(info, big, Params(3, 4, 2))
 
 

@@ -27,7 +27,7 @@ paths = []
 for y in range(0, size, side):
     for x in range(0, size, side):
         core = Rect(x, y, side, side)
-        rect = core.grow(band, size, size)
+        rect = core.window(band, size, size)
         pixels = np.full((rect.h, rect.w, 3), 0.25, np.float32) + np.float32((x + y) / (4 * size))
         paths.append(write_tile(out / f"{x}-{y}.exr", Tile(pixels, rect, core, {}), durable=False))
         del pixels

@@ -52,9 +52,10 @@ def test_samples_moved_to_the_noisy_half_beat_uniform_and_neyman_is_best() -> No
 def test_fixed_costs_and_bands_are_charged_to_the_units() -> None:
     tmap = TimeMap(np.full((8, 8), 1e-3), 0.05, {})
     weight = np.ones((8, 8, 3))
-    row = ba.level_row("S", _plan(HALVES), _params([10, 10], band=2), weight, tmap)
+    row = ba.level_row("S", _plan(HALVES), _params([10, 10], band=1), weight, tmap)
     assert row["relmse"] < 0.1  # the overlapping bands average two estimates: below one tile's 1 / 10
-    # each half plus a 2 px band inside the 8x8 image is 6x8 pixels; two render calls
+    # each half's window is its 4 px and a 1 px band a side, shifted inside at the image's edge (both
+    # bands on the inner side): 6x8 pixels; two render calls
     assert row["render_seconds"] == pytest.approx(2 * 0.05 + 2 * 10 * 48 * 1e-3)
     spp, _ = ba.uniform(row["render_seconds"], weight, tmap)
     # the same time buys uniform more than the units' 10 spp: one call, no band rendered twice
@@ -62,7 +63,8 @@ def test_fixed_costs_and_bands_are_charged_to_the_units() -> None:
 
 
 def test_band_overlap_averages_two_estimates_and_lowers_the_variance() -> None:
-    factor = ba.composed_inverse_spp(_plan(HALVES), [10, 10], [2, 2])
+    factor = ba.composed_inverse_spp(_plan(HALVES), [10, 10], [1, 1])
+    # Band 1 at the image's edge: each window is shifted inside, so its inner side has 2 px of band.
     # Left half's core at x = 3 has weight 1; the right tile's 2 px band reaches it at distance 1 with
     # weight 1 - 1/3. Normalised 0.6 and 0.4: variance (0.36 + 0.16) / 10. At x = 2: 1 and 1/3, so
     # (0.75^2 + 0.25^2) / 10. Beyond the band (x = 0, 1) one tile: 1 / 10.

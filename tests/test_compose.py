@@ -30,7 +30,7 @@ def tiles_of(image: np.ndarray, cores: list[Rect], bands: list[int], noise: floa
     rng = np.random.default_rng(seed)
     out = []
     for core, band in zip(cores, bands, strict=True):
-        rect = core.grow(band, w, h)
+        rect = core.window(band, w, h)
         pixels = image[rect.slices()] + rng.normal(0.0, noise, (rect.h, rect.w, 3)) if noise else \
             image[rect.slices()].copy()
         out.append(Tile(pixels=pixels, rect=rect, core=core))
@@ -56,7 +56,7 @@ def layouts(draw: st.DrawFn) -> tuple[int, int, list[Rect], list[int]]:
 @given(layouts())
 def test_weights_sum_to_one_at_every_pixel(layout) -> None:
     width, height, cores, bands = layout
-    geometry = [(c.grow(b, width, height), c) for c, b in zip(cores, bands, strict=True)]
+    geometry = [(c.window(b, width, height), c) for c, b in zip(cores, bands, strict=True)]
     total = np.zeros((height, width))
     for (rect, _), w in zip(geometry, blend_weights(geometry, width, height), strict=True):
         assert np.all(w > 0) and np.all(w <= 1 + 1e-12)
@@ -79,7 +79,7 @@ def test_tiles_cut_from_one_image_compose_back_to_it(layout) -> None:
 @given(layouts(), st.integers(0, 3))
 def test_weights_with_a_reach_sum_to_one_and_never_use_cut_pixels(layout, reach) -> None:
     width, height, cores, bands = layout
-    geometry = [(c.grow(max(b, reach), width, height), c) for c, b in zip(cores, bands, strict=True)]
+    geometry = [(c.window(max(b, reach), width, height), c) for c, b in zip(cores, bands, strict=True)]
     total = np.zeros((height, width))
     for (rect, _), w in zip(geometry, blend_weights(geometry, width, height, reach), strict=True):
         assert np.all(w >= 0) and np.all(w <= 1 + 1e-12)

@@ -50,9 +50,9 @@ def test_emulated_worker_returns_the_window_it_slept_for(tmp_path):
     request = RenderRequest(SceneSpec(tmp_path / "never-read.xml"), "emulated", None, 8, 64, 3, W, H, unit,
                             band=2, job_id="j", unit_index=4)
     tile = emulation.worker.render(request)
-    assert tile.rect == Rect(8, 0, 24, 18) and tile.core == unit
-    assert tile.pixels.shape == (18, 24, 3) and tile.meta["emulated"] is True
-    assert tile.meta["seconds"] >= (0.01 + 64 * 24 * 18 * 1e-6) / 2 * 0.9  # each pixel costs its cell
+    assert tile.rect == Rect(8, 0, 24, 20) and tile.core == unit  # at the top edge: both bands below
+    assert tile.pixels.shape == (20, 24, 3) and tile.meta["emulated"] is True
+    assert tile.meta["seconds"] >= (0.01 + 64 * 24 * 20 * 1e-6) / 2 * 0.9  # each pixel costs its cell
 
 
 @pytest.mark.parametrize("content, says", [

@@ -24,6 +24,7 @@ from core.render.tiles import Tile, write_tile
 from master.http_api import create_app, serve
 
 CORE = Rect(16, 8, 24, 16)
+IMAGE = (640, 480)
 BAND = 2
 TOKEN = "t0k3n-unit-3"
 
@@ -33,7 +34,7 @@ class Farm:
 
     def __init__(self, tmp: Path, **options) -> None:
         self.tmp = tmp
-        self.units: dict[tuple[str, int], tuple[str, Rect]] = {("job1", 3): (TOKEN, CORE)}
+        self.units: dict[tuple[str, int], tuple[str, Rect, tuple[int, int]]] = {("job1", 3): (TOKEN, CORE, IMAGE)}
         self.bundles: dict[str, tuple[Path, str]] = {}
         self.tiles: list[tuple] = []
         self.bundle_calls = 0
@@ -83,7 +84,7 @@ def farm(tmp_path):
 
 def _tile(tmp: Path, name: str, rect: Rect | None = None, core: Rect = CORE, seed: int = 0,
           unit: int | None = 3, job: str = "job1") -> Path:
-    rect = rect or CORE.grow(BAND, 640, 480)
+    rect = rect or core.window(BAND, *IMAGE)
     pixels = np.random.default_rng(seed).random((rect.h, rect.w, 3), dtype=np.float32)
     meta = {"spp": 4, "band": BAND, "job_id": job, **({"unit_index": unit} if unit is not None else {})}
     return write_tile(tmp / name, Tile(pixels, rect, core, meta))
@@ -176,11 +177,11 @@ def test_wrong_hash_is_422(farm, tmp_path):
 
 
 @pytest.mark.parametrize(("rect", "core", "match"), [
-    (Rect(0, 0, 30, 30), Rect(2, 2, 24, 16), "is not unit"),  # another window entirely
+    (Rect(0, 0, 30, 30), Rect(2, 2, 24, 16), "is not the window"),  # another window entirely
     (Rect(14, 6, 28, 20), Rect(16, 8, 24, 16), None),  # control: band 2 is fine
-    (Rect(14, 6, 29, 20), Rect(16, 8, 24, 16), "is not unit"),  # uneven band
+    (Rect(14, 6, 29, 20), Rect(16, 8, 24, 16), "is not the window"),  # uneven band
     (Rect(16, 8, 24, 16), Rect(16, 8, 24, 16), None),  # band 0 is fine
-    (Rect(15, 8, 26, 16), Rect(17, 8, 24, 16), "is not unit"),  # tile claims another unit
+    (Rect(15, 8, 26, 16), Rect(17, 8, 24, 16), "is not the window"),  # tile claims another unit
     (Rect(12, 4, 32, 24), Rect(14, 6, 28, 20), "tile says its unit is"),  # core attr disagrees
 ])
 def test_wrong_dimensions_are_422(farm, tmp_path, rect, core, match):
@@ -189,6 +190,22 @@ def test_wrong_dimensions_are_422(farm, tmp_path, rect, core, match):
         assert asyncio.run(upload_tile(_unit_url(farm), TOKEN, path))["status"] == "accepted"
         return
     _refused(farm, upload_tile(_unit_url(farm), TOKEN, path), 422, match)
+
+
+@pytest.mark.parametrize(("rect", "match"), [
+    (Rect(0, 0, 28, 20), None),  # the window shifted inside at the corner: both bands on the far sides
+    (Rect(0, 0, 26, 18), None),  # band 1 shifted (band 2 clipped looks the same, and is as good a tile)
+    (Rect(0, 0, 27, 18), "is not the window"),  # no one band: 3 px across, 2 down
+    (Rect(0, 0, 30, 20), "is not the window"),  # the far side wider than the band it lacks
+])
+def test_a_window_at_the_image_edge_is_shifted_inside(farm, tmp_path, rect, match):
+    core = Rect(0, 0, 24, 16)
+    farm.units[("job1", 5)] = (TOKEN, core, IMAGE)
+    path = _tile(tmp_path, "edge.exr", rect=rect, core=core, unit=5)
+    if match is None:
+        assert asyncio.run(upload_tile(_unit_url(farm, unit=5), TOKEN, path))["status"] == "accepted"
+        return
+    _refused(farm, upload_tile(_unit_url(farm, unit=5), TOKEN, path), 422, match)
 
 
 def test_not_exr_and_wrong_channels_are_422(farm, tmp_path):
@@ -200,7 +217,7 @@ def test_not_exr_and_wrong_channels_are_422(farm, tmp_path):
     fake = tmp_path / "fake.exr"
     fake.write_bytes(b"\x76\x2f\x31\x01" + bytes(400))
     _refused(farm, upload_tile(_unit_url(farm), TOKEN, fake), 422, "unreadable EXR header")
-    r = CORE.grow(BAND, 640, 480)
+    r = CORE.window(BAND, *IMAGE)
     half = tmp_path / "half.exr"
     header = {"dataWindow": ((r.x, r.y), (r.x1 - 1, r.y1 - 1)), "quekaro_core": "16 8 24 16"}
     with OpenEXR.File(header, {"RGB": np.zeros((r.h, r.w, 3), np.float16)}) as exr:
@@ -279,7 +296,7 @@ def test_upload_retries_until_the_server_is_up(tmp_path):
 def test_16_mib_tile_round_trip(farm, tmp_path):
     side = 1200  # 1200^2 px x 12 B of float32 RGB noise: over 16 MiB after ZIP compression
     core = Rect(BAND, BAND, side - 2 * BAND, side - 2 * BAND)
-    farm.units[("job1", 7)] = (TOKEN, core)
+    farm.units[("job1", 7)] = (TOKEN, core, (side, side))
     path = _tile(tmp_path, "big.exr", rect=Rect(0, 0, side, side), core=core, unit=7)
     assert path.stat().st_size > 16 << 20
     start = time.perf_counter()

@@ -95,7 +95,7 @@ class ScriptedMaster:
 
     def _expected(self, job: str, index: int) -> tuple[str, Rect] | None:
         key = (job, index)
-        return (self.tokens[key], self.rects[key]) if key in self.tokens else None
+        return (self.tokens[key], *self.rects[key]) if key in self.tokens else None
 
     def _bundle(self, job: str) -> tuple[Path, str] | None:
         sha = self.job_bundles.get(job)
@@ -175,7 +175,7 @@ class Farm:
     def award(self, job: m.JobInfo, unit: WorkUnit, conversation: str, token: str | None = None) -> m.Award:
         token = token or hashlib.sha256(conversation.encode()).hexdigest()[:32]
         self.master.tokens[(job.job_id, unit.index)] = token
-        self.master.rects[(job.job_id, unit.index)] = unit.rect
+        self.master.rects[(job.job_id, unit.index)] = unit.rect, (job.width, job.height)
         return m.Award(conversation=conversation, job=job, unit=unit, token=token,
                        upload_url=self.master.url(f"/jobs/{job.job_id}/units/{unit.index}/tile"),
                        seed=unit.index, estimate_s=1.0)
@@ -284,7 +284,7 @@ def test_unit_is_planned_rendered_uploaded_and_informed(farm: Farm, bundles: dic
 
     tile = read_tile_bytes(data, "upload")
     assert tile.core == u3.rect
-    assert inform.band >= 2 and tile.rect == u3.rect.grow(inform.band, 32, 32)
+    assert inform.band >= 2 and tile.rect == u3.rect.window(inform.band, 32, 32)
     assert np.isfinite(tile.pixels).all() and tile.pixels.mean() > 0.01
     meta = tile.meta
     assert meta["agent"] == AGENT and meta["job_id"] == "job-a" and meta["unit_index"] == 3

@@ -61,7 +61,10 @@ def test_job_round_trip_and_refusals():
     j = job(job_id="abc", unit_index=5)
     assert RenderRequest.from_dict(j.to_dict()) == j
     assert j.window == Rect(6, 14, 20, 20)
-    assert job(unit=Rect(0, 0, 4, 4), band=10).window == Rect(0, 0, 14, 14)  # band clipped to the image
+    # at the image's edge the window is shifted inside, keeping its size: the band it lacks is on the far side
+    assert job(unit=Rect(0, 0, 4, 4), band=10).window == Rect(0, 0, 24, 24)
+    assert job(unit=Rect(40, 2, 8, 4), band=10).window == Rect(20, 0, 28, 24)
+    assert job(unit=Rect(0, 0, 40, 4), band=10).window == Rect(0, 0, 48, 24)  # wider than the image: all of it
     with pytest.raises(RenderError, match="spp=0"):
         job(spp=0)
     with pytest.raises(RenderError, match="outside"):

@@ -32,11 +32,14 @@ class Rect:
     def area(self) -> int:
         return self.w * self.h
 
-    def grow(self, band: int, width: int, height: int) -> Rect:
-        """This rectangle grown by `band` pixels on every side, clipped to a width x height image."""
-        x0, y0 = max(0, self.x - band), max(0, self.y - band)
-        x1, y1 = min(width, self.x1 + band), min(height, self.y1 + band)
-        return Rect(x0, y0, max(0, x1 - x0), max(0, y1 - y0))
+    def window(self, band: int, width: int, height: int) -> Rect:
+        """The rectangle a unit renders: this one grown by `band` on every side, but at the image's edge
+        shifted inside (the band it cannot have there is added on the opposite side) rather than clipped,
+        so that every unit of one size and band renders a window of one size and Dr.Jit compiles one
+        kernel for them all. An axis shorter than the grown size is the whole axis."""
+        x, w = _window_axis(self.x, self.w, band, width)
+        y, h = _window_axis(self.y, self.h, band, height)
+        return Rect(x, y, w, h)
 
     def intersect(self, other: Rect) -> Rect:
         x0, y0 = max(self.x, other.x), max(self.y, other.y)
@@ -54,6 +57,14 @@ class Rect:
     def from_list(cls, values: list[int] | tuple[int, int, int, int]) -> Rect:
         x, y, w, h = (int(v) for v in values)
         return cls(x, y, w, h)
+
+
+def _window_axis(start: int, size: int, band: int, full: int) -> tuple[int, int]:
+    """(start, size) of a window along one axis of `full` pixels: see Rect.window."""
+    grown = size + 2 * band
+    if grown >= full:
+        return 0, full
+    return min(max(start - band, 0), full - grown), grown
 
 
 # Mitsuba's default reconstruction filter, a gaussian of standard deviation 0.5 px cut at 4 of them.

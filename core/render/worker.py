@@ -1,9 +1,10 @@
 """Rendering one work unit: the job description (`RenderRequest`), the render itself, and the persistent child
 process (`RenderWorker`) that runs it so that an LLVM abort or a hang costs one unit, never the job.
 
-How a unit renders: the unit's rectangle grown by its band (clipped to the image) is rendered with the
-scene's own integrator (or, when the rules chose a depth, the scene's integrator with that `max_depth`:
-core.model.integrators), the unit's spp and seed, through the job's sensor. For perspective and thin-lens
+How a unit renders: the unit's window (its rectangle grown by its band, shifted inside at the image's
+edge: core.model.geometry.Rect.window) is rendered with the scene's own integrator (or, when the rules
+chose a depth, the scene's integrator with that `max_depth`: core.model.integrators), the unit's spp and
+seed, through the job's sensor. For perspective and thin-lens
 sensors the window is not a Mitsuba crop at the window's offset but a crop at (0, 0) of the window's
 size with the camera's principal point shifted by (x / W, y / H): the rays are the same (tested to float
 precision) while Dr.Jit compiles one kernel per window *size* instead of one per window *position* (a
@@ -84,8 +85,8 @@ class RenderRequest:
 
     @property
     def window(self) -> Rect:
-        """The rectangle actually rendered: the unit grown by its band, clipped to the image."""
-        return self.unit.grow(self.band, self.width, self.height)
+        """The rectangle actually rendered (core.model.geometry.Rect.window)."""
+        return self.unit.window(self.band, self.width, self.height)
 
     def to_dict(self) -> dict[str, Any]:
         return {

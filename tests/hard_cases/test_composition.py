@@ -25,7 +25,7 @@ F32_TINY = float(np.finfo(np.float32).smallest_subnormal)
 def _tiles(width: int, height: int, n: int, bands: list[int], values: list[float]) -> list[Tile]:
     out = []
     for i, core in enumerate(equal_tiles(width, height, n)):
-        rect = core.grow(bands[i % len(bands)], width, height)
+        rect = core.window(bands[i % len(bands)], width, height)
         out.append(Tile(np.full((rect.h, rect.w, 3), values[i % len(values)], np.float32), rect, core))
     return out
 
