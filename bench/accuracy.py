@@ -7,10 +7,10 @@ the scene reads, its -D parameters and spp; then the grid agents x levels, each 
 a real local farm (`farm.local.LocalFarm`, one farm per agent count, submit to done) or, with
 `--inprocess`, as the whole `quekaro render` process a user runs (load, kernels, pre-pass, render,
 composition, writing). Each cell runs once unmeasured first (`--no-warmup` skips it: Dr.Jit compiles and
-caches a kernel per unit window size), then `--runs` times, timed. Per cell: the median wall and CPU
-seconds; the errors against the reference (`core.render.metrics`, averaged over every run, the warm-up
-included: seeds follow the job id), the seam measure of the last image at the units' borders
-(`core.render.seams`), and how the rules spent samples.
+caches a kernel per unit window size; its wall time is reported as the first run's), then `--runs`
+times, timed. Per cell: the median wall and CPU seconds; the errors against the reference
+(`core.render.metrics`, averaged over every run, the warm-up included: seeds follow the job id), the seam
+measure of the last image at the units' borders (`core.render.seams`), and how the rules spent samples.
 
 The uniform baseline is plain Mitsuba as a user runs it (`python -m planning.plain`: import, load, render,
 write; the whole process timed) at the single spp whose time equals the cell's. Its time is linear in
@@ -274,10 +274,11 @@ def scene_cells(scene: SuiteScene, agents: list[int], levels: list[str], args: a
 def run_cell(run_job: Callable, spec: SceneSpec, level: str, args: argparse.Namespace, stem: Path,
              ref: np.ndarray) -> tuple[dict[str, Any], np.ndarray, list[Rect]]:
     """One level's jobs (warm-up, then the timed runs): the cell's figures, its last image, its units."""
-    images = []
+    images, first = [], {}
     if args.warmup:  # compiles this job's kernels (one per unit window size) before timing it
-        report, _, _ = run_job(spec, level, args.spp, stem.with_name(stem.name + "-warm.exr"))
+        _, wall, _ = run_job(spec, level, args.spp, stem.with_name(stem.name + "-warm.exr"))
         images.append(read_exr(stem.with_name(stem.name + "-warm.exr"))[..., :3])
+        first = {"first_seconds": wall}
     timed = []
     for r in range(args.runs):
         out = stem.with_name(f"{stem.name}-{r}.exr")
@@ -290,7 +291,7 @@ def run_cell(run_job: Callable, spec: SceneSpec, level: str, args: argparse.Name
     return {"level": level, "variant": report["effects"]["variant"],
             "seconds": float(np.median([wall for _, wall, _ in timed])),
             "cpu_seconds": float(np.median([cpu for _, _, cpu in timed])),
-            "seconds_runs": [wall for _, wall, _ in timed], **mean_metrics(images, ref), **used[-1],
+            "seconds_runs": [wall for _, wall, _ in timed], **first, **mean_metrics(images, ref), **used[-1],
             "render_seconds": float(np.median([u["render_seconds"] for u in used])),
             **{f"seam_{k}": v for k, v in seams.to_dict().items()}}, images[-1], rects
 
@@ -462,13 +463,16 @@ def paper_table(cells: list[dict[str, Any]], scene: str, levels: list[str]) -> l
 
 
 def spending_lines(cells: list[dict[str, Any]]) -> list[str]:
-    lines = ["| scene | agents | level | s | CPU s | render s | pre-pass s | units | spp mean (min-max) "
-             "| depth | diff % | RMSE | relMSE | FLIP | seam z (worst unit) | plain Mitsuba's seam z there |",
-             "|" + "---|" * 16]
+    """The cells' spending: "first run s" is the unmeasured warm-up's wall time (its new kernels compiled)."""
+    lines = ["| scene | agents | level | s | first run s | CPU s | render s | pre-pass s | units "
+             "| spp mean (min-max) | depth | diff % | RMSE | relMSE | FLIP | seam z (worst unit) "
+             "| plain Mitsuba's seam z there |",
+             "|" + "---|" * 17]
     for c in cells:
         plain = _seam_text(c, "uniform_seam_") if "uniform_seam_z" in c else "-"
+        first = f"{c['first_seconds']:.1f}" if "first_seconds" in c else "-"
         lines.append(
-            f"| {c['scene']} | {c['agents']} | {c['level']} | {c['seconds']:.1f} | {c['cpu_seconds']:.1f} "
+            f"| {c['scene']} | {c['agents']} | {c['level']} | {c['seconds']:.1f} | {first} | {c['cpu_seconds']:.1f} "
             f"| {c['render_seconds']:.1f} | {c['prepass_seconds']:.2f} | {c['units']} "
             f"| {c['spp_mean']:.0f} ({c['spp_min']}-{c['spp_max']}) | {c['depth_min']}-{c['depth_max']} "
             f"| {c['mean_pixel_diff_percent']:.2f} | {c['rmse']:.4f} | {c['relmse']:.4f} | {c['flip']:.4f} "

@@ -33,7 +33,7 @@ def test_inprocess_grid_json_has_cells_and_baseline(tmp_path):
     assert result["scenes"]["volume"]["defines"] == {"res": "32", "spp": "4"}
     assert [(c["agents"], c["level"]) for c in cells] == [(1, "off"), (1, "S")]
     for c in cells:
-        assert c["seconds"] > 0 and c["cpu_seconds"] > 0
+        assert c["seconds"] > 0 and c["cpu_seconds"] > 0 and c["first_seconds"] > 0  # the warm-up's time
         assert len(c["seconds_runs"]) == 2 and len(c["relmse_runs"]) == 3  # two timed runs and the warm-up
         assert 0 < c["mean_pixel_diff_percent"] < 50 and 0 < c["relmse"] < 10 and 0 <= c["flip"] <= 1
         assert c["uniform_spp"] >= 1 and 0 < c["uniform_relmse"] < 10
@@ -45,7 +45,9 @@ def test_inprocess_grid_json_has_cells_and_baseline(tmp_path):
     assert off["spp_min"] == off["spp_max"] == 4  # level off applies no rules
     assert list((tmp_path / "cache" / "references").glob("caustic-corner-*.exr"))  # cached for next time
     assert (tmp_path / "out" / "accuracy-diff" / "caustic-corner-S.png").exists()
-    assert "| 1 |" in (tmp_path / "out" / "accuracy.md").read_text()
+    table = (tmp_path / "out" / "accuracy.md").read_text()
+    s_row = f"| caustic-corner | 1 | S | {cells[1]['seconds']:.1f} | {cells[1]['first_seconds']:.1f} |"
+    assert "| 1 |" in table and s_row in table
     again = bench_accuracy.run(args_for(tmp_path, "--inprocess", "--resume", "caustic-corner", str(volume),
                                         "-D", "spp=4"))
     assert again["cells"] == result["cells"]  # both scenes were kept, none measured again
