@@ -4,12 +4,12 @@ process (`RenderWorker`) that runs it so that an LLVM abort or a hang costs one 
 How a unit renders: the unit's window (its rectangle grown by its band, shifted inside at the image's
 edge: core.model.geometry.Rect.window) is rendered with the scene's own integrator (or, when the rules
 chose a depth, the scene's integrator with that `max_depth`: core.model.integrators), the unit's spp and
-seed, through the job's sensor. For perspective and thin-lens
-sensors the window is not a Mitsuba crop at the window's offset but a crop at (0, 0) of the window's
-size with the camera's principal point shifted by (x / W, y / H): the rays are the same (tested to float
-precision) while Dr.Jit compiles one kernel per window *size* instead of one per window *position* (a
-crop offset is baked into the kernel and costs ~0.45 s to compile; design.md section 3). Other sensors
-use a crop. The tile keeps every channel the film writes (the film's bitmap, as `mitsuba` writes it).
+seed, through the job's sensor. For perspective and thin-lens sensors the window is not a Mitsuba crop at
+the window's offset but a crop at (0, 0) of the window's size with the camera's principal point shifted by
+(x / W, y / H): the rays are the same (tested to float precision) while Dr.Jit compiles one kernel per
+window *size* instead of one per window *position* (a crop offset is baked into the kernel and costs
+~0.45 s to compile; design.md section 3). Other sensors use a crop. The tile keeps every channel the
+film writes (the film's bitmap, as `mitsuba` writes it).
 
 Non-finite pixels (an emitter with infinite or NaN radiance): every non-finite channel value is set to
 0, and the number of pixels that had any is reported as `meta["nonfinite"]`, so they never propagate.
