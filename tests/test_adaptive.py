@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from render_check import VARIANCE_BOUNDS, by_name, compare, reference_renders
-from scipy import stats
+from scipy import ndimage, stats
 
 from core.errors import RenderError
 from core.model.job import SceneSpec
-from core.render.adaptive import PAYS_BELOW, neyman_counts, render_adaptive, second_pass
+from core.render.adaptive import PAYS_BELOW, blurred, neyman_counts, render_adaptive, second_pass, separable
 from core.render.counts import render_counts
 from core.render.scene import load
 
@@ -151,6 +151,28 @@ def test_neyman_counts_edges():
     assert (1 + extra[0, 0]) / (1 + extra[0, 1]) == pytest.approx(2.0, rel=0.05)  # sqrt(1 / cost)
     with pytest.raises(RenderError, match="cost map"):
         neyman_counts(np.ones((2, 2)), 1, 40, rng, np.ones((1, 2)))
+
+
+@pytest.mark.parametrize("shape", [(64, 48), (1, 1), (3, 40), (40, 2), (17, 1)])
+@pytest.mark.parametrize("sigma", [4.0, 0.7, 2.5])
+def test_the_blur_is_scipys_gaussian_filter(shape, sigma):
+    # Images smaller than the kernel's reach, one pixel, heavy-tailed noise: scipy's result to 1e-12.
+    noise = np.random.default_rng(len(shape) + shape[0]).pareto(1.5, size=shape)
+    assert np.allclose(blurred(noise, sigma), ndimage.gaussian_filter(noise, sigma, mode="nearest"),
+                       rtol=1e-12, atol=0.0)
+    weights = np.array([0.0, 0.2, 0.5, 0.3, 0.0])  # not symmetric: correlation, not convolution
+    expected = ndimage.correlate1d(ndimage.correlate1d(noise, weights, 0, mode="nearest"), weights, 1,
+                                   mode="nearest")
+    assert np.allclose(separable(noise, weights), expected, rtol=1e-12, atol=0.0)
+
+
+def test_the_blur_leaves_the_filters_reach_out():
+    # A single noisy pixel: with its filter's reach (2 px) left out, its own square gets nothing of it.
+    noise = np.zeros((21, 21))
+    noise[10, 10] = 1.0
+    out = blurred(noise, 4.0, exclude_px=2)
+    assert (out[8:13, 8:13] == 0.0).all() and out[10, 14] > 0 and out[5, 10] > 0
+    assert blurred(noise, 0.0) is noise
 
 
 def test_second_pass_adapts_only_where_the_first_predicts_a_gain():

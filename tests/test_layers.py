@@ -20,7 +20,7 @@ LAZY_PROJECT = {
                                      "at import, which silenced every farm log): only `quekaro bench` loads them",
 }
 # Third-party modules that may be imported inside functions (the comment at each says why).
-LAZY_THIRD_PARTY = {"mitsuba", "drjit", "pyjabber", "loguru", "scipy"}
+LAZY_THIRD_PARTY = {"mitsuba", "drjit", "pyjabber", "loguru"}
 
 
 def read_layers() -> list[list[str]]:

@@ -15,9 +15,6 @@ from core.errors import RenderError
 from core.render.counts import render_counts
 from core.render.film import sanitize
 
-# scipy.ndimage is imported where used: ~0.1 s at import that every one-round `quekaro render` job (and its
-# --help) would pay for a blur only adaptive jobs run.
-
 # The two-pass render. FIRST_SHARE of the samples go to a uniform first pass, whose per-pixel variance,
 # blurred over BLUR_PX (a pixel's own estimate from a few dozen samples misses rare bright paths), sets
 # where the rest go: each pixel's total in proportion to the square root of its relative variance
@@ -129,18 +126,36 @@ def blurred(noise: np.ndarray, blur_px: float = BLUR_PX, exclude_px: int = 0) ->
     a spectral test scene's pixels off by 2 standard errors). Without them the count is independent of it."""
     if blur_px <= 0:
         return noise
-    from scipy.ndimage import correlate1d, gaussian_filter
-
-    full = gaussian_filter(noise, blur_px, mode="nearest")
-    if exclude_px <= 0:
-        return full
-    reach = int(4 * blur_px + 0.5)  # gaussian_filter's own truncation at 4 sigma
+    noise = np.asarray(noise, dtype=np.float64)
+    reach = int(4 * blur_px + 0.5)  # truncated at 4 sigma, as scipy.ndimage.gaussian_filter does
     x = np.arange(-reach, reach + 1, dtype=np.float64)
     kernel = np.exp(-0.5 * (x / blur_px) ** 2)
     kernel /= kernel.sum()
+    full = separable(noise, kernel)
+    if exclude_px <= 0:
+        return full
     centre = np.where(np.abs(x) <= exclude_px, kernel, 0.0)
-    inner = correlate1d(correlate1d(noise, centre, axis=0, mode="nearest"), centre, axis=1, mode="nearest")
+    inner = separable(noise, centre)
     return np.maximum(full - inner, 0.0) / (1.0 - centre.sum() ** 2)
+
+
+def separable(image: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """`image` (2-D) correlated with `weights` (odd length, centred) along both axes, its edge pixels
+    repeated beyond the border: scipy.ndimage.correlate1d's mode "nearest" on each axis, to float64
+    rounding (tests/test_adaptive.py compares them). Written here because importing scipy.ndimage costs
+    ~0.24 s, paid by every adaptive job's planner and again by its render process before the first unit."""
+    reach = len(weights) // 2
+    out = np.asarray(image, dtype=np.float64)
+    for axis in (0, 1):
+        size = out.shape[axis]
+        padded = np.moveaxis(np.pad(out, [(reach, reach) if a == axis else (0, 0) for a in (0, 1)], mode="edge"),
+                             axis, 0)
+        acc = np.zeros((size, *padded.shape[1:]))
+        for i, w in enumerate(weights):
+            if w:
+                acc += w * padded[i:i + size]
+        out = np.moveaxis(acc, 0, axis)
+    return out
 
 
 def exclusion_px(filter_radius: float) -> int:
