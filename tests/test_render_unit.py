@@ -146,6 +146,17 @@ def test_killed_child_is_a_render_error_and_the_worker_restarts():
         assert tile.meta["pid"] != pid and w.starts == 2
 
 
+def test_a_released_child_exits_and_the_next_render_starts_another():
+    with RenderWorker() as w:
+        first = w.render(job(), timeout=60)
+        child = w._proc
+        w.release()
+        w.release()  # a second release sends nothing more
+        assert child.wait(30) == 0 and not w.alive()  # it exits on its own, cleanly
+        tile = w.render(job(), timeout=60)
+        assert tile.meta["pid"] != first.meta["pid"] and w.starts == 2 and w.alive()
+
+
 def test_timeout_kills_and_recovers():
     with RenderWorker() as w:
         with pytest.raises(RenderError, match="timed out"):

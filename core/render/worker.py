@@ -348,6 +348,7 @@ class RenderWorker:
         self.startup_timeout = startup_timeout
         self.starts = 0
         self._ready = False
+        self._released = False
         self.import_seconds: float | None = None
 
     @property
@@ -355,7 +356,8 @@ class RenderWorker:
         return self._proc.pid if self._proc is not None else None
 
     def alive(self) -> bool:
-        return self._proc is not None and self._proc.poll() is None
+        """A child is running and has not been released."""
+        return self._proc is not None and not self._released and self._proc.poll() is None
 
     def start(self) -> None:
         """Start the child (if not running) and wait until Mitsuba is imported in it."""
@@ -369,7 +371,7 @@ class RenderWorker:
         (`quekaro render` plans the job meanwhile); the first `render` waits for it."""
         if self.alive():
             return
-        self._discard()
+        self._kill()  # a released child still shutting down, or a dead one: reaped
         # A plain subprocess, not multiprocessing: spawn would re-import the caller's __main__, and
         # fork would copy a process that may hold Dr.Jit threads.
         ours, theirs = socket.socketpair()
@@ -382,6 +384,7 @@ class RenderWorker:
         theirs.close()
         self._conn = Connection(ours.detach())
         self._ready = False
+        self._released = False
         self.starts += 1
 
     def _wait_ready(self) -> None:
@@ -396,12 +399,19 @@ class RenderWorker:
         self.import_seconds = float(info["import_seconds"])
         self._ready = True
 
+    def release(self) -> None:
+        """Ask the child to exit without waiting for it (Dr.Jit's shutdown then overlaps the caller's own
+        work); `stop` waits. A later `render` starts a new child."""
+        if self._proc is not None and not self._released:
+            with contextlib.suppress(OSError):
+                self._conn.send(None)
+            self._released = True
+
     def stop(self) -> None:
         """Ask the child to exit; kill it if it does not within a few seconds."""
         if self._proc is None:
             return
-        with contextlib.suppress(OSError):
-            self._conn.send(None)
+        self.release()
         with contextlib.suppress(subprocess.TimeoutExpired):
             self._proc.wait(5)
         self._kill()
