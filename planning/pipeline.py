@@ -146,7 +146,7 @@ def render_job(spec: SceneSpec, options: RenderOptions, out: Path, job_id: str |
     worker.launch()  # the child imports Mitsuba while this process plans; its first render waits for it
     try:
         seed = plan_seed(sha256_file(spec.path), spec.defines, options.to_dict())
-        plan = plan_job(spec, options, seed=seed)
+        plan = plan_job(spec, options, seed=seed, on_variant=lambda v: worker.prepare(v, options.threads))
         planner = Planner(options.rules, options.defuzzifier)
         chosen = plan_params(plan, planner)
         job = UnitRun(plan, chosen, job_id, options.threads, worker, planner.rules_path.name, progress).render()

@@ -157,6 +157,30 @@ def test_a_released_child_exits_and_the_next_render_starts_another():
         assert tile.meta["pid"] != first.meta["pid"] and w.starts == 2 and w.alive()
 
 
+def test_a_prepared_variant_is_set_before_the_first_unit_and_a_bad_one_is_left_to_the_unit():
+    with RenderWorker() as w:
+        w.prepare(VARIANT, 1)
+        w.prepare("no_such_variant", 1)  # its failure is read and dropped: the unit below is another variant
+        assert w.render(job(), timeout=60).meta["variant"] == VARIANT
+        w.prepare("no_such_variant", 1)
+        bad = RenderRequest.from_dict({**job().to_dict(), "variant": "no_such_variant"})
+        with pytest.raises(RenderError, match="no_such_variant"):
+            w.render(bad, timeout=60)
+        assert w.starts == 1 and w.render(job(seed=3), timeout=60).meta["variant"] == VARIANT
+
+
+def test_prepare_starts_a_child_and_a_dead_one_is_reported_at_the_render():
+    w = RenderWorker()
+    try:
+        w.prepare(VARIANT, 1)
+        assert w.alive()
+        os.kill(w.pid, signal.SIGKILL)
+        w._proc.wait(10)
+        assert w.render(job(), timeout=60).meta["variant"] == VARIANT and w.starts == 2
+    finally:
+        w.stop()
+
+
 def test_timeout_kills_and_recovers():
     with RenderWorker() as w:
         with pytest.raises(RenderError, match="timed out"):

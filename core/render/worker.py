@@ -317,12 +317,25 @@ def _child_main(conn: Any) -> None:
             return  # the parent went away
         if message is None:
             return
+        if isinstance(message, tuple) and message[0] == "variant":
+            conn.send(("variant", _set_variant(*message[1:])))
+            continue
         try:
             tile = render_job_here(RenderRequest.from_dict(message), cache)
             conn.send(("ok", tile.pixels, tile.rect.as_list(), tile.meta, tile.channels))
         except Exception as exc:
             kind = type(exc).__name__ if isinstance(exc, QuekaroError) else "RenderError"
             conn.send(("error", kind, f"{type(exc).__name__}: {exc}", traceback.format_exc(limit=3)))
+
+
+def _set_variant(variant: str, threads: int | None) -> str | None:
+    """Select the variant and thread count ahead of the first unit; what went wrong, or None. A failure
+    is only reported here: the unit's own render meets it again and says so."""
+    try:
+        mitsuba_env.init(variant, threads)
+    except Exception as exc:
+        return f"{type(exc).__name__}: {exc}"
+    return None
 
 
 def _death_reason(exitcode: int | None) -> str:
@@ -349,6 +362,7 @@ class RenderWorker:
         self.starts = 0
         self._ready = False
         self._released = False
+        self._unanswered = 0  # `prepare` messages whose reply is still to be read
         self.import_seconds: float | None = None
 
     @property
@@ -385,6 +399,7 @@ class RenderWorker:
         self._conn = Connection(ours.detach())
         self._ready = False
         self._released = False
+        self._unanswered = 0
         self.starts += 1
 
     def _wait_ready(self) -> None:
@@ -398,6 +413,31 @@ class RenderWorker:
             raise RenderError(f"render process failed to start ({reason})") from None
         self.import_seconds = float(info["import_seconds"])
         self._ready = True
+
+    def prepare(self, variant: str, threads: int | None) -> None:
+        """Have the child select `variant` and the thread count now, while the caller goes on: Mitsuba's
+        set_variant imports its Python integrators (~0.2 s), which the first unit would otherwise wait for.
+        Starts the child if needed; its answer is read before the next render."""
+        if not self.alive():
+            self.launch()
+        try:
+            self._conn.send(("variant", variant, threads))
+        except OSError:
+            return  # the next render finds the child dead and says why
+        self._unanswered += 1
+
+    def _read_prepared(self) -> None:
+        """Read the answers to `prepare` (the render that follows reports any failure itself)."""
+        while self._unanswered:
+            if not self._conn.poll(self.startup_timeout):
+                self._kill()
+                raise RenderError(f"render process did not select its variant within {self.startup_timeout:.0f} s")
+            try:
+                self._conn.recv()
+            except (EOFError, OSError):
+                reason = _death_reason(self._reap())
+                raise RenderError(f"render process failed while selecting its variant ({reason})") from None
+            self._unanswered -= 1
 
     def release(self) -> None:
         """Ask the child to exit without waiting for it (Dr.Jit's shutdown then overlaps the caller's own
@@ -426,6 +466,7 @@ class RenderWorker:
     def render(self, job: RenderRequest, timeout: float | None = None) -> Tile:
         """Render one unit in the child; a crash or timeout is a RenderError, and the next call restarts."""
         self.start()
+        self._read_prepared()
         where = f"unit {job.unit_index} {job.unit.as_list()}"
         try:
             self._conn.send(job.to_dict())
@@ -473,6 +514,7 @@ class RenderWorker:
         if self._conn is not None:
             self._conn.close()
         self._proc, self._conn = None, None
+        self._unanswered = 0
 
 
 _default_worker: RenderWorker | None = None
