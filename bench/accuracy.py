@@ -102,6 +102,15 @@ def _csv_list(text: str, what: str) -> list[str]:
     return items
 
 
+def parse_levels(text: str) -> list[str]:
+    """--levels: a comma list of optimisation levels, each one fuzzy.levels knows."""
+    levels = _csv_list(text, "levels")
+    for level in levels:
+        if level not in LEVELS:
+            raise QuekaroError(f"--levels: unknown level {level!r} (known: {', '.join(LEVELS)})")
+    return levels
+
+
 def parse_grid(args: argparse.Namespace) -> tuple[list[SuiteScene], list[int], list[str]]:
     """The scenes, agent counts and levels asked for, checked."""
     names = [s.name for s in SUITE] if args.suite else (args.scenes or [HETEROGENEOUS])
@@ -116,10 +125,7 @@ def parse_grid(args: argparse.Namespace) -> tuple[list[SuiteScene], list[int], l
         raise QuekaroError(f"--agents {args.agents!r}: expected integers like 1,2") from None
     if agents[0] < 1:
         raise QuekaroError(f"--agents {args.agents!r}: counts must be at least 1")
-    levels = _csv_list(args.levels, "levels")
-    for level in levels:
-        if level not in LEVELS:
-            raise QuekaroError(f"--levels: unknown level {level!r} (known: {', '.join(LEVELS)})")
+    levels = parse_levels(args.levels)
     if args.runs < 1:
         raise QuekaroError(f"--runs {args.runs}: at least one timed run per cell")
     if args.inprocess:

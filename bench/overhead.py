@@ -1,94 +1,122 @@
-"""`quekaro bench overhead`: what the pipeline costs over one plain Mitsuba render.
+"""`quekaro bench overhead`: what a `quekaro render` job costs over plain Mitsuba rendering as many samples.
 
-Both sides run as fresh processes, alternating, in one run: (a) a plain render (load the scene,
-`mi.render` the whole image with the same integrator, depth, spp and threads, write an EXR), and
-(b) `quekaro render --opt off` of the same job (effect analysis, units in a child process,
-composition, EXR + PNG + report). The ratio is min(b) / min(a) over the repeats; the images must
-agree up to noise. Target: ratio <= 1.05 for a ~20 s render.
+Per level (`--levels`, default off; `--adaptive` for the optimised ones), fresh processes alternate in one
+run: the whole `quekaro render` process (analysis, pre-pass, units in a render process, composition,
+EXR + PNG + report; bench.accuracy's in-process runner) and plain Mitsuba as a user runs it
+(`python -m planning.plain`: import, load, one `mi.render` of the whole image, EXR) at the job's mean
+spp (its samples over its pixels), in the job's variant. Each side runs once to warm Dr.Jit's kernel
+cache, then `--repeats` times; the fastest of each counts. Where the job's time went comes from its
+report: outside the job (process start, imports, exit), the pre-pass, the units' render seconds, and the
+rest (analysis, planning, the render process's start and variant, composition, writing).
+
+Level off's target: quekaro / plain <= 1.05 (for a render of ~20 s).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
+from typing import Any
 
-from bench.report import DEFAULT_OUT, write_report
+from bench.accuracy import inprocess_runner, parse_levels
+from bench.report import DEFAULT_OUT, publish_markdown
+from core.errors import QuekaroError
 from core.model.job import SceneSpec
-from core.render.effects import analyse
 from core.render.imageio import read_exr
-from core.render.metrics import relmse
-
-# Mitsuba and Dr.Jit are imported where used: `import mitsuba` costs ~0.35 s and 85 MB, must follow the
-# variant choice (core.render.mitsuba_env), and processes that never render must not pay for it.
+from planning.accuracy import job_variant, plain_render
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_SCENE = REPO / "scenes" / "cbox.xml"
+OFF_TARGET = 1.05
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", type=Path, default=DEFAULT_SCENE)
-    parser.add_argument("--res", type=int, default=512, help="image side (scene parameter res)")
-    parser.add_argument("--spp", type=int, default=256)
+    parser.add_argument("-D", dest="defines", action="append", default=[], metavar="NAME=VALUE",
+                        help="a scene parameter, as Mitsuba's -D (after --res)")
+    parser.add_argument("--res", type=int, default=512, help="scene parameter res (the image side)")
+    parser.add_argument("--spp", type=int, default=256, help="the user's spp (what level off renders)")
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--levels", default="off", help="comma list of optimisation levels")
+    parser.add_argument("--adaptive", action="store_true", help="the optimised levels as adaptive jobs")
+    parser.add_argument("--repeats", type=int, default=2, help="timed runs of each side per level (fastest counts)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder for overhead.md")
 
 
-def _timed(cmd: list[str]) -> float:
-    start = time.perf_counter()
-    subprocess.run(cmd, check=True, cwd=REPO, capture_output=True)
-    return time.perf_counter() - start
-
-
-def run(args: argparse.Namespace) -> dict:
-
-    defines = {"res": str(args.res), "spp": str(args.spp)}
-    effects = analyse(SceneSpec(args.scene, defines))
-    with tempfile.TemporaryDirectory() as tmp:
-        plain_out, farm_out = Path(tmp) / "plain.exr", Path(tmp) / "quekaro.exr"
-        plain_cmd = [sys.executable, "-m", "bench.plain", str(args.scene), "--spp", str(args.spp), "-t",
-                     str(args.threads), "-o", str(plain_out), *(f"-D{k}={v}" for k, v in defines.items())]
-        ours_cmd = [sys.executable, "-m", "quekaro", "render", str(args.scene), "--opt", "off", "--spp",
-                    str(args.spp), "--threads", str(args.threads), "-o", str(farm_out)]
-        ours_cmd += [arg for k, v in defines.items() for arg in ("-D", f"{k}={v}")]
-        _timed(plain_cmd)  # warm the kernel cache for both (same kernels are not shared: warm each)
-        _timed(ours_cmd)
-        plain_s, ours_s = [], []
-        for _ in range(args.repeats):
-            plain_s.append(_timed(plain_cmd))
-            ours_s.append(_timed(ours_cmd))
-        a, b = read_exr(plain_out), read_exr(farm_out)
-        report = json.loads(farm_out.with_suffix(".json").read_text())
-    result = {
-        "scene": str(args.scene), "res": args.res, "spp": args.spp, "threads": args.threads,
-        "integrator": effects.integrator, "max_depth": effects.max_depth, "units": report["totals"]["units"],
-        "plain_seconds": min(plain_s), "quekaro_seconds": min(ours_s), "ratio": min(ours_s) / min(plain_s),
-        "plain_all": plain_s, "quekaro_all": ours_s,
-        "mean_plain": float(a.mean()), "mean_quekaro": float(b.mean()), "relmse_between": relmse(b, a),
-        "mean_rel_diff": float(abs(a.mean() - b.mean()) / max(a.mean(), 1e-12)),
-    }
-    text = format_report(result)
-    write_report(args.out, "overhead", "Pipeline overhead against plain Mitsuba", text, "quekaro bench overhead")
-    if not args.json:
-        print(text)
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    if args.repeats < 1:
+        raise QuekaroError(f"--repeats {args.repeats}: at least one timed run")
+    spec = SceneSpec(args.scene, {"res": str(args.res), **_defines(args.defines)})
+    levels = parse_levels(args.levels)
+    variant = job_variant(spec)
+    with tempfile.TemporaryDirectory(prefix="quekaro-overhead-") as tmp, \
+            inprocess_runner(args.threads, adaptive=args.adaptive) as run_job:
+        rows = [_level_row(run_job, spec, variant, level, args, Path(tmp)) for level in levels]
+    result = {"scene": str(args.scene), "defines": spec.defines, "spp": args.spp, "threads": args.threads,
+              "variant": variant, "adaptive": args.adaptive, "repeats": args.repeats, "levels": rows}
+    publish_markdown(args.out, "overhead", "Pipeline overhead against plain Mitsuba", _command(args),
+                     format_report(result), show=not args.json)
     return result
 
 
-def format_report(r: dict) -> str:
-    def runs(key: str) -> str:
-        return ", ".join(f"{s:.2f}" for s in r[key])
+def _defines(items: list[str]) -> dict[str, str]:
+    for text in items:
+        if "=" not in text:
+            raise QuekaroError(f"-D {text!r}: expected NAME=VALUE")
+    return dict(text.split("=", 1) for text in items)
 
-    return "\n".join([
-        f"{Path(r['scene']).name} {r['res']}x{r['res']}, {r['spp']} spp, {r['threads']} threads, "
-        f"{r['integrator']} max_depth {r['max_depth']}; fastest of the runs",
-        f"plain Mitsuba     {r['plain_seconds']:7.2f} s   (runs {runs('plain_all')})",
-        f"quekaro render    {r['quekaro_seconds']:7.2f} s   (runs {runs('quekaro_all')}), {r['units']} units",
-        f"ratio             {r['ratio']:7.3f}   (target <= 1.05) {'PASS' if r['ratio'] <= 1.05 else 'MISS'}",
-        f"image means       {r['mean_plain']:.5f} vs {r['mean_quekaro']:.5f} (rel. diff {r['mean_rel_diff']:.4f}); "
-        f"relMSE between them {r['relmse_between']:.2e}",
-    ])
+
+def _level_row(run_job: Any, spec: SceneSpec, variant: str, level: str, args: argparse.Namespace,
+               tmp: Path) -> dict[str, Any]:
+    """One level: the job and plain Mitsuba at the job's mean spp, alternating; the fastest of each."""
+    out = tmp / f"{level}.exr"
+    report, _, _ = run_job(spec, level, args.spp, out)  # warm-up; it also fixes the spp plain renders
+    width, height = (int(v) for v in (report["image"]["width"], report["image"]["height"]))
+    spp = max(1, round(report["totals"]["samples"] / (width * height)))
+    plain_render(spec, spp, args.threads, variant)  # warm-up
+    ours, plain = [], []
+    for _ in range(args.repeats):
+        report, wall, _ = run_job(spec, level, args.spp, out)
+        ours.append((wall, report))
+        plain.append(plain_render(spec, spp, args.threads, variant, seed=len(plain) + 1))
+    wall, report = min(ours, key=lambda pair: pair[0])
+    plain_pixels, plain_s = min(plain, key=lambda pair: pair[1])
+    totals = report["totals"]
+    job_s, render_s, prepass_s = (float(totals.get(k, 0.0)) for k in ("seconds", "render_seconds", "prepass_seconds"))
+    ours_mean, plain_mean = float(read_exr(out)[..., :3].mean()), float(plain_pixels.mean())
+    return {
+        "level": level, "spp": spp, "units": int(totals["units"]), "plain_seconds": plain_s, "quekaro_seconds": wall,
+        "ratio": wall / plain_s, "outside_job_seconds": wall - job_s, "prepass_seconds": prepass_s,
+        "render_seconds": render_s, "rest_seconds": job_s - render_s - prepass_s,
+        "plain_runs": [s for _, s in plain], "quekaro_runs": [s for s, _ in ours],
+        "mean_rel_diff": abs(ours_mean - plain_mean) / max(abs(plain_mean), 1e-12),
+    }
+
+
+def _command(args: argparse.Namespace) -> str:
+    parts = ["quekaro bench overhead", f"--levels {args.levels}", f"--spp {args.spp}", f"--res {args.res}"]
+    parts += ["--adaptive"] if args.adaptive else []
+    return " ".join(parts)
+
+
+def format_report(r: dict[str, Any]) -> str:
+    """The table, one row per level, and level off's target line when it was measured."""
+    name = Path(r["scene"]).name
+    lines = [f"{name} {r['defines']}, user spp {r['spp']}, {r['threads']} threads, {r['variant']}"
+             f"{', adaptive' if r['adaptive'] else ''}; fastest of {r['repeats']} runs after a warm-up, "
+             "each side a whole process", "",
+             "| level | spp | units | plain Mitsuba s | quekaro render s | ratio | outside the job s | pre-pass s "
+             "| units' render s | rest of the job s | means' rel. diff |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for row in r["levels"]:
+        lines.append(f"| {row['level']} | {row['spp']} | {row['units']} | {row['plain_seconds']:.2f} | "
+                     f"{row['quekaro_seconds']:.2f} | {row['ratio']:.3f} | {row['outside_job_seconds']:.2f} | "
+                     f"{row['prepass_seconds']:.2f} | {row['render_seconds']:.2f} | {row['rest_seconds']:.2f} | "
+                     f"{row['mean_rel_diff']:.4f} |")
+    off = [row for row in r["levels"] if row["level"] == "off"]
+    if off:
+        ratio = off[0]["ratio"]
+        lines += ["", f"target: level off quekaro render / plain Mitsuba <= {OFF_TARGET}: {ratio:.3f} "
+                      f"{'PASS' if ratio <= OFF_TARGET else 'MISS'}"]
+    return "\n".join(lines)
