@@ -6,7 +6,8 @@ network, no Mitsuba. `agents.render_agent.RenderAgent` turns XMPP messages and t
 (bundle fetched, unit rendered, tile uploaded) into events and carries out the commands; the unit tests
 (tests/test_agent_state.py) drive it with a fake clock.
 
-Events: the master's messages (`m.CallForProposal`, `m.Award`, `m.Reject`, `m.Cancel`, as parsed), `Measured`
+Events: the master's messages (`m.CallForProposal`, `m.Award`, `m.Reject`, `m.Cancel`, `m.Welcome`, as
+parsed), `Measured`
 (the agent's speed), `Tick` (time passes; the connection's state), and the ends of the commands it gave:
 `BundleReady`/`BundleFailed`, `RenderFinished`/`RenderFailed`, `UploadDone`/`UploadFailed`. Commands:
 `Send` (a message to the master), `FetchBundle`, `StartRender`, `Upload`, `DiscardTile`, `Log`.
@@ -20,7 +21,8 @@ What it decides (the protocol is in agents/render_agent.py's docstring):
   cancel     one unit or a whole job: queued units never start, a unit whose bundle is being fetched is
              not rendered, a render in flight runs to its end (the render process cannot be interrupted
              without losing its compiled kernels) and its tile is thrown away; nothing is answered.
-  heartbeat  Register on every (re)connection, then a Heartbeat every `heartbeat_s` listing the held units.
+  heartbeat  Register on every (re)connection, and again with each heartbeat until the master's Welcome
+             answers one; a Heartbeat every `heartbeat_s` listing the held units.
   estimates  base seconds (cost x spp / speed) + a kernel compilation for a window it has not rendered,
              times the job's `Calibration`: the ratio of measured to estimated seconds of its done units.
 
@@ -133,7 +135,7 @@ class UploadFailed:
     reason: str
 
 
-Event = (m.CallForProposal | m.Award | m.Reject | m.Cancel | Measured | Tick | BundleReady | BundleFailed
+Event = (m.CallForProposal | m.Award | m.Reject | m.Cancel | m.Welcome | Measured | Tick | BundleReady | BundleFailed
          | RenderFinished | RenderFailed | UploadDone | UploadFailed)
 
 
@@ -268,6 +270,8 @@ class AgentState:
         self._tickets = itertools.count(1)
         self._conversations = itertools.count(1)
         self._registered_on: int | None = None  # the connection it last registered on
+        self._unwelcomed: set[str] = set()  # conversations of its Registers on it that no Welcome answered yet
+        self._welcomed = False  # the master answered one of them
         self._next_beat = 0.0
 
     def handle(self, event: Event, now: float) -> list[Command]:
@@ -281,6 +285,8 @@ class AgentState:
                 return self._on_cancel(event)
             case m.Reject():
                 return [Log(logging.DEBUG, f"rejected in {event.conversation}: {event.reason}")]
+            case m.Welcome():
+                return self._on_welcome(event)
             case Tick():
                 return self._on_tick(event, now)
             case Measured():
@@ -384,14 +390,29 @@ class AgentState:
             return []
         out: list[Command] = []
         if tick.connection != self._registered_on and self.speed is not None:
-            out.append(Send(m.Register(conversation=self._conversation("register"), speed=self.speed.speed,
-                                       threads=self.threads, rules=self.rules)))
             self._registered_on, self._next_beat = tick.connection, now
+            self._unwelcomed, self._welcomed = set(), False
+            out.append(self._register())
+        elif self._registered_on is not None and not self._welcomed and now >= self._next_beat:
+            out.append(self._register())  # unanswered: the master may have been offline when it came
         if self._registered_on is not None and now >= self._next_beat:
             busy = self.busy_units()[:MAX_BUSY]
             out.append(Send(m.Heartbeat(conversation=self._conversation("hb"), busy=busy)))
             self._next_beat = now + self.heartbeat_s
         return out
+
+    def _register(self) -> Send:
+        conversation = self._conversation("register")
+        self._unwelcomed.add(conversation)
+        return Send(m.Register(conversation=conversation, speed=self.speed.speed, threads=self.threads,
+                               rules=self.rules))
+
+    def _on_welcome(self, welcome: m.Welcome) -> list[Command]:
+        """The master heard a Register of this connection: no more of them until the next connection."""
+        if welcome.conversation not in self._unwelcomed:
+            return [Log(logging.DEBUG, f"welcome in {welcome.conversation}: not a Register of this connection")]
+        self._welcomed, self._unwelcomed = True, set()
+        return []
 
     def _conversation(self, kind: str) -> str:
         return f"{kind}-{self.session}-{next(self._conversations):x}"

@@ -563,7 +563,8 @@ class Auction:
         """Dispatch a parsed message from `sender` (a JID the transport has already authenticated)."""
         match msg:
             case m.Register():
-                return self.register(sender, now, speed=msg.speed)
+                welcome = Send(sender, m.Welcome(conversation=msg.conversation))  # the agent retries until it
+                return [*self.register(sender, now, speed=msg.speed), welcome]
             case m.Heartbeat():
                 return self.on_heartbeat(sender, msg, now)
             case m.Propose():

@@ -467,6 +467,7 @@ def test_registers_on_every_connection_and_beats_the_held_units() -> None:
     reg, beat = sent(agent(Tick(connection=0)))
     assert isinstance(reg, m.Register) and (reg.speed, reg.threads, reg.rules) == (SPEED, 1, "test.xml")
     assert isinstance(beat, m.Heartbeat) and beat.busy == ()
+    assert agent(m.Welcome(conversation=reg.conversation)) == []  # the master heard it
     assert agent(Tick(), dt=1.0) == []  # the next beat is due 2 s later
     info = job()
     fetch = only(agent(award(info, unit(1))), FetchBundle)
@@ -480,6 +481,23 @@ def test_registers_on_every_connection_and_beats_the_held_units() -> None:
     reg, beat = sent(agent(Tick(connection=1)))  # reconnected: at once, both
     assert isinstance(reg, m.Register) and isinstance(beat, m.Heartbeat)
     assert len({reg.conversation, beat.conversation}) == 2
+
+
+def test_registers_again_with_each_beat_until_a_welcome_of_this_connection_answers() -> None:
+    agent = Agent()
+    first, _ = sent(agent(Tick(connection=0)))
+    again, beat = sent(agent(Tick(), dt=2.0))  # no Welcome: the master may have been offline
+    assert isinstance(again, m.Register) and isinstance(beat, m.Heartbeat)
+    assert again.conversation != first.conversation
+    assert agent(Tick(), dt=1.0) == []  # only with a beat, not at every tick
+    agent(m.Welcome(conversation="register-of-someone-else"))  # not one of its Registers: ignored
+    assert [type(s) for s in sent(agent(Tick(), dt=1.0))] == [m.Register, m.Heartbeat]
+    agent(m.Welcome(conversation=first.conversation))  # an earlier one's answer counts as well
+    assert [type(s) for s in sent(agent(Tick(), dt=2.0))] == [m.Heartbeat]
+    assert [type(s) for s in sent(agent(Tick(connection=1)))] == [m.Register, m.Heartbeat]  # unwelcomed again
+    old_welcome = agent(m.Welcome(conversation=again.conversation))  # a Welcome from the last connection
+    assert old_welcome and isinstance(old_welcome[0], Log)
+    assert [type(s) for s in sent(agent(Tick(), dt=2.0))] == [m.Register, m.Heartbeat]
 
 
 def test_no_registration_before_the_speed_is_known() -> None:

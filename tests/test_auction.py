@@ -708,3 +708,14 @@ def test_an_adaptive_jobs_units_are_scheduled_by_their_share_of_samples() -> Non
     assert a.rate("A", "job-1") == pytest.approx(0.01, rel=0.01)
     got = awards(a.decide(0.0))
     assert sorted(got) == [0, 1]
+
+
+def test_every_register_is_answered_with_a_welcome_of_its_conversation() -> None:
+    a = make([1.0], [])
+    reg = m.Register(conversation="register-s-1", speed=2.0, threads=1, rules="r.xml")
+    out = a.on_message("A", reg, 0.0)
+    assert events(out, au.AgentRegistered) == [au.AgentRegistered("A", 2.0)]
+    assert [(s.to, s.message) for s in sends(out, m.Welcome)] == [("A", m.Welcome(conversation="register-s-1"))]
+    again = a.on_message("A", dataclasses.replace(reg, conversation="register-s-2", speed=3.0), 1.0)
+    assert not events(again, au.AgentRegistered) and a.agents["A"].speed == 3.0  # known: its speed updated
+    assert [s.message.conversation for s in sends(again, m.Welcome, to="A")] == ["register-s-2"]

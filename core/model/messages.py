@@ -224,6 +224,15 @@ class Register(Message):
 
 
 @dataclass(frozen=True, kw_only=True)
+class Welcome(Message):
+    """Master -> agent: its Register (this conversation) arrived. Until one comes on its current connection,
+    the agent sends Register again with each heartbeat: the server drops messages to a JID that is offline,
+    as the master is while it too reconnects after a server restart."""
+
+    performative: ClassVar[str] = "welcome"
+
+
+@dataclass(frozen=True, kw_only=True)
 class HeldUnit:
     """A unit an agent holds: awarded to it and not yet answered with Inform or Failure."""
 
@@ -251,7 +260,8 @@ class Cancel(Message):
 
 KINDS: dict[str, type[Message]] = {
     cls.performative: cls
-    for cls in (CallForProposal, Propose, Refuse, Award, Reject, Inform, Failure, Register, Heartbeat, Cancel)
+    for cls in (CallForProposal, Propose, Refuse, Award, Reject, Inform, Failure, Register, Welcome, Heartbeat,
+                Cancel)
 }
 
 
