@@ -504,8 +504,8 @@ def load_costs(args: argparse.Namespace) -> CostMap:
         costs = CostMap.from_file(args.costs)
         if costs.info.get("wide_scene_sha256") == sha256_file(wide_scene(CACHE, args.scene)):
             return costs
-        print(f"{args.costs}: measured on another scene; measuring {args.scene}")
-    print(f"measuring {args.scene} at {MEASURE_W}x{MEASURE_H} for the cost map {args.costs} ...", flush=True)
+        progress(f"{args.costs}: measured on another scene; measuring {args.scene}")
+    progress(f"measuring {args.scene} at {MEASURE_W}x{MEASURE_H} for the cost map {args.costs} ...")
     return write_costs(args.costs, args.scene, args.threads, args.remeasure)
 
 
@@ -514,19 +514,20 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.write_costs:
         spp = job_spp(costs, args.t1)
         t1 = costs.seconds(Rect(0, 0, JOB_W, JOB_H), spp, JOB_W, JOB_H)
-        print(f"wrote {args.costs}: T1 at {JOB_W}x{JOB_H} = {t1:.0f} s at {spp} spp")
+        if not args.json:
+            print(f"wrote {args.costs}: T1 at {JOB_W}x{JOB_H} = {t1:.0f} s at {spp} spp")
         return {"costs": str(args.costs), "spp": spp}
     counts = [int(c) for c in str(args.agents).split(",") if c.strip()]
     prosody, server_line = use_prosody(args.xmpp)
     job = make_job(costs, args.scene, job_spp(costs, args.t1))
-    print(server_line, flush=True)
+    progress(server_line)
     rows = []
     with ExitStack() as stack:
         root = args.keep or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="quekaro-hosts-")))
         for n in counts:
-            print(f"{n} emulated agents ...", flush=True)
+            progress(f"{n} emulated agents ...")
             rows.append(run_count(n, job, costs, args.costs, prosody, Path(root)))
-            print(row_line(rows[-1]), flush=True)
+            progress(row_line(rows[-1]))
     result = {"server": server_line, "scene": str(args.scene), "width": JOB_W, "height": JOB_H, "spp": job.spp,
               "t1_s": job.t1, "costs": str(args.costs), "measured": costs.info, "mixed_speeds": list(MIXED_SPEEDS),
               "load": os.getloadavg(), "cpus": os.cpu_count(), "rows": rows}
@@ -535,6 +536,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if not args.json:
         print(text)
     return result
+
+
+def progress(text: str) -> None:
+    """A progress line, on stderr: stdout holds the result alone (the table, or one JSON object)."""
+    print(text, file=sys.stderr, flush=True)
 
 
 def row_line(r: dict[str, Any]) -> str:

@@ -32,6 +32,7 @@ import argparse
 import csv
 import hashlib
 import json
+import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -224,7 +225,7 @@ def measure_cached(scene_path: Path, res: int, cell: int, spp: int, threads: int
                 tmap = TimeMap(data["per_sample"], float(data["fixed_s"]), json.loads(str(data["tmap_info"])))
             return tmap, cmap, True
         except (OSError, KeyError, ValueError) as exc:
-            print(f"cache {path} unreadable ({exc}); measuring again")
+            print(f"cache {path} unreadable ({exc}); measuring again", file=sys.stderr)
     tmap, cmap = measure(spec, cell, spp, threads)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.stem + ".tmp.npz")

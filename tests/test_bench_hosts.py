@@ -1,0 +1,32 @@
+"""`quekaro bench hosts` end to end at its smallest: the embedded XMPP server, the master and two emulated
+agent processes, one job, against the simulator's prediction; `--json` prints the result alone."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from bench import hosts
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+@pytest.mark.slow
+def test_two_emulated_agents_finish_a_job_and_json_is_the_whole_stdout(tmp_path: Path) -> None:
+    costs, out = tmp_path / "costs.json", tmp_path / "hosts.md"
+    done = subprocess.run([sys.executable, "-m", "quekaro", "bench", "hosts", "--json", "--agents", "2",
+                           "--t1", "4", "--xmpp", "embedded", "--costs", str(costs), "--out", str(out)],
+                          cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    result = json.loads(done.stdout)  # progress went to stderr
+    assert "2 emulated agents" in done.stderr and costs.is_file()  # the missing cost map was measured
+    (row,) = result["rows"]
+    assert row["agents"] == 2 and row["units"] >= 2
+    assert row["report_units"] == row["report_emulated_units"] == row["units"]  # every tile emulated
+    assert 0 < row["efficiency"] <= 1.0 + 1e-9 and row["makespan_s"] > 0 and row["sim_makespan_s"] > 0
+    assert row["heavy_modules"] == []  # an emulated agent loads no Mitsuba or Dr.Jit
+    assert hosts.format_report(result) in out.read_text()
