@@ -7,10 +7,9 @@ network, no Mitsuba. `agents.render_agent.RenderAgent` turns XMPP messages and t
 (tests/test_agent_state.py) drive it with a fake clock.
 
 Events: the master's messages (`m.CallForProposal`, `m.Award`, `m.Reject`, `m.Cancel`, `m.Welcome`, as
-parsed), `Measured`
-(the agent's speed), `Tick` (time passes; the connection's state), and the ends of the commands it gave:
-`BundleReady`/`BundleFailed`, `RenderFinished`/`RenderFailed`, `UploadDone`/`UploadFailed`. Commands:
-`Send` (a message to the master), `FetchBundle`, `StartRender`, `Upload`, `DiscardTile`, `Log`.
+parsed), `Measured` (the agent's speed), `Tick` (time passes; the connection's state), and the ends of the
+commands it gave: `BundleReady`/`BundleFailed`, `RenderFinished`/`RenderFailed`, `UploadDone`/`UploadFailed`.
+Commands: `Send` (a message to the master), `FetchBundle`, `StartRender`, `Upload`, `DiscardTile`, `Log`.
 
 What it decides (the protocol is in agents/render_agent.py's docstring):
   slots      it holds at most `slots` units (awarded, not answered, not cancelled) and bids only below
@@ -270,8 +269,8 @@ class AgentState:
         self._tickets = itertools.count(1)
         self._conversations = itertools.count(1)
         self._registered_on: int | None = None  # the connection it last registered on
-        self._unwelcomed: set[str] = set()  # conversations of its Registers on it that no Welcome answered yet
-        self._welcomed = False  # the master answered one of them
+        # Conversations of its Registers on that connection while no Welcome answered one (empty: answered).
+        self._unwelcomed: set[str] = set()
         self._next_beat = 0.0
 
     def handle(self, event: Event, now: float) -> list[Command]:
@@ -391,9 +390,9 @@ class AgentState:
         out: list[Command] = []
         if tick.connection != self._registered_on and self.speed is not None:
             self._registered_on, self._next_beat = tick.connection, now
-            self._unwelcomed, self._welcomed = set(), False
+            self._unwelcomed = set()
             out.append(self._register())
-        elif self._registered_on is not None and not self._welcomed and now >= self._next_beat:
+        elif self._unwelcomed and now >= self._next_beat:
             out.append(self._register())  # unanswered: the master may have been offline when it came
         if self._registered_on is not None and now >= self._next_beat:
             busy = self.busy_units()[:MAX_BUSY]
@@ -411,7 +410,7 @@ class AgentState:
         """The master heard a Register of this connection: no more of them until the next connection."""
         if welcome.conversation not in self._unwelcomed:
             return [Log(logging.DEBUG, f"welcome in {welcome.conversation}: not a Register of this connection")]
-        self._welcomed, self._unwelcomed = True, set()
+        self._unwelcomed = set()
         return []
 
     def _conversation(self, kind: str) -> str:

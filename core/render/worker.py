@@ -318,7 +318,10 @@ def _child_main(conn: Any) -> None:
         if message is None:
             return
         if isinstance(message, tuple) and message[0] == "variant":
-            conn.send(("variant", _set_variant(*message[1:])))
+            # A failure is left to the unit's own render, which meets it again and reports it.
+            with contextlib.suppress(Exception):
+                mitsuba_env.init(*message[1:])
+            conn.send(("variant",))
             continue
         try:
             tile = render_job_here(RenderRequest.from_dict(message), cache)
@@ -326,16 +329,6 @@ def _child_main(conn: Any) -> None:
         except Exception as exc:
             kind = type(exc).__name__ if isinstance(exc, QuekaroError) else "RenderError"
             conn.send(("error", kind, f"{type(exc).__name__}: {exc}", traceback.format_exc(limit=3)))
-
-
-def _set_variant(variant: str, threads: int | None) -> str | None:
-    """Select the variant and thread count ahead of the first unit; what went wrong, or None. A failure
-    is only reported here: the unit's own render meets it again and says so."""
-    try:
-        mitsuba_env.init(variant, threads)
-    except Exception as exc:
-        return f"{type(exc).__name__}: {exc}"
-    return None
 
 
 def _death_reason(exitcode: int | None) -> str:
@@ -403,16 +396,20 @@ class RenderWorker:
         self.starts += 1
 
     def _wait_ready(self) -> None:
-        if not self._conn.poll(self.startup_timeout):
-            self._kill()
-            raise RenderError(f"render process did not start within {self.startup_timeout:.0f} s")
-        try:
-            _, info = self._conn.recv()
-        except (EOFError, OSError):
-            reason = _death_reason(self._reap())
-            raise RenderError(f"render process failed to start ({reason})") from None
+        _, info = self._answer("start", "to start")
         self.import_seconds = float(info["import_seconds"])
         self._ready = True
+
+    def _answer(self, doing: str, failing: str) -> Any:
+        """The child's next answer within the start-up timeout; RenderError (child killed or reaped) if none."""
+        if not self._conn.poll(self.startup_timeout):
+            self._kill()
+            raise RenderError(f"render process did not {doing} within {self.startup_timeout:.0f} s")
+        try:
+            return self._conn.recv()
+        except (EOFError, OSError):
+            reason = _death_reason(self._reap())
+            raise RenderError(f"render process failed {failing} ({reason})") from None
 
     def prepare(self, variant: str, threads: int | None) -> None:
         """Have the child select `variant` and the thread count now, while the caller goes on: Mitsuba's
@@ -429,14 +426,7 @@ class RenderWorker:
     def _read_prepared(self) -> None:
         """Read the answers to `prepare` (the render that follows reports any failure itself)."""
         while self._unanswered:
-            if not self._conn.poll(self.startup_timeout):
-                self._kill()
-                raise RenderError(f"render process did not select its variant within {self.startup_timeout:.0f} s")
-            try:
-                self._conn.recv()
-            except (EOFError, OSError):
-                reason = _death_reason(self._reap())
-                raise RenderError(f"render process failed while selecting its variant ({reason})") from None
+            self._answer("select its variant", "while selecting its variant")
             self._unanswered -= 1
 
     def release(self) -> None:
