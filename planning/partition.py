@@ -181,7 +181,8 @@ def partition(
     """
     if target_units < 1:
         raise PartitionError(f"target_units must be at least 1, got {target_units}")
-    tree = _Tree(cmap.width, cmap.height, check_sizes(sizes), _Stats(cmap))
+    stats = _Stats(cmap)
+    tree = _Tree(cmap.width, cmap.height, check_sizes(sizes), stats)
     while tree.heap and len(tree.leaves) < target_units:
         tree.split_top()
     target_cost = tree.stats.work(Rect(0, 0, cmap.width, cmap.height)) / target_units
@@ -190,10 +191,10 @@ def partition(
             break
         tree.split_top()
     tree.merge_cheap()
-    return units_from_rects(cmap, tree.rects())
+    return units_from_rects(cmap, tree.rects(), stats)
 
 
-def units_from_rects(cmap: ComplexityMap, rects: Sequence[Rect]) -> list[WorkUnit]:
+def units_from_rects(cmap: ComplexityMap, rects: Sequence[Rect], stats: _Stats | None = None) -> list[WorkUnit]:
     """Units for the given rectangles (which must tile the image): C, S, Nd, cost and neighbours.
 
     C is the unit's mean per-pixel *relative* std per sample, sqrt(noise / (mean^2 + 0.01)) from the
@@ -203,9 +204,9 @@ def units_from_rects(cmap: ComplexityMap, rects: Sequence[Rect]) -> list[WorkUni
     and allocating by it reaches 0.77x the uniform error where rays per sample (the former C) reaches
     0.93x. The mean of the per-pixel std, not the rms, so that one firefly of the few-sample pre-pass
     does not make a unit complex. Without the map's mean (old callers), C is the rays per sample.
-    Nd is the largest |C - C_neighbour|, S the area.
+    Nd is the largest |C - C_neighbour|, S the area. `stats`: the map's tables, when the caller has them.
     """
-    stats = _Stats(cmap)
+    stats = stats or _Stats(cmap)
     labels = label_image(rects, cmap.width, cmap.height)
     neighbours = _neighbours(labels, len(rects))
     per_sample = (lambda r: stats.complexity(r)[0]) if stats.relative else (lambda r: stats.cost(r) / r.area)

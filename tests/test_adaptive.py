@@ -15,7 +15,15 @@ from scipy import ndimage, stats
 
 from core.errors import RenderError
 from core.model.job import SceneSpec
-from core.render.adaptive import PAYS_BELOW, blurred, neyman_counts, render_adaptive, second_pass, separable
+from core.render.adaptive import (
+    PAYS_BELOW,
+    blurred,
+    neyman_counts,
+    neyman_scale,
+    render_adaptive,
+    second_pass,
+    separable,
+)
 from core.render.counts import render_counts
 from core.render.scene import load
 
@@ -151,6 +159,30 @@ def test_neyman_counts_edges():
     assert (1 + extra[0, 0]) / (1 + extra[0, 1]) == pytest.approx(2.0, rel=0.05)  # sqrt(1 / cost)
     with pytest.raises(RenderError, match="cost map"):
         neyman_counts(np.ones((2, 2)), 1, 40, rng, np.ones((1, 2)))
+
+
+@pytest.mark.parametrize("case", range(12))
+def test_neyman_scale_solves_the_budget(case):
+    # Against the definition, sum(max(first, lam base) cost) = budget, and a bisection of it: heavy tails,
+    # zeros, a single pixel, ties, costs spanning 1e4, budgets just above the first pass and far above it.
+    rng = np.random.default_rng(case)
+    shape = [(1, 1), (1, 7), (40, 30), (256, 256)][case % 4]
+    base = rng.pareto(1.0, size=shape) * (rng.random(shape) < [1.0, 0.5, 0.05][case % 3])
+    if not base.any():
+        base.flat[0] = 1.0
+    if case == 5:
+        base = np.round(base)  # many equal values
+    cost = 10 ** rng.uniform(-2, 2, size=shape) if case % 2 else np.ones(shape)
+    first = int(rng.integers(1, 9))
+    budget = first * cost.sum() * [1.0 + 1e-9, 1.5, 40.0][case % 3]
+    lam = neyman_scale(base, cost, first, budget)
+    spent = lambda s: float((np.maximum(first, s * base) * cost).sum())  # noqa: E731
+    assert spent(lam) == pytest.approx(budget, rel=1e-12)
+    lo, hi = 0.0, budget / float((base * cost)[base > 0].min())
+    while hi - lo > 1e-13 * hi:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if spent(mid) > budget else (mid, hi)
+    assert lam == pytest.approx(lo, rel=1e-9)
 
 
 @pytest.mark.parametrize("shape", [(64, 48), (1, 1), (3, 40), (40, 2), (17, 1)])

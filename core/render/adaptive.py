@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from core.errors import RenderError
 from core.render.counts import render_counts
@@ -46,7 +47,7 @@ def neyman_counts(relative_variance: np.ndarray, first: int, total: float, rng: 
                   cost: np.ndarray | None = None) -> np.ndarray:
     """Second-pass counts: each pixel's total n = max(first, lam sqrt(variance / cost)), lam such that the
     totals cost what `total` samples at uniform density would, sum(n cost) = total x mean(cost)
-    (bisection to 1e-9 relative), minus `first`, rounded stochastically (the expectation is kept) to
+    (exact: `neyman_scale`), minus `first`, rounded stochastically (the expectation is kept) to
     integers. `cost`: each pixel's relative time per sample (None: equal). All zero when the first pass
     spent the budget."""
     variance = np.maximum(np.asarray(relative_variance, dtype=np.float64), 0.0)
@@ -59,13 +60,26 @@ def neyman_counts(relative_variance: np.ndarray, first: int, total: float, rng: 
     base = np.sqrt(variance / cost)
     if not base.any():  # no pixel is noisier than another: the rest uniformly
         base = np.ones(base.shape)
-    lo, hi = 0.0, budget / float((base * cost)[base > 0].min())
-    while hi - lo > 1e-9 * hi:
-        lam = 0.5 * (lo + hi)
-        lo, hi = (lo, lam) if (np.maximum(first, lam * base) * cost).sum() > budget else (lam, hi)
-    extra = np.maximum(first, lo * base) - first
+    extra = np.maximum(first, neyman_scale(base, cost, first, budget) * base) - first
     whole = np.floor(extra)
     return (whole + (rng.random(extra.shape) < extra - whole)).astype(np.int64)
+
+
+def neyman_scale(base: np.ndarray, cost: np.ndarray, first: int, budget: float) -> float:
+    """The lam with sum(max(first, lam base) cost) = budget (base >= 0 not all zero, budget above
+    first x sum(cost)). The sum is convex and piecewise linear in lam; Newton's steps from lam = 0 land at
+    or above the root and then fall to it, each fixing the set of pixels above `first` and solving the
+    linear sum exactly, so they stop once that set stops changing (a handful of steps on noise maps)."""
+    weighted = base * cost
+    above = base > 0
+    lam = 0.0
+    for _ in range(base.size + 1):  # the set shrinks at each step after the first, so this always ends
+        nxt = (budget - first * float(cost[~above].sum())) / float(weighted[above].sum())
+        now = nxt * base > first
+        if np.array_equal(now, above) or nxt >= lam > 0:
+            return nxt
+        above, lam = now, nxt
+    return lam
 
 
 def first_spp(spp: int) -> int:
@@ -144,17 +158,12 @@ def separable(image: np.ndarray, weights: np.ndarray) -> np.ndarray:
     repeated beyond the border: scipy.ndimage.correlate1d's mode "nearest" on each axis, to float64
     rounding (tests/test_adaptive.py compares them). Written here because importing scipy.ndimage costs
     ~0.24 s, paid by every adaptive job's planner and again by its render process before the first unit."""
+    weights = np.asarray(weights, dtype=np.float64)
     reach = len(weights) // 2
     out = np.asarray(image, dtype=np.float64)
-    for axis in (0, 1):
-        size = out.shape[axis]
-        padded = np.moveaxis(np.pad(out, [(reach, reach) if a == axis else (0, 0) for a in (0, 1)], mode="edge"),
-                             axis, 0)
-        acc = np.zeros((size, *padded.shape[1:]))
-        for i, w in enumerate(weights):
-            if w:
-                acc += w * padded[i:i + size]
-        out = np.moveaxis(acc, 0, axis)
+    for axis in (1, 0):
+        padded = np.pad(out, [(reach, reach) if a == axis else (0, 0) for a in (0, 1)], mode="edge")
+        out = sliding_window_view(padded, len(weights), axis=axis) @ weights  # the taps as one product
     return out
 
 
