@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable
 from typing import Any
 
 from core.errors import QuekaroError
@@ -72,14 +71,11 @@ def default_unit_count(width: int, height: int, level: str, min_units: int = 1) 
     return max(1, min(256, wanted, width * height))
 
 
-def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: int = 1,
-             on_variant: Callable[[str], None] | None = None) -> JobPlan:
+def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: int = 1) -> JobPlan:
     """Analyse the scene's effects, run the pre-pass (optimised levels only) on the scene as the analysis
     loaded it, and partition the image (into `options.units` units, else the default count and at least
-    `min_units`). `on_variant` hears the variant as soon as the analysis chose it, before the pre-pass."""
+    `min_units`)."""
     effects, loaded = analyse_loaded(spec, options.overrides())
-    if on_variant is not None:
-        on_variant(effects.variant)
     info = film_info(spec, options.sensor)
     width, height = info.width, info.height
     spp = options.spp or scene_spp(spec, options.sensor) or DEFAULT_SPP

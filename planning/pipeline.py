@@ -141,19 +141,28 @@ def render_job(spec: SceneSpec, options: RenderOptions, out: Path, job_id: str |
     """Render the scene as units in one process (each in two passes with `options.adaptive`); write
     OUT.exr/.png/.json and return the report. `progress` hears after the plan and after every unit."""
     start = time.perf_counter()
-    job_id = job_id or uuid.uuid4().hex[:12]
     worker = RenderWorker()
-    worker.launch()  # the child imports Mitsuba while this process plans; its first render waits for it
+    worker.launch()  # the child imports Mitsuba while this process hashes the scene
     try:
         seed = plan_seed(sha256_file(spec.path), spec.defines, options.to_dict())
-        plan = plan_job(spec, options, seed=seed, on_variant=lambda v: worker.prepare(v, options.threads))
-        planner = Planner(options.rules, options.defuzzifier)
-        chosen = plan_params(plan, planner)
-        job = UnitRun(plan, chosen, job_id, options.threads, worker, planner.rules_path.name, progress).render()
-        worker.release()  # the child's shutdown (~0.07 s) overlaps the writing
-        return write_outputs(plan, job, out, start, {"job_id": job_id})
+        # Planned in the render process: Mitsuba is imported and the variant selected once, and this
+        # process, which composes and writes, never pays for Mitsuba's import or its shutdown.
+        plan = worker.call(plan_job, spec, options, seed, doing="planning", timeout=UNIT_TIMEOUT_S)
+        return render_plan(plan, out, worker, start, job_id, progress)
     finally:
         worker.stop()
+
+
+def render_plan(plan: JobPlan, out: Path, worker: RenderWorker, started: float, job_id: str | None = None,
+                progress: Callable[[Progress], None] | None = None) -> dict:
+    """The rest of `render_job` for a plan already made: the rules' (or the shares') parameters, every
+    unit rendered by `worker`, composed and written. `started`: the job's start (time.perf_counter)."""
+    job_id = job_id or uuid.uuid4().hex[:12]
+    planner = Planner(plan.options.rules, plan.options.defuzzifier)
+    chosen = plan_params(plan, planner)
+    job = UnitRun(plan, chosen, job_id, plan.options.threads, worker, planner.rules_path.name, progress).render()
+    worker.release()  # the child's shutdown (~0.07 s) overlaps the writing
+    return write_outputs(plan, job, out, started, {"job_id": job_id})
 
 
 @dataclass

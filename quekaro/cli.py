@@ -15,7 +15,7 @@ import sys
 from importlib.metadata import entry_points
 
 from core.errors import QuekaroError
-from fuzzy.errors import FuzzyInputError, RuleFileError
+from core.render import child
 
 # The module that registers each top-level command (tests/test_cli.py checks it against what they register),
 # in the order `quekaro --help` lists them.
@@ -51,6 +51,17 @@ def main(argv: list[str] | None = None) -> int:
         from agents.render_agent import main as agent_main
 
         return int(agent_main(argv[1:]) or 0)
+    if argv[:1] == ["render"]:
+        child.start_early()  # its Mitsuba import overlaps this process's imports (the job takes it)
+    try:
+        return _run(argv)
+    finally:
+        child.discard_early()
+
+
+def _run(argv: list[str]) -> int:
+    from fuzzy.errors import FuzzyInputError, RuleFileError  # after the early start: `fuzzy` loads numpy
+
     parser = build_parser(argv[0] if argv else None)
     args, extra = parser.parse_known_args(argv)
     if extra and not hasattr(args, "argv"):  # only pass-through commands (`bench`) take what is left

@@ -61,6 +61,20 @@ def test_each_command_imports_the_module_that_registers_it() -> None:
     assert done.stdout.strip() == "False", done.stderr  # `quekaro render` leaves the farm unloaded
 
 
+@pytest.mark.slow
+def test_a_render_plans_and_renders_in_its_render_process_and_never_imports_mitsuba(tmp_path: Path) -> None:
+    # The command's own process composes and writes; Mitsuba's import, variant and shutdown are the child's.
+    code = ("import sys; from quekaro.cli import main; "
+            f"code = main(['render', {str(SCENES / 'cbox.xml')!r}, '-D', 'res=48', '--opt', 'S', '--adaptive', "
+            "'--spp', '8', '-t', '1', '--no-progress', '-o', 'out.exr']); "
+            "print(code, 'mitsuba' in sys.modules, 'drjit' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert done.stdout.split()[-3:] == ["0", "False", "False"], done.stderr
+    report = json.loads((tmp_path / "out.json").read_text())
+    assert report["totals"]["prepass_seconds"] > 0 and report["adaptive"]  # it was planned, pre-pass and all
+    assert {u["agent"] for u in report["units"]} == {None}
+
+
 def test_outputs_for_one_scene_a_folder_and_several() -> None:
     a, b = Path("s/a.xml"), Path("t/b.xml")
     assert outputs([a], Path("x/one.exr")) == [Path("x/one.exr")]

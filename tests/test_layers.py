@@ -15,6 +15,8 @@ PACKAGES = ("fuzzy", "core", "planning", "master", "agents", "farm", "quekaro", 
 # Function-level imports of project modules, each with its measured reason.
 LAZY_PROJECT = {
     ("quekaro.cli", "agents.render_agent"): "SPADE takes ~0.6 s to import; only `quekaro agent` needs it",
+    ("quekaro.cli", "fuzzy.errors"): "`fuzzy` loads its engine and numpy (~0.1 s), after `quekaro render` has "
+                                     "started its render process (core.render.child), whose Mitsuba import overlaps",
     ("quekaro.cmd_farm", "master.run"): "SPADE and aiohttp take ~0.4 s; only `quekaro master` needs them",
     ("bench.cli", "bench.commands"): "matplotlib and pyfuzzylite (~0.3 s; pyfuzzylite sets up the root logger "
                                      "at import, which silenced every farm log): only `quekaro bench` loads them",

@@ -4,6 +4,7 @@ that compute something else, with fewer samples, or from tiles of an integrator 
 from __future__ import annotations
 
 import dataclasses
+import time
 
 import pytest
 from compat_cases import CASES, SCENES, problems
@@ -11,7 +12,9 @@ from render_check import compare, reference_renders
 
 import core.model.integrators as integrators
 from core.model.job import RenderOptions, SceneSpec
-from planning.pipeline import render_job
+from core.render.worker import RenderWorker
+from planning.jobplan import plan_job
+from planning.pipeline import render_plan
 
 pytestmark = pytest.mark.slow
 
@@ -37,7 +40,9 @@ def test_a_tiled_particle_tracer_is_refused_by_the_comparison(tmp_path, monkeypa
     forced = dataclasses.replace(integrators.CATALOGUE["ptracer"], splittable=True)
     monkeypatch.setitem(integrators.CATALOGUE, "ptracer", forced)
     case = _case("ptracer")
-    render_job(SceneSpec(case.scene), RenderOptions(units=6, threads=2), tmp_path / "tiled.exr")
+    plan = plan_job(SceneSpec(case.scene), RenderOptions(units=6, threads=2))  # here, where the patch is
+    with RenderWorker() as worker:
+        render_plan(plan, tmp_path / "tiled.exr", worker, time.perf_counter())
     found = problems(case, tmp_path / "tiled.exr")
     assert any("DIFFERENT" in p for p in found), found
 

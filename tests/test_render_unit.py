@@ -8,11 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from lxml import etree
 
 from core.errors import RenderError, SceneError
 from core.model.geometry import Rect
-from core.model.job import SceneSpec
+from core.model.job import RenderOptions, SceneSpec
 from core.model.seeds import plan_seed, unit_seed
+from core.render import child
 from core.render.worker import (
     RenderRequest,
     RenderWorker,
@@ -21,6 +23,7 @@ from core.render.worker import (
     render_job_here,
     set_window,
 )
+from planning.jobplan import plan_job
 
 REPO = Path(__file__).resolve().parent.parent
 CBOX = SceneSpec(REPO / "scenes" / "cbox.xml", {"res": "48", "spp": "4"})
@@ -157,28 +160,47 @@ def test_a_released_child_exits_and_the_next_render_starts_another():
         assert tile.meta["pid"] != first.meta["pid"] and w.starts == 2 and w.alive()
 
 
-def test_a_prepared_variant_is_set_before_the_first_unit_and_a_bad_one_is_left_to_the_unit():
+def test_a_call_runs_in_the_child_and_what_it_raises_comes_back():
     with RenderWorker() as w:
-        w.prepare(VARIANT, 1)
-        w.prepare("no_such_variant", 1)  # its failure is read and dropped: the unit below is another variant
-        assert w.render(job(), timeout=60).meta["variant"] == VARIANT
-        w.prepare("no_such_variant", 1)
-        bad = RenderRequest.from_dict({**job().to_dict(), "variant": "no_such_variant"})
-        with pytest.raises(RenderError, match="no_such_variant"):
-            w.render(bad, timeout=60)
-        assert w.starts == 1 and w.render(job(seed=3), timeout=60).meta["variant"] == VARIANT
+        assert w.call(os.getpid) == w.pid != os.getpid()
+        with pytest.raises(ValueError, match="invalid literal") as raised:
+            w.call(int, "x")
+        assert "in the render process" in str(raised.value.__notes__)
+        with pytest.raises(RenderError, match="XMLSyntaxError"):  # it cannot cross the pipe: told as text
+            w.call(etree.fromstring, "<a")
+        missing = SceneSpec(DATA / "no-such-scene.xml")
+        options = RenderOptions(level="S", spp=4, threads=1)
+        with pytest.raises(SceneError, match=r"no-such-scene\.xml"):  # the planner's own error, as in process
+            w.call(plan_job, missing, options, 0, doing="planning")
+        assert w.starts == 1 and w.render(job(), timeout=60).meta["pid"] == w.pid  # the same child goes on
 
 
-def test_prepare_starts_a_child_and_a_dead_one_is_reported_at_the_render():
-    w = RenderWorker()
-    try:
-        w.prepare(VARIANT, 1)
-        assert w.alive()
-        os.kill(w.pid, signal.SIGKILL)
-        w._proc.wait(10)
-        assert w.render(job(), timeout=60).meta["variant"] == VARIANT and w.starts == 2
-    finally:
-        w.stop()
+def test_a_child_dying_in_a_call_is_a_render_error_and_the_next_use_restarts():
+    with RenderWorker() as w:
+        pid = w.call(os.getpid)
+        with pytest.raises(RenderError, match=r"during planning \(render process killed by SIGKILL\)"):
+            w.call(os.kill, pid, signal.SIGKILL, doing="planning")
+        assert w.call(os.getpid) != pid and w.starts == 2
+        with pytest.raises(RenderError, match="sleeping: timed out"):
+            w.call(time.sleep, 30, doing="sleeping", timeout=0.5)
+        assert not w.alive() and w.render(job(), timeout=60).meta["pid"] not in (pid, None)
+
+
+def test_a_child_started_early_is_the_next_workers_and_one_left_over_is_ended():
+    child.start_early()
+    early = child._early[0]
+    with RenderWorker() as w:
+        assert w.pid == early.pid and w.starts == 1 and w.call(os.getpid) == early.pid
+    child.start_early()
+    left = child._early[0]
+    child.discard_early()
+    assert left.wait(5) is not None and child._early is None
+    child.start_early()
+    dead = child._early[0]
+    dead.kill()
+    dead.wait()
+    with RenderWorker() as w:  # a dead early child is replaced
+        assert w.pid != dead.pid and w.render(job(), timeout=60).meta["pid"] == w.pid
 
 
 def test_timeout_kills_and_recovers():

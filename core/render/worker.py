@@ -19,15 +19,14 @@ from __future__ import annotations
 
 import contextlib
 import os
+import pickle
 import signal
-import socket
 import subprocess
-import sys
 import time
 import traceback
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -36,11 +35,10 @@ from core.errors import QuekaroError, RenderError, SceneError
 from core.model import integrators
 from core.model.geometry import Rect
 from core.model.job import SceneSpec
-from core.render import mitsuba_env, scene
+from core.render import child, mitsuba_env, scene
 from core.render.adaptive import render_adaptive
 from core.render.film import film_channels, sanitize
 from core.render.tiles import Tile
-from core.supervision import die_with_parent
 
 # Mitsuba and Dr.Jit are imported where used: `import mitsuba` costs ~0.35 s and 85 MB, must follow the
 # variant choice (core.render.mitsuba_env), and processes that never render must not pay for it.
@@ -317,11 +315,8 @@ def _child_main(conn: Any) -> None:
             return  # the parent went away
         if message is None:
             return
-        if isinstance(message, tuple) and message[0] == "variant":
-            # A failure is left to the unit's own render, which meets it again and reports it.
-            with contextlib.suppress(Exception):
-                mitsuba_env.init(*message[1:])
-            conn.send(("variant",))
+        if isinstance(message, tuple) and message[0] == "call":
+            conn.send(_called(*message[1:]))
             continue
         try:
             tile = render_job_here(RenderRequest.from_dict(message), cache)
@@ -329,6 +324,19 @@ def _child_main(conn: Any) -> None:
         except Exception as exc:
             kind = type(exc).__name__ if isinstance(exc, QuekaroError) else "RenderError"
             conn.send(("error", kind, f"{type(exc).__name__}: {exc}", traceback.format_exc(limit=3)))
+
+
+def _called(fn: Callable[..., Any], args: tuple[Any, ...]) -> tuple[Any, ...]:
+    """`fn(*args)` in the render process, as an answer: ("result", value) or ("raised", exception, trace)."""
+    try:
+        return ("result", fn(*args))
+    except Exception as exc:
+        trace = traceback.format_exc(limit=5)
+        try:
+            pickle.loads(pickle.dumps(exc))
+        except Exception:  # an exception that does not survive the pipe is told as a RenderError
+            exc = RenderError(f"{type(exc).__name__}: {exc}")
+        return ("raised", exc, trace)
 
 
 def _death_reason(exitcode: int | None) -> str:
@@ -355,7 +363,6 @@ class RenderWorker:
         self.starts = 0
         self._ready = False
         self._released = False
-        self._unanswered = 0  # `prepare` messages whose reply is still to be read
         self.import_seconds: float | None = None
 
     @property
@@ -374,25 +381,14 @@ class RenderWorker:
             self._wait_ready()
 
     def launch(self) -> None:
-        """Start the child without waiting for it: it imports Mitsuba while the caller does other work
-        (`quekaro render` plans the job meanwhile); the first `render` waits for it."""
+        """Start the child without waiting for it: it imports Mitsuba while the caller does other work; the
+        first `render` or `call` waits for it. A child started early (core.render.child) is taken."""
         if self.alive():
             return
         self._kill()  # a released child still shutting down, or a dead one: reaped
-        # A plain subprocess, not multiprocessing: spawn would re-import the caller's __main__, and
-        # fork would copy a process that may hold Dr.Jit threads.
-        ours, theirs = socket.socketpair()
-        root = str(Path(__file__).resolve().parents[2])
-        path = os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))
-        env = {**os.environ, "PYTHONPATH": path}
-        code = f"import core.render.worker as r; r._child_entry({theirs.fileno()})"
-        self._proc = subprocess.Popen([sys.executable, "-c", code], pass_fds=(theirs.fileno(),), env=env,
-                                      stdin=subprocess.DEVNULL, preexec_fn=die_with_parent)
-        theirs.close()
-        self._conn = Connection(ours.detach())
+        self._proc, self._conn = child.take()
         self._ready = False
         self._released = False
-        self._unanswered = 0
         self.starts += 1
 
     def _wait_ready(self) -> None:
@@ -411,23 +407,29 @@ class RenderWorker:
             reason = _death_reason(self._reap())
             raise RenderError(f"render process failed {failing} ({reason})") from None
 
-    def prepare(self, variant: str, threads: int | None) -> None:
-        """Have the child select `variant` and the thread count now, while the caller goes on: Mitsuba's
-        set_variant imports its Python integrators (~0.2 s), which the first unit would otherwise wait for.
-        Starts the child if needed; its answer is read before the next render."""
-        if not self.alive():
-            self.launch()
+    def call(self, fn: Callable[..., Any], *args: Any, doing: str = "its work", timeout: float | None = None) -> Any:
+        """`fn(*args)` run in the child, which keeps what it imported and loaded for the units that follow
+        (`quekaro render` plans there, so that its own process never imports Mitsuba); `fn` must be a
+        module-level function and its arguments and result picklable. What `fn` raises is raised here
+        (the child's traceback as a note); a crash is a RenderError naming `doing`, and the child restarts
+        on next use; past `timeout` seconds it is killed."""
+        self.start()
         try:
-            self._conn.send(("variant", variant, threads))
+            self._conn.send(("call", fn, args))
         except OSError:
-            return  # the next render finds the child dead and says why
-        self._unanswered += 1
-
-    def _read_prepared(self) -> None:
-        """Read the answers to `prepare` (the render that follows reports any failure itself)."""
-        while self._unanswered:
-            self._answer("select its variant", "while selecting its variant")
-            self._unanswered -= 1
+            raise RenderError(f"render process failed before {doing} ({_death_reason(self._reap())})") from None
+        if not self._conn.poll(timeout):
+            self._kill()
+            raise RenderError(f"{doing}: timed out after {timeout:.1f} s (render process killed)")
+        try:
+            answer = self._conn.recv()
+        except (EOFError, OSError):
+            raise RenderError(f"render process failed during {doing} ({_death_reason(self._reap())})") from None
+        if answer[0] == "result":
+            return answer[1]
+        _, exc, trace = answer
+        exc.add_note(f"in the render process:\n{trace}")
+        raise exc
 
     def release(self) -> None:
         """Ask the child to exit without waiting for it (Dr.Jit's shutdown then overlaps the caller's own
@@ -456,7 +458,6 @@ class RenderWorker:
     def render(self, job: RenderRequest, timeout: float | None = None) -> Tile:
         """Render one unit in the child; a crash or timeout is a RenderError, and the next call restarts."""
         self.start()
-        self._read_prepared()
         where = f"unit {job.unit_index} {job.unit.as_list()}"
         try:
             self._conn.send(job.to_dict())
@@ -504,7 +505,6 @@ class RenderWorker:
         if self._conn is not None:
             self._conn.close()
         self._proc, self._conn = None, None
-        self._unanswered = 0
 
 
 _default_worker: RenderWorker | None = None
