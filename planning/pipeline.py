@@ -13,6 +13,7 @@ import os
 import time
 import uuid
 from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -93,8 +94,10 @@ def write_outputs(plan: JobPlan, job: Composed, out: Path, started: float,
     """Write OUT.exr (every channel), OUT.png and the report OUT.json; return the report."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_exr(out, job.image, channels=job.channels, planar=True)
-    write_png_planar(out.with_suffix(".png"), job.image)
+    with ThreadPoolExecutor(1) as pool:  # both encoders release the GIL: 0.05 s together, not 0.09 at 512 px
+        png = pool.submit(write_png_planar, out.with_suffix(".png"), job.image)
+        write_exr(out, job.image, channels=job.channels, planar=True)
+        png.result()
     units = job.units
     report = {
         "scene": plan.spec.to_dict(), "options": plan.options.to_dict(),
