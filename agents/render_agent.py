@@ -4,8 +4,8 @@ One agent process = one `FarmAgent` (the XMPP transport, core.transport.xmpp) + 
 child process that renders, core.render.worker) + its own rule base (core.render.planner). The protocol, as
 master/auction.py expects it:
 
-  start     measure speed (agents/speed.py) -> Register; Register again after every reconnect, and with
-            each heartbeat until the master's Welcome answers;
+  start     measure speed (agents/speed.py) -> Register; Register again after every reconnect, when the
+            master's Introduce asks, and with each heartbeat until the master's Welcome answers;
             Heartbeat every 2 s listing the units it holds (awarded, not yet answered, not cancelled).
   cfp       room for another unit (it holds fewer than `slots`: 2 by default, one rendering and one
             waiting, so the render process goes on to the next unit while the last one's tile uploads)
@@ -94,7 +94,7 @@ from fuzzy.errors import RuleFileError
 log = logging.getLogger(__name__)
 
 POLL_S = 0.25  # how often the beat loop ticks (to Register again at once after a reconnect)
-ACCEPTED = frozenset({"cfp", "accept-proposal", "reject-proposal", "cancel", "welcome"})
+ACCEPTED = frozenset({"cfp", "accept-proposal", "reject-proposal", "cancel", "welcome", "introduce"})
 
 
 @dataclass
@@ -235,7 +235,7 @@ class RenderAgent:
             log.warning("%s from %s: conversation %r in the body, %r in the metadata: ignored",
                         env.performative, env.sender, msg.conversation, env.conversation_id)
             return
-        if isinstance(msg, m.CallForProposal | m.Award | m.Reject | m.Cancel | m.Welcome):
+        if isinstance(msg, m.CallForProposal | m.Award | m.Reject | m.Cancel | m.Welcome | m.Introduce):
             await self._feed(msg)
 
     async def _feed(self, event: Event) -> None:

@@ -6,9 +6,10 @@ network, no Mitsuba. `agents.render_agent.RenderAgent` turns XMPP messages and t
 (bundle fetched, unit rendered, tile uploaded) into events and carries out the commands; the unit tests
 (tests/test_agent_state.py) drive it with a fake clock.
 
-Events: the master's messages (`m.CallForProposal`, `m.Award`, `m.Reject`, `m.Cancel`, `m.Welcome`, as
-parsed), `Measured` (the agent's speed), `Tick` (time passes; the connection's state), and the ends of the
-commands it gave: `BundleReady`/`BundleFailed`, `RenderFinished`/`RenderFailed`, `UploadDone`/`UploadFailed`.
+Events: the master's messages (`m.CallForProposal`, `m.Award`, `m.Reject`, `m.Cancel`, `m.Welcome`,
+`m.Introduce`, as parsed), `Measured` (the agent's speed), `Tick` (time passes; the connection's state),
+and the ends of the commands it gave: `BundleReady`/`BundleFailed`, `RenderFinished`/`RenderFailed`,
+`UploadDone`/`UploadFailed`.
 Commands: `Send` (a message to the master), `FetchBundle`, `StartRender`, `Upload`, `DiscardTile`, `Log`.
 
 What it decides (the protocol is in agents/render_agent.py's docstring):
@@ -20,8 +21,9 @@ What it decides (the protocol is in agents/render_agent.py's docstring):
   cancel     one unit or a whole job: queued units never start, a unit whose bundle is being fetched is
              not rendered, a render in flight runs to its end (the render process cannot be interrupted
              without losing its compiled kernels) and its tile is thrown away; nothing is answered.
-  heartbeat  Register on every (re)connection, and again with each heartbeat until the master's Welcome
-             answers one; a Heartbeat every `heartbeat_s` listing the held units.
+  heartbeat  Register on every (re)connection, when the master's Introduce asks (it knows the agent from
+             heartbeats only), and again with each heartbeat until the master's Welcome answers one; a
+             Heartbeat every `heartbeat_s` listing the held units.
   estimates  base seconds (cost x spp / speed) + a kernel compilation for a window it has not rendered,
              times the job's `Calibration`: the ratio of measured to estimated seconds of its done units.
 
@@ -134,8 +136,8 @@ class UploadFailed:
     reason: str
 
 
-Event = (m.CallForProposal | m.Award | m.Reject | m.Cancel | m.Welcome | Measured | Tick | BundleReady | BundleFailed
-         | RenderFinished | RenderFailed | UploadDone | UploadFailed)
+Event = (m.CallForProposal | m.Award | m.Reject | m.Cancel | m.Welcome | m.Introduce | Measured | Tick
+         | BundleReady | BundleFailed | RenderFinished | RenderFailed | UploadDone | UploadFailed)
 
 
 # ---- commands --------------------------------------------------------------------------------------
@@ -286,6 +288,8 @@ class AgentState:
                 return [Log(logging.DEBUG, f"rejected in {event.conversation}: {event.reason}")]
             case m.Welcome():
                 return self._on_welcome(event)
+            case m.Introduce():
+                return self._on_introduce(event)
             case Tick():
                 return self._on_tick(event, now)
             case Measured():
@@ -412,6 +416,12 @@ class AgentState:
             return [Log(logging.DEBUG, f"welcome in {welcome.conversation}: not a Register of this connection")]
         self._unwelcomed = set()
         return []
+
+    def _on_introduce(self, ask: m.Introduce) -> list[Command]:
+        """The master knows this agent from heartbeats only: Register again (and until a Welcome answers)."""
+        if self._registered_on is None:
+            return [Log(logging.DEBUG, f"introduce in {ask.conversation}: not registered yet, Register follows")]
+        return [self._register()]
 
     def _conversation(self, kind: str) -> str:
         return f"{kind}-{self.session}-{next(self._conversations):x}"

@@ -255,6 +255,7 @@ class Agent:
     invited: str | None = None  # conversation id of the open auction round it was called to
     lost: bool = False
     speed: float = 1.0
+    registered: bool = True  # False: known from heartbeats alone, its speed not yet told
     # Seconds per unit of cost, per job: from its latest bids, and from its last unit that overran.
     rates: dict[str, float] = field(default_factory=dict)
     late_rates: dict[str, float] = field(default_factory=dict)
@@ -546,15 +547,18 @@ class Auction:
         self.jobs[info.job_id] = job
         return self._finish_if_done(job) + self._fail_if_stuck(job)
 
-    def register(self, agent: str, now: float, speed: float = 1.0, credits: int = 0) -> list[Command]:
-        """An agent announces itself (or comes back); its record (credits) may come from the store."""
+    def register(self, agent: str, now: float, speed: float = 1.0, credits: int = 0,
+                 registered: bool = True) -> list[Command]:
+        """An agent announces itself (or comes back); its record (credits) may come from the store.
+        `registered` False: heard from by heartbeat only, at speed 1.0 until its Register comes."""
         known = self.agents.get(agent)
         if known is None:
             credits = self.known_credits.get(agent, credits)
-            known = self.agents[agent] = Agent(agent, now, credits=credits, speed=speed)
+            known = self.agents[agent] = Agent(agent, now, credits=credits, speed=speed, registered=registered)
             known.recent = deque(maxlen=self.config.recent_window)
             return [AgentRegistered(agent, speed)]
         known.speed = speed
+        known.registered = True
         return self._seen(known, now)
 
     # --- messages in ---------------------------------------------------------------------------------
@@ -580,8 +584,11 @@ class Auction:
 
     def on_heartbeat(self, agent: str, msg: m.Heartbeat, now: float) -> list[Command]:
         """Agent alive; units it holds are reconciled with the awards (lost awards, stale work)."""
-        out = self.register(agent, now) if agent not in self.agents else self._seen(self.agents[agent], now)
+        known = self.agents.get(agent)
+        out = self.register(agent, now, registered=False) if known is None else self._seen(known, now)
         state = self.agents[agent]
+        if not state.registered:  # e.g. this master restarted while the agent stayed connected
+            out.append(Send(agent, m.Introduce(conversation=self._new_id())))
         busy = {(b.job_id, b.index) for b in msg.busy}
         for key in sorted(state.holding - busy):
             unit = self.jobs[key[0]].units[key[1]]

@@ -500,6 +500,21 @@ def test_registers_again_with_each_beat_until_a_welcome_of_this_connection_answe
     assert [type(s) for s in sent(agent(Tick(), dt=2.0))] == [m.Register, m.Heartbeat]
 
 
+def test_an_introduce_asks_for_a_register_until_a_welcome_answers() -> None:
+    agent = Agent()
+    first, _ = sent(agent(Tick(connection=0)))
+    agent(m.Welcome(conversation=first.conversation))
+    assert [type(s) for s in sent(agent(Tick(), dt=2.0))] == [m.Heartbeat]  # welcomed: beats only
+    (again,) = sent(agent(m.Introduce(conversation="c-9")))  # the master restarted and knows it by beats only
+    assert isinstance(again, m.Register) and again.speed == SPEED and again.conversation != first.conversation
+    assert [type(s) for s in sent(agent(Tick(), dt=2.0))] == [m.Register, m.Heartbeat]  # lost? again, with a beat
+    agent(m.Welcome(conversation=again.conversation))
+    assert [type(s) for s in sent(agent(Tick(), dt=2.0))] == [m.Heartbeat]
+    early = AgentState(Rules(), seconds)  # no speed yet, never registered: it registers when it can
+    said = early.handle(m.Introduce(conversation="c-1"), 0.0)
+    assert said and all(isinstance(c, Log) for c in said)
+
+
 def test_no_registration_before_the_speed_is_known() -> None:
     state = AgentState(Rules(), seconds)
     assert state.handle(Tick(), 0.0) == []

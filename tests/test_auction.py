@@ -710,6 +710,21 @@ def test_an_adaptive_jobs_units_are_scheduled_by_their_share_of_samples() -> Non
     assert sorted(got) == [0, 1]
 
 
+def test_an_agent_known_from_heartbeats_only_is_asked_to_register_until_it_does() -> None:
+    # A restarted master hears a heartbeat before any Register: the agent is live at speed 1.0, and asked.
+    a = make([1.0], [])
+    beat = m.Heartbeat(conversation="hb-1", busy=())
+    out = a.on_message("A", beat, 0.0)
+    assert events(out, au.AgentRegistered) == [au.AgentRegistered("A", 1.0)] and a.agents["A"].speed == 1.0
+    assert [type(s.message) for s in sends(out, to="A")] == [m.Introduce]
+    assert sends(a.on_message("A", beat, 2.0), m.Introduce, to="A")  # its Register may be lost: asked again
+    reg = m.Register(conversation="register-s-1", speed=4.0, threads=2, rules="r.xml")
+    a.on_message("A", reg, 3.0)
+    assert a.agents["A"].speed == 4.0 and not sends(a.on_message("A", beat, 4.0), m.Introduce)
+    a.on_message("B", reg, 5.0)  # registered first: never asked
+    assert not sends(a.on_message("B", beat, 6.0), m.Introduce)
+
+
 def test_every_register_is_answered_with_a_welcome_of_its_conversation() -> None:
     a = make([1.0], [])
     reg = m.Register(conversation="register-s-1", speed=2.0, threads=1, rules="r.xml")

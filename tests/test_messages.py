@@ -62,6 +62,7 @@ ONE_OF_EACH = [
     m.Failure(conversation="c2", job_id="job-1", index=0, token=TOKEN, reason="child process crashed"),
     m.Register(conversation="r1", speed=1.25, threads=1, rules="rules/quekaro.xml"),
     m.Welcome(conversation="r1"),
+    m.Introduce(conversation="i1"),
     m.Heartbeat(conversation="h1", busy=(m.HeldUnit(job_id="job-1", index=0),)),
     m.Cancel(conversation="c2", job_id="job-1", index=None, reason="job cancelled"),
 ]

@@ -81,12 +81,15 @@ def test_a_killed_agent_is_restarted_and_a_killed_farm_leaves_no_orphans(tmp_pat
 @pytest.mark.slow
 def test_a_master_restarted_three_times_on_the_same_server_hears_its_agents(tmp_path):
     """Stopped cleanly (SIGTERM) and started again while the embedded server and the agents run: it was
-    deaf (a stale resource outranked its new one) until the server restarted."""
+    deaf (a stale resource outranked its new one) until the server restarted. The agents stay connected,
+    so the restarted master hears heartbeats first; it asks each for a Register and learns its speed."""
     from farm.local import LocalFarm
 
     home = tmp_path / "farm"
     with LocalFarm(home, agents=1, threads=1) as farm:
         farm.wait_for_agents()
+        speed = farm.client().agents()[0]["speed"]
+        assert speed != 1.0  # measured (a speed of exactly 1.0 would make the check below say nothing)
         master = farm.children[0]
         for _ in range(3):
             master.proc.terminate()
@@ -96,8 +99,9 @@ def test_a_master_restarted_three_times_on_the_same_server_hears_its_agents(tmp_
             farm._wait_for_master()
             client = farm.client()
             deadline = time.monotonic() + 20
-            while not [a for a in client.agents() if not a["lost"]]:
-                assert time.monotonic() < deadline, "the restarted master hears no agent"
+            while [a["speed"] for a in client.agents() if not a["lost"]] != [speed]:
+                assert time.monotonic() < deadline, f"the restarted master hears no agent, or not its speed: " \
+                                                    f"{client.agents()}"
                 time.sleep(0.3)
         defines = {"res": "32", "spp": "4"}
         job_id = client.submit(bundle_of(SCENE, defines), defines, {"level": "off", "units": 2})

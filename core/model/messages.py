@@ -233,6 +233,15 @@ class Welcome(Message):
 
 
 @dataclass(frozen=True, kw_only=True)
+class Introduce(Message):
+    """Master -> agent: a heartbeat came from an agent this master holds no Register of (the master
+    restarted while the agent stayed connected, or the Register was lost): send one, so that the master
+    learns its speed. Sent with each such heartbeat until a Register arrives."""
+
+    performative: ClassVar[str] = "introduce"
+
+
+@dataclass(frozen=True, kw_only=True)
 class HeldUnit:
     """A unit an agent holds: awarded to it and not yet answered with Inform or Failure."""
 
@@ -260,8 +269,8 @@ class Cancel(Message):
 
 KINDS: dict[str, type[Message]] = {
     cls.performative: cls
-    for cls in (CallForProposal, Propose, Refuse, Award, Reject, Inform, Failure, Register, Welcome, Heartbeat,
-                Cancel)
+    for cls in (CallForProposal, Propose, Refuse, Award, Reject, Inform, Failure, Register, Welcome, Introduce,
+                Heartbeat, Cancel)
 }
 
 
