@@ -178,7 +178,7 @@ def test_a_call_runs_in_the_child_and_what_it_raises_comes_back():
 def test_a_child_dying_in_a_call_is_a_render_error_and_the_next_use_restarts():
     with RenderWorker() as w:
         pid = w.call(os.getpid)
-        with pytest.raises(RenderError, match=r"during planning \(render process killed by SIGKILL\)"):
+        with pytest.raises(RenderError, match=r"planning: render process killed by SIGKILL"):
             w.call(os.kill, pid, signal.SIGKILL, doing="planning")
         assert w.call(os.getpid) != pid and w.starts == 2
         with pytest.raises(RenderError, match="sleeping: timed out"):

@@ -413,18 +413,7 @@ class RenderWorker:
         module-level function and its arguments and result picklable. What `fn` raises is raised here
         (the child's traceback as a note); a crash is a RenderError naming `doing`, and the child restarts
         on next use; past `timeout` seconds it is killed."""
-        self.start()
-        try:
-            self._conn.send(("call", fn, args))
-        except OSError:
-            raise RenderError(f"render process failed before {doing} ({_death_reason(self._reap())})") from None
-        if not self._conn.poll(timeout):
-            self._kill()
-            raise RenderError(f"{doing}: timed out after {timeout:.1f} s (render process killed)")
-        try:
-            answer = self._conn.recv()
-        except (EOFError, OSError):
-            raise RenderError(f"render process failed during {doing} ({_death_reason(self._reap())})") from None
+        answer = self._exchange(("call", fn, args), timeout, doing)
         if answer[0] == "result":
             return answer[1]
         _, exc, trace = answer
@@ -457,22 +446,24 @@ class RenderWorker:
 
     def render(self, job: RenderRequest, timeout: float | None = None) -> Tile:
         """Render one unit in the child; a crash or timeout is a RenderError, and the next call restarts."""
-        self.start()
         where = f"unit {job.unit_index} {job.unit.as_list()}"
+        return self._tile_from_answer(self._exchange(job.to_dict(), timeout, where), job, where)
+
+    def _exchange(self, message: Any, timeout: float | None, where: str) -> Any:
+        """Send the child one message and return its answer; RenderError (`where`: why) if it dies or
+        does not answer within `timeout` (then it is killed)."""
+        self.start()
         try:
-            self._conn.send(job.to_dict())
-        except (OSError, BrokenPipeError):
-            reason = _death_reason(self._reap())
-            raise RenderError(f"{where}: {reason}") from None
+            self._conn.send(message)
+        except OSError:
+            raise RenderError(f"{where}: {_death_reason(self._reap())}") from None
         if not self._conn.poll(timeout):
             self._kill()
             raise RenderError(f"{where}: timed out after {timeout:.1f} s (render process killed)")
         try:
-            answer = self._conn.recv()
+            return self._conn.recv()
         except (EOFError, OSError):
-            reason = _death_reason(self._reap())
-            raise RenderError(f"{where}: {reason}") from None
-        return self._tile_from_answer(answer, job, where)
+            raise RenderError(f"{where}: {_death_reason(self._reap())}") from None
 
     @staticmethod
     def _tile_from_answer(answer: tuple[Any, ...], job: RenderRequest, where: str) -> Tile:
