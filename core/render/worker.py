@@ -392,20 +392,15 @@ class RenderWorker:
         self.starts += 1
 
     def _wait_ready(self) -> None:
-        _, info = self._answer("start", "to start")
-        self.import_seconds = float(info["import_seconds"])
-        self._ready = True
-
-    def _answer(self, doing: str, failing: str) -> Any:
-        """The child's next answer within the start-up timeout; RenderError (child killed or reaped) if none."""
         if not self._conn.poll(self.startup_timeout):
             self._kill()
-            raise RenderError(f"render process did not {doing} within {self.startup_timeout:.0f} s")
+            raise RenderError(f"render process did not start within {self.startup_timeout:.0f} s")
         try:
-            return self._conn.recv()
+            _, info = self._conn.recv()
         except (EOFError, OSError):
-            reason = _death_reason(self._reap())
-            raise RenderError(f"render process failed {failing} ({reason})") from None
+            raise RenderError(f"render process failed to start ({_death_reason(self._reap())})") from None
+        self.import_seconds = float(info["import_seconds"])
+        self._ready = True
 
     def call(self, fn: Callable[..., Any], *args: Any, doing: str = "its work", timeout: float | None = None) -> Any:
         """`fn(*args)` run in the child, which keeps what it imported and loaded for the units that follow
