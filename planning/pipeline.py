@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from core.errors import SceneError
 from core.model.hashing import sha256_file
 from core.model.job import JobPlan, RenderOptions, SceneSpec
 from core.model.seeds import plan_seed, unit_seed
@@ -147,13 +148,23 @@ def render_job(spec: SceneSpec, options: RenderOptions, out: Path, job_id: str |
     worker = RenderWorker()
     worker.launch()  # the child imports Mitsuba while this process hashes the scene
     try:
-        seed = plan_seed(sha256_file(spec.path), spec.defines, options.to_dict())
+        seed = plan_seed(scene_digest(spec.path), spec.defines, options.to_dict())
         # Planned in the render process: Mitsuba is imported and the variant selected once, and this
         # process, which composes and writes, never pays for Mitsuba's import or its shutdown.
         plan = worker.call(plan_job, spec, options, seed, doing="planning", timeout=UNIT_TIMEOUT_S)
         return render_plan(plan, out, worker, start, job_id, progress)
     finally:
         worker.stop()
+
+
+def scene_digest(path: Path) -> str:
+    """The scene file's sha256, or a SceneError naming the file when it cannot be read."""
+    try:
+        return sha256_file(path)
+    except FileNotFoundError as exc:
+        raise SceneError(f"{path}: scene file not found") from exc
+    except OSError as exc:  # a folder, no permission, an I/O error
+        raise SceneError(f"{path}: cannot read the scene file ({exc.strerror or exc})") from exc
 
 
 def render_plan(plan: JobPlan, out: Path, worker: RenderWorker, started: float, job_id: str | None = None,

@@ -96,6 +96,15 @@ def test_render_several_scenes_into_a_folder_with_progress(tmp_path: Path) -> No
     assert "4/4 units" in done.stdout and "spp" in done.stdout
 
 
+@pytest.mark.parametrize("name", ["no-such-scene.xml", "a-folder"])
+def test_render_of_a_scene_that_cannot_be_read_names_it(tmp_path: Path, name: str) -> None:
+    (tmp_path / "a-folder").mkdir()
+    done = quekaro("render", str(tmp_path / name), "--no-progress", "-o", str(tmp_path / "out.exr"), cwd=tmp_path)
+    assert done.returncode == 2, done.stderr
+    assert f"quekaro: error: {tmp_path / name}: " in done.stderr and "Traceback" not in done.stderr
+    assert not (tmp_path / "out.exr").exists()
+
+
 def test_logs_lists_tails_and_follows(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     logs = tmp_path / "logs"
     logs.mkdir()
