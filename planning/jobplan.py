@@ -14,7 +14,7 @@ from typing import Any
 
 from core.errors import QuekaroError
 from core.model import integrators
-from core.model.job import JobPlan, RenderOptions, SceneSpec
+from core.model.job import Effects, JobPlan, RenderOptions, SceneSpec
 from core.model.units import WorkUnit
 from core.render.effects import analyse_loaded
 from core.render.planner import Planner, RenderParams, adaptive_params
@@ -75,7 +75,20 @@ def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: 
     """Analyse the scene's effects, run the pre-pass (optimised levels only) on the scene as the analysis
     loaded it, and partition the image (into `options.units` units, else the default count and at least
     `min_units`)."""
+    return plan_job_loaded(spec, options, seed, min_units)[0]
+
+
+def plan_job_loaded(spec: SceneSpec, options: RenderOptions, seed: int = 0,
+                    min_units: int = 1) -> tuple[JobPlan, Any]:
+    """`plan_job`, and the scene as the analysis loaded it in the plan's variant (the pre-pass leaves it
+    as loaded), for a process that renders the units next."""
     effects, loaded = analyse_loaded(spec, options.overrides())
+    return _plan(spec, options, seed, min_units, effects, loaded), loaded
+
+
+def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, effects: Effects,
+          loaded: Any) -> JobPlan:
+    """The plan for the analysed scene (`loaded`, its effects `effects`)."""
     info = film_info(spec, options.sensor)
     width, height = info.width, info.height
     spp = options.spp or scene_spp(spec, options.sensor) or DEFAULT_SPP

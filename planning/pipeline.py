@@ -29,8 +29,8 @@ from core.render.compose import TileSource, compose_planar
 from core.render.imageio import write_exr, write_png_planar
 from core.render.planner import Planner, RenderParams
 from core.render.tiles import Tile
-from core.render.worker import ADAPTIVE_META, RenderRequest, RenderWorker
-from planning.jobplan import plan_job, plan_params
+from core.render.worker import ADAPTIVE_META, RenderRequest, RenderWorker, adopt_scene
+from planning.jobplan import plan_job_loaded, plan_params
 
 log = logging.getLogger(__name__)
 
@@ -149,12 +149,20 @@ def render_job(spec: SceneSpec, options: RenderOptions, out: Path, job_id: str |
     worker.launch()  # the child imports Mitsuba while this process hashes the scene
     try:
         seed = plan_seed(scene_digest(spec.path), spec.defines, options.to_dict())
-        # Planned in the render process: Mitsuba is imported and the variant selected once, and this
-        # process, which composes and writes, never pays for Mitsuba's import or its shutdown.
-        plan = worker.call(plan_job, spec, options, seed, doing="planning", timeout=UNIT_TIMEOUT_S)
+        # Planned in the render process: Mitsuba is imported, the variant selected and the scene loaded
+        # once, and this process, which composes and writes, never pays for Mitsuba's import or shutdown.
+        plan = worker.call(plan_for_units_here, spec, options, seed, doing="planning", timeout=UNIT_TIMEOUT_S)
         return render_plan(plan, out, worker, start, job_id, progress)
     finally:
         worker.stop()
+
+
+def plan_for_units_here(spec: SceneSpec, options: RenderOptions, seed: int) -> JobPlan:
+    """`plan_job` in the process that renders the units next (the render process): its units render the
+    scene the analysis loaded, not a second load of it."""
+    plan, loaded = plan_job_loaded(spec, options, seed)
+    adopt_scene(plan.spec, plan.effects.variant, loaded)
+    return plan
 
 
 def scene_digest(path: Path) -> str:

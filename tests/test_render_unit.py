@@ -15,15 +15,18 @@ from core.model.geometry import Rect
 from core.model.job import RenderOptions, SceneSpec
 from core.model.seeds import plan_seed, unit_seed
 from core.render import child
+from core.render.planner import Planner
 from core.render.worker import (
     RenderRequest,
     RenderWorker,
+    _local_cache,
     _SceneCache,
     render_full,
     render_job_here,
     set_window,
 )
-from planning.jobplan import plan_job
+from planning.jobplan import plan_job, plan_params
+from planning.pipeline import plan_for_units_here, unit_job
 
 REPO = Path(__file__).resolve().parent.parent
 CBOX = SceneSpec(REPO / "scenes" / "cbox.xml", {"res": "48", "spp": "4"})
@@ -227,3 +230,27 @@ def test_degenerate_image_sizes(size):
 def test_film_size_mismatch_is_refused():
     with pytest.raises(RenderError, match="film is 48x48"):
         render_job_here(job(size=(64, 64)))
+
+
+COMPAT = REPO / "tests" / "compat" / "scenes"
+
+
+@pytest.mark.parametrize(("spec", "options"), [
+    (CBOX, RenderOptions(level="S", spp=16, threads=1, adaptive=True, units=4)),  # after the pre-pass's renders
+    (SceneSpec(COMPAT / "orthographic.xml"), RenderOptions(level="off", spp=4, threads=1, units=4)),
+    (SceneSpec(COMPAT / "two_sensors.xml"),
+     RenderOptions(level="N", spp=8, threads=1, sensor=1, adaptive=True, units=4)),
+], ids=["cbox-S-adaptive", "orthographic-off", "second-sensor-N-adaptive"])
+def test_the_units_render_the_scene_the_planning_loaded_as_a_fresh_load_would(spec, options):
+    """The scene the analysis loaded (and the pre-pass rendered at another film size) is the one the
+    units render, and their tiles equal those of a scene loaded afresh, seed for seed."""
+    plan = plan_for_units_here(spec, options, seed=5)
+    chosen = plan_params(plan, Planner(plan.options.rules, plan.options.defuzzifier))
+    assert len(plan.units) > 1
+    for unit, params in zip(plan.units, chosen, strict=True):
+        order = unit_job(plan, unit, params, "adopted", 1)
+        kept, fresh = render_job_here(order), render_job_here(order, _SceneCache())
+        assert kept.meta["load_seconds"] == 0.0 < fresh.meta["load_seconds"]
+        assert kept.meta["window_method"] == fresh.meta["window_method"]
+        np.testing.assert_allclose(kept.pixels, fresh.pixels, rtol=1e-5, atol=1e-6)
+    assert _local_cache.key[0] == spec.key()

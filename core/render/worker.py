@@ -163,11 +163,19 @@ class _SceneCache:
             return self.scene, 0.0
         start = time.perf_counter()
         self.scene, self.key = None, None  # free the old scene before loading the next
-        self.scene = scene.load(spec)
+        self._hold(spec, key, scene.load(spec))
+        return self.scene, time.perf_counter() - start
+
+    def adopt(self, spec: SceneSpec, variant: str, loaded: Any) -> None:
+        """Hold `loaded`, a scene loaded from `spec` in `variant` in this process and left as loaded, as
+        if `scene_for` had loaded it."""
+        self._hold(spec, (spec.key(), mitsuba_env.init(variant)), loaded)
+
+    def _hold(self, spec: SceneSpec, key: tuple[Any, ...], loaded: Any) -> None:
+        self.scene = loaded
         self.integrator_xml = integrators.scene_element(scene.expand(spec).root)
         self.own_depth = integrators.depth_of(self.integrator_xml)
         self.key, self.integrators, self.base_pp = key, {}, {}
-        return self.scene, time.perf_counter() - start
 
     def principal_point(self, sensor: int) -> tuple[float, float] | None:
         if sensor not in self.base_pp:
@@ -199,7 +207,15 @@ def _build_integrator(override: str | None, depth: int | None, scene_xml: Any) -
         raise RenderError(f"cannot build integrator {what} at depth {depth}: {exc}") from exc
 
 
-_local_cache = _SceneCache()
+_local_cache = _SceneCache()  # this process's: the render process's units, or a caller rendering in process
+
+
+def adopt_scene(spec: SceneSpec, variant: str, loaded: Any) -> None:
+    """Let this process's next units render `loaded` instead of loading `spec` again: a scene loaded
+    from `spec` in `variant` and left as loaded (a render that changed its film's size put it back).
+    The render process's planning hands over the scene its analysis loaded, which a large scene's
+    second load would otherwise cost."""
+    _local_cache.adopt(spec, variant, loaded)
 
 
 def sensor_of(scene: Any, index: int, where: str = "scene") -> Any:
@@ -307,7 +323,7 @@ def _child_main(conn: Any) -> None:
     import mitsuba  # noqa: F401  (imported once here, so each unit pays nothing for it)
 
     conn.send(("ready", {"import_seconds": time.perf_counter() - start, "pid": os.getpid()}))
-    cache = _SceneCache()
+    cache = _local_cache  # what a call made here adopted (adopt_scene), the units find
     while True:
         try:
             message = conn.recv()
