@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import tempfile
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -86,9 +87,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
+# Image formats other than EXR: `-o picture.png` would otherwise become a folder named picture.png.
+OTHER_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pfm", ".ppm", ".hdr", ".rgbe", ".tga", ".bmp", ".tif", ".tiff",
+                        ".webp")
+
+
 def outputs(scenes: list[Path], out: Path) -> list[Path]:
     """Where each scene's EXR goes: `out` itself for one scene named *.exr, else `out`/SCENE.exr (refused
-    when two scenes would write the same file)."""
+    when two scenes would write the same file, or when `out` names another image format)."""
+    if out.suffix.lower() in OTHER_IMAGE_SUFFIXES and not out.is_dir():
+        raise QuekaroError(f"-o {out}: the image is written as EXR (every channel), with a PNG preview and the "
+                           f"report beside it; give -o {out.with_suffix('.exr')} or a folder")
     if len(scenes) == 1 and out.suffix.lower() == ".exr" and not out.is_dir():
         return [out]
     if out.suffix.lower() == ".exr" and not out.is_dir():
@@ -100,13 +109,26 @@ def outputs(scenes: list[Path], out: Path) -> list[Path]:
     return paths
 
 
+def check_writable(folder: Path, out: Path) -> None:
+    """Create `folder` if needed and write a file in it, or say why -o `out` cannot be written."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".quekaro-write-check-"):
+            pass
+    except OSError as exc:
+        raise QuekaroError(f"-o {out}: cannot write in {folder} ({exc.strerror or exc})") from exc
+
+
 def run(args: argparse.Namespace) -> int:
     startup = process_age()  # the interpreter's start and imports, paid once, by the first scene
     defines, paths = parse_defines(args.defines), search_paths(args)
     options = options_from_args(args)
     if args.ref_spp < 1:
         raise QuekaroError(f"--ref-spp {args.ref_spp}: must be at least 1")
-    for scene, out in zip(args.scenes, outputs(args.scenes, args.out), strict=True):
+    targets = outputs(args.scenes, args.out)
+    for folder in dict.fromkeys(path.parent for path in targets):
+        check_writable(folder, args.out)  # before any render: a job's image must not be lost at the end
+    for scene, out in zip(args.scenes, targets, strict=True):
         spec = SceneSpec(scene, defines, paths)
         started = time.perf_counter()
         with render_progress(scene.name, enabled=not args.no_progress) as progress:

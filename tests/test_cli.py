@@ -83,6 +83,19 @@ def test_outputs_for_one_scene_a_folder_and_several() -> None:
         outputs([a, b], Path("x/one.exr"))
     with pytest.raises(QuekaroError, match=r"a\.exr"):
         outputs([a, Path("u/a.xml")], Path("renders"))
+    assert outputs([a], Path("renders.v2")) == [Path("renders.v2/a.exr")]  # a dotted folder name stays a folder
+    for other in ("x/one.png", "x/one.JPG", "x/one.pfm"):
+        with pytest.raises(QuekaroError, match=r"written as EXR.*give -o x/one\.exr"):
+            outputs([a], Path(other))
+
+
+def test_render_refuses_an_output_it_cannot_write_before_rendering(tmp_path: Path) -> None:
+    (tmp_path / "a-file").write_text("not a folder")
+    out = tmp_path / "a-file" / "renders"
+    done = quekaro("render", str(SCENES / "cbox.xml"), str(SCENES / "glass-corner.xml"), "-D", "res=16",
+                   "--no-progress", "-o", str(out), cwd=tmp_path)
+    assert done.returncode == 2 and f"-o {out}: cannot write in {out}" in done.stderr, done.stderr
+    assert "report:" not in done.stdout  # refused before the first scene rendered
 
 
 @pytest.mark.slow
