@@ -45,6 +45,12 @@ def scene_spp(spec: SceneSpec, sensor_index: int = 0) -> int | None:
     return None
 
 
+# At least this many samples in a level-off unit when the job's spp is known: ~3 s of cbox here (2 threads).
+# cbox 512x512 at 64 spp (2^24 samples), one unit against four, whole `quekaro render` processes
+# alternated: 3.91 s against 4.01 s (medians of 6).
+OFF_UNIT_SAMPLES = 1 << 24
+
+
 def farm_min_units(live_agents: int) -> int:
     """Units a farm job needs at least for its live agents: 4 each on small farms, and from 8 agents on
     3 each plus 8 for the end game. Every unit pays a render call and its bands, so past the few each
@@ -55,11 +61,13 @@ def farm_min_units(live_agents: int) -> int:
     return min(4 * n, 3 * n + 8)
 
 
-def default_unit_count(width: int, height: int, level: str, min_units: int = 1) -> int:
+def default_unit_count(width: int, height: int, level: str, min_units: int = 1, spp: int | None = None) -> int:
     """Units of about 256 px a side at level off and 56 px when the rules run, and at least `min_units`
     (a farm asks for a few per agent). At level off nothing is gained by small units in one process:
     each render call costs ~0.05 s and bands add pixels (16 units of 128 px ran 1.16x one plain render of
-    cbox 512x512, 256 spp). When the rules run, the rules move samples
+    cbox 512x512, 256 spp); given the `spp`, a level-off unit also holds at least OFF_UNIT_SAMPLES samples,
+    so that a short render is one unit, as plain Mitsuba renders it, and a long one still shows progress
+    unit by unit. When the rules run, the rules move samples
     between units, so the noisy corner of a scene must fall in units of its own (the partition weighs
     cost by relative noise, so the costly corner is split and the cheap wall stays in big units), while
     every unit pays a fixed cost per render call (~0.05 s here, ~20 spp of a 40 px unit), a 2 px band
@@ -67,7 +75,10 @@ def default_unit_count(width: int, height: int, level: str, min_units: int = 1) 
     On caustic-corner at 160x160 (model from measured per-pixel noise and per-call cost) level S reached
     0.84x the uniform relMSE with 8 units, 0.91x with 7, 0.96x with 12 and 1.45x with 22 (40 px)."""
     side = 256 if level == "off" else 56
-    wanted = max(round(width * height / (side * side)), min_units)
+    wanted = round(width * height / (side * side))
+    if level == "off" and spp is not None:
+        wanted = min(wanted, width * height * spp // OFF_UNIT_SAMPLES)
+    wanted = max(wanted, min_units)
     return max(1, min(256, wanted, width * height))
 
 
@@ -96,7 +107,7 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
                    filter_radius=info.filter_radius)
     # An adaptive job's --units are its render units (render_units); its rules see the level's own partition.
     chosen = None if options.adaptive else options.units
-    target = chosen or default_unit_count(width, height, options.level, min_units)
+    target = chosen or default_unit_count(width, height, options.level, min_units, spp)
     if not effects.splittable:
         if options.level != "off":
             effects.reasons.append(f"level {options.level} not applied: the rules choose per unit, and this "
