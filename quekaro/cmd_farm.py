@@ -21,7 +21,7 @@ from core.render.scene import parse_defines
 from farm.client import FarmClient
 from farm.local import LocalFarm
 from planning import budgets
-from quekaro.cmd_render import add_job_arguments, options_from_args, search_paths
+from quekaro.cmd_render import add_job_arguments, check_writable, options_from_args, outputs, search_paths
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -51,7 +51,8 @@ def _register_up(sub: argparse._SubParsersAction) -> None:
         parser.add_argument("--rules", type=Path, action="append", default=[],
                             help="rule file for the agents; repeat to give agents different rules")
         if name == "demo":
-            parser.add_argument("-o", "--out", type=Path, default=Path("out/demo.exr"))
+            parser.add_argument("-o", "--out", type=Path, default=Path("out/demo.exr"),
+                                help="output EXR file, or a folder (the PNG and the report go beside it)")
             parser.add_argument("--opt", dest="level", default="S", help="optimisation level (default S)")
         parser.set_defaults(func=run_up if name == "up" else run_demo)
 
@@ -101,7 +102,8 @@ def _register_client(sub: argparse._SubParsersAction) -> None:
     watch.set_defaults(func=run_watch)
     result = sub.add_parser("result", help="download a finished job's image (and its report)")
     result.add_argument("job")
-    result.add_argument("-o", "--out", type=Path, required=True)
+    result.add_argument("-o", "--out", type=Path, required=True,
+                        help="output EXR file, or a folder for JOB.exr (the PNG and the report go beside it)")
     _add_farm_location(result)
     result.set_defaults(func=run_result)
     cancel = sub.add_parser("cancel", help="cancel a job")
@@ -132,6 +134,8 @@ def run_up(args: argparse.Namespace) -> int:
 
 def run_demo(args: argparse.Namespace) -> int:
     """Start a farm, render the demo scene on it, fetch the image, and say where everything is."""
+    target = outputs([DEMO_SCENE], args.out)[0]
+    check_writable(target.parent, args.out)  # before a farm starts, not after its render
     with LocalFarm(args.home, args.agents, args.threads, args.rules, args.http_port, supervise=True) as farm:
         print(f"farm up: master {farm.url}, {farm.n_agents} agents, home {farm.home}")
         print(f"web page: {farm.url}/ui/ (log in with the admin token in {farm.home / ADMIN_TOKEN}; "
@@ -145,7 +149,7 @@ def run_demo(args: argparse.Namespace) -> int:
         status = watch(client, job_id)
         if status != 0:
             return status
-        out = client.result(job_id, args.out)
+        out = client.result(job_id, target)
         report = json.loads(out.with_suffix(".json").read_text())
     totals = report["totals"]
     print(f"image:  {out.resolve()}\npng:    {out.with_suffix('.png').resolve()}\n"
@@ -265,7 +269,9 @@ def watch(client, job_id: str, poll_s: float = 0.5) -> int:
 
 
 def run_result(args: argparse.Namespace) -> int:
-    out = _client(args).result(args.job, args.out)
+    out = outputs([Path(args.job)], args.out)[0]  # an EXR file, or JOB.exr in a folder, as `render -o`
+    check_writable(out.parent, args.out)
+    out = _client(args).result(args.job, out)
     print(f"{out}  report: {out.with_suffix('.json')}")
     return 0
 

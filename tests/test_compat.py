@@ -104,6 +104,20 @@ def test_a_jobs_rule_file_reaches_the_agents(farm_jobs, tmp_path):
     assert all(32 <= u["spp"] <= 64 for u in units), [u["spp"] for u in units]
 
 
+def test_result_writes_an_exr_or_into_a_folder_and_refuses_other_formats(farm_jobs, tmp_path):
+    farm, home, jobs = farm_jobs
+    job_id = jobs["moment"]
+    assert wait_done(farm.client(), job_id)["status"] == "done"
+    folder = quekaro("result", job_id, "-o", str(tmp_path / "renders"), "--home", str(home))
+    assert folder.returncode == 0, folder.stderr[-2000:]
+    assert all((tmp_path / "renders" / f"{job_id}{suffix}").is_file() for suffix in (".exr", ".png", ".json"))
+    png = quekaro("result", job_id, "-o", str(tmp_path / "picture.png"), "--home", str(home))
+    assert png.returncode == 2 and "written as EXR" in png.stderr and not (tmp_path / "picture.png").exists()
+    (tmp_path / "a-file").write_text("not a folder")
+    blocked = quekaro("result", job_id, "-o", str(tmp_path / "a-file" / "x.exr"), "--home", str(home))
+    assert blocked.returncode == 2 and "cannot write in" in blocked.stderr, blocked.stderr
+
+
 FARM_ADAPTIVE_JOBS = 8  # as tests/test_adaptive_jobs.py's RUNS: the jobs' own variance enters the test
 
 

@@ -223,7 +223,9 @@ def farm(tmp_path_factory: pytest.TempPathFactory, bundles: dict[str, tuple[str,
         with log.open("w") as sink:
             agent = subprocess.Popen(cmd, cwd=REPO, stdout=sink, stderr=subprocess.STDOUT,
                                      env=dict(os.environ, PYTHONPATH=str(REPO)))
-        yield Farm(loop, master, agent, log, server)
+        farm = Farm(loop, master, agent, log, server)
+        farm.run(master.expect(m.Register, timeout=60), timeout=70)  # online: each test can run alone
+        yield farm
     finally:
         if agent is not None and agent.poll() is None:
             agent.kill()
@@ -302,8 +304,9 @@ def test_unit_is_planned_rendered_uploaded_and_informed(farm: Farm, bundles: dic
 
 def test_cancelled_units_are_dropped_and_a_full_agent_refuses(farm: Farm, bundles: dict) -> None:
     scene, _ = bundles["cbox"]
-    # ~2 M samples: long enough (seconds) to cancel it mid-render on one thread.
-    job = farm.job("job-b", sha_of(bundles, "cbox"), scene, spp=2048, level="off")
+    # ~8 M samples, a few seconds on one thread: still rendering while the second award queues and when
+    # it is cancelled (2 M ran in 0.8 s on a fast day and ended before the second award).
+    job = farm.job("job-b", sha_of(bundles, "cbox"), scene, spp=8192, level="off")
     whole = unit(0, Rect(0, 0, 32, 32))
     since = time.monotonic()
     farm.run(farm.master.send(farm.award(job, whole, "award-b0")))
