@@ -18,9 +18,7 @@ import secrets
 import shutil
 import time
 import uuid
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
@@ -35,7 +33,7 @@ from core.model.status import JobStatus, UnitStatus
 from core.model.units import WorkUnit
 from core.render.bundle import BundleLimits, bundle_hash, check_rules, check_unpacked, extract_bundle, read_manifest
 from core.render.tiles import read_tile, tile_source
-from core.supervision import die_with_parent
+from core.render.worker import RenderWorker
 from core.transport.tls import is_loopback, server_context
 from core.transport.xmpp import FarmAgent
 from master import auction as au
@@ -104,13 +102,6 @@ class MasterConfig:
         return self.jid.split("@", 1)[1].split("/", 1)[0]
 
 
-def _plan_in_child(scene_path: str, defines: dict[str, str], options: dict[str, Any], seed: int,
-                   min_units: int) -> JobPlan:
-    """Plan a job in a child process: the pre-pass renders, and an LLVM abort must not kill the master."""
-    return plan_job(SceneSpec(Path(scene_path), defines), RenderOptions.from_dict(options), seed=seed,
-                    min_units=min_units)
-
-
 class MasterService:
     """The running master. `await start()`, then it serves until `await stop()`."""
 
@@ -126,8 +117,11 @@ class MasterService:
         self.data_plane = ""  # how bundles and tiles travel, set by start()
         self._runner = None
         self._ticker: asyncio.Task | None = None
-        self._planner = ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"),
-                                            initializer=die_with_parent)
+        # Jobs are planned in a child process, one at a time: the pre-pass renders, and a scene that
+        # crashes Mitsuba must fail its own job, not the master nor the jobs after it (RenderWorker.call
+        # names the crash and starts a new child for the next job).
+        self._planner = RenderWorker()
+        self._planning = asyncio.Lock()
         self._lock = asyncio.Lock()
         self._assembling: dict[str, asyncio.Task] = {}
         self._agent_re = re.compile(config.agent_pattern.format(domain=re.escape(config.domain)))
@@ -178,7 +172,7 @@ class MasterService:
             await self.agent.stop()
         if self._runner is not None:
             await self._runner.cleanup()
-        self._planner.shutdown(wait=False, cancel_futures=True)
+        await asyncio.to_thread(self._planner.stop)
         self.store.close()
 
     async def _start_http(self) -> None:
@@ -260,10 +254,7 @@ class MasterService:
             check_unpacked(scene, defines)
             options, rules_sha256 = _job_rules(job_dir / "scene", options)
             digest = bundle_hash(bundle)
-            loop = asyncio.get_running_loop()
-            plan = await loop.run_in_executor(
-                self._planner, _plan_in_child, str(scene), defines, options.to_dict(),
-                plan_seed(digest, defines, options.to_dict()), self._units_for_agents())
+            plan = await self._plan(SceneSpec(scene, defines), options, plan_seed(digest, defines, options.to_dict()))
         except BaseException:
             shutil.rmtree(job_dir, ignore_errors=True)
             raise
@@ -271,6 +262,12 @@ class MasterService:
         plan = dataclasses.replace(plan, bundle_sha256=digest, rules_sha256=rules_sha256)
         self._create_job(job_id, scene_name, JobSpec(defines, options), plan)
         return job_id
+
+    async def _plan(self, spec: SceneSpec, options: RenderOptions, seed: int) -> JobPlan:
+        """The job's plan, made in the planner's child process (one job at a time)."""
+        async with self._planning:
+            return await asyncio.to_thread(self._planner.call, plan_job, spec, options, seed,
+                                           self._units_for_agents(), doing=f"planning {spec.path.name}")
 
     def _units_for_agents(self) -> int:
         """Units a job needs at least so that every live agent gets several (load balance)."""

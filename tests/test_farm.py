@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -259,3 +260,44 @@ def test_a_farm_starts_again_on_the_same_home(tmp_path):
         with LocalFarm(home, agents=1, threads=1) as farm:
             farm.wait_for_agents(timeout=120)
             assert farm.client().agents()
+
+
+def _planner_child(master_pid: int) -> int | None:
+    """The master's planning process (a render process, core.render.worker), if it runs."""
+    for pid in _children(master_pid):
+        try:
+            if b"_child_entry" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                return pid
+        except OSError:
+            continue
+    return None
+
+
+def test_a_planning_that_crashes_fails_its_own_job_and_the_next_job_plans(farm3):
+    """A scene whose planning kills its process (here the planner child, SIGKILLed mid pre-pass, as an LLVM
+    abort would) is refused with the reason; the master stays up and plans the next job in a new child."""
+    client = farm3.client()
+    master = farm3.children[0].proc
+    big = {"res": "2048", "spp": "4096"}  # its pre-pass at full resolution: several seconds
+    outcome: dict[str, object] = {}
+
+    def submit_big() -> None:
+        try:
+            outcome["job"] = client.submit(bundle_of(SCENE, big), big, {"level": "S"})
+        except Exception as exc:  # the refusal, checked below
+            outcome["error"] = exc
+
+    thread = threading.Thread(target=submit_big)
+    thread.start()
+    deadline = time.monotonic() + 60
+    while (planner := _planner_child(master.pid)) is None:
+        assert time.monotonic() < deadline and thread.is_alive(), outcome
+        time.sleep(0.05)
+    time.sleep(1.5)  # past Mitsuba's import, into the analysis and the pre-pass
+    os.kill(planner, signal.SIGKILL)
+    thread.join(120)
+    assert "job" not in outcome and "killed by SIGKILL" in str(outcome.get("error")), outcome
+    assert "cbox.xml" in str(outcome["error"]) and client.jobs() == []
+    job_id = client.submit(bundle_of(SCENE, DEFINES), DEFINES, {"level": "S", "units": 4})
+    assert wait_job(farm3, job_id)["status"] == "done"
+    assert master.poll() is None and _planner_child(master.pid) not in (None, planner)

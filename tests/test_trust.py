@@ -48,7 +48,7 @@ def test_the_master_takes_bids_only_from_its_allowlist(tmp_path):
         assert not service._accepts("agent-1-abc@localhost")  # an unreadable list lets nobody in
     finally:
         service.store.close()
-        service._planner.shutdown(wait=False)
+        service._planner.stop()
 
 
 def test_a_full_disk_pauses_every_job_and_stops_the_auctions_clock(tmp_path):
@@ -70,4 +70,4 @@ def test_a_full_disk_pauses_every_job_and_stops_the_auctions_clock(tmp_path):
         assert service.auction_now() - frozen == pytest.approx(0.2, abs=0.1)  # the pause is not counted
     finally:
         service.store.close()
-        service._planner.shutdown(wait=False)
+        service._planner.stop()
