@@ -45,9 +45,8 @@ def scene_spp(spec: SceneSpec, sensor_index: int = 0) -> int | None:
     return None
 
 
-# At least this many samples in a level-off unit when the job's spp is known: ~3 s of cbox here (2 threads).
-# cbox 512x512 at 64 spp (2^24 samples), one unit against four, whole `quekaro render` processes
-# alternated: 3.91 s against 4.01 s (medians of 6).
+# At least this many samples in a level-off unit when the job's spp is known (a few seconds of a simple
+# scene here): below it, the render calls and bands of more units cost more than their progress is worth.
 OFF_UNIT_SAMPLES = 1 << 24
 
 
