@@ -301,3 +301,16 @@ def test_a_planning_that_crashes_fails_its_own_job_and_the_next_job_plans(farm3)
     job_id = client.submit(bundle_of(SCENE, DEFINES), DEFINES, {"level": "S", "units": 4})
     assert wait_job(farm3, job_id)["status"] == "done"
     assert master.poll() is None and _planner_child(master.pid) not in (None, planner)
+
+
+def test_a_scene_mitsuba_refuses_is_named_as_the_user_submitted_it(farm3, tmp_path):
+    """The refusal names the scene file and line as in the user's bundle, not the master's job folder."""
+    broken = tmp_path / "broken.xml"
+    broken.write_text('<scene version="3.0.0">\n  <shape type="no_such_plugin_here"/>\n</scene>\n')
+    client = farm3.client()
+    with pytest.raises(Exception, match="HTTP 422") as refused:
+        client.submit(bundle_of(broken, {}), {}, {"level": "S"})
+    said = str(refused.value)
+    assert "broken.xml" in said and "no_such_plugin_here" in said and "line 2" in said, said
+    assert str(farm3.home) not in said and "/jobs/" not in said, said
+    assert client.jobs() == []
