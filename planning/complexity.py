@@ -153,6 +153,7 @@ def prepass(
     """
     start = time.perf_counter()
     scene = _as_scene(scene, threads)
+    mitsuba_env.require_vectorised("the rules' pre-pass (every level but off)")
     film = scene.sensors()[sensor].film()
     fw, fh = (int(v) for v in film.size())
     width, height = width or fw, height or fh

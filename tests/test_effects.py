@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from core.errors import SceneError
+from core.errors import QuekaroError, SceneError
 from core.model.job import SceneSpec
 from core.render.effects import analyse, analyse_loaded, depth_cap
 from core.render.worker import render_full
@@ -132,3 +132,17 @@ def test_a_depth_for_an_integrator_that_takes_none_is_refused(tmp_path):
     scene.write_text('<scene version="3.0.0"><integrator type="direct"/><shape type="sphere"/></scene>')
     with pytest.raises(SceneError, match="--depth 5: the integrator direct takes no depth"):
         analyse(SceneSpec(scene), {"max_depth": 5})
+
+
+def test_a_variant_that_cannot_load_here_is_refused_naming_it():
+    """A cuda variant on a machine without a usable GPU (this one): a QuekaroError naming the variant and
+    what Mitsuba said, not an ImportError from inside Dr.Jit."""
+    import drjit as dr
+
+    from core.render import mitsuba_env
+
+    if dr.has_backend(dr.JitBackend.CUDA):
+        pytest.skip("this machine has a CUDA backend: cuda_ad_rgb loads")
+    with pytest.raises(QuekaroError, match=r"Mitsuba variant 'cuda_ad_rgb' cannot load here \(ImportError"):
+        mitsuba_env.init("cuda_ad_rgb")
+    assert mitsuba_env.init("llvm_ad_rgb") == "llvm_ad_rgb"  # and the process renders on

@@ -4,14 +4,18 @@ that compute something else, with fewer samples, or from tiles of an integrator 
 from __future__ import annotations
 
 import dataclasses
+import json
+import subprocess
+import sys
 import time
 
 import pytest
-from compat_cases import CASES, SCENES, problems
-from render_check import compare, reference_renders
+from compat_cases import CASES, SCENES, job_args, problems, reference
+from render_check import by_name, compare, reference_renders
 
 import core.model.integrators as integrators
 from core.model.job import RenderOptions, SceneSpec
+from core.render.imageio import read_exr_channels
 from core.render.worker import RenderWorker
 from planning.jobplan import plan_job
 from planning.pipeline import render_plan
@@ -64,3 +68,27 @@ def test_the_variant_criterion_on_both_sides_against_real_renders(name, rgb_is_t
         assert not verdict.passed and verdict.failing > 100, verdict
     chosen = analyse(SceneSpec(SCENES / name)).variant
     assert chosen == ("llvm_ad_rgb" if rgb_is_the_same else "llvm_ad_spectral")
+
+
+def test_a_scalar_variant_renders_level_off_as_mitsuba_and_refuses_what_needs_wavefronts(tmp_path):
+    """scalar_rgb is the fallback where Dr.Jit finds no LLVM (and a user may ask for it with -m): level off
+    renders there, in tiles, the image plain Mitsuba makes; the pre-pass and adaptive sampling trace
+    Dr.Jit wavefronts, so the levels that need them are refused with the reason, not a traceback."""
+    case = _case("direct")
+    out = tmp_path / "scalar.exr"
+    done = subprocess.run([sys.executable, "-m", "quekaro", "render", *job_args(case), "-m", "scalar_rgb",
+                           "--spp", str(case.spp), "--no-progress", "-o", str(out)],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = json.loads(out.with_suffix(".json").read_text())
+    assert report["effects"]["variant"] == "scalar_rgb" and len(report["units"]) == case.units
+    refs, ref_names = reference(case)
+    image, names = read_exr_channels(out)
+    verdict = compare(by_name(image, names, ref_names), refs)
+    assert verdict.passed, verdict
+    for extra in (["--opt", "S"], ["--opt", "S", "--adaptive"]):
+        refused = subprocess.run([sys.executable, "-m", "quekaro", "render", str(case.scene), "-m", "scalar_rgb",
+                                  *extra, "--spp", "8", "--no-progress", "-o", str(tmp_path / "S.exr")],
+                                 capture_output=True, text=True, timeout=600)
+        assert refused.returncode == 2, refused.stderr[-2000:]
+        assert "needs an llvm_* or cuda_* Mitsuba variant" in refused.stderr and "Traceback" not in refused.stderr

@@ -254,3 +254,14 @@ def test_the_units_render_the_scene_the_planning_loaded_as_a_fresh_load_would(sp
         assert kept.meta["window_method"] == fresh.meta["window_method"]
         np.testing.assert_allclose(kept.pixels, fresh.pixels, rtol=1e-5, atol=1e-6)
     assert _local_cache.key[0] == spec.key()
+
+
+def test_an_adaptive_unit_in_a_scalar_variant_is_refused_with_the_reason(worker):
+    """An agent that fell back to scalar (no LLVM) cannot trace the per-pixel counts' wavefront: the unit
+    fails with the reason (the master then awards it elsewhere), and a plain unit still renders there."""
+    adaptive = RenderRequest(CBOX, "scalar_rgb", "path", 4, 8, 1, 48, 48, UNIT, band=2, threads=1, first=4)
+    with pytest.raises(RenderError, match=r"adaptive sampling .* needs an llvm_\* or cuda_\* .* scalar_rgb"):
+        worker.render(adaptive, timeout=120)
+    plain = worker.render(RenderRequest(CBOX, "scalar_rgb", "path", 4, 8, 1, 48, 48, UNIT, band=2, threads=1),
+                          timeout=120)
+    assert plain.meta["variant"] == "scalar_rgb" and np.isfinite(plain.pixels).all() and plain.pixels.mean() > 0

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from core.errors import RenderError
+from core.render import mitsuba_env
 from core.render.film import film_channels
 from core.render.metrics import RELMSE_EPSILON
 
@@ -63,6 +64,7 @@ def check_renderable(scene: Any, sensor: int = 0, integrator: Any = None) -> Non
     """Raise RenderError naming what makes per-pixel counts not Mitsuba's render for this scene."""
     import mitsuba as mi
 
+    mitsuba_env.require_vectorised("adaptive sampling (per-pixel sample counts in one wavefront)")
     cam = scene.sensors()[sensor]
     kind = cam.sampler().class_name()
     if kind not in SAMPLERS:

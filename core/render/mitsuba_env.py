@@ -6,7 +6,7 @@ from __future__ import annotations
 import logging
 import os
 
-from core.errors import QuekaroError
+from core.errors import QuekaroError, RenderError
 
 # Mitsuba and Dr.Jit are imported where used: `import mitsuba` costs ~0.35 s and 85 MB, must follow the
 # variant choice (core.render.mitsuba_env), and processes that never render must not pay for it.
@@ -70,8 +70,24 @@ def _select_variant(variant: str) -> str:
         log.warning("Mitsuba variant %s cannot load (%s): falling back to %s, 2.5-5x slower",
                     variant, reason, fallback)
         variant = fallback
-    mi.set_variant(variant)
+    try:
+        mi.set_variant(variant)
+    except (ImportError, RuntimeError) as exc:  # e.g. a cuda variant on a machine without a usable GPU
+        raise QuekaroError(f"Mitsuba variant {variant!r} cannot load here ({type(exc).__name__}: {exc})") from exc
     return variant
+
+
+def require_vectorised(what: str) -> None:
+    """Raise RenderError unless this process renders with a vectorised variant (llvm or cuda): `what`
+    traces Dr.Jit wavefronts, which a scalar variant (the fallback without LLVM) does not have."""
+    import mitsuba as mi
+
+    variant = mi.variant() or ""
+    if variant.startswith("scalar_"):
+        why = (f"the fallback for {_state['requested']}, whose LLVM backend did not load (install libllvm19)"
+               if _state["requested"] != variant else "as asked")
+        raise RenderError(f"{what} needs an llvm_* or cuda_* Mitsuba variant; this process renders with "
+                          f"{variant} ({why}). Level off renders in any variant")
 
 
 def init(variant: str = DEFAULT_VARIANT, threads: int | None = None) -> str:

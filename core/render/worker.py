@@ -233,7 +233,8 @@ def principal_point(scene: Any, sensor: int = 0) -> tuple[float, float] | None:
     params = mi.traverse(sensor_of(scene, sensor))
     if not all(k in params for k in _PP_KEYS):
         return None
-    return float(params[_PP_KEYS[0]][0]), float(params[_PP_KEYS[1]][0])
+    # An llvm variant holds each as a one-element array, a scalar variant as a float.
+    return tuple(float(np.ravel(params[key])[0]) for key in _PP_KEYS[:2])
 
 
 def set_window(scene: Any, window: Rect, base: tuple[float, float] | None, sensor: int = 0) -> str:
