@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import subprocess
 import sys
@@ -140,7 +141,23 @@ def accuracy_report(spec: SceneSpec, image: np.ndarray, wall_seconds: float, rep
     rgb = np.asarray(image[..., :3], dtype=np.float32)
     rects = [Rect.from_list(u["rect"]) for u in report["units"]]
     line = spp_timing(spec, max(1, int(report.get("spp") or 16)), threads, variant)
+    uniform = uniform_at(spec, wall_seconds, line, threads, ref, variant)
+    width, height = report["image"]["width"], report["image"]["height"]
+    compared = max(uniform["spp"], report["totals"]["samples"] / (width * height))
     return {"reference_spp": ref_spp, "variant": variant, "seconds": wall_seconds, **all_metrics(rgb, ref),
-            "seams": seam_measure(rgb, ref, rects).to_dict(),
-            "uniform": uniform_at(spec, wall_seconds, line, threads, ref, variant),
-            "line": {"t0": line[0], "k": line[1]}}
+            "seams": seam_measure(rgb, ref, rects).to_dict(), "uniform": uniform,
+            "line": {"t0": line[0], "k": line[1]}, "reference_warning": reference_warning(ref_spp, compared)}
+
+
+# The reference's own noise enters every error measured against it: with REF_FACTOR times the samples of
+# what it is compared with, it adds at most 1/REF_FACTOR to their relMSE (and pulls their ratio towards 1).
+REF_FACTOR = 4
+
+
+def reference_warning(ref_spp: int, compared_spp: float) -> str | None:
+    """Why the reference is too noisy for images of `compared_spp` samples per pixel, or None."""
+    if ref_spp >= REF_FACTOR * compared_spp:
+        return None
+    return (f"the reference ({ref_spp} spp) has under {REF_FACTOR}x the samples of an image compared with it "
+            f"({compared_spp:.0f} spp): its own noise is in both errors and pulls their ratio towards 1; "
+            f"give --ref-spp {REF_FACTOR * math.ceil(compared_spp)} or more")

@@ -164,6 +164,8 @@ def add_accuracy(report: dict, spec: SceneSpec, out: Path, wall: float, args: ar
           f"relMSE {uniform['relmse']:.5f}  ({uniform['spp']} spp, plain Mitsuba)")
     print(f"  relMSE ratio {accuracy['relmse'] / max(uniform['relmse'], 1e-30):.3f} (below 1: the job wins); seams: "
           + seam_line(seams))
+    if accuracy["reference_warning"]:
+        print(f"warning: {accuracy['reference_warning']}")
 
 
 @contextmanager

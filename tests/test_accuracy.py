@@ -72,6 +72,18 @@ def test_render_report_accuracy_compares_with_plain_mitsuba(tmp_path):
     assert report["line"]["k"] > 0 and "seam" in report["seams"]
     assert list((tmp_path / ".cache" / "quekaro" / "references").glob("cbox-*.exr"))
     assert "relMSE ratio" in done.stdout and "uniform" in done.stdout
+    job_spp = json.loads(out.with_suffix(".json").read_text())["totals"]["samples"] / 48**2
+    too_noisy = 4 * max(report["uniform"]["spp"], job_spp) > 256  # a 48 px job: plain Mitsuba gets many spp
+    assert (report["reference_warning"] is not None) == too_noisy
+    assert ("warning: the reference (256 spp)" in done.stdout) == too_noisy
+
+
+def test_a_reference_with_too_few_samples_is_said_with_the_spp_to_give():
+    assert accuracy.reference_warning(1024, 256) is None  # exactly REF_FACTOR times: enough
+    assert accuracy.reference_warning(4, 1) is None
+    said = accuracy.reference_warning(1024, 256.5)
+    assert said is not None and "(1024 spp)" in said and "(256 spp)" in said and "--ref-spp 1028" in said
+    assert "--ref-spp 4000" in accuracy.reference_warning(64, 1000)
 
 
 def test_a_spectral_scene_is_compared_with_plain_mitsuba_in_its_own_variant(tmp_path):
