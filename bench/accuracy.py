@@ -37,8 +37,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from matplotlib import image as mpimg
 from matplotlib.figure import Figure
+from PIL import Image
 
 from bench.suite import SUITE, SuiteScene, scene_from_argument
 from core.errors import QuekaroError
@@ -345,11 +345,17 @@ def plain_at(spec: Any, spp: int, args: argparse.Namespace, variant: str,
 
 
 def write_diff_images(name: str, diffs: dict[str, np.ndarray], out: Path) -> None:
-    """Grey difference images against the reference, one per level (white = DIFF_WHITE or more)."""
+    """Grey difference images against the reference, one per level (white = DIFF_WHITE or more), as 8-bit
+    greyscale PNGs (Pillow): a quarter of the size of matplotlib's RGBA ones."""
     folder = out / "accuracy-diff"
     folder.mkdir(parents=True, exist_ok=True)
     for level, diff in diffs.items():
-        mpimg.imsave(folder / f"{name}-{level}.png", np.clip(diff / DIFF_WHITE, 0, 1), cmap="gray", vmin=0, vmax=1)
+        Image.fromarray(grey_levels(diff / DIFF_WHITE), mode="L").save(folder / f"{name}-{level}.png", optimize=True)
+
+
+def grey_levels(value: np.ndarray) -> np.ndarray:
+    """Values in [0, 1] (clipped) as 8-bit grey levels: 256 equal bins, the last one closed (1.0 is 255)."""
+    return np.minimum(np.clip(value, 0.0, 1.0) * 256, 255).astype(np.uint8)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:

@@ -7,7 +7,9 @@ import os
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
+from PIL import Image
 
 from bench import accuracy as bench_accuracy
 from core.errors import QuekaroError
@@ -44,7 +46,8 @@ def test_inprocess_grid_json_has_cells_and_baseline(tmp_path):
     off = cells[0]
     assert off["spp_min"] == off["spp_max"] == 4  # level off applies no rules
     assert list((tmp_path / "cache" / "references").glob("caustic-corner-*.exr"))  # cached for next time
-    assert (tmp_path / "out" / "accuracy-diff" / "caustic-corner-S.png").exists()
+    diff = Image.open(tmp_path / "out" / "accuracy-diff" / "caustic-corner-S.png")
+    assert diff.mode == "L" and diff.size[0] == diff.size[1] > 0  # 8-bit grey, the scene's square image
     table = (tmp_path / "out" / "accuracy.md").read_text()
     s_row = f"| caustic-corner | 1 | S | {cells[1]['seconds']:.1f} | {cells[1]['first_seconds']:.1f} |"
     assert "| 1 |" in table and s_row in table
@@ -98,3 +101,8 @@ def test_tree_cpu_seconds_counts_a_busy_child():
         assert bench_accuracy.tree_cpu_seconds([os.getpid()]) >= child + 0.05  # the tree includes the child
     finally:
         os.waitpid(pid, 0)
+
+
+def test_grey_levels_bin_the_difference_and_clip_it():
+    levels = bench_accuracy.grey_levels(np.array([-1.0, 0.0, 1 / 256 - 1e-9, 1 / 256, 0.5, 255 / 256, 1.0, 7.0]))
+    assert levels.dtype == np.uint8 and levels.tolist() == [0, 0, 0, 1, 128, 255, 255, 255]
