@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -128,16 +129,33 @@ def run(args: argparse.Namespace) -> int:
     targets = outputs(args.scenes, args.out)
     for folder in dict.fromkeys(path.parent for path in targets):
         check_writable(folder, args.out)  # before any render: a job's image must not be lost at the end
+    failed = []
     for scene, out in zip(args.scenes, targets, strict=True):
-        spec = SceneSpec(scene, defines, paths)
-        started = time.perf_counter()
-        with render_progress(scene.name, enabled=not args.no_progress) as progress:
-            report = render_job(spec, options, out, progress=progress)
-        print_report(report, out)
-        if args.report_accuracy:
-            wall, startup = time.perf_counter() - started + startup, 0.0
-            add_accuracy(report, spec, out, wall, args)
+        try:
+            render_one(SceneSpec(scene, defines, paths), options, out, args, startup)
+        except QuekaroError as exc:
+            if len(args.scenes) == 1:
+                raise
+            print(f"quekaro: error: {exc}", file=sys.stderr)  # one bad scene does not stop the others
+            failed.append(str(scene))
+        startup = 0.0
+    if failed:
+        print(f"quekaro: error: {len(failed)} of {len(args.scenes)} scenes failed: {', '.join(failed)}",
+              file=sys.stderr)
+        return 2
     return 0
+
+
+def render_one(spec: SceneSpec, options: RenderOptions, out: Path, args: argparse.Namespace,
+               startup: float) -> None:
+    """One scene's job, its report printed (and its accuracy, with --report-accuracy: `startup` is the
+    process's own start, which the first scene's wall time includes)."""
+    started = time.perf_counter()
+    with render_progress(spec.path.name, enabled=not args.no_progress) as progress:
+        report = render_job(spec, options, out, progress=progress)
+    print_report(report, out)
+    if args.report_accuracy:
+        add_accuracy(report, spec, out, time.perf_counter() - started + startup, args)
 
 
 def process_age() -> float:

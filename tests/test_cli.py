@@ -109,6 +109,18 @@ def test_render_several_scenes_into_a_folder_with_progress(tmp_path: Path) -> No
     assert "4/4 units" in done.stdout and "spp" in done.stdout
 
 
+@pytest.mark.slow
+def test_one_bad_scene_of_several_does_not_stop_the_others(tmp_path: Path) -> None:
+    (tmp_path / "broken.xml").write_text('<scene version="3.0.0"><default name="res" value="8"/><shape '
+                                         'type="no_such_plugin_here"><integer name="n" value="$res"/></shape></scene>')
+    done = quekaro("render", str(SCENES / "cbox.xml"), str(tmp_path / "broken.xml"), str(SCENES / "glass-corner.xml"),
+                   "-D", "res=16", "--spp", "2", "-t", "1", "--no-progress", "-o", str(tmp_path / "out"), cwd=tmp_path)
+    assert done.returncode == 2, done.stderr
+    assert "broken.xml" in done.stderr and "no_such_plugin_here" in done.stderr
+    assert f"1 of 3 scenes failed: {tmp_path / 'broken.xml'}" in done.stderr and "Traceback" not in done.stderr
+    assert {p.name for p in (tmp_path / "out").glob("*.exr")} == {"cbox.exr", "glass-corner.exr"}
+
+
 @pytest.mark.parametrize("name", ["no-such-scene.xml", "a-folder"])
 def test_render_of_a_scene_that_cannot_be_read_names_it(tmp_path: Path, name: str) -> None:
     (tmp_path / "a-folder").mkdir()
