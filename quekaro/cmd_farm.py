@@ -181,11 +181,22 @@ def run_submit(args: argparse.Namespace) -> int:
     options["rules"] = None  # the rule file travels inside the bundle, to every agent
     bundles = [_bundle_bytes(scene, defines, args) for scene in args.scenes]  # every input checked first
     client = _client(args)
-    jobs = []
-    for bundle in bundles:
-        jobs.append(client.submit(bundle, defines, options))
+    jobs, refused = [], []
+    for scene, bundle in zip(args.scenes, bundles, strict=True):
+        try:
+            jobs.append(client.submit(bundle, defines, options))
+        except QuekaroError as exc:
+            if len(args.scenes) == 1:
+                raise
+            print(f"quekaro: error: {scene}: {exc}", file=sys.stderr)  # the others are still submitted
+            refused.append(str(scene))
+            continue
         print(jobs[-1])
     statuses = [watch(client, job_id) for job_id in jobs] if args.wait else [0]
+    if refused:
+        print(f"quekaro: error: {len(refused)} of {len(args.scenes)} scenes refused: {', '.join(refused)}",
+              file=sys.stderr)
+        return 2
     return max(statuses)
 
 

@@ -314,3 +314,15 @@ def test_a_scene_mitsuba_refuses_is_named_as_the_user_submitted_it(farm3, tmp_pa
     assert "broken.xml" in said and "no_such_plugin_here" in said and "line 2" in said, said
     assert str(farm3.home) not in said and "/jobs/" not in said, said
     assert client.jobs() == []
+
+
+def test_submitting_several_scenes_one_refused_still_submits_the_others(farm3, tmp_path):
+    broken = tmp_path / "broken.xml"
+    broken.write_text('<scene version="3.0.0"><shape type="no_such_plugin_here"/></scene>\n')
+    done = subprocess.run([sys.executable, "-m", "quekaro", "submit", str(broken), str(SCENE), "--opt", "off",
+                           "--home", str(farm3.home)], capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert f"1 of 2 scenes refused: {broken}" in done.stderr and "no_such_plugin_here" in done.stderr
+    (job_id,) = done.stdout.split()
+    assert [j["job_id"] for j in farm3.client().jobs()] == [job_id]
+    assert wait_job(farm3, job_id)["status"] == "done"
