@@ -255,11 +255,10 @@ class MasterService:
             options, rules_sha256 = _job_rules(job_dir / "scene", options)
             digest = bundle_hash(bundle)
             plan = await self._plan(SceneSpec(scene, defines), options, plan_seed(digest, defines, options.to_dict()))
-        except QuekaroError as exc:
+        except BaseException as exc:
             shutil.rmtree(job_dir, ignore_errors=True)
-            raise _as_submitted(exc, job_dir / "scene") from exc
-        except BaseException:
-            shutil.rmtree(job_dir, ignore_errors=True)
+            if isinstance(exc, QuekaroError):
+                raise _as_submitted(exc, job_dir / "scene") from exc
             raise
         scene_name = str(scene.relative_to(job_dir / "scene"))
         plan = dataclasses.replace(plan, bundle_sha256=digest, rules_sha256=rules_sha256)
@@ -442,12 +441,7 @@ def _as_submitted(exc: QuekaroError, folder: Path) -> QuekaroError:
     """`exc` with the paths of the job's unpacked bundle (`folder`, removed with the refused job) as the
     submitter's files are named in it: what the user must fix is in their scene, not in the master's home."""
     text = str(exc).replace(f"{folder}{os.sep}", "")
-    if text == str(exc):
-        return exc
-    try:
-        return type(exc)(text)
-    except TypeError:  # a subclass with its own constructor: the message is what matters here
-        return QuekaroError(text)
+    return exc if text == str(exc) else type(exc)(text)
 
 
 def _job_rules(folder: Path, options: RenderOptions) -> tuple[RenderOptions, str | None]:

@@ -21,7 +21,7 @@ from core.render.scene import parse_defines
 from farm.client import FarmClient
 from farm.local import LocalFarm
 from planning import budgets
-from quekaro.cmd_render import add_job_arguments, check_writable, options_from_args, outputs, search_paths
+from quekaro.cmd_render import add_job_arguments, options_from_args, search_paths, writable_outputs
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -134,8 +134,7 @@ def run_up(args: argparse.Namespace) -> int:
 
 def run_demo(args: argparse.Namespace) -> int:
     """Start a farm, render the demo scene on it, fetch the image, and say where everything is."""
-    target = outputs([DEMO_SCENE], args.out)[0]
-    check_writable(target.parent, args.out)  # before a farm starts, not after its render
+    (target,) = writable_outputs([DEMO_SCENE], args.out)  # before a farm starts, not after its render
     with LocalFarm(args.home, args.agents, args.threads, args.rules, args.http_port, supervise=True) as farm:
         print(f"farm up: master {farm.url}, {farm.n_agents} agents, home {farm.home}")
         print(f"web page: {farm.url}/ui/ (log in with the admin token in {farm.home / ADMIN_TOKEN}; "
@@ -280,8 +279,7 @@ def watch(client, job_id: str, poll_s: float = 0.5) -> int:
 
 
 def run_result(args: argparse.Namespace) -> int:
-    out = outputs([Path(args.job)], args.out)[0]  # an EXR file, or JOB.exr in a folder, as `render -o`
-    check_writable(out.parent, args.out)
+    (out,) = writable_outputs([Path(args.job)], args.out)  # an EXR file, or JOB.exr in a folder, as `render -o`
     out = _client(args).result(args.job, out)
     print(f"{out}  report: {out.with_suffix('.json')}")
     return 0

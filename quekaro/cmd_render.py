@@ -110,6 +110,15 @@ def outputs(scenes: list[Path], out: Path) -> list[Path]:
     return paths
 
 
+def writable_outputs(scenes: list[Path], out: Path) -> list[Path]:
+    """`outputs`, each folder checked writable (`check_writable`) before any work: an image must not be
+    lost at the end of its render."""
+    targets = outputs(scenes, out)
+    for folder in dict.fromkeys(path.parent for path in targets):
+        check_writable(folder, out)
+    return targets
+
+
 def check_writable(folder: Path, out: Path) -> None:
     """Create `folder` if needed and write a file in it, or say why -o `out` cannot be written."""
     try:
@@ -126,11 +135,8 @@ def run(args: argparse.Namespace) -> int:
     options = options_from_args(args)
     if args.ref_spp < 1:
         raise QuekaroError(f"--ref-spp {args.ref_spp}: must be at least 1")
-    targets = outputs(args.scenes, args.out)
-    for folder in dict.fromkeys(path.parent for path in targets):
-        check_writable(folder, args.out)  # before any render: a job's image must not be lost at the end
     failed = []
-    for scene, out in zip(args.scenes, targets, strict=True):
+    for scene, out in zip(args.scenes, writable_outputs(args.scenes, args.out), strict=True):
         try:
             render_one(SceneSpec(scene, defines, paths), options, out, args, startup)
         except QuekaroError as exc:
