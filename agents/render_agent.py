@@ -290,7 +290,7 @@ class RenderAgent:
         ranges = dict(job.ranges) or None
         planner = self._planner_for(job)
         return planner.plan(features, job.level, user_depth=job.depth, user_spp=job.spp, ranges=ranges,
-                            min_band=job.min_band)
+                            min_band=job.min_band, depth_floor=[u.depth_floor for u in units])
 
     def _planner_for(self, job: m.JobInfo) -> Planner:
         """The job's own rules once its bundle is here (else this agent's, for a bid's estimate only), with

@@ -478,8 +478,13 @@ def _params_from_meta(meta: dict[str, Any]) -> dict[str, Any]:
 
 
 def _check_planned(job: m.JobInfo, unit: WorkUnit, params: dict[str, Any]) -> None:
-    """An adaptive job's tile must say it rendered the unit's planned share in two passes (its image is
-    averaged with the others' as if it had): else it is refused, naming what differs."""
+    """A tile must say it rendered what the plan allows: no shallower than its unit's depth floor (the
+    unit would lack the light of the paths cut), and in an adaptive job the unit's planned share in two
+    passes (its image is averaged with the others' as if it had). Else it is refused, naming what differs."""
+    floor = unit.depth_floor
+    if floor is not None and job.depth >= 1 and params["depth"] < floor:
+        raise QuekaroError(f"unit {unit.index} of job {job.job_id}: tile header says depth {params['depth']}; the "
+                           f"plan allows no less than {floor} (shallower paths lose its light)")
     if job.first_spp is None:
         return
     said = (params["spp"], params.get("first_spp"))

@@ -28,7 +28,7 @@ from core.model.status import STORED_UNIT_STATUSES, JobStatus, UnitStatus, job_t
 from core.model.units import WorkUnit
 from master import auction as au
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 # A unit row's WorkUnit.work in SQL ({t}: the table's alias and a dot, or nothing).
 _WORK = "{t}cost * COALESCE({t}spp, 1)"
 
@@ -57,6 +57,7 @@ CREATE TABLE units (
     status   TEXT NOT NULL CHECK (status IN ({_sql_set(STORED_UNIT_STATUSES)})),
     attempts INTEGER NOT NULL DEFAULT 0,
     spp      INTEGER CHECK (spp IS NULL OR spp >= 1),  -- WorkUnit.spp (adaptive jobs), NULL where rules choose
+    depth_floor INTEGER CHECK (depth_floor IS NULL OR depth_floor >= 1),  -- WorkUnit.depth_floor, NULL: none
     PRIMARY KEY (job_id, idx)
 );
 CREATE TABLE attempts (
@@ -122,10 +123,11 @@ class UnitRecord:
     status: UnitStatus
     attempts: int
     spp: int | None = None
+    depth_floor: int | None = None
 
     def unit(self) -> WorkUnit:
         return WorkUnit(index=self.index, rect=self.rect, C=self.C, S=int(self.S), Nd=self.Nd, cost=self.cost,
-                        spp=self.spp)
+                        spp=self.spp, depth_floor=self.depth_floor)
 
 
 @dataclass(frozen=True)
@@ -215,6 +217,8 @@ class JobStore:
             version = self._migrate_from_1()
         if version == 2 and not readonly:
             version = self._migrate_from_2()
+        if version == 3 and not readonly:
+            version = self._migrate_from_3()
         if version != SCHEMA_VERSION:
             raise StoreError(f"{self.path}: schema version {version}, this program reads {SCHEMA_VERSION}")
 
@@ -253,6 +257,15 @@ class JobStore:
                 db.execute("PRAGMA user_version = 3")
         return 3
 
+    def _migrate_from_3(self) -> int:
+        """Schema 4 adds each unit's depth floor (planning.depthcut); the units stored before have none."""
+        with self._tx() as db:
+            if db.execute("PRAGMA user_version").fetchone()[0] == 3:
+                db.execute("ALTER TABLE units ADD COLUMN depth_floor INTEGER"
+                           " CHECK (depth_floor IS NULL OR depth_floor >= 1)")
+                db.execute("PRAGMA user_version = 4")
+        return 4
+
     @contextmanager
     def _tx(self) -> Iterator[sqlite3.Connection]:
         """One write transaction: BEGIN IMMEDIATE takes the write lock up front (no upgrade deadlocks)."""
@@ -289,10 +302,10 @@ class JobStore:
                 (job_id, scene, json.dumps(spec.to_dict()), json.dumps(plan.to_dict()), JobStatus.RUNNING, now),
             )
             db.executemany(
-                "INSERT INTO units (job_id, idx, x, y, w, h, C, S, Nd, cost, status, spp)"
-                " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                [(job_id, u.index, *u.rect.as_list(), u.C, u.S, u.Nd, u.cost, UnitStatus.PENDING, u.spp)
-                 for u in units],
+                "INSERT INTO units (job_id, idx, x, y, w, h, C, S, Nd, cost, status, spp, depth_floor)"
+                " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                [(job_id, u.index, *u.rect.as_list(), u.C, u.S, u.Nd, u.cost, UnitStatus.PENDING, u.spp,
+                  u.depth_floor) for u in units],
             )
 
     def job(self, job_id: str) -> JobRecord:
@@ -313,6 +326,7 @@ class JobStore:
             UnitRecord(
                 r["job_id"], r["idx"], Rect(r["x"], r["y"], r["w"], r["h"]),
                 r["C"], r["S"], r["Nd"], r["cost"], UnitStatus(r["status"]), r["attempts"], r["spp"],
+                r["depth_floor"],
             )
             for r in rows
         ]  # fmt: skip

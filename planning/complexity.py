@@ -161,9 +161,9 @@ def prepass(
     kc = choose_downscale(width, height, full_spp, cost_spp, budget, 1.0 - NOISE_SHARE)
     lw, lh = _low_size(width, height, k)
     cw, ch = _low_size(width, height, kc)
-    with _film_size(scene, lw, lh, sensor):
+    with film_size(scene, lw, lh, sensor):
         noise_low, mean_low = _moment_pass(scene, integrator, max_depth, spp, seed, sensor)
-    with _film_size(scene, cw, ch, sensor):
+    with film_size(scene, cw, ch, sensor):
         cost_low = _ray_count_pass(scene, cw, ch, max_depth, cost_spp, seed + 1, sensor)
     cmap = ComplexityMap(
         cost=_upsample(cost_low, width, height),
@@ -192,7 +192,7 @@ def _as_scene(scene: Any, threads: int | None) -> Any:
 
 
 @contextmanager
-def _film_size(scene: Any, w: int, h: int, sensor: int = 0) -> Iterator[None]:
+def film_size(scene: Any, w: int, h: int, sensor: int = 0) -> Iterator[None]:
     """Temporarily render `scene`'s sensor at another film size (its crop reset), restoring it afterwards."""
     import mitsuba as mi
 

@@ -10,7 +10,10 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from typing import Any
+
+from lxml import etree
 
 from core.errors import QuekaroError
 from core.model import integrators
@@ -20,7 +23,7 @@ from core.render.effects import analyse_loaded
 from core.render.planner import Planner, RenderParams, adaptive_params
 from core.render.scene import expand, film_info, sensor_elements
 from fuzzy.levels import OFF
-from planning import budgets
+from planning import budgets, depthcut
 from planning.complexity import ComplexityMap, prepass
 from planning.partition import equal_tiles, partition
 
@@ -117,20 +120,41 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
         # The rules need no features at level off, so the pre-pass would be pure overhead.
         return dataclasses.replace(plan, units=_plain_units(width, height, target))
     plan, cmap = _with_prepass(plan, target, seed, loaded)
-    return _adaptive(plan, cmap, min_units) if options.adaptive else plan
+    return _adaptive(plan, cmap, min_units) if options.adaptive else _with_depth_floors(plan, cmap, seed, loaded)
 
 
 def _with_prepass(plan: JobPlan, target: int, seed: int, scene: Any) -> tuple[JobPlan, ComplexityMap]:
     """The plan with units from the pre-pass on `scene` (as the analysis loaded it), partitioned."""
     start = time.perf_counter()
     options, depth = plan.options, plan.depth
-    own = integrators.scene_element(expand(plan.spec).root)
-    radiance = plan.effects.override or integrators.radiance_xml(own, depth)
-    cmap = prepass(scene, plan.width, plan.height, integrator=radiance, max_depth=depth,
+    cmap = prepass(scene, plan.width, plan.height, integrator=_radiance_at(plan)(depth), max_depth=depth,
                    threads=options.threads, full_spp=plan.spp, seed=seed, sensor=options.sensor)
     units = partition(cmap, target_units=target)
     return dataclasses.replace(plan, units=units, prepass_seconds=time.perf_counter() - start,
                                prepass_info=dict(cmap.info)), cmap
+
+
+def _with_depth_floors(plan: JobPlan, cmap: ComplexityMap, seed: int, scene: Any) -> JobPlan:
+    """The plan with each unit's depth floor (planning.depthcut) where its rules cut some unit's depth at
+    this level; unchanged where they cut none (the passes would be pure overhead)."""
+    chosen = plan_params(plan, Planner(plan.options.rules, plan.options.defuzzifier))
+    if plan.depth < 2 or all(p.depth >= plan.depth for p in chosen):
+        return plan
+    low = tuple(max(1, v // 2) for v in cmap.info["low_size"])  # a unit's mean needs no finer grid
+    found = depthcut.measure(scene, _radiance_at(plan), plan.depth, [u.rect for u in plan.units], low,
+                             (plan.width, plan.height), seed=seed, sensor=plan.options.sensor)
+    units = [dataclasses.replace(u, depth_floor=f) for u, f in zip(plan.units, found.floors, strict=True)]
+    return dataclasses.replace(plan, units=units, prepass_seconds=plan.prepass_seconds + found.seconds,
+                               prepass_info={**plan.prepass_info, **found.to_info()})
+
+
+def _radiance_at(plan: JobPlan) -> Callable[[int], str]:
+    """The radiance integrator the pre-pass measures with (the user's override, else the scene's own),
+    as standalone XML at any depth."""
+    override = plan.effects.override
+    elem = (etree.Element("integrator", type=override) if override
+            else integrators.scene_element(expand(plan.spec).root))
+    return lambda depth: integrators.radiance_xml(elem, depth)
 
 
 def _adaptive(plan: JobPlan, cmap: ComplexityMap, min_units: int) -> JobPlan:
@@ -153,7 +177,8 @@ def plan_params(plan: JobPlan, planner: Planner) -> list[RenderParams]:
     if plan.first_spp is not None:
         return adaptive_params(plan.units, plan.depth, plan.reach)
     return planner.plan({k: list(v) for k, v in plan.features().items()}, plan.options.level,
-                        user_depth=plan.depth, user_spp=plan.spp, ranges=plan.ranges(), min_band=plan.reach)
+                        user_depth=plan.depth, user_spp=plan.spp, ranges=plan.ranges(), min_band=plan.reach,
+                        depth_floor=[u.depth_floor for u in plan.units])
 
 
 def _plain_units(width: int, height: int, target: int) -> list[WorkUnit]:

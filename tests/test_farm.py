@@ -326,3 +326,23 @@ def test_submitting_several_scenes_one_refused_still_submits_the_others(farm3, t
     (job_id,) = done.stdout.split()
     assert [j["job_id"] for j in farm3.client().jobs()] == [job_id]
     assert wait_job(farm3, job_id)["status"] == "done"
+
+
+def test_a_farm_job_renders_no_unit_below_its_depth_floor(farm3, tmp_path):
+    """The master measures each unit's depth floor (planning.depthcut) and the agents' rules hold to it:
+    on the suite's interior at level VB the rules alone cut most units to depth 4 or 6, which darkens them
+    (tests/test_depth_floors.py); here every unit renders at or above its floor, most of those at the
+    user's 8."""
+    client = farm3.client()
+    scene = REPO / "bench" / "scenes" / "interior-window.xml"
+    defines = {"res": "96"}
+    job_id = client.submit(bundle_of(scene, defines), defines, {"level": "VB", "spp": 32})
+    job = wait_job(farm3, job_id)
+    assert job["status"] == "done", job
+    report = json.loads(client.result(job_id, tmp_path / "vb.exr").with_suffix(".json").read_text())
+    units = report["units"]
+    assert all(u["depth"] >= u["depth_floor"] for u in units), [(u["depth"], u["depth_floor"]) for u in units]
+    wanted = [u for u in units if u["outputs"]["Rl"] < 0.9]  # units the rules alone would cut
+    assert len(wanted) >= len(units) // 2, [u["outputs"] for u in units]
+    assert sum(u["depth"] == 8 for u in wanted) >= len(wanted) // 2, [u["depth"] for u in units]
+    assert report["prepass"]["depth_floor_depths"] == [8, 6, 4]

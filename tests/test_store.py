@@ -87,7 +87,7 @@ def test_schema_pragmas_and_records(tmp_path: Path) -> None:
     with new_store(tmp_path / "farm.db") as store:
         assert store.db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
         assert store.db.execute("PRAGMA foreign_keys").fetchone()[0] == 1
-        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 3
+        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 4
         job = store.job("job-1")
         assert (job.scene, job.spec, job.status) == ("scene.xml", JobSpec({"k": "v"}, RenderOptions("S", 16)),
                                                      "running")
@@ -101,7 +101,7 @@ def test_schema_pragmas_and_records(tmp_path: Path) -> None:
         with pytest.raises(StoreError, match="no job 'nope'"):
             store.job("nope")
         with pytest.raises(sqlite3.IntegrityError):  # foreign keys hold
-            store.db.execute("INSERT INTO units VALUES ('nope', 0, 0, 0, 1, 1, 0, 0, 0, 1, 'pending', 0, NULL)")
+            store.db.execute("INSERT INTO units VALUES ('nope', 0, 0, 0, 1, 1, 0, 0, 0, 1, 'pending', 0, NULL, NULL)")
     assert [j.id for j in JobStore(tmp_path / "farm.db").list_jobs()] == ["job-1"]
 
 
@@ -293,10 +293,13 @@ def test_readers_see_progress_while_the_master_writes(tmp_path: Path) -> None:
         reader.db.execute("UPDATE jobs SET status = 'failed'")
 
 
-# Schema 2's tables: schema 3 added the units' spp column.
+# Schema 3's tables: schema 4 added the units' depth_floor column; schema 2's: schema 3 added their spp.
+FLOOR_COLUMN = ("    depth_floor INTEGER CHECK (depth_floor IS NULL OR depth_floor >= 1),"
+                "  -- WorkUnit.depth_floor, NULL: none\n")
 SPP_COLUMN = ("    spp      INTEGER CHECK (spp IS NULL OR spp >= 1),"
               "  -- WorkUnit.spp (adaptive jobs), NULL where rules choose\n")
-SCHEMA_2 = [s.replace(SPP_COLUMN, "") for s in _SCHEMA.split(";")]
+SCHEMA_3 = [s.replace(FLOOR_COLUMN, "") for s in _SCHEMA.split(";")]
+SCHEMA_2 = [s.replace(SPP_COLUMN, "") for s in SCHEMA_3]
 SCHEMA_1_JOBS = """CREATE TABLE jobs (id TEXT PRIMARY KEY, scene TEXT NOT NULL, defines TEXT NOT NULL,
     options TEXT NOT NULL, status TEXT NOT NULL, created REAL NOT NULL, finished REAL,
     error TEXT NOT NULL DEFAULT '')"""
@@ -304,7 +307,7 @@ SCHEMA_1_JOBS = """CREATE TABLE jobs (id TEXT PRIMARY KEY, scene TEXT NOT NULL, 
 
 def write_old_store(path: Path, version: int, schema: list[str], job_columns: tuple[str, str]) -> None:
     """A job store as an older version wrote it: its tables, job-1 (its two JSON columns) and 4 units."""
-    assert all("spp      INTEGER" not in statement for statement in schema)
+    assert all("depth_floor INTEGER" not in statement for statement in schema)
     db = sqlite3.connect(path, isolation_level=None)
     for statement in schema:
         db.execute(statement)
@@ -325,29 +328,31 @@ def test_a_schema_1_store_is_migrated_with_its_jobs(tmp_path: Path) -> None:
     path.unlink()
     write_old_store(path, 1, [SCHEMA_1_JOBS, *SCHEMA_2[1:]], (json.dumps({"k": "v"}), json.dumps(old)))
     with JobStore(path) as store:
-        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 3
+        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 4
         record = store.job("job-1")
         assert record.spec == JobSpec({"k": "v"}, RenderOptions("S", 16)) and record.plan == plan
         assert [u.unit() for u in store.units("job-1")] == specs(4)
         assert store.db.execute("PRAGMA foreign_keys").fetchone()[0] == 1
 
 
-def test_a_schema_2_store_gains_the_units_spp(tmp_path: Path) -> None:
-    """A schema 2 home opens as schema 3: its units keep everything and have no planned spp; an adaptive
-    job's units then keep theirs through the store (what the auction is rebuilt from after a restart)."""
+@pytest.mark.parametrize(("version", "schema", "column"), [(2, SCHEMA_2, "spp"), (3, SCHEMA_3, "depth_floor")])
+def test_an_older_store_gains_the_units_newer_columns(tmp_path: Path, version, schema, column) -> None:
+    """A schema 2 or 3 home opens as schema 4: its units keep everything and have no planned spp (schema 3
+    added it, adaptive jobs) or depth floor (schema 4, planning.depthcut); a new job's units then keep
+    theirs through the store (what the auction is rebuilt from after a restart), and 0 is refused."""
     path = tmp_path / "farm.db"
     with new_store(path) as store:
         plan, spec = store.job("job-1").plan, store.job("job-1").spec
     path.unlink()
-    write_old_store(path, 2, SCHEMA_2, (json.dumps(spec.to_dict()), json.dumps(plan)))
+    write_old_store(path, version, schema, (json.dumps(spec.to_dict()), json.dumps(plan)))
     with JobStore(path) as store:
-        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 3
+        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 4
         assert [u.unit() for u in store.units("job-1")] == specs(4)
-        shared = [dataclasses.replace(u, spp=10 + u.index) for u in specs(3)]
-        store.create_job("job-2", "scene.xml", spec, plan_of(shared), 101.0)
-        assert [u.spp for u in store.running_jobs()[1].units] == [10, 11, 12]
+        given = [dataclasses.replace(u, **{column: 10 + u.index}) for u in specs(3)]
+        store.create_job("job-2", "scene.xml", spec, plan_of(given), 101.0)
+        assert [getattr(u, column) for u in store.running_jobs()[1].units] == [10, 11, 12]
         with pytest.raises(sqlite3.IntegrityError):
-            store.db.execute("UPDATE units SET spp = 0 WHERE job_id = 'job-2'")
+            store.db.execute(f"UPDATE units SET {column} = 0 WHERE job_id = 'job-2'")
 
 
 def test_status_changes_are_checked_against_the_transition_table(tmp_path: Path) -> None:

@@ -25,7 +25,9 @@ class WorkUnit:
     estimated relative render time (sum of per-pixel time per sample), `neighbours` the indices of
     the units that share a border of positive length with it. `spp` is the mean samples per pixel the
     plan gives the unit (an adaptive job's share of the level's samples: planning.budgets), None where
-    the agent's rules choose.
+    the agent's rules choose. `depth_floor` is the shallowest depth the rules may cut the unit to without
+    losing a measurable share of its light (planning.depthcut), None where depth is not cut (level off,
+    adaptive jobs, unbounded depth).
     """
 
     index: int = constrained(lo=0, hi=10**7)
@@ -37,6 +39,7 @@ class WorkUnit:
     # The partition's adjacency: the planner's business, not the agents' (so never on the wire).
     neighbours: tuple[int, ...] = constrained(wire=False, default=())
     spp: int | None = constrained(lo=1, hi=1 << 20, default=None)
+    depth_floor: int | None = constrained(lo=1, hi=1 << 16, default=None)
 
     def __post_init__(self) -> None:
         area = self.rect.area
@@ -64,6 +67,7 @@ class WorkUnit:
             "cost": self.cost,
             "neighbours": list(self.neighbours),
             **({"spp": self.spp} if self.spp is not None else {}),
+            **({"depth_floor": self.depth_floor} if self.depth_floor is not None else {}),
         }
 
     @classmethod
@@ -81,6 +85,7 @@ class WorkUnit:
                 cost=float(_field(data, "cost")),
                 neighbours=tuple(int(n) for n in data.get("neighbours", ())),
                 spp=None if data.get("spp") is None else int(data["spp"]),
+                depth_floor=None if data.get("depth_floor") is None else int(data["depth_floor"]),
             )
         except UnitError:
             raise

@@ -100,10 +100,12 @@ class Planner:
         user_spp: int,
         ranges: Mapping[str, tuple[float, float]] | None = None,
         min_band: int = 0,
+        depth_floor: Sequence[int | None] | None = None,
     ) -> list[RenderParams]:
         """One `RenderParams` per unit; `ranges` defaults to the min/max of the given features. No band is
         below `min_band` (the job's: its film filter's reach, core.model.geometry.filter_reach) nor the
-        planner's own."""
+        planner's own. No unit's depth is below its `depth_floor` (planning.depthcut; None: no floor), nor
+        is a floor above the user's depth."""
         cols = _feature_columns(features)
         n = len(cols["C"])
         floor = max(self.min_band, int(min_band))
@@ -125,6 +127,7 @@ class Planner:
             outputs = self.engine.evaluate(inputs, ranges)
             quantised = {**outputs, "Rl": quantise_depth_factor(outputs["Rl"])}
             depth, spp, band = to_render_params(quantised, max(user_depth, 0), user_spp)
+        depth = np.maximum(depth, floors(depth_floor, n, user_depth))
         if user_depth < 1:  # unbounded (-1), or an integrator without depth: nothing to weight
             depth = np.full(n, user_depth, dtype=np.int64)
         band = np.maximum(band, floor)
@@ -144,6 +147,16 @@ class Planner:
                 var = dataclasses.replace(var, sets=sets, universe=(float(rows[0, 0]), float(rows[-1, 3])))
             inputs.append(var)
         return Engine(dataclasses.replace(self.rulebase, inputs=tuple(inputs)), self.engine.defuzzifier)
+
+
+def floors(depth_floor: Sequence[int | None] | None, n: int, user_depth: int) -> np.ndarray:
+    """The units' depth floors as an array (1 where a unit has none), none above the user's depth."""
+    if depth_floor is None:
+        return np.ones(n, dtype=np.int64)
+    if len(depth_floor) != n:
+        raise ValueError(f"{len(depth_floor)} depth floors for {n} units")
+    given = np.array([1 if f is None else int(f) for f in depth_floor], dtype=np.int64)
+    return np.clip(given, 1, max(1, user_depth))
 
 
 def _feature_columns(features: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:

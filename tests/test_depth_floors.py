@@ -1,0 +1,170 @@
+"""Depth floors (planning.depthcut): the rules cut a unit's depth only where the paths cut carry less than
+LOSS_TOLERANCE of its light; the planner, the agents and the master hold to it."""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from core.errors import MessageError, QuekaroError
+from core.model import messages as m
+from core.model.geometry import Rect
+from core.model.job import RenderOptions, SceneSpec
+from core.model.units import WorkUnit
+from core.render.imageio import read_exr
+from core.render.planner import Planner
+from core.render.worker import RenderWorker
+from master.service import _check_planned, _params_from_meta
+from planning import depthcut
+from planning.accuracy import reference
+from planning.jobplan import plan_job
+from planning.pipeline import render_plan
+
+BENCH_SCENES = Path(__file__).resolve().parents[1] / "bench" / "scenes"
+
+
+def test_the_cut_depths_are_the_planners_steps_below_the_users_depth():
+    assert depthcut.cut_depths(8) == [6, 4]
+    assert depthcut.cut_depths(6) == [4, 3]  # 4.5 rounds to even, as the planner rounds it
+    assert depthcut.cut_depths(3) == [2]  # 2.25 and 1.5 both round to 2
+    assert depthcut.cut_depths(2) == [1]
+    assert depthcut.cut_depths(1) == []
+
+
+def _passes(losses: dict[int, float], noise: float = 0.0, light: float = 1.0, seed: int = 0) -> dict[int, np.ndarray]:
+    """Low-resolution luminance per depth (8 is the user's) over a 10 x 10 image: `light` at full depth,
+    less the fraction `losses[d]` at each cut, with per-pixel noise of that size on the loss."""
+    rng = np.random.default_rng(seed)
+    full = np.full((10, 10), light)
+    return {8: full, **{d: full * (1 - f) - noise * rng.standard_normal(full.shape) for d, f in losses.items()}}
+
+
+@pytest.mark.parametrize(("losses", "noise", "floor"), [
+    ({6: 0.0, 4: 0.0}, 0.0, 4),  # nothing is lost: cut as far as the rules like
+    ({6: 0.005, 4: 0.009}, 0.0, 4),  # within the 1 % tolerance at both
+    ({6: 0.005, 4: 0.02}, 0.0, 6),  # depth 4 loses 2 %: 6 is the floor
+    ({6: 0.015, 4: 0.001}, 0.0, 8),  # 6 loses too much: 4 is not tried (longer paths never add less)
+    ({6: 0.011, 4: 0.011}, 0.0, 8),  # just above the tolerance
+    ({6: 0.005, 4: 0.005}, 0.05, 8),  # mean loss within, but its estimate is too noisy to be sure
+])
+def test_a_units_floor_is_the_shallowest_depth_within_the_tolerance(losses, noise, floor):
+    light = _passes(losses, noise)
+    assert depthcut.floors_from_passes(light, [Rect(0, 0, 20, 20)], (20, 20)) == [floor]
+
+
+def test_each_unit_is_judged_on_its_own_pixels_and_a_dark_unit_loses_nothing():
+    """Left half: depth 4 loses 30 % of its light; right half: nothing; the bottom-right quarter is black
+    (its loss relative to nothing is not a seam anyone sees). Rects are in full-image pixels, 4x the
+    low-resolution grid."""
+    full = np.ones((10, 10))
+    full[5:, 5:] = 0.0
+    cut = full.copy()
+    cut[:, :5] *= 0.7
+    rects = [Rect(0, 0, 20, 40), Rect(20, 0, 20, 20), Rect(20, 20, 20, 20)]
+    assert depthcut.floors_from_passes({8: full, 4: cut}, rects, (40, 40)) == [8, 4, 4]
+
+
+def test_the_planner_never_renders_a_unit_below_its_floor():
+    """At level VB the default rules cut the depth of simple units; a floor at the user's depth keeps it,
+    None leaves the rules' choice, and a floor above the user's depth is no licence to go deeper."""
+    planner = Planner()
+    features = {"C": np.array([0.01, 0.01, 0.01]), "S": np.array([3136.0] * 3), "Nd": np.zeros(3)}
+    ranges = {"C": (0.0, 1.0), "S": (0.0, 4096.0), "Nd": (0.0, 1.0)}
+    free = planner.plan(features, "VB", user_depth=8, user_spp=64, ranges=ranges)
+    assert all(p.depth < 8 for p in free), [p.depth for p in free]
+    held = planner.plan(features, "VB", user_depth=8, user_spp=64, ranges=ranges, depth_floor=[8, None, 99])
+    assert [p.depth for p in held] == [8, free[1].depth, 8]
+    assert [p.spp for p in held] == [p.spp for p in free]
+    with pytest.raises(ValueError, match="2 depth floors for 3 units"):
+        planner.plan(features, "VB", user_depth=8, user_spp=64, ranges=ranges, depth_floor=[8, 8])
+
+
+def _unit(floor: int | None, index: int = 0) -> WorkUnit:
+    return WorkUnit(index=index, rect=Rect(8 * index, 0, 8, 8), C=0.1, S=64, Nd=0.0, cost=1.0, depth_floor=floor)
+
+
+def _job(depth: int = 8) -> m.JobInfo:
+    return m.JobInfo(job_id="job-1", scene_url="http://127.0.0.1:1/b", scene_hash="a" * 64, width=16, height=8,
+                     spp=64, depth=depth, level="VB", ranges={})
+
+
+def test_a_units_floor_travels_with_it_and_a_bad_one_is_refused():
+    cfp = m.CallForProposal(conversation="c1", job=_job(), units=(_unit(6), _unit(None, 1)), reply_within_s=1.0)
+    assert [u.depth_floor for u in m.parse(*m.encode(cfp)).units] == [6, None]
+    assert WorkUnit.from_dict(_unit(6).to_dict()).depth_floor == 6
+    assert "depth_floor" not in _unit(None).to_dict()
+    performative, body = m.encode(cfp)
+    data = json.loads(body)
+    for bad in (0, "deep"):
+        data["units"][0]["depth_floor"] = bad
+        with pytest.raises(MessageError) as err:
+            m.parse(performative, json.dumps(data))
+        assert err.value.field == "units[0].depth_floor", err.value
+
+
+def test_the_master_refuses_a_tile_rendered_below_its_units_floor():
+    """A peer that cuts deeper than the plan allows is found out by its tile header."""
+    good = {"spp": 20, "depth": 6, "band": 2}
+    _check_planned(_job(), _unit(6), _params_from_meta(good))
+    _check_planned(_job(), _unit(6), _params_from_meta({**good, "depth": 8}))
+    _check_planned(_job(), _unit(None), _params_from_meta({**good, "depth": 4}))  # no floor: the rules' choice
+    with pytest.raises(QuekaroError, match="tile header says depth 4; the plan allows no less than 6"):
+        _check_planned(_job(), _unit(6), _params_from_meta({**good, "depth": 4}))
+
+
+def _render(plan, out: Path) -> tuple[np.ndarray, dict]:
+    worker = RenderWorker()
+    worker.launch()
+    try:
+        report = render_plan(plan, out, worker, time.perf_counter())
+    finally:
+        worker.stop()
+    return read_exr(out)[..., :3], report
+
+
+@pytest.mark.slow
+def test_a_diffuse_interior_keeps_its_light_at_level_vb_where_the_rules_alone_darken_it(tmp_path):
+    """The suite's interior (light through a small window, 8 bounces): at level VB the default rules cut
+    most units to depth 4 or 6, which loses ~5 % of the image's light (the cut units read darker than
+    their neighbours: a seam). The floors keep every unit at the user's depth but the few that lose nothing;
+    the image's mean then matches plain Mitsuba's within 2 % (the tolerance, 1 %, plus the noise of a
+    64 spp mean over 128 x 128 pixels), and the plan without floors is off by more than 3 %."""
+    spec = SceneSpec(BENCH_SCENES / "interior-window.xml", {"res": "128"})
+    plan = plan_job(spec, RenderOptions(level="VB", spp=64, threads=2), seed=1)
+    floors = collections.Counter(u.depth_floor for u in plan.units)
+    assert sum(n for f, n in floors.items() if f == 8) >= 0.8 * len(plan.units), floors
+    assert plan.prepass_info["depth_floor_depths"] == [8, 6, 4]
+    ref = reference(spec, 1024, 2, tmp_path / "cache", "llvm_ad_rgb")[..., :3].mean()
+    held, report = _render(plan, tmp_path / "held.exr")
+    assert all(u["depth"] >= u["depth_floor"] for u in report["units"])
+    loose = dataclasses.replace(plan, units=[dataclasses.replace(u, depth_floor=None) for u in plan.units])
+    cut, cut_report = _render(loose, tmp_path / "cut.exr")
+    assert sum(u["depth"] < 8 for u in cut_report["units"]) >= len(plan.units) // 2  # the rules do cut here
+    assert abs(held.mean() / ref - 1) < 0.02, held.mean() / ref
+    assert cut.mean() / ref < 0.97, cut.mean() / ref
+
+
+@pytest.mark.slow
+def test_a_scene_whose_long_paths_carry_nothing_keeps_the_rules_cuts():
+    """The outdoor scene (open sky, 6 bounces): paths beyond 3 or 4 bounces carry almost nothing there,
+    so most units may still be cut and the level keeps its saving."""
+    spec = SceneSpec(BENCH_SCENES / "outdoor.xml", {"res": "128"})
+    plan = plan_job(spec, RenderOptions(level="VB", spp=32, threads=2), seed=1)
+    assert sum(u.depth_floor < plan.depth for u in plan.units) >= 0.5 * len(plan.units)
+    chosen = Planner().plan({k: np.array(v) for k, v in plan.features().items()}, "VB", user_depth=plan.depth,
+                            user_spp=plan.spp, ranges=plan.ranges(), depth_floor=[u.depth_floor for u in plan.units])
+    assert any(p.depth < plan.depth for p in chosen)
+
+
+def test_levels_whose_rules_cut_no_depth_measure_no_floors():
+    """At level S the default rules keep the user's depth everywhere: the passes would be pure overhead."""
+    spec = SceneSpec(BENCH_SCENES / "outdoor.xml", {"res": "64"})
+    plan = plan_job(spec, RenderOptions(level="S", spp=16, threads=2), seed=1)
+    assert all(u.depth_floor is None for u in plan.units)
+    assert "depth_floor_depths" not in plan.prepass_info
