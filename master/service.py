@@ -268,8 +268,10 @@ class MasterService:
     async def _plan(self, spec: SceneSpec, options: RenderOptions, seed: int) -> JobPlan:
         """The job's plan, made in the planner's child process (one job at a time)."""
         async with self._planning:
+            # Without a rule file of its own, each agent's rules choose, and they may cut depth at any level.
             return await asyncio.to_thread(self._planner.call, plan_job, spec, options, seed,
-                                           self._units_for_agents(), doing=f"planning {spec.path.name}")
+                                           self._units_for_agents(), options.rules is None,
+                                           doing=f"planning {spec.path.name}")
 
     def _units_for_agents(self) -> int:
         """Units a job needs at least so that every live agent gets several (load balance)."""

@@ -84,23 +84,25 @@ def default_unit_count(width: int, height: int, level: str, min_units: int = 1, 
     return max(1, min(256, wanted, width * height))
 
 
-def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: int = 1) -> JobPlan:
+def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: int = 1,
+             floors_always: bool = False) -> JobPlan:
     """Analyse the scene's effects, run the pre-pass (optimised levels only) on the scene as the analysis
     loaded it, and partition the image (into `options.units` units, else the default count and at least
-    `min_units`)."""
-    return plan_job_loaded(spec, options, seed, min_units)[0]
+    `min_units`). `floors_always`: measure the units' depth floors at every rule level, not only where
+    `options.rules` cut depth (a farm job without a rule file: each agent's own rules choose)."""
+    return plan_job_loaded(spec, options, seed, min_units, floors_always)[0]
 
 
-def plan_job_loaded(spec: SceneSpec, options: RenderOptions, seed: int = 0,
-                    min_units: int = 1) -> tuple[JobPlan, Any]:
+def plan_job_loaded(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: int = 1,
+                    floors_always: bool = False) -> tuple[JobPlan, Any]:
     """`plan_job`, and the scene as the analysis loaded it in the plan's variant (the pre-pass leaves it
     as loaded), for a process that renders the units next."""
     effects, loaded = analyse_loaded(spec, options.overrides())
-    return _plan(spec, options, seed, min_units, effects, loaded), loaded
+    return _plan(spec, options, seed, min_units, effects, loaded, floors_always), loaded
 
 
 def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, effects: Effects,
-          loaded: Any) -> JobPlan:
+          loaded: Any, floors_always: bool = False) -> JobPlan:
     """The plan for the analysed scene (`loaded`, its effects `effects`)."""
     info = film_info(spec, options.sensor)
     width, height = info.width, info.height
@@ -120,7 +122,9 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
         # The rules need no features at level off, so the pre-pass would be pure overhead.
         return dataclasses.replace(plan, units=_plain_units(width, height, target))
     plan, cmap = _with_prepass(plan, target, seed, loaded)
-    return _adaptive(plan, cmap, min_units) if options.adaptive else _with_depth_floors(plan, cmap, seed, loaded)
+    if options.adaptive:
+        return _adaptive(plan, cmap, min_units)
+    return _with_depth_floors(plan, cmap, seed, loaded, floors_always)
 
 
 def _with_prepass(plan: JobPlan, target: int, seed: int, scene: Any) -> tuple[JobPlan, ComplexityMap]:
@@ -134,12 +138,15 @@ def _with_prepass(plan: JobPlan, target: int, seed: int, scene: Any) -> tuple[Jo
                                prepass_info=dict(cmap.info)), cmap
 
 
-def _with_depth_floors(plan: JobPlan, cmap: ComplexityMap, seed: int, scene: Any) -> JobPlan:
+def _with_depth_floors(plan: JobPlan, cmap: ComplexityMap, seed: int, scene: Any, always: bool = False) -> JobPlan:
     """The plan with each unit's depth floor (planning.depthcut) where its rules cut some unit's depth at
-    this level; unchanged where they cut none (the passes would be pure overhead)."""
-    chosen = plan_params(plan, Planner(plan.options.rules, plan.options.defuzzifier))
-    if plan.depth < 2 or all(p.depth >= plan.depth for p in chosen):
+    this level, or `always`; unchanged where they cut none (the passes would be pure overhead)."""
+    if plan.depth < 2:
         return plan
+    if not always:
+        chosen = plan_params(plan, Planner(plan.options.rules, plan.options.defuzzifier))
+        if all(p.depth >= plan.depth for p in chosen):
+            return plan
     low = tuple(max(1, v // 2) for v in cmap.info["low_size"])  # a unit's mean needs no finer grid
     found = depthcut.measure(scene, _radiance_at(plan), plan.depth, [u.rect for u in plan.units], low,
                              (plan.width, plan.height), seed=seed, sensor=plan.options.sensor)

@@ -162,9 +162,18 @@ def test_a_scene_whose_long_paths_carry_nothing_keeps_the_rules_cuts():
     assert any(p.depth < plan.depth for p in chosen)
 
 
-def test_levels_whose_rules_cut_no_depth_measure_no_floors():
-    """At level S the default rules keep the user's depth everywhere: the passes would be pure overhead."""
+def test_levels_whose_rules_cut_no_depth_measure_no_floors_unless_other_rules_may():
+    """At level S the default rules keep the user's depth everywhere: the passes would be pure overhead.
+    A farm job without a rule file of its own is planned with `floors_always`: each agent's own rules
+    choose there, and they may cut depth at any level."""
     spec = SceneSpec(BENCH_SCENES / "outdoor.xml", {"res": "64"})
-    plan = plan_job(spec, RenderOptions(level="S", spp=16, threads=2), seed=1)
+    options = RenderOptions(level="S", spp=16, threads=2)
+    plan = plan_job(spec, options, seed=1)
     assert all(u.depth_floor is None for u in plan.units)
     assert "depth_floor_depths" not in plan.prepass_info
+    farm = plan_job(spec, options, seed=1, floors_always=True)
+    assert all(u.depth_floor is not None and 1 <= u.depth_floor <= farm.depth for u in farm.units)
+    assert farm.prepass_info["depth_floor_depths"] == [6, 4, 3]
+    assert [u.rect for u in farm.units] == [u.rect for u in plan.units]
+    off = plan_job(spec, dataclasses.replace(options, level="off"), seed=1, floors_always=True)
+    assert all(u.depth_floor is None for u in off.units)  # level off: the user's depth, nothing to hold
