@@ -168,7 +168,7 @@ def prepass(
     cmap = ComplexityMap(
         cost=_upsample(cost_low, width, height),
         noise=_upsample(noise_low, width, height),
-        mean=_upsample(_finite_mean(mean_low), width, height),
+        mean=_upsample(finite_mean(mean_low), width, height),
         info={"downscale": k, "low_size": [lw, lh], "spp": spp, "full_spp": full_spp,
               "cost_downscale": kc, "cost_low_size": [cw, ch], "cost_spp": cost_spp,
               "nonfinite_noise": int(np.count_nonzero(~np.isfinite(mean_low)))},
@@ -239,8 +239,9 @@ def _moment_pass(scene: Any, integrator: str, max_depth: int, spp: int, seed: in
     return var, mean
 
 
-def _finite_mean(mean_rgb: np.ndarray) -> np.ndarray:
-    """Mean over RGB, with non-finite or negative pixels set to 0 (their noise is already the largest)."""
+def finite_mean(mean_rgb: np.ndarray) -> np.ndarray:
+    """Mean over RGB (H x W x C in), with non-finite or negative pixels set to 0: the noise pass already
+    counts them as the noisiest, and a depth's light (planning.depthcut) leaves them out."""
     m = np.asarray(mean_rgb, dtype=np.float64).mean(axis=2)
     return np.where(np.isfinite(m) & (m > 0), m, 0.0)
 

@@ -28,7 +28,7 @@ import numpy as np
 from core.model.geometry import Rect
 from core.render.film import film_channels
 from core.render.planner import DEPTH_STEPS
-from planning.complexity import PREPASS_SPP, film_size
+from planning.complexity import PREPASS_SPP, film_size, finite_mean
 
 # At most 1 % of a unit's light may go with a cut: under the 1.21 % mean pixel difference the paper
 # reports for its level S, and several times below a pixel's noise at the levels that cut.
@@ -114,5 +114,4 @@ def _luminance(scene: Any, integrator: str, spp: int, seed: int, sensor: int) ->
 
     mi.render(scene, sensor=sensor, integrator=mi.load_string(integrator), spp=spp, seed=seed)
     img, _ = film_channels(scene.sensors()[sensor].film())
-    rgb = img[..., :3].astype(np.float64).mean(axis=2)
-    return np.where(np.isfinite(rgb), rgb, 0.0)
+    return finite_mean(img[..., :3])

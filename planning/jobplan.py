@@ -121,26 +121,31 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     if options.level == "off":
         # The rules need no features at level off, so the pre-pass would be pure overhead.
         return dataclasses.replace(plan, units=_plain_units(width, height, target))
-    plan, cmap = _with_prepass(plan, target, seed, loaded)
+    radiance = _radiance_at(plan)
+    plan, cmap = _with_prepass(plan, target, seed, loaded, radiance(plan.depth))
     if options.adaptive:
         return _adaptive(plan, cmap, min_units)
-    return _with_depth_floors(plan, cmap, seed, loaded, floors_always)
+    return _with_depth_floors(plan, cmap, seed, loaded, radiance, floors_always)
 
 
-def _with_prepass(plan: JobPlan, target: int, seed: int, scene: Any) -> tuple[JobPlan, ComplexityMap]:
-    """The plan with units from the pre-pass on `scene` (as the analysis loaded it), partitioned."""
+def _with_prepass(plan: JobPlan, target: int, seed: int, scene: Any,
+                  radiance: str) -> tuple[JobPlan, ComplexityMap]:
+    """The plan with units from the pre-pass on `scene` (as the analysis loaded it) with the `radiance`
+    integrator (XML), partitioned."""
     start = time.perf_counter()
     options, depth = plan.options, plan.depth
-    cmap = prepass(scene, plan.width, plan.height, integrator=_radiance_at(plan)(depth), max_depth=depth,
+    cmap = prepass(scene, plan.width, plan.height, integrator=radiance, max_depth=depth,
                    threads=options.threads, full_spp=plan.spp, seed=seed, sensor=options.sensor)
     units = partition(cmap, target_units=target)
     return dataclasses.replace(plan, units=units, prepass_seconds=time.perf_counter() - start,
                                prepass_info=dict(cmap.info)), cmap
 
 
-def _with_depth_floors(plan: JobPlan, cmap: ComplexityMap, seed: int, scene: Any, always: bool = False) -> JobPlan:
-    """The plan with each unit's depth floor (planning.depthcut) where its rules cut some unit's depth at
-    this level, or `always`; unchanged where they cut none (the passes would be pure overhead)."""
+def _with_depth_floors(plan: JobPlan, cmap: ComplexityMap, seed: int, scene: Any,
+                       radiance_at: Callable[[int], str], always: bool = False) -> JobPlan:
+    """The plan with each unit's depth floor (planning.depthcut, measured with `radiance_at`) where its
+    rules cut some unit's depth at this level, or `always`; unchanged where they cut none (the passes
+    would be pure overhead)."""
     if plan.depth < 2:
         return plan
     if not always:
@@ -148,7 +153,7 @@ def _with_depth_floors(plan: JobPlan, cmap: ComplexityMap, seed: int, scene: Any
         if all(p.depth >= plan.depth for p in chosen):
             return plan
     low = tuple(max(1, v // 2) for v in cmap.info["low_size"])  # a unit's mean needs no finer grid
-    found = depthcut.measure(scene, _radiance_at(plan), plan.depth, [u.rect for u in plan.units], low,
+    found = depthcut.measure(scene, radiance_at, plan.depth, [u.rect for u in plan.units], low,
                              (plan.width, plan.height), seed=seed, sensor=plan.options.sensor)
     units = [dataclasses.replace(u, depth_floor=f) for u, f in zip(plan.units, found.floors, strict=True)]
     return dataclasses.replace(plan, units=units, prepass_seconds=plan.prepass_seconds + found.seconds,

@@ -127,7 +127,7 @@ class Planner:
             outputs = self.engine.evaluate(inputs, ranges)
             quantised = {**outputs, "Rl": quantise_depth_factor(outputs["Rl"])}
             depth, spp, band = to_render_params(quantised, max(user_depth, 0), user_spp)
-        depth = np.maximum(depth, floors(depth_floor, n, user_depth))
+        depth = np.maximum(depth, _floors(depth_floor, n, user_depth))
         if user_depth < 1:  # unbounded (-1), or an integrator without depth: nothing to weight
             depth = np.full(n, user_depth, dtype=np.int64)
         band = np.maximum(band, floor)
@@ -149,7 +149,7 @@ class Planner:
         return Engine(dataclasses.replace(self.rulebase, inputs=tuple(inputs)), self.engine.defuzzifier)
 
 
-def floors(depth_floor: Sequence[int | None] | None, n: int, user_depth: int) -> np.ndarray:
+def _floors(depth_floor: Sequence[int | None] | None, n: int, user_depth: int) -> np.ndarray:
     """The units' depth floors as an array (1 where a unit has none), none above the user's depth."""
     if depth_floor is None:
         return np.ones(n, dtype=np.int64)
