@@ -155,7 +155,7 @@ def prepass(
     scene = _as_scene(scene, threads)
     mitsuba_env.require_vectorised("the rules' pre-pass (every level but off)")
     film = scene.sensors()[sensor].film()
-    fw, fh = (int(v) for v in film.size())
+    fw, fh = (int(v) for v in film.crop_size())  # the image: the film's crop window, as loaded
     width, height = width or fw, height or fh
     k = choose_downscale(width, height, full_spp, spp, budget, NOISE_SHARE)
     kc = choose_downscale(width, height, full_spp, cost_spp, budget, 1.0 - NOISE_SHARE)
@@ -177,6 +177,15 @@ def prepass(
     return cmap
 
 
+def _scaled_crop(film: dict[str, list[int]], w: int, h: int) -> dict[str, list[int]]:
+    """The film's size, crop size and offset scaled so that its crop window becomes w x h."""
+    scale = (w / film["crop_size"][0], h / film["crop_size"][1])
+    low = [w, h]
+    size = [max(n, round(f * s)) for n, f, s in zip(low, film["size"], scale, strict=True)]
+    offset = [min(round(o * s), full - n) for o, s, full, n in zip(film["crop_offset"], scale, size, low, strict=True)]
+    return {"size": size, "crop_size": low, "crop_offset": offset}
+
+
 def _low_size(width: int, height: int, k: int) -> tuple[int, int]:
     return max(1, math.ceil(width / k)), max(1, math.ceil(height / k))
 
@@ -193,7 +202,9 @@ def _as_scene(scene: Any, threads: int | None) -> Any:
 
 @contextmanager
 def film_size(scene: Any, w: int, h: int, sensor: int = 0) -> Iterator[None]:
-    """Temporarily render `scene`'s sensor at another film size (its crop reset), restoring it afterwards."""
+    """Temporarily render the image of `scene`'s sensor (its film's crop window, as loaded) at w x h
+    pixels, restoring the film afterwards. A cropped film is scaled as a whole, so that its crop window,
+    scaled with it, is w x h: the low-resolution image covers the same part of the view."""
     import mitsuba as mi
 
     params = mi.traverse(scene.sensors()[sensor])
@@ -207,7 +218,7 @@ def film_size(scene: Any, w: int, h: int, sensor: int = 0) -> Iterator[None]:
             params[keys[s]] = values[s]
         params.update()
 
-    apply({"size": [w, h], "crop_size": [w, h], "crop_offset": [0, 0]})
+    apply(_scaled_crop(saved, w, h))
     try:
         yield
     finally:
@@ -260,7 +271,7 @@ def _ray_count_pass(scene: Any, w: int, h: int, max_depth: int, spp: int, seed: 
     pos = mi.Point2f(mi.Float(pix % w), mi.Float(pix // w)) + sampler.next_2d()
     ray, _ = scene.sensors()[sensor].sample_ray(0.0, sampler.next_1d(), pos / mi.ScalarVector2f(w, h),
                                            sampler.next_2d())
-    rays, active, beta = mi.Float(0.0), mi.Bool(True), mi.Spectrum(1.0)
+    rays, active, beta = mi.Float(0.0), mi.Bool(True), mi.UnpolarizedSpectrum(1.0)
     depth = MAX_TRACE_DEPTH if max_depth < 0 else max(1, max_depth)
     for bounce in range(depth):
         si = scene.ray_intersect(ray, active)
@@ -271,7 +282,7 @@ def _ray_count_pass(scene: Any, w: int, h: int, max_depth: int, spp: int, seed: 
         rays += dr.select(active & smooth, 1.0, 0.0)
         u1, u2 = sampler.next_1d(active), sampler.next_2d(active)
         bs, weight = bsdf.sample(mi.BSDFContext(), si, u1, u2, active)
-        beta *= weight
+        beta *= mi.unpolarized_spectrum(weight)  # a polarized variant's weight is a Mueller matrix
         active &= dr.max(beta) > 0
         if bounce + 1 >= RR_DEPTH:
             q = dr.minimum(dr.max(beta), 0.95)

@@ -28,6 +28,12 @@ from planning.complexity import ComplexityMap, prepass
 from planning.partition import equal_tiles, partition
 
 DEFAULT_SPP = 64  # when neither the user nor the scene's sampler says
+# Sensors whose film crop renders exactly that part of the image (compared with plain Mitsuba per pixel in
+# the compatibility suite). A batch sensor, for one, picks its camera from the position within the crop,
+# so its tiles showed the wrong camera; any sensor not listed renders whole, as one unit.
+TILED_SENSORS = ("perspective", "thinlens", "orthographic")
+
+
 def scene_spp(spec: SceneSpec, sensor_index: int = 0) -> int | None:
     """The sample count the scene's sensor's sampler asks for, read from the XML (None if not stated)."""
     sensors = sensor_elements(expand(spec).root)
@@ -108,16 +114,22 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     width, height = info.width, info.height
     spp = options.spp or scene_spp(spec, options.sensor) or DEFAULT_SPP
     plan = JobPlan(spec, options, width, height, effects, spp, effects.max_depth, [],
-                   filter_radius=info.filter_radius)
+                   filter_radius=info.filter_radius, colour=info.colour)
     # An adaptive job's --units are its render units (render_units); its rules see the level's own partition.
     chosen = None if options.adaptive else options.units
     target = chosen or default_unit_count(width, height, options.level, min_units, spp)
     if not effects.splittable:
-        if options.level != "off":
-            effects.reasons.append(f"level {options.level} not applied: the rules choose per unit, and this "
-                                   "integrator renders as one unit at the user's spp and depth")
-        return dataclasses.replace(plan, options=dataclasses.replace(options, level=OFF, adaptive=False),
-                                   units=_plain_units(width, height, 1))
+        return _one_unit(plan, "this integrator renders as one unit")
+    sensor_type = _sensor_type(spec, options.sensor)
+    if sensor_type not in TILED_SENSORS:
+        effects.reasons.append(f"one unit, the whole film: sensor {sensor_type}, whose crop windows are not "
+                               f"the parts of its image (tiles: {', '.join(TILED_SENSORS)})")
+        return _one_unit(plan, f"sensor {sensor_type} renders as one unit")
+    sampler = _sampler_type(spec, options.sensor)
+    if options.level != OFF and sampler not in ("independent", None):
+        effects.reasons.append(f"sampler {sampler}: Mitsuba rounds each unit's spp to counts of its own (a "
+                               "square, a power of four), so a unit may render more samples than its rules "
+                               "chose; the report gives those it rendered")
     if options.level == "off":
         # The rules need no features at level off, so the pre-pass would be pure overhead.
         return dataclasses.replace(plan, units=_plain_units(width, height, target))
@@ -126,6 +138,30 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     if options.adaptive:
         return _adaptive(plan, cmap, min_units)
     return _with_depth_floors(plan, cmap, seed, loaded, radiance, floors_always)
+
+
+def _sensor_type(spec: SceneSpec, index: int) -> str:
+    """The plugin type of the scene's sensor `index` (Mitsuba's default perspective when none is declared)."""
+    sensors = sensor_elements(expand(spec).root)
+    return sensors[index].get("type", "perspective") if index < len(sensors) else "perspective"
+
+
+def _sampler_type(spec: SceneSpec, index: int) -> str | None:
+    """The plugin type of the sampler of the scene's sensor `index`; None when it declares none (Mitsuba's
+    default, independent)."""
+    sensors = sensor_elements(expand(spec).root)
+    sampler = sensors[index].find("sampler") if index < len(sensors) else None
+    return sampler.get("type") if sampler is not None else None
+
+
+def _one_unit(plan: JobPlan, why: str) -> JobPlan:
+    """The plan as one unit at level off, the user's spp and depth; a rule level is dropped, saying `why`."""
+    options = plan.options
+    if options.level != OFF:
+        plan.effects.reasons.append(f"level {options.level} not applied: the rules choose per unit, and {why} "
+                                    "at the user's spp and depth")
+    return dataclasses.replace(plan, options=dataclasses.replace(options, level=OFF, adaptive=False),
+                               units=_plain_units(plan.width, plan.height, 1))
 
 
 def _with_prepass(plan: JobPlan, target: int, seed: int, scene: Any,

@@ -26,6 +26,7 @@ from core.model.job import JobPlan, RenderOptions, SceneSpec
 from core.model.seeds import plan_seed, unit_seed
 from core.model.units import WorkUnit
 from core.render.compose import TileSource, compose_planar
+from core.render.film import display_rgb, film_output
 from core.render.imageio import write_exr, write_png_planar
 from core.render.planner import Planner, RenderParams
 from core.render.tiles import Tile
@@ -96,15 +97,16 @@ def write_outputs(plan: JobPlan, job: Composed, out: Path, started: float,
     """Write OUT.exr (every channel), OUT.png and the report OUT.json; return the report."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    image, channels = film_output(job.image, job.channels, plan.colour)
     with ThreadPoolExecutor(1) as pool:  # both encoders release the GIL: 0.05 s together, not 0.09 at 512 px
-        png = pool.submit(write_png_planar, out.with_suffix(".png"), job.image)
-        write_exr(out, job.image, channels=job.channels, planar=True)
+        png = pool.submit(write_png_planar, out.with_suffix(".png"), display_rgb(job.image, plan.colour))
+        write_exr(out, image, channels=channels, planar=True)
         png.result()
     units = job.units
     report = {
         "scene": plan.spec.to_dict(), "options": plan.options.to_dict(),
         "image": {"width": plan.width, "height": plan.height, "exr": str(out),
-                  "png": str(out.with_suffix(".png")), "channels": list(job.channels), "sensor": plan.options.sensor},
+                  "png": str(out.with_suffix(".png")), "channels": list(channels), "sensor": plan.options.sensor},
         "effects": plan.effects.to_dict(), "user": {"spp": plan.spp, "depth": plan.depth},
         "prepass": plan.prepass_info, "units": units, "compose": job.compose,
         **({"adaptive": dict(plan.shares)} if plan.first_spp is not None else {}),
@@ -208,7 +210,8 @@ class UnitRun:
         tiles, params = [], {}
         for unit, p, n in zip(self.plan.units, self.chosen, samples, strict=True):
             tiles.append(self._render(unit_job(self.plan, unit, p, self.job_id, self.threads)))
-            params[unit.index] = {**p.to_dict(), "rules": self.rules}
+            # The spp Mitsuba rendered: a stratified sampler rounds the rules' count (worker.rendered_spp).
+            params[unit.index] = {**p.to_dict(), "spp": int(tiles[-1].meta["spp"]), "rules": self.rules}
             self.samples_done += n
             self._tell(len(tiles), sum(samples))
         return composed(self.plan, self.plan.units, tiles, params)

@@ -16,7 +16,7 @@ from core.render.imageio import read_exr_channels
 from farm.client import FarmClient
 
 SCENES = Path(__file__).resolve().parent / "compat" / "scenes"
-RGB, SPECTRAL = "llvm_ad_rgb", "llvm_ad_spectral"
+RGB, SPECTRAL, POLARIZED = "llvm_ad_rgb", "llvm_ad_spectral", "llvm_ad_spectral_polarized"
 
 
 @dataclass(frozen=True)
@@ -52,6 +52,12 @@ CASES = (
     Case("second-sensor", "two_sensors.xml", sensor=1),
     Case("rgba", "rgba.xml"),
     Case("lanczos", "lanczos.xml"),
+    Case("film-crop", "crop.xml"),
+    Case("film-xyza", "film_xyza.xml"),
+    Case("film-luminance-alpha", "film_luminance_alpha.xml"),
+    Case("radiancemeter", "radiancemeter.xml", units=1),
+    Case("polarized-stokes", "stokes.xml", variant=POLARIZED),
+    Case("batch-sensor", "batch.xml", units=1),  # rendered whole: its crops are not its image's parts
     Case("ptracer", "ptracer.xml"),  # must come back as one unit whatever is asked
 )
 

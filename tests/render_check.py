@@ -4,19 +4,22 @@ Plain Mitsuba renders the scene K times (K seeds, same variant, spp and sensor):
 mean m and the variance v of one render. The image under test (one render, or several) is compared per
 pixel channel as Mitsuba's own render tests compare theirs, by a test on the means that uses both sides'
 variances: t = (mean_test - m) / sqrt(v_test / n_test + v / K), with v_test = v where the test side has
-a single render (under the hypothesis both come from the same distribution), against Student's t with
-K - 1 degrees of freedom (the variance is estimated from K renders). The standard error has a floor of
-FLOAT_TOLERANCE of the value: float32 rounding of the blend (a constant 1.0 composes to 0.9999998) is not
-a difference. The significance is Sidak-corrected over all pixel channels: alpha_px = 1 - (1 - alpha)^(1/N).
-Pixel channels whose reference variance is 0 must agree to 1e-4 (relative). Beside the means, the
-variance: the median over pixel channels of (x - m)^2 / (v (1 + 1/K)) must be within VARIANCE_BOUNDS of
-its median for an independent render of the same noise (the median of F(1, K - 1); a median, so that a
-rare firefly does not move it): an image rendered with half the samples, or with extra noise, fails it
-even when no single pixel does. ALPHA is per comparison (the suite makes ~30 a run). A pixel's values
-are far from normal where a rare path carries much light (a firefly): the t-test does not model that
-tail, so up to FIREFLY_PIXELS significant pixels pass (one was seen in ~200 farm and in-process renders
-of the suite); every defect met so far moves hundreds or thousands (a tiled particle tracer 2475 pixel
-channels, another integrator 2369, a quarter of the samples fails the variance test).
+a single render (under the hypothesis both come from the same distribution), against Student's t with K
+- 1 degrees of freedom (the variance is estimated from K renders). The standard error has a floor of
+FLOAT_TOLERANCE of the value: float32 rounding of the blend (a constant 1.0 composes to 0.9999998) is
+not a difference. The significance is Sidak-corrected over all pixel channels: alpha_px = 1 - (1 -
+alpha)^(1/N). Pixel channels whose reference variance is 0 must agree to 1e-4 (relative). Beside the
+means, the variance: the median over pixel channels of (x - m)^2 / (v (1 + 1/K)) must be within
+VARIANCE_BOUNDS of its median for an independent render of the same noise (the median of F(1, K - 1); a
+median, so that a rare firefly does not move it): an image rendered with half the samples, or with extra
+noise, fails it even when no single pixel does. It needs VARIANCE_MIN_CHANNELS pixel channels: the
+median of a few is too noisy for those bounds (a one-pixel radiance meter's three channels, rendered as
+Mitsuba renders them, fell outside them on the farm), and there the verdict says it was not tested.
+ALPHA is per comparison (the suite makes ~30 a run). A pixel's values are far from normal where a rare
+path carries much light (a firefly): the t-test does not model that tail, so up to FIREFLY_PIXELS
+significant pixels pass (one was seen in ~200 farm and in-process renders of the suite); every defect
+met so far moves hundreds or thousands (a tiled particle tracer 2475 pixel channels, another integrator
+2369, a quarter of the samples fails the variance test).
 
 False failures: measured by `python tests/render_check.py` (plain Mitsuba against plain Mitsuba, other
 seeds, every scene of the compatibility suite): FALSE_FAILURES below.
@@ -34,10 +37,11 @@ from scipy import stats
 ALPHA = 1e-4  # per comparison; the suite makes ~30 of them per run
 REFERENCE_RENDERS = 32
 VARIANCE_BOUNDS = (0.6, 1.6)
+VARIANCE_MIN_CHANNELS = 300
 FLOAT_TOLERANCE = 1e-5
 FIREFLY_PIXELS = 2  # significant pixels tolerated as fireflies (see the module docstring)
 # Written from the last run of `python tests/render_check.py` (see __main__ below).
-FALSE_FAILURES = "0 of 160 (10 trials on each of 16 scenes: Mitsuba against Mitsuba, new seeds)"
+FALSE_FAILURES = "0 of 230 (10 trials on each of 23 scenes: Mitsuba against Mitsuba, new seeds)"
 
 
 @dataclass
@@ -64,7 +68,6 @@ def reference_renders(scene: Path, variant: str, spp: int, sensor: int = 0, defi
     import mitsuba as mi
 
     from core.model.job import SceneSpec
-    from core.render.film import film_channels
     from core.render.scene import load
 
     # core.render.scene.load is mi.load_file with the -a folders appended to Mitsuba's resolver meanwhile.
@@ -73,8 +76,10 @@ def reference_renders(scene: Path, variant: str, spp: int, sensor: int = 0, defi
     names: tuple[str, ...] = ()
     for k in range(renders):
         mi.render(loaded, sensor=sensor, spp=spp, seed=seed0 + k)
-        image, names = film_channels(loaded.sensors()[sensor].film())
-        images.append(image)
+        # The film's bitmap as Mitsuba writes it (not quekaro's reading of it: its names are the test's).
+        bitmap = loaded.sensors()[sensor].film().bitmap()
+        names = tuple(bitmap.struct_()[i].name for i in range(bitmap.channel_count()))
+        images.append(np.array(bitmap, dtype=np.float32).reshape(*bitmap.size()[::-1], len(names)))
     return np.stack(images), names
 
 
@@ -111,11 +116,12 @@ def compare(test: np.ndarray | list[np.ndarray], reference: np.ndarray, alpha: f
     real = v[noisy] > (100 * floor) ** 2
     squared = (tests[0][noisy][real] - m[noisy][real]) ** 2 / (v[noisy][real] * (1 + 1 / k))
     ratio = float(np.median(squared) / stats.f.median(1, k - 1)) if real.any() else 1.0
-    var_ok = VARIANCE_BOUNDS[0] <= ratio <= VARIANCE_BOUNDS[1]
-    where = ""
+    var_tested = int(real.sum()) >= VARIANCE_MIN_CHANNELS
+    var_ok = VARIANCE_BOUNDS[0] <= ratio <= VARIANCE_BOUNDS[1] or not var_tested
+    where = "" if var_tested else f"variance not tested ({int(real.sum())} pixel channels); "
     if failing or exact_bad:
         idx = np.argwhere(noisy)[np.argmin(p)] if failing else np.argwhere(~noisy)[0]
-        where = f"worst at (y, x, channel) {tuple(int(i) for i in idx)}; "
+        where += f"worst at (y, x, channel) {tuple(int(i) for i in idx)}; "
     detail = f"{where}{exact_bad} noiseless channels differ; Sidak alpha per channel {alpha_px:.2g}"
     return Verdict(pixels <= FIREFLY_PIXELS and exact_bad == 0 and var_ok, failing + exact_bad, n,
                    float(p.min()) if n else 1.0, ratio, detail)

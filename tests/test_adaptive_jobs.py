@@ -34,7 +34,8 @@ def _render(case, out, units: int = 1) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["rgba", "aov", "spectral-spiky", "medium-homogeneous", "moment"])
+@pytest.mark.parametrize("name", ["rgba", "aov", "spectral-spiky", "medium-homogeneous", "moment", "film-crop",
+                                  "film-xyza"])
 def test_an_adaptive_job_keeps_mitsubas_means(name, tmp_path):
     """RUNS jobs (each its own job id, so its own seeds) against 32 of plain Mitsuba's renders: no pixel
     channel's mean differs beyond the fireflies render_check tolerates; the channels are the film's.

@@ -35,6 +35,24 @@ def test_quekaro_render_renders_as_mitsuba(case, tmp_path):
     assert problems(case, out) == []
 
 
+def test_a_rule_level_plans_a_one_pixel_meter_and_a_polarized_scene(tmp_path):
+    """Level S on a radiance meter (a sensor that renders whole: one unit at the user's spp, saying why;
+    its pre-pass had made Dr.Jit abort) and on a stokes scene (the pre-pass traces Mueller-matrix weights)."""
+    meter = next(c for c in CASES if c.name == "radiancemeter")
+    out = tmp_path / "meter.exr"
+    done = quekaro("render", *job_args(meter), "--opt", "S", "-o", str(out), "--threads", "2", "--no-progress")
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "level S not applied" in done.stdout and "sensor radiancemeter renders as one unit" in done.stdout
+    assert problems(meter, out) == []
+    stokes = next(c for c in CASES if c.name == "polarized-stokes")
+    out = tmp_path / "stokes.exr"
+    done = quekaro("render", *job_args(stokes), "--opt", "S", "-o", str(out), "--threads", "2", "--no-progress")
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads(out.with_suffix(".json").read_text())
+    assert report["options"]["level"] == "S" and report["effects"]["variant"] == stokes.variant
+    assert report["prepass"]["downscale"] >= 1  # the pre-pass ran (its ray count had failed on a Mueller weight)
+
+
 AVERAGED_JOBS = 8  # one image lacks the power to see a bias of a few band pixels; eight averaged see it
 
 

@@ -152,3 +152,32 @@ def test_noise_map_predicts_where_the_error_is(mi) -> None:
     rho = np.corrcoef(rank(blocks(cmap.noise)), rank(blocks(err)))[0, 1]
     print(f"rank correlation of pre-pass noise with the 8 spp error over 8x8 blocks: {rho:.2f}")
     assert rho > 0.6
+
+
+def test_a_cropped_film_is_scaled_whole_so_the_low_res_image_covers_its_crop_window(mi) -> None:
+    """film_size on a film that crops itself renders the crop window's view, not the whole film's: at
+    half size, the cropped scene's low-resolution image equals (within its noise) the uncropped film's
+    at half size sliced at the halved crop offset, and differs from the slice one pixel over. The film is
+    put back as loaded."""
+    from core.render.film import film_channels
+    from core.render.scene import load
+    from planning.complexity import film_size
+
+    crop = Path(__file__).resolve().parent / "compat" / "scenes" / "crop.xml"  # 40x32 at (18, 10) of 64x56
+    scene = load(SceneSpec(crop), "llvm_ad_rgb", threads=1)
+    whole = load(SceneSpec(crop), "llvm_ad_rgb", threads=1)
+    params = mi.traverse(whole.sensors()[0])
+    params["film.crop_size"], params["film.crop_offset"] = [64, 56], [0, 0]
+    params.update()
+
+    def half(s, w, h):
+        with film_size(s, w, h):
+            mi.render(s, spp=1024, seed=3)
+            return film_channels(s.sensors()[0].film())[0][..., :3]
+
+    low = half(scene, 20, 16)
+    full = half(whole, 32, 28)
+    here, shifted = full[5:21, 9:29], full[5:21, 10:30]
+    assert np.abs(low - here).mean() < 0.25 * np.abs(low - shifted).mean()
+    film = scene.sensors()[0].film()
+    assert (tuple(film.size()), tuple(film.crop_size()), tuple(film.crop_offset())) == ((64, 56), (40, 32), (18, 10))

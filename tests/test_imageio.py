@@ -36,3 +36,20 @@ def test_bad_inputs(tmp_path):
         read_exr(tmp_path / "x.exr")
     with pytest.raises(ImageError, match="shape"):
         write_exr(tmp_path / "y.exr", np.zeros((2, 2, 2)))
+
+
+def test_an_xyz_films_preview_is_converted_as_mitsuba_converts_xyz_to_srgb():
+    """core.render.film.display_rgb: an X, Y, Z film's colour planes become linear sRGB by the matrix of
+    Mitsuba's own mi.xyz_to_srgb; other films' first three planes pass as they are."""
+    import mitsuba as mi
+
+    from core.render import mitsuba_env
+    from core.render.film import display_rgb
+
+    mitsuba_env.init("llvm_ad_rgb", 1)
+    planar = np.random.default_rng(4).uniform(0.0, 2.0, size=(4, 3, 5)).astype(np.float32)
+    ours = display_rgb(planar, ("X", "Y", "Z"))
+    xyz = planar[:3].reshape(3, -1)
+    theirs = np.array(mi.xyz_to_srgb(mi.Color3f(xyz[0], xyz[1], xyz[2]))).reshape(3, 3, 5)
+    np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-5)
+    assert display_rgb(planar, ("R", "G", "B")) is not None and np.array_equal(display_rgb(planar, ("Y",)), planar[:3])

@@ -228,7 +228,7 @@ def test_degenerate_image_sizes(size):
 
 
 def test_film_size_mismatch_is_refused():
-    with pytest.raises(RenderError, match="film is 48x48"):
+    with pytest.raises(RenderError, match=r"image \(its crop window\) is 48x48, job says 64x64"):
         render_job_here(job(size=(64, 64)))
 
 
@@ -265,3 +265,15 @@ def test_an_adaptive_unit_in_a_scalar_variant_is_refused_with_the_reason(worker)
     plain = worker.render(RenderRequest(CBOX, "scalar_rgb", "path", 4, 8, 1, 48, 48, UNIT, band=2, threads=1),
                           timeout=120)
     assert plain.meta["variant"] == "scalar_rgb" and np.isfinite(plain.pixels).all() and plain.pixels.mean() > 0
+
+
+def test_a_tile_says_the_spp_its_sampler_rendered(tmp_path):
+    """Mitsuba rounds a stratified sampler's count to a square (11 -> 16): the tile's header says the 16 it
+    rendered, not the 11 asked (the report's samples come from it); independent takes 11 as it is."""
+    strat = tmp_path / "cbox.xml"
+    strat.write_text((REPO / "scenes" / "cbox.xml").read_text().replace('sampler type="independent"',
+                                                                       'sampler type="stratified"'))
+    assert 'sampler type="stratified"' in strat.read_text()
+    said = [render_job_here(job(spec=s, spp=11, band=0)).meta["spp"]
+            for s in (CBOX, SceneSpec(strat, {"res": "48", "spp": "4"}))]
+    assert said == [11, 16]

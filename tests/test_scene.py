@@ -1,5 +1,6 @@
 """Scene specs, -D parsing, XML reading (includes, defaults, referenced files) and loading."""
 
+import shutil
 from pathlib import Path
 
 import pytest
@@ -86,7 +87,42 @@ def test_xml_film_info_matches_mitsuba(name):
     assert referenced_files(spec) == []  # built-in shapes only
 
 
+def test_a_cropped_film_renders_its_crop_window(tmp_path):
+    """hdrfilm's crop_offset_x/y, crop_width/height: the image is the crop window (Mitsuba's output), read
+    from the XML as Mitsuba reads it; a window outside the film is refused naming the fields."""
+    scenes = REPO / "tests" / "compat" / "scenes"
+    spec = SceneSpec(scenes / "crop.xml")
+    info = film_info(spec)
+    assert (info.width, info.height, info.offset) == (40, 32, (18, 10))
+    assert info == film_info_from_scene(load(spec, "llvm_ad_rgb", threads=1))
+    shutil.copy(scenes / "_room.xml", tmp_path)
+    moved = tmp_path / "outside.xml"
+    moved.write_text(spec.path.read_text().replace('"crop_offset_x" value="18"', '"crop_offset_x" value="30"'))
+    with pytest.raises(SceneError, match=r"outside.xml: film crop window 40x32 at \(30, 10\).*crop_offset_x"):
+        film_info(SceneSpec(moved))
+
+
 def test_sizes_of_hard_cases():
     assert image_size(SceneSpec(DATA / "tiny.xml", {"width": "1", "height": "1"})) == (1, 1)
     assert image_size(SceneSpec(DATA / "tiny.xml", {"width": "1", "height": "9"})) == (1, 9)
     assert referenced_files(SceneSpec(DATA / "tiny.xml")) == [DATA / "_sensor.xml"]
+
+
+def test_a_film_without_colour_channels_is_refused_naming_it(tmp_path):
+    """A specfilm writes one channel per sensitivity curve: tiles carry colour as R, G, B, so the scene is
+    refused before anything renders, naming the film and its channels."""
+    scenes = REPO / "tests" / "compat" / "scenes"
+    shutil.copy(scenes / "_room.xml", tmp_path)
+    spectral = (scenes / "lanczos.xml").read_text().replace(
+        '<film type="hdrfilm">', '<film type="specfilm"><spectrum name="band1" value="400:1, 500:1, 501:0, 700:0"/>')
+    (tmp_path / "spec.xml").write_text(spectral)
+    import mitsuba as mi
+
+    before = mi.variant()
+    load(SceneSpec(tmp_path / "spec.xml"), "llvm_ad_spectral", threads=1)  # the variant its analysis picks
+    try:
+        with pytest.raises(SceneError, match=r"spec.xml: film specfilm writes channels \['band1'\]"):
+            film_info(SceneSpec(tmp_path / "spec.xml"))
+    finally:
+        if before is not None:
+            mi.set_variant(before)

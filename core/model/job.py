@@ -193,6 +193,12 @@ class JobSpec:
         return cls(dict(defines), RenderOptions.from_dict(data.get("options", {})))
 
 
+RGB = ("R", "G", "B")
+# Mitsuba's film pixel formats -> the colour channels they write (alpha, where the format has it, follows).
+FILM_COLOURS = {"rgb": RGB, "rgba": RGB, "xyz": ("X", "Y", "Z"), "xyza": ("X", "Y", "Z"),
+                "luminance": ("Y",), "luminance_alpha": ("Y",)}
+
+
 @dataclass
 class JobPlan:
     """A planned job: image size, effects, the user's spp/depth, and the units to render. A farm job also
@@ -217,6 +223,9 @@ class JobPlan:
     # and how the level's samples were shared among the units (planning.budgets.Shares.to_dict).
     first_spp: int | None = None
     shares: dict[str, Any] = field(default_factory=dict)
+    # The film's colour channels (its pixel format: R, G, B; X, Y, Z; or Y): tiles carry colour as R, G, B
+    # (core.render.film), and the job's image is written in the film's own.
+    colour: tuple[str, ...] = RGB
 
     @property
     def reach(self) -> int:
@@ -241,7 +250,8 @@ class JobPlan:
                 "prepass_seconds": self.prepass_seconds, "prepass_info": dict(self.prepass_info),
                 "neighbours": {str(u.index): list(u.neighbours) for u in self.units},
                 "bundle_sha256": self.bundle_sha256, "rules_sha256": self.rules_sha256,
-                "filter_radius": self.filter_radius, "first_spp": self.first_spp, "shares": dict(self.shares)}
+                "filter_radius": self.filter_radius, "first_spp": self.first_spp, "shares": dict(self.shares),
+                "colour": list(self.colour)}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], spec: SceneSpec, units: list[WorkUnit]) -> JobPlan:
@@ -255,6 +265,6 @@ class JobPlan:
                        data.get("bundle_sha256"), data.get("rules_sha256"),
                        float(data.get("filter_radius", DEFAULT_FILTER_RADIUS)),
                        None if data.get("first_spp") is None else int(data["first_spp"]),
-                       dict(data.get("shares") or {}))
+                       dict(data.get("shares") or {}), tuple(str(c) for c in data.get("colour", RGB)))
         except (KeyError, TypeError, ValueError) as exc:
             raise QuekaroError(f"stored job plan is malformed: {type(exc).__name__}: {exc}") from exc

@@ -7,6 +7,9 @@ statistically the same, and says why:
   paths of up to three bounces off each spectrum, and between any two, keep their colour in rgb within
   RGB_TOLERANCE; a wavelength-dependent index of refraction always needs spectral; blackbody spectra are
   spectral-only in Mitsuba). A flat reflectance passes; narrow lines and structured spectra do not.
+  Polarized spectral where the scene computes polarization: a `stokes` integrator (Mitsuba refuses it
+  in any other variant) or a polarizing BSDF (POLARIZING_BSDFS: unpolarized variants render them
+  without the effect they exist for, e.g. crossed polarizers let light through).
 - depth cap: only for path tracers without delta, glossy or transmissive BSDFs and without media (no
   specular chains): a path of depth d carries at most a^(d-1) of the light, a = the largest diffuse
   albedo, so max_depth is lowered where the whole tail beyond it is below DEPTH_TAIL of the light.
@@ -32,7 +35,8 @@ from core.render import spectral_data
 # variant choice (core.render.mitsuba_env), and processes that never render must not pay for it.
 
 DEPTH_TAIL = 5e-3
-RGB_VARIANT, SPECTRAL_VARIANT = "llvm_ad_rgb", "llvm_ad_spectral"
+RGB_VARIANT, SPECTRAL_VARIANT, POLARIZED_VARIANT = "llvm_ad_rgb", "llvm_ad_spectral", "llvm_ad_spectral_polarized"
+POLARIZING_BSDFS = ("polarizer", "retarder", "pplastic", "measured_polarized")
 _CAPPABLE = {"path", "volpath", "volpathmis", "prb", "prb_basic", "prbvolpath"}
 _OVERRIDABLE = ("variant", "integrator", "max_depth")
 
@@ -97,8 +101,9 @@ def analyse_loaded(spec: SceneSpec, overrides: dict[str, Any] | None = None) -> 
         raise SceneError(f"unknown effect override(s): {sorted(unknown)} (allowed: {list(_OVERRIDABLE)})")
     root = scene_mod.expand(spec).root
     reasons: list[str] = []
-    need = spectral_data.spectral_need(root, spec.path)
-    variant = SPECTRAL_VARIANT if need else RGB_VARIANT
+    polarized = polarization_need(root, spec.path)
+    need = polarized or spectral_data.spectral_need(root, spec.path)
+    variant = POLARIZED_VARIANT if polarized else SPECTRAL_VARIANT if need else RGB_VARIANT
     reasons.append(f"variant {variant}: " + (need or "no spectral data that rgb would render differently"))
     variant = _override(overrides, "variant", variant, reasons)
     elem = integrators.scene_element(root)
@@ -122,6 +127,16 @@ def analyse_loaded(spec: SceneSpec, overrides: dict[str, Any] | None = None) -> 
         depth = _choose_depth(_surface_facts(loaded), elem, depth, media, reasons)
     depth = int(_override(overrides, "max_depth", depth, reasons))
     return Effects(variant, name, depth, reasons, override, split), loaded
+
+
+def polarization_need(root: Any, scene_path: Any) -> str | None:
+    """Why the scene needs a polarized variant (its first element that computes polarization), or None."""
+    for elem in root.iter("integrator", "bsdf"):
+        kind = elem.get("type")
+        if (elem.tag, kind) == ("integrator", "stokes") or (elem.tag == "bsdf" and kind in POLARIZING_BSDFS):
+            where = elem.get(scene_mod.SRC_ATTR, str(scene_path))
+            return f"{where}: <{elem.tag} type={kind!r}> computes polarization, which only polarized variants do"
+    return None
 
 
 def _override(overrides: dict[str, Any], key: str, chosen: Any, reasons: list[str]) -> Any:

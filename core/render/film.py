@@ -1,5 +1,6 @@
 """Reading a film back after a render: every channel it holds, as `mitsuba` writes them, with the
-non-finite values a broken emitter can leave set to 0 and counted."""
+non-finite values a broken emitter can leave set to 0 and counted; and the job's image back in the
+film's own colour channels."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from core.errors import RenderError
+from core.model.job import FILM_COLOURS, RGB
 
 
 def sanitize(pixels: np.ndarray) -> tuple[np.ndarray, int]:
@@ -20,14 +22,43 @@ def sanitize(pixels: np.ndarray) -> tuple[np.ndarray, int]:
 
 
 def film_channels(film: Any) -> tuple[np.ndarray, tuple[str, ...]]:
-    """Every channel the film holds after a render, as `mitsuba` writes them: (H x W x C, names)."""
+    """Every channel the film holds after a render, as `mitsuba` writes them, its colour first as R, G, B
+    (H x W x C, names): an X, Y, Z film's X, Y, Z are named R, G, B, a luminance film's Y is repeated
+    thrice, so that every tile carries colour alike; `film_output` gives the job's image the film's own."""
     bitmap = film.bitmap()
     names = tuple(bitmap.struct_()[i].name for i in range(bitmap.channel_count()))
     array = np.array(bitmap, dtype=np.float32, copy=True)
     if array.ndim == 2:
         array = array[..., None]
-    if names[:3] != ("R", "G", "B"):
-        if names[:1] in (("Y",), ("L",)):  # a mono film: its one channel is the image
-            return np.repeat(array[..., :1], 3, axis=-1), ("R", "G", "B")
-        raise RenderError(f"film channels {list(names)[:8]} do not start with R, G, B")
-    return np.ascontiguousarray(array), names
+    colour = next((c for c in FILM_COLOURS.values() if names[:len(c)] == c), None)
+    if colour is None:
+        raise RenderError(f"film channels {list(names)[:8]} start with no colour channels quekaro knows "
+                          f"(R, G, B; X, Y, Z; Y: hdrfilm's pixel formats)")
+    if len(colour) == 1:
+        array = np.concatenate([np.repeat(array[..., :1], 3, axis=-1), array[..., 1:]], axis=-1)
+    return np.ascontiguousarray(array), RGB + names[len(colour):]
+
+
+def film_output(planar: np.ndarray, channels: tuple[str, ...],
+                colour: tuple[str, ...]) -> tuple[np.ndarray, tuple[str, ...]]:
+    """A planar (C x H x W) image whose colour is R, G, B (as `film_channels` names it) in the film's own
+    colour channels `colour`, as plain Mitsuba writes them: renamed, or for Y its first plane alone."""
+    if tuple(channels[:3]) != RGB or colour == RGB:
+        return planar, tuple(channels)
+    if len(colour) == 1:  # its three colour planes are equal: the last of them, and the rest, unrenamed
+        return planar[2:], colour + tuple(channels[3:])
+    return planar, colour + tuple(channels[3:])
+
+
+# Linear sRGB from CIE XYZ (IEC 61966-2-1, D65), the matrix Mitsuba's xyz_to_srgb applies.
+XYZ_TO_SRGB = np.array([[3.240479, -1.537150, -0.498535],
+                        [-0.969256, 1.875991, 0.041556],
+                        [0.055648, -0.204043, 1.057311]], dtype=np.float32)
+
+
+def display_rgb(planar: np.ndarray, colour: tuple[str, ...]) -> np.ndarray:
+    """The first three planes of a planar image (colour as `film_channels` names it) as linear sRGB, for
+    a preview: an X, Y, Z film's colour converted, any other as it is."""
+    if colour != ("X", "Y", "Z"):
+        return planar[:3]
+    return np.einsum("ij,jhw->ihw", XYZ_TO_SRGB, planar[:3]).astype(np.float32)

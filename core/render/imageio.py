@@ -111,14 +111,16 @@ def _read_planes(path: Path) -> dict[str, np.ndarray]:
 
 
 def read_exr(path: str | Path) -> np.ndarray:
-    """Read an EXR's R, G, B (or Y) channels as float32 (H, W, 3), whatever their stored precision."""
+    """Read an EXR's colour as float32 (H, W, 3), whatever its stored precision: R, G, B; or X, Y, Z as
+    they are (an X, Y, Z film's image compared with another's); or Y repeated."""
     path = Path(path)
     channels = _read_planes(path)
-    if all(c in channels for c in "RGB"):
-        return np.stack([channels["R"], channels["G"], channels["B"]], axis=-1)
+    for triple in ("RGB", "XYZ"):
+        if all(c in channels for c in triple):
+            return np.stack([channels[c] for c in triple], axis=-1)
     if "Y" in channels:
         return np.repeat(channels["Y"][..., None], 3, axis=-1)
-    raise ImageError(f"{path}: no R, G, B or Y channels (has {sorted(channels)})")
+    raise ImageError(f"{path}: no R, G, B; X, Y, Z or Y channels (has {sorted(channels)})")
 
 
 def linear_to_srgb(image: np.ndarray) -> np.ndarray:

@@ -19,7 +19,7 @@ from typing import Any
 from lxml import etree
 
 from core.errors import SceneError
-from core.model.job import SceneSpec
+from core.model.job import FILM_COLOURS, RGB, SceneSpec
 from core.render import mitsuba_env, resolver
 from core.render.resolver import SRC_ATTR, parse_xml
 
@@ -38,12 +38,15 @@ _FILTER_RADIUS = {"box": 0.5, "tent": 1.0, "mitchell": 2.0, "catmullrom": 2.0}
 
 @dataclass(frozen=True)
 class FilmInfo:
-    """The film of a scene's first sensor: image size and reconstruction filter."""
+    """The film of a scene's sensor: the image it renders (its crop window: `width` x `height` at
+    `offset` in the film, the whole film unless the scene crops it) and its reconstruction filter."""
 
     width: int
     height: int
     filter_type: str
     filter_radius: float
+    offset: tuple[int, int] = (0, 0)
+    colour: tuple[str, ...] = RGB  # the colour channels its pixel format writes (core.model.job.FILM_COLOURS)
 
 
 def parse_defines(items: Iterable[str] | None) -> dict[str, str]:
@@ -183,10 +186,15 @@ def film_info_from_scene(scene: Any, sensor: int = 0) -> FilmInfo:
     if not 0 <= sensor < len(sensors):
         raise SceneError(f"sensor {sensor} asked for, the scene has {len(sensors)}")
     film = sensors[sensor].film()
-    width, height = (int(v) for v in film.size())
+    width, height = (int(v) for v in film.crop_size())
     rfilter = film.rfilter()
     name = rfilter.class_name().lower().removesuffix("filter")
-    return FilmInfo(width, height, name, float(rfilter.radius()))
+    offset = tuple(int(v) for v in film.crop_offset())
+    film.prepare([])  # the bitmap's channels are the pixel format's; nothing is rendered
+    bitmap = film.bitmap()
+    names = tuple(bitmap.struct_()[i].name for i in range(bitmap.channel_count()))
+    colour = next((c for c in FILM_COLOURS.values() if names[:len(c)] == c), names)
+    return FilmInfo(width, height, name, float(rfilter.radius()), (offset[0], offset[1]), colour)
 
 
 def sensor_elements(root: etree._Element) -> list[etree._Element]:
@@ -206,14 +214,51 @@ def film_info(spec: SceneSpec, sensor: int = 0) -> FilmInfo:
     width = _int_property(film, "width", DEFAULT_SIZE[0]) if film is not None else DEFAULT_SIZE[0]
     height = _int_property(film, "height", DEFAULT_SIZE[1]) if film is not None else DEFAULT_SIZE[1]
     filt = _filter_from_xml(film)
-    if width is None or height is None or filt is None:
-        return film_info_from_scene(load(spec), sensor)
+    crop, colour = None, _colour_from_xml(film)
+    if film is None:
+        crop = (0, 0), (DEFAULT_SIZE[0], DEFAULT_SIZE[1])
+    elif width is not None and height is not None:
+        crop = _crop_from_xml(film, width, height)
+    if width is None or height is None or filt is None or crop is None or colour is None:
+        info = film_info_from_scene(load(spec), sensor)
+        if info.colour not in FILM_COLOURS.values():
+            kind = film.get("type", "hdrfilm") if film is not None else "hdrfilm"
+            raise SceneError(f"{spec.path}: film {kind} writes channels {list(info.colour)[:8]}; quekaro composes "
+                             "films whose colour is R, G, B; X, Y, Z or Y (hdrfilm's pixel formats), so render "
+                             "this one with plain Mitsuba")
+        return info
     if width < 1 or height < 1:
         raise SceneError(f"{spec.path}: film size {width}x{height} must be at least 1x1")
-    return FilmInfo(width, height, filt[0], filt[1])
+    (x, y), (w, h) = crop
+    if w < 1 or h < 1 or x < 0 or y < 0 or x + w > width or y + h > height:
+        raise SceneError(f"{spec.path}: film crop window {w}x{h} at ({x}, {y}) (crop_width, crop_height, "
+                         f"crop_offset_x, crop_offset_y) does not fit in the film's {width}x{height}")
+    return FilmInfo(w, h, filt[0], filt[1], (x, y), colour)
+
+
+def _colour_from_xml(film: etree._Element | None) -> tuple[str, ...] | None:
+    """The colour channels of the film's pixel format (Mitsuba's default rgb); None where the XML does
+    not say plainly (a parameter, a film other than hdrfilm, a format this table lacks)."""
+    if film is None:
+        return RGB
+    if film.get("type", "hdrfilm") != "hdrfilm":
+        return None
+    formats = [c.get("value", "") for c in film if c.tag == "string" and c.get("name") == "pixel_format"]
+    return FILM_COLOURS.get(formats[0].lower()) if formats else RGB
+
+
+def _crop_from_xml(film: etree._Element, width: int, height: int) -> tuple[tuple[int, int], tuple[int, int]] | None:
+    """((offset x, y), (width, height)) of the film's crop window, Mitsuba's defaults where the XML is
+    silent (no offset, the whole film's size); None when a value is an unresolved parameter."""
+    values = [_int_property(film, name, default) for name, default in
+              (("crop_offset_x", 0), ("crop_offset_y", 0), ("crop_width", width), ("crop_height", height))]
+    if None in values:
+        return None
+    x, y, w, h = values
+    return (x, y), (w, h)
 
 
 def image_size(spec: SceneSpec, sensor: int = 0) -> tuple[int, int]:
-    """(width, height) of the image the scene renders through sensor `sensor`."""
+    """(width, height) of the image the scene renders through sensor `sensor` (its film's crop window)."""
     info = film_info(spec, sensor)
     return info.width, info.height

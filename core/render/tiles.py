@@ -23,12 +23,12 @@ import OpenEXR
 
 from core.errors import TileError
 from core.model.geometry import Rect
+from core.model.job import RGB
 from core.render.compose import TileSource
 
 META_ATTR = "quekaro_meta"
 CORE_ATTR = "quekaro_core"
 CHANNELS_ATTR = "quekaro_channels"
-RGB = ("R", "G", "B")
 MAX_CHANNELS = 64
 
 

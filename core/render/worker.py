@@ -8,8 +8,9 @@ seed, through the job's sensor. For perspective and thin-lens sensors the window
 the window's offset but a crop at (0, 0) of the window's size with the camera's principal point shifted by
 (x / W, y / H): the rays are the same (tested to float precision) while Dr.Jit compiles one kernel per
 window *size* instead of one per window *position* (a crop offset is baked into the kernel and costs
-~0.45 s to compile; design.md section 3). Other sensors use a crop. The tile keeps every channel the
-film writes (the film's bitmap, as `mitsuba` writes it).
+~0.45 s to compile; design.md section 3). Other sensors use a crop. Windows are in the image's pixels: a
+film the scene crops itself renders its crop window, so a window lies at the crop's offset in it. The
+tile keeps every channel the film writes (its bitmap, the colour named R, G, B: core.render.film).
 
 Non-finite pixels (an emitter with infinite or NaN radiance): every non-finite channel value is set to
 0, and the number of pixels that had any is reported as `meta["nonfinite"]`, so they never propagate.
@@ -153,6 +154,7 @@ class _SceneCache:
         self.integrator_xml: Any = None
         self.own_depth: int | None = None
         self.base_pp: dict[int, tuple[float, float] | None] = {}
+        self.images: dict[int, Rect] = {}
         self.integrators: dict[tuple[str | None, int | None], Any] = {}
 
     def scene_for(self, spec: SceneSpec, variant: str, threads: int | None) -> tuple[Any, float]:
@@ -175,12 +177,20 @@ class _SceneCache:
         self.scene = loaded
         self.integrator_xml = integrators.scene_element(scene.expand(spec).root)
         self.own_depth = integrators.depth_of(self.integrator_xml)
-        self.key, self.integrators, self.base_pp = key, {}, {}
+        self.key, self.integrators, self.base_pp, self.images = key, {}, {}, {}
 
     def principal_point(self, sensor: int) -> tuple[float, float] | None:
         if sensor not in self.base_pp:
             self.base_pp[sensor] = principal_point(self.scene, sensor)
         return self.base_pp[sensor]
+
+    def image(self, sensor: int) -> Rect:
+        """The sensor's image as loaded: its film's crop window, in film pixels."""
+        if sensor not in self.images:
+            film = sensor_of(self.scene, sensor).film()
+            (x, y), (w, h) = ((int(v) for v in pair) for pair in (film.crop_offset(), film.crop_size()))
+            self.images[sensor] = Rect(x, y, w, h)
+        return self.images[sensor]
 
     def integrator(self, override: str | None, depth: int | None) -> Any:
         """None (the scene's own) unless the user overrode the type or a depth must change."""
@@ -238,7 +248,8 @@ def principal_point(scene: Any, sensor: int = 0) -> tuple[float, float] | None:
 
 
 def set_window(scene: Any, window: Rect, base: tuple[float, float] | None, sensor: int = 0) -> str:
-    """Make the scene's sensor render `window` of its film; return the method ("shift" or "crop").
+    """Make the scene's sensor render `window` of its film (film pixels); return the method ("shift" or
+    "crop").
 
     `base` is the sensor's principal point as loaded (from `principal_point`), None for a crop.
     """
@@ -267,11 +278,13 @@ def render_job_here(job: RenderRequest, cache: _SceneCache | None = None) -> Til
     scene, load_s = cache.scene_for(job.scene, job.variant, job.threads)
     sensor = sensor_of(scene, job.sensor, str(job.scene.path))
     film = sensor.film()
-    if tuple(int(v) for v in film.size()) != (job.width, job.height):
-        size = tuple(int(v) for v in film.size())
-        raise RenderError(f"{job.scene.path}: film is {size[0]}x{size[1]}, job says {job.width}x{job.height}")
+    image = cache.image(job.sensor)
+    if (image.w, image.h) != (job.width, job.height):
+        raise RenderError(f"{job.scene.path}: the film's image (its crop window) is {image.w}x{image.h}, "
+                          f"job says {job.width}x{job.height}")
     window = job.window
-    method = set_window(scene, window, cache.principal_point(job.sensor), job.sensor)
+    in_film = Rect(window.x + image.x, window.y + image.y, window.w, window.h)
+    method = set_window(scene, in_film, cache.principal_point(job.sensor), job.sensor)
     integrator = cache.integrator(job.integrator, job.max_depth)
     start = time.perf_counter()
     raw, channels, passes = _render_window(scene, film, job, integrator)
@@ -280,11 +293,21 @@ def render_job_here(job: RenderRequest, cache: _SceneCache | None = None) -> Til
     seconds = time.perf_counter() - start
     meta = {
         "job_id": job.job_id, "unit_index": job.unit_index, "seconds": seconds, "load_seconds": load_s,
-        "nonfinite": nonfinite, "spp": job.spp, "depth": job.max_depth, "integrator": job.integrator,
+        "nonfinite": nonfinite, "spp": job.spp if job.first is not None else rendered_spp(sensor, job.spp),
+        "depth": job.max_depth, "integrator": job.integrator,
         "variant": mi.variant(), "seed": job.seed, "band": job.band, "window_method": method,
         "pid": os.getpid(), "sensor": job.sensor, "filter_radius": float(film.rfilter().radius()), **passes,
     }
     return Tile(pixels, window, job.unit, meta, channels)
+
+
+def rendered_spp(sensor: Any, spp: int) -> int:
+    """The samples per pixel Mitsuba's render takes when asked for `spp` through this sensor's sampler:
+    stratified, low-discrepancy, orthogonal and multi-jitter samplers round it to counts of their own
+    (a square, a power of four, a prime's square), 11 to 16 with ldsampler; independent takes it as is."""
+    sampler = sensor.sampler().clone()
+    sampler.set_sample_count(spp)
+    return int(sampler.sample_count())
 
 
 def _render_window(scene: Any, film: Any, job: RenderRequest,

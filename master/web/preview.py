@@ -17,7 +17,9 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from core.model.job import RGB
 from core.render.compose import compose_planar
+from core.render.film import display_rgb
 from core.render.imageio import write_png_planar
 from core.render.tiles import tile_source
 from master.store import ResultRecord
@@ -41,9 +43,9 @@ class Previews:
     jobs: dict[str, _JobPreview] = field(default_factory=dict)
 
     async def png(self, job_id: str, folder: Path, width: int, height: int, results: list[ResultRecord],
-                  reach: int = 0) -> Path:
+                  reach: int = 0, colour: tuple[str, ...] = RGB) -> Path:
         """The PNG showing `results`' tiles (composed again if a tile was added since the last one), their
-        bands cut by `reach` as in the final image (core.render.compose)."""
+        bands cut by `reach` as in the final image (core.render.compose), in the film's `colour`."""
         state = self.jobs.setdefault(job_id, _JobPreview())
         path = folder / PREVIEW_NAME
         wanted = frozenset(r.index for r in results)
@@ -54,7 +56,7 @@ class Previews:
             if wait > 0:
                 await asyncio.sleep(wait)
             started = time.monotonic()
-            await asyncio.to_thread(write_preview, path, width, height, results, reach)
+            await asyncio.to_thread(write_preview, path, width, height, results, reach, colour)
             state.shows, state.done_at, state.took_s = wanted, time.monotonic(), time.monotonic() - started
         return path
 
@@ -62,9 +64,11 @@ class Previews:
         self.jobs.pop(job_id, None)
 
 
-def write_preview(path: Path, width: int, height: int, results: list[ResultRecord], reach: int = 0) -> Path:
-    """Blend the tiles of `results` into a (width x height) PNG at `path`; uncovered pixels are black."""
+def write_preview(path: Path, width: int, height: int, results: list[ResultRecord], reach: int = 0,
+                  colour: tuple[str, ...] = RGB) -> Path:
+    """Blend the tiles of `results` into a (width x height) PNG at `path`; uncovered pixels are black.
+    `colour` is the film's colour channels (core.render.film.display_rgb)."""
     tiles = [tile_source(r.tile_path, unit_index=r.index) for r in results if Path(r.tile_path).is_file()]
     planar, _ = compose_planar(tiles, width, height, allow_uncovered=True, reach=reach)
     path.parent.mkdir(parents=True, exist_ok=True)
-    return write_png_planar(path, planar)
+    return write_png_planar(path, display_rgb(planar, colour))

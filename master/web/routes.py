@@ -36,6 +36,7 @@ from aiohttp import web
 
 from core.errors import QuekaroError
 from core.model.geometry import DEFAULT_FILTER_RADIUS, filter_reach
+from core.model.job import RGB
 from core.model.status import JobStatus
 from master.store import JobRecord, StoreError
 from master.web import auth
@@ -245,7 +246,8 @@ async def api_preview(request: web.Request) -> web.StreamResponse:
         return web.FileResponse(final, headers={"Content-Type": "image/png"})
     reach = filter_reach(float(record.plan.get("filter_radius", DEFAULT_FILTER_RADIUS)))  # as JobPlan.from_dict
     path = await state.previews.png(job_id, service.job_dir(job_id), int(record.plan["width"]),
-                                    int(record.plan["height"]), service.store.results(job_id), reach)
+                                    int(record.plan["height"]), service.store.results(job_id), reach,
+                                    tuple(record.plan.get("colour", RGB)))  # as JobPlan.from_dict
     return web.FileResponse(path, headers={"Content-Type": "image/png"})
 
 
