@@ -15,10 +15,11 @@ from typing import Any
 
 from lxml import etree
 
-from core.errors import QuekaroError
+from core.errors import QuekaroError, RenderError
 from core.model import integrators
 from core.model.job import Effects, JobPlan, RenderOptions, SceneSpec
 from core.model.units import WorkUnit
+from core.render.counts import check_renderable
 from core.render.effects import analyse_loaded
 from core.render.planner import Planner, RenderParams, adaptive_params
 from core.render.scene import expand, film_info, sensor_elements
@@ -133,6 +134,8 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     if options.level == "off":
         # The rules need no features at level off, so the pre-pass would be pure overhead.
         return dataclasses.replace(plan, units=_plain_units(width, height, target))
+    if options.adaptive:
+        _check_adaptive(spec, loaded, options.sensor)
     radiance = _radiance_at(plan)
     plan, cmap = _with_prepass(plan, target, seed, loaded, radiance(plan.depth))
     if options.adaptive:
@@ -203,6 +206,15 @@ def _radiance_at(plan: JobPlan) -> Callable[[int], str]:
     elem = (etree.Element("integrator", type=override) if override
             else integrators.scene_element(expand(plan.spec).root))
     return lambda depth: integrators.radiance_xml(elem, depth)
+
+
+def _check_adaptive(spec: SceneSpec, loaded: Any, sensor: int) -> None:
+    """Refuse an adaptive job before its pre-pass where per-pixel counts cannot render the scene as
+    Mitsuba does (core.render.counts.check_renderable: its sampler, film, integrator), naming the file."""
+    try:
+        check_renderable(loaded, sensor)
+    except RenderError as exc:
+        raise QuekaroError(f"{spec.path}: --adaptive: {exc}") from exc
 
 
 def _adaptive(plan: JobPlan, cmap: ComplexityMap, min_units: int) -> JobPlan:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 import subprocess
 
 import numpy as np
@@ -127,6 +128,21 @@ def test_adaptive_needs_a_rule_level_and_a_boolean():
     with pytest.raises(QuekaroError, match="not true or false"):
         RenderOptions(level="S", adaptive="yes")
     assert RenderOptions.from_dict(RenderOptions(level="S", adaptive=True).to_dict()).adaptive is True
+
+
+def test_an_adaptive_job_on_a_stratified_sampler_is_refused_before_its_pre_pass(tmp_path):
+    """Per-pixel counts need the independent sampler: `quekaro render --adaptive` says so at planning,
+    naming the file and the sampler, and writes nothing (it had failed at unit 0, after the pre-pass)."""
+    case = BY_CASE["lanczos"]
+    shutil.copytree(case.scene.parent, tmp_path / "scenes")
+    scene = tmp_path / "scenes" / case.scene.name
+    scene.write_text(scene.read_text().replace('sampler type="independent"', 'sampler type="stratified"'))
+    assert 'sampler type="stratified"' in scene.read_text()
+    out = tmp_path / "out.exr"
+    done = quekaro("render", str(scene), "--opt", "S", "--adaptive", "-o", str(out), "--no-progress")
+    assert done.returncode == 2
+    assert f"{scene}: --adaptive: sampler StratifiedSampler" in done.stderr and "independent" in done.stderr
+    assert not out.exists()
 
 
 def _job(first_spp: int | None) -> m.JobInfo:
