@@ -112,7 +112,7 @@ def fit_spp_line(seconds_at: Callable[[int], float], spp: int, what: str = "the 
             raise QuekaroError(
                 f"{what}: a render at {hi} spp took {t_hi:.3f} s against {t_lo:.3f} s at {lo} spp; the cost "
                 f"of a sample is too small to time, so no uniform spp can be matched to a cell's time "
-                f"(give the scene a larger film, e.g. its -D resolution parameter)")
+                f"(a larger image: `quekaro bench accuracy --res`, or the scene's film size)")
         hi *= 4
 
 
