@@ -121,12 +121,14 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     target = chosen or default_unit_count(width, height, options.level, min_units, spp)
     if not effects.splittable:
         return _one_unit(plan, "this integrator renders as one unit")
-    sensor_type = _sensor_type(spec, options.sensor)
+    sensor = _sensor_element(spec, options.sensor)
+    sensor_type = sensor.get("type", "perspective") if sensor is not None else "perspective"
     if sensor_type not in TILED_SENSORS:
         effects.reasons.append(f"one unit, the whole film: sensor {sensor_type}, whose crop windows are not "
                                f"the parts of its image (tiles: {', '.join(TILED_SENSORS)})")
         return _one_unit(plan, f"sensor {sensor_type} renders as one unit")
-    sampler = _sampler_type(spec, options.sensor)
+    sampler = sensor.find("sampler") if sensor is not None else None
+    sampler = sampler.get("type") if sampler is not None else None  # None: Mitsuba's default, independent
     if options.level != OFF and sampler not in ("independent", None):
         effects.reasons.append(f"sampler {sampler}: Mitsuba rounds each unit's spp to counts of its own (a "
                                "square, a power of four), so a unit may render more samples than its rules "
@@ -143,18 +145,11 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     return _with_depth_floors(plan, cmap, seed, loaded, radiance, floors_always)
 
 
-def _sensor_type(spec: SceneSpec, index: int) -> str:
-    """The plugin type of the scene's sensor `index` (Mitsuba's default perspective when none is declared)."""
+def _sensor_element(spec: SceneSpec, index: int) -> etree._Element | None:
+    """The scene's sensor `index` as written, None when it declares none (Mitsuba's default perspective
+    camera with the independent sampler)."""
     sensors = sensor_elements(expand(spec).root)
-    return sensors[index].get("type", "perspective") if index < len(sensors) else "perspective"
-
-
-def _sampler_type(spec: SceneSpec, index: int) -> str | None:
-    """The plugin type of the sampler of the scene's sensor `index`; None when it declares none (Mitsuba's
-    default, independent)."""
-    sensors = sensor_elements(expand(spec).root)
-    sampler = sensors[index].find("sampler") if index < len(sensors) else None
-    return sampler.get("type") if sampler is not None else None
+    return sensors[index] if index < len(sensors) else None
 
 
 def _one_unit(plan: JobPlan, why: str) -> JobPlan:

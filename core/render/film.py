@@ -26,17 +26,27 @@ def film_channels(film: Any) -> tuple[np.ndarray, tuple[str, ...]]:
     (H x W x C, names): an X, Y, Z film's X, Y, Z are named R, G, B, a luminance film's Y is repeated
     thrice, so that every tile carries colour alike; `film_output` gives the job's image the film's own."""
     bitmap = film.bitmap()
-    names = tuple(bitmap.struct_()[i].name for i in range(bitmap.channel_count()))
+    names = bitmap_names(bitmap)
     array = np.array(bitmap, dtype=np.float32, copy=True)
     if array.ndim == 2:
         array = array[..., None]
-    colour = next((c for c in FILM_COLOURS.values() if names[:len(c)] == c), None)
+    colour = colour_of(names)
     if colour is None:
         raise RenderError(f"film channels {list(names)[:8]} start with no colour channels quekaro knows "
                           f"(R, G, B; X, Y, Z; Y: hdrfilm's pixel formats)")
     if len(colour) == 1:
         array = np.concatenate([np.repeat(array[..., :1], 3, axis=-1), array[..., 1:]], axis=-1)
     return np.ascontiguousarray(array), RGB + names[len(colour):]
+
+
+def bitmap_names(bitmap: Any) -> tuple[str, ...]:
+    """The channel names of a Mitsuba bitmap, in its order."""
+    return tuple(bitmap.struct_()[i].name for i in range(bitmap.channel_count()))
+
+
+def colour_of(names: tuple[str, ...]) -> tuple[str, ...] | None:
+    """The colour channels a film's channel names start with (core.model.job.FILM_COLOURS), or None."""
+    return next((c for c in FILM_COLOURS.values() if names[:len(c)] == c), None)
 
 
 def film_output(planar: np.ndarray, channels: tuple[str, ...],

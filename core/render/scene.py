@@ -20,6 +20,7 @@ from lxml import etree
 
 from core.errors import SceneError
 from core.model.job import FILM_COLOURS, RGB, SceneSpec
+from core.render import film as film_mod
 from core.render import mitsuba_env, resolver
 from core.render.resolver import SRC_ATTR, parse_xml
 
@@ -192,8 +193,8 @@ def film_info_from_scene(scene: Any, sensor: int = 0) -> FilmInfo:
     offset = tuple(int(v) for v in film.crop_offset())
     film.prepare([])  # the bitmap's channels are the pixel format's; nothing is rendered
     bitmap = film.bitmap()
-    names = tuple(bitmap.struct_()[i].name for i in range(bitmap.channel_count()))
-    colour = next((c for c in FILM_COLOURS.values() if names[:len(c)] == c), names)
+    names = film_mod.bitmap_names(bitmap)
+    colour = film_mod.colour_of(names) or names
     return FilmInfo(width, height, name, float(rfilter.radius()), (offset[0], offset[1]), colour)
 
 
@@ -221,7 +222,7 @@ def film_info(spec: SceneSpec, sensor: int = 0) -> FilmInfo:
         crop = _crop_from_xml(film, width, height)
     if width is None or height is None or filt is None or crop is None or colour is None:
         info = film_info_from_scene(load(spec), sensor)
-        if info.colour not in FILM_COLOURS.values():
+        if film_mod.colour_of(info.colour) != info.colour:
             kind = film.get("type", "hdrfilm") if film is not None else "hdrfilm"
             raise SceneError(f"{spec.path}: film {kind} writes channels {list(info.colour)[:8]}; quekaro composes "
                              "films whose colour is R, G, B; X, Y, Z or Y (hdrfilm's pixel formats), so render "
