@@ -45,7 +45,7 @@ from core.errors import QuekaroError
 from core.model.geometry import Rect
 from core.model.job import SceneSpec
 from core.render.bundle import make_bundle
-from core.render.imageio import read_exr
+from core.render.imageio import read_image
 from core.render.metrics import all_metrics, diff_image
 from core.render.seams import seam_measure
 from farm.local import LocalFarm
@@ -283,13 +283,13 @@ def run_cell(run_job: Callable, spec: SceneSpec, level: str, args: argparse.Name
     images, first = [], {}
     if args.warmup:  # compiles this job's kernels (one per unit window size) before timing it
         _, wall, _ = run_job(spec, level, args.spp, stem.with_name(stem.name + "-warm.exr"))
-        images.append(read_exr(stem.with_name(stem.name + "-warm.exr"))[..., :3])
+        images.append(read_image(stem.with_name(stem.name + "-warm.exr"))[..., :3])
         first = {"first_seconds": wall}
     timed = []
     for r in range(args.runs):
         out = stem.with_name(f"{stem.name}-{r}.exr")
         timed.append(run_job(spec, level, args.spp, out))
-        images.append(read_exr(out)[..., :3])
+        images.append(read_image(out)[..., :3])
     report = timed[-1][0]
     used = [spent(rep) for rep, _, _ in timed]
     rects = [Rect.from_list(u["rect"]) for u in report["units"]]

@@ -23,7 +23,7 @@ from bench.accuracy import inprocess_runner, parse_levels
 from bench.report import DEFAULT_OUT, publish_markdown
 from core.errors import QuekaroError
 from core.model.job import SceneSpec
-from core.render.imageio import read_exr
+from core.render.imageio import read_image
 from planning.accuracy import job_variant, plain_render
 
 REPO = Path(__file__).resolve().parent.parent
@@ -84,7 +84,7 @@ def _level_row(run_job: Any, spec: SceneSpec, variant: str, level: str, args: ar
     plain_pixels, plain_s = min(plain, key=lambda pair: pair[1])
     totals = report["totals"]
     job_s, render_s, prepass_s = (float(totals.get(k, 0.0)) for k in ("seconds", "render_seconds", "prepass_seconds"))
-    ours_mean, plain_mean = float(read_exr(out)[..., :3].mean()), float(plain_pixels.mean())
+    ours_mean, plain_mean = float(read_image(out)[..., :3].mean()), float(plain_pixels.mean())
     return {
         "level": level, "spp": spp, "units": int(totals["units"]), "plain_seconds": plain_s, "quekaro_seconds": wall,
         "ratio": wall / plain_s, "outside_job_seconds": wall - job_s, "prepass_seconds": prepass_s,

@@ -14,7 +14,7 @@ from typing import Any
 from core.errors import QuekaroError
 from core.home import ADMIN_TOKEN, FARM_FILE, default_home
 from core.model.job import JobSpec, RenderOptions
-from core.render.imageio import read_exr, write_png
+from core.render.imageio import read_image, write_png
 from core.transport.tls import client_context
 
 
@@ -48,12 +48,17 @@ class FarmClient:
 
     def _request(self, method: str, path: str, body: bytes | None = None,
                  headers: dict[str, str] | None = None) -> bytes:
+        return self._exchange(method, path, body, headers)[0]
+
+    def _exchange(self, method: str, path: str, body: bytes | None = None,
+                  headers: dict[str, str] | None = None) -> tuple[bytes, Any]:
+        """The response's body and headers."""
         req = urllib.request.Request(self.url + path, data=body, method=method, headers={
             "Authorization": f"Bearer {self.token}", **(headers or {})})
         try:
             context = client_context(self.ca_file) if self.url.startswith("https:") else None
             with urllib.request.urlopen(req, timeout=self.timeout, context=context) as resp:
-                return resp.read()
+                return resp.read(), resp.headers
         except urllib.error.HTTPError as exc:
             raise QuekaroError(f"{method} {path}: HTTP {exc.code}: {_reason(exc)}") from None
         except urllib.error.URLError as exc:
@@ -97,12 +102,17 @@ class FarmClient:
         return list(self._json("GET", "/api/agents")["agents"])
 
     def result(self, job_id: str, out: Path) -> Path:
-        """Download the composed EXR and its report, and write the tonemapped PNG beside them."""
+        """Download the composed image and its report, and write the tonemapped PNG beside them; return
+        the image's path: `out` with the suffix of the film's file format (.exr, .pfm, .rgbe), as Mitsuba
+        names its output."""
         out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_bytes(self._request("GET", f"/api/jobs/{job_id}/result"))
+        body, headers = self._exchange("GET", f"/api/jobs/{job_id}/result")
+        name = headers.get_filename() or ""
+        out = out.with_suffix(Path(name).suffix or out.suffix or ".exr")
+        out.write_bytes(body)
         out.with_suffix(".json").write_bytes(self._request("GET", f"/api/jobs/{job_id}/report"))
-        write_png(out.with_suffix(".png"), read_exr(out))
+        write_png(out.with_suffix(".png"), read_image(out))
         return out
 
     def cancel(self, job_id: str) -> bool:

@@ -46,6 +46,7 @@ class MasterService(Protocol):
     async def ensure_assembled(self, job_id: str) -> Path: ...
     def auction_now(self) -> float: ...
     def result_path(self, job_id: str) -> Path: ...
+    def result_image(self, job_id: str) -> Path: ...
 
 MAX_BUNDLE_BYTES = 1 << 30
 SERVICE_KEY = web.AppKey("quekaro_master", object)
@@ -164,7 +165,8 @@ async def job_result(request: web.Request) -> web.StreamResponse:
     if isinstance(found, web.Response):
         return found
     service, job_id = found
-    return web.FileResponse(service.result_path(job_id))
+    image = service.result_image(job_id)
+    return web.FileResponse(image, headers={"Content-Disposition": f'attachment; filename="{job_id}{image.suffix}"'})
 
 
 async def job_report(request: web.Request) -> web.StreamResponse:

@@ -27,7 +27,7 @@ from core.errors import MessageError, QuekaroError
 from core.home import ADMIN_TOKEN, FARM_FILE
 from core.model import messages as m
 from core.model.hashing import sha256_file
-from core.model.job import JobPlan, JobSpec, RenderOptions, SceneSpec
+from core.model.job import FILE_SUFFIXES, JobPlan, JobSpec, RenderOptions, SceneSpec
 from core.model.seeds import plan_seed
 from core.model.status import JobStatus, UnitStatus
 from core.model.units import WorkUnit
@@ -220,7 +220,14 @@ class MasterService:
         return self.jobs_dir / job_id
 
     def result_path(self, job_id: str) -> Path:
+        """result.exr: its report (.json) and preview (.png) beside it; the image itself is `result_image`."""
         return self.job_dir(job_id) / "result.exr"
+
+    def result_image(self, job_id: str) -> Path:
+        """The job's composed image: result.exr, or result.pfm / result.rgbe where the film asks for them."""
+        stem = self.result_path(job_id)
+        paths = [stem.with_suffix(suffix) for suffix in dict.fromkeys(FILE_SUFFIXES.values())]
+        return next((path for path in paths if path.exists()), stem)
 
     def job_plan(self, record: JobRecord) -> JobPlan:
         """A stored job's plan, its scene where the master unpacked the job's bundle."""

@@ -32,7 +32,7 @@ from core.model.hashing import sha256_file
 from core.model.job import SceneSpec
 from core.render.bundle import scene_members
 from core.render.effects import analyse
-from core.render.imageio import read_exr, write_exr
+from core.render.imageio import read_image, write_exr
 from core.render.metrics import all_metrics
 from core.render.seams import seam_measure
 
@@ -57,7 +57,7 @@ def plain_render(spec: Any, spp: int, threads: int, variant: str, seed: int = 0)
         seconds = time.perf_counter() - start
         if done.returncode != 0:
             raise QuekaroError(f"plain Mitsuba on {spec.path} failed: {done.stderr.strip()[-600:]}")
-        return read_exr(out)[..., :3], seconds
+        return read_image(out)[..., :3], seconds
 
 
 def content_key(spec: Any, *extra: Any) -> str:
@@ -74,7 +74,7 @@ def reference(spec: Any, spp: int, threads: int, cache: Path, variant: str) -> n
     """The scene at `spp` in `variant`, plain Mitsuba; cached under `cache` by content (`content_key`)."""
     path = cache / "references" / f"{spec.path.stem}-{content_key(spec, spp, variant)}.exr"
     if path.exists():
-        return read_exr(path)[..., :3]
+        return read_image(path)[..., :3]
     pixels, _ = plain_render(spec, spp, threads, variant, seed=987654)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_exr(path, pixels)

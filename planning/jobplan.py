@@ -17,7 +17,7 @@ from lxml import etree
 
 from core.errors import QuekaroError, RenderError
 from core.model import integrators
-from core.model.job import Effects, JobPlan, RenderOptions, SceneSpec
+from core.model.job import Effects, ImageFile, JobPlan, RenderOptions, SceneSpec
 from core.model.units import WorkUnit
 from core.render.counts import check_renderable
 from core.render.effects import analyse_loaded
@@ -114,8 +114,9 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     info = film_info(spec, options.sensor)
     width, height = info.width, info.height
     spp = options.spp or scene_spp(spec, options.sensor) or DEFAULT_SPP
+    _check_image_file(spec, info.image_file, loaded)
     plan = JobPlan(spec, options, width, height, effects, spp, effects.max_depth, [],
-                   filter_radius=info.filter_radius, colour=info.colour)
+                   filter_radius=info.filter_radius, colour=info.colour, image_file=info.image_file)
     # An adaptive job's --units are its render units (render_units); its rules see the level's own partition.
     chosen = None if options.adaptive else options.units
     target = chosen or default_unit_count(width, height, options.level, min_units, spp)
@@ -201,6 +202,16 @@ def _radiance_at(plan: JobPlan) -> Callable[[int], str]:
     elem = (etree.Element("integrator", type=override) if override
             else integrators.scene_element(expand(plan.spec).root))
     return lambda depth: integrators.radiance_xml(elem, depth)
+
+
+def _check_image_file(spec: SceneSpec, image_file: ImageFile, loaded: Any) -> None:
+    """Refuse, before any work, a film whose file (PFM, RGBE: colour only) cannot hold the channels the
+    integrator adds (AOVs, moments): plain Mitsuba renders such a scene and then fails to write it."""
+    extra = list(loaded.integrator().aov_names()) if loaded is not None and loaded.integrator() else []
+    if image_file.format != "openexr" and extra:
+        raise QuekaroError(f"{spec.path}: the film's file_format {image_file.format} holds colour only, and the "
+                           f"integrator adds channels {extra[:6]}; plain Mitsuba fails to write this image "
+                           "too: give the film file_format openexr")
 
 
 def _check_adaptive(spec: SceneSpec, loaded: Any, sensor: int) -> None:

@@ -32,7 +32,7 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    test, reference = imageio.read_exr(args.test), imageio.read_exr(args.reference)
+    test, reference = imageio.read_image(args.test), imageio.read_image(args.reference)
     results = metrics.all_metrics(test, reference)
     if args.output:
         imageio.write_png(args.output, _grey_as_display(metrics.diff_image(test, reference)))

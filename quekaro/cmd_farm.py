@@ -103,7 +103,8 @@ def _register_client(sub: argparse._SubParsersAction) -> None:
     result = sub.add_parser("result", help="download a finished job's image (and its report)")
     result.add_argument("job")
     result.add_argument("-o", "--out", type=Path, required=True,
-                        help="output EXR file, or a folder for JOB.exr (the PNG and the report go beside it)")
+                        help="output image file (its suffix is the film's file_format's: .exr, .pfm, .rgbe), or "
+                             "a folder for JOB.exr (the PNG and the report go beside it)")
     _add_farm_location(result)
     result.set_defaults(func=run_result)
     cancel = sub.add_parser("cancel", help="cancel a job")

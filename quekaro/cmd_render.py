@@ -17,7 +17,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 from core.errors import QuekaroError
 from core.model.integrators import CATALOGUE
 from core.model.job import RenderOptions, SceneSpec
-from core.render.imageio import read_exr
+from core.render.imageio import read_image
 from core.render.scene import parse_defines
 from fuzzy.engine import DEFUZZIFIERS
 from fuzzy.levels import LEVELS
@@ -76,7 +76,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser("render", help="render scenes in one process (no agents)")
     add_job_arguments(parser)
     parser.add_argument("-o", "--out", type=Path, default=Path("out"),
-                        help="output EXR file, or a folder for SCENE.exr (default: out/); the PNG and the JSON "
+                        help="output image file, or a folder for SCENE.exr (default: out/): its suffix is the "
+                             "film's file_format's (.exr, .pfm, .rgbe), as Mitsuba names it; the PNG and the JSON "
                              "report go beside it; several scenes need a folder")
     parser.add_argument("-t", "--threads", type=int, help="Dr.Jit threads (Mitsuba's -t; default: all cores)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (e.g. in logs)")
@@ -88,20 +89,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
-# Image formats other than EXR: `-o picture.png` would otherwise become a folder named picture.png.
-OTHER_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pfm", ".ppm", ".hdr", ".rgbe", ".tga", ".bmp", ".tif", ".tiff",
-                        ".webp")
+# The suffixes of the files a film writes (core.model.job.FILE_SUFFIXES), and other image formats:
+# `-o picture.png` would otherwise become a folder named picture.png.
+FILM_SUFFIXES = (".exr", ".pfm", ".rgbe")
+OTHER_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".ppm", ".hdr", ".tga", ".bmp", ".tif", ".tiff", ".webp")
 
 
 def outputs(scenes: list[Path], out: Path) -> list[Path]:
-    """Where each scene's EXR goes: `out` itself for one scene named *.exr, else `out`/SCENE.exr (refused
-    when two scenes would write the same file, or when `out` names another image format)."""
+    """Where each scene's image goes: `out` itself for one scene named *.exr (*.pfm, *.rgbe; the film's
+    file_format sets the suffix written), else `out`/SCENE.exr (refused when two scenes would write the
+    same file, or when `out` names another image format)."""
     if out.suffix.lower() in OTHER_IMAGE_SUFFIXES and not out.is_dir():
-        raise QuekaroError(f"-o {out}: the image is written as EXR (every channel), with a PNG preview and the "
-                           f"report beside it; give -o {out.with_suffix('.exr')} or a folder")
-    if len(scenes) == 1 and out.suffix.lower() == ".exr" and not out.is_dir():
+        raise QuekaroError(f"-o {out}: the image is written as its film's file_format asks (EXR, PFM or RGBE), "
+                           f"with a PNG preview and the report beside it; give -o {out.with_suffix('.exr')} "
+                           "or a folder")
+    if len(scenes) == 1 and out.suffix.lower() in FILM_SUFFIXES and not out.is_dir():
         return [out]
-    if out.suffix.lower() == ".exr" and not out.is_dir():
+    if out.suffix.lower() in FILM_SUFFIXES and not out.is_dir():
         raise QuekaroError(f"-o {out}: {len(scenes)} scenes need a folder, not one file")
     paths = [out / f"{scene.stem}.exr" for scene in scenes]
     clash = sorted({p.name for p in paths if paths.count(p) > 1})
@@ -177,7 +181,7 @@ def process_age() -> float:
 def add_accuracy(report: dict, spec: SceneSpec, out: Path, wall: float, args: argparse.Namespace) -> None:
     """`planning.accuracy`'s comparison, printed and written into OUT.json under "accuracy"."""
     print(f"accuracy: reference {args.ref_spp} spp (cached), uniform spp for {wall:.2f} s ...")
-    image = read_exr(out)
+    image = read_image(report["image"]["file"])
     accuracy = accuracy_report(spec, image, wall, report, args.threads or os.cpu_count() or 1, args.ref_spp)
     report["accuracy"] = accuracy
     write_json_atomic(out.with_suffix(".json"), report)
@@ -212,7 +216,7 @@ def render_progress(name: str, enabled: bool = True) -> Iterator[Callable[[Rende
 
 def print_report(report: dict, out: Path) -> None:
     totals, effects = report["totals"], report["effects"]
-    print(f"{report['image']['exr']}  ({report['image']['width']}x{report['image']['height']}, "
+    print(f"{report['image']['file']}  ({report['image']['width']}x{report['image']['height']}, "
           f"{len(report['image']['channels'])} channels, {totals['units']} units, {totals['seconds']:.2f} s, "
           f"pre-pass {totals['prepass_seconds']:.2f} s)")
     print(f"effects: {effects['variant']} / {effects['integrator']} / max_depth {effects['max_depth']}")
@@ -221,5 +225,7 @@ def print_report(report: dict, out: Path) -> None:
     if report.get("adaptive"):
         print(f"adaptive: {budgets.describe(report['adaptive'])}")
     print(f"png: {report['image']['png']}  report: {out.with_suffix('.json')}")
+    for line in report["image"].get("lossy", []):
+        print(f"note: {line}")
     if totals["nonfinite"]:
         print(f"warning: {totals['nonfinite']} non-finite pixels were replaced (see the report's units)")

@@ -10,9 +10,18 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from render_check import by_name, compare, reference_renders
+import numpy as np
+from render_check import (
+    Verdict,
+    by_name,
+    compare,
+    file_kind,
+    file_quantum,
+    mitsuba_file_kind,
+    reference_renders,
+)
 
-from core.render.imageio import read_exr_channels
+from core.render.imageio import read_image_channels
 from farm.client import FarmClient
 
 SCENES = Path(__file__).resolve().parent / "compat" / "scenes"
@@ -56,6 +65,9 @@ CASES = (
     Case("film-crop", "crop.xml"),
     Case("film-xyza", "film_xyza.xml"),
     Case("film-luminance-alpha", "film_luminance_alpha.xml"),
+    Case("film-pfm", "film_pfm.xml"),
+    Case("film-rgbe", "film_rgbe.xml"),
+    Case("film-uint32", "film_uint32.xml"),
     Case("radiancemeter", "radiancemeter.xml", whole=True),
     Case("polarized-stokes", "stokes.xml", variant=POLARIZED),
     Case("batch-sensor", "batch.xml", whole=True),  # its crops are not its image's parts
@@ -111,22 +123,43 @@ def quekaro(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
 
 
 def reference(case: Case) -> tuple:
-    """Plain Mitsuba's renders of the case (cached for the process)."""
+    """Plain Mitsuba's renders of the case as its film's file holds them (cached for the process)."""
     if case.name not in _refs:
         _refs[case.name] = reference_renders(case.scene, case.variant, case.spp, case.sensor, case.defines,
-                                             search_paths=tuple(SCENES / f for f in case.search))
+                                             search_paths=tuple(SCENES / f for f in case.search), as_file=True)
     return _refs[case.name]
 
 
-def problems(case: Case, exr: Path) -> list[str]:
-    """What differs between the EXR (and its JSON report) and plain Mitsuba; empty when nothing does."""
-    report = json.loads(exr.with_suffix(".json").read_text())
-    image, names = read_exr_channels(exr)
-    refs, ref_names = reference(case)
+def mitsuba_kind(case: Case) -> tuple[str, str]:
+    """The suffix and component format of the file plain Mitsuba writes for the case (cached)."""
+    key = f"{case.name}:kind"
+    if key not in _refs:
+        _refs[key] = mitsuba_file_kind(case.scene, case.variant, case.sensor, case.defines,
+                                       search_paths=tuple(SCENES / f for f in case.search))
+    return _refs[key]
+
+
+def compare_files(case: Case, images: np.ndarray | list[np.ndarray]) -> Verdict:
+    """render_check.compare of images read from the case's job files (channels in the reference's order)
+    against plain Mitsuba's files of the case, at the files' precision."""
+    refs, _ = reference(case)
+    return compare(images, refs, quantum=file_quantum(mitsuba_kind(case), refs.mean(axis=0)))
+
+
+def problems(case: Case, out: Path) -> list[str]:
+    """What differs between the job's image (beside OUT's report, with the suffix the report names) and
+    plain Mitsuba's: the file's suffix and component format, its channels, their values; empty when
+    nothing does."""
+    report = json.loads(out.with_suffix(".json").read_text())
+    written = out.with_suffix(Path(report["image"]["file"]).suffix)
+    if file_kind(written) != mitsuba_kind(case):
+        return [f"file {file_kind(written)} != Mitsuba's {mitsuba_kind(case)}"]
+    image, names = read_image_channels(written)
+    ref_names = reference(case)[1]
     if sorted(names) != sorted(ref_names):
         return [f"channels {list(names)} != Mitsuba's {list(ref_names)}"]
     found = []
-    verdict = compare(by_name(image, names, ref_names), refs)
+    verdict = compare_files(case, by_name(image, names, ref_names))
     if not verdict.passed:
         found.append(str(verdict))
     if report["effects"]["variant"] != case.variant:

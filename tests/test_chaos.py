@@ -23,7 +23,7 @@ from compat_cases import SCENES
 from render_check import compare_moment_renders, least_spp, moment_channels
 
 from core.render.bundle import make_bundle
-from core.render.imageio import read_exr_channels
+from core.render.imageio import read_image_channels
 from farm.client import FarmClient
 from farm.local import LocalFarm
 
@@ -76,7 +76,7 @@ def _results(home: Path, jobs: list[str], out: Path) -> dict[str, tuple]:
     found = {}
     for i, job in enumerate(jobs):
         exr = client.result(job, out / f"{i}.exr")
-        image, names = read_exr_channels(exr)
+        image, names = read_image_channels(exr)
         report = json.loads(exr.with_suffix(".json").read_text())
         mean, variance = moment_channels(image, names)
         found[job] = (mean, variance, least_spp(report), report)

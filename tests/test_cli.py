@@ -84,9 +84,11 @@ def test_outputs_for_one_scene_a_folder_and_several() -> None:
     with pytest.raises(QuekaroError, match=r"a\.exr"):
         outputs([a, Path("u/a.xml")], Path("renders"))
     assert outputs([a], Path("renders.v2")) == [Path("renders.v2/a.exr")]  # a dotted folder name stays a folder
-    for other in ("x/one.png", "x/one.JPG", "x/one.pfm"):
-        with pytest.raises(QuekaroError, match=r"written as EXR.*give -o x/one\.exr"):
+    for other in ("x/one.png", "x/one.JPG", "x/one.hdr"):
+        with pytest.raises(QuekaroError, match=r"film's file_format asks \(EXR, PFM or RGBE\).*give -o x/one\.exr"):
             outputs([a], Path(other))
+    for film_file in ("x/one.pfm", "x/one.rgbe"):  # a film's own suffixes name the file (the film sets the suffix)
+        assert outputs([a], Path(film_file)) == [Path(film_file)]
 
 
 def test_render_refuses_an_output_it_cannot_write_before_rendering(tmp_path: Path) -> None:
@@ -177,3 +179,29 @@ def test_follow_log_prints_the_last_lines(tmp_path: Path, capsys: pytest.Capture
     path.write_text("a\nb\nc\n")
     follow_log(path, 2, follow=False)
     assert capsys.readouterr().out == "b\nc\n"
+
+
+def test_a_film_file_that_cannot_hold_the_integrators_channels_is_refused_before_rendering(tmp_path: Path) -> None:
+    """A PFM film with the aov integrator: plain Mitsuba renders it and fails writing the file; quekaro
+    refuses at planning, naming the file, the film's format and the channels, and writes nothing."""
+    import mitsuba as mi
+
+    from core.model.job import SceneSpec
+    from core.render.scene import load
+
+    compat = REPO / "tests" / "compat" / "scenes"
+    scene = tmp_path / "aov_pfm.xml"
+    scene.write_text((compat / "film_pfm.xml").read_text()
+                     .replace('<integrator type="path"><integer name="max_depth" value="4"/></integrator>',
+                              '<integrator type="aov"><string name="aovs" value="dd.y:depth"/>'
+                              '<integrator type="path"/></integrator>')
+                     .replace('_room.xml', str(compat / "_room.xml")))
+    loaded = load(SceneSpec(scene, {"spp": "1"}), "llvm_ad_rgb", threads=2)
+    mi.render(loaded)
+    with pytest.raises(RuntimeError, match="write_pfm"):  # the real thing fails at its very end
+        loaded.sensors()[0].film().write(str(tmp_path / "mitsuba"))
+    done = quekaro("render", str(scene), "-o", str(tmp_path / "out.exr"), "--no-progress")
+    assert done.returncode != 0
+    assert "aov_pfm.xml: the film's file_format pfm holds colour only" in done.stderr
+    assert "'dd.y.T'" in done.stderr and "file_format openexr" in done.stderr
+    assert not list(tmp_path.glob("out.*"))

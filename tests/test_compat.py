@@ -12,15 +12,16 @@ from compat_cases import (
     REPO,
     adaptive_args,
     check_adaptive_report,
+    compare_files,
     job_args,
     problems,
     quekaro,
     reference,
     wait_done,
 )
-from render_check import FIREFLY_PIXELS, by_name, compare
+from render_check import FIREFLY_PIXELS, by_name
 
-from core.render.imageio import read_exr_channels
+from core.render.imageio import read_image_channels
 from farm.local import LocalFarm
 
 pytestmark = pytest.mark.slow
@@ -64,15 +65,15 @@ def test_averaged_jobs_keep_mitsubas_means_at_unit_borders(name, tmp_path):
     deviations (aov, gaussian filter); with Lanczos' wider filter a band of 2 px also left core pixels
     short (issue 15)."""
     case = next(c for c in CASES if c.name == name)
-    refs, ref_names = reference(case)
+    ref_names = reference(case)[1]
     images = []
     for k in range(AVERAGED_JOBS):
         out = tmp_path / f"job{k}.exr"
         done = quekaro("render", *job_args(case), "-o", str(out), "--threads", "2", "--no-progress")
         assert done.returncode == 0, done.stderr[-3000:]
-        image, names = read_exr_channels(out)
+        image, names = read_image_channels(out)
         images.append(by_name(image, names, ref_names))
-    verdict = compare(images, refs)
+    verdict = compare_files(case, images)
     print(f"{name}, {AVERAGED_JOBS} jobs averaged: {verdict}")
     assert verdict.failing <= FIREFLY_PIXELS, f"{name}: {verdict}"
 
@@ -122,7 +123,7 @@ def test_a_jobs_rule_file_reaches_the_agents(farm_jobs, tmp_path):
     assert all(32 <= u["spp"] <= 64 for u in units), [u["spp"] for u in units]
 
 
-def test_result_writes_an_exr_or_into_a_folder_and_refuses_other_formats(farm_jobs, tmp_path):
+def test_result_writes_the_films_file_or_into_a_folder_and_refuses_other_formats(farm_jobs, tmp_path):
     farm, home, jobs = farm_jobs
     job_id = jobs["moment"]
     assert wait_done(farm.client(), job_id)["status"] == "done"
@@ -130,7 +131,13 @@ def test_result_writes_an_exr_or_into_a_folder_and_refuses_other_formats(farm_jo
     assert folder.returncode == 0, folder.stderr[-2000:]
     assert all((tmp_path / "renders" / f"{job_id}{suffix}").is_file() for suffix in (".exr", ".png", ".json"))
     png = quekaro("result", job_id, "-o", str(tmp_path / "picture.png"), "--home", str(home))
-    assert png.returncode == 2 and "written as EXR" in png.stderr and not (tmp_path / "picture.png").exists()
+    assert png.returncode == 2 and "film's file_format asks (EXR, PFM or RGBE)" in png.stderr
+    assert not (tmp_path / "picture.png").exists()
+    pfm = jobs["film-pfm"]  # a film writing PFM: the file takes the film's suffix, as Mitsuba names it
+    assert wait_done(farm.client(), pfm)["status"] == "done"
+    fetched = quekaro("result", pfm, "-o", str(tmp_path / "asked.exr"), "--home", str(home))
+    assert fetched.returncode == 0 and fetched.stdout.startswith(str(tmp_path / "asked.pfm")), fetched.stdout
+    assert (tmp_path / "asked.pfm").is_file() and not (tmp_path / "asked.exr").exists()
     (tmp_path / "a-file").write_text("not a folder")
     blocked = quekaro("result", job_id, "-o", str(tmp_path / "a-file" / "x.exr"), "--home", str(home))
     assert blocked.returncode == 2 and "cannot write in" in blocked.stderr, blocked.stderr
@@ -146,7 +153,7 @@ def test_an_adaptive_farm_job_keeps_mitsubas_means(name, farm_jobs, tmp_path):
     says each unit rendered its share."""
     farm, home, _ = farm_jobs
     case = next(c for c in CASES if c.name == name)
-    refs, ref_names = reference(case)
+    ref_names = reference(case)[1]
     jobs = []
     for _ in range(FARM_ADAPTIVE_JOBS):
         done = quekaro("submit", *adaptive_args(case, 4), "--home", str(home))
@@ -157,10 +164,10 @@ def test_an_adaptive_farm_job_keeps_mitsubas_means(name, farm_jobs, tmp_path):
         assert wait_done(farm.client(), job_id)["status"] == "done"
         out = tmp_path / f"farm{k}.exr"
         assert quekaro("result", job_id, "-o", str(out), "--home", str(home)).returncode == 0
-        image, names = read_exr_channels(out)
+        image, names = read_image_channels(out)
         images.append(by_name(image, names, ref_names))
         check_adaptive_report(json.loads(out.with_suffix(".json").read_text()), units=4)
-    verdict = compare(images, refs)
+    verdict = compare_files(case, images)
     assert verdict.failing <= FIREFLY_PIXELS, f"{name}: {verdict}"
     shown = quekaro("status", jobs[0], "--home", str(home)).stdout
     assert "adaptive: " in shown and "spp per pixel from the rules" in shown, shown

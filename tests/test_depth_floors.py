@@ -17,7 +17,7 @@ from core.model import messages as m
 from core.model.geometry import Rect
 from core.model.job import RenderOptions, SceneSpec
 from core.model.units import WorkUnit
-from core.render.imageio import read_exr
+from core.render.imageio import read_image
 from core.render.planner import Planner
 from core.render.worker import RenderWorker
 from master.service import _check_planned, _params_from_meta
@@ -125,7 +125,7 @@ def _render(plan, out: Path) -> tuple[np.ndarray, dict]:
         report = render_plan(plan, out, worker, time.perf_counter())
     finally:
         worker.stop()
-    return read_exr(out)[..., :3], report
+    return read_image(out)[..., :3], report
 
 
 @pytest.mark.slow

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from core.render.bundle import make_bundle
-from core.render.imageio import read_exr
+from core.render.imageio import read_image
 from farm.local import LocalFarm
 
 pytestmark = pytest.mark.slow
@@ -62,7 +62,7 @@ def local_render(tmp: Path, defines: dict[str, str], level: str) -> np.ndarray:
     for k, v in defines.items():
         cmd += ["-D", f"{k}={v}"]
     subprocess.run(cmd, check=True, cwd=REPO, capture_output=True, timeout=300)
-    return read_exr(out)
+    return read_image(out)
 
 
 @pytest.fixture
@@ -78,7 +78,7 @@ def test_job_on_three_agents_matches_local_render(farm3, tmp_path):
     job = wait_job(farm3, job_id)
     assert job["status"] == "done", job
     out = client.result(job_id, tmp_path / "farm.exr")
-    image = read_exr(out)
+    image = read_image(out)
     report = json.loads(out.with_suffix(".json").read_text())
     agents = {u["agent"] for u in report["units"]}
     assert len(report["units"]) == job["units_total"]
@@ -109,7 +109,7 @@ def test_agent_killed_mid_job_the_job_completes(farm3, tmp_path):
     victim.wait()
     job = wait_job(farm3, job_id)
     assert job["status"] == "done", job
-    image = read_exr(client.result(job_id, tmp_path / "r.exr"))
+    image = read_image(client.result(job_id, tmp_path / "r.exr"))
     assert np.isfinite(image).all() and (image.mean(axis=2) > 0).mean() > 0.9
 
 
@@ -134,7 +134,7 @@ def test_master_restarted_mid_job_resumes_without_rerendering(farm3, tmp_path, o
     for index in done_before:
         assert sum(1 for a in attempts if a[0] == index and a[1] == "done") == 1, (index, attempts)
     out = client.result(job_id, tmp_path / "r.exr")
-    image = read_exr(out)
+    image = read_image(out)
     assert np.isfinite(image).all() and (image.mean(axis=2) > 0).mean() > 0.9
     if options.get("adaptive"):
         report = json.loads(out.with_suffix(".json").read_text())

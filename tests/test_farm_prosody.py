@@ -16,7 +16,7 @@ from farm_support import log_tails, wait_for_agents
 from prosody_support import needs_prosody
 
 from core.render.bundle import make_bundle
-from core.render.imageio import read_exr
+from core.render.imageio import read_image
 from core.transport.xmpp_server import ProsodyServer, free_port
 from farm.local import stop_processes
 
@@ -65,7 +65,7 @@ def test_master_and_two_agents_render_through_prosody(tmp_path):
                 time.sleep(0.3)
             assert job["status"] == "done", (job, log_tails(logs))
             out = client.result(job_id, tmp_path / "out.exr")
-            image = read_exr(out)
+            image = read_image(out)
             assert image.shape == (48, 48, 3) and np.isfinite(image).all() and image.mean() > 0.05
             master_log = (logs / "master.log").read_text()
             assert "agent-1@localhost" in master_log or "agent-2@localhost" in master_log

@@ -33,7 +33,7 @@ from netns_support import Network, leftovers, require_netns
 from prosody_support import needs_prosody
 
 from core.render.bundle import make_bundle
-from core.render.imageio import read_exr
+from core.render.imageio import read_image
 from core.transport.xmpp_server import ProsodyServer
 from farm.client import FarmClient
 from farm.local import stop_processes
@@ -147,7 +147,7 @@ class Farm:
 
     def check_image(self, job_id: str, res: int) -> None:
         out = self.client.result(job_id, self.root / f"{job_id}.exr")
-        image = read_exr(out)
+        image = read_image(out)
         assert image.shape == (res, res, 3) and np.isfinite(image).all() and image.mean() > 0.05
 
 

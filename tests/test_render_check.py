@@ -10,12 +10,12 @@ import sys
 import time
 
 import pytest
-from compat_cases import CASES, SCENES, job_args, problems, reference
+from compat_cases import CASES, SCENES, compare_files, job_args, problems, reference
 from render_check import by_name, compare, reference_renders
 
 import core.model.integrators as integrators
 from core.model.job import RenderOptions, SceneSpec
-from core.render.imageio import read_exr_channels
+from core.render.imageio import read_image_channels
 from core.render.worker import RenderWorker
 from planning.jobplan import plan_job
 from planning.pipeline import render_plan
@@ -82,9 +82,9 @@ def test_a_scalar_variant_renders_level_off_as_mitsuba_and_refuses_what_needs_wa
     assert done.returncode == 0, done.stderr[-2000:]
     report = json.loads(out.with_suffix(".json").read_text())
     assert report["effects"]["variant"] == "scalar_rgb" and len(report["units"]) == case.units
-    refs, ref_names = reference(case)
-    image, names = read_exr_channels(out)
-    verdict = compare(by_name(image, names, ref_names), refs)
+    ref_names = reference(case)[1]
+    image, names = read_image_channels(out)
+    verdict = compare_files(case, by_name(image, names, ref_names))
     assert verdict.passed, verdict
     for extra in (["--opt", "S"], ["--opt", "S", "--adaptive"]):
         refused = subprocess.run([sys.executable, "-m", "quekaro", "render", str(case.scene), "-m", "scalar_rgb",

@@ -126,3 +126,43 @@ def test_a_film_without_colour_channels_is_refused_naming_it(tmp_path):
     finally:
         if before is not None:
             mi.set_variant(before)
+
+
+FILM = """<scene version="3.0.0"><integrator type="path"/>
+    <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="6"/>
+        <string name="pixel_format" value="{pixel}"/><string name="file_format" value="{file}"/>
+        <string name="component_format" value="{component}"/></film></sensor>
+    <shape type="sphere"/><emitter type="constant"/>
+</scene>"""
+
+
+@pytest.mark.parametrize("file,pixel,component", [
+    ("openexr", "rgba", "float16"), ("EXR", "xyz", "uint32"), ("openexr", "luminance", "float32"),
+    ("pfm", "luminance", "float16"), ("PFM", "rgba", "uint32"), ("pfm", "xyza", "float32"),
+    ("rgbe", "luminance_alpha", "float16"), ("rgbe", "xyz", "float32"),
+])
+def test_the_films_file_is_read_as_mitsuba_writes_it(tmp_path, file, pixel, component):
+    """hdrfilm's file_format and component_format (any case): the suffix and component type of the file
+    plain Mitsuba writes, and the colour it keeps where PFM and RGBE override the pixel format."""
+    from render_check import mitsuba_file_kind
+
+    scene = tmp_path / "film.xml"
+    scene.write_text(FILM.format(pixel=pixel, file=file, component=component))
+    info = film_info(SceneSpec(scene))
+    assert info.colour == film_info_from_scene(load(SceneSpec(scene), "llvm_ad_rgb", threads=1)).colour
+    suffix, kind = mitsuba_file_kind(scene, "llvm_ad_rgb")
+    assert (info.image_file.suffix, info.image_file.component) == (suffix, kind.lower())
+
+
+def test_a_film_file_mitsuba_refuses_is_refused_naming_the_field(tmp_path):
+    scene = tmp_path / "film.xml"
+    scene.write_text(FILM.format(pixel="rgb", file="png", component="float32"))
+    with pytest.raises(SceneError, match=r"film.xml: film hdrfilm \(file_format 'png'.*openexr, pfm, rgbe"):
+        film_info(SceneSpec(scene))
+    scene.write_text(FILM.format(pixel="rgb", file="openexr", component="half"))
+    with pytest.raises(SceneError, match=r"component_format 'half'.*float16, float32, uint32"):
+        film_info(SceneSpec(scene))
+    png = tmp_path / "png.xml"
+    png.write_text(FILM.format(pixel="rgb", file="png", component="float32"))
+    with pytest.raises(SceneError, match="file_format"):  # Mitsuba refuses it too
+        load(SceneSpec(png), "llvm_ad_rgb", threads=1)

@@ -150,7 +150,7 @@ def test_a_real_composed_render_has_no_seam_and_a_unit_scaled_by_20_percent_has_
     victim = min(units, key=lambda u: abs(u["rect"][0] + u["rect"][2] / 2 - 64)
                  + abs(u["rect"][1] + u["rect"][3] / 2 - 64))
     x, y, w, h = victim["rect"]
-    image = imageio.read_exr(out)
+    image = imageio.read_image(out)
     image[y:y + h, x:x + w, :3] *= 1.2
     imageio.write_exr(tmp_path / "scaled.exr", image[..., :3])
     scaled = diff_json(tmp_path / "scaled.exr", tmp_path / "ref.exr", out.with_suffix(".json"))

@@ -13,9 +13,10 @@ from pathlib import Path
 
 import pytest
 
+from core.errors import QuekaroError
 from core.model import messages as m
 from core.model.geometry import Rect
-from core.model.job import Effects, JobPlan, JobSpec, RenderOptions, SceneSpec
+from core.model.job import Effects, ImageFile, JobPlan, JobSpec, RenderOptions, SceneSpec
 from core.model.status import JobStatus, TransitionError, UnitStatus
 from core.model.units import WorkUnit
 from master import auction as au
@@ -123,6 +124,19 @@ def test_an_adaptive_plan_keeps_its_first_pass_and_shares() -> None:
     assert (again.first_spp, again.shares) == (8, {"mean_spp": 16, "unit_spp": [12, 20]})
     old = {k: v for k, v in shared.to_dict().items() if k not in ("first_spp", "shares")}
     assert JobPlan.from_dict(old, shared.spec, specs(2)).first_spp is None
+
+
+def test_a_plan_keeps_its_films_file_and_an_old_one_gets_what_it_was_written_as() -> None:
+    """The film's file and component format decide the job's image file at assembly, after a restart too;
+    a plan stored before they were recorded wrote float32 OpenEXR, and is assembled so again."""
+    pfm = dataclasses.replace(plan_of(specs(2)), image_file=ImageFile("pfm"))
+    again = JobPlan.from_dict(json.loads(json.dumps(pfm.to_dict())), pfm.spec, specs(2))
+    assert again.image_file == ImageFile("pfm", "float32") and again.image_file.suffix == ".pfm"
+    assert plan_of(specs(2)).image_file == ImageFile("openexr", "float16")  # Mitsuba's default
+    old = {k: v for k, v in pfm.to_dict().items() if k != "image_file"}
+    assert JobPlan.from_dict(old, pfm.spec, specs(2)).image_file == ImageFile("openexr", "float32")
+    with pytest.raises(QuekaroError, match="image file format 'png'"):
+        JobPlan.from_dict({**pfm.to_dict(), "image_file": {"format": "png"}}, pfm.spec, specs(2))
 
 
 def test_bad_files_are_refused(tmp_path: Path) -> None:

@@ -198,6 +198,45 @@ RGB = ("R", "G", "B")
 FILM_COLOURS = {"rgb": RGB, "rgba": RGB, "xyz": ("X", "Y", "Z"), "xyza": ("X", "Y", "Z"),
                 "luminance": ("Y",), "luminance_alpha": ("Y",)}
 
+# hdrfilm's file formats (the names Mitsuba accepts, any case) -> the suffix Mitsuba gives the file, and its
+# component formats. PFM and RGBE store float32 only; Mitsuba overrides any other component format.
+FILE_SUFFIXES = {"openexr": ".exr", "exr": ".exr", "pfm": ".pfm", "rgbe": ".rgbe"}
+COMPONENT_FORMATS = ("float16", "float32", "uint32")
+
+
+@dataclass(frozen=True)
+class ImageFile:
+    """The file a job's image is written to, as the scene's film asks (hdrfilm's `file_format` and
+    `component_format`, Mitsuba's defaults OpenEXR and float16)."""
+
+    format: str = "openexr"
+    component: str = "float16"
+
+    def __post_init__(self) -> None:
+        fmt = "openexr" if self.format == "exr" else self.format
+        if fmt not in FILE_SUFFIXES:
+            raise QuekaroError(f"image file format {self.format!r}: expected one of openexr, pfm, rgbe")
+        if self.component not in COMPONENT_FORMATS:
+            raise QuekaroError(f"image component format {self.component!r}: expected one of "
+                               f"{', '.join(COMPONENT_FORMATS)}")
+        object.__setattr__(self, "format", fmt)
+        if fmt != "openexr":
+            object.__setattr__(self, "component", "float32")
+
+    @property
+    def suffix(self) -> str:
+        return FILE_SUFFIXES[self.format]
+
+    def to_dict(self) -> dict[str, str]:
+        return {"format": self.format, "component": self.component}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any] | None) -> ImageFile:
+        """`to_dict`'s output; a plan stored before the film's file was recorded wrote float32 OpenEXR."""
+        if data is None:
+            return cls("openexr", "float32")
+        return cls(str(data.get("format", "openexr")), str(data.get("component", "float16")))
+
 
 @dataclass
 class JobPlan:
@@ -226,6 +265,8 @@ class JobPlan:
     # The film's colour channels (its pixel format: R, G, B; X, Y, Z; or Y): tiles carry colour as R, G, B
     # (core.render.film), and the job's image is written in the film's own.
     colour: tuple[str, ...] = RGB
+    # The file the job's image is written to, as the film asks.
+    image_file: ImageFile = ImageFile()
 
     @property
     def reach(self) -> int:
@@ -251,7 +292,7 @@ class JobPlan:
                 "neighbours": {str(u.index): list(u.neighbours) for u in self.units},
                 "bundle_sha256": self.bundle_sha256, "rules_sha256": self.rules_sha256,
                 "filter_radius": self.filter_radius, "first_spp": self.first_spp, "shares": dict(self.shares),
-                "colour": list(self.colour)}
+                "colour": list(self.colour), "image_file": self.image_file.to_dict()}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], spec: SceneSpec, units: list[WorkUnit]) -> JobPlan:
@@ -265,6 +306,7 @@ class JobPlan:
                        data.get("bundle_sha256"), data.get("rules_sha256"),
                        float(data.get("filter_radius", DEFAULT_FILTER_RADIUS)),
                        None if data.get("first_spp") is None else int(data["first_spp"]),
-                       dict(data.get("shares") or {}), tuple(str(c) for c in data.get("colour", RGB)))
+                       dict(data.get("shares") or {}), tuple(str(c) for c in data.get("colour", RGB)),
+                       ImageFile.from_dict(data.get("image_file")))
         except (KeyError, TypeError, ValueError) as exc:
             raise QuekaroError(f"stored job plan is malformed: {type(exc).__name__}: {exc}") from exc

@@ -10,16 +10,17 @@ folder, `<path>` entries, the working directory, then the `-a` search paths of t
 from __future__ import annotations
 
 import copy
+import dataclasses
 import re
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from lxml import etree
 
-from core.errors import SceneError
-from core.model.job import FILM_COLOURS, RGB, SceneSpec
+from core.errors import QuekaroError, SceneError
+from core.model.job import FILM_COLOURS, RGB, ImageFile, SceneSpec
 from core.render import film as film_mod
 from core.render import mitsuba_env, resolver
 from core.render.resolver import SRC_ATTR, parse_xml
@@ -48,6 +49,7 @@ class FilmInfo:
     filter_radius: float
     offset: tuple[int, int] = (0, 0)
     colour: tuple[str, ...] = RGB  # the colour channels its pixel format writes (core.model.job.FILM_COLOURS)
+    image_file: ImageFile = field(default_factory=ImageFile)  # the file its image is written to
 
 
 def parse_defines(items: Iterable[str] | None) -> dict[str, str]:
@@ -182,7 +184,8 @@ def _filter_from_xml(film: etree._Element | None) -> tuple[str, float] | None:
 
 
 def film_info_from_scene(scene: Any, sensor: int = 0) -> FilmInfo:
-    """Film facts of a loaded Mitsuba scene (sensor `sensor`)."""
+    """Film facts of a loaded Mitsuba scene (sensor `sensor`); its `image_file` is Mitsuba's default, as a
+    loaded film does not say which file it writes (`film_info` reads that from the XML)."""
     sensors = scene.sensors()
     if not 0 <= sensor < len(sensors):
         raise SceneError(f"sensor {sensor} asked for, the scene has {len(sensors)}")
@@ -220,8 +223,9 @@ def film_info(spec: SceneSpec, sensor: int = 0) -> FilmInfo:
         crop = (0, 0), (DEFAULT_SIZE[0], DEFAULT_SIZE[1])
     elif width is not None and height is not None:
         crop = _crop_from_xml(film, width, height)
+    image_file = _image_file_from_xml(film, spec.path)
     if width is None or height is None or filt is None or crop is None or colour is None:
-        info = film_info_from_scene(load(spec), sensor)
+        info = dataclasses.replace(film_info_from_scene(load(spec), sensor), image_file=image_file)
         if film_mod.colour_of(info.colour) != info.colour:
             kind = film.get("type", "hdrfilm") if film is not None else "hdrfilm"
             raise SceneError(f"{spec.path}: film {kind} writes channels {list(info.colour)[:8]}; quekaro composes "
@@ -234,7 +238,26 @@ def film_info(spec: SceneSpec, sensor: int = 0) -> FilmInfo:
     if w < 1 or h < 1 or x < 0 or y < 0 or x + w > width or y + h > height:
         raise SceneError(f"{spec.path}: film crop window {w}x{h} at ({x}, {y}) (crop_width, crop_height, "
                          f"crop_offset_x, crop_offset_y) does not fit in the film's {width}x{height}")
-    return FilmInfo(w, h, filt[0], filt[1], (x, y), colour)
+    return FilmInfo(w, h, filt[0], filt[1], (x, y), colour, image_file)
+
+
+def _string_property(parent: etree._Element, name: str) -> str | None:
+    values = [c.get("value", "") for c in parent if c.tag == "string" and c.get("name") == name]
+    return values[0] if values else None
+
+
+def _image_file_from_xml(film: etree._Element | None, path: Path) -> ImageFile:
+    """The file hdrfilm writes its image to (`file_format`, `component_format`, any case, as Mitsuba reads
+    them; its defaults where the XML is silent or the film is another kind)."""
+    if film is None or film.get("type", "hdrfilm") != "hdrfilm":
+        return ImageFile()
+    fmt = (_string_property(film, "file_format") or "openexr").lower()
+    component = (_string_property(film, "component_format") or "float16").lower()
+    try:
+        return ImageFile(fmt, component)
+    except QuekaroError as exc:
+        raise SceneError(f"{path}: film hdrfilm (file_format {fmt!r}, component_format {component!r}): "
+                         f"{exc}") from exc
 
 
 def _colour_from_xml(film: etree._Element | None) -> tuple[str, ...] | None:
@@ -244,8 +267,11 @@ def _colour_from_xml(film: etree._Element | None) -> tuple[str, ...] | None:
         return RGB
     if film.get("type", "hdrfilm") != "hdrfilm":
         return None
-    formats = [c.get("value", "") for c in film if c.tag == "string" and c.get("name") == "pixel_format"]
-    return FILM_COLOURS.get(formats[0].lower()) if formats else RGB
+    pixel_format = (_string_property(film, "pixel_format") or "rgb").lower()
+    file_format = (_string_property(film, "file_format") or "openexr").lower()
+    if file_format == "rgbe" or (file_format == "pfm" and pixel_format not in ("rgb", "luminance")):
+        pixel_format = "rgb"  # Mitsuba overrides a pixel format these files cannot hold
+    return FILM_COLOURS.get(pixel_format)
 
 
 def _crop_from_xml(film: etree._Element, width: int, height: int) -> tuple[tuple[int, int], tuple[int, int]] | None:

@@ -107,7 +107,7 @@ def render_pipeline(spec: SceneSpec, level: str, spp: int, depth: int, units: in
                     out: Path) -> Run:
     """The "pipeline" route: `render_job` as `quekaro render` calls it; reads back what it wrote."""
     from core.model.job import RenderOptions
-    from core.render.imageio import read_exr
+    from core.render.imageio import read_image
     from planning.pipeline import render_job
 
     options = RenderOptions(level=level, spp=spp, depth=depth, threads=THREADS, rules=rules, units=units)
@@ -115,7 +115,7 @@ def render_pipeline(spec: SceneSpec, level: str, spp: int, depth: int, units: in
     written = json.loads(out.with_suffix(".json").read_text())
     assert written["totals"]["nonfinite"] == report["totals"]["nonfinite"]
     records = [{**u, "window": None} for u in report["units"]]
-    return Run(read_exr(out), int(report["totals"]["nonfinite"]), records, report["compose"], report)
+    return Run(read_image(out), int(report["totals"]["nonfinite"]), records, report["compose"], report)
 
 
 Renderer = Callable[..., Run]
