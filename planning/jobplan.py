@@ -35,9 +35,12 @@ DEFAULT_SPP = 64  # when neither the user nor the scene's sampler says
 TILED_SENSORS = ("perspective", "thinlens", "orthographic")
 
 
-def scene_spp(spec: SceneSpec, sensor_index: int = 0) -> int | None:
-    """The sample count the scene's sensor's sampler asks for, read from the XML (None if not stated)."""
+def scene_spp(spec: SceneSpec, sensor_index: int = 0, loaded: Any = None) -> int | None:
+    """The sample count the scene's sensor's sampler asks for, read from the XML (None if not stated);
+    where the XML cannot say which sensor that is, the `loaded` scene's (None without it)."""
     sensors = sensor_elements(expand(spec).root)
+    if sensors is None:
+        return int(loaded.sensors()[sensor_index].sampler().sample_count()) if loaded is not None else None
     sensor = sensors[sensor_index] if sensor_index < len(sensors) else None
     sampler = sensor.find("sampler") if sensor is not None else None
     if sampler is None:
@@ -113,7 +116,7 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     """The plan for the analysed scene (`loaded`, its effects `effects`)."""
     info = film_info(spec, options.sensor)
     width, height = info.width, info.height
-    spp = options.spp or scene_spp(spec, options.sensor) or DEFAULT_SPP
+    spp = options.spp or scene_spp(spec, options.sensor, loaded) or DEFAULT_SPP
     _check_image_file(spec, info.image_file, loaded)
     plan = JobPlan(spec, options, width, height, effects, spp, effects.max_depth, [],
                    filter_radius=info.filter_radius, colour=info.colour, image_file=info.image_file)
@@ -122,14 +125,11 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     target = chosen or default_unit_count(width, height, options.level, min_units, spp)
     if not effects.splittable:
         return _one_unit(plan, "this integrator renders as one unit")
-    sensor = _sensor_element(spec, options.sensor)
-    sensor_type = sensor.get("type", "perspective") if sensor is not None else "perspective"
+    sensor_type, sampler = _sensor_kind(spec, loaded, options.sensor)
     if sensor_type not in TILED_SENSORS:
         effects.reasons.append(f"one unit, the whole film: sensor {sensor_type}, whose crop windows are not "
                                f"the parts of its image (tiles: {', '.join(TILED_SENSORS)})")
         return _one_unit(plan, f"sensor {sensor_type} renders as one unit")
-    sampler = sensor.find("sampler") if sensor is not None else None
-    sampler = sampler.get("type") if sampler is not None else None  # None: Mitsuba's default, independent
     if options.level != OFF and sampler not in ("independent", None):
         effects.reasons.append(f"sampler {sampler}: Mitsuba rounds each unit's spp to counts of its own (a "
                                "square, a power of four), so a unit may render more samples than its rules "
@@ -146,11 +146,20 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     return _with_depth_floors(plan, cmap, seed, loaded, radiance, floors_always)
 
 
-def _sensor_element(spec: SceneSpec, index: int) -> etree._Element | None:
-    """The scene's sensor `index` as written, None when it declares none (Mitsuba's default perspective
-    camera with the independent sampler)."""
+def _sensor_kind(spec: SceneSpec, loaded: Any, index: int) -> tuple[str, str | None]:
+    """The plugin types of the scene's sensor `index` and of its sampler (None: Mitsuba's default,
+    independent), as written; where the XML cannot say which sensor that is, from the loaded scene."""
     sensors = sensor_elements(expand(spec).root)
-    return sensors[index] if index < len(sensors) else None
+    if sensors is None:
+        sensor = loaded.sensors()[index]
+        # Mitsuba's class names are its plugin names with a suffix (ThinLensCamera, IrradianceMeter, BatchSensor)
+        kind = sensor.class_name().removesuffix("Camera").removesuffix("Sensor").lower()
+        return kind, sensor.sampler().class_name().removesuffix("Sampler").lower()
+    element = sensors[index] if index < len(sensors) else None
+    if element is None:  # none declared: Mitsuba's default perspective camera
+        return "perspective", None
+    sampler = element.find("sampler")
+    return element.get("type", "perspective"), sampler.get("type") if sampler is not None else None
 
 
 def _one_unit(plan: JobPlan, why: str) -> JobPlan:
@@ -169,8 +178,12 @@ def _with_prepass(plan: JobPlan, target: int, seed: int, scene: Any,
     integrator (XML), partitioned."""
     start = time.perf_counter()
     options, depth = plan.options, plan.depth
-    cmap = prepass(scene, plan.width, plan.height, integrator=radiance, max_depth=depth,
-                   threads=options.threads, full_spp=plan.spp, seed=seed, sensor=options.sensor)
+    try:
+        cmap = prepass(scene, plan.width, plan.height, integrator=radiance, max_depth=depth,
+                       threads=options.threads, full_spp=plan.spp, seed=seed, sensor=options.sensor)
+    except RuntimeError as exc:  # Mitsuba's own refusal of what the pre-pass asks of this scene
+        raise QuekaroError(f"{plan.spec.path}: level {options.level}'s pre-pass (the features its rules read) "
+                           f"failed in Mitsuba: {str(exc).strip()[-300:]}; level off renders without it") from exc
     units = partition(cmap, target_units=target)
     return dataclasses.replace(plan, units=units, prepass_seconds=time.perf_counter() - start,
                                prepass_info=dict(cmap.info)), cmap

@@ -69,6 +69,7 @@ CASES = (
     Case("film-rgbe", "film_rgbe.xml"),
     Case("film-uint32", "film_uint32.xml"),
     Case("radiancemeter", "radiancemeter.xml", whole=True),
+    Case("irradiancemeter", "irradiancemeter.xml", spp=256, whole=True),  # a sensor carried by a shape
     Case("polarized-stokes", "stokes.xml", variant=POLARIZED),
     Case("batch-sensor", "batch.xml", whole=True),  # its crops are not its image's parts
     Case("ptracer", "ptracer.xml", whole=True),  # its light paths land anywhere on the film

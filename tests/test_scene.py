@@ -166,3 +166,34 @@ def test_a_film_file_mitsuba_refuses_is_refused_naming_the_field(tmp_path):
     png.write_text(FILM.format(pixel="rgb", file="png", component="float32"))
     with pytest.raises(SceneError, match="file_format"):  # Mitsuba refuses it too
         load(SceneSpec(png), "llvm_ad_rgb", threads=1)
+
+
+SHAPE_SENSORS = """<scene version="3.0.0"><integrator type="path"/>
+    <shape type="rectangle"><sensor type="irradiancemeter"><film type="hdrfilm">
+        <integer name="width" value="1"/><integer name="height" value="1"/>{file}</film></sensor></shape>
+    <sensor type="perspective"><film type="hdrfilm">
+        <integer name="width" value="11"/><integer name="height" value="7"/></film></sensor>
+    <shape type="sphere"><sensor type="irradiancemeter"><film type="hdrfilm">
+        <integer name="width" value="2"/><integer name="height" value="1"/></film></sensor></shape>
+    <sensor type="orthographic"><film type="hdrfilm">
+        <integer name="width" value="13"/><integer name="height" value="5"/></film></sensor>
+    <emitter type="constant"/>
+</scene>"""
+
+
+def test_sensors_carried_by_shapes_are_numbered_as_mitsuba_numbers_them(tmp_path):
+    """Mitsuba numbers a shape's sensor among the top-level ones in an order the XML does not show (here
+    perspective, the sphere's meter, orthographic, the rectangle's meter): `-s N` is the loaded scene's N,
+    and its film is read from there; films asking for different files cannot be told apart, and are refused."""
+    scene = tmp_path / "shapes.xml"
+    scene.write_text(SHAPE_SENSORS.format(file=""))
+    spec = SceneSpec(scene)
+    loaded = load(spec, "llvm_ad_rgb", threads=1)
+    sizes = [(info.width, info.height) for info in (film_info(spec, i) for i in range(4))]
+    assert sizes == [tuple(int(v) for v in s.film().crop_size()) for s in loaded.sensors()]
+    assert sizes == [(11, 7), (2, 1), (13, 5), (1, 1)]  # not the XML's order: the test's premise
+    with pytest.raises(SceneError, match=r"shapes.xml: sensor 4 asked for, the scene has 4 \(0..3\)"):
+        film_info(spec, 4)
+    scene.write_text(SHAPE_SENSORS.format(file='<string name="file_format" value="pfm"/>'))
+    with pytest.raises(SceneError, match=r"shapes.xml: a shape carries a sensor.*openexr float16, pfm float32"):
+        film_info(SceneSpec(scene), 0)

@@ -201,15 +201,22 @@ def film_info_from_scene(scene: Any, sensor: int = 0) -> FilmInfo:
     return FilmInfo(width, height, name, float(rfilter.radius()), (offset[0], offset[1]), colour)
 
 
-def sensor_elements(root: etree._Element) -> list[etree._Element]:
-    """The scene's top-level sensors, in the order Mitsuba numbers them (`-s N`)."""
-    return [e for e in root if isinstance(e.tag, str) and e.tag == "sensor"]
+def sensor_elements(root: etree._Element) -> list[etree._Element] | None:
+    """The scene's top-level sensors, in the order Mitsuba numbers them (`-s N`); None where a shape
+    carries a sensor (an irradiance meter): Mitsuba numbers those among the others in an order that the
+    XML does not show, so the loaded scene must say."""
+    children = [e for e in root if isinstance(e.tag, str)]
+    if any(e.tag == "shape" and e.find("sensor") is not None for e in children):
+        return None
+    return [e for e in children if e.tag == "sensor"]
 
 
 def film_info(spec: SceneSpec, sensor: int = 0) -> FilmInfo:
     """Image size and filter of the scene's sensor `sensor`, read from the XML (loads it when unsure)."""
     root = expand(spec).root
     sensors = sensor_elements(root)
+    if sensors is None:
+        return _loaded_film_info(spec, sensor, _one_image_file(root, spec.path), f"of sensor {sensor}")
     if sensor < 0 or (sensors and sensor >= len(sensors)) or (not sensors and sensor > 0):
         raise SceneError(f"{spec.path}: sensor {sensor} asked for, the scene declares {len(sensors)} "
                          f"top-level sensor(s) (0..{max(len(sensors), 1) - 1})")
@@ -225,13 +232,8 @@ def film_info(spec: SceneSpec, sensor: int = 0) -> FilmInfo:
         crop = _crop_from_xml(film, width, height)
     image_file = _image_file_from_xml(film, spec.path)
     if width is None or height is None or filt is None or crop is None or colour is None:
-        info = dataclasses.replace(film_info_from_scene(load(spec), sensor), image_file=image_file)
-        if film_mod.colour_of(info.colour) != info.colour:
-            kind = film.get("type", "hdrfilm") if film is not None else "hdrfilm"
-            raise SceneError(f"{spec.path}: film {kind} writes channels {list(info.colour)[:8]}; quekaro composes "
-                             "films whose colour is R, G, B; X, Y, Z or Y (hdrfilm's pixel formats), so render "
-                             "this one with plain Mitsuba")
-        return info
+        kind = film.get("type", "hdrfilm") if film is not None else "hdrfilm"
+        return _loaded_film_info(spec, sensor, image_file, kind)
     if width < 1 or height < 1:
         raise SceneError(f"{spec.path}: film size {width}x{height} must be at least 1x1")
     (x, y), (w, h) = crop
@@ -239,6 +241,33 @@ def film_info(spec: SceneSpec, sensor: int = 0) -> FilmInfo:
         raise SceneError(f"{spec.path}: film crop window {w}x{h} at ({x}, {y}) (crop_width, crop_height, "
                          f"crop_offset_x, crop_offset_y) does not fit in the film's {width}x{height}")
     return FilmInfo(w, h, filt[0], filt[1], (x, y), colour, image_file)
+
+
+def _loaded_film_info(spec: SceneSpec, sensor: int, image_file: ImageFile, film: str) -> FilmInfo:
+    """`film_info` from the loaded scene, where the XML does not say plainly; a film whose colour
+    quekaro cannot compose is refused, naming the film (`film`: its type, or whose it is) and channels."""
+    loaded = load(spec)
+    count = len(loaded.sensors())
+    if not 0 <= sensor < count:
+        raise SceneError(f"{spec.path}: sensor {sensor} asked for, the scene has {count} (0..{count - 1})")
+    info = dataclasses.replace(film_info_from_scene(loaded, sensor), image_file=image_file)
+    if film_mod.colour_of(info.colour) != info.colour:
+        raise SceneError(f"{spec.path}: film {film} writes channels {list(info.colour)[:8]}; quekaro composes "
+                         "films whose colour is R, G, B; X, Y, Z or Y (hdrfilm's pixel formats), so render "
+                         "this one with plain Mitsuba")
+    return info
+
+
+def _one_image_file(root: etree._Element, path: Path) -> ImageFile:
+    """The file every film of the scene writes, where the XML cannot tell which film a sensor number
+    has (`sensor_elements`); films asking for different files are refused, naming them."""
+    files = {_image_file_from_xml(film, path) for film in root.iter("film")} or {ImageFile()}
+    if len(files) > 1:
+        asked = ", ".join(sorted(f"{f.format} {f.component}" for f in files))
+        raise SceneError(f"{path}: a shape carries a sensor, so Mitsuba numbers the sensors in an order the XML "
+                         f"does not show, and the films ask for different files ({asked}); give them one "
+                         "file_format and component_format")
+    return files.pop()
 
 
 def _string_property(parent: etree._Element, name: str) -> str | None:
