@@ -258,6 +258,7 @@ class MasterService:
             else:
                 (job_dir / "bundle.tar").write_bytes(bundle)
             scene = extract_bundle(bundle, job_dir / "scene", BundleLimits())
+            m.check_scene_name(str(scene.relative_to(job_dir / "scene")))
             check_unpacked(scene, defines)
             options, rules_sha256 = _job_rules(job_dir / "scene", options)
             digest = bundle_hash(bundle)

@@ -50,10 +50,12 @@ CASES = (
     Case("aov", "aov.xml"),
     Case("search-path", "searchpath/scene/scene.xml"),
     Case("search-path-a", "searchpath/scene/needs_a.xml", search=("searchpath/common",)),
+    Case("file-names", "file names/scène d'été.xml"),  # spaces and accents in the scene's and its include's names
     Case("default-integrator", "default_integrator.xml", defines={"integrator": "direct"}),
     Case("direct", "direct.xml"),
     Case("spectral-flat", "spectral_flat.xml"),
     Case("spectral-spiky", "spectral_spiky.xml", variant=SPECTRAL),
+    Case("spectral-file", "spectral_file.xml", variant=SPECTRAL),  # a .spd file read before any variant is set
     Case("instancing", "instancing.xml"),
     Case("medium-homogeneous", "medium_homogeneous.xml"),
     Case("medium-grid", "medium_grid.xml"),

@@ -10,6 +10,7 @@ import pytest
 from compat_cases import (
     CASES,
     REPO,
+    SCENES,
     adaptive_args,
     check_adaptive_report,
     compare_files,
@@ -184,3 +185,15 @@ def test_a_bad_rule_file_is_refused_at_submit_naming_its_fault(tmp_path):
     done = quekaro("submit", str(CASES[0].scene), "--rules", str(bad), "--home", str(tmp_path))
     assert done.returncode == 2
     assert "masyro_original.xml:41, variable 'Ls', label 'B'" in done.stderr and "c=9 > d=1" in done.stderr
+
+
+def test_a_scene_name_no_message_can_carry_is_refused_at_submit(farm_jobs, tmp_path):
+    """A file name with a line break is a valid Linux name that the job message cannot carry: refused when
+    submitted, naming the field, not accepted and failed at its auction; the farm goes on."""
+    farm, home, jobs = farm_jobs
+    odd = tmp_path / "two\nlines.xml"
+    odd.write_text((SCENES / "direct.xml").read_text().replace("_room.xml", str(SCENES / "_room.xml"))
+                   .replace("_camera.xml", str(SCENES / "_camera.xml")))
+    done = quekaro("submit", str(odd), "--home", str(home))
+    assert done.returncode == 2 and "job.scene_name" in done.stderr and "cannot travel" in done.stderr, done.stderr
+    assert wait_done(farm.client(), jobs["direct"])["status"] == "done"

@@ -254,3 +254,21 @@ def test_fuzz_random_json(performative: str, value: object) -> None:
 def test_fuzz_valid_messages_with_one_field_mutated(msg: m.Message, keys: list[str], value: object) -> None:
     data = mutated(msg, (keys, value))
     _parse_or_refuse(msg.performative, json.dumps(data))
+
+
+@pytest.mark.parametrize("name", ["scène d'été.xml", "file names/a b.xml", "日本/シーン.xml", "a+b_c-1.xml"])
+def test_a_users_scene_file_name_travels(name: str) -> None:
+    """Spaces, apostrophes and any script: names users give their files (a job with 'scène one.xml' had
+    been accepted at submit and failed at its auction, its message refused)."""
+    m.check_scene_name(name)
+    cfp = m.CallForProposal(conversation="c1", job=job(scene_name=name), units=(unit(0),), reply_within_s=2)
+    assert m.parse(*m.encode(cfp)).job.scene_name == name
+
+
+@pytest.mark.parametrize("name", ["../x.xml", "a/../../x.xml", "/abs.xml", "a\\b.xml", "a\nb.xml", "a\x00b.xml", ""])
+def test_a_scene_name_leaving_the_bundle_is_refused(name: str) -> None:
+    with pytest.raises(MessageError, match="cannot travel to the agents") as info:
+        m.check_scene_name(name)
+    assert info.value.field == "job.scene_name"
+    with pytest.raises(MessageError):
+        m.encode(m.CallForProposal(conversation="c1", job=job(scene_name=name), units=(unit(0),), reply_within_s=2))

@@ -40,8 +40,16 @@ MAX_CFP_UNITS = 64
 _ID = re.compile(r"[A-Za-z0-9._:@/+-]{1,128}")
 _HEX = re.compile(r"[0-9a-f]{16,128}")
 _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,31}")
-# A relative path inside a scene bundle: no leading '/', no '..' component.
-_SCENE_NAME = re.compile(r"(?!/)(?!.*(^|/)\.\.(/|$))[A-Za-z0-9._/+-]{1,512}")
+# A relative path inside a scene bundle: no leading '/', no '..' component, no control character or
+# backslash; spaces and any script are a user's file names (as the bundle's own member check allows).
+_SCENE_NAME = re.compile(r"(?!/)(?!.*(^|/)\.\.(/|$))[^\x00-\x1f\x7f\\]{1,512}")
+
+
+def check_scene_name(name: str) -> None:
+    """MessageError unless `name` can travel as a job's scene_name (checked at submit, not at the auction)."""
+    if not _SCENE_NAME.fullmatch(name):
+        raise MessageError(f"scene file name {name[:80]!r} cannot travel to the agents: a relative path inside "
+                           "the bundle without '..', control characters or backslashes", "job.scene_name")
 
 
 # --- message parts -------------------------------------------------------------------------------------

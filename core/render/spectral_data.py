@@ -95,8 +95,8 @@ def read_spectrum(elem: Any, src: Path) -> tuple[np.ndarray, np.ndarray] | None:
 def _from_file(path: Path, where: str) -> tuple[np.ndarray, np.ndarray]:
     import mitsuba as mi
 
-    try:
-        wavelengths, values = mi.spectrum_from_file(str(path))
+    try:  # the scalar variant's reader, usable whatever variant this process has set, or none yet
+        wavelengths, values = mi.scalar_rgb.spectrum_from_file(str(path))
     except RuntimeError as exc:
         raise SceneError(f"{where}: cannot read spectrum file {path} ({exc})") from exc
     return np.asarray(wavelengths, dtype=np.float64), np.asarray(values, dtype=np.float64)
