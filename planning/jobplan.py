@@ -28,7 +28,7 @@ from planning import budgets, depthcut
 from planning.complexity import ComplexityMap, prepass
 from planning.partition import equal_tiles, partition
 
-DEFAULT_SPP = 64  # when neither the user nor the scene's sampler says
+DEFAULT_SPP = 64  # when neither the user, the scene's sampler nor a loaded scene says
 # Sensors whose film crop renders exactly that part of the image (compared with plain Mitsuba per pixel in
 # the compatibility suite). A batch sensor, for one, picks its camera from the position within the crop,
 # so its tiles showed the wrong camera; any sensor not listed renders whole, as one unit.
@@ -116,7 +116,7 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     """The plan for the analysed scene (`loaded`, its effects `effects`)."""
     info = film_info(spec, options.sensor)
     width, height = info.width, info.height
-    spp = options.spp or scene_spp(spec, options.sensor, loaded) or DEFAULT_SPP
+    spp = options.spp or scene_spp(spec, options.sensor, loaded) or _sampler_default(loaded, options.sensor, effects)
     _check_image_file(spec, info.image_file, loaded)
     plan = JobPlan(spec, options, width, height, effects, spp, effects.max_depth, [],
                    filter_radius=info.filter_radius, colour=info.colour, image_file=info.image_file)
@@ -144,6 +144,18 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     if options.adaptive:
         return _adaptive(plan, cmap, min_units)
     return _with_depth_floors(plan, cmap, seed, loaded, radiance, floors_always)
+
+
+def _sampler_default(loaded: Any, sensor: int, effects: Effects) -> int:
+    """The spp plain Mitsuba renders where the scene states no sample_count: its sampler's default (4 for
+    the independent sampler), said in the effects; DEFAULT_SPP without a loaded scene."""
+    if loaded is None:
+        return DEFAULT_SPP
+    sampler = loaded.sensors()[sensor].sampler()
+    count = int(sampler.sample_count())
+    effects.reasons.append(f"spp {count}: the scene's sampler states no sample_count, and {count} is its default "
+                           f"({sampler.class_name()}), as plain Mitsuba renders it; --spp sets another")
+    return count
 
 
 def _sensor_kind(spec: SceneSpec, loaded: Any, index: int) -> tuple[str, str | None]:

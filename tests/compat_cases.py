@@ -52,6 +52,7 @@ CASES = (
     Case("search-path-a", "searchpath/scene/needs_a.xml", search=("searchpath/common",)),
     Case("file-names", "file names/scène d'été.xml"),  # spaces and accents in the scene's and its include's names
     Case("default-integrator", "default_integrator.xml", defines={"integrator": "direct"}),
+    Case("sampler-default", "sampler_default.xml", spp=4),  # no sample_count: the sampler's default
     Case("direct", "direct.xml"),
     Case("spectral-flat", "spectral_flat.xml"),
     Case("spectral-spiky", "spectral_spiky.xml", variant=SPECTRAL),

@@ -146,7 +146,7 @@ def test_defaults_and_defines_choose_the_file(tmp_path):
 
 
 @pytest.mark.parametrize(("body", "match"), [
-    (_shape("missing.obj"), r":1: file file 'missing.obj' not found; searched: .*scene"),
+    (_shape("missing.obj"), r":1: file 'missing.obj' not found; searched: .*scene"),
     (_shape("$nope.obj"), r"undefined parameter"),
     ("<include filename='nope.xml'/>", r"include file 'nope.xml' not found"),
     ("<path value='nowhere'/>", r"<path>: folder 'nowhere' not found"),

@@ -49,7 +49,7 @@ def test_include_defaults_and_overrides(tmp_path):
                     '<include filename="sub/film.xml"/></scene>')
     # Mitsuba 3.9 looks a mesh named in an included file up after parsing, from the main scene's folder,
     # not beside the include (mi.load_file fails the same way: "mesh.obj": file not found).
-    with pytest.raises(SceneError, match=r"film.xml:1: file file 'mesh.obj' not found; searched: "):
+    with pytest.raises(SceneError, match=r"film.xml:1: file 'mesh.obj' not found; searched: "):
         referenced_files(SceneSpec(main))
     (tmp_path / "mesh.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     assert image_size(SceneSpec(main)) == (40, 10)

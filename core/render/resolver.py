@@ -149,7 +149,8 @@ def _resolved(file: Path, elem: etree._Element, kind: str, name: str, folders: S
     target = lookup(name, folders)
     if target is None or not target.is_file():
         searched = ", ".join(str(f) for f in folders) if not Path(name).is_absolute() else "(absolute name)"
-        raise SceneError(f"{where}: {kind} file {name!r} not found; searched: {searched}")
+        what = "file" if kind == "file" else f"{kind} file"
+        raise SceneError(f"{where}: {what} {name!r} not found; searched: {searched}")
     return Reference(file, elem.sourceline or 0, kind, name, Path(os.path.normpath(target.absolute())), elem)
 
 
