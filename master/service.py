@@ -27,7 +27,7 @@ from core.errors import MessageError, QuekaroError
 from core.home import ADMIN_TOKEN, FARM_FILE
 from core.model import messages as m
 from core.model.hashing import sha256_file
-from core.model.job import FILE_SUFFIXES, JobPlan, JobSpec, RenderOptions, SceneSpec
+from core.model.job import IMAGE_SUFFIXES, JobPlan, JobSpec, RenderOptions, SceneSpec
 from core.model.seeds import plan_seed
 from core.model.status import JobStatus, UnitStatus
 from core.model.units import WorkUnit
@@ -226,7 +226,7 @@ class MasterService:
     def result_image(self, job_id: str) -> Path:
         """The job's composed image: result.exr, or result.pfm / result.rgbe where the film asks for them."""
         stem = self.result_path(job_id)
-        paths = [stem.with_suffix(suffix) for suffix in dict.fromkeys(FILE_SUFFIXES.values())]
+        paths = [stem.with_suffix(suffix) for suffix in IMAGE_SUFFIXES]
         return next((path for path in paths if path.exists()), stem)
 
     def job_plan(self, record: JobRecord) -> JobPlan:

@@ -28,7 +28,6 @@ from planning import budgets, depthcut
 from planning.complexity import ComplexityMap, prepass
 from planning.partition import equal_tiles, partition
 
-DEFAULT_SPP = 64  # when neither the user, the scene's sampler nor a loaded scene says
 # Sensors whose film crop renders exactly that part of the image (compared with plain Mitsuba per pixel in
 # the compatibility suite). A batch sensor, for one, picks its camera from the position within the crop,
 # so its tiles showed the wrong camera; any sensor not listed renders whole, as one unit.
@@ -38,7 +37,12 @@ TILED_SENSORS = ("perspective", "thinlens", "orthographic")
 def scene_spp(spec: SceneSpec, sensor_index: int = 0, loaded: Any = None) -> int | None:
     """The sample count the scene's sensor's sampler asks for, read from the XML (None if not stated);
     where the XML cannot say which sensor that is, the `loaded` scene's (None without it)."""
-    sensors = sensor_elements(expand(spec).root)
+    return _stated_spp(sensor_elements(expand(spec).root), spec, sensor_index, loaded)
+
+
+def _stated_spp(sensors: list[etree._Element] | None, spec: SceneSpec, sensor_index: int,
+                loaded: Any) -> int | None:
+    """`scene_spp` from the scene's sensor elements (core.render.scene.sensor_elements)."""
     if sensors is None:
         return int(loaded.sensors()[sensor_index].sampler().sample_count()) if loaded is not None else None
     sensor = sensors[sensor_index] if sensor_index < len(sensors) else None
@@ -116,7 +120,9 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     """The plan for the analysed scene (`loaded`, its effects `effects`)."""
     info = film_info(spec, options.sensor)
     width, height = info.width, info.height
-    spp = options.spp or scene_spp(spec, options.sensor, loaded) or _sampler_default(loaded, options.sensor, effects)
+    sensors = sensor_elements(expand(spec).root)
+    spp = (options.spp or _stated_spp(sensors, spec, options.sensor, loaded)
+           or _sampler_default(loaded, options.sensor, effects))
     _check_image_file(spec, info.image_file, loaded)
     plan = JobPlan(spec, options, width, height, effects, spp, effects.max_depth, [],
                    filter_radius=info.filter_radius, colour=info.colour, image_file=info.image_file)
@@ -125,7 +131,7 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     target = chosen or default_unit_count(width, height, options.level, min_units, spp)
     if not effects.splittable:
         return _one_unit(plan, "this integrator renders as one unit")
-    sensor_type, sampler = _sensor_kind(spec, loaded, options.sensor)
+    sensor_type, sampler = _sensor_kind(sensors, loaded, options.sensor)
     if sensor_type not in TILED_SENSORS:
         effects.reasons.append(f"one unit, the whole film: sensor {sensor_type}, whose crop windows are not "
                                f"the parts of its image (tiles: {', '.join(TILED_SENSORS)})")
@@ -148,9 +154,7 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
 
 def _sampler_default(loaded: Any, sensor: int, effects: Effects) -> int:
     """The spp plain Mitsuba renders where the scene states no sample_count: its sampler's default (4 for
-    the independent sampler), said in the effects; DEFAULT_SPP without a loaded scene."""
-    if loaded is None:
-        return DEFAULT_SPP
+    the independent sampler), said in the effects."""
     sampler = loaded.sensors()[sensor].sampler()
     count = int(sampler.sample_count())
     effects.reasons.append(f"spp {count}: the scene's sampler states no sample_count, and {count} is its default "
@@ -158,10 +162,10 @@ def _sampler_default(loaded: Any, sensor: int, effects: Effects) -> int:
     return count
 
 
-def _sensor_kind(spec: SceneSpec, loaded: Any, index: int) -> tuple[str, str | None]:
-    """The plugin types of the scene's sensor `index` and of its sampler (None: Mitsuba's default,
-    independent), as written; where the XML cannot say which sensor that is, from the loaded scene."""
-    sensors = sensor_elements(expand(spec).root)
+def _sensor_kind(sensors: list[etree._Element] | None, loaded: Any, index: int) -> tuple[str, str | None]:
+    """The plugin types of sensor `index` (of the scene's sensor elements) and of its sampler (None:
+    Mitsuba's default, independent), as written; where the XML cannot say which sensor that is, from the
+    loaded scene."""
     if sensors is None:
         sensor = loaded.sensors()[index]
         # Mitsuba's class names are its plugin names with a suffix (ThinLensCamera, IrradianceMeter, BatchSensor)
@@ -232,7 +236,7 @@ def _radiance_at(plan: JobPlan) -> Callable[[int], str]:
 def _check_image_file(spec: SceneSpec, image_file: ImageFile, loaded: Any) -> None:
     """Refuse, before any work, a film whose file (PFM, RGBE: colour only) cannot hold the channels the
     integrator adds (AOVs, moments): plain Mitsuba renders such a scene and then fails to write it."""
-    extra = list(loaded.integrator().aov_names()) if loaded is not None and loaded.integrator() else []
+    extra = list(loaded.integrator().aov_names()) if loaded.integrator() is not None else []
     if image_file.format != "openexr" and extra:
         raise QuekaroError(f"{spec.path}: the film's file_format {image_file.format} holds colour only, and the "
                            f"integrator adds channels {extra[:6]}; plain Mitsuba fails to write this image "

@@ -16,7 +16,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 
 from core.errors import QuekaroError
 from core.model.integrators import CATALOGUE
-from core.model.job import RenderOptions, SceneSpec
+from core.model.job import IMAGE_SUFFIXES, RenderOptions, SceneSpec
 from core.render.imageio import read_image
 from core.render.scene import parse_defines
 from fuzzy.engine import DEFUZZIFIERS
@@ -89,9 +89,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
-# The suffixes of the files a film writes (core.model.job.FILE_SUFFIXES), and other image formats:
-# `-o picture.png` would otherwise become a folder named picture.png.
-FILM_SUFFIXES = (".exr", ".pfm", ".rgbe")
+# Image formats no film writes (core.model.job.IMAGE_SUFFIXES are those it does): `-o picture.png`
+# would otherwise become a folder named picture.png.
 OTHER_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".ppm", ".hdr", ".tga", ".bmp", ".tif", ".tiff", ".webp")
 
 
@@ -103,9 +102,9 @@ def outputs(scenes: list[Path], out: Path) -> list[Path]:
         raise QuekaroError(f"-o {out}: the image is written as its film's file_format asks (EXR, PFM or RGBE), "
                            f"with a PNG preview and the report beside it; give -o {out.with_suffix('.exr')} "
                            "or a folder")
-    if len(scenes) == 1 and out.suffix.lower() in FILM_SUFFIXES and not out.is_dir():
+    if len(scenes) == 1 and out.suffix.lower() in IMAGE_SUFFIXES and not out.is_dir():
         return [out]
-    if out.suffix.lower() in FILM_SUFFIXES and not out.is_dir():
+    if out.suffix.lower() in IMAGE_SUFFIXES and not out.is_dir():
         raise QuekaroError(f"-o {out}: {len(scenes)} scenes need a folder, not one file")
     paths = [out / f"{scene.stem}.exr" for scene in scenes]
     clash = sorted({p.name for p in paths if paths.count(p) > 1})

@@ -156,8 +156,9 @@ def problems(case: Case, out: Path) -> list[str]:
     nothing does."""
     report = json.loads(out.with_suffix(".json").read_text())
     written = out.with_suffix(Path(report["image"]["file"]).suffix)
-    if file_kind(written) != mitsuba_kind(case):
-        return [f"file {file_kind(written)} != Mitsuba's {mitsuba_kind(case)}"]
+    kind = file_kind(written)
+    if kind != mitsuba_kind(case):
+        return [f"file {kind} != Mitsuba's {mitsuba_kind(case)}"]
     image, names = read_image_channels(written)
     ref_names = reference(case)[1]
     if sorted(names) != sorted(ref_names):

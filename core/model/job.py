@@ -202,6 +202,7 @@ FILM_COLOURS = {"rgb": RGB, "rgba": RGB, "xyz": ("X", "Y", "Z"), "xyza": ("X", "
 # component formats. PFM and RGBE store float32 only; Mitsuba overrides any other component format.
 FILE_SUFFIXES = {"openexr": ".exr", "exr": ".exr", "pfm": ".pfm", "rgbe": ".rgbe"}
 COMPONENT_FORMATS = ("float16", "float32", "uint32")
+IMAGE_SUFFIXES = tuple(dict.fromkeys(FILE_SUFFIXES.values()))  # .exr, .pfm, .rgbe
 
 
 @dataclass(frozen=True)

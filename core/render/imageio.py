@@ -100,15 +100,16 @@ def write_image(path: str | Path, planar: np.ndarray, channels: Sequence[str], i
 def lossy_values(planar: np.ndarray, image_file: ImageFile) -> list[str]:
     """What writing `planar` as `image_file` changes, beyond rounding: float16's overflow to Inf,
     uint32's clamp to [0, 1], RGBE's negatives (it has no sign; Mitsuba's writer wraps them around)."""
-    finite = np.isfinite(planar)
     if image_file.component == "float16":
-        count, what = int((finite & (np.abs(planar) > FLOAT16_MAX)).sum()), f"above float16's {FLOAT16_MAX:g}: Inf"
+        lo, hi, what = -FLOAT16_MAX, FLOAT16_MAX, f"above float16's {FLOAT16_MAX:g}: Inf"
     elif image_file.component == "uint32":
-        count, what = int((finite & ((planar < 0) | (planar > 1))).sum()), "outside [0, 1]: clamped"
+        lo, hi, what = 0.0, 1.0, "outside [0, 1]: clamped"
     elif image_file.format == "rgbe":
-        count, what = int((finite & (planar < 0)).sum()), "negative, which RGBE cannot store: wrapped around"
+        lo, hi, what = 0.0, np.inf, "negative, which RGBE cannot store: wrapped around"
     else:
         return []
+    # A plane at a time: the assembly of a large image must not hold image-sized temporaries.
+    count = sum(int((np.isfinite(plane) & ((plane < lo) | (plane > hi))).sum()) for plane in planar)
     if not count:
         return []
     return [f"{count} pixel channel values {what} in the file, as the film's {image_file.format} "

@@ -225,12 +225,12 @@ def film_info(spec: SceneSpec, sensor: int = 0) -> FilmInfo:
     width = _int_property(film, "width", DEFAULT_SIZE[0]) if film is not None else DEFAULT_SIZE[0]
     height = _int_property(film, "height", DEFAULT_SIZE[1]) if film is not None else DEFAULT_SIZE[1]
     filt = _filter_from_xml(film)
-    crop, colour = None, _colour_from_xml(film)
+    image_file = _image_file_from_xml(film, spec.path)
+    crop, colour = None, _colour_from_xml(film, image_file)
     if film is None:
         crop = (0, 0), (DEFAULT_SIZE[0], DEFAULT_SIZE[1])
     elif width is not None and height is not None:
         crop = _crop_from_xml(film, width, height)
-    image_file = _image_file_from_xml(film, spec.path)
     if width is None or height is None or filt is None or crop is None or colour is None:
         kind = film.get("type", "hdrfilm") if film is not None else "hdrfilm"
         return _loaded_film_info(spec, sensor, image_file, kind)
@@ -289,7 +289,7 @@ def _image_file_from_xml(film: etree._Element | None, path: Path) -> ImageFile:
                          f"{exc}") from exc
 
 
-def _colour_from_xml(film: etree._Element | None) -> tuple[str, ...] | None:
+def _colour_from_xml(film: etree._Element | None, image_file: ImageFile) -> tuple[str, ...] | None:
     """The colour channels of the film's pixel format (Mitsuba's default rgb); None where the XML does
     not say plainly (a parameter, a film other than hdrfilm, a format this table lacks)."""
     if film is None:
@@ -297,8 +297,8 @@ def _colour_from_xml(film: etree._Element | None) -> tuple[str, ...] | None:
     if film.get("type", "hdrfilm") != "hdrfilm":
         return None
     pixel_format = (_string_property(film, "pixel_format") or "rgb").lower()
-    file_format = (_string_property(film, "file_format") or "openexr").lower()
-    if file_format == "rgbe" or (file_format == "pfm" and pixel_format not in ("rgb", "luminance")):
+    fmt = image_file.format
+    if fmt == "rgbe" or (fmt == "pfm" and pixel_format not in ("rgb", "luminance")):
         pixel_format = "rgb"  # Mitsuba overrides a pixel format these files cannot hold
     return FILM_COLOURS.get(pixel_format)
 
