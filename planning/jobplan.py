@@ -23,6 +23,7 @@ from core.render.counts import check_renderable
 from core.render.effects import analyse_loaded
 from core.render.planner import Planner, RenderParams, adaptive_params
 from core.render.scene import expand, film_info, sensor_elements
+from core.render.worker import build_integrator
 from fuzzy.levels import OFF
 from planning import budgets, depthcut
 from planning.complexity import ComplexityMap, prepass
@@ -123,7 +124,7 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     sensors = sensor_elements(expand(spec).root)
     spp = (options.spp or _stated_spp(sensors, spec, options.sensor, loaded)
            or _sampler_default(loaded, options.sensor, effects))
-    _check_image_file(spec, info.image_file, loaded)
+    _check_image_file(spec, info.image_file, loaded, options.integrator)
     plan = JobPlan(spec, options, width, height, effects, spp, effects.max_depth, [],
                    filter_radius=info.filter_radius, colour=info.colour, image_file=info.image_file)
     # An adaptive job's --units are its render units (render_units); its rules see the level's own partition.
@@ -233,14 +234,29 @@ def _radiance_at(plan: JobPlan) -> Callable[[int], str]:
     return lambda depth: integrators.radiance_xml(elem, depth)
 
 
-def _check_image_file(spec: SceneSpec, image_file: ImageFile, loaded: Any) -> None:
+def _check_image_file(spec: SceneSpec, image_file: ImageFile, loaded: Any, override: str | None) -> None:
     """Refuse, before any work, a film whose file (PFM, RGBE: colour only) cannot hold the channels the
-    integrator adds (AOVs, moments): plain Mitsuba renders such a scene and then fails to write it."""
-    extra = list(loaded.integrator().aov_names()) if loaded.integrator() is not None else []
+    integrator that renders adds (AOVs, moments): plain Mitsuba renders such a scene and then fails to
+    write it."""
+    extra = _added_channels(loaded, override)
     if image_file.format != "openexr" and extra:
+        whose = f"--integrator {override}" if override else "integrator"
         raise QuekaroError(f"{spec.path}: the film's file_format {image_file.format} holds colour only, and the "
-                           f"integrator adds channels {extra[:6]}; plain Mitsuba fails to write this image "
+                           f"{whose} adds channels {extra[:6]}; plain Mitsuba fails to write this image "
                            "too: give the film file_format openexr")
+
+
+def _added_channels(loaded: Any, override: str | None) -> list[str]:
+    """The channels that the integrator that renders adds to the film: the user's override, built here
+    as each unit builds it so that one Mitsuba cannot build is refused before any work, else the scene's."""
+    if override:
+        try:
+            renders = build_integrator(override, None, None)
+        except RenderError as exc:
+            raise QuekaroError(f"--integrator {override}: {exc}") from exc
+    else:
+        renders = loaded.integrator()
+    return list(renders.aov_names()) if renders is not None else []
 
 
 def _check_adaptive(spec: SceneSpec, loaded: Any, sensor: int) -> None:

@@ -205,3 +205,20 @@ def test_a_film_file_that_cannot_hold_the_integrators_channels_is_refused_before
     assert "aov_pfm.xml: the film's file_format pfm holds colour only" in done.stderr
     assert "'dd.y.T'" in done.stderr and "file_format openexr" in done.stderr
     assert not list(tmp_path.glob("out.*"))
+    # The user's --integrator renders instead, and adds no channel: the same film takes its image.
+    done = quekaro("render", str(scene), "-D", "spp=2", "--integrator", "path", "-o", str(tmp_path / "out.pfm"),
+                   "--no-progress")
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "out.pfm").stat().st_size > 0
+
+
+def test_an_integrator_override_that_mitsuba_cannot_build_is_refused_before_rendering(tmp_path: Path) -> None:
+    """`--integrator aov` needs its `aovs` parameter, which the option cannot give: refused at planning,
+    naming the option and Mitsuba's reason, for any film, before a unit renders."""
+    scene = REPO / "tests" / "compat" / "scenes" / "crop.xml"
+    done = quekaro("render", str(scene), "-D", "spp=2", "--integrator", "aov", "-o", str(tmp_path / "out.exr"),
+                   "--no-progress")
+    assert done.returncode != 0
+    assert "--integrator aov: cannot build integrator aov: " in done.stderr and '"aovs"' in done.stderr
+    assert "unit 0" not in done.stderr
+    assert not list(tmp_path.glob("out.*"))

@@ -198,11 +198,13 @@ class _SceneCache:
             return None
         key = (override, depth)
         if key not in self.integrators:
-            self.integrators[key] = _build_integrator(override, depth, self.integrator_xml)
+            self.integrators[key] = build_integrator(override, depth, self.integrator_xml)
         return self.integrators[key]
 
 
-def _build_integrator(override: str | None, depth: int | None, scene_xml: Any) -> Any:
+def build_integrator(override: str | None, depth: int | None, scene_xml: Any) -> Any:
+    """The integrator a unit renders with: the user's override type (with `depth` where it takes one),
+    else the scene's own integrator element `scene_xml` at `depth`."""
     import mitsuba as mi
 
     try:
@@ -214,7 +216,8 @@ def _build_integrator(override: str | None, depth: int | None, scene_xml: Any) -
         return mi.load_dict(props)
     except RuntimeError as exc:
         what = override or integrators.describe(scene_xml)
-        raise RenderError(f"cannot build integrator {what} at depth {depth}: {exc}") from exc
+        at = "" if depth is None else f" at depth {depth}"
+        raise RenderError(f"cannot build integrator {what}{at}: {exc}") from exc
 
 
 _local_cache = _SceneCache()  # this process's: the render process's units, or a caller rendering in process
