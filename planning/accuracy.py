@@ -2,7 +2,8 @@
 Mitsuba at the uniform spp that takes the same wall time (`quekaro render --report-accuracy`, and the
 benchmark `quekaro bench accuracy` built on it). Plain Mitsuba renders in the variant the job rendered in
 (the effect analysis's, or the user's `-m`): a spectral scene against an rgb reference would count the
-variant's difference as the job's error.
+variant's difference as the job's error. It also computes what the job was asked to (`Asked`: its sensor,
+the user's integrator and depth) and finds the scene's files where the job did (its search folders).
 
 Plain Mitsuba runs as a user runs it (`python -m planning.plain`: import, load, render, write) and the
 whole process is timed. Its time is linear in spp (design.md section 3): two timings give
@@ -21,6 +22,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -44,14 +46,43 @@ def job_variant(spec: SceneSpec) -> str:
     return analyse(spec).variant
 
 
-def plain_render(spec: Any, spp: int, threads: int, variant: str, seed: int = 0) -> tuple[np.ndarray, float]:
-    """Plain Mitsuba on the whole image at `spp` in `variant`, the whole process timed
-    (`python -m planning.plain`): (RGB pixels, wall seconds)."""
+@dataclass(frozen=True)
+class Asked:
+    """What a job was asked to compute beyond its scene file: the sensor (Mitsuba's -s) and the user's
+    integrator type and max_depth (None: the scene's own). Plain Mitsuba renders the same, or the
+    comparison would count the user's choice as the job's error."""
+
+    sensor: int = 0
+    integrator: str | None = None
+    depth: int | None = None
+
+    @classmethod
+    def of_report(cls, report: dict[str, Any]) -> Asked:
+        options = report.get("options") or {}
+        depth = options.get("depth")
+        return cls(int(options.get("sensor") or 0), options.get("integrator"), None if depth is None else int(depth))
+
+    def args(self) -> list[str]:
+        """planning.plain's options for it."""
+        return [*(["-s", str(self.sensor)] if self.sensor else []),
+                *(["--integrator", self.integrator] if self.integrator else []),
+                *(["--depth", str(self.depth)] if self.depth is not None else [])]
+
+    def key(self) -> list[Any]:
+        """What a cached render depends on (nothing for the scene as written, so older caches hold)."""
+        return [] if self == Asked() else [self.sensor, self.integrator, self.depth]
+
+
+def plain_render(spec: Any, spp: int, threads: int, variant: str, seed: int = 0,
+                 asked: Asked = Asked()) -> tuple[np.ndarray, float]:
+    """Plain Mitsuba on the whole image at `spp` in `variant`, computing what `asked` says, the whole
+    process timed (`python -m planning.plain`): (RGB pixels, wall seconds)."""
     with tempfile.TemporaryDirectory(prefix="quekaro-plain-") as tmp:
         out = Path(tmp) / "plain.exr"
         cmd = [sys.executable, "-m", "planning.plain", str(spec.path), "--spp", str(spp), "--seed", str(seed),
-               "-t", str(threads), "-m", variant, "-o", str(out),
-               *(f"-D{k}={v}" for k, v in spec.defines.items())]
+               "-t", str(threads), "-m", variant, "-o", str(out), *asked.args(),
+               *(f"-D{k}={v}" for k, v in spec.defines.items()),
+               *(arg for folder in spec.search_paths for arg in ("-a", str(folder)))]
         start = time.perf_counter()
         done = subprocess.run(cmd, capture_output=True, text=True, cwd=Path.cwd())
         seconds = time.perf_counter() - start
@@ -70,12 +101,13 @@ def content_key(spec: Any, *extra: Any) -> str:
     return digest.hexdigest()[:16]
 
 
-def reference(spec: Any, spp: int, threads: int, cache: Path, variant: str) -> np.ndarray:
-    """The scene at `spp` in `variant`, plain Mitsuba; cached under `cache` by content (`content_key`)."""
-    path = cache / "references" / f"{spec.path.stem}-{content_key(spec, spp, variant)}.exr"
+def reference(spec: Any, spp: int, threads: int, cache: Path, variant: str, asked: Asked = Asked()) -> np.ndarray:
+    """The scene at `spp` in `variant`, plain Mitsuba computing what `asked` says; cached under `cache` by
+    content (`content_key`)."""
+    path = cache / "references" / f"{spec.path.stem}-{content_key(spec, spp, variant, *asked.key())}.exr"
     if path.exists():
         return read_image(path)[..., :3]
-    pixels, _ = plain_render(spec, spp, threads, variant, seed=987654)
+    pixels, _ = plain_render(spec, spp, threads, variant, seed=987654, asked=asked)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_exr(path, pixels)
     return pixels
@@ -89,11 +121,11 @@ MIN_SPP_SECONDS = 0.02
 MAX_TIMING_SPP = 1 << 14
 
 
-def spp_timing(spec: Any, spp: int, threads: int, variant: str) -> tuple[float, float]:
+def spp_timing(spec: Any, spp: int, threads: int, variant: str, asked: Asked = Asked()) -> tuple[float, float]:
     """(t0, k) of t(spp) = t0 + k spp for the plain Mitsuba process, from the faster of two runs at two spp."""
     size = ", ".join(f"{k}={v}" for k, v in spec.defines.items())
-    return fit_spp_line(lambda n: min(plain_render(spec, n, threads, variant, seed=s)[1] for s in (1, 2)), spp,
-                        what=f"{spec.path.name} ({size})")
+    return fit_spp_line(lambda n: min(plain_render(spec, n, threads, variant, seed=s, asked=asked)[1] for s in (1, 2)),
+                        spp, what=f"{spec.path.name} ({size})")
 
 
 def fit_spp_line(seconds_at: Callable[[int], float], spp: int, what: str = "the scene") -> tuple[float, float]:
@@ -123,25 +155,26 @@ def default_cache() -> Path:
 
 
 def uniform_at(spec: SceneSpec, seconds: float, line: tuple[float, float], threads: int, ref: np.ndarray,
-               variant: str, seed: int = 4242) -> dict[str, Any]:
+               variant: str, seed: int = 4242, asked: Asked = Asked()) -> dict[str, Any]:
     """Plain Mitsuba at the spp whose whole-process time, by the line, is `seconds`: spp, its measured
     seconds and its errors against `ref`."""
     t0, k = line
     spp = max(1, round((seconds - t0) / k))
-    pixels, took = plain_render(spec, spp, threads, variant, seed=seed + spp)
+    pixels, took = plain_render(spec, spp, threads, variant, seed=seed + spp, asked=asked)
     return {"spp": spp, "seconds": took, **all_metrics(pixels, ref)}
 
 
 def accuracy_report(spec: SceneSpec, image: np.ndarray, wall_seconds: float, report: dict[str, Any],
                     threads: int, ref_spp: int = REF_SPP, cache: Path | None = None) -> dict[str, Any]:
     """The job's image (RGB first) against the reference, its seams at the units' borders, and the
-    uniform baseline at equal wall time, in the variant the job rendered in."""
-    variant = report["effects"]["variant"]
-    ref = reference(spec, ref_spp, threads, cache or default_cache(), variant)
+    uniform baseline at equal wall time, in the variant the job rendered in, computing what the job was
+    asked to (its sensor, the user's integrator and depth)."""
+    variant, asked = report["effects"]["variant"], Asked.of_report(report)
+    ref = reference(spec, ref_spp, threads, cache or default_cache(), variant, asked)
     rgb = np.asarray(image[..., :3], dtype=np.float32)
     rects = [Rect.from_list(u["rect"]) for u in report["units"]]
-    line = spp_timing(spec, max(1, int(report.get("spp") or 16)), threads, variant)
-    uniform = uniform_at(spec, wall_seconds, line, threads, ref, variant)
+    line = spp_timing(spec, max(1, int(report.get("spp") or 16)), threads, variant, asked)
+    uniform = uniform_at(spec, wall_seconds, line, threads, ref, variant, asked=asked)
     width, height = report["image"]["width"], report["image"]["height"]
     compared = max(uniform["spp"], report["totals"]["samples"] / (width * height))
     return {"reference_spp": ref_spp, "variant": variant, "seconds": wall_seconds, **all_metrics(rgb, ref),

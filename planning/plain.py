@@ -2,9 +2,13 @@
 given spp and writes an EXR. `planning.accuracy` times this whole process for its uniform baseline, as
 `quekaro bench accuracy` times the whole `quekaro render` process, so both pay the same start-up.
 
-    python -m planning.plain SCENE.xml -D name=value ... --spp N --seed S -t THREADS -o OUT.exr
+    python -m planning.plain SCENE.xml -D name=value ... -a FOLDER ... --spp N --seed S -t THREADS \\
+        [-s SENSOR] [--integrator TYPE] [--depth N] -o OUT.exr
 
-The film's RGB is written (the accuracy metrics compare RGB). The scene's own integrator, sensor 0.
+It computes what the job was asked to compute: the scene with its -D parameters and search folders, the
+sensor chosen (Mitsuba's -s), and the user's integrator type and max_depth where the job overrode them,
+built as each unit builds them (core.render.worker.integrator_for). The film's RGB is written (the
+accuracy metrics compare RGB).
 """
 
 from __future__ import annotations
@@ -15,24 +19,36 @@ import sys
 import mitsuba as mi
 import numpy as np
 
+from core.model import integrators
 from core.model.job import SceneSpec
 from core.render.imageio import write_exr
-from core.render.scene import load
+from core.render.scene import expand, load
+from core.render.worker import integrator_for, sensor_of
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m planning.plain", description=__doc__)
     parser.add_argument("scene")
     parser.add_argument("-D", dest="defines", action="append", default=[], metavar="NAME=VALUE")
+    parser.add_argument("-a", dest="search_paths", action="append", default=[], metavar="FOLDER")
     parser.add_argument("--spp", type=int, required=True)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("-t", "--threads", type=int, default=2)
     parser.add_argument("-m", "--variant", default="llvm_ad_rgb")
+    parser.add_argument("-s", "--sensor", type=int, default=0)
+    parser.add_argument("--integrator", default=None)
+    parser.add_argument("--depth", type=int, default=None)
     parser.add_argument("-o", "--output", required=True)
     args = parser.parse_args(argv)
-    defines = dict(d.split("=", 1) for d in args.defines)
-    scene = load(SceneSpec(args.scene, defines), args.variant, args.threads)
-    image = np.array(mi.render(scene, spp=args.spp, seed=args.seed), dtype=np.float32)
+    spec = SceneSpec(args.scene, dict(d.split("=", 1) for d in args.defines), tuple(args.search_paths))
+    scene = load(spec, args.variant, args.threads)
+    sensor_of(scene, args.sensor, args.scene)
+    integrator = None  # the scene's own, as a user's plain render takes it
+    if args.integrator or args.depth is not None:
+        elem = integrators.scene_element(expand(spec).root)
+        integrator = integrator_for(args.integrator, args.depth, elem, integrators.depth_of(elem))
+    image = np.array(mi.render(scene, sensor=args.sensor, integrator=integrator, spp=args.spp, seed=args.seed),
+                     dtype=np.float32)
     write_exr(args.output, np.ascontiguousarray(image[..., :3]))
     return 0
 

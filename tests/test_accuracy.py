@@ -9,10 +9,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from core.errors import QuekaroError
 from core.model.job import SceneSpec
+from core.render.imageio import read_image
 from planning import accuracy
 
 REPO = Path(__file__).resolve().parent.parent
@@ -105,3 +107,44 @@ def test_a_spectral_scene_is_compared_with_plain_mitsuba_in_its_own_variant(tmp_
     assert job["accuracy"]["variant"] == job["effects"]["variant"] == "llvm_ad_spectral"
     cached = {p.name for p in (tmp_path / ".cache" / "quekaro" / "references").glob("*.exr")}
     assert cached == {f"cbox-{accuracy.content_key(spec, 64, 'llvm_ad_spectral')}.exr"}, cached
+
+
+def _report_accuracy(tmp_path: Path, scene: Path, *args: str) -> tuple[dict, np.ndarray]:
+    """`quekaro render SCENE ARGS --report-accuracy` at level off: (the report, its cached reference)."""
+    out = tmp_path / f"job{len(list(tmp_path.glob('job*.json')))}.exr"
+    env = {**os.environ, "HOME": str(tmp_path)}
+    cmd = [sys.executable, "-m", "quekaro", "render", str(scene), *args, "--opt", "off", "-t", "2",
+           "--no-progress", "-o", str(out), "--report-accuracy", "--ref-spp", "256"]
+    done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    assert done.returncode == 0, done.stderr
+    report = json.loads(out.with_suffix(".json").read_text())
+    refs = sorted((tmp_path / ".cache" / "quekaro" / "references").glob("*.exr"), key=lambda p: p.stat().st_mtime)
+    return report, read_image(refs[-1])
+
+
+@pytest.mark.slow
+def test_the_reference_computes_what_the_job_was_asked_to(tmp_path):
+    """The reference and the uniform baseline render the job's sensor (-s), find the scene's files in its
+    search folders (-a), and take the user's --depth and --integrator: each is an option a user gives, and
+    a reference without it is another image (it crashed on the second sensor's size, failed to find the
+    files, or counted the user's depth as the job's error)."""
+    compat = REPO / "tests" / "compat" / "scenes"
+    report, ref = _report_accuracy(tmp_path, compat / "two_sensors.xml", "-s", "1", "--spp", "16")
+    assert ref.shape[:2] == (report["image"]["height"], report["image"]["width"]) == (48, 40)
+    assert report["accuracy"]["relmse"] < 0.2
+
+    report, _ = _report_accuracy(tmp_path, compat / "searchpath" / "scene" / "needs_a.xml",
+                                 "-a", str(compat / "searchpath" / "common"), "--spp", "16")
+    assert report["accuracy"]["uniform"]["spp"] >= 1
+
+    # Depth 2 is direct light only: the scene's own depth 5 adds the room's bounced light, 13 % more.
+    _, own_ref = _report_accuracy(tmp_path, compat / "two_sensors.xml", "--spp", "64")
+    cut, cut_ref = _report_accuracy(tmp_path, compat / "two_sensors.xml", "--spp", "64", "--depth", "2")
+    job = read_image(cut["image"]["file"])[..., :3]
+    assert abs(job.mean() / cut_ref.mean() - 1) < 0.03  # the job and its reference: one computation
+    assert own_ref.mean() > 1.1 * cut_ref.mean()  # what the comparison would have counted as error
+
+    direct, direct_ref = _report_accuracy(tmp_path, compat / "two_sensors.xml", "--spp", "64",
+                                          "--integrator", "direct")
+    assert abs(read_image(direct["image"]["file"])[..., :3].mean() / direct_ref.mean() - 1) < 0.03
+    assert own_ref.mean() > 1.1 * direct_ref.mean()

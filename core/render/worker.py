@@ -194,12 +194,18 @@ class _SceneCache:
 
     def integrator(self, override: str | None, depth: int | None) -> Any:
         """None (the scene's own) unless the user overrode the type or a depth must change."""
-        if override is None and (depth is None or self.own_depth in (None, depth)):
-            return None
         key = (override, depth)
         if key not in self.integrators:
-            self.integrators[key] = build_integrator(override, depth, self.integrator_xml)
+            self.integrators[key] = integrator_for(override, depth, self.integrator_xml, self.own_depth)
         return self.integrators[key]
+
+
+def integrator_for(override: str | None, depth: int | None, scene_xml: Any, own_depth: int | None) -> Any:
+    """What `mi.render` is given to render with: None (the scene's own integrator, as loaded) unless the
+    user overrode its type or `depth` differs from the scene's `own_depth`, else `build_integrator`'s."""
+    if override is None and (depth is None or own_depth in (None, depth)):
+        return None
+    return build_integrator(override, depth, scene_xml)
 
 
 def build_integrator(override: str | None, depth: int | None, scene_xml: Any) -> Any:
