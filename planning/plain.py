@@ -7,8 +7,8 @@ given spp and writes an EXR. `planning.accuracy` times this whole process for it
 
 It computes what the job was asked to compute: the scene with its -D parameters and search folders, the
 sensor chosen (Mitsuba's -s), and the user's integrator type and max_depth where the job overrode them,
-built as each unit builds them (core.render.worker.integrator_for). The film's RGB is written (the
-accuracy metrics compare RGB).
+built as each unit builds them (core.render.worker.integrator_for). The film's colour is written as
+R, G, B (core.render.film.film_channels: a luminance film's Y thrice), as a job's image is read back.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import numpy as np
 
 from core.model import integrators
 from core.model.job import SceneSpec
+from core.render.film import film_channels
 from core.render.imageio import write_exr
 from core.render.scene import expand, load
 from core.render.worker import integrator_for, sensor_of
@@ -47,8 +48,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.integrator or args.depth is not None:
         elem = integrators.scene_element(expand(spec).root)
         integrator = integrator_for(args.integrator, args.depth, elem, integrators.depth_of(elem))
-    image = np.array(mi.render(scene, sensor=args.sensor, integrator=integrator, spp=args.spp, seed=args.seed),
-                     dtype=np.float32)
+    mi.render(scene, sensor=args.sensor, integrator=integrator, spp=args.spp, seed=args.seed)
+    image, _ = film_channels(scene.sensors()[args.sensor].film())
     write_exr(args.output, np.ascontiguousarray(image[..., :3]))
     return 0
 

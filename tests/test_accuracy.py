@@ -127,7 +127,8 @@ def test_the_reference_computes_what_the_job_was_asked_to(tmp_path):
     """The reference and the uniform baseline render the job's sensor (-s), find the scene's files in its
     search folders (-a), and take the user's --depth and --integrator: each is an option a user gives, and
     a reference without it is another image (it crashed on the second sensor's size, failed to find the
-    files, or counted the user's depth as the job's error)."""
+    files, or counted the user's depth as the job's error); a luminance film's colour is its Y (plain Mitsuba
+    failed writing Y and A as colour)."""
     compat = REPO / "tests" / "compat" / "scenes"
     report, ref = _report_accuracy(tmp_path, compat / "two_sensors.xml", "-s", "1", "--spp", "16")
     assert ref.shape[:2] == (report["image"]["height"], report["image"]["width"]) == (48, 40)
@@ -143,6 +144,10 @@ def test_the_reference_computes_what_the_job_was_asked_to(tmp_path):
     job = read_image(cut["image"]["file"])[..., :3]
     assert abs(job.mean() / cut_ref.mean() - 1) < 0.03  # the job and its reference: one computation
     assert own_ref.mean() > 1.1 * cut_ref.mean()  # what the comparison would have counted as error
+
+    # A luminance film: plain Mitsuba's image is Y and A; its colour is compared, as the job's is read.
+    lum, lum_ref = _report_accuracy(tmp_path, compat / "film_luminance_alpha.xml", "--spp", "64")
+    assert abs(read_image(lum["image"]["file"]).mean() / lum_ref.mean() - 1) < 0.03
 
     direct, direct_ref = _report_accuracy(tmp_path, compat / "two_sensors.xml", "--spp", "64",
                                           "--integrator", "direct")
