@@ -203,8 +203,10 @@ def farm_runner(agents: int, threads: int, home: Path, units: int | None = None,
             cpu = tree_cpu_seconds(roots) + _self_cpu() - cpu0
             if status["status"] != "done":
                 raise QuekaroError(f"farm job {job_id} ({level}) ended {status['status']}: {status.get('error')}")
-            client.result(job_id, out)
-            return json.loads(out.with_suffix(".json").read_text()), wall, cpu
+            image = client.result(job_id, out)
+            report = json.loads(out.with_suffix(".json").read_text())
+            report["image"]["file"] = str(image)  # the copy here, not the master's
+            return report, wall, cpu
 
         yield run_job
 
@@ -282,14 +284,14 @@ def run_cell(run_job: Callable, spec: SceneSpec, level: str, args: argparse.Name
     """One level's jobs (warm-up, then the timed runs): the cell's figures, its last image, its units."""
     images, first = [], {}
     if args.warmup:  # compiles this job's kernels (one per unit window size) before timing it
-        _, wall, _ = run_job(spec, level, args.spp, stem.with_name(stem.name + "-warm.exr"))
-        images.append(read_image(stem.with_name(stem.name + "-warm.exr"))[..., :3])
+        warm, wall, _ = run_job(spec, level, args.spp, stem.with_name(stem.name + "-warm.exr"))
+        images.append(read_image(warm["image"]["file"])[..., :3])  # the film's file: .pfm, .rgbe or .exr
         first = {"first_seconds": wall}
     timed = []
     for r in range(args.runs):
         out = stem.with_name(f"{stem.name}-{r}.exr")
         timed.append(run_job(spec, level, args.spp, out))
-        images.append(read_image(out)[..., :3])
+        images.append(read_image(timed[-1][0]["image"]["file"])[..., :3])
     report = timed[-1][0]
     used = [spent(rep) for rep, _, _ in timed]
     rects = [Rect.from_list(u["rect"]) for u in report["units"]]

@@ -58,6 +58,23 @@ def test_inprocess_grid_json_has_cells_and_baseline(tmp_path):
     assert "--resume" in (tmp_path / "out" / "accuracy.md").read_text()
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["--inprocess", "farm"])
+def test_a_scene_whose_film_writes_pfm_is_measured_from_the_file_the_job_wrote(tmp_path, mode):
+    """The job's image is the film's file (.pfm here, as Mitsuba names it), in one process and fetched
+    from a farm; the benchmark read OUT.exr, which no job had written."""
+    scene = Path(__file__).parent / "compat" / "scenes" / "film_pfm.xml"
+    parser = argparse.ArgumentParser()
+    bench_accuracy.add_arguments(parser)
+    args = parser.parse_args(["--spp", "4", "--ref-spp", "32", "--threads", "1", "--levels", "off", "--agents", "1",
+                              "--runs", "1", "--out", str(tmp_path / "out"), "--cache", str(tmp_path / "cache"),
+                              *([mode] if mode != "farm" else []), str(scene)])
+    args.json = True
+    result = bench_accuracy.run(args)
+    [cell] = result["cells"]
+    assert cell["level"] == "off" and 0 < cell["relmse"] < 10 and cell["uniform_spp"] >= 1
+
+
 def test_resume_refuses_other_settings_and_missing_files(tmp_path):
     with pytest.raises(QuekaroError, match="does not exist"):
         bench_accuracy.run(args_for(tmp_path, "--resume"))
