@@ -28,6 +28,7 @@ from planning.accuracy import job_variant, plain_render
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_SCENE = REPO / "scenes" / "cbox.xml"
+DEFAULT_RES = 512
 OFF_TARGET = 1.05
 
 
@@ -35,7 +36,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", type=Path, default=DEFAULT_SCENE)
     parser.add_argument("-D", dest="defines", action="append", default=[], metavar="NAME=VALUE",
                         help="a scene parameter, as Mitsuba's -D (after --res)")
-    parser.add_argument("--res", type=int, default=512, help="scene parameter res (the image side)")
+    parser.add_argument("--res", type=int, default=None,
+                        help=f"scene parameter res (the image side); default {DEFAULT_RES} for the default scene, "
+                             "a file's own size otherwise")
     parser.add_argument("--spp", type=int, default=256, help="the user's spp (what level off renders)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--levels", default="off", help="comma list of optimisation levels")
@@ -47,7 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.repeats < 1:
         raise QuekaroError(f"--repeats {args.repeats}: at least one timed run")
-    spec = SceneSpec(args.scene, {"res": str(args.res), **_defines(args.defines)})
+    res = args.res or (DEFAULT_RES if args.scene == DEFAULT_SCENE else None)
+    spec = SceneSpec(args.scene, {**({"res": str(res)} if res else {}), **_defines(args.defines)})
     levels = parse_levels(args.levels)
     variant = job_variant(spec)
     with tempfile.TemporaryDirectory(prefix="quekaro-overhead-") as tmp, \
@@ -84,7 +88,7 @@ def _level_row(run_job: Any, spec: SceneSpec, variant: str, level: str, args: ar
     plain_pixels, plain_s = min(plain, key=lambda pair: pair[1])
     totals = report["totals"]
     job_s, render_s, prepass_s = (float(totals.get(k, 0.0)) for k in ("seconds", "render_seconds", "prepass_seconds"))
-    ours_mean, plain_mean = float(read_image(out)[..., :3].mean()), float(plain_pixels.mean())
+    ours_mean, plain_mean = float(read_image(report["image"]["file"])[..., :3].mean()), float(plain_pixels.mean())
     return {
         "level": level, "spp": spp, "units": int(totals["units"]), "plain_seconds": plain_s, "quekaro_seconds": wall,
         "ratio": wall / plain_s, "outside_job_seconds": wall - job_s, "prepass_seconds": prepass_s,
@@ -95,8 +99,10 @@ def _level_row(run_job: Any, spec: SceneSpec, variant: str, level: str, args: ar
 
 
 def _command(args: argparse.Namespace) -> str:
-    parts = ["quekaro bench overhead", f"--levels {args.levels}", f"--spp {args.spp}", f"--res {args.res}"]
-    parts += ["--adaptive"] if args.adaptive else []
+    parts = ["quekaro bench overhead", f"--levels {args.levels}", f"--spp {args.spp}"]
+    parts += [f"--scene {args.scene}"] if args.scene != DEFAULT_SCENE else []
+    parts += [f"--res {args.res}"] if args.res else []
+    parts += [f"-D {d}" for d in args.defines] + (["--adaptive"] if args.adaptive else [])
     return " ".join(parts)
 
 

@@ -44,6 +44,23 @@ def test_a_tiny_real_run_times_both_sides_and_splits_the_jobs_time(tmp_path: Pat
     assert "target: level off quekaro render / plain Mitsuba <= 1.05:" in written
 
 
+@pytest.mark.slow
+def test_a_users_scene_keeps_its_own_size_and_its_film_file(tmp_path: Path) -> None:
+    """A scene without a `res` parameter, whose film writes PFM: no -D res is forced on it (Mitsuba
+    refused the unused parameter) and the job's mean is read from the .pfm it wrote. Mitsuba warns that
+    PFM is float32 only: on stderr, so that --json's stdout holds the JSON alone."""
+    scene = REPO / "tests" / "compat" / "scenes" / "film_pfm.xml"
+    done = subprocess.run([sys.executable, "-m", "quekaro", "bench", "overhead", "--json", "--scene", str(scene),
+                           "--spp", "4", "--threads", "1", "--repeats", "1", "--out", str(tmp_path)],
+                          cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert 'The PFM format only supports component_format="float32"' in done.stderr
+    result = json.loads(done.stdout)
+    [off] = result["levels"]
+    assert result["defines"] == {} and off["mean_rel_diff"] < 0.5
+    assert f"--scene {scene}" in (tmp_path / "overhead.md").read_text()
+
+
 @pytest.mark.parametrize(("extra", "message"), [
     (("--levels", "XS"), "unknown level 'XS'"),
     (("--repeats", "0"), "--repeats 0"),

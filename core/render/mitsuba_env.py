@@ -1,10 +1,13 @@
-"""Mitsuba set-up for one process: pick the variant (llvm first, scalar as a logged fallback) and the
-Dr.Jit thread count. Every process that renders calls `init` before loading a scene."""
+"""Mitsuba set-up for one process: pick the variant (llvm first, scalar as a logged fallback), the
+Dr.Jit thread count, and Mitsuba's log on stderr. Every process that renders calls `init` before
+loading a scene."""
 
 from __future__ import annotations
 
 import logging
 import os
+import sys
+from typing import Any
 
 from core.errors import QuekaroError, RenderError
 
@@ -104,6 +107,7 @@ def init(variant: str = DEFAULT_VARIANT, threads: int | None = None) -> str:
         raise QuekaroError(f"thread count must be at least 1, got {threads}")
     import mitsuba as mi
 
+    _logs_to_stderr(mi)
     # Re-select when asked for another variant, or when someone switched it behind our back.
     if _state["requested"] != variant or mi.variant() != _state["variant"]:
         _state["variant"] = _select_variant(variant)
@@ -112,6 +116,25 @@ def init(variant: str = DEFAULT_VARIANT, threads: int | None = None) -> str:
         dr.set_thread_count(threads)
         _state["threads"] = threads
     return str(_state["variant"])
+
+
+def _logs_to_stderr(mi: Any) -> None:
+    """Send Mitsuba's log (its warnings: a film format overridden, an unused parameter) to stderr, once
+    per process: its own appender writes to stdout, where `--json` commands print their JSON."""
+    if _state.get("log"):
+        return
+
+    class ToStderr(mi.Appender):
+        def append(self, level: Any, text: str) -> None:
+            sys.stderr.write(text + "\n")
+
+        def log_progress(self, *args: Any) -> None:
+            pass  # quekaro shows its own progress
+
+    logger = mi.logger()
+    logger.clear_appenders()
+    logger.add_appender(ToStderr())
+    _state["log"] = True
 
 
 def current_variant() -> str | None:
