@@ -182,7 +182,7 @@ def test_an_adaptive_farm_job_keeps_mitsubas_means(name, farm_jobs, tmp_path):
 
 def test_a_bad_rule_file_is_refused_at_submit_naming_its_fault(tmp_path):
     bad = REPO / "tests" / "data" / "rules" / "masyro_original.xml"  # MASYRO's published typo
-    done = quekaro("submit", str(CASES[0].scene), "--rules", str(bad), "--home", str(tmp_path))
+    done = quekaro("submit", str(CASES[0].scene), "--opt", "S", "--rules", str(bad), "--home", str(tmp_path))
     assert done.returncode == 2
     assert "masyro_original.xml:41, variable 'Ls', label 'B'" in done.stderr and "c=9 > d=1" in done.stderr
 

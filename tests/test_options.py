@@ -22,6 +22,10 @@ from planning.jobplan import default_unit_count, scene_spp
     ({"defuzzifier": "mean"}, "option defuzzifier"),
     ({"variant": "cuda; rm -rf"}, "not a Mitsuba variant name"),
     ({"level": "XL"}, "--opt 'XL'"),
+    # Level off applies no rules: a rule file or a defuzzifier given with it would be ignored.
+    ({"level": "off", "rules": "rules/pathtracing.xml"}, r"--rules: level off applies no rules.*--opt VS/S/N/B/VB"),
+    ({"defuzzifier": "centroid"}, "--defuzzifier: level off applies no rules"),
+    ({"rules": "r.xml", "defuzzifier": "centroid"}, "--rules and --defuzzifier: level off"),
 ])
 def test_bad_options_are_refused_naming_the_field(options, match):
     with pytest.raises(QuekaroError, match=match):

@@ -110,6 +110,12 @@ class RenderOptions:
             raise QuekaroError(f"option integrator: {self.integrator!r} is not one of Mitsuba's integrators")
         if self.variant is not None and not (isinstance(self.variant, str) and VARIANT_PATTERN.fullmatch(self.variant)):
             raise QuekaroError(f"option variant: {str(self.variant)[:40]!r} is not a Mitsuba variant name")
+        ruled = [name for name, value in (("--rules", self.rules), ("--defuzzifier", self.defuzzifier))
+                 if value is not None]
+        if ruled and self.level == OFF:
+            raise QuekaroError(f"{' and '.join(ruled)}: level off applies no rules (every unit renders the "
+                               f"user's spp and depth); give a rule level (--opt {'/'.join(RULE_LEVELS)}) or "
+                               f"leave {' and '.join(ruled)} out")
 
     def overrides(self) -> dict[str, Any]:
         """The effect decisions the user forced (they win over the analysis)."""
