@@ -84,7 +84,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser.add_argument("--report-accuracy", action="store_true",
                         help="afterwards, compare the image with a long plain-Mitsuba reference (cached) and with "
                              "plain Mitsuba at the spp taking the same wall time; printed and in the report")
-    parser.add_argument("--ref-spp", type=int, default=REF_SPP,
+    parser.add_argument("--ref-spp", type=int, default=None,
                         help=f"with --report-accuracy: the reference's spp (default {REF_SPP})")
     parser.set_defaults(func=run)
 
@@ -136,6 +136,9 @@ def run(args: argparse.Namespace) -> int:
     startup = process_age()  # the interpreter's start and imports, paid once, by the first scene
     defines, paths = parse_defines(args.defines), search_paths(args)
     options = options_from_args(args)
+    if args.ref_spp is not None and not args.report_accuracy:
+        raise QuekaroError(f"--ref-spp {args.ref_spp}: the reference is rendered only with --report-accuracy")
+    args.ref_spp = REF_SPP if args.ref_spp is None else args.ref_spp
     if args.ref_spp < 1:
         raise QuekaroError(f"--ref-spp {args.ref_spp}: must be at least 1")
     failed = []

@@ -222,3 +222,13 @@ def test_an_integrator_override_that_mitsuba_cannot_build_is_refused_before_rend
     assert "--integrator aov: cannot build integrator aov: " in done.stderr and '"aovs"' in done.stderr
     assert "unit 0" not in done.stderr
     assert not list(tmp_path.glob("out.*"))
+
+
+def test_a_reference_spp_without_report_accuracy_is_refused(tmp_path: Path) -> None:
+    """--ref-spp only sets the spp of --report-accuracy's reference: given alone it would be ignored."""
+    scene = REPO / "tests" / "compat" / "scenes" / "crop.xml"
+    done = quekaro("render", str(scene), "-D", "spp=2", "--ref-spp", "64", "-o", str(tmp_path / "out.exr"),
+                   "--no-progress")
+    assert done.returncode != 0
+    assert "--ref-spp 64: the reference is rendered only with --report-accuracy" in done.stderr
+    assert not list(tmp_path.glob("out.*"))
