@@ -57,6 +57,7 @@ HETEROGENEOUS = "caustic-corner"  # the project's own scene the rules were tuned
 SCENES = {"caustic-corner": REPO / "scenes" / "caustic-corner.xml"}
 DEFAULT_OUT = REPO / "docs" / "benchmarks"
 JOB_TIMEOUT_S = 900.0
+DEFAULT_AGENTS = "1,2"  # a farm of one agent and of two, side by side
 S_TIME_RATIO, S_DIFF_PERCENT, RELMSE_RATIO = 0.75, 1.21, 0.8  # the targets (issue 15)
 DIFF_WHITE = 0.10  # a display difference of 10 % is white in the grey difference images
 
@@ -71,7 +72,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--suite", action="store_true", help="every scene of the suite (bench/suite.py)")
     parser.add_argument("-D", dest="defines", action="append", default=[], metavar="NAME=VALUE",
                         help="a scene parameter for every scene, as Mitsuba's -D (after --res)")
-    parser.add_argument("--agents", default="1,2", help="comma list of agent counts")
+    parser.add_argument("--agents", default=None,
+                        help=f"comma list of agent counts (default {DEFAULT_AGENTS}; with --inprocess only 1)")
     parser.add_argument("--levels", default="off,VS,S,N,B,VB", help="comma list of optimisation levels")
     parser.add_argument("--res", type=int, default=None,
                         help="image width (-D res, or width and height at the scene's aspect); default: the "
@@ -119,17 +121,19 @@ def parse_grid(args: argparse.Namespace) -> tuple[list[SuiteScene], list[int], l
     for text in args.defines:
         if "=" not in text:
             raise QuekaroError(f"-D {text!r}: expected NAME=VALUE")
+    text = args.agents or (DEFAULT_AGENTS if not args.inprocess else "1")
     try:
-        agents = sorted({int(a) for a in _csv_list(args.agents, "agents")})
+        agents = sorted({int(a) for a in _csv_list(text, "agents")})
     except ValueError:
-        raise QuekaroError(f"--agents {args.agents!r}: expected integers like 1,2") from None
+        raise QuekaroError(f"--agents {text!r}: expected integers like 1,2") from None
     if agents[0] < 1:
-        raise QuekaroError(f"--agents {args.agents!r}: counts must be at least 1")
+        raise QuekaroError(f"--agents {text!r}: counts must be at least 1")
     levels = parse_levels(args.levels)
     if args.runs < 1:
         raise QuekaroError(f"--runs {args.runs}: at least one timed run per cell")
-    if args.inprocess:
-        agents = agents[:1]
+    if args.inprocess and agents != [1]:
+        raise QuekaroError(f"--agents {text}: --inprocess times one `quekaro render` process, which is no farm of "
+                           "agents; leave --agents out (or give 1)")
     return scenes, agents, levels
 
 

@@ -98,8 +98,15 @@ def test_grid_arguments_are_checked(tmp_path):
         bench_accuracy.parse_grid(args_for(tmp_path, "-D", "res"))
     with pytest.raises(QuekaroError, match="--runs 0"):
         bench_accuracy.parse_grid(args_for(tmp_path, "--runs", "0"))
-    scenes, agents, levels = bench_accuracy.parse_grid(args_for(tmp_path, "--agents", "2,1,2", "--inprocess"))
+    # One process is no farm: agent counts other than 1 would be ignored, so they are refused.
+    with pytest.raises(QuekaroError, match=r"--agents 2,1,2: --inprocess times one `quekaro render` process"):
+        bench_accuracy.parse_grid(args_for(tmp_path, "--agents", "2,1,2", "--inprocess"))
+    scenes, agents, levels = bench_accuracy.parse_grid(args_for(tmp_path, "--agents", "1", "--inprocess"))
     assert ([s.name for s in scenes], agents, levels) == (["caustic-corner"], [1], ["off", "S"])
+    parser = argparse.ArgumentParser()
+    bench_accuracy.add_arguments(parser)
+    assert bench_accuracy.parse_grid(parser.parse_args([]))[1] == [1, 2]  # a farm of one agent and of two
+    assert bench_accuracy.parse_grid(parser.parse_args(["--inprocess"]))[1] == [1]
     suite, _, _ = bench_accuracy.parse_grid(args_for(tmp_path, "--suite"))
     assert len(suite) >= 6 and {s.role for s in suite} == {"tune", "report"}
 
