@@ -12,7 +12,7 @@ import numpy as np
 from core.errors import QuekaroError
 from core.model.geometry import Rect
 from core.render import imageio, metrics
-from core.render.seams import seam_measure
+from core.render.seams import SEAM_WIDTH, seam_measure
 
 
 def register(subparsers: Any) -> None:
@@ -27,18 +27,23 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--json", action="store_true", help="print the metrics as one JSON object")
     parser.add_argument("--units", metavar="REPORT.json",
                         help="a job's report (quekaro render or quekaro result): measure seams at its units' borders")
-    parser.add_argument("--seam-width", type=int, default=3, help="pixels on each side of a border (default 3)")
+    parser.add_argument("--seam-width", type=int, default=None,
+                        help=f"with --units: pixels on each side of a border (default {SEAM_WIDTH})")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.seam_width is not None and not args.units:
+        raise QuekaroError(f"--seam-width {args.seam_width}: seams are measured only at a job's unit borders "
+                           "(--units REPORT.json)")
     test, reference = imageio.read_image(args.test), imageio.read_image(args.reference)
     results = metrics.all_metrics(test, reference)
     if args.output:
         imageio.write_png(args.output, _grey_as_display(metrics.diff_image(test, reference)))
         results["diff_png"] = args.output
     if args.units:
-        results["seams"] = seam_measure(test, reference, read_unit_rects(args.units), args.seam_width).to_dict()
+        results["seams"] = seam_measure(test, reference, read_unit_rects(args.units),
+                                        args.seam_width or SEAM_WIDTH).to_dict()
     if args.json:
         print(json.dumps(results, indent=2))
     else:

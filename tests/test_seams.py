@@ -165,3 +165,13 @@ def diff_json(test: Path, reference: Path, report: Path) -> dict:
     done = run_quekaro("diff", str(test), str(reference), "--units", str(report), "--json")
     assert done.returncode == 0, done.stderr
     return json.loads(done.stdout)["seams"]
+
+
+def test_a_seam_width_without_units_is_refused(tmp_path) -> None:
+    """--seam-width only sizes the seam measure, which needs the job's units (--units REPORT.json)."""
+    image = np.full((8, 8, 3), 0.5, dtype=np.float32)
+    imageio.write_exr(tmp_path / "a.exr", image)
+    done = run_quekaro("diff", str(tmp_path / "a.exr"), str(tmp_path / "a.exr"), "--seam-width", "5")
+    assert done.returncode != 0 and "--seam-width 5: seams are measured only at a job's unit borders" in done.stderr
+    done = run_quekaro("diff", str(tmp_path / "a.exr"), str(tmp_path / "a.exr"), "--json")
+    assert done.returncode == 0 and json.loads(done.stdout)["rmse"] == 0.0

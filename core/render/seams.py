@@ -43,6 +43,7 @@ from core.errors import QuekaroError
 from core.model.geometry import Rect
 
 SEAM_Z = 4.0
+SEAM_WIDTH = 3  # pixels on each side of a unit border that the measure compares
 PIECE = 8  # pixels along a border per piece: long enough for a variance, short enough to localise
 MIN_PIXELS = 6  # fewer pixels in a strip give no usable variance
 MAX_LAG = 2  # Mitsuba's gaussian filter reaches 2 pixels: farther neighbours are uncorrelated
@@ -80,7 +81,8 @@ def unit_map(rects: Iterable[Rect], width: int, height: int) -> np.ndarray:
     return ids
 
 
-def seam_measure(test: np.ndarray, reference: np.ndarray, rects: Iterable[Rect], width: int = 3) -> SeamMeasure:
+def seam_measure(test: np.ndarray, reference: np.ndarray, rects: Iterable[Rect],
+                 width: int = SEAM_WIDTH) -> SeamMeasure:
     """The seam measure of `test` against `reference` (H x W x C, RGB first) over the units `rects`;
     `width` is the strip's depth in pixels on each side of a border."""
     if test.shape[:2] != reference.shape[:2]:
