@@ -65,6 +65,10 @@ class LocalFarm:
         self.n_agents = agents
         self.threads = threads or max(1, (os.cpu_count() or 1) // agents)
         self.rules = [Path(r).resolve() for r in rules or []]
+        if len(self.rules) > agents:  # agent i takes rule file i mod n: the extra files would go unused
+            raise QuekaroError(f"--rules: {len(self.rules)} rule files for {agents} agents; agent i takes file "
+                               f"i, so {', '.join(r.name for r in self.rules[agents:])} would never be used "
+                               f"(give --agents {len(self.rules)} or more)")
         self.http_port = http_port or free_port()
         self.url = f"http://127.0.0.1:{self.http_port}"
         self.server: EmbeddedXmppServer | None = None

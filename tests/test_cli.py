@@ -232,3 +232,12 @@ def test_a_reference_spp_without_report_accuracy_is_refused(tmp_path: Path) -> N
     assert done.returncode != 0
     assert "--ref-spp 64: the reference is rendered only with --report-accuracy" in done.stderr
     assert not list(tmp_path.glob("out.*"))
+
+
+def test_more_rule_files_than_agents_are_refused_before_the_farm_starts(tmp_path: Path) -> None:
+    """Agent i takes rule file i (mod their count): with more files than agents some would never be used."""
+    rules = REPO / "rules" / "pathtracing.xml"
+    done = quekaro("up", "--agents", "1", "--rules", str(rules), "--rules", str(rules), "--home", str(tmp_path / "f"))
+    assert done.returncode != 0
+    assert "--rules: 2 rule files for 1 agents" in done.stderr and "--agents 2 or more" in done.stderr
+    assert not (tmp_path / "f").exists()
