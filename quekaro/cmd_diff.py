@@ -37,7 +37,10 @@ def run(args: argparse.Namespace) -> int:
         raise QuekaroError(f"--seam-width {args.seam_width}: seams are measured only at a job's unit borders "
                            "(--units REPORT.json)")
     test, reference = imageio.read_image(args.test), imageio.read_image(args.reference)
-    results = metrics.all_metrics(test, reference)
+    try:
+        results = metrics.all_metrics(test, reference)
+    except imageio.ImageError as exc:  # it says which image ("test image", "reference image"), not the file
+        raise QuekaroError(f"{args.test} against {args.reference}: {exc}") from exc
     if args.output:
         imageio.write_png(args.output, _grey_as_display(metrics.diff_image(test, reference)))
         results["diff_png"] = args.output

@@ -175,3 +175,22 @@ def test_a_seam_width_without_units_is_refused(tmp_path) -> None:
     assert done.returncode != 0 and "--seam-width 5: seams are measured only at a job's unit borders" in done.stderr
     done = run_quekaro("diff", str(tmp_path / "a.exr"), str(tmp_path / "a.exr"), "--json")
     assert done.returncode == 0 and json.loads(done.stdout)["rmse"] == 0.0
+
+
+
+def test_diff_names_the_files_of_an_image_it_cannot_measure(tmp_path) -> None:
+    """A NaN in the test image or images of two sizes: the error names both files and which is at fault."""
+    import OpenEXR
+
+    good = np.full((8, 8, 3), 0.5, dtype=np.float32)
+    bad = good.copy()
+    bad[2, 3, 1] = np.nan
+    imageio.write_exr(tmp_path / "good.exr", good)
+    imageio.write_exr(tmp_path / "small.exr", good[:4])
+    with OpenEXR.File({"type": OpenEXR.scanlineimage}, {"RGB": bad}) as exr:  # write_exr refuses NaN
+        exr.write(str(tmp_path / "nan.exr"))
+    done = run_quekaro("diff", str(tmp_path / "nan.exr"), str(tmp_path / "good.exr"))
+    assert done.returncode != 0
+    assert f"{tmp_path / 'nan.exr'} against {tmp_path / 'good.exr'}: test image: 1 non-finite pixels" in done.stderr
+    done = run_quekaro("diff", str(tmp_path / "good.exr"), str(tmp_path / "small.exr"))
+    assert done.returncode != 0 and "small.exr: images differ in size: 8x8 vs 8x4" in done.stderr
