@@ -184,7 +184,10 @@ def add_accuracy(report: dict, spec: SceneSpec, out: Path, wall: float, args: ar
     """`planning.accuracy`'s comparison, printed and written into OUT.json under "accuracy"."""
     print(f"accuracy: reference {args.ref_spp} spp (cached), uniform spp for {wall:.2f} s ...")
     image = read_image(report["image"]["file"])
-    accuracy = accuracy_report(spec, image, wall, report, args.threads or os.cpu_count() or 1, args.ref_spp)
+    try:
+        accuracy = accuracy_report(spec, image, wall, report, args.threads or os.cpu_count() or 1, args.ref_spp)
+    except QuekaroError as exc:  # the job's image and report are written: say whose comparison failed
+        raise QuekaroError(f"{spec.path}: --report-accuracy: {exc}") from exc
     report["accuracy"] = accuracy
     write_json_atomic(out.with_suffix(".json"), report)
     uniform, seams = accuracy["uniform"], accuracy["seams"]
