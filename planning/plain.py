@@ -19,12 +19,10 @@ import sys
 import mitsuba as mi
 import numpy as np
 
-from core.model import integrators
 from core.model.job import SceneSpec
 from core.render.film import film_channels
 from core.render.imageio import write_exr
-from core.render.scene import expand, load
-from core.render.worker import integrator_for, sensor_of
+from core.render.scene import load
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -43,9 +41,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     spec = SceneSpec(args.scene, dict(d.split("=", 1) for d in args.defines), tuple(args.search_paths))
     scene = load(spec, args.variant, args.threads)
-    sensor_of(scene, args.sensor, args.scene)
     integrator = None  # the scene's own, as a user's plain render takes it
     if args.integrator or args.depth is not None:
+        # Imported only here: the timed process imports what a user's plain render needs, no more.
+        from core.model import integrators
+        from core.render.scene import expand
+        from core.render.worker import integrator_for
+
         elem = integrators.scene_element(expand(spec).root)
         integrator = integrator_for(args.integrator, args.depth, elem, integrators.depth_of(elem))
     mi.render(scene, sensor=args.sensor, integrator=integrator, spp=args.spp, seed=args.seed)
