@@ -261,6 +261,7 @@ class MasterService:
             m.check_scene_name(str(scene.relative_to(job_dir / "scene")))
             check_unpacked(scene, defines)
             options, rules_sha256 = _job_rules(job_dir / "scene", options)
+            options.check_used()
             digest = bundle_hash(bundle)
             plan = await self._plan(SceneSpec(scene, defines), options, plan_seed(digest, defines, options.to_dict()))
         except BaseException as exc:

@@ -57,11 +57,13 @@ def add_job_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def options_from_args(args: argparse.Namespace):
-    return RenderOptions(level=args.level, spp=args.spp, depth=args.depth,
-                         threads=getattr(args, "threads", None), rules=args.rules,
-                         defuzzifier=args.defuzzifier, variant=args.variant,
-                         integrator=args.integrator, units=args.units, sensor=args.sensor,
-                         adaptive=args.adaptive)
+    options = RenderOptions(level=args.level, spp=args.spp, depth=args.depth,
+                            threads=getattr(args, "threads", None), rules=args.rules,
+                            defuzzifier=args.defuzzifier, variant=args.variant,
+                            integrator=args.integrator, units=args.units, sensor=args.sensor,
+                            adaptive=args.adaptive)
+    options.check_used()
+    return options
 
 
 def search_paths(args: argparse.Namespace) -> tuple[Path, ...]:

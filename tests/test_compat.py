@@ -22,6 +22,8 @@ from compat_cases import (
 )
 from render_check import FIREFLY_PIXELS, by_name
 
+from core.errors import QuekaroError
+from core.render.bundle import make_bundle
 from core.render.imageio import read_image_channels
 from farm.local import LocalFarm
 
@@ -128,6 +130,11 @@ def test_a_jobs_rule_file_reaches_the_agents(farm_jobs, tmp_path):
     units = json.loads(out.with_suffix(".json").read_text())["units"]
     assert {u["rules"] for u in units} == {"QUEKARO-RULES.xml"}
     assert all(32 <= u["spp"] <= 64 for u in units), [u["spp"] for u in units]
+    # The same bundle sent at level off through the API (no CLI to check it first): the master refuses it,
+    # since level off would ignore the rule file.
+    bundle = make_bundle(case.scene, {}, tmp_path / "rules.tar", rules=rules).path.read_bytes()
+    with pytest.raises(QuekaroError, match="--rules: level off applies no rules"):
+        farm.client().submit(bundle, {}, {"level": "off"})
 
 
 def test_result_writes_the_films_file_or_into_a_folder_and_refuses_other_formats(farm_jobs, tmp_path):

@@ -22,14 +22,26 @@ from planning.jobplan import default_unit_count, scene_spp
     ({"defuzzifier": "mean"}, "option defuzzifier"),
     ({"variant": "cuda; rm -rf"}, "not a Mitsuba variant name"),
     ({"level": "XL"}, "--opt 'XL'"),
-    # Level off applies no rules: a rule file or a defuzzifier given with it would be ignored.
-    ({"level": "off", "rules": "rules/pathtracing.xml"}, r"--rules: level off applies no rules.*--opt VS/S/N/B/VB"),
-    ({"defuzzifier": "centroid"}, "--defuzzifier: level off applies no rules"),
-    ({"rules": "r.xml", "defuzzifier": "centroid"}, "--rules and --defuzzifier: level off"),
 ])
 def test_bad_options_are_refused_naming_the_field(options, match):
     with pytest.raises(QuekaroError, match=match):
         RenderOptions.from_dict(options)
+
+
+@pytest.mark.parametrize(("options", "match"), [
+    ({"level": "off", "rules": "rules/pathtracing.xml"}, r"--rules: level off applies no rules.*--opt VS/S/N/B/VB"),
+    ({"defuzzifier": "centroid"}, "--defuzzifier: level off applies no rules"),
+    ({"rules": "r.xml", "defuzzifier": "centroid"}, "--rules and --defuzzifier: level off"),
+])
+def test_a_new_job_at_level_off_refuses_what_it_would_ignore(options, match):
+    """Level off applies no rules: a rule file or a defuzzifier with it would be ignored, so a new job is
+    refused (RenderOptions.check_used, at the CLI and the master's submit). A job stored before this
+    check still reads back, so an older farm's list of jobs keeps working."""
+    stored = RenderOptions.from_dict(options)
+    assert RenderOptions.from_dict(stored.to_dict()) == stored
+    with pytest.raises(QuekaroError, match=match):
+        stored.check_used()
+    RenderOptions.from_dict({**options, "level": "S"}).check_used()  # at a rule level they are used
 
 
 def test_good_options_round_trip():

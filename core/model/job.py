@@ -110,6 +110,10 @@ class RenderOptions:
             raise QuekaroError(f"option integrator: {self.integrator!r} is not one of Mitsuba's integrators")
         if self.variant is not None and not (isinstance(self.variant, str) and VARIANT_PATTERN.fullmatch(self.variant)):
             raise QuekaroError(f"option variant: {str(self.variant)[:40]!r} is not a Mitsuba variant name")
+
+    def check_used(self) -> None:
+        """Refuse a new job's options that it would ignore: a rule file or defuzzifier at level off. Checked
+        where a job is submitted (the CLI, the master), not on every read: a job stored before is kept."""
         ruled = [name for name, value in (("--rules", self.rules), ("--defuzzifier", self.defuzzifier))
                  if value is not None]
         if ruled and self.level == OFF:
