@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -23,9 +24,10 @@ REPO = Path(__file__).resolve().parent.parent
 SCENES = REPO / "scenes"
 
 
-def quekaro(*args: str, cwd: Path | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
+def quekaro(*args: str, cwd: Path | None = None, timeout: float = 300,
+            env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "quekaro", *args], capture_output=True, text=True, cwd=cwd,
-                          timeout=timeout)
+                          timeout=timeout, env=env)
 
 
 def subcommands(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
@@ -109,6 +111,19 @@ def test_render_several_scenes_into_a_folder_with_progress(tmp_path: Path) -> No
         report = json.loads((tmp_path / "out" / f"{stem}.json").read_text())
         assert report["image"]["width"] == 32 and (tmp_path / "out" / f"{stem}.exr").is_file()
     assert "4/4 units" in done.stdout and "spp" in done.stdout
+
+
+@pytest.mark.slow
+def test_a_farm_leaves_no_folder_of_pyjabber_in_the_temporary_folder(tmp_path: Path) -> None:
+    """pyjabber makes a folder at import in every process that imports spade: the farm's server, master
+    and agents, and never removes it itself."""
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    done = quekaro("demo", "--home", str(tmp_path / "farm"), "--agents", "2", "--threads", "1",
+                   "-o", str(tmp_path / "demo.exr"), cwd=tmp_path, env={**os.environ, "TMPDIR": str(scratch)})
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "demo.exr").is_file()
+    assert not list(scratch.glob("pyjabber_xep0363_*"))
 
 
 @pytest.mark.slow

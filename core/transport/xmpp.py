@@ -34,8 +34,10 @@ from spade.agent import Agent, AuthenticationFailure, DisconnectedException
 from spade.message import Message
 
 from core.errors import MessageError, QuekaroError
+from core.transport.pyjabber_tmp import remove_upload_dir_at_exit
 
 log = logging.getLogger(__name__)
+remove_upload_dir_at_exit()  # `spade` imports pyjabber
 
 METADATA_KEYS = ("performative", "ontology", "protocol", "conversation-id")
 DEFAULT_ONTOLOGY = "quekaro"

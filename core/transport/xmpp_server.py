@@ -37,6 +37,7 @@ from typing import IO
 
 from core.errors import QuekaroError
 from core.supervision import die_with_parent
+from core.transport.pyjabber_tmp import remove_upload_dir_at_exit
 
 log = logging.getLogger(__name__)
 
@@ -336,6 +337,7 @@ def _run_embedded(args: argparse.Namespace) -> int:
     from pyjabber.server import Server
     from pyjabber.server_parameters import Parameters
 
+    remove_upload_dir_at_exit()
     logger.remove()
     logger.add(sys.stderr, level=args.log_level)
     data_dir = Path(args.data_dir)
