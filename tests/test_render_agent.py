@@ -17,7 +17,6 @@ import os
 import signal
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Callable, Coroutine
@@ -64,7 +63,7 @@ class LoopThread:
 class ScriptedMaster:
     """A master that sends what the test says and records what the agent sends, over XMPP and HTTP."""
 
-    def __init__(self, port: int) -> None:
+    def __init__(self, port: int, tile_dir: Path) -> None:
         self.farm = FarmAgent(MASTER, PASSWORD, port=port, ontology=m.ONTOLOGY, peers=[AGENT], validate=m.parse)
         self.farm.set_handler(self._on_envelope)
         self.messages: list[tuple[float, m.Message]] = []
@@ -74,7 +73,7 @@ class ScriptedMaster:
         self.uploads: list[tuple[str, int, bytes]] = []
         self.rects: dict[tuple[str, int], Rect] = {}
         self.job_bundles: dict[str, str] = {}  # job -> bundle sha256
-        self.tile_dir = Path(tempfile.mkdtemp(prefix="scripted-master-"))
+        self.tile_dir = tile_dir
         self.http_port = 0
         self._runner: Any = None
 
@@ -210,7 +209,7 @@ def farm(tmp_path_factory: pytest.TempPathFactory, bundles: dict[str, tuple[str,
     server = EmbeddedXmppServer(tmp / "xmpp")
     server.start()
     loop = LoopThread()
-    master = ScriptedMaster(server.port)
+    master = ScriptedMaster(server.port, tmp / "master")
     log = tmp / "agent.log"
     agent = None
     try:
