@@ -43,14 +43,15 @@ from PIL import Image
 from bench.suite import SUITE, SuiteScene, scene_from_argument
 from core.errors import QuekaroError
 from core.model.geometry import Rect
-from core.model.job import SceneSpec
+from core.model.job import RenderOptions, SceneSpec
 from core.render.bundle import make_bundle
 from core.render.imageio import read_image
 from core.render.metrics import all_metrics, diff_image
 from core.render.seams import seam_measure
 from farm.local import LocalFarm
 from fuzzy.levels import LEVELS
-from planning.accuracy import default_cache, job_variant, plain_render, reference, spp_timing
+from planning.accuracy import Asked, default_cache, job_variant, plain_render, reference, spp_timing
+from quekaro.cmd_render import add_asked_arguments, search_paths
 
 REPO = Path(__file__).resolve().parent.parent
 HETEROGENEOUS = "caustic-corner"  # the project's own scene the rules were tuned on
@@ -59,6 +60,7 @@ DEFAULT_OUT = REPO / "docs" / "benchmarks"
 JOB_TIMEOUT_S = 900.0
 DEFAULT_AGENTS = "1,2"  # a farm of one agent and of two, side by side
 S_TIME_RATIO, S_DIFF_PERCENT, RELMSE_RATIO = 0.75, 1.21, 0.8  # the targets (issue 15)
+AS_WRITTEN = Asked()  # jobs compute what the scene file says
 DIFF_WHITE = 0.10  # a display difference of 10 % is white in the grey difference images
 
 
@@ -72,6 +74,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--suite", action="store_true", help="every scene of the suite (bench/suite.py)")
     parser.add_argument("-D", dest="defines", action="append", default=[], metavar="NAME=VALUE",
                         help="a scene parameter for every scene, as Mitsuba's -D (after --res)")
+    add_asked_arguments(parser)
     parser.add_argument("--agents", default=None,
                         help=f"comma list of agent counts (default {DEFAULT_AGENTS}; with --inprocess only 1)")
     parser.add_argument("--levels", default="off,VS,S,N,B,VB", help="comma list of optimisation levels")
@@ -131,6 +134,8 @@ def parse_grid(args: argparse.Namespace) -> tuple[list[SuiteScene], list[int], l
     levels = parse_levels(args.levels)
     if args.runs < 1:
         raise QuekaroError(f"--runs {args.runs}: at least one timed run per cell")
+    search_paths(args)
+    RenderOptions(depth=args.depth, integrator=args.integrator, sensor=args.sensor)  # refuses what a job would
     if args.inprocess and agents != [1]:
         raise QuekaroError(f"--agents {text}: --inprocess times one `quekaro render` process, which is no farm of "
                            "agents; leave --agents out (or give 1)")
@@ -187,19 +192,21 @@ def _self_cpu() -> float:
 
 @contextmanager
 def farm_runner(agents: int, threads: int, home: Path, units: int | None = None,
-                adaptive: bool = False) -> Iterator[Any]:
+                adaptive: bool = False, asked: Asked = AS_WRITTEN) -> Iterator[Any]:
     """A function (spec, level, spp, out) -> (report, wall s, CPU s) running jobs on a real local farm
-    (`adaptive`: the optimised levels as adaptive jobs)."""
+    (`adaptive`: the optimised levels as adaptive jobs; `asked`: the sensor, integrator and depth)."""
 
     with LocalFarm(home, agents=agents, threads=max(1, threads // agents)) as farm:
         farm.wait_for_agents()
         client = farm.client()
 
         def run_job(spec: Any, level: str, spp: int, out: Path) -> tuple[dict, float, float]:
-            bundle = make_bundle(spec.path, spec.defines, out.with_suffix(".tar")).path.read_bytes()
+            bundle = make_bundle(spec.path, spec.defines, out.with_suffix(".tar"),
+                                 search_paths=spec.search_paths).path.read_bytes()
             roots = [p.pid for _, p in farm.procs]  # this process (and the XMPP server in it): _self_cpu
             cpu0, start = tree_cpu_seconds(roots) + _self_cpu(), time.perf_counter()
-            options = {"level": level, "spp": spp} | ({"units": units} if units and level != "off" else {})
+            options = {"level": level, "spp": spp, **asked.options()}
+            options |= {"units": units} if units and level != "off" else {}
             options |= {"adaptive": True} if adaptive and level != "off" else {}
             job_id = client.submit(bundle, spec.defines, options)
             status = client.wait(job_id, JOB_TIMEOUT_S, while_waiting=farm.check_alive)
@@ -216,13 +223,14 @@ def farm_runner(agents: int, threads: int, home: Path, units: int | None = None,
 
 
 @contextmanager
-def inprocess_runner(threads: int, units: int | None = None, adaptive: bool = False) -> Iterator[Any]:
-    """The same function as `farm_runner`, timing the whole `quekaro render` process a user runs
-    (`adaptive`: the optimised levels as adaptive jobs)."""
+def inprocess_runner(threads: int, units: int | None = None, adaptive: bool = False,
+                     asked: Asked = AS_WRITTEN) -> Iterator[Any]:
+    """The same function as `farm_runner`, timing the whole `quekaro render` process a user runs."""
 
     def run_job(spec: Any, level: str, spp: int, out: Path) -> tuple[dict, float, float]:
         chosen = ["--units", str(units)] if units and level != "off" else []
         chosen += ["--adaptive"] if adaptive and level != "off" else []
+        chosen += [*asked.args(), *(arg for folder in spec.search_paths for arg in ("-a", str(folder)))]
         cmd = [sys.executable, "-m", "quekaro", "render", str(spec.path), "--opt", level, "--spp", str(spp),
                "-t", str(threads), "-o", str(out), *chosen, *(f"-D{k}={v}" for k, v in spec.defines.items())]
         cpu0, start = _self_cpu(), time.perf_counter()
@@ -250,10 +258,15 @@ def spent(report: dict[str, Any]) -> dict[str, Any]:
 
 
 def scene_spec(scene: SuiteScene, args: argparse.Namespace) -> SceneSpec:
-    """The scene with its suite parameters, sized by --res, and the -D parameters given."""
+    """The scene with its suite parameters, sized by --res, the -D parameters and the -a folders given."""
     defines = scene.with_size(args.res) if args.res else dict(scene.defines)
     defines.update(dict(d.split("=", 1) for d in args.defines))
-    return SceneSpec(scene.path, defines)
+    return SceneSpec(scene.path, defines, tuple(args.search_paths))
+
+
+def asked(args: argparse.Namespace) -> Asked:
+    """What every job computes besides its scene file (-s, --integrator, --depth); plain Mitsuba the same."""
+    return Asked(args.sensor, args.integrator, args.depth)
 
 
 def scene_cells(scene: SuiteScene, agents: list[int], levels: list[str], args: argparse.Namespace,
@@ -261,12 +274,13 @@ def scene_cells(scene: SuiteScene, agents: list[int], levels: list[str], args: a
     """Every (agents, level) cell of one scene, with errors, seams and the uniform baseline."""
     spec = scene_spec(scene, args)
     variant = job_variant(spec)  # the jobs' own: plain Mitsuba renders in it too
-    ref = reference(spec, args.ref_spp, args.threads, Path(args.cache), variant)
-    t0, k = spp_timing(spec, args.spp, args.threads, variant)
+    ref = reference(spec, args.ref_spp, args.threads, Path(args.cache), variant, asked(args))
+    t0, k = spp_timing(spec, args.spp, args.threads, variant, asked(args))
     cells, diffs, units = [], {}, {}
     for n in agents:
-        runner = (inprocess_runner(args.threads, args.units, args.adaptive) if args.inprocess
-                  else farm_runner(n, args.threads, work / f"farm-{scene.name}-{n}", args.units, args.adaptive))
+        runner = (inprocess_runner(args.threads, args.units, args.adaptive, asked(args)) if args.inprocess
+                  else farm_runner(n, args.threads, work / f"farm-{scene.name}-{n}", args.units, args.adaptive,
+                                   asked(args)))
         with runner as run_job:
             for level in levels:
                 cell, image, rects = run_cell(run_job, spec, level, args, work / f"{scene.name}-{n}-{level}", ref)
@@ -341,7 +355,8 @@ def plain_at(spec: Any, spp: int, args: argparse.Namespace, variant: str,
     """Plain renders at `spp`, as many seeds as a cell's errors average: spp, the fastest one's seconds and
     the mean errors; and the first image."""
     runs = args.runs + int(args.warmup)
-    renders = [plain_render(spec, spp, args.threads, variant, seed=4242 + spp + 7919 * i) for i in range(runs)]
+    renders = [plain_render(spec, spp, args.threads, variant, seed=4242 + spp + 7919 * i, asked=asked(args))
+               for i in range(runs)]
     figures = {"spp": spp, "seconds": min(t for _, t in renders),
                **mean_metrics([pixels for pixels, _ in renders], ref)}
     return figures, renders[0][0]
@@ -380,7 +395,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     result = {
         "scenes": {s.name: {"role": s.role, "path": _shown(s.path), "defines": scene_spec(s, args).defines}
                    for s in scenes}, "spp": args.spp, "ref_spp": args.ref_spp, "threads": args.threads,
-        "mode": mode(args), "agents": agents, "levels": levels,
+        "mode": mode(args), "agents": agents, "levels": levels, "asked": asked(args).options(),
         "cells": cells, "targets": targets(cells, agents[0]), "seconds": time.perf_counter() - started,
         "load": [load_before, os.getloadavg()[0]], "resumed": resumed,
     }
@@ -394,7 +409,9 @@ def run_settings(args: argparse.Namespace, agents: list[int], levels: list[str])
     """What makes two runs' cells comparable (a resumed run must match every one)."""
     return {"spp": args.spp, "ref_spp": args.ref_spp, "threads": args.threads, "res": args.res,
             "defines": sorted(args.defines), "agents": agents, "levels": levels, "runs": args.runs,
-            "warmup": args.warmup, "inprocess": args.inprocess, "units": args.units, "adaptive": args.adaptive}
+            "warmup": args.warmup, "inprocess": args.inprocess, "units": args.units, "adaptive": args.adaptive,
+            **asked(args).options(),  # only what differs from the scene as written: older partial runs still match
+            **({"search_paths": [str(p) for p in args.search_paths]} if args.search_paths else {})}
 
 
 def mode(args: argparse.Namespace) -> str:
@@ -504,7 +521,8 @@ def _seam_text(cell: dict[str, Any], prefix: str) -> str:
 
 
 def format_report(result: dict[str, Any]) -> str:
-    lines = [f"mode {result['mode']}, user spp {result['spp']}, reference {result['ref_spp']} spp, "
+    chosen = "".join(f", {k} {v}" for k, v in (result.get("asked") or {}).items())
+    lines = [f"mode {result['mode']}{chosen}, user spp {result['spp']}, reference {result['ref_spp']} spp, "
              f"{result['threads']} threads; took {result['seconds']:.0f} s; load average (1 min) "
              f"{result['load'][0]:.1f} at the start, {result['load'][1]:.1f} at the end"
              + (f"; kept from a partial run (--resume): {', '.join(result['resumed'])}" if result.get("resumed")

@@ -68,6 +68,11 @@ class Asked:
                 *(["--integrator", self.integrator] if self.integrator else []),
                 *(["--depth", str(self.depth)] if self.depth is not None else [])]
 
+    def options(self) -> dict[str, Any]:
+        """A job's options for it (those that differ from the scene as written)."""
+        return {k: v for k, v in (("sensor", self.sensor), ("integrator", self.integrator), ("depth", self.depth))
+                if v != getattr(Asked(), k)}
+
     def key(self) -> list[Any]:
         """What a cached render depends on (nothing for the scene as written, so older caches hold)."""
         return [] if self == Asked() else [self.sensor, self.integrator, self.depth]

@@ -37,20 +37,26 @@ def add_job_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--opt", dest="level", choices=LEVELS, default="off",
                         help="optimisation level of the fuzzy rules (off: the user's spp/depth everywhere)")
     parser.add_argument("--spp", type=int, help="predefined samples per pixel (default: the scene's)")
-    parser.add_argument("--depth", type=int, help="predefined path depth (default: from the effect analysis)")
+    add_asked_arguments(parser)
     parser.add_argument("--rules", type=Path,
                         help="rule file for this job (default: rules/pathtracing.xml; a farm job carries it to "
                              "the agents)")
     parser.add_argument("--defuzzifier", choices=DEFUZZIFIERS,
                         help="defuzzification of the rules' outputs (default: centroid; on a farm, each agent's own)")
     parser.add_argument("-m", "--variant", help="force the Mitsuba variant (e.g. llvm_ad_spectral)")
-    parser.add_argument("--integrator", choices=sorted(CATALOGUE),
-                        help="replace the scene's integrator by this type (default: the scene's own, as written)")
     parser.add_argument("--units", type=int, help="target number of work units")
     parser.add_argument("--adaptive", action="store_true",
                         help="at a rule level: the rules set the level's samples, the pre-pass's noise shares them "
                              "among the units, and each unit renders half its share uniformly and the rest "
                              "per pixel where that first pass measured noise")
+
+
+def add_asked_arguments(parser: argparse.ArgumentParser) -> None:
+    """What a job computes besides its scene file, and where its files are: --depth, --integrator, -s, -a
+    (shared by `render`, `submit` and `bench accuracy`)."""
+    parser.add_argument("--depth", type=int, help="predefined path depth (default: from the effect analysis)")
+    parser.add_argument("--integrator", choices=sorted(CATALOGUE),
+                        help="replace the scene's integrator by this type (default: the scene's own, as written)")
     parser.add_argument("-s", "--sensor", type=int, default=0, help="index of the sensor to render (Mitsuba's -s)")
     parser.add_argument("-a", dest="search_paths", action="append", default=[], type=Path, metavar="PATH",
                         help="add a folder to the file search path, searched last (Mitsuba's -a; repeatable)")

@@ -13,6 +13,7 @@ from PIL import Image
 
 from bench import accuracy as bench_accuracy
 from core.errors import QuekaroError
+from core.render.imageio import read_image
 
 
 def args_for(tmp_path, *extra: str) -> argparse.Namespace:
@@ -73,6 +74,34 @@ def test_a_scene_whose_film_writes_pfm_is_measured_from_the_file_the_job_wrote(t
     result = bench_accuracy.run(args)
     [cell] = result["cells"]
     assert cell["level"] == "off" and 0 < cell["relmse"] < 10 and cell["uniform_spp"] >= 1
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("mode", "scene", "asked"), [
+    ("--inprocess", "two_sensors.xml", ["-s", "1", "--depth", "2"]),
+    ("farm", "searchpath/scene/needs_a.xml", ["-a", "searchpath/common", "--integrator", "direct"]),
+])
+def test_the_benchmark_computes_what_the_jobs_were_asked_to(tmp_path, mode, scene, asked):
+    """-s, -a, --integrator and --depth reach the jobs, the reference and the uniform baseline alike, as
+    they do for `quekaro render --report-accuracy`: the benchmark refused them as unknown arguments, so a
+    scene that needs a search folder could not be measured at all."""
+    compat = Path(__file__).parent / "compat" / "scenes"
+    asked = [str(compat / a) if a.startswith("searchpath") else a for a in asked]
+    parser = argparse.ArgumentParser()
+    bench_accuracy.add_arguments(parser)
+    args = parser.parse_args(["--spp", "64", "--ref-spp", "256", "--threads", "2", "--levels", "off", "--agents", "1",
+                              "--runs", "1", "--out", str(tmp_path / "out"), "--cache", str(tmp_path / "cache"),
+                              *([mode] if mode != "farm" else []), *asked, str(compat / scene)])
+    args.json = True
+    result = bench_accuracy.run(args)
+    [cell] = result["cells"]
+    assert 0 < cell["relmse"] < 0.05 and cell["uniform_spp"] >= 1
+    assert cell["mean_pixel_diff_percent"] < 5 and cell["uniform_mean_pixel_diff_percent"] < 8  # depth 2: -13 %
+    [ref] = (tmp_path / "cache" / "references").glob("*.exr")
+    if "-s" in asked:  # the second sensor's film is 40x48, the first's 48x40
+        assert read_image(ref).shape[:2] == (48, 40)
+    assert result["asked"] == {k: v for k, v in (("sensor", 1), ("depth", 2), ("integrator", "direct"))
+                               if f"--{k}" in asked or (k == "sensor" and "-s" in asked)}
 
 
 def test_resume_refuses_other_settings_and_missing_files(tmp_path):
