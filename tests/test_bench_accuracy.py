@@ -59,20 +59,27 @@ def test_inprocess_grid_json_has_cells_and_baseline(tmp_path):
     assert "--resume" in (tmp_path / "out" / "accuracy.md").read_text()
 
 
+COMPAT = Path(__file__).parent / "compat" / "scenes"
+
+
+def one_cell(tmp_path: Path, mode: str, scene: Path, spp: int, ref_spp: int, threads: int,
+             *extra: str) -> dict:
+    """`bench accuracy` at level off, one agent, one timed run: its result."""
+    parser = argparse.ArgumentParser()
+    bench_accuracy.add_arguments(parser)
+    args = parser.parse_args(["--spp", str(spp), "--ref-spp", str(ref_spp), "--threads", str(threads), "--levels",
+                              "off", "--agents", "1", "--runs", "1", "--out", str(tmp_path / "out"), "--cache",
+                              str(tmp_path / "cache"), *([mode] if mode != "farm" else []), *extra, str(scene)])
+    args.json = True
+    return bench_accuracy.run(args)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("mode", ["--inprocess", "farm"])
 def test_a_scene_whose_film_writes_pfm_is_measured_from_the_file_the_job_wrote(tmp_path, mode):
     """The job's image is the film's file (.pfm here, as Mitsuba names it), in one process and fetched
     from a farm; the benchmark read OUT.exr, which no job had written."""
-    scene = Path(__file__).parent / "compat" / "scenes" / "film_pfm.xml"
-    parser = argparse.ArgumentParser()
-    bench_accuracy.add_arguments(parser)
-    args = parser.parse_args(["--spp", "4", "--ref-spp", "32", "--threads", "1", "--levels", "off", "--agents", "1",
-                              "--runs", "1", "--out", str(tmp_path / "out"), "--cache", str(tmp_path / "cache"),
-                              *([mode] if mode != "farm" else []), str(scene)])
-    args.json = True
-    result = bench_accuracy.run(args)
-    [cell] = result["cells"]
+    [cell] = one_cell(tmp_path, mode, COMPAT / "film_pfm.xml", 4, 32, 1)["cells"]
     assert cell["level"] == "off" and 0 < cell["relmse"] < 10 and cell["uniform_spp"] >= 1
 
 
@@ -85,15 +92,8 @@ def test_the_benchmark_computes_what_the_jobs_were_asked_to(tmp_path, mode, scen
     """-s, -a, --integrator and --depth reach the jobs, the reference and the uniform baseline alike, as
     they do for `quekaro render --report-accuracy`: the benchmark refused them as unknown arguments, so a
     scene that needs a search folder could not be measured at all."""
-    compat = Path(__file__).parent / "compat" / "scenes"
-    asked = [str(compat / a) if a.startswith("searchpath") else a for a in asked]
-    parser = argparse.ArgumentParser()
-    bench_accuracy.add_arguments(parser)
-    args = parser.parse_args(["--spp", "64", "--ref-spp", "256", "--threads", "2", "--levels", "off", "--agents", "1",
-                              "--runs", "1", "--out", str(tmp_path / "out"), "--cache", str(tmp_path / "cache"),
-                              *([mode] if mode != "farm" else []), *asked, str(compat / scene)])
-    args.json = True
-    result = bench_accuracy.run(args)
+    asked = [str(COMPAT / a) if a.startswith("searchpath") else a for a in asked]
+    result = one_cell(tmp_path, mode, COMPAT / scene, 64, 256, 2, *asked)
     [cell] = result["cells"]
     assert 0 < cell["relmse"] < 0.05 and cell["uniform_spp"] >= 1
     assert cell["mean_pixel_diff_percent"] < 5 and cell["uniform_mean_pixel_diff_percent"] < 8  # depth 2: -13 %
