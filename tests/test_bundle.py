@@ -6,6 +6,7 @@ import hashlib
 import io
 import json
 import os
+import subprocess
 import tarfile
 from pathlib import Path
 
@@ -231,6 +232,23 @@ def test_include_cycle_is_bounded(tmp_path):
 def test_hostile_members_are_refused(tmp_path, member, match):
     (tmp_path / "out").mkdir()
     _refused(_bundle([member]), tmp_path, match)
+
+
+def test_a_sparse_member_is_refused(tmp_path):
+    """A GNU sparse member's holes unpack to disk that the upload never carried: 64 MiB of zeros travel in
+    a tar of a few KiB (GNU tar writes it; Python's tarfile reads it as a regular file)."""
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / MANIFEST_NAME).write_bytes(_manifest({"scene.xml": SCENE, "big.bin": bytes(64 << 20)}))
+    (src / "scene.xml").write_bytes(SCENE)
+    with (src / "big.bin").open("wb") as fh:
+        fh.truncate(64 << 20)
+    archive = tmp_path / "sparse.tar"
+    subprocess.run(["tar", "--format=gnu", "--sparse", "-cf", str(archive), "-C", str(src), MANIFEST_NAME,
+                    "scene.xml", "big.bin"], check=True)
+    assert archive.stat().st_size < 64 << 10
+    (tmp_path / "out").mkdir()
+    _refused(archive, tmp_path, r"'big.bin': is a sparse file")
 
 
 def test_member_not_in_manifest_or_tampered_or_missing(tmp_path):
