@@ -297,8 +297,9 @@ class MasterService:
         async with self._lock:
             if self.auction is None or job_id not in self.auction.jobs:
                 return self.store.cancel(job_id, time.time())
-            await self._execute(self.auction.cancel_job(job_id))
-            return True
+            commands = self.auction.cancel_job(job_id)
+            await self._execute(commands)
+            return any(isinstance(c, au.JobCancelled) for c in commands)  # False: it had already ended
 
     # ---- the data plane's callbacks -----------------------------------------------------------------
 

@@ -221,6 +221,9 @@ def test_cancel_and_resubmit_from_the_page(farm, browser, tmp_path):
     wait_until(lambda: job_row(browser, job_id).get_attribute("data-status") == "cancelled", 30,
                "the job cancelled on the page")
     assert client.status(job_id)["status"] == "cancelled"
+    assert client.cancel(job_id) is False  # it had already ended (the master said True to every cancel)
+    wait_until(lambda: "left unrendered" in job_row(browser, job_id).text, 10, "the units the cancel left")
+    assert "failed" not in job_row(browser, job_id).text  # it said "24 failed"
     screenshot(browser, tmp_path, "cancelled")
 
     before = {j["job_id"] for j in client.jobs()}
@@ -232,7 +235,8 @@ def test_cancel_and_resubmit_from_the_page(farm, browser, tmp_path):
     wait_until(lambda: job_row(browser, new_id), 30, "the re-submitted job on the page")
     assert new_id in browser.execute_script("return document.getElementById('message').textContent")
     screenshot(browser, tmp_path, "resubmitted")
-    client.cancel(new_id)  # the farm has nothing left to render after this test
+    assert client.cancel(new_id) is True  # the farm has nothing left to render after this test
+    assert client.cancel(new_id) is False
 
 
 def test_no_cookie_no_page_and_an_award_token_or_a_missing_csrf_token_gets_nothing(farm, browser):

@@ -147,12 +147,14 @@ function render() {
 
 // ---- jobs ---------------------------------------------------------------------------------------------
 
+// A unit is "failed" in the store only when its job ended without it (cancelled or failed): it was left
+// unrendered, not broken (a unit whose render fails is retried elsewhere).
 function progressBar(job) {
   const total = job.units_total || 0;
   const share = total ? (100 * job.units_done) / total : 0;
   return el("div", {},
     el("div", { class: "bar" }, el("span", { style: `width: ${share.toFixed(1)}%` })),
-    el("span", { class: "bar-text" }, `${job.units_done}/${total} units` + (job.units_failed ? `, ${job.units_failed} failed` : "")));
+    el("span", { class: "bar-text" }, `${job.units_done}/${total} units` + (job.units_failed ? `, ${job.units_failed} left unrendered` : "")));
 }
 
 function effectsCell(effects) {
