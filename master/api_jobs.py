@@ -25,7 +25,7 @@ from aiohttp import web
 
 from core.errors import QuekaroError
 from core.model.job import JobSpec, RenderOptions
-from master.http_guard import read_body_chunks
+from master.http_guard import bearer_token, read_body_chunks
 from master.store import JobStore, StoreError
 from planning import budgets
 
@@ -71,8 +71,7 @@ def _error(status: int, reason: str) -> web.Response:
 
 def _service(request: web.Request) -> MasterService:
     service = request.app[SERVICE_KEY]
-    header = request.headers.get("Authorization", "")
-    token = header.removeprefix("Bearer ").strip()
+    token = bearer_token(request)
     if not token or not hmac.compare_digest(token.encode(), service.admin_token.encode()):
         raise web.HTTPUnauthorized(text=json.dumps({"error": "missing or wrong admin token"}),
                                    content_type="application/json")
@@ -103,7 +102,7 @@ async def submit(request: web.Request) -> web.Response:
     service = _service(request)
     try:
         spec = JobSpec.from_dict(json.loads(request.headers.get("X-Quekaro-Job", "{}")))
-    except (ValueError, TypeError, AttributeError) as exc:
+    except (ValueError, TypeError, AttributeError, RecursionError) as exc:
         return _error(400, f"header X-Quekaro-Job: {exc}")
     except QuekaroError as exc:
         return _error(400, str(exc))

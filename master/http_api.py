@@ -52,7 +52,7 @@ from aiohttp import web
 from core.errors import TileError
 from core.model.geometry import Rect
 from core.render.tiles import MAX_CHANNELS, durable_replace, read_tile
-from master.http_guard import read_body_chunks
+from master.http_guard import JOB_PART, UNIT_PART, bearer_token, read_body_chunks
 from master.http_guard import serve as guarded_serve
 
 log = logging.getLogger(__name__)
@@ -62,7 +62,6 @@ HASH_HEADER = "X-Content-SHA256"
 AGENT_HEADER = "X-Quekaro-Agent"
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
-_JOB_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
 _SHA_RE = re.compile(r"^[0-9a-f]{64}$")
 _CHUNK = 1 << 20
 # An EXR's header, offsets and compression overhead on top of the raw float32 RGB pixels.
@@ -160,19 +159,15 @@ async def _call(fn: Callable[..., Any], *args: Any) -> Any:
 
 def _job_and_unit(request: web.Request) -> tuple[str, int]:
     job, unit = request.match_info["job"], request.match_info.get("unit", "0")
-    if not _JOB_RE.match(job):
+    if not JOB_PART.fullmatch(job):
         raise Refusal(404, f"unknown job {job[:80]!r}")
-    if not unit.isdigit() or len(unit) > 9:
+    if not UNIT_PART.fullmatch(unit):
         raise Refusal(404, f"unknown unit {unit[:80]!r} of job {job!r}")
     return job, int(unit)
 
 
 def _token(request: web.Request) -> str:
-    token = request.headers.get(TOKEN_HEADER, "")
-    auth = request.headers.get("Authorization", "")
-    if not token and auth.lower().startswith("bearer "):
-        token = auth[7:].strip()
-    return token
+    return request.headers.get(TOKEN_HEADER, "") or bearer_token(request)
 
 
 # ---- GET bundle ------------------------------------------------------------------------------

@@ -5,12 +5,14 @@ as long as the client likes (20 such connections were seen open past 140 s).
 
 Each connection serves one request (keep-alive off), so the header limit covers every request. aiohttp's
 own handler does the HTTP; `GuardedProtocol` only watches the bytes go by and closes the connection when
-a limit runs out. `read_body_chunks` applies the body limit where a route streams its body.
+a limit runs out. `read_body_chunks` applies the body limit where a route streams its body. The parts of
+a request that every route checks alike are here too: job ids and unit indices in paths, bearer tokens.
 """
 
 from __future__ import annotations
 
 import asyncio
+import re
 import ssl
 import time
 from collections.abc import AsyncIterator, Callable
@@ -23,6 +25,14 @@ BODY_GRACE_S = 30.0
 MIN_BODY_RATE = 64 * 1024  # bytes per second, on average, after the grace period
 LINGER_S = 2.0
 _END_OF_HEADERS = b"\r\n\r\n"
+JOB_PART = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,127}")  # a job id in a path
+UNIT_PART = re.compile(r"[0-9]{1,9}")  # ASCII digits only: str.isdigit also takes '²' (int() fails) and '١'
+
+
+def bearer_token(request: web.Request) -> str:
+    """The token of `Authorization: Bearer ...` (the scheme in any case, RFC 9110), else ''."""
+    scheme, _, token = request.headers.get("Authorization", "").partition(" ")
+    return token.strip() if scheme.lower() == "bearer" else ""
 
 
 class GuardedProtocol(asyncio.Protocol):

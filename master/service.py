@@ -235,12 +235,15 @@ class MasterService:
 
     def job_info(self, record: JobRecord) -> m.JobInfo:
         """The job as agents see it in calls for proposals (rebuilt from the store after a restart)."""
-        plan = self.job_plan(record)
+        return self._job_info(record.id, record.scene, record.spec.defines, self.job_plan(record))
+
+    def _job_info(self, job_id: str, scene_name: str, defines: dict[str, str], plan: JobPlan) -> m.JobInfo:
+        """The job as its messages describe it."""
         return m.JobInfo(
-            job_id=record.id, scene_url=f"{self.config.url}/jobs/{record.id}/bundle",
+            job_id=job_id, scene_url=f"{self.config.url}/jobs/{job_id}/bundle",
             scene_hash=plan.bundle_sha256, width=plan.width, height=plan.height, spp=plan.spp,
-            depth=plan.depth, level=plan.options.level, ranges=plan.ranges(), scene_name=record.scene,
-            defines=dict(record.spec.defines), variant=plan.effects.variant, integrator=plan.effects.override,
+            depth=plan.depth, level=plan.options.level, ranges=plan.ranges(), scene_name=scene_name,
+            defines=dict(defines), variant=plan.effects.variant, integrator=plan.effects.override,
             sensor=plan.options.sensor, rules_sha256=plan.rules_sha256, defuzzifier=plan.options.defuzzifier,
             min_band=plan.reach, first_spp=plan.first_spp,
         )
@@ -264,13 +267,14 @@ class MasterService:
             options.check_used()
             digest = bundle_hash(bundle)
             plan = await self._plan(SceneSpec(scene, defines), options, plan_seed(digest, defines, options.to_dict()))
+            plan = dataclasses.replace(plan, bundle_sha256=digest, rules_sha256=rules_sha256)
+            scene_name = str(scene.relative_to(job_dir / "scene"))
+            m.check_job(self._job_info(job_id, scene_name, defines, plan))  # now, not at its first message
         except BaseException as exc:
             shutil.rmtree(job_dir, ignore_errors=True)
             if isinstance(exc, QuekaroError):
                 raise _as_submitted(exc, job_dir / "scene") from exc
             raise
-        scene_name = str(scene.relative_to(job_dir / "scene"))
-        plan = dataclasses.replace(plan, bundle_sha256=digest, rules_sha256=rules_sha256)
         self._create_job(job_id, scene_name, JobSpec(defines, options), plan)
         return job_id
 

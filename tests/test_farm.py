@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from core.errors import QuekaroError
 from core.render.bundle import make_bundle
 from core.render.imageio import read_image
 from farm.local import LocalFarm
@@ -313,6 +314,23 @@ def test_a_scene_mitsuba_refuses_is_named_as_the_user_submitted_it(farm3, tmp_pa
     said = str(refused.value)
     assert "broken.xml" in said and "no_such_plugin_here" in said and "line 2" in said, said
     assert str(farm3.home) not in said and "/jobs/" not in said, said
+    assert client.jobs() == []
+
+
+def test_a_job_no_message_can_carry_is_refused_at_submit_with_a_reason(farm3):
+    """An image over the protocol's 65536 pixels was accepted (201) and then failed as its first message
+    left; a -D value holding a NUL, and an X-Quekaro-Job nested past Python's recursion limit, were 500s."""
+    client = farm3.client()
+    huge = {"res": "70000", "spp": "1"}
+    with pytest.raises(QuekaroError, match=r"HTTP 422.*70000 outside 1\.\.65536"):
+        client.submit(bundle_of(SCENE, huge), huge, {"level": "off"})
+    with pytest.raises(QuekaroError, match=r"HTTP 422.*-D res: its value '32\\x00' holds"):
+        client.submit(bundle_of(SCENE, DEFINES), {**DEFINES, "res": "32\x00"}, {"level": "off"})
+    deep = urllib.request.Request(client.url + "/api/jobs", data=bundle_of(SCENE, DEFINES), method="POST", headers={
+        "authorization": f"bearer {client.token}", "X-Quekaro-Job": "[" * 3000 + "]" * 3000})  # any case (RFC 9110)
+    with pytest.raises(urllib.error.HTTPError) as refused:
+        urllib.request.urlopen(deep, timeout=60)
+    assert refused.value.code == 400 and b"X-Quekaro-Job" in refused.value.read()
     assert client.jobs() == []
 
 

@@ -231,7 +231,9 @@ def test_unknown_job_or_unit_gets_the_strangers_answer_and_malformed_ids_404(far
         with pytest.raises(TransferError, match="no current award of unit") as err:
             asyncio.run(upload_tile(url, TOKEN, path))
         assert err.value.status == 403
-    for url in (_unit_url(farm, unit="x"), _unit_url(farm, job="..")):
+    # Not ASCII digits: '²' is a digit to str.isdigit, not to int() (a 500), and '١' (Arabic-Indic) was unit 1.
+    for url in (_unit_url(farm, unit="x"), _unit_url(farm, job=".."), _unit_url(farm, unit="%C2%B2"),
+                _unit_url(farm, unit="%D9%A1"), _unit_url(farm, job="job1%0A")):
         with pytest.raises(TransferError) as err:
             asyncio.run(upload_tile(url, TOKEN, path))
         assert err.value.status == 404

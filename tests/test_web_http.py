@@ -297,6 +297,9 @@ def test_job_and_unit_views_show_state_parameters_rules_and_attempts(tmp_path):
         assert units[1]["status"] == "done" and units[1]["spp"] == 12 and units[1]["agent"] == AGENT
         assert units[2]["status"] == "awarded" and units[2]["agent"] == AGENT and units[2]["spp"] is None
         assert units[0]["status"] == "pending" and units[0]["C"] == pytest.approx(0.01)
+        for odd in ("%C2%B2", "%D9%A1", "1%0A"):  # not ASCII digits: a 500, or unit 1
+            seen = await page.http.get(f"{page.url}/ui/api/jobs/{JOB}/units/{odd}", headers={"Cookie": cookie})
+            assert seen.status == 404, odd
         unit = await (await page.http.get(f"{page.url}/ui/api/jobs/{JOB}/units/1", headers={"Cookie": cookie})).json()
         assert unit["S"] == 128 and unit["attempt_list"][0]["agent"] == AGENT
         assert unit["attempt_list"][0]["outcome"] == "done"

@@ -296,6 +296,11 @@ def encode(msg: Message) -> tuple[str, str]:
     return msg.performative, body
 
 
+def check_job(job: JobInfo) -> None:
+    """MessageError where a job's description breaks the rules every message holds it to (field `job...`)."""
+    _check_value(JobInfo, _to_json(job), "job").check()
+
+
 def metadata(msg: Message) -> dict[str, str]:
     """The XMPP metadata a message travels under."""
     return {

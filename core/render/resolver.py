@@ -30,6 +30,8 @@ MAX_INCLUDE_DEPTH = 15
 SRC_ATTR = "{urn:quekaro}src"  # private attribute: which file an element came from
 RESOLVED_ATTR = "{urn:quekaro}resolved"  # private attribute: the file a spectrum's filename resolved to
 _PARAM_RE = re.compile(r"\$([A-Za-z_][A-Za-z0-9_]*)")
+# What an XML 1.0 document can hold (its Char production): a -D value is written into the scene's attributes.
+_NOT_XML = re.compile("[^\t\n\r\x20-\ud7ff\ue000-\ufffd\U00010000-\U0010ffff]")
 
 
 @dataclass
@@ -90,6 +92,7 @@ def read_scene(main: Path, defines: dict[str, str], search_paths: Sequence[Path]
     main = Path(main).absolute()
     if not main.is_file():
         raise SceneError(f"{main}: scene file not found")
+    check_defines(defines)
     found = SceneFiles(main, params=dict(defines))
     top = [main.parent, *([cwd] if cwd is not None else []), *(Path(p).absolute() for p in search_paths)]
     deferred: list[tuple[Path, etree._Element, str]] = []
@@ -97,6 +100,14 @@ def read_scene(main: Path, defines: dict[str, str], search_paths: Sequence[Path]
     for file, elem, name in deferred:
         found.references.append(_resolved(file, elem, "file", name, top))
     return found
+
+
+def check_defines(defines: dict[str, str]) -> None:
+    """SceneError naming the -D parameter whose value holds a character no XML file can (a NUL, a control)."""
+    for name, value in defines.items():
+        bad = _NOT_XML.search(str(value))
+        if bad:
+            raise SceneError(f"-D {name}: its value {str(value)[:40]!r} holds {bad.group()!r}, which no XML file can")
 
 
 def _read_file(path: Path, folders: list[Path], found: SceneFiles,

@@ -24,7 +24,6 @@ import asyncio
 import dataclasses
 import html
 import logging
-import re
 import secrets
 import shutil
 from dataclasses import dataclass, field
@@ -38,6 +37,7 @@ from core.errors import QuekaroError
 from core.model.geometry import DEFAULT_FILTER_RADIUS, filter_reach
 from core.model.job import RGB
 from core.model.status import JobStatus
+from master.http_guard import JOB_PART, UNIT_PART
 from master.store import JobRecord, StoreError
 from master.web import auth
 from master.web.events import Watcher, stream
@@ -48,7 +48,6 @@ from master.web.views import WebService, agents_view, job_view, jobs_view, repor
 log = logging.getLogger(__name__)
 
 STATIC = Path(str(resources.files("master.web") / "static"))
-_JOB_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
 FAILED_LOGIN_DELAY_S = 0.3  # a wrong token waits a little: guessing stays slow (the token has 192 bits anyway)
 SECURITY_HEADERS = {
     "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; style-src 'self'; script-src 'self'; "
@@ -175,7 +174,7 @@ async def index(request: web.Request) -> web.Response:
 
 def _job_id(request: web.Request) -> str:
     job_id = request.match_info["job"]
-    if not _JOB_RE.match(job_id):
+    if not JOB_PART.fullmatch(job_id):
         raise web.HTTPNotFound(reason="no such job")
     return job_id
 
@@ -202,7 +201,7 @@ async def api_unit(request: web.Request) -> web.Response:
     """One unit, with the rules that fired for it (evaluated in a thread: a rule file may need parsing)."""
     service = _authorized(request)
     job_id, unit = _job_id(request), request.match_info["unit"]
-    if not unit.isdigit() or len(unit) > 9:
+    if not UNIT_PART.fullmatch(unit):
         raise web.HTTPNotFound(reason="no such unit")
     try:
         record = service.store.job(job_id)
@@ -312,7 +311,7 @@ async def events(request: web.Request) -> web.StreamResponse:
     state = _state(request)
     session = auth.require(request, state.sessions)
     job_id = request.query.get("job") or None
-    if job_id is not None and not _JOB_RE.match(job_id):
+    if job_id is not None and not JOB_PART.fullmatch(job_id):
         raise web.HTTPNotFound(reason="no such job")
     watcher = Watcher(state.service, job_id)
     return await stream(request, watcher, lambda: state.sessions.alive(session), state.closing)
