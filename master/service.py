@@ -456,7 +456,7 @@ class MasterService:
 def _as_submitted(exc: QuekaroError, folder: Path) -> QuekaroError:
     """`exc` with the paths of the job's unpacked bundle (`folder`, removed with the refused job) as the
     submitter's files are named in it: what the user must fix is in their scene, not in the master's home."""
-    text = str(exc).replace(f"{folder}{os.sep}", "")
+    text = str(exc).replace(f"{folder}{os.sep}", "").replace(str(folder), "the bundle's folder")
     return exc if text == str(exc) else type(exc)(text)
 
 

@@ -22,7 +22,7 @@ from core.model.units import WorkUnit
 from core.render.counts import check_renderable
 from core.render.effects import analyse_loaded
 from core.render.planner import Planner, RenderParams, adaptive_params
-from core.render.scene import expand, film_info, sensor_elements
+from core.render.scene import expand, film_info, sensor_elements, sensor_of
 from core.render.worker import build_integrator
 from fuzzy.levels import OFF
 from planning import budgets, depthcut
@@ -113,6 +113,7 @@ def plan_job_loaded(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_
     """`plan_job`, and the scene as the analysis loaded it in the plan's variant (the pre-pass leaves it
     as loaded), for a process that renders the units next."""
     effects, loaded = analyse_loaded(spec, options.overrides())
+    sensor_of(loaded, options.sensor, str(spec.path))
     return _plan(spec, options, seed, min_units, effects, loaded, floors_always), loaded
 
 

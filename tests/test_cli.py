@@ -138,6 +138,17 @@ def test_one_bad_scene_of_several_does_not_stop_the_others(tmp_path: Path) -> No
     assert {p.name for p in (tmp_path / "out").glob("*.exr")} == {"cbox.exr", "glass-corner.exr"}
 
 
+@pytest.mark.parametrize("level", ["off", "S"])
+def test_a_scene_without_a_sensor_is_refused_naming_it(tmp_path: Path, level: str) -> None:
+    """Mitsuba loads a scene without a sensor and has nothing to render: at level off the job failed at its
+    first unit, at a rule level planning raised an IndexError."""
+    (tmp_path / "nosensor.xml").write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
+    done = quekaro("render", str(tmp_path / "nosensor.xml"), "--opt", level, "--spp", "2", "-t", "1", "--no-progress",
+                   "-o", str(tmp_path / "out.exr"), cwd=tmp_path)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert "nosensor.xml: the scene has no sensor" in done.stderr and "unit 0" not in done.stderr, done.stderr
+
+
 @pytest.mark.parametrize("name", ["no-such-scene.xml", "a-folder"])
 def test_render_of_a_scene_that_cannot_be_read_names_it(tmp_path: Path, name: str) -> None:
     (tmp_path / "a-folder").mkdir()

@@ -183,13 +183,21 @@ def _filter_from_xml(film: etree._Element | None) -> tuple[str, float] | None:
     return None
 
 
+def sensor_of(scene: Any, index: int, where: str = "scene") -> Any:
+    """The loaded scene's sensor `index` (Mitsuba's `-s`), or a SceneError saying how many there are (a
+    scene file may have none: Mitsuba then loads it but has nothing to render)."""
+    sensors = scene.sensors()
+    if not sensors:
+        raise SceneError(f"{where}: the scene has no sensor (Mitsuba renders nothing without one)")
+    if not 0 <= index < len(sensors):
+        raise SceneError(f"{where}: sensor {index} asked for, the scene has {len(sensors)} (0..{len(sensors) - 1})")
+    return sensors[index]
+
+
 def film_info_from_scene(scene: Any, sensor: int = 0) -> FilmInfo:
     """Film facts of a loaded Mitsuba scene (sensor `sensor`); its `image_file` is Mitsuba's default, as a
     loaded film does not say which file it writes (`film_info` reads that from the XML)."""
-    sensors = scene.sensors()
-    if not 0 <= sensor < len(sensors):
-        raise SceneError(f"sensor {sensor} asked for, the scene has {len(sensors)}")
-    film = sensors[sensor].film()
+    film = sensor_of(scene, sensor).film()
     width, height = (int(v) for v in film.crop_size())
     rfilter = film.rfilter()
     name = rfilter.class_name().lower().removesuffix("filter")
@@ -247,9 +255,7 @@ def _loaded_film_info(spec: SceneSpec, sensor: int, image_file: ImageFile, film:
     """`film_info` from the loaded scene, where the XML does not say plainly; a film whose colour
     quekaro cannot compose is refused, naming the film (`film`: its type, or whose it is) and channels."""
     loaded = load(spec)
-    count = len(loaded.sensors())
-    if not 0 <= sensor < count:
-        raise SceneError(f"{spec.path}: sensor {sensor} asked for, the scene has {count} (0..{count - 1})")
+    sensor_of(loaded, sensor, str(spec.path))
     info = dataclasses.replace(film_info_from_scene(loaded, sensor), image_file=image_file)
     if film_mod.colour_of(info.colour) != info.colour:
         raise SceneError(f"{spec.path}: film {film} writes channels {list(info.colour)[:8]}; quekaro composes "

@@ -39,6 +39,7 @@ from core.model.job import SceneSpec
 from core.render import child, mitsuba_env, scene
 from core.render.adaptive import render_adaptive
 from core.render.film import film_channels, sanitize
+from core.render.scene import sensor_of
 from core.render.tiles import Tile
 
 # Mitsuba and Dr.Jit are imported where used: `import mitsuba` costs ~0.35 s and 85 MB, must follow the
@@ -235,14 +236,6 @@ def adopt_scene(spec: SceneSpec, variant: str, loaded: Any) -> None:
     The render process's planning hands over the scene its analysis loaded, which a large scene's
     second load would otherwise cost."""
     _local_cache.adopt(spec, variant, loaded)
-
-
-def sensor_of(scene: Any, index: int, where: str = "scene") -> Any:
-    """The scene's sensor `index` (Mitsuba's `-s`), or a RenderError saying how many there are."""
-    sensors = scene.sensors()
-    if not 0 <= index < len(sensors):
-        raise RenderError(f"{where}: sensor {index} asked for, the scene has {len(sensors)} (0..{len(sensors) - 1})")
-    return sensors[index]
 
 
 def principal_point(scene: Any, sensor: int = 0) -> tuple[float, float] | None:
