@@ -138,15 +138,34 @@ def test_one_bad_scene_of_several_does_not_stop_the_others(tmp_path: Path) -> No
     assert {p.name for p in (tmp_path / "out").glob("*.exr")} == {"cbox.exr", "glass-corner.exr"}
 
 
-@pytest.mark.parametrize("level", ["off", "S"])
-def test_a_scene_without_a_sensor_is_refused_naming_it(tmp_path: Path, level: str) -> None:
-    """Mitsuba loads a scene without a sensor and has nothing to render: at level off the job failed at its
-    first unit, at a rule level planning raised an IndexError."""
-    (tmp_path / "nosensor.xml").write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
-    done = quekaro("render", str(tmp_path / "nosensor.xml"), "--opt", level, "--spp", "2", "-t", "1", "--no-progress",
+NO_SENSOR = '<scene version="3.0.0"><integrator type="path"/><shape type="sphere"/></scene>'
+NO_INTEGRATOR = ('<scene version="3.0.0"><sensor type="perspective"><film type="hdrfilm"><integer name="width" '
+                 'value="16"/><integer name="height" value="12"/></film></sensor><shape type="sphere"/></scene>')
+
+
+@pytest.mark.parametrize(("text", "args", "said"), [
+    (NO_SENSOR, ["--opt", "off"], "the scene has no sensor"),
+    (NO_SENSOR, ["--opt", "S"], "the scene has no sensor"),
+    (NO_INTEGRATOR, ["--opt", "off"], "the scene names no integrator"),
+    (NO_INTEGRATOR, ["--opt", "S", "--adaptive"], "the scene names no integrator"),
+])
+def test_a_scene_mitsuba_cannot_render_is_refused_naming_it(tmp_path: Path, text: str, args: list[str],
+                                                            said: str) -> None:
+    """Mitsuba loads a scene without a sensor, or without an integrator, and renders nothing ("No integrator
+    specified for scene"): the job failed at its first unit, planning raised an IndexError or an
+    AttributeError, or a path integrator rendered what plain Mitsuba refuses."""
+    (tmp_path / "odd.xml").write_text(text)
+    done = quekaro("render", str(tmp_path / "odd.xml"), *args, "--spp", "2", "-t", "1", "--no-progress",
                    "-o", str(tmp_path / "out.exr"), cwd=tmp_path)
     assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
-    assert "nosensor.xml: the scene has no sensor" in done.stderr and "unit 0" not in done.stderr, done.stderr
+    assert f"odd.xml: {said}" in done.stderr and "unit 0" not in done.stderr, done.stderr
+
+
+def test_a_scene_without_an_integrator_renders_with_the_one_the_user_gives(tmp_path: Path) -> None:
+    (tmp_path / "odd.xml").write_text(NO_INTEGRATOR)
+    done = quekaro("render", str(tmp_path / "odd.xml"), "--integrator", "path", "--spp", "2", "-t", "1",
+                   "--no-progress", "-o", str(tmp_path / "out.exr"), cwd=tmp_path)
+    assert done.returncode == 0 and (tmp_path / "out.exr").is_file(), done.stderr
 
 
 @pytest.mark.parametrize("name", ["no-such-scene.xml", "a-folder"])

@@ -315,7 +315,8 @@ def test_a_scene_mitsuba_refuses_is_named_as_the_user_submitted_it(farm3, tmp_pa
     assert "broken.xml" in said and "no_such_plugin_here" in said and "line 2" in said, said
     assert str(farm3.home) not in said and "/jobs/" not in said, said
     # A scene without a sensor: Mitsuba loads it and has nothing to render (planning raised an IndexError, a 500).
-    (tmp_path / "nosensor.xml").write_text('<scene version="3.0.0">\n  <shape type="sphere"/>\n</scene>\n')
+    (tmp_path / "nosensor.xml").write_text('<scene version="3.0.0">\n  <integrator type="path"/>\n'
+                                           '  <shape type="sphere"/>\n</scene>\n')
     with pytest.raises(Exception, match="HTTP 422") as refused:
         client.submit(bundle_of(tmp_path / "nosensor.xml", {}), {}, {"level": "S"})
     said = str(refused.value)
