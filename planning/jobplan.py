@@ -15,7 +15,7 @@ from typing import Any
 
 from lxml import etree
 
-from core.errors import QuekaroError, RenderError
+from core.errors import QuekaroError, RenderError, SceneError
 from core.model import integrators
 from core.model.job import Effects, ImageFile, JobPlan, RenderOptions, SceneSpec
 from core.model.units import WorkUnit
@@ -114,6 +114,9 @@ def plan_job_loaded(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_
     as loaded), for a process that renders the units next."""
     effects, loaded = analyse_loaded(spec, options.overrides())
     sensor_of(loaded, options.sensor, str(spec.path))
+    if loaded.integrator() is None and not options.integrator:  # Mitsuba 3.9: "No integrator specified"
+        raise SceneError(f"{spec.path}: the scene names no integrator, and Mitsuba renders none without one: add "
+                         "one (e.g. <integrator type=\"path\"/>) or give --integrator")
     return _plan(spec, options, seed, min_units, effects, loaded, floors_always), loaded
 
 

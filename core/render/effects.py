@@ -117,9 +117,6 @@ def analyse_loaded(spec: SceneSpec, overrides: dict[str, Any] | None = None) -> 
         split, why = integrators.splittable(elem)
     reasons.append(("tiles: " if split else "one unit, the whole film: ") + why)
     loaded = scene_mod.load(spec, variant)  # also checks that Mitsuba accepts the scene
-    if elem is None and not override:  # after load: Mitsuba 3.9 says "No integrator specified"
-        raise SceneError(f"{spec.path}: the scene names no integrator, and Mitsuba renders none without one: add "
-                         "one (e.g. <integrator type=\"path\"/>) or give --integrator")
     own_depth = integrators.depth_of(elem)
     takes_depth = integrators.kind(override).depth if override else own_depth is not None
     if "max_depth" in overrides and not takes_depth:
