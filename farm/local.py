@@ -6,11 +6,13 @@ with backoff, and one that crash-loops is marked failed and left down while the 
 (core.supervision); an agent comes back under a new JID (the embedded server may never deliver to a JID
 that reconnects). The state of every process is in HOME/processes.json. Every child dies with the farm,
 even when it is killed with SIGKILL (PR_SET_PDEATHSIG); stopping (Ctrl-C, SIGTERM, or leaving the
-context) terminates the children in reverse order and waits for them.
+context) terminates the children in reverse order and waits for them. One farm at a time holds a home
+(HOME/farm.lock, an flock the kernel releases when the farm's process dies, even by SIGKILL).
 """
 
 from __future__ import annotations
 
+import fcntl
 import functools
 import json
 import os
@@ -27,6 +29,7 @@ from pathlib import Path
 
 from core.errors import QuekaroError
 from core.home import AGENTS_ALLOW, FARM_FILE, PROCESSES_FILE, default_home
+from core.render.bundle import check_rules
 from core.supervision import RestartPolicy, die_with_parent
 from core.transport.xmpp_server import EmbeddedXmppServer, free_port
 from farm.client import FarmClient
@@ -35,6 +38,7 @@ DOMAIN = "localhost"
 MASTER_JID = f"master@{DOMAIN}"
 REPO = Path(__file__).resolve().parent.parent
 START_TIMEOUT_S = 120.0
+LOCK_FILE = "farm.lock"
 
 
 @dataclass
@@ -61,10 +65,17 @@ class LocalFarm:
                  rules: list[Path] | None = None, http_port: int = 0, supervise: bool = False) -> None:
         if agents < 1:
             raise QuekaroError(f"--agents {agents}: a farm needs at least one agent")
+        if threads is not None and threads < 1:
+            raise QuekaroError(f"--threads {threads}: each agent needs at least one thread (leave it out for "
+                               "the cores shared among the agents)")
+        if not 0 <= http_port <= 65535:
+            raise QuekaroError(f"--http-port {http_port}: not a TCP port (1..65535; 0 or none: a free one)")
         self.home = Path(home or default_home()).resolve()
         self.n_agents = agents
         self.threads = threads or max(1, (os.cpu_count() or 1) // agents)
         self.rules = [Path(r).resolve() for r in rules or []]
+        for path in self.rules:
+            check_rules(path)  # each agent would crash-loop on it, leaving a farm without agents
         if len(self.rules) > agents:  # agent i takes rule file i mod n: the extra files would go unused
             raise QuekaroError(f"--rules: {len(self.rules)} rule files for {agents} agents; agent i takes file "
                                f"i, so {', '.join(r.name for r in self.rules[agents:])} would never be used "
@@ -80,6 +91,7 @@ class LocalFarm:
         self._stopping = threading.Event()
         self._supervisor: threading.Thread | None = None
         self._previous_sigterm: object = None
+        self._lock_fd: int | None = None
 
     @property
     def procs(self) -> list[tuple[str, subprocess.Popen]]:
@@ -104,7 +116,11 @@ class LocalFarm:
                 self._previous_sigterm = None
 
     def start(self) -> None:
-        (self.home / "logs").mkdir(parents=True, exist_ok=True)
+        try:
+            (self.home / "logs").mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise QuekaroError(f"--home {self.home}: cannot make the farm's folder there ({exc.strerror})") from None
+        self._lock_home()
         (self.home / FARM_FILE).unlink(missing_ok=True)
         self.server = EmbeddedXmppServer(self.home / "xmpp", domain=DOMAIN)
         # Accounts are made afresh at every start (new passwords, new agent JIDs): the database of a
@@ -125,6 +141,21 @@ class LocalFarm:
         if self._supervise:
             self._supervisor = threading.Thread(target=self._supervise_forever, name="supervisor", daemon=True)
             self._supervisor.start()
+
+    def _lock_home(self) -> None:
+        """Hold HOME/farm.lock for the farm's life: a second farm on the same home would delete this one's
+        farm.json and XMPP accounts and empty its agents' allow-list."""
+        fd = os.open(self.home / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 32).decode(errors="replace").strip() or "?"
+            os.close(fd)
+            raise QuekaroError(f"a farm is already running in {self.home} (pid {holder}): stop it first, or give "
+                               "another --home") from None
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self._lock_fd = fd
 
     def _secret_file(self, name: str) -> Path:
         path = self.home / "secrets" / name
@@ -234,8 +265,13 @@ class LocalFarm:
 
     def _wait_for_master(self) -> None:
         deadline = time.monotonic() + START_TIMEOUT_S
+        master = self.children[0].proc
         while time.monotonic() < deadline:
-            self.check_alive()
+            if master.poll() is not None:  # not restarted: what failed it (a port in use) fails it again
+                log = self.home / "logs" / "master.log"
+                last = log.read_text(errors="replace").strip().splitlines()[-1:] or ["(nothing)"]
+                raise QuekaroError(f"the master exited with status {master.returncode} as it started: {last[0]} "
+                                   f"(see {log})")
             if (self.home / FARM_FILE).exists():
                 try:
                     urllib.request.urlopen(self.url + "/api/agents", timeout=2)
@@ -288,6 +324,9 @@ class LocalFarm:
             if self.server is not None:
                 self.server.stop()
                 self.server = None
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)  # releases the flock
+            self._lock_fd = None
 
 
 def _say(line: str) -> None:

@@ -118,7 +118,7 @@ def _register_client(sub: argparse._SubParsersAction) -> None:
     logs = sub.add_parser("logs", help="a local farm's process logs (HOME/logs): one process, or the list")
     logs.add_argument("process", nargs="?", help="master, xmpp or agent-N (default: list the logs)")
     logs.add_argument("-f", "--follow", action="store_true", help="keep printing what is written (Ctrl-C stops)")
-    logs.add_argument("-n", "--lines", type=int, default=40, help="lines from the end to start with (default 40)")
+    logs.add_argument("-n", "--lines", type=_lines, default=40, help="lines from the end to start with (default 40)")
     logs.add_argument("--home", type=Path, help="farm directory (default: $QUEKARO_HOME or ~/.quekaro/farm)")
     logs.set_defaults(func=run_logs)
 
@@ -303,24 +303,38 @@ def run_agents(args: argparse.Namespace) -> int:
     return 0
 
 
+def _lines(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{value}: a count of lines, 0 or more")
+    return value
+
+
+def farm_logs(home: Path) -> dict[str, Path]:
+    """A local farm's logs by process name: HOME/logs/NAME.log, and the XMPP server's as `xmpp`."""
+    logs = {p.stem: p for p in sorted((home / "logs").glob("*.log"))}
+    server = home / "xmpp" / "server.log"  # core.transport.xmpp_server writes it beside its database
+    return logs | ({"xmpp": server} if server.is_file() else {})
+
+
 def run_logs(args: argparse.Namespace) -> int:
-    folder = Path(args.home or default_home()) / "logs"
+    logs = farm_logs(Path(args.home or default_home()))
     if args.process is None:
-        for path in sorted(folder.glob("*.log")):
-            print(f"{path.stem:<12} {path.stat().st_size:>10} bytes  {path}")
+        for name, path in logs.items():
+            print(f"{name:<12} {path.stat().st_size:>10} bytes  {path}")
         return 0
-    path = folder / f"{args.process}.log"
-    if not path.is_file():
-        known = ", ".join(sorted(p.stem for p in folder.glob("*.log"))) or "none"
-        raise QuekaroError(f"no log {path} (logs here: {known})")
-    follow_log(path, args.lines, args.follow)
+    if args.process not in logs:
+        known = ", ".join(logs) or "none"
+        raise QuekaroError(f"no log of {args.process!r} in {Path(args.home or default_home())} (logs: {known})")
+    follow_log(logs[args.process], args.lines, args.follow)
     return 0
 
 
 def follow_log(path: Path, lines: int, follow: bool, poll_s: float = 0.25) -> None:
     """The last `lines` lines of the file, then (with `follow`) what is appended, as `tail -f` does."""
     with path.open("rb") as log:
-        tail = log.read().splitlines()[-lines:] if lines > 0 else []
+        written = log.read()  # read to the end even for 0 lines: following starts from there
+        tail = written.splitlines()[-lines:] if lines > 0 else []
         for line in tail:
             print(line.decode(errors="replace"), flush=True)
         while follow:

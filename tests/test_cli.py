@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import socket
 import subprocess
 import sys
 import time
@@ -15,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from core.errors import QuekaroError
+from core.home import AGENTS_ALLOW, FARM_FILE
 from farm.local import LocalFarm
 from quekaro.cli import OWNERS, build_parser
 from quekaro.cmd_farm import follow_log
@@ -217,6 +219,16 @@ def test_agents_lists_a_real_farms_agents(tmp_path: Path) -> None:
         assert table.stdout.count("idle") == 2
         master = quekaro("logs", "master", "-n", "1000", "--home", str(farm.home))
         assert master.returncode == 0 and "up: HTTP" in master.stdout and "JobDone" in master.stdout
+        assert quekaro("logs", "master", "-n", "0", "--home", str(farm.home)).stdout == ""
+        assert "xmpp" in quekaro("logs", "--home", str(farm.home)).stdout  # the help offers it
+        assert quekaro("logs", "xmpp", "--home", str(farm.home)).returncode == 0
+
+        # A second farm on this home would delete its farm.json and accounts and empty its allow-list.
+        allowed = (farm.home / AGENTS_ALLOW).read_text()
+        second = quekaro("up", "--agents", "1", "--threads", "1", "--home", str(farm.home), timeout=60)
+        assert second.returncode != 0 and f"a farm is already running in {farm.home}" in second.stderr
+        assert (farm.home / AGENTS_ALLOW).read_text() == allowed and (farm.home / FARM_FILE).is_file()
+        assert len(farm.client().agents()) == 2
 
 
 def test_follow_log_prints_the_last_lines(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
@@ -277,6 +289,30 @@ def test_a_reference_spp_without_report_accuracy_is_refused(tmp_path: Path) -> N
     assert done.returncode != 0
     assert "--ref-spp 64: the reference is rendered only with --report-accuracy" in done.stderr
     assert not list(tmp_path.glob("out.*"))
+
+
+@pytest.mark.parametrize(("args", "said"), [
+    (["--threads", "0"], "--threads 0: each agent needs at least one thread"),
+    (["--threads", "-1"], "--threads -1"),
+    (["--http-port", "70000"], "--http-port 70000: not a TCP port"),
+    (["--rules", "/no/such/rules.xml"], "--rules: /no/such/rules.xml: cannot read"),
+])
+def test_up_refuses_options_its_agents_or_master_would_die_of(tmp_path: Path, args: list[str], said: str) -> None:
+    """Each of these started a farm whose agents crash-looped (a farm without agents) or whose master never
+    came up (120 s of silence), or meant the default (--threads 0)."""
+    done = quekaro("up", "--agents", "1", *args, "--home", str(tmp_path / "f"), timeout=60)
+    assert done.returncode != 0 and said in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert not (tmp_path / "f").exists()
+
+
+def test_a_master_that_cannot_start_fails_the_farm_at_once(tmp_path: Path) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        start = time.monotonic()
+        with pytest.raises(QuekaroError, match=r"the master exited with status \d+ as it started: .*in use"):
+            LocalFarm(tmp_path / "farm", agents=1, threads=1, http_port=taken.getsockname()[1]).__enter__()
+        assert time.monotonic() - start < 60  # it waited START_TIMEOUT_S (120 s) in silence
 
 
 def test_more_rule_files_than_agents_are_refused_before_the_farm_starts(tmp_path: Path) -> None:
