@@ -41,8 +41,14 @@ class FarmClient:
         if not url:
             raise QuekaroError(f"no farm found: {farm_file} does not exist (start one with `quekaro up`, "
                                "or give --url and --token-file)")
-        if not token_path.exists():
-            raise QuekaroError(f"admin token file {token_path} not found")
+        if not str(url).startswith(("http://", "https://")):
+            raise QuekaroError(f"--url {url!r}: the master's URL starts with http:// or https://")
+        if not token_path.is_file():
+            raise QuekaroError(f"admin token file {token_path} " + ("is not a file" if token_path.exists()
+                                                                    else "not found"))
+        if ca_file is not None and not str(url).startswith("https://"):
+            raise QuekaroError(f"--ca-file {ca_file}: the master at {url} speaks plain HTTP, so no certificate "
+                               "is verified")
         ca = ca_file or info.get("ca_file")
         return cls(url.rstrip("/"), token_path.read_text().strip(), ca_file=Path(ca) if ca else None)
 

@@ -231,6 +231,26 @@ def test_agents_lists_a_real_farms_agents(tmp_path: Path) -> None:
         assert len(farm.client().agents()) == 2
 
 
+def test_a_reader_that_leaves_the_pipe_gets_no_traceback(tmp_path: Path) -> None:
+    (tmp_path / "logs").mkdir()
+    (tmp_path / "logs" / "master.log").write_text("".join(f"line {i}\n" for i in range(100_000)))
+    cmd = f"{sys.executable} -m quekaro logs master -n 100000 --home {tmp_path} | head -1"
+    done = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, cwd=REPO, timeout=60)
+    assert done.stdout == "line 0\n" and "Traceback" not in done.stderr and "BrokenPipe" not in done.stderr
+
+
+@pytest.mark.parametrize(("args", "said"), [
+    (["--url", "notaurl", "--token-file", "TOKEN"], "--url 'notaurl': the master's URL starts with http://"),
+    (["--url", "http://127.0.0.1:9", "--token-file", "."], "admin token file . is not a file"),
+    (["--url", "http://127.0.0.1:9", "--token-file", "TOKEN", "--ca-file", "/no/ca.pem"],
+     "--ca-file /no/ca.pem: the master at http://127.0.0.1:9 speaks plain HTTP"),
+])
+def test_a_farm_location_that_cannot_work_is_refused_naming_it(tmp_path: Path, args: list[str], said: str) -> None:
+    (tmp_path / "TOKEN").write_text("x")
+    done = quekaro("status", *args, cwd=tmp_path)
+    assert done.returncode == 2 and said in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
 def test_follow_log_prints_the_last_lines(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     path = tmp_path / "x.log"
     path.write_text("a\nb\nc\n")
