@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -36,17 +37,22 @@ def run(args: argparse.Namespace) -> int:
     if args.seam_width is not None and not args.units:
         raise QuekaroError(f"--seam-width {args.seam_width}: seams are measured only at a job's unit borders "
                            "(--units REPORT.json)")
+    if args.seam_width is not None and args.seam_width < 1:
+        raise QuekaroError(f"--seam-width {args.seam_width}: at least one pixel on each side of a border")
+    if args.output and Path(args.output).suffix.lower() != ".png":
+        raise QuekaroError(f"-o {args.output}: the difference image is written as a PNG; give a name ending .png")
     test, reference = imageio.read_image(args.test), imageio.read_image(args.reference)
     try:
         results = metrics.all_metrics(test, reference)
     except imageio.ImageError as exc:  # it says which image ("test image", "reference image"), not the file
         raise QuekaroError(f"{args.test} against {args.reference}: {exc}") from exc
     if args.output:
+        Path(args.output).parent.mkdir(parents=True, exist_ok=True)  # as render -o and result -o do
         imageio.write_png(args.output, _grey_as_display(metrics.diff_image(test, reference)))
         results["diff_png"] = args.output
     if args.units:
         results["seams"] = seam_measure(test, reference, read_unit_rects(args.units),
-                                        args.seam_width or SEAM_WIDTH).to_dict()
+                                        args.seam_width if args.seam_width is not None else SEAM_WIDTH).to_dict()
     if args.json:
         print(json.dumps(results, indent=2))
     else:

@@ -175,6 +175,19 @@ def test_a_seam_width_without_units_is_refused(tmp_path) -> None:
     assert done.returncode != 0 and "--seam-width 5: seams are measured only at a job's unit borders" in done.stderr
     done = run_quekaro("diff", str(tmp_path / "a.exr"), str(tmp_path / "a.exr"), "--json")
     assert done.returncode == 0 and json.loads(done.stdout)["rmse"] == 0.0
+    (tmp_path / "r.json").write_text(json.dumps({"units": [{"rect": [0, 0, 8, 8]}]}))
+    done = run_quekaro("diff", str(tmp_path / "a.exr"), str(tmp_path / "a.exr"), "--units", str(tmp_path / "r.json"),
+                       "--seam-width", "0")  # meant the default, 3
+    assert done.returncode != 0 and "--seam-width 0: at least one pixel" in done.stderr
+
+
+def test_the_difference_image_is_a_png_checked_before_measuring(tmp_path) -> None:
+    """-o d.exr failed after the comparison and left an empty d.exr; a new folder is made, as render -o does."""
+    imageio.write_exr(tmp_path / "a.exr", np.full((8, 8, 3), 0.5, dtype=np.float32))
+    done = run_quekaro("diff", str(tmp_path / "a.exr"), str(tmp_path / "a.exr"), "-o", str(tmp_path / "d.exr"))
+    assert done.returncode != 0 and "a name ending .png" in done.stderr and not (tmp_path / "d.exr").exists()
+    done = run_quekaro("diff", str(tmp_path / "a.exr"), str(tmp_path / "a.exr"), "-o", str(tmp_path / "new" / "d.png"))
+    assert done.returncode == 0 and (tmp_path / "new" / "d.png").stat().st_size > 0, done.stderr
 
 
 
