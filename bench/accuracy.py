@@ -214,10 +214,8 @@ def farm_runner(agents: int, threads: int, home: Path, units: int | None = None,
             cpu = tree_cpu_seconds(roots) + _self_cpu() - cpu0
             if status["status"] != "done":
                 raise QuekaroError(f"farm job {job_id} ({level}) ended {status['status']}: {status.get('error')}")
-            image = client.result(job_id, out)
-            report = json.loads(out.with_suffix(".json").read_text())
-            report["image"]["file"] = str(image)  # the copy here, not the master's
-            return report, wall, cpu
+            client.result(job_id, out)
+            return json.loads(out.with_suffix(".json").read_text()), wall, cpu
 
         yield run_job
 

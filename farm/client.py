@@ -108,16 +108,19 @@ class FarmClient:
         return list(self._json("GET", "/api/agents")["agents"])
 
     def result(self, job_id: str, out: Path) -> Path:
-        """Download the composed image and its report, and write the tonemapped PNG beside them; return
-        the image's path: `out` with the suffix of the film's file format (.exr, .pfm, .rgbe), as Mitsuba
-        names its output."""
+        """Download the composed image and its report (which names the image as written here), and write
+        the tonemapped PNG beside them; return the image's path: `out` with the suffix of the film's file
+        format (.exr, .pfm, .rgbe), as Mitsuba names its output."""
         out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
         body, headers = self._exchange("GET", f"/api/jobs/{job_id}/result")
         name = headers.get_filename() or ""
         out = out.with_suffix(Path(name).suffix or out.suffix or ".exr")
         out.write_bytes(body)
-        out.with_suffix(".json").write_bytes(self._request("GET", f"/api/jobs/{job_id}/report"))
+        report = json.loads(self._request("GET", f"/api/jobs/{job_id}/report"))
+        if isinstance(report.get("image"), dict):  # the file written here, not the master's own
+            report["image"]["file"] = str(out.resolve())
+        out.with_suffix(".json").write_text(json.dumps(report, indent=2))
         write_png(out.with_suffix(".png"), read_image(out))
         return out
 
