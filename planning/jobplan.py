@@ -27,7 +27,7 @@ from core.render.worker import build_integrator
 from fuzzy.levels import OFF
 from planning import budgets, depthcut
 from planning.complexity import ComplexityMap, prepass
-from planning.partition import equal_tiles, partition
+from planning.partition import DEFAULT_SIZES, MERGE_TOLERANCE, equal_tiles, partition
 
 # Sensors whose film crop renders exactly that part of the image (compared with plain Mitsuba per pixel in
 # the compatibility suite). A batch sensor, for one, picks its camera from the position within the crop,
@@ -117,7 +117,12 @@ def plan_job_loaded(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_
     if loaded.integrator() is None and not options.integrator:  # Mitsuba 3.9: "No integrator specified"
         raise SceneError(f"{spec.path}: the scene names no integrator, and Mitsuba renders none without one: add "
                          "one (e.g. <integrator type=\"path\"/>) or give --integrator")
-    return _plan(spec, options, seed, min_units, effects, loaded, floors_always), loaded
+    plan = _plan(spec, options, seed, min_units, effects, loaded, floors_always)
+    if options.units and len(plan.units) != options.units and plan.effects.splittable:
+        plan.effects.reasons.append(
+            f"--units {options.units} is a target: {len(plan.units)} made (units are at least {DEFAULT_SIZES[0]} "
+            f"px, and neighbours whose complexity differs by under {MERGE_TOLERANCE:.0%} merge)")
+    return plan, loaded
 
 
 def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, effects: Effects,

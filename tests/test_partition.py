@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core.model.geometry import Rect
+from core.model.job import RenderOptions, SceneSpec
 from planning.complexity import ComplexityMap
+from planning.jobplan import plan_job
 from planning.partition import (
     DEFAULT_SIZES,
     PartitionError,
@@ -227,3 +231,16 @@ def test_noisy_corner_gets_small_units_even_at_equal_rays() -> None:
     assert min(u.C for u in corner) > 5 * max(u.C for u in wall)
     flat = partition(ComplexityMap(cost, noise), 8)  # no mean: rays only, the corner is not special
     assert max(u.S for u in flat if u.rect.intersect(Rect(128, 96, 32, 64)).area) > 32 * 32
+
+
+@pytest.mark.slow
+def test_a_units_target_the_partition_does_not_meet_says_why():
+    """--units is a target: on a 96 px image at a rule level the partition makes fewer (units of 32 px and
+    more, like neighbours merged), and the report said nothing of it."""
+    scene = Path(__file__).resolve().parent.parent / "scenes" / "caustic-corner.xml"
+    plan = plan_job(SceneSpec(scene, {"res": "96"}), RenderOptions(level="S", spp=4, units=16, threads=2))
+    said = [r for r in plan.effects.reasons if r.startswith("--units 16 is a target")]
+    assert len(plan.units) < 16 and said == [f"--units 16 is a target: {len(plan.units)} made (units are at least "
+                                             "32 px, and neighbours whose complexity differs by under 25% merge)"]
+    plan = plan_job(SceneSpec(scene, {"res": "96"}), RenderOptions(level="off", spp=4, units=4, threads=2))
+    assert len(plan.units) == 4 and not any(r.startswith("--units") for r in plan.effects.reasons)
