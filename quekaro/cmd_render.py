@@ -106,7 +106,7 @@ def outputs(scenes: list[Path], out: Path) -> list[Path]:
     """Where each scene's image goes: `out` itself for one scene named *.exr (*.pfm, *.rgbe; the film's
     file_format sets the suffix written), else `out`/SCENE.exr (refused when two scenes would write the
     same file, or when `out` names another image format)."""
-    if out.suffix.lower() in OTHER_IMAGE_SUFFIXES and not out.is_dir():
+    if out.suffix.lower() in (*OTHER_IMAGE_SUFFIXES, ".json") and not out.is_dir():
         raise QuekaroError(f"-o {out}: the image is written as its film's file_format asks (EXR, PFM or RGBE), "
                            f"with a PNG preview and the report beside it; give -o {out.with_suffix('.exr')} "
                            "or a folder")
@@ -132,6 +132,8 @@ def writable_outputs(scenes: list[Path], out: Path) -> list[Path]:
 
 def check_writable(folder: Path, out: Path) -> None:
     """Create `folder` if needed and write a file in it, or say why -o `out` cannot be written."""
+    if folder.exists() and not folder.is_dir():
+        raise QuekaroError(f"-o {out}: {folder} is a file, not a folder (an image's name ends .exr, .pfm or .rgbe)")
     try:
         folder.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=folder, prefix=".quekaro-write-check-"):

@@ -88,7 +88,7 @@ def test_outputs_for_one_scene_a_folder_and_several() -> None:
     with pytest.raises(QuekaroError, match=r"a\.exr"):
         outputs([a, Path("u/a.xml")], Path("renders"))
     assert outputs([a], Path("renders.v2")) == [Path("renders.v2/a.exr")]  # a dotted folder name stays a folder
-    for other in ("x/one.png", "x/one.JPG", "x/one.hdr"):
+    for other in ("x/one.png", "x/one.JPG", "x/one.hdr", "x/one.json"):  # .json made a folder named one.json
         with pytest.raises(QuekaroError, match=r"film's file_format asks \(EXR, PFM or RGBE\).*give -o x/one\.exr"):
             outputs([a], Path(other))
     for film_file in ("x/one.pfm", "x/one.rgbe"):  # a film's own suffixes name the file (the film sets the suffix)
@@ -102,6 +102,9 @@ def test_render_refuses_an_output_it_cannot_write_before_rendering(tmp_path: Pat
                    "--no-progress", "-o", str(out), cwd=tmp_path)
     assert done.returncode == 2 and f"-o {out}: cannot write in {out}" in done.stderr, done.stderr
     assert "report:" not in done.stdout  # refused before the first scene rendered
+    done = quekaro("render", str(SCENES / "cbox.xml"), str(SCENES / "glass-corner.xml"), "-D", "res=16",
+                   "--no-progress", "-o", str(tmp_path / "a-file"), cwd=tmp_path)
+    assert done.returncode == 2 and f"{tmp_path / 'a-file'} is a file, not a folder" in done.stderr, done.stderr
 
 
 @pytest.mark.slow
