@@ -319,11 +319,12 @@ def test_a_reference_spp_without_report_accuracy_is_refused(tmp_path: Path) -> N
     (["--threads", "-1"], "--threads -1"),
     (["--http-port", "70000"], "--http-port 70000: not a TCP port"),
     (["--rules", "/no/such/rules.xml"], "--rules: /no/such/rules.xml: cannot read"),
+    (["--home", "/proc/no-farm"], "--home /proc/no-farm: cannot make the farm's folder there"),
 ])
 def test_up_refuses_options_its_agents_or_master_would_die_of(tmp_path: Path, args: list[str], said: str) -> None:
     """Each of these started a farm whose agents crash-looped (a farm without agents) or whose master never
     came up (120 s of silence), or meant the default (--threads 0)."""
-    done = quekaro("up", "--agents", "1", *args, "--home", str(tmp_path / "f"), timeout=60)
+    done = quekaro("up", "--agents", "1", "--home", str(tmp_path / "f"), *args, timeout=60)
     assert done.returncode != 0 and said in done.stderr and "Traceback" not in done.stderr, done.stderr
     assert not (tmp_path / "f").exists()
 
