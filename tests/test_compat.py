@@ -154,7 +154,7 @@ def test_result_writes_the_films_file_or_into_a_folder_and_refuses_other_formats
     assert (tmp_path / "asked.pfm").is_file() and not (tmp_path / "asked.exr").exists()
     (tmp_path / "a-file").write_text("not a folder")
     blocked = quekaro("result", job_id, "-o", str(tmp_path / "a-file" / "x.exr"), "--home", str(home))
-    assert blocked.returncode == 2 and "cannot write in" in blocked.stderr, blocked.stderr
+    assert blocked.returncode == 2 and f"{tmp_path / 'a-file'} is a file, not a folder" in blocked.stderr
 
 
 FARM_ADAPTIVE_JOBS = 8  # as tests/test_adaptive_jobs.py's RUNS: the jobs' own variance enters the test
