@@ -261,14 +261,14 @@ class MasterService:
             else:
                 (job_dir / "bundle.tar").write_bytes(bundle)
             scene = extract_bundle(bundle, job_dir / "scene", BundleLimits())
-            m.check_scene_name(str(scene.relative_to(job_dir / "scene")))
+            scene_name = str(scene.relative_to(job_dir / "scene"))
+            m.check_scene_name(scene_name)  # before the pre-pass: refused cheaply
             check_unpacked(scene, defines)
             options, rules_sha256 = _job_rules(job_dir / "scene", options)
             options.check_used()
             digest = bundle_hash(bundle)
             plan = await self._plan(SceneSpec(scene, defines), options, plan_seed(digest, defines, options.to_dict()))
             plan = dataclasses.replace(plan, bundle_sha256=digest, rules_sha256=rules_sha256)
-            scene_name = str(scene.relative_to(job_dir / "scene"))
             m.check_job(self._job_info(job_id, scene_name, defines, plan))  # now, not at its first message
         except BaseException as exc:
             shutil.rmtree(job_dir, ignore_errors=True)

@@ -113,16 +113,22 @@ def plan_job_loaded(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_
     """`plan_job`, and the scene as the analysis loaded it in the plan's variant (the pre-pass leaves it
     as loaded), for a process that renders the units next."""
     effects, loaded = analyse_loaded(spec, options.overrides())
-    sensor_of(loaded, options.sensor, str(spec.path))
-    if loaded.integrator() is None and not options.integrator:  # Mitsuba 3.9: "No integrator specified"
-        raise SceneError(f"{spec.path}: the scene names no integrator, and Mitsuba renders none without one: add "
-                         "one (e.g. <integrator type=\"path\"/>) or give --integrator")
+    _check_renders(spec, options, loaded)
     plan = _plan(spec, options, seed, min_units, effects, loaded, floors_always)
     if options.units and len(plan.units) != options.units and plan.effects.splittable:
         plan.effects.reasons.append(
             f"--units {options.units} is a target: {len(plan.units)} made (units are at least {DEFAULT_SIZES[0]} "
             f"px, and neighbours whose complexity differs by under {MERGE_TOLERANCE:.0%} merge)")
     return plan, loaded
+
+
+def _check_renders(spec: SceneSpec, options: RenderOptions, loaded: Any) -> None:
+    """Refuse a scene Mitsuba loads but cannot render: no such sensor, or no integrator (Mitsuba 3.9: "No
+    integrator specified") where the user gives none."""
+    sensor_of(loaded, options.sensor, str(spec.path))
+    if loaded.integrator() is None and not options.integrator:
+        raise SceneError(f"{spec.path}: the scene names no integrator, and Mitsuba renders none without one: add "
+                         "one (e.g. <integrator type=\"path\"/>) or give --integrator")
 
 
 def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, effects: Effects,

@@ -13,13 +13,12 @@ import shutil
 import sys
 
 _MODULE = "pyjabber.plugins.xep_0363.upload_server"
+_registered: set[str] = set()
 
 
 def remove_upload_dir_at_exit() -> None:
     """Once per process, after pyjabber was imported: remove its upload folder at exit."""
-    module = sys.modules.get(_MODULE)
-    folder = getattr(module, "TEMP_DIR", None)
-    if folder is None or getattr(module, "_quekaro_removal_registered", False):
-        return
-    module._quekaro_removal_registered = True
-    atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    folder = getattr(sys.modules.get(_MODULE), "TEMP_DIR", None)
+    if folder is not None and folder not in _registered:
+        _registered.add(folder)
+        atexit.register(shutil.rmtree, folder, ignore_errors=True)
