@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from core.errors import TileError
 from core.model.geometry import Rect, filter_reach
-from core.render.compose import blend_weights, compose, tile_weight
+from core.render.compose import blend_weights, compose, compose_planar, compose_shrunk, tile_weight
 from core.render.tiles import Tile
 from planning.complexity import ComplexityMap
 from planning.partition import equal_tiles, partition
@@ -113,6 +113,41 @@ def test_cut_pixels_never_reach_the_image(layout, reach) -> None:
     out, report = compose(tiles, width, height, reach=reach)
     np.testing.assert_allclose(out, image, rtol=1e-5, atol=1e-5)
     assert report.filled == 0 and report.uncovered == 0
+
+
+@settings(max_examples=80, deadline=None)
+@given(layouts(), st.integers(1, 7), st.integers(0, 2), st.integers(0, 2**32 - 1))
+def test_a_shrunk_composition_is_the_block_mean_of_the_covered_pixels(layout, factor, reach, seed) -> None:
+    """compose_shrunk (the page's preview of a large image) against the full composition: each block's mean
+    over the pixels some landed tile covers, to float32's precision; blocks with none are 0."""
+    width, height, cores, bands = layout
+    rng = np.random.default_rng(seed)
+    landed = [t for t in tiles_of(smooth_image(width, height), cores, [max(b, reach) for b in bands], noise=0.1,
+                                  seed=seed) if rng.random() < 0.7]
+    full, _ = compose_planar(landed, width, height, allow_uncovered=True, reach=reach)
+    covered = np.zeros((height, width), dtype=bool)
+    for t in landed:
+        covered[t.rect.slices()] |= tile_weight(t.rect, t.core, reach, (width, height)) > 0
+    blocks = (-(-height // factor), factor, -(-width // factor), factor)
+    padded = np.zeros((4, blocks[0] * factor, blocks[2] * factor))
+    padded[:3, :height, :width], padded[3, :height, :width] = full * covered, covered
+    sums = padded.reshape(4, *blocks).sum(axis=(2, 4))
+    expected = np.divide(sums[:3], sums[3], out=np.zeros_like(sums[:3]), where=sums[3] > 0)
+    shrunk = compose_shrunk(landed, width, height, factor, reach=reach)
+    assert shrunk.shape == (3, blocks[0], blocks[2]) and shrunk.dtype == np.float32
+    np.testing.assert_allclose(shrunk, expected, rtol=1e-5, atol=1e-5)
+
+
+def test_a_shrunk_composition_keeps_only_the_planes_asked_and_never_shows_nan() -> None:
+    cores = equal_tiles(20, 10, 2)
+    tiles = [Tile(np.full((c.h, c.w, 4), v, np.float32), c, c, channels=("R", "G", "B", "A"))
+             for c, v in zip(cores, (np.nan, 2.0), strict=True)]
+    shrunk = compose_shrunk(tiles, 20, 10, 4)
+    assert shrunk.shape == (3, 3, 5) and np.isfinite(shrunk).all()
+    assert (shrunk[:, :, :2] == 0).all() and (shrunk[:, :, 3:] == 2.0).all()  # block 2 straddles both: 2.0
+    assert (shrunk[:, :, 2] == 2.0).all()
+    with pytest.raises(ValueError, match="factor 0"):
+        compose_shrunk(tiles, 20, 10, 0)
 
 
 def test_filter_reach_is_where_a_pixel_misses_samples_past_the_edge() -> None:

@@ -27,6 +27,7 @@ from PIL import Image
 from core.data import default_rules_path
 from core.model.geometry import Rect
 from core.model.job import Effects, JobPlan, JobSpec, RenderOptions, SceneSpec
+from core.model.status import JobStatus
 from core.model.units import WorkUnit
 from core.render.planner import Planner
 from core.render.tiles import Tile, write_tile
@@ -35,7 +36,7 @@ from master import auction as au
 from master.api_jobs import add_job_routes
 from master.http_api import close, create_app, serve
 from master.store import JobStore
-from master.web import add_web_routes, events
+from master.web import add_web_routes, events, preview
 from master.web.auth import COOKIE, CSRF_HEADER
 from master.web.rules import evaluation_rulebase, rule_strengths
 from quekaro import cmd_farm
@@ -344,6 +345,34 @@ def test_preview_png_shows_the_tiles_landed_so_far(tmp_path):
         image = np.asarray(Image.open(io.BytesIO(await (await page.http.get(url, headers={"Cookie": cookie})).read())))
         assert image.shape == (H, W, 3)
         assert (image[8:, 16:] == 255).all() and not image[:8].any() and not image[:, :16].any()
+
+    run(tmp_path, scenario)
+
+
+def test_a_preview_larger_than_its_limit_is_shrunk_and_so_is_a_finished_jobs(tmp_path, monkeypatch):
+    monkeypatch.setattr(preview, "MAX_SIDE", 12)  # the 32 x 16 job: 3 times smaller, 11 x 6
+
+    async def scenario(page: Page) -> None:
+        cookie, _ = await page.session()
+        url = f"{page.url}/ui/api/jobs/{JOB}/preview.png"
+
+        async def shown() -> np.ndarray:
+            response = await page.http.get(url, headers={"Cookie": cookie})
+            return np.asarray(Image.open(io.BytesIO(await response.read())))
+
+        page.master.award(3)
+        page.master.finish(3, value=1.0)  # x 16..31, y 8..15
+        image = await shown()
+        assert image.shape == (6, 11, 3)
+        # Blocks of 3 x 3: those wholly or partly in unit 3 show its white (only covered pixels count),
+        # the others black.
+        assert (image[2:, 5:] == 255).all() and not image[:2].any() and not image[:, :5].any()
+        for index in (0, 1, 2):
+            page.master.award(index, token=f"award-{index}")
+            page.master.finish(index, token=f"award-{index}", value=1.0)
+        page.master.store.set_status(JOB, JobStatus.DONE, time.time())
+        Image.new("RGB", (W, H)).save(page.master.result_path(JOB).with_suffix(".png"))  # full size, black
+        assert (await shown()).shape == (6, 11, 3) and ((await shown()) == 255).all()
 
     run(tmp_path, scenario)
 

@@ -24,12 +24,13 @@ Rules for the awkward cases (counted in `ComposeReport`):
 Memory: `compose_planar` works in bands of rows and reads each tile only while a band needs it (a
 `TileSource` loads it from its file), so composing needs the output image (float32, planar: one
 contiguous plane per channel, as an EXR is written) plus a band's float64 sums and the tiles of one row
-of units: well under twice the output image for any size.
+of units: well under twice the output image for any size. `compose_shrunk`, for a preview, keeps only the
+shrunk image, a smaller band and the same tiles.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -139,28 +140,68 @@ def compose_planar(tiles: Iterable[TileLike | TileSource], width: int, height: i
     image = np.zeros((depth, height, width), dtype=np.float32)
     covered = np.zeros((height, width), dtype=bool)
     has = np.zeros((height, width), dtype=bool)
-    loaded: dict[int, TileLike] = {}
-    for y0 in range(0, height, band_rows):
-        y1 = min(height, y0 + band_rows)
-        acc = np.zeros((depth, y1 - y0, width), dtype=np.float64)
-        wsum = np.zeros((y1 - y0, width), dtype=np.float64)
-        for i, source in enumerate(chosen):
-            if source.rect.y < y1 and source.rect.y1 > y0:
-                tile = loaded.get(i) or loaded.setdefault(i, _loaded(source, report))
-                _accumulate(tile, y0, y1, acc, wsum, covered, reach, (width, height))
-                if source.rect.y1 <= y1:
-                    loaded.pop(i)  # no later band needs it
-        band_has = wsum > 0
-        image[:, y0:y1][:, band_has] = (acc[:, band_has] / wsum[band_has]).astype(np.float32)
-        has[y0:y1] = band_has
-        del acc, wsum  # before the next band's are made
-    report.tiles_used = len(chosen)
+    for y0, mean, band_has, band_covered in _blended_bands(chosen, width, height, depth, band_rows, reach, report):
+        y1 = y0 + band_has.shape[0]
+        image[:, y0:y1][:, band_has] = mean[:, band_has].astype(np.float32)
+        has[y0:y1], covered[y0:y1] = band_has, band_covered
     _check_coverage(covered, allow_uncovered, report)
     holes = covered & ~has
     report.filled = int(np.count_nonzero(holes))
     if report.filled:
         _fill_holes(image, holes, has)
     return image, report
+
+
+def compose_shrunk(tiles: Iterable[TileLike | TileSource], width: int, height: int, factor: int,
+                   planes: int = 3, reach: int = 0) -> np.ndarray:
+    """The first `planes` channels of the composed image, shrunk `factor` times on each side: a float32
+    (planes, ceil(height / factor), ceil(width / factor)) image whose pixel is the mean of the blended
+    pixels of its factor x factor block (pixels no tile covers, and holes, left out; a block with none is
+    0). For a preview of a large image: it never holds the image at full size, only a band of it."""
+    if factor < 1 or planes < 1:
+        raise ValueError(f"compose_shrunk: factor {factor} and planes {planes} must be at least 1")
+    report = ComposeReport()
+    chosen = _dedupe([_as_source(t) for t in tiles], width, height, report)
+    depth = min(planes, len(chosen[0].channels)) if chosen else planes
+    out = np.zeros((depth, -(-height // factor), -(-width // factor)), dtype=np.float32)
+    band_rows = factor * max(1, 32 // factor)  # float64 sums of a band: small, as the image is large
+    for y0, mean, has, _ in _blended_bands(chosen, width, height, depth, band_rows, reach, report):
+        sums = _block_sums(mean, factor)  # 0 where nothing was blended
+        counts = _block_sums(has[None].astype(np.float32), factor)[0]
+        rows = slice(y0 // factor, y0 // factor + counts.shape[0])
+        np.divide(sums, counts, out=out[:, rows], where=counts > 0, casting="unsafe")
+    return out
+
+
+def _block_sums(planar: np.ndarray, factor: int) -> np.ndarray:
+    """Sums of each factor x factor block of a planar (c, h, w) array (the last blocks of a row or column
+    may be smaller), without a padded copy."""
+    _, h, w = planar.shape
+    rows = np.add.reduceat(planar, np.arange(0, h, factor), axis=1)
+    return np.add.reduceat(rows, np.arange(0, w, factor), axis=2)
+
+
+def _blended_bands(chosen: list[TileSource], width: int, height: int, depth: int, band_rows: int, reach: int,
+                   report: ComposeReport) -> Iterator[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
+    """Blend the first `depth` channels a band of rows at a time, reading each tile only while a band needs
+    it: yields (first row, the band's float64 weighted means (depth, rows, width), where a finite value
+    was blended, where a tile covers). A mean is 0 where nothing was blended."""
+    loaded: dict[int, TileLike] = {}
+    for y0 in range(0, height, band_rows):
+        y1 = min(height, y0 + band_rows)
+        acc = np.zeros((depth, y1 - y0, width), dtype=np.float64)
+        wsum = np.zeros((y1 - y0, width), dtype=np.float64)
+        covered = np.zeros((y1 - y0, width), dtype=bool)
+        for i, source in enumerate(chosen):
+            if source.rect.y < y1 and source.rect.y1 > y0:
+                tile = loaded.get(i) or loaded.setdefault(i, _loaded(source, report))
+                _accumulate(tile, y0, y1, acc, wsum, covered, reach, (width, height))
+                if source.rect.y1 <= y1:
+                    loaded.pop(i)  # no later band needs it
+        has = wsum > 0
+        np.divide(acc, wsum, out=acc, where=has)
+        yield y0, acc, has, covered
+    report.tiles_used = len(chosen)
 
 
 def _loaded(source: TileSource, report: ComposeReport) -> TileLike:
@@ -178,18 +219,19 @@ def _loaded(source: TileSource, report: ComposeReport) -> TileLike:
 
 def _accumulate(tile: TileLike, y0: int, y1: int, acc: np.ndarray, wsum: np.ndarray, covered: np.ndarray,
                 reach: int, image: tuple[int, int]) -> None:
-    """Add the rows [y0, y1) of a tile, weighted, to a band's sums (non-finite pixels weigh 0)."""
+    """Add the rows [y0, y1) of a tile's first acc.shape[0] channels, weighted, to a band's sums (a pixel
+    with any of them non-finite weighs 0) and mark the band's pixels it `covered`."""
     rect = tile.rect
     top, bottom = max(y0, rect.y), min(y1, rect.y1)
     rows = slice(top - rect.y, bottom - rect.y)
-    pixels = np.asarray(tile.pixels[rows], dtype=np.float64)
+    pixels = np.asarray(tile.pixels[rows, :, :acc.shape[0]], dtype=np.float64)
     finite = np.all(np.isfinite(pixels), axis=2)
     placed = tile_weight(rect, tile.core, reach, image)[rows]
     w = placed * finite
     cols = slice(rect.x, rect.x1)
     acc[:, top - y0:bottom - y0, cols] += np.moveaxis(np.where(finite[..., None], pixels, 0.0) * w[..., None], 2, 0)
     wsum[top - y0:bottom - y0, cols] += w
-    covered[top:bottom, cols] |= placed > 0  # a cut band pixel covers nothing; a non-finite one is a hole
+    covered[top - y0:bottom - y0, cols] |= placed > 0  # a cut band pixel covers nothing; a non-finite one is a hole
 
 
 def _dedupe(tiles: Iterable[TileSource], width: int, height: int, report: ComposeReport) -> list[TileSource]:

@@ -3,7 +3,10 @@
 The tiles recorded so far are blended by `core.render.compose` (the final assembly's own weights, pixels
 no tile covers left black) and written as an 8-bit sRGB PNG by `core.render.imageio.write_png_planar`,
 which encodes with Pillow (already a dependency of the master for the final PNG; no other image library
-is needed). A finished job's own result.png is served as it is.
+is needed). An image wider or taller than `MAX_SIDE` is shrunk by a whole factor until it fits (each
+preview pixel the mean of a block), and composed a band at a time: a page never asks the master for a
+16k image's gigabytes, nor the browser to decode them. A finished job's own result.png is served as it
+is when it fits; a larger one's preview is composed from its tiles, once.
 
 Composing costs time on large images, so it runs in a thread, once at a time per job, and a job's
 preview is composed again only after `MIN_INTERVAL_S` or twice the last composition's time, whichever
@@ -18,13 +21,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from core.model.job import RGB
-from core.render.compose import compose_planar
+from core.render.compose import compose_shrunk
 from core.render.film import display_rgb
 from core.render.imageio import write_png_planar
 from core.render.tiles import tile_source
 from master.store import ResultRecord
 
 MIN_INTERVAL_S = 1.0
+MAX_SIDE = 2048  # pixels: twice the page's widest view, for high-density screens
 PREVIEW_NAME = "preview.png"
 
 
@@ -64,11 +68,16 @@ class Previews:
         self.jobs.pop(job_id, None)
 
 
+def shrink_factor(width: int, height: int) -> int:
+    """The smallest whole factor that brings a width x height image within MAX_SIDE on both sides."""
+    return max(1, -(-max(width, height) // MAX_SIDE))
+
+
 def write_preview(path: Path, width: int, height: int, results: list[ResultRecord], reach: int = 0,
                   colour: tuple[str, ...] = RGB) -> Path:
-    """Blend the tiles of `results` into a (width x height) PNG at `path`; uncovered pixels are black.
-    `colour` is the film's colour channels (core.render.film.display_rgb)."""
+    """Blend the tiles of `results` into a PNG at `path`, of the image's size shrunk by `shrink_factor`;
+    pixels no tile covers are black. `colour` is the film's colour channels (core.render.film.display_rgb)."""
     tiles = [tile_source(r.tile_path, unit_index=r.index) for r in results if Path(r.tile_path).is_file()]
-    planar, _ = compose_planar(tiles, width, height, allow_uncovered=True, reach=reach)
+    planar = compose_shrunk(tiles, width, height, shrink_factor(width, height), reach=reach)
     path.parent.mkdir(parents=True, exist_ok=True)
     return write_png_planar(path, display_rgb(planar, colour))

@@ -41,7 +41,7 @@ from master.http_guard import JOB_PART, UNIT_PART
 from master.store import JobRecord, StoreError
 from master.web import auth
 from master.web.events import Watcher, stream
-from master.web.preview import Previews
+from master.web.preview import Previews, shrink_factor
 from master.web.rules import fired_rules, planner_for
 from master.web.views import WebService, agents_view, job_view, jobs_view, report_view, unit_view
 
@@ -239,14 +239,14 @@ async def api_preview(request: web.Request) -> web.StreamResponse:
         record = service.store.job(job_id)
     except StoreError as exc:
         raise web.HTTPNotFound(reason=str(exc)) from None
+    width, height = int(record.plan["width"]), int(record.plan["height"])
     final = service.result_path(job_id).with_suffix(".png")
-    if record.status == JobStatus.DONE and final.is_file():
+    if record.status == JobStatus.DONE and final.is_file() and shrink_factor(width, height) == 1:
         state.previews.forget(job_id)
         return web.FileResponse(final, headers={"Content-Type": "image/png"})
     reach = filter_reach(float(record.plan.get("filter_radius", DEFAULT_FILTER_RADIUS)))  # as JobPlan.from_dict
-    path = await state.previews.png(job_id, service.job_dir(job_id), int(record.plan["width"]),
-                                    int(record.plan["height"]), service.store.results(job_id), reach,
-                                    tuple(record.plan.get("colour", RGB)))  # as JobPlan.from_dict
+    path = await state.previews.png(job_id, service.job_dir(job_id), width, height, service.store.results(job_id),
+                                    reach, tuple(record.plan.get("colour", RGB)))  # as JobPlan.from_dict
     return web.FileResponse(path, headers={"Content-Type": "image/png"})
 
 
