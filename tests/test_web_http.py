@@ -412,6 +412,24 @@ def test_event_stream_emits_on_a_status_change_and_only_then(tmp_path):
     run(tmp_path, scenario)
 
 
+def test_the_agents_event_is_sent_when_a_row_changes_not_as_their_ages_tick(tmp_path):
+    async def scenario(page: Page) -> None:
+        cookie, _ = await page.session()
+        stream = await page.http.get(f"{page.url}/ui/events", headers={"Cookie": cookie})
+        await read_events(stream, lambda name, _data: name == "agents", timeout=5)
+        with pytest.raises(TimeoutError):  # last_seen_s grows by the second: the page ages it itself
+            await read_events(stream, lambda name, _data: name == "agents", timeout=3.5)
+        agent = page.master.auction.agents[AGENT]
+        agent.last_seen -= 30  # what the page shows is now 30 s off (AGE_SLACK_S is 5)
+        [(_, data)] = await read_events(stream, lambda name, _data: name == "agents", timeout=2 * events.TICK_S + 1)
+        assert data["agents"][0]["last_seen_s"] >= 30 and "server_now" in data
+        agent.lost = True
+        [(_, data)] = await read_events(stream, lambda name, _data: name == "agents", timeout=2 * events.TICK_S + 1)
+        assert data["agents"][0]["state"] == "lost"
+
+    run(tmp_path, scenario)
+
+
 def test_event_streams_end_when_the_master_stops_or_the_session_ends(tmp_path):
     async def scenario(page: Page) -> None:
         cookie, csrf = await page.session()

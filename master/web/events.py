@@ -5,7 +5,9 @@ anything changed and sends only what did, each as a named event whose data is on
 
 - `jobs`: the jobs table (`views.jobs_view`);
 - `job`: the job the page shows, with its units (`views.job_view`), when `?job=` names one;
-- `agents`: the agents table (`views.agents_view`) with `server_now`, so the page can age "last heard".
+- `agents`: the agents table (`views.agents_view`) with `server_now`. The page ages "last heard" itself,
+  so the table is sent again when a row changes otherwise, or when an agent's age drifts more than
+  `AGE_SLACK_S` from what the page shows: heartbeats alone do not make an idle farm's stream talk.
 
 Whether jobs changed is read from the job store's own change counter (`sqlite3.Connection.total_changes`
 of the master's connection: every award, tile, status change and submission is a row written through it)
@@ -31,6 +33,8 @@ from master.web.views import WebService, agents_view, job_view, jobs_view
 
 TICK_S = 1.0
 KEEPALIVE_S = 15.0
+AGE_SLACK_S = 5.0  # seconds a "last heard" shown may be off; agents beat every 2 s by default
+AGEING = ("last_seen_s", "heard_at")  # the fields that change by the clock alone
 
 
 def sse(event: str, data: dict[str, Any]) -> bytes:
@@ -48,6 +52,8 @@ class Watcher:
     counts: dict[str, tuple[int, int]] = field(default_factory=dict)  # units done/failed per agent, at `key`
     sent: dict[str, str] = field(default_factory=dict)
     waiting: set[str] = field(default_factory=set)  # jobs done whose report is not written yet
+    agents_at: float = 0.0  # time.monotonic() when the agents table was last sent
+    ages: dict[str, float] = field(default_factory=dict)  # each agent's last_seen_s as last sent
 
     def _change_key(self) -> tuple[Any, ...]:
         ready = sum(self.service.result_path(j).with_suffix(".json").exists() for j in self.waiting)
@@ -66,8 +72,19 @@ class Watcher:
             if self.job_id is not None:
                 out += self._if_new("job", self._job())
         agents = agents_view(self.service, self.counts)  # every tick: heartbeats change no row
-        out += self._if_new("agents", {"agents": agents}, extra={"server_now": time.time()})
-        return out
+        if self._ages_drifted(agents):
+            self.sent.pop("agents", None)
+        steady = [{k: v for k, v in row.items() if k not in AGEING} for row in agents]
+        sent = self._if_new("agents", {"agents": steady}, send={"agents": agents, "server_now": time.time()})
+        if sent:
+            self.agents_at, self.ages = time.monotonic(), {row["jid"]: row["last_seen_s"] for row in agents}
+        return out + sent
+
+    def _ages_drifted(self, agents: list[dict[str, Any]]) -> bool:
+        """Whether an agent's last_seen_s is off by more than AGE_SLACK_S from what the page has aged
+        it to since the last agents event."""
+        gone = time.monotonic() - self.agents_at
+        return any(abs(self.ages.get(row["jid"], 0.0) + gone - row["last_seen_s"]) > AGE_SLACK_S for row in agents)
 
     def _job(self) -> dict[str, Any]:
         try:
@@ -75,12 +92,13 @@ class Watcher:
         except StoreError as exc:
             return {"job_id": self.job_id, "error": str(exc)}
 
-    def _if_new(self, event: str, data: dict[str, Any], extra: dict[str, Any] | None = None) -> list[bytes]:
+    def _if_new(self, event: str, data: dict[str, Any], send: dict[str, Any] | None = None) -> list[bytes]:
+        """The event, unless `data` equals what was compared last time; `send` is sent instead of `data`."""
         text = json.dumps(data, sort_keys=True)
         if self.sent.get(event) == text:
             return []
         self.sent[event] = text
-        return [sse(event, {**data, **(extra or {})})]
+        return [sse(event, data if send is None else send)]
 
 
 async def stream(request: web.Request, watcher: Watcher, alive: Callable[[], bool],
