@@ -54,6 +54,9 @@ class Config:
 
     cfp_timeout_s: float = 2.0  # agents that have not answered a CFP by then are left out of that round
     heartbeat_timeout_s: float = 15.0  # Flamenco uses 60 s; agents here beat every few seconds
+    # A lost agent is forgotten after this (its credits kept, should it come back): a restarted agent
+    # comes back under a new name, and the old one would stay listed as lost for as long as the master runs.
+    forget_lost_s: float = 600.0
     award_grace_s: float = 10.0  # an award not listed in the agent's heartbeats by then was lost in transit
     render_factor: float = 3.0  # render deadline = estimate x factor + slack
     render_slack_s: float = 30.0
@@ -184,6 +187,13 @@ class AgentLost(Event):
 
 @dataclass(frozen=True)
 class AgentBack(Event):
+    agent: str
+
+
+@dataclass(frozen=True)
+class AgentForgotten(Event):
+    """An agent lost for `Config.forget_lost_s` is dropped from the agents the master lists."""
+
     agent: str
 
 
@@ -679,6 +689,7 @@ class Auction:
                 if state.invited in self.rounds:
                     self.rounds[state.invited].offered.pop(state.name, None)
                 state.invited = None
+        out += self._forget_lost(now)
         for job in self._running():
             for unit in job.units.values():
                 if unit.status == UnitStatus.AWARDED and now > unit.deadline:
@@ -770,7 +781,8 @@ class Auction:
     def next_deadline(self) -> float | None:
         """The earliest time at which `tick` has something to do without a new message (for timers)."""
         times = [r.deadline for r in self.rounds.values()]
-        times += [a.last_seen + self.config.heartbeat_timeout_s for a in self.agents.values() if not a.lost]
+        times += [a.last_seen + (self.config.forget_lost_s if a.lost else self.config.heartbeat_timeout_s)
+                  for a in self.agents.values()]
         for job in self._running():
             times += [u.deadline for u in job.units.values() if u.status == UnitStatus.AWARDED]
         finite = [t for t in times if math.isfinite(t)]
@@ -792,6 +804,14 @@ class Auction:
 
     def _new_id(self) -> str:
         return f"{self.rng.getrandbits(64):016x}"
+
+    def _forget_lost(self, now: float) -> list[Command]:
+        stale = [a for a in self.agents.values()
+                 if a.lost and not a.holding and now - a.last_seen > self.config.forget_lost_s]
+        for agent in stale:
+            self.known_credits[agent.name] = agent.credits
+            del self.agents[agent.name]
+        return [AgentForgotten(a.name) for a in stale]
 
     def _running(self) -> list[Job]:
         return sorted((j for j in self.jobs.values() if j.status == JobStatus.RUNNING), key=lambda j: j.order)

@@ -223,6 +223,22 @@ def test_lost_agent_gives_its_units_to_another() -> None:
     assert a.on_inform(other, inform(again[0], 1.0), t + 1)[-1] == au.JobDone("job-1")
 
 
+def test_an_agent_lost_long_enough_is_forgotten_and_keeps_its_credits_if_it_comes_back() -> None:
+    a = make([1.0], ["A", "B"])
+    a.agents["A"].credits = 3
+    lost_at = a.config.heartbeat_timeout_s + 0.5
+    a.on_heartbeat("B", m.Heartbeat(conversation="h", busy=()), lost_at)
+    assert [e.agent for e in events(a.expire(lost_at), au.AgentLost)] == ["A"]
+    forget_at = a.config.forget_lost_s + 0.5  # A was last seen at 0
+    a.on_heartbeat("B", m.Heartbeat(conversation="h", busy=()), forget_at - 1)
+    assert a.next_deadline() == pytest.approx(a.config.forget_lost_s)  # a timer wakes the master for it
+    assert events(a.expire(forget_at - 1), au.AgentForgotten) == [] and "A" in a.agents
+    assert events(a.expire(forget_at), au.AgentForgotten) == [au.AgentForgotten("A")]
+    assert set(a.agents) == {"B"}
+    a.register("A", forget_at + 1)
+    assert a.agents["A"].credits == 3 and not a.agents["A"].lost
+
+
 def test_render_deadline_cancels_and_retries_elsewhere() -> None:
     a = make([1.0], ["A", "B"])
     a.agents["A"].credits = 1
