@@ -185,18 +185,37 @@ def test_files_outside_the_scene_folder_are_packed_and_references_rewritten(tmp_
     assert "<path" not in out.read_text()
 
 
-@pytest.mark.parametrize("reference", ["/etc/hostname", "../../outside.obj"])
-def test_an_unpacked_scene_that_reads_outside_its_bundle_is_refused(tmp_path, reference):
+OUTSIDE = ["<shape type='obj'><string name='filename' value='{}'/></shape>", "<include filename='{}'/>",
+           "<path value='{}'/>", "<bsdf type='diffuse'><spectrum name='reflectance' filename='{}'/></bsdf>"]
+
+
+@pytest.mark.parametrize("reference", ["/etc/hostname", "../../outside.obj", "../../missing.obj", "/no/such/file",
+                                       "scene/../../outside.obj"])
+@pytest.mark.parametrize("element", OUTSIDE, ids=["file", "include", "path", "spectrum"])
+def test_an_unpacked_scene_that_reads_outside_its_bundle_is_refused_telling_nothing_of_what_is_there(
+        tmp_path, reference, element):
+    """The same refusal whether the file outside exists, is a folder or is missing, and before it is parsed:
+    a submitter learns nothing of the master's files (an include used to parse them first)."""
     from core.render.bundle import check_unpacked
 
-    (tmp_path / "outside.obj").write_text("secret")
+    (tmp_path / "outside.obj").write_text("not XML")
     folder = tmp_path / "job" / "scene"
     folder.mkdir(parents=True)
     scene = folder / "scene.xml"
-    scene.write_text(f"<scene version='3.0.0'>{_shape(reference)}</scene>")
-    if not Path(reference).is_absolute() or Path(reference).exists():
-        with pytest.raises(BundleError, match="outside the bundle"):
-            check_unpacked(scene, {})
+    scene.write_text(f"<scene version='3.0.0'>{element.format(reference)}</scene>")
+    with pytest.raises(BundleError) as refused:
+        check_unpacked(scene, {})
+    assert str(refused.value) == f"bundle scene: {scene}:1: reference {reference!r} leads outside the bundle"
+
+
+def test_a_link_inside_the_bundle_to_a_file_outside_is_refused(tmp_path):
+    from core.render.bundle import check_unpacked
+
+    (tmp_path / "outside.obj").write_text("secret")
+    scene = _scene_with(tmp_path, _shape("inside.obj"))
+    (scene.parent / "inside.obj").symlink_to(tmp_path / "outside.obj")
+    with pytest.raises(BundleError, match=r"'inside\.obj' leads outside the bundle"):
+        check_unpacked(scene, {})
 
 
 def test_huge_referenced_file_is_refused_without_reading(tmp_path):

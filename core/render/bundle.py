@@ -210,16 +210,12 @@ def check_rules(path: Path, defuzzifier: str | None = None, what: str = "--rules
 
 
 def check_unpacked(scene: Path, defines: dict[str, str]) -> None:
-    """Refuse an unpacked scene that would read any file outside its bundle folder (naming it)."""
-    folder = Path(scene).parent.resolve()
+    """Refuse an unpacked scene that would read any file outside its bundle folder (naming the reference),
+    before anything outside is looked at."""
     try:
-        found = read_scene(scene, defines, (), cwd=None)
+        read_scene(scene, defines, (), cwd=None, within=Path(scene).parent)
     except SceneError as exc:
         raise BundleError(f"bundle scene: {exc}") from exc
-    for ref in found.references:
-        if not ref.target.resolve().is_relative_to(folder):
-            raise BundleError(f"{ref.file.name}:{ref.line}: reference {ref.name!r} resolves to "
-                              f"{ref.target}, outside the bundle")
 
 
 def bundle_hash(data: bytes | str | Path) -> str:

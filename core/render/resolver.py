@@ -55,6 +55,7 @@ class SceneFiles:
     references: list[Reference] = field(default_factory=list)
     params: dict[str, str] = field(default_factory=dict)
     includers: dict[Path, Path] = field(default_factory=dict)  # included file -> the file including it
+    within: Path | None = None  # a folder no reference may leave (an unpacked bundle's)
 
     def files(self) -> list[Path]:
         """Every file the scene reads besides the main one (folders of `<path>` excluded), in order."""
@@ -86,19 +87,21 @@ def lookup(name: str, folders: Sequence[Path]) -> Path | None:
 
 
 def read_scene(main: Path, defines: dict[str, str], search_paths: Sequence[Path] = (),
-               cwd: Path | None = None) -> SceneFiles:
+               cwd: Path | None = None, within: Path | None = None) -> SceneFiles:
     """Read the scene file and everything it includes; resolve every reference (SceneError if one fails,
-    naming the file, the line and every folder searched)."""
+    naming the file, the line and every folder searched). With `within`, a reference that could lead
+    outside that folder is refused before any file or folder it names is looked at: what lies outside
+    (whether a file exists, whether it parses) is never told."""
     main = Path(main).absolute()
     if not main.is_file():
         raise SceneError(f"{main}: scene file not found")
     check_defines(defines)
-    found = SceneFiles(main, params=dict(defines))
+    found = SceneFiles(main, params=dict(defines), within=None if within is None else Path(within).resolve())
     top = [main.parent, *([cwd] if cwd is not None else []), *(Path(p).absolute() for p in search_paths)]
     deferred: list[tuple[Path, etree._Element, str]] = []
     _read_file(main, top, found, deferred, [])
     for file, elem, name in deferred:
-        found.references.append(_resolved(file, elem, "file", name, top))
+        found.references.append(_resolved(file, elem, "file", name, top, found.within))
     return found
 
 
@@ -134,29 +137,31 @@ def _visit(elem: etree._Element, path: Path, root: etree._Element, folders: list
     elif elem.tag == "path":
         if elem.getparent() is not root:
             raise SceneError(f"{path}:{elem.sourceline}: <path> can only be a child of the root")
-        ref = _path_folder(elem, path, folders)
+        ref = _path_folder(elem, path, folders, found.within)
         found.references.append(ref)
         folders.insert(0, ref.target)
     elif elem.tag == "include":
         scope = [path.parent, *folders]
-        ref = _resolved(path, elem, "include", elem.get("filename") or "", scope)
+        ref = _resolved(path, elem, "include", elem.get("filename") or "", scope, found.within)
         found.references.append(ref)
         found.includers.setdefault(ref.target, path)
         _read_file(ref.target, scope, found, deferred, [*stack, path])
     elif elem.tag == "spectrum" and elem.get("filename"):
-        ref = _resolved(path, elem, "spectrum", elem.get("filename", ""), folders)
+        ref = _resolved(path, elem, "spectrum", elem.get("filename", ""), folders, found.within)
         found.references.append(ref)
         elem.set(RESOLVED_ATTR, str(ref.target))  # readers of the expanded XML need not resolve it again
     elif elem.get("name") == "filename" and elem.get("value") is not None and elem.tag == "string":
         deferred.append((path, elem, elem.get("value", "")))
 
 
-def _resolved(file: Path, elem: etree._Element, kind: str, name: str, folders: Sequence[Path]) -> Reference:
+def _resolved(file: Path, elem: etree._Element, kind: str, name: str, folders: Sequence[Path],
+              within: Path | None = None) -> Reference:
     where = f"{file}:{elem.sourceline}"
     if not name:
         raise SceneError(f"{where}: <{elem.tag}> names no file")
     if "$" in name:
         raise SceneError(f"{where}: file name {name!r} uses an undefined parameter")
+    _refuse_outside(where, name, [Path(name)] if Path(name).is_absolute() else [f / name for f in folders], within)
     target = lookup(name, folders)
     if target is None or not target.is_file():
         searched = ", ".join(str(f) for f in folders) if not Path(name).is_absolute() else "(absolute name)"
@@ -165,9 +170,21 @@ def _resolved(file: Path, elem: etree._Element, kind: str, name: str, folders: S
     return Reference(file, elem.sourceline or 0, kind, name, Path(os.path.normpath(target.absolute())), elem)
 
 
-def _path_folder(elem: etree._Element, file: Path, folders: Sequence[Path]) -> Reference:
+def _refuse_outside(where: str, name: str, candidates: Sequence[Path], within: Path | None) -> None:
+    """SceneError if a place `name` may resolve to lies outside `within`, read as written (`..` folded)
+    and, where it exists, with its links followed."""
+    for candidate in candidates if within is not None else ():
+        if not (Path(os.path.normpath(candidate.absolute())).is_relative_to(within)
+                and candidate.resolve().is_relative_to(within)):
+            raise SceneError(f"{where}: reference {name!r} leads outside the bundle")
+
+
+def _path_folder(elem: etree._Element, file: Path, folders: Sequence[Path], within: Path | None = None) -> Reference:
     value = elem.get("value", "")
-    target = Path(value) if Path(value).is_absolute() else file.parent / value
+    absolute = Path(value).is_absolute()
+    _refuse_outside(f"{file}:{elem.sourceline}", value,
+                    [Path(value)] if absolute else [file.parent / value, *(f / value for f in folders)], within)
+    target = Path(value) if absolute else file.parent / value
     if not target.exists():
         target = lookup(value, folders) or target
     if not target.is_dir():
