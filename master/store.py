@@ -311,7 +311,7 @@ class JobStore:
     def job(self, job_id: str) -> JobRecord:
         row = self.db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
         if row is None:
-            raise StoreError(f"no job {job_id!r} in {self.path}")
+            raise StoreError(f"no job {job_id!r}")
         return _job(row)
 
     def list_jobs(self, status: JobStatus | None = None) -> list[JobRecord]:
@@ -616,7 +616,7 @@ class JobStore:
         """A job ended as done runs again (repair); a running job stays running."""
         row = db.execute("SELECT status FROM jobs WHERE id = ?", (job_id,)).fetchone()
         if row is None:
-            raise StoreError(f"no job {job_id!r} in {self.path}")
+            raise StoreError(f"no job {job_id!r}")
         if row["status"] != JobStatus.RUNNING:
             to = job_transition(f"job {job_id!r}", row["status"], JobStatus.RUNNING)
             db.execute("UPDATE jobs SET status = ?, finished = NULL WHERE id = ?", (to, job_id))

@@ -311,6 +311,10 @@ def test_job_and_unit_views_show_state_parameters_rules_and_attempts(tmp_path):
         assert set(rules["outputs"]) == {"Rl", "Ls", "Ibs"} and "default one" in rules["note"]
         missing = await page.http.get(f"{page.url}/ui/api/jobs/{JOB}/units/9", headers={"Cookie": cookie})
         assert missing.status == 404
+        for part in ("", "/report", "/preview.png"):
+            missing = await page.http.get(f"{page.url}/ui/api/jobs/job0000009{part}", headers={"Cookie": cookie})
+            text = f"{missing.reason} {await missing.text()}"
+            assert missing.status == 404 and "no job 'job0000009'" in text and str(page.master.home) not in text
         agents = await (await page.http.get(f"{page.url}/ui/api/agents", headers={"Cookie": cookie})).json()
         [agent] = agents["agents"]
         assert agent["jid"] == AGENT and agent["units_done"] == 1 and agent["state"] == "idle"
