@@ -448,8 +448,11 @@ class MasterService:
         # header, says which unit a tile is.
         tiles = [tile_source(r.tile_path, unit_index=r.index, job_id=job_id) for r in results]
         params = {r.index: r.params for r in results}
+        # The scene as submitted (its name in the bundle), not the master's copy, meaningless to the user.
+        scene = {**plan.spec.to_dict(), "path": record.scene}
         report = assemble(plan, tiles, params, self.result_path(job_id), started=time.perf_counter(),
-                          extra={"job_id": job_id, "created": record.created, "finished": record.finished})
+                          extra={"job_id": job_id, "scene": scene, "created": record.created,
+                                 "finished": record.finished})
         return report
 
 

@@ -82,6 +82,7 @@ def test_job_on_three_agents_matches_local_render(farm3, tmp_path):
     image = read_image(out)
     report = json.loads(out.with_suffix(".json").read_text())
     assert report["image"]["file"] == str(out.resolve())  # not the master's own file, meaningless here
+    assert report["scene"]["path"] == Path(SCENE).name and report["scene"]["defines"] == DEFINES  # as submitted
     agents = {u["agent"] for u in report["units"]}
     assert len(report["units"]) == job["units_total"]
     assert np.isfinite(image).all() and image.shape == (64, 64, 3)
