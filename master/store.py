@@ -431,9 +431,11 @@ class JobStore:
 
     # --- progress ------------------------------------------------------------------------------------
 
-    def progress(self, job_id: str) -> Progress:
+    def progress(self, job_id: str, now: float | None = None) -> Progress:
         """Units done/total, agents rendering now, and an ETA from the finished units' seconds per unit of
-        work (WorkUnit.work)."""
+        work (WorkUnit.work). Given `now` (the auction's clock, as the attempts' start times), the time the
+        running units have already rendered is taken off, each at most its unit's expected time, so the ETA
+        counts down between tiles."""
         self.job(job_id)
         db = self.db
         counts = dict(
@@ -455,10 +457,24 @@ class JobStore:
         ).fetchone()[0]
         eta = None
         if rate[0] is not None and rate[1]:
-            eta = left * (rate[0] / rate[1]) / max(1, busy)
+            per_work = rate[0] / rate[1]
+            eta = max(0.0, left * per_work - self._rendered_so_far(job_id, per_work, now)) / max(1, busy)
         elif left == 0:
             eta = 0.0
         return Progress(counts.get(UnitStatus.DONE, 0), total, counts.get(UnitStatus.FAILED, 0), busy, eta)
+
+    def _rendered_so_far(self, job_id: str, per_work: float, now: float | None) -> float:
+        """Seconds the running attempts of a job have rendered by `now`, each capped at its unit's work x
+        `per_work` (a unit over its time is not done sooner for it)."""
+        if now is None:
+            return 0.0
+        running = self.db.execute(
+            f"SELECT a.started, {_WORK.format(t='u.')} FROM attempts a"
+            " JOIN units u ON (a.job_id, a.idx) = (u.job_id, u.idx)"
+            " WHERE a.job_id = ? AND a.outcome = 'running' AND u.status = ?",
+            (job_id, UnitStatus.AWARDED),
+        ).fetchall()
+        return sum(min(max(0.0, now - started), work * per_work) for started, work in running)
 
     # --- restart and the auction's events ------------------------------------------------------------
 

@@ -176,6 +176,11 @@ def test_auction_events_are_recorded(tmp_path: Path) -> None:
     # Finished unit took exactly its cost: the ETA is the remaining cost at that rate over one busy agent.
     remaining = sum(u.cost for u in store.units("job-1") if u.status != "done")
     assert progress.eta_s == pytest.approx(remaining)
+    # Given the clock, what the running unit has rendered is taken off, at most its own expected time.
+    [running] = [u for u in store.units("job-1") if u.status == "awarded"]
+    started, cost = store.attempts("job-1", running.index)[-1].started, running.cost
+    assert store.progress("job-1", started + 0.25 * cost).eta_s == pytest.approx(remaining - 0.25 * cost)
+    assert store.progress("job-1", started + 10 * cost).eta_s == pytest.approx(remaining - cost)
     # A failure on the other award is recorded and its unit is pending again.
     other = awarded[1].message
     fail = m.Failure(

@@ -109,6 +109,21 @@ def test_login_form_refuses_a_wrong_token_and_sets_a_strict_httponly_cookie(farm
     screenshot(browser, tmp_path, "jobs-empty")
 
 
+def test_an_eta_counts_down_between_events_but_not_while_the_farm_is_paused(farm, browser):
+    logged_in(browser, farm)
+    shown = browser.execute_script("""
+        const ago = Date.now() / 1000 - 30;  // the job's row arrived 30 s ago, with 100 s to go
+        const running = eta({status: "running", eta_s: 100, receivedAt: ago});
+        const paused = eta({status: "running", eta_s: 100, receivedAt: ago, paused: "the disk is full"});
+        document.body.append(running, paused);
+        const before = [running.textContent, paused.textContent];
+        tickEtas();
+        const after = [running.textContent, paused.textContent];
+        running.remove(); paused.remove();
+        return [...before, ...after];""")
+    assert shown == ["1 min 40 s", "1 min 40 s", "1 min 10 s", "1 min 40 s"]
+
+
 def test_watch_a_job_render_until_its_image_is_complete_then_click_a_unit(farm, browser, tmp_path):
     logged_in(browser, farm)
     browser.execute_script("window.__notReloaded = true;")

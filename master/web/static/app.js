@@ -1,6 +1,6 @@
 // The farm's page: jobs, one job's image and partition, agents. Plain JavaScript, no framework, no build.
 // Data arrives by server-sent events (/ui/events); the only timer is a 1 s one that ages "last heartbeat"
-// locally. Every value from the server is put in the page as text (textContent), never as HTML.
+// and counts ETAs down locally. Every value from the server is put in the page as text (textContent), never as HTML.
 "use strict";
 
 const CSRF = document.querySelector('meta[name="csrf-token"]').content;
@@ -56,7 +56,18 @@ function fmtNumber(v, digits = 3) {
 
 function eta(job) {
   if (job.status !== "running") return "";
-  return job.eta_s === null || job.eta_s === undefined ? "after the first unit" : fmtSeconds(job.eta_s);
+  if (job.eta_s === null || job.eta_s === undefined) return "after the first unit";
+  // The master sends a job again only when a row of it changes: the ETA counts down here in between
+  // (tickEtas), from when it arrived, except while the farm is paused.
+  const dataset = job.paused ? {} : { eta: String(job.eta_s), at: String(job.receivedAt || Date.now() / 1000) };
+  return el("span", { class: "eta", dataset }, fmtSeconds(job.eta_s));
+}
+
+function tickEtas() {
+  const now = Date.now() / 1000;
+  for (const span of document.querySelectorAll("span.eta[data-eta]")) {
+    span.textContent = fmtSeconds(Math.max(0, Number(span.dataset.eta) - (now - Number(span.dataset.at))));
+  }
 }
 
 function badge(text) {
@@ -117,8 +128,11 @@ function connect() {
   const url = "/ui/events" + (state.jobId ? `?job=${encodeURIComponent(state.jobId)}` : "");
   const source = new EventSource(url);
   source.addEventListener("open", () => { live.textContent = "live"; live.className = "live ok"; });
-  source.addEventListener("jobs", (e) => { state.jobs = JSON.parse(e.data).jobs; renderJobs(); });
-  source.addEventListener("job", (e) => { state.job = JSON.parse(e.data); renderJob(); });
+  source.addEventListener("jobs", (e) => {
+    state.jobs = JSON.parse(e.data).jobs.map((j) => ({ ...j, receivedAt: Date.now() / 1000 }));
+    renderJobs();
+  });
+  source.addEventListener("job", (e) => { state.job = { ...JSON.parse(e.data), receivedAt: Date.now() / 1000 }; renderJob(); });
   source.addEventListener("agents", (e) => {
     const data = JSON.parse(e.data);
     state.agents = data.agents;
@@ -478,5 +492,5 @@ document.getElementById("logout").addEventListener("click", () => {
 });
 window.addEventListener("hashchange", route);
 window.addEventListener("resize", () => drawOverlay());
-setInterval(() => { if (state.view === "agents") renderAgents(); }, 1000);  // ages the heartbeats; no request
+setInterval(() => { if (state.view === "agents") renderAgents(); tickEtas(); }, 1000);  // ages heartbeats and ETAs; no request
 route();
