@@ -3,11 +3,14 @@ where it would change it (media, dielectrics, an envmap seen through glass)."""
 
 from pathlib import Path
 
+import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from core.errors import QuekaroError, SceneError
 from core.model.job import SceneSpec
-from core.render.effects import analyse, analyse_loaded, depth_cap
+from core.render.effects import SPECTRAL_RANGE_NM, analyse, analyse_loaded, depth_cap, largest_reflectance
 from core.render.worker import render_full
 
 REPO = Path(__file__).resolve().parent.parent
@@ -62,6 +65,57 @@ def test_nested_integrators_are_described_and_ptracer_is_not_split(tmp_path):
     scene.write_text('<scene version="3.0.0"><integrator type="ptracer"/><shape type="sphere"/></scene>')
     effects = analyse(SceneSpec(scene))
     assert not effects.splittable and any("splat anywhere" in r for r in effects.reasons)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(-1e-3, 1e-3), min_size=1, max_size=6), st.floats(-2.0, 2.0), st.floats(-60.0, 60.0))
+def test_the_largest_reflectance_of_spectral_coefficients_is_their_spectrums_largest(c0s, c1, c2):
+    """Mitsuba's sRGB model s(x) = 1/2 + x / (2 sqrt(1 + x^2)), x = c0 l^2 + c1 l + c2: the closed form
+    against the spectrum sampled every 0.05 nm (tolerance: what a step that fine can miss, 1e-6)."""
+    coefficients = np.array([[c0, c1, c2] for c0 in c0s])
+    wavelengths = np.linspace(*SPECTRAL_RANGE_NM, 9401)
+    x = (coefficients[:, :1] * wavelengths + c1) * wavelengths + c2
+    sampled = float(np.max(0.5 + 0.5 * x / np.sqrt(x * x + 1)))
+    texels = coefficients.reshape(1, -1, 3)  # a bitmap's (h, w, 3) coefficients
+    assert largest_reflectance(texels, spectral=True) == pytest.approx(sampled, abs=1e-6)
+    assert largest_reflectance(coefficients[:1].T, spectral=True) == pytest.approx(
+        largest_reflectance(texels[:, :1], spectral=True))  # a colour's value, (3, 1)
+    assert largest_reflectance(texels, spectral=False) == np.max(texels)  # rgb: the values are reflectances
+
+
+def test_a_spectral_scenes_depth_cap_reads_its_colours_as_reflectances(tmp_path):
+    """A grey 0.5 is stored as the coefficients (0, 0, 0) in a spectral variant: read as reflectances they
+    said albedo 0 and capped the depth at 2, and the image came out half as bright."""
+    scene = tmp_path / "box.xml"
+    text = (REPO / "tests" / "compat" / "scenes" / "spectral_grey_box.xml").read_text()
+    scene.write_text(text.replace('name="max_depth" value="8"', 'name="max_depth" value="-1"'))
+    effects = analyse(SceneSpec(scene))
+    assert effects.variant == "llvm_ad_spectral" and effects.max_depth == depth_cap(0.5)
+    assert any("largest albedo 0.50" in r for r in effects.reasons), effects.reasons
+
+
+def test_a_cut_or_cap_leaves_a_shallower_nested_integrator_as_written():
+    """with_depth: the deepest nested integrators take the new depth; a shallower one keeps its own unless
+    the new depth is less (an aov's depth-2 child was rendered at the -1 sibling's cap of 20: 19 % brighter)."""
+    from lxml import etree
+
+    from core.model import integrators
+
+    def depths(xml: str) -> dict[str, str]:
+        tree = etree.fromstring(xml)
+        return {e.get("name"): e.find("integer[@name='max_depth']").get("value") for e in tree.iter("integrator")
+                if e.get("name")}
+
+    tree = etree.fromstring('<integrator type="aov"><string name="aovs" value="dd.y:depth"/>'
+                            '<integrator type="path" name="short"><integer name="max_depth" value="3"/></integrator>'
+                            '<integrator type="path" name="full"><integer name="max_depth" value="-1"/></integrator>'
+                            '</integrator>')
+    assert depths(integrators.with_depth(tree, 20)) == {"short": "3", "full": "20"}
+    assert depths(integrators.with_depth(tree, 2)) == {"short": "2", "full": "2"}
+    assert depths(integrators.with_depth(tree, -1)) == {"short": "3", "full": "-1"}
+    tree.find("integrator[@name='full']/integer").set("value", "12")
+    assert depths(integrators.with_depth(tree, 6)) == {"short": "3", "full": "6"}
+    assert depths(integrators.with_depth(tree, 16)) == {"short": "3", "full": "16"}  # the user's --depth 16
 
 
 def test_depth_cap_on_a_diffuse_scene_keeps_the_image():

@@ -4,7 +4,8 @@ into tiles, which take a path depth, and the one change a unit may make (its `ma
 A unit never rebuilds an integrator from its type alone: that dropped every other parameter
 (`hide_emitters`, `rr_depth`, nested integrators, AOV lists). It either renders with the scene's own
 integrator object, or, when the rules set a depth, with the scene's integrator element (includes and
-`$parameters` already resolved) re-read with `max_depth` replaced on every depth-bearing integrator in it.
+`$parameters` already resolved) re-read with a new `max_depth` (`with_depth`): the deepest depth-bearing
+integrators take it, and a shallower nested one keeps its own unless the new depth is less.
 
 Which integrators can be cropped into tiles: a crop renders a window of the film with the same sample
 positions, so a tile equals that region of a full render only when each camera sample writes to the
@@ -111,6 +112,11 @@ def depth_of(elem: etree._Element | None) -> int | None:
     return -1 if -1 in depths else max(depths)
 
 
+def shallower(a: int, b: int) -> int:
+    """The smaller of two max_depth values, -1 meaning unbounded."""
+    return b if a == -1 else a if b == -1 else min(a, b)
+
+
 def _depth_value(elem: etree._Element) -> int:
     for child in elem:
         if child.tag == "integer" and child.get("name") == "max_depth":
@@ -123,16 +129,21 @@ def _depth_value(elem: etree._Element) -> int:
 
 
 def with_depth(elem: etree._Element | None, depth: int) -> str:
-    """The integrator tree as a standalone XML string with `max_depth` = depth on every depth-bearing
-    integrator in it (the rest exactly as written). Private attributes of the XML reader are dropped."""
+    """The integrator tree as a standalone XML string at `depth` (the rest exactly as written): the deepest
+    depth-bearing integrators in it (those at `depth_of`) get max_depth = depth, and a shallower nested one
+    keeps its own unless `depth` is less (an aov's direct child at 2 stays at 2 when its path sibling is
+    cut to 6, or capped from -1 to 20). Private attributes of the XML reader are dropped."""
     tree = etree.Element("integrator", type=DEFAULT_TYPE) if elem is None else _clean_copy(elem)
     tree.set("version", "3.0.0")
+    deepest = depth_of(tree)
     for e in walk(tree):
         if not kind(e.get("type", "")).depth:
             continue
+        own = _depth_value(e)
+        new = int(depth) if own == deepest else shallower(own, int(depth))
         for child in [c for c in e if c.tag == "integer" and c.get("name") == "max_depth"]:
             e.remove(child)
-        etree.SubElement(e, "integer", name="max_depth", value=str(int(depth)))
+        etree.SubElement(e, "integer", name="max_depth", value=str(new))
     if tree.find(".//ref") is not None:
         raise SceneError(f"integrator {describe(elem)}: refers to objects by id (<ref>); its depth cannot be "
                          "changed per unit, render at level off or give --depth")

@@ -51,6 +51,9 @@ def _scene_depth(elem: Any, depth: int | None) -> int:
     return -1 if depth is None else depth
 
 
+SPECTRAL_RANGE_NM = (360.0, 830.0)  # Mitsuba's MI_CIE_MIN, MI_CIE_MAX: the wavelengths it samples
+
+
 def _albedo(bsdf: Any) -> float:
     """Largest reflectance a diffuse BSDF can have; 1.0 when it cannot be read (no cap then)."""
     import mitsuba as mi
@@ -59,7 +62,29 @@ def _albedo(bsdf: Any) -> float:
     keys = [k for k in params.keys() if k in ("reflectance.value", "reflectance.data")]  # noqa: SIM118
     if not keys or "Diffuse" not in bsdf.class_name():
         return 1.0
-    return max(float(np.max(np.array(params[k]))) for k in keys)
+    spectral = "spectral" in str(mi.variant())
+    return max(largest_reflectance(np.array(params[k], dtype=np.float64), spectral) for k in keys)
+
+
+def largest_reflectance(values: np.ndarray, spectral: bool) -> float:
+    """The largest reflectance that a texture's stored values give. In a spectral variant a colour (three
+    values per texel) is stored as the coefficients (c0, c1, c2) of Mitsuba's sRGB spectral model (Jakob
+    and Hanika 2019): reflectance s(x) = 1/2 + x / (2 sqrt(1 + x^2)) of x = c0 l^2 + c1 l + c2 over the
+    wavelengths l it samples; s grows with x, so its largest value is at an end of the range or at the
+    parabola's vertex. Read as reflectances, the coefficients of a grey 0.5 say 0."""
+    if not spectral or values.size % 3 or (values.ndim == 3 and values.shape[-1] != 3):
+        return float(np.max(values))
+    c = values.reshape(-1, 3) if values.ndim == 3 else values.reshape(3, -1).T
+    lo, hi = SPECTRAL_RANGE_NM
+
+    def x(wavelength: np.ndarray | float) -> np.ndarray:
+        return (c[:, 0] * wavelength + c[:, 1]) * wavelength + c[:, 2]
+
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # c0 = 0 or tiny: no vertex inside
+        vertex = -c[:, 1] / (2.0 * c[:, 0])
+    inside = (c[:, 0] < 0) & (vertex > lo) & (vertex < hi)
+    top = np.maximum(np.maximum(x(lo), x(hi)), np.where(inside, x(np.where(inside, vertex, lo)), -np.inf))
+    return float(np.max(0.5 + 0.5 * top / np.sqrt(top * top + 1.0)))
 
 
 def _surface_facts(loaded: Any) -> dict[str, Any]:
