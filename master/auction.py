@@ -657,10 +657,15 @@ class Auction:
         self._clear_award(job, unit, UnitStatus.DONE)
         return [done, *self._finish_if_done(job)]
 
-    def on_failure(self, agent: str, msg: m.Failure, now: float) -> list[Command]:
+    def on_failure(self, agent: str, msg: m.Failure, now: float, blame: bool = True) -> list[Command]:
+        """The agent could not render its unit: the unit fails on it (counted against it, toward its
+        blocklisting), or without `blame` goes back to the auction (a failure the farm's own state may
+        have caused, such as the master's disk being full)."""
         unit, why = self._award_for(agent, msg.job_id, msg.index, msg.token, msg.conversation)
         if unit is None:
             return [_ignored(agent, why, msg.job_id, msg.index)]
+        if not blame:
+            return self._requeue((msg.job_id, msg.index), f"failed on {agent}, not counted: {msg.reason}")
         return self._fail_unit((msg.job_id, msg.index), f"failed on {agent}: {msg.reason}")
 
     def upload_allowed(self, job_id: str, index: int, token: str) -> bool:

@@ -284,6 +284,9 @@ async def _accept(request: web.Request, plane: DataPlane, job: str, unit: int, t
         agent = request.headers.get(AGENT_HEADER, "")[:256] or None
         try:
             await _call(plane.on_tile, job, unit, final, sha256, agent)
+        except TileError as exc:  # what the tile claims is not what its award allows
+            final.unlink(missing_ok=True)
+            raise Refusal(422, f"unit {unit} of job {job!r}: {exc}") from exc
         except Exception as exc:
             final.unlink(missing_ok=True)
             log.exception("on_tile failed for unit %d of job %s", unit, job)

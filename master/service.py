@@ -16,6 +16,7 @@ import os
 import re
 import secrets
 import shutil
+import sqlite3
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -23,7 +24,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-from core.errors import MessageError, QuekaroError
+from core.errors import MessageError, QuekaroError, TileError
 from core.home import ADMIN_TOKEN, FARM_FILE
 from core.model import messages as m
 from core.model.hashing import sha256_file
@@ -34,6 +35,7 @@ from core.model.units import WorkUnit
 from core.render.bundle import BundleLimits, bundle_hash, check_rules, check_unpacked, extract_bundle, read_manifest
 from core.render.tiles import read_tile, tile_source
 from core.render.worker import RenderWorker
+from core.transport.rates import SenderRates
 from core.transport.tls import is_loopback, server_context
 from core.transport.xmpp import FarmAgent
 from master import auction as au
@@ -47,6 +49,9 @@ from planning.pipeline import assemble
 log = logging.getLogger(__name__)
 
 TICK_S = 0.2
+# What one agent may send: a heartbeat every 2 s, a proposal per auction it is called to, an inform or a
+# failure per unit come to a few a second; more is a flood, refused unread (core.transport.rates).
+AGENT_RATE, AGENT_BURST = 20.0, 100.0
 
 
 @dataclass
@@ -127,6 +132,7 @@ class MasterService:
         self._agent_re = re.compile(config.agent_pattern.format(domain=re.escape(config.domain)))
         self._paused_s = 0.0  # the auction's clock stands still while the disk is full
         self._paused_since: float | None = None
+        self._unrecorded: list[au.Event] = []  # events the store could not write yet (`_record`)
         self._allowed: set[str] = set()
         self._allow_stamp: tuple[int, int] | None = None
 
@@ -188,6 +194,7 @@ class MasterService:
             self.config.jid, self.config.password, port=self.config.xmpp_port, server=self.config.xmpp_host,
             ontology=m.ONTOLOGY, accept_sender=self._accepts, validate=m.parse,
             ca_file=self.config.ca_file, verify_security=bool(self.config.ca_file),
+            rates=SenderRates(AGENT_RATE, AGENT_BURST),
         )
         self.agent.set_handler(self._on_envelope)
         await self.agent.start(auto_register=self.config.auto_register)
@@ -332,14 +339,19 @@ class MasterService:
             unit = job.units.get(index) if job else None
             if unit is None or unit.status != UnitStatus.AWARDED:
                 return
-            meta = read_tile(path).meta
-            params = _params_from_meta(meta)
+            tile = read_tile(path)
+            _check_channels(tile.channels, self.store.job(job_id).plan.get("channels"), job_id, index)
+            params = {**_params_from_meta(tile.meta), "agent": unit.agent}  # who holds the award
             _check_planned(job.info, unit.spec, params)
-            self.store.record_result(job_id, index, str(path), sha256, params, time.time())
             inform = m.Inform(
                 conversation=unit.conversation, job_id=job_id, index=index, token=unit.token,
                 tile_hash=sha256, depth=params["depth"], spp=params["spp"], band=params["band"],
                 seconds=params["seconds"], nonfinite=params["nonfinite"])
+            try:
+                m.check(inform)  # its header's figures within the bounds an inform message holds them to
+            except MessageError as exc:
+                raise TileError(f"tile header's render parameters: {exc}") from exc
+            self.store.record_result(job_id, index, str(path), sha256, params, time.time())
             now = self.auction_now()
             # Tick at once: the agent that just finished is free, and waiting for the timer would idle it.
             await self._execute(self.auction.on_inform(unit.agent, inform, now) + self._tick(now))
@@ -354,7 +366,13 @@ class MasterService:
             return
         async with self._lock:
             now = self.auction_now()
-            await self._execute(self.auction.on_message(env.sender, msg, now) + self._tick(now))
+            if isinstance(msg, m.Failure) and self.paused:
+                # A local farm's agents write their tiles on the master's disk: a failure while it is full
+                # may be the disk's, and is not held against the agent.
+                commands = self.auction.on_failure(env.sender, msg, now, blame=False)
+            else:
+                commands = self.auction.on_message(env.sender, msg, now)
+            await self._execute(commands + self._tick(now))
 
     async def _tick_forever(self) -> None:
         while True:
@@ -394,7 +412,7 @@ class MasterService:
 
     async def _execute(self, commands: list[au.Command]) -> None:
         """Record events first (the store is the truth after a crash), then send messages."""
-        self.store.apply(commands, time.time())
+        self._record(commands)
         for cmd in commands:
             if isinstance(cmd, au.Send):
                 try:
@@ -408,6 +426,24 @@ class MasterService:
                 log.info("%r", cmd)  # the event's kind and fields (its repr leaves tokens out)
                 if isinstance(cmd, au.JobDone):
                     self._assemble_later(cmd.job_id)
+
+    def _record(self, commands: list[au.Command]) -> None:
+        """Write the auction's events to the store, after those it could not write before, in order. Where
+        it cannot (its disk full), they are kept and written at a later tick: the auction has moved on,
+        and a job it ended would otherwise stay running in the store until the master restarts."""
+        events = [*self._unrecorded, *(c for c in commands if isinstance(c, au.Event))]
+        if not events:
+            return
+        try:
+            self.store.apply(events, time.time())
+        except sqlite3.OperationalError as exc:
+            if not self._unrecorded:
+                log.error("the job store cannot record the auction's events (%s): kept until it can", exc)
+            self._unrecorded = events
+            return
+        if self._unrecorded:
+            log.warning("the job store recorded %d event(s) it could not before", len(self._unrecorded))
+        self._unrecorded = []
 
     async def _fail_job(self, job_id: str, exc: Exception) -> None:
         log.error("job %s: its messages cannot be encoded (%s): the job fails, the others go on", job_id, exc)
@@ -476,13 +512,14 @@ def _job_rules(folder: Path, options: RenderOptions) -> tuple[RenderOptions, str
 
 
 def _params_from_meta(meta: dict[str, Any]) -> dict[str, Any]:
-    """The parameters an agent chose, as its tile's header states them (validated: they enter the report)."""
+    """The parameters an agent chose, as its tile's header states them (validated: they enter the report);
+    TileError if they are not numbers. The agent it names is the header's word, to be replaced by the award's."""
     try:
         params = {"depth": int(meta.get("depth", -1) if meta.get("depth") is not None else -1),
                   "spp": int(meta["spp"]), "band": int(meta.get("band", 0)),
                   "seconds": float(meta.get("seconds", 0.0)), "nonfinite": int(meta.get("nonfinite", 0))}
     except (KeyError, TypeError, ValueError) as exc:
-        raise QuekaroError(f"tile header lacks valid render parameters: {exc}") from exc
+        raise TileError(f"tile header lacks valid render parameters: {exc}") from exc
     params["outputs"] = meta.get("outputs") if isinstance(meta.get("outputs"), dict) else {}
     params["agent"] = meta.get("agent")
     params["rules"] = str(meta.get("rules", ""))[:256] or None
@@ -492,8 +529,16 @@ def _params_from_meta(meta: dict[str, Any]) -> dict[str, Any]:
         try:
             params["first_spp"] = int(meta["first_spp"])
         except (TypeError, ValueError) as exc:
-            raise QuekaroError(f"tile header's first_spp {meta['first_spp']!r} is not a sample count") from exc
+            raise TileError(f"tile header's first_spp {meta['first_spp']!r} is not a sample count") from exc
     return params
+
+
+def _check_channels(channels: tuple[str, ...], planned: list[str] | None, job_id: str, index: int) -> None:
+    """A tile must carry the channels its job's film and integrator give every tile (JobPlan.channels): one
+    that differs could never be composed with the others."""
+    if planned is not None and list(channels) != list(planned):
+        raise TileError(f"unit {index} of job {job_id}: tile channels {list(channels)[:8]} differ from the "
+                        f"job's {list(planned)[:8]}")
 
 
 def _check_planned(job: m.JobInfo, unit: WorkUnit, params: dict[str, Any]) -> None:
@@ -502,13 +547,13 @@ def _check_planned(job: m.JobInfo, unit: WorkUnit, params: dict[str, Any]) -> No
     passes (its image is averaged with the others' as if it had). Else it is refused, naming what differs."""
     floor = unit.depth_floor
     if floor is not None and job.depth >= 1 and params["depth"] < floor:
-        raise QuekaroError(f"unit {unit.index} of job {job.job_id}: tile header says depth {params['depth']}; the "
+        raise TileError(f"unit {unit.index} of job {job.job_id}: tile header says depth {params['depth']}; the "
                            f"plan allows no less than {floor} (shallower paths lose its light)")
     if job.first_spp is None:
         return
     said = (params["spp"], params.get("first_spp"))
     if said != (unit.spp, job.first_spp):
-        raise QuekaroError(f"unit {unit.index} of adaptive job {job.job_id}: tile header says spp {said[0]}, first "
+        raise TileError(f"unit {unit.index} of adaptive job {job.job_id}: tile header says spp {said[0]}, first "
                            f"pass {said[1]}; the plan gives spp {unit.spp}, first pass {job.first_spp}")
 
 

@@ -278,7 +278,12 @@ class JobStore:
                 self.db.execute("ROLLBACK")
             raise
         if self.db.in_transaction:
-            self.db.execute("COMMIT")
+            try:
+                self.db.execute("COMMIT")
+            except sqlite3.Error:  # e.g. the disk full: nothing of it is kept, and the next one begins afresh
+                if self.db.in_transaction:
+                    self.db.execute("ROLLBACK")
+                raise
 
     # --- jobs ----------------------------------------------------------------------------------------
 

@@ -17,16 +17,17 @@ from lxml import etree
 
 from core.errors import QuekaroError, RenderError, SceneError
 from core.model import integrators
-from core.model.job import Effects, ImageFile, JobPlan, RenderOptions, SceneSpec
+from core.model.job import RGB, Effects, ImageFile, JobPlan, RenderOptions, SceneSpec
 from core.model.units import WorkUnit
 from core.render.counts import check_renderable
 from core.render.effects import analyse_loaded
+from core.render.film import bitmap_names
 from core.render.planner import Planner, RenderParams, adaptive_params
 from core.render.scene import expand, film_info, sensor_elements, sensor_of
 from core.render.worker import build_integrator
 from fuzzy.levels import OFF
 from planning import budgets, depthcut
-from planning.complexity import ComplexityMap, prepass
+from planning.complexity import ComplexityMap, film_size, prepass
 from planning.partition import DEFAULT_SIZES, MERGE_TOLERANCE, equal_tiles, partition
 
 # Sensors whose film crop renders exactly that part of the image (compared with plain Mitsuba per pixel in
@@ -139,9 +140,11 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     sensors = sensor_elements(expand(spec).root)
     spp = (options.spp or _stated_spp(sensors, spec, options.sensor, loaded)
            or _sampler_default(loaded, options.sensor, effects))
-    _check_image_file(spec, info.image_file, loaded, options.integrator)
+    added = _added_channels(loaded, options.integrator)
+    _check_image_file(spec, info.image_file, added, options.integrator)
     plan = JobPlan(spec, options, width, height, effects, spp, effects.max_depth, [],
-                   filter_radius=info.filter_radius, colour=info.colour, image_file=info.image_file)
+                   filter_radius=info.filter_radius, colour=info.colour, image_file=info.image_file,
+                   channels=_tile_channels(loaded, options.sensor, info.colour, added))
     # An adaptive job's --units are its render units (render_units); its rules see the level's own partition.
     chosen = None if options.adaptive else options.units
     target = chosen or default_unit_count(width, height, options.level, min_units, spp)
@@ -232,6 +235,11 @@ def _with_depth_floors(plan: JobPlan, cmap: ComplexityMap, seed: int, scene: Any
         chosen = plan_params(plan, Planner(plan.options.rules, plan.options.defuzzifier))
         if all(p.depth >= plan.depth for p in chosen):
             return plan
+    if expand(plan.spec).root.find(".//medium") is not None:
+        plan.effects.reasons.append(f"depth: no unit is cut below max_depth {plan.depth}: in a participating "
+                                    "medium the pre-pass's few samples miss the rare long paths whose light a "
+                                    "cut would lose, so the loss cannot be bounded")
+        return dataclasses.replace(plan, units=[dataclasses.replace(u, depth_floor=plan.depth) for u in plan.units])
     low = tuple(max(1, v // 2) for v in cmap.info["low_size"])  # a unit's mean needs no finer grid
     found = depthcut.measure(scene, radiance_at, plan.depth, [u.rect for u in plan.units], low,
                              (plan.width, plan.height), seed=seed, sensor=plan.options.sensor)
@@ -249,11 +257,10 @@ def _radiance_at(plan: JobPlan) -> Callable[[int], str]:
     return lambda depth: integrators.radiance_xml(elem, depth)
 
 
-def _check_image_file(spec: SceneSpec, image_file: ImageFile, loaded: Any, override: str | None) -> None:
+def _check_image_file(spec: SceneSpec, image_file: ImageFile, extra: list[str], override: str | None) -> None:
     """Refuse, before any work, a film whose file (PFM, RGBE: colour only) cannot hold the channels the
-    integrator that renders adds (AOVs, moments): plain Mitsuba renders such a scene and then fails to
-    write it."""
-    extra = _added_channels(loaded, override)
+    integrator that renders adds (`extra`: AOVs, moments): plain Mitsuba renders such a scene and then
+    fails to write it."""
     if image_file.format != "openexr" and extra:
         whose = f"--integrator {override}" if override else "integrator"
         raise QuekaroError(f"{spec.path}: the film's file_format {image_file.format} holds colour only, and the "
@@ -272,6 +279,18 @@ def _added_channels(loaded: Any, override: str | None) -> list[str]:
     else:
         renders = loaded.integrator()
     return list(renders.aov_names()) if renders is not None else []
+
+
+def _tile_channels(loaded: Any, sensor: int, colour: tuple[str, ...], added: list[str]) -> tuple[str, ...]:
+    """The channels each tile carries, as core.render.film.film_channels names a rendered film's: colour as
+    R, G, B, then what Mitsuba's film holds past its colour once prepared for the integrator's `added`
+    channels (its alpha, which PFM and RGBE films drop, then those), read from the film itself at 1 x 1
+    pixel, so that nothing of the image's size is allocated."""
+    film = sensor_of(loaded, sensor).film()
+    with film_size(loaded, 1, 1, sensor):
+        film.prepare(added)
+        names = bitmap_names(film.bitmap())
+    return (*RGB, *names[len(colour):])
 
 
 def _check_adaptive(spec: SceneSpec, loaded: Any, sensor: int) -> None:

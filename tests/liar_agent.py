@@ -1,6 +1,11 @@
-"""A lying agent for the chaos test: a real XMPP account of the farm that bids 0 s on everything, answers
-each award with an INFORM but never its tile, and PUTs an invented tile for another unit than the one it
-holds, with the token it holds. It stops after `--lies` awards. Prints one JSON line per lie.
+"""A lying agent: a real XMPP account of the farm that bids 0 s on everything and lies about each unit it
+is awarded, until `--lies` awards. Prints one JSON line per lie.
+
+- `--mode foreign` (the chaos test's): answers each award with an INFORM but never its tile, and PUTs an
+  invented tile for another unit than the one it holds, with the token it holds.
+- `--mode tiles`: uploads a tile for the unit it holds, placed right, whose header lies, one lie per award
+  in TILE_LIES' order (another agent named as its renderer, absurd figures, an extra channel); a refused
+  one is followed by a FAILURE, as an agent whose upload fails sends.
 
     python tests/liar_agent.py --jid agent-liar@localhost --port 5222 --master master@localhost --lies 4
 """
@@ -44,6 +49,31 @@ async def put_foreign_tile(award: m.Award) -> int:
         return resp.status
 
 
+TILE_LIES = (
+    ("forged-agent", {"agent": "agent-0-honest@localhost"}, ()),
+    ("absurd-spp", {"spp": 10**9, "seconds": -1e300}, ()),
+    ("nan-seconds", {"seconds": "NaN"}, ()),  # float() reads it; a header cannot hold a JSON NaN
+    ("extra-channel", {}, ("EVIL",)),
+)
+
+
+async def put_lying_tile(award: m.Award, lie: int) -> tuple[str, int]:
+    """Upload a tile for the awarded unit (band 0, flat 0.5) whose header tells TILE_LIES[lie]."""
+    name, meta, extra = TILE_LIES[lie % len(TILE_LIES)]
+    rect = award.unit.rect
+    header = {"job_id": award.job.job_id, "unit_index": award.unit.index, "spp": award.unit.spp or award.job.spp,
+              "depth": award.job.depth, "band": 0, "seconds": 0.1, "nonfinite": 0, **meta}
+    channels = ("R", "G", "B", *extra)
+    with tempfile.TemporaryDirectory() as tmp:
+        pixels = np.full((rect.h, rect.w, len(channels)), 0.5, np.float32)
+        path = write_tile(Path(tmp) / "t.exr", Tile(pixels, rect, rect, header, channels), durable=False)
+        data = path.read_bytes()
+    headers = {"X-Quekaro-Token": award.token, "X-Content-SHA256": hashlib.sha256(data).hexdigest()}
+    async with aiohttp.ClientSession() as session, session.put(award.upload_url, data=data,
+                                                               headers=headers) as resp:
+        return name, resp.status
+
+
 async def run(args: argparse.Namespace) -> int:
     agent = FarmAgent(args.jid, os.environ["QUEKARO_XMPP_PASSWORD"], port=args.port, server="127.0.0.1",
                       ontology=m.ONTOLOGY, peers=[args.master], validate=m.parse,
@@ -62,6 +92,15 @@ async def run(args: argparse.Namespace) -> int:
         if isinstance(msg, m.CallForProposal) and lies < args.lies:
             estimates = tuple(m.Estimate(index=u.index, seconds=0.0) for u in msg.units)
             await send(m.Propose(conversation=msg.conversation, job_id=msg.job.job_id, estimates=estimates))
+        elif isinstance(msg, m.Award) and lies < args.lies and args.mode == "tiles":
+            lie, status = await put_lying_tile(msg, lies)
+            lies += 1
+            if status >= 400:
+                await send(m.Failure(conversation=msg.conversation, job_id=msg.job.job_id, index=msg.unit.index,
+                                     token=msg.token, reason=f"upload refused ({status})"))
+            emit("lied", job=msg.job.job_id, unit=msg.unit.index, lie=lie, status=status)
+            if lies >= args.lies:
+                done.set()
         elif isinstance(msg, m.Award) and lies < args.lies:
             lies += 1
             status = await put_foreign_tile(msg)
@@ -97,6 +136,7 @@ def main() -> int:
     p.add_argument("--port", type=int, required=True)
     p.add_argument("--master", required=True)
     p.add_argument("--lies", type=int, default=4)
+    p.add_argument("--mode", choices=("foreign", "tiles"), default="foreign")
     p.add_argument("--timeout", type=float, default=120.0)
     return asyncio.run(run(p.parse_args()))
 

@@ -239,6 +239,20 @@ def test_an_agent_lost_long_enough_is_forgotten_and_keeps_its_credits_if_it_come
     assert a.agents["A"].credits == 3 and not a.agents["A"].lost
 
 
+def test_a_failure_without_blame_requeues_the_unit_and_counts_nothing_against_its_agent() -> None:
+    a = make([1.0], ["A", "B"])
+    got = round_trip(a, 0.0)
+    holder = got[0].to
+    failure = m.Failure(conversation=got[0].message.conversation, job_id="job-1", index=0,
+                        token=got[0].message.token, reason="No space left on device")
+    out = a.on_failure(holder, failure, 1.0, blame=False)
+    assert [(e.index, e.reason) for e in events(out, au.UnitRequeued)] == [
+        (0, f"failed on {holder}, not counted: No space left on device")]
+    assert events(out, au.UnitFailed) == [] and a.agents[holder].credits == 0
+    unit = a.jobs["job-1"].units[0]
+    assert unit.status == UnitStatus.PENDING and unit.failures == 0 and holder not in unit.failed_on
+
+
 def test_render_deadline_cancels_and_retries_elsewhere() -> None:
     a = make([1.0], ["A", "B"])
     a.agents["A"].credits = 1

@@ -169,6 +169,36 @@ def test_known_sender_oversized_and_bad_metadata_refused(embedded, peers) -> Non
     assert echo.proc.poll() is None  # still running
 
 
+def test_a_flooding_sender_is_refused_unread_past_its_rate_and_the_others_are_heard(embedded, peers) -> None:
+    echo = peers(embedded.port, "echo@localhost", "pw-e", "echo", "--rate", "5,20",
+                 peers="ping@localhost,friend@localhost", register=True)
+    echo.wait_for("online")
+    flood = peers(embedded.port, "friend@localhost", "pw-f", "send", "--to", "echo@localhost", "--copies", "400",
+                  "--linger", "1", register=True)
+    flood.wait_for("sent")
+    assert flood.stop() == 0
+    first = echo.wait_for("refused", sender="friend@localhost")
+    assert first["kind"] == "rate" and "over 5 messages a second (burst 20)" in first["reason"]
+    time.sleep(1.0)
+    refused = [e for e in echo.drain() if e["event"] == "refused" and e["sender"] == "friend@localhost"]
+    assert 250 <= len(refused) <= 380, len(refused)  # 400 sent: the burst of 20 and 5 a second pass
+    ping = peers(embedded.port, "ping@localhost", "pw-p", "stream", "--to", "echo@localhost", "--interval", "0.3",
+                 peers="echo@localhost", register=True)
+    ping.wait_for("pong", seq=3, timeout=20)  # another sender's own allowance: it is heard
+
+
+def test_a_senders_allowance_is_its_burst_then_its_rate() -> None:
+    from core.transport.rates import SenderRates
+
+    rates = SenderRates(rate=2.0, burst=3.0)
+    assert [rates.allow("a", 0.0) for _ in range(5)] == [True, True, True, False, False]
+    assert rates.dropped("a") == 2 and rates.allow("b", 0.0)  # each sender its own bucket
+    assert rates.allow("a", 0.5) and not rates.allow("a", 0.5) and rates.dropped("a") == 1
+    assert [rates.allow("a", 10.0) for _ in range(4)] == [True, True, True, False]  # refilled to the burst only
+    with pytest.raises(ValueError, match="rate"):
+        SenderRates(rate=0.0, burst=3.0)
+
+
 @pytest.mark.slow
 def test_both_agents_reconnect_by_themselves_after_a_server_restart(tmp_path, peers) -> None:
     server = EmbeddedXmppServer(tmp_path / "xmpp")

@@ -19,6 +19,7 @@ import signal
 import sys
 import time
 
+from core.transport.rates import SenderRates
 from core.transport.xmpp import Envelope, FarmAgent, XmppError
 
 PROTOCOL = "quekaro-test"
@@ -29,8 +30,9 @@ def emit(event: str, **fields: object) -> None:
 
 
 def make_agent(args: argparse.Namespace) -> FarmAgent:
+    rates = SenderRates(*(float(v) for v in args.rate.split(","))) if args.rate else None
     agent = FarmAgent(args.jid, args.password, port=args.port, server=args.server,
-                      peers=[p for p in args.peers.split(",") if p], max_body=args.max_body)
+                      peers=[p for p in args.peers.split(",") if p], max_body=args.max_body, rates=rates)
     agent.on_refusal = lambda r: emit("refused", sender=r.sender, kind=r.kind, reason=r.reason, size=r.size)
     return agent
 
@@ -117,8 +119,9 @@ async def run_send(agent: FarmAgent, args: argparse.Namespace, stop: asyncio.Eve
             "conversation-id": args.conversation}
     meta = {k: v for k, v in meta.items() if v}
     # Built by hand on purpose: FarmAgent.send refuses what this test wants the receiver to refuse.
-    Message(to=args.to, sender=str(agent.jid), body=body, metadata=meta).prepare(agent.client).send()
-    emit("sent", size=len(body))
+    for _ in range(args.copies):
+        Message(to=args.to, sender=str(agent.jid), body=body, metadata=meta).prepare(agent.client).send()
+    emit("sent", size=len(body), copies=args.copies)
     await asyncio.sleep(args.linger)
 
 
@@ -170,6 +173,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--ontology", default="quekaro")
     p.add_argument("--conversation", default="c-1")
     p.add_argument("--linger", type=float, default=1.0)
+    p.add_argument("--copies", type=int, default=1, help="send mode: how many times to send the message")
+    p.add_argument("--rate", default="", help="RATE,BURST: each sender's allowance (core.transport.rates)")
     p.add_argument("mode", choices=sorted(MODES))
     return p.parse_args(argv)
 

@@ -278,6 +278,9 @@ class JobPlan:
     colour: tuple[str, ...] = RGB
     # The file the job's image is written to, as the film asks.
     image_file: ImageFile = ImageFile()
+    # The channels every tile carries (core.render.film.film_channels: R, G, B, the film's alpha, the AOVs
+    # the integrator adds), which a master holds each uploaded tile to; None in plans stored before.
+    channels: tuple[str, ...] | None = None
 
     @property
     def reach(self) -> int:
@@ -303,7 +306,8 @@ class JobPlan:
                 "neighbours": {str(u.index): list(u.neighbours) for u in self.units},
                 "bundle_sha256": self.bundle_sha256, "rules_sha256": self.rules_sha256,
                 "filter_radius": self.filter_radius, "first_spp": self.first_spp, "shares": dict(self.shares),
-                "colour": list(self.colour), "image_file": self.image_file.to_dict()}
+                "colour": list(self.colour), "image_file": self.image_file.to_dict(),
+                "channels": None if self.channels is None else list(self.channels)}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], spec: SceneSpec, units: list[WorkUnit]) -> JobPlan:
@@ -318,6 +322,7 @@ class JobPlan:
                        float(data.get("filter_radius", DEFAULT_FILTER_RADIUS)),
                        None if data.get("first_spp") is None else int(data["first_spp"]),
                        dict(data.get("shares") or {}), tuple(str(c) for c in data.get("colour", RGB)),
-                       ImageFile.from_dict(data.get("image_file")))
+                       ImageFile.from_dict(data.get("image_file")),
+                       None if data.get("channels") is None else tuple(str(c) for c in data["channels"]))
         except (KeyError, TypeError, ValueError) as exc:
             raise QuekaroError(f"stored job plan is malformed: {type(exc).__name__}: {exc}") from exc

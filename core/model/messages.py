@@ -292,8 +292,13 @@ def encode(msg: Message) -> tuple[str, str]:
     data = {"v": PROTOCOL_VERSION, **_to_json(msg)}
     body = json.dumps(data, separators=(",", ":"), allow_nan=False, ensure_ascii=False)
     _check_size(body)
-    _check_value(type(msg), _to_json(msg), "")  # the sender is held to the same rules as any receiver
+    check(msg)  # the sender is held to the same rules as any receiver
     return msg.performative, body
+
+
+def check(msg: Message) -> None:
+    """MessageError where a message built here (not parsed) breaks the rules any receiver holds it to."""
+    _check_value(type(msg), _to_json(msg), "")
 
 
 def check_job(job: JobInfo) -> None:

@@ -35,6 +35,7 @@ from spade.message import Message
 
 from core.errors import MessageError, QuekaroError
 from core.transport.pyjabber_tmp import remove_upload_dir_at_exit
+from core.transport.rates import SenderRates
 
 log = logging.getLogger(__name__)
 remove_upload_dir_at_exit()  # `spade` imports pyjabber
@@ -132,6 +133,7 @@ class FarmAgent(Agent):
         reconnect_max_delay: float = 1.0,
         keepalive_s: float = KEEPALIVE_S,
         keepalive_timeout_s: float = KEEPALIVE_TIMEOUT_S,
+        rates: SenderRates | None = None,
     ) -> None:
         super().__init__(jid, password, port=port, verify_security=verify_security)
         self.server = server or self.jid.host
@@ -145,6 +147,7 @@ class FarmAgent(Agent):
         self.reconnect = reconnect
         self.reconnect_max_delay = reconnect_max_delay
         self.keepalive_s, self.keepalive_timeout_s = keepalive_s, keepalive_timeout_s
+        self.rates = rates  # each sender's allowance (core.transport.rates), drawn before its message is read
         self.refusals: collections.Counter[str] = collections.Counter()
         self.recent_refusals: collections.deque[Refusal] = collections.deque(maxlen=100)
         self.on_refusal: Callable[[Refusal], None] | None = None
@@ -395,6 +398,8 @@ class FarmAgent(Agent):
         sender = str(msg.sender.bare) if msg.sender else ""
         if not self._sender_known(sender):
             raise _Refused("sender", f"unknown sender {sender or '(none)'}")
+        if self.rates is not None and not self.rates.allow(sender, time.monotonic()):
+            raise _Refused("rate", f"over {self.rates.rate:g} messages a second (burst {self.rates.burst:g})")
         body = msg.body or ""
         size = len(body.encode())
         if size == 0:
@@ -430,7 +435,10 @@ class FarmAgent(Agent):
                           size=len((msg.body or "").encode()))
         self.refusals[kind] += 1
         self.recent_refusals.append(refusal)
-        log.warning("%s refused a message from %s: %s", self.bare_jid, refusal.sender or "(none)", reason)
+        run = self.rates.dropped(refusal.sender) if kind == "rate" and self.rates is not None else 1
+        if run == 1 or run % 1000 == 0:  # a flood is logged at its start and every 1000 refused, not per message
+            more = f" ({run} in a row)" if run > 1 else ""
+            log.warning("%s refused a message from %s: %s%s", self.bare_jid, refusal.sender or "(none)", reason, more)
         if self.on_refusal is not None:
             try:
                 self.on_refusal(refusal)
