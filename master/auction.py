@@ -53,6 +53,10 @@ class Config:
     """Timeouts and rules of the auction. Times in seconds."""
 
     cfp_timeout_s: float = 2.0  # agents that have not answered a CFP by then are left out of that round
+    # An agent that lets a call for proposals time out unanswered is not called, nor counted on in the
+    # projection, for cfp_timeout_s doubling with each silence in a row, up to this: one that never bids
+    # (broken, or lying about its speed) would otherwise be projected the units and keep them from the rest.
+    silence_max_s: float = 30.0
     heartbeat_timeout_s: float = 15.0  # Flamenco uses 60 s; agents here beat every few seconds
     # A lost agent is forgotten after this (its credits kept, should it come back): a restarted agent
     # comes back under a new name, and the old one would stay listed as lost for as long as the master runs.
@@ -191,6 +195,14 @@ class AgentBack(Event):
 
 
 @dataclass(frozen=True)
+class AgentSilent(Event):
+    """An agent let a call for proposals time out: it is left out of auctions for `seconds`."""
+
+    agent: str
+    seconds: float
+
+
+@dataclass(frozen=True)
 class AgentForgotten(Event):
     """An agent lost for `Config.forget_lost_s` is dropped from the agents the master lists."""
 
@@ -266,6 +278,8 @@ class Agent:
     lost: bool = False
     speed: float = 1.0
     registered: bool = True  # False: known from heartbeats alone, its speed not yet told
+    silences: int = 0  # calls for proposals it let time out in a row
+    silent_until: float | None = None  # left out of auctions until then (Config.silence_max_s)
     # Seconds per unit of cost, per job: from its latest bids, and from its last unit that overran.
     rates: dict[str, float] = field(default_factory=dict)
     late_rates: dict[str, float] = field(default_factory=dict)
@@ -619,7 +633,7 @@ class Auction:
         offered = set(round_.offered[agent])
         bids = {e.index: e.seconds for e in msg.estimates if e.index in offered}
         round_.bids[agent] = bids
-        round_.answered.add(agent)
+        self._answered(round_, agent)
         self._learn_rate(self.agents[agent], self.jobs[round_.job_id], bids)
         return (
             []
@@ -631,8 +645,13 @@ class Auction:
         round_, why = self._round_for(agent, msg.conversation, msg.job_id)
         if round_ is None:
             return [_ignored(agent, why, msg.job_id)]
-        round_.answered.add(agent)
+        self._answered(round_, agent)
         return [BidRefused(msg.job_id, agent, msg.reason)]
+
+    def _answered(self, round_: Round, agent: str) -> None:
+        round_.answered.add(agent)
+        state = self.agents[agent]
+        state.silences, state.silent_until = 0, None
 
     def on_inform(self, agent: str, msg: m.Inform, now: float) -> list[Command]:
         """A unit finished. Only the current award's holder, token and conversation count."""
@@ -730,6 +749,9 @@ class Auction:
         """Calls for proposals: each free agent is offered the pending units the projection gives it, and
         those it would finish about as soon as the free agent they are projected to (module docstring)."""
         out: list[Command] = []
+        for agent in self.agents.values():
+            if agent.silent_until is not None and now >= agent.silent_until:
+                agent.silent_until = None  # called again; its silences count on until it answers
         queueing = self._queueing()
         free = sorted((a for a in self.agents.values() if self._is_free(a, queueing)),
                       key=lambda a: (-a.score, a.name))
@@ -788,6 +810,7 @@ class Auction:
         times = [r.deadline for r in self.rounds.values()]
         times += [a.last_seen + (self.config.forget_lost_s if a.lost else self.config.heartbeat_timeout_s)
                   for a in self.agents.values()]
+        times += [a.silent_until for a in self.agents.values() if a.silent_until is not None]
         for job in self._running():
             times += [u.deadline for u in job.units.values() if u.status == UnitStatus.AWARDED]
         finite = [t for t in times if math.isfinite(t)]
@@ -824,7 +847,7 @@ class Auction:
     def _is_free(self, agent: Agent, queueing: bool) -> bool:
         """Callable to an auction: live, not in one already, and holding nothing, or with a slot for another
         unit while the farm has plenty of work (`queueing`, from `_queueing`, decided once per tick)."""
-        if agent.lost or agent.invited is not None:
+        if agent.lost or agent.invited is not None or agent.silent_until is not None:
             return False
         return not agent.holding or (len(agent.holding) < self.config.slots and queueing)
 
@@ -878,9 +901,9 @@ class Auction:
         for name in round_.offered:
             if name in self.agents and self.agents[name].invited == round_.conversation:
                 self.agents[name].invited = None
+        out: list[Command] = self._silenced(round_, now)
         if job is None or job.status != JobStatus.RUNNING:
-            return []
-        out: list[Command] = []
+            return out
         winners: set[str] = set()
         units = sorted((job.units[i] for i in round_.units), key=lambda u: (-u.spec.work, u.spec.index))
         for unit in units:
@@ -902,6 +925,19 @@ class Auction:
                 out.append(Send(name, reject))
         return out
 
+    def _silenced(self, round_: Round, now: float) -> list[Command]:
+        """The agents called to `round_` that never answered, each left out of auctions for a while."""
+        out: list[Command] = []
+        for name in sorted(set(round_.offered) - round_.answered):
+            agent = self.agents.get(name)
+            if agent is None or agent.lost:
+                continue
+            agent.silences += 1
+            pause = min(self.config.silence_max_s, self.config.cfp_timeout_s * 2 ** (agent.silences - 1))
+            agent.silent_until = now + pause
+            out.append(AgentSilent(name, pause))
+        return out
+
     # --- the look-ahead --------------------------------------------------------------------------------
 
     def _project(self, job: Job, now: float, rates: dict[str, float]) -> dict[int, Placement]:
@@ -921,7 +957,8 @@ class Auction:
 
     def _rates(self, job: Job) -> dict[str, float]:
         """Seconds per unit of cost of every live agent the job may use: learnt, or derived from speeds."""
-        live = [a for a in self.agents.values() if not a.lost and a.name not in job.blocklist]
+        live = [a for a in self.agents.values()
+                if not a.lost and a.silent_until is None and a.name not in job.blocklist]
         job_id = job.info.job_id
         known = {
             a.name: max(a.rates.get(job_id, 0.0), a.late_rates.get(job_id, 0.0))

@@ -563,7 +563,7 @@ class JobStore:
                 self._end_job(db, ev.job_id, JobStatus.CANCELLED, now, ev.reason)
             case au.AgentRegistered() | au.AgentLost() | au.AgentBack() | au.AgentBlocklisted() | au.BidRefused():
                 self._agent(db, ev.agent, now, None)
-            case au.MessageIgnored() | au.AgentForgotten():
+            case au.MessageIgnored() | au.AgentForgotten() | au.AgentSilent():
                 pass  # changes nothing here (an agent's row and credits stay)
             case _:
                 raise TypeError(f"the job store has no record for a {type(ev).__name__} event")

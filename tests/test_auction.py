@@ -188,13 +188,32 @@ def test_credits_follow_the_ten_percent_rule() -> None:
     assert events(out, au.UnitDone)[0].on_time is False
 
 
-def test_unanswered_cfp_is_announced_again() -> None:
+def test_unanswered_cfp_is_announced_again_after_a_pause_that_doubles_until_the_agent_answers() -> None:
     a = make([1.0], ["A"])
     assert sends(a.announce(0.0), m.CallForProposal)
     assert a.decide(1.0) == [] and a.announce(1.0) == []  # still waiting for A
-    assert a.decide(a.config.cfp_timeout_s + 0.01) == []  # nobody bid: the unit is free again
+    timeout = a.config.cfp_timeout_s
+    assert a.decide(timeout) == [au.AgentSilent("A", timeout)]  # nobody bid: the unit is free again
     assert a.counts("job-1") == Counter(pending=1)
-    assert sends(a.announce(3.0), m.CallForProposal, to="A")
+    assert a.announce(2 * timeout - 0.01) == [] and a.next_deadline() == pytest.approx(2 * timeout)
+    [cfp] = sends(a.announce(2 * timeout), m.CallForProposal, to="A")
+    assert a.decide(3 * timeout) == [au.AgentSilent("A", 2 * timeout)]  # silent again: twice the pause
+    assert a.announce(5 * timeout - 0.01) == []
+    [cfp] = sends(a.announce(5 * timeout), m.CallForProposal, to="A")
+    a.on_refuse("A", m.Refuse(conversation=cfp.message.conversation, job_id="job-1", reason="busy"), 5 * timeout)
+    assert a.decide(5 * timeout) == [] and a.agents["A"].silences == 0  # it answered: no pause
+    assert sends(a.announce(5 * timeout), m.CallForProposal, to="A")
+
+
+def test_a_fast_agent_that_never_bids_does_not_keep_the_units_from_the_others() -> None:
+    """It registers a thousand times faster than the others, so the look-ahead gives it the units; it
+    never answers: after its first silence the others are called to them."""
+    a = make([1.0, 1.0], ["honest"])
+    a.register("mute", 0.0, speed=1000.0)
+    called = {s.to for s in sends(a.announce(0.0), m.CallForProposal)}
+    assert called == {"mute"}  # projected everything: the honest agent is not called
+    a.decide(a.config.cfp_timeout_s)
+    assert {s.to for s in sends(a.announce(a.config.cfp_timeout_s), m.CallForProposal)} == {"honest"}
 
 
 def test_refusal_resolves_the_round_at_once() -> None:
@@ -438,7 +457,7 @@ def check_invariants(a: au.Auction) -> None:
         if job.status != JobStatus.RUNNING:
             continue
         plan = a.projection(job.info.job_id, now)
-        live = {ag.name for ag in a.agents.values() if not ag.lost} - job.blocklist
+        live = {ag.name for ag in a.agents.values() if not ag.lost and ag.silent_until is None} - job.blocklist
         for unit in job.units.values():
             if unit.status in (UnitStatus.PENDING, UnitStatus.ANNOUNCED) and live - unit.failed_on:
                 assert plan[unit.spec.index].agent in live - unit.failed_on

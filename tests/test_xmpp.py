@@ -192,8 +192,8 @@ def test_a_senders_allowance_is_its_burst_then_its_rate() -> None:
 
     rates = SenderRates(rate=2.0, burst=3.0)
     assert [rates.allow("a", 0.0) for _ in range(5)] == [True, True, True, False, False]
-    assert rates.dropped("a") == 2 and rates.allow("b", 0.0)  # each sender its own bucket
-    assert rates.allow("a", 0.5) and not rates.allow("a", 0.5) and rates.dropped("a") == 1
+    assert rates.refused("a") == 2 and rates.allow("b", 0.0)  # each sender its own bucket
+    assert rates.allow("a", 0.5) and not rates.allow("a", 0.5) and rates.refused("a") == 3
     assert [rates.allow("a", 10.0) for _ in range(4)] == [True, True, True, False]  # refilled to the burst only
     with pytest.raises(ValueError, match="rate"):
         SenderRates(rate=0.0, burst=3.0)

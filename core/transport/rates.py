@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 class _Bucket:
     tokens: float
     at: float
-    dropped: int = 0  # messages refused since the sender was last let through
+    refused: int = 0  # messages refused so far
 
 
 @dataclass
@@ -39,12 +39,11 @@ class SenderRates:
         bucket.at = now
         if bucket.tokens >= 1.0:
             bucket.tokens -= 1.0
-            bucket.dropped = 0
             return True
-        bucket.dropped += 1
+        bucket.refused += 1
         return False
 
-    def dropped(self, sender: str) -> int:
-        """Messages of `sender` refused in a row, up to now (0 once one is let through)."""
+    def refused(self, sender: str) -> int:
+        """Messages of `sender` refused so far."""
         bucket = self.buckets.get(sender)
-        return 0 if bucket is None else bucket.dropped
+        return 0 if bucket is None else bucket.refused

@@ -27,6 +27,7 @@ import ssl
 import time
 from collections.abc import Awaitable, Callable, Collection, Iterable
 from dataclasses import dataclass
+from typing import Any
 
 from slixmpp import JID
 from slixmpp.exceptions import IqError, IqTimeout
@@ -74,7 +75,7 @@ class Refusal:
     """A message that never reached the handler, and why."""
 
     sender: str
-    kind: str  # sender | size | body | metadata | invalid | inbox
+    kind: str  # sender | rate | size | body | metadata | invalid | inbox
     reason: str
     performative: str | None
     conversation_id: str | None
@@ -371,6 +372,26 @@ class FarmAgent(Agent):
 
     # ---- the gate -----------------------------------------------------------------------------------
 
+    def _message_received(self, msg: Any) -> list[asyncio.Task]:
+        """A message stanza from the XMPP stream: a sender past its allowance (`rates`) is refused here,
+        before SPADE converts the stanza (what a flood costs is that conversion, not its refusal)."""
+        if self.rates is not None:
+            sender = str(msg["from"].bare)
+            if self._sender_known(sender) and not self.rates.allow(sender, time.monotonic()):
+                self._rate_refused(sender, msg)
+                return []
+        return super()._message_received(msg)
+
+    def _rate_refused(self, sender: str, stanza: Any) -> None:
+        rates = self.rates
+        assert rates is not None
+        self._record_refusal(Refusal(sender=sender, kind="rate", reason=f"over {rates.rate:g} messages a second "
+                                     f"(burst {rates.burst:g})", performative=None, conversation_id=None,
+                                     size=len(str(stanza["body"]).encode())))
+        count = rates.refused(sender)
+        if count % 1000 == 0:
+            log.warning("%s has refused %d messages from %s, over its allowance", self.bare_jid, count, sender)
+
     def dispatch(self, msg: Message) -> list[asyncio.Task]:
         """Every incoming message passes here (SPADE calls it for XMPP and in-process delivery alike)."""
         try:
@@ -398,8 +419,6 @@ class FarmAgent(Agent):
         sender = str(msg.sender.bare) if msg.sender else ""
         if not self._sender_known(sender):
             raise _Refused("sender", f"unknown sender {sender or '(none)'}")
-        if self.rates is not None and not self.rates.allow(sender, time.monotonic()):
-            raise _Refused("rate", f"over {self.rates.rate:g} messages a second (burst {self.rates.burst:g})")
         body = msg.body or ""
         size = len(body.encode())
         if size == 0:
@@ -433,12 +452,15 @@ class FarmAgent(Agent):
                           performative=msg.get_metadata("performative"),
                           conversation_id=msg.get_metadata("conversation-id"),
                           size=len((msg.body or "").encode()))
-        self.refusals[kind] += 1
+        self._record_refusal(refusal)
+
+    def _record_refusal(self, refusal: Refusal) -> None:
+        self.refusals[refusal.kind] += 1
         self.recent_refusals.append(refusal)
-        run = self.rates.dropped(refusal.sender) if kind == "rate" and self.rates is not None else 1
-        if run == 1 or run % 1000 == 0:  # a flood is logged at its start and every 1000 refused, not per message
-            more = f" ({run} in a row)" if run > 1 else ""
-            log.warning("%s refused a message from %s: %s%s", self.bare_jid, refusal.sender or "(none)", reason, more)
+        if refusal.kind != "rate" or self.rates is None or self.rates.refused(refusal.sender) == 1:
+            # a flood is logged where it starts, then every 1000 messages (`_rate_refused`), not each one
+            log.warning("%s refused a message from %s: %s", self.bare_jid, refusal.sender or "(none)",
+                        refusal.reason)
         if self.on_refusal is not None:
             try:
                 self.on_refusal(refusal)
