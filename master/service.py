@@ -133,6 +133,7 @@ class MasterService:
         self._paused_s = 0.0  # the auction's clock stands still while the disk is full
         self._paused_since: float | None = None
         self._unrecorded: list[au.Event] = []  # events the store could not write yet (`_record`)
+        self._channels: dict[str, list[str] | None] = {}  # job -> the channels its tiles carry
         self._allowed: set[str] = set()
         self._allow_stamp: tuple[int, int] | None = None
 
@@ -340,7 +341,7 @@ class MasterService:
             if unit is None or unit.status != UnitStatus.AWARDED:
                 return
             tile = read_tile(path)
-            _check_channels(tile.channels, self.store.job(job_id).plan.get("channels"), job_id, index)
+            _check_channels(tile.channels, self._planned_channels(job_id), job_id, index)
             params = {**_params_from_meta(tile.meta), "agent": unit.agent}  # who holds the award
             _check_planned(job.info, unit.spec, params)
             inform = m.Inform(
@@ -355,6 +356,12 @@ class MasterService:
             now = self.auction_now()
             # Tick at once: the agent that just finished is free, and waiting for the timer would idle it.
             await self._execute(self.auction.on_inform(unit.agent, inform, now) + self._tick(now))
+
+    def _planned_channels(self, job_id: str) -> list[str] | None:
+        """The channels the job's tiles carry (its stored plan's, read once: a plan never changes)."""
+        if job_id not in self._channels:
+            self._channels[job_id] = self.store.job(job_id).plan.get("channels")
+        return self._channels[job_id]
 
     # ---- messages and time --------------------------------------------------------------------------
 

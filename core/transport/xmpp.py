@@ -374,17 +374,15 @@ class FarmAgent(Agent):
 
     def _message_received(self, msg: Any) -> list[asyncio.Task]:
         """A message stanza from the XMPP stream: a sender past its allowance (`rates`) is refused here,
-        before SPADE converts the stanza (what a flood costs is that conversion, not its refusal)."""
+        before SPADE converts the stanza, so that a refused message costs no conversion."""
         if self.rates is not None:
             sender = str(msg["from"].bare)
             if self._sender_known(sender) and not self.rates.allow(sender, time.monotonic()):
-                self._rate_refused(sender, msg)
+                self._rate_refused(self.rates, sender, msg)
                 return []
         return super()._message_received(msg)
 
-    def _rate_refused(self, sender: str, stanza: Any) -> None:
-        rates = self.rates
-        assert rates is not None
+    def _rate_refused(self, rates: SenderRates, sender: str, stanza: Any) -> None:
         self._record_refusal(Refusal(sender=sender, kind="rate", reason=f"over {rates.rate:g} messages a second "
                                      f"(burst {rates.burst:g})", performative=None, conversation_id=None,
                                      size=len(str(stanza["body"]).encode())))
