@@ -18,6 +18,7 @@ import hmac
 import json
 import os
 import tempfile
+import time
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -120,7 +121,7 @@ def job_summary(service: MasterService, job_id: str) -> dict[str, Any]:
     """Status and progress of one job, as the CLI shows it."""
     record = service.store.job(job_id)
     shares = record.plan.get("shares") or None
-    progress = service.store.progress(job_id, service.auction_now())
+    progress = service.store.progress(job_id, time.time())  # the store's times are wall-clock
     return {
         "job_id": record.id, "scene": record.scene, "status": record.status, "error": record.error,
         "created": record.created, "finished": record.finished, "level": record.plan["options"]["level"],

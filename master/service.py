@@ -33,7 +33,7 @@ from core.model.seeds import plan_seed
 from core.model.status import JobStatus, UnitStatus
 from core.model.units import WorkUnit
 from core.render.bundle import BundleLimits, bundle_hash, check_rules, check_unpacked, extract_bundle, read_manifest
-from core.render.tiles import read_tile, tile_source
+from core.render.tiles import read_tile_bytes, tile_source
 from core.render.worker import RenderWorker
 from core.transport.rates import SenderRates
 from core.transport.tls import is_loopback, server_context
@@ -340,7 +340,7 @@ class MasterService:
             unit = job.units.get(index) if job else None
             if unit is None or unit.status != UnitStatus.AWARDED:
                 return
-            tile = read_tile(path)
+            tile = read_tile_bytes(path.read_bytes(), str(path))  # the master's own read error is no TileError
             _check_channels(tile.channels, self._planned_channels(job_id), job_id, index)
             params = {**_params_from_meta(tile.meta), "agent": unit.agent}  # who holds the award
             _check_planned(job.info, unit.spec, params)
@@ -418,7 +418,9 @@ class MasterService:
             log.warning("space on the master again (%d bytes free): jobs resume", free)
 
     async def _execute(self, commands: list[au.Command]) -> None:
-        """Record events first (the store is the truth after a crash), then send messages."""
+        """Record events first (the store is the truth after a crash), then send messages. Where the store
+        cannot write them yet (`_record`) the messages still go: a master that crashes meanwhile sends its
+        awarded units back to auction when it starts, as after any crash."""
         self._record(commands)
         for cmd in commands:
             if isinstance(cmd, au.Send):
@@ -448,6 +450,9 @@ class MasterService:
                 log.error("the job store cannot record the auction's events (%s): kept until it can", exc)
             self._unrecorded = events
             return
+        except Exception:
+            self._unrecorded = []  # an event the store refuses is refused again: keeping it would stop every later one
+            raise
         if self._unrecorded:
             log.warning("the job store recorded %d event(s) it could not before", len(self._unrecorded))
         self._unrecorded = []

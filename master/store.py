@@ -438,9 +438,9 @@ class JobStore:
 
     def progress(self, job_id: str, now: float | None = None) -> Progress:
         """Units done/total, agents rendering now, and an ETA from the finished units' seconds per unit of
-        work (WorkUnit.work). Given `now` (the auction's clock, as the attempts' start times), the time the
-        running units have already rendered is taken off, each at most its unit's expected time, so the ETA
-        counts down between tiles."""
+        work (WorkUnit.work). Given `now` (wall-clock time, as the attempts' start times), the time the
+        units being rendered have already rendered is taken off, each at most its unit's expected time, so
+        the ETA counts down between tiles."""
         self.job(job_id)
         db = self.db
         counts = dict(
@@ -469,17 +469,21 @@ class JobStore:
         return Progress(counts.get(UnitStatus.DONE, 0), total, counts.get(UnitStatus.FAILED, 0), busy, eta)
 
     def _rendered_so_far(self, job_id: str, per_work: float, now: float | None) -> float:
-        """Seconds the running attempts of a job have rendered by `now`, each capped at its unit's work x
-        `per_work` (a unit over its time is not done sooner for it)."""
+        """Seconds the units of a job being rendered have rendered by `now`, each capped at its unit's work
+        x `per_work` (a unit over its time is not done sooner for it). An agent renders one unit at a time:
+        of the units it holds, the one awarded first is taken as rendering, the others as queued."""
         if now is None:
             return 0.0
         running = self.db.execute(
-            f"SELECT a.started, {_WORK.format(t='u.')} FROM attempts a"
+            f"SELECT a.agent, a.started, {_WORK.format(t='u.')} FROM attempts a"
             " JOIN units u ON (a.job_id, a.idx) = (u.job_id, u.idx)"
-            " WHERE a.job_id = ? AND a.outcome = 'running' AND u.status = ?",
+            " WHERE a.job_id = ? AND a.outcome = 'running' AND u.status = ? ORDER BY a.started",
             (job_id, UnitStatus.AWARDED),
         ).fetchall()
-        return sum(min(max(0.0, now - started), work * per_work) for started, work in running)
+        first = {}
+        for agent, started, work in running:
+            first.setdefault(agent, (started, work))
+        return sum(min(max(0.0, now - started), work * per_work) for started, work in first.values())
 
     # --- restart and the auction's events ------------------------------------------------------------
 

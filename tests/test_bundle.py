@@ -208,6 +208,19 @@ def test_an_unpacked_scene_that_reads_outside_its_bundle_is_refused_telling_noth
     assert str(refused.value) == f"bundle scene: {scene}:1: reference {reference!r} leads outside the bundle"
 
 
+def test_a_bundle_reached_through_a_linked_folder_reads_its_own_files(tmp_path):
+    """A master's home behind a link (a linked ~/.quekaro; /tmp on macOS): the bundle's own files are inside."""
+    from core.render.bundle import check_unpacked
+
+    (tmp_path / "real").mkdir()
+    scene = _scene_with(tmp_path / "real", _shape("inside.obj") + "<include filename='sub/inc.xml'/>")
+    (scene.parent / "inside.obj").write_text("o")
+    (scene.parent / "sub").mkdir()
+    (scene.parent / "sub" / "inc.xml").write_text(f"<scene version='3.0.0'>{_shape('sub/../inside.obj')}</scene>")
+    (tmp_path / "link").symlink_to(tmp_path / "real")
+    check_unpacked(tmp_path / "link" / "scene" / "scene.xml", {})
+
+
 def test_a_link_inside_the_bundle_to_a_file_outside_is_refused(tmp_path):
     from core.render.bundle import check_unpacked
 

@@ -116,6 +116,9 @@ def test_a_cut_or_cap_leaves_a_shallower_nested_integrator_as_written():
     tree.find("integrator[@name='full']/integer").set("value", "12")
     assert depths(integrators.with_depth(tree, 6)) == {"short": "3", "full": "6"}
     assert depths(integrators.with_depth(tree, 16)) == {"short": "3", "full": "16"}  # the user's --depth 16
+    # the pre-pass measures the first leaf as the units render it: short at 3, not at the tree's depth
+    assert etree.fromstring(integrators.radiance_xml(tree, 16)).find("integer").get("value") == "3"
+    assert etree.fromstring(integrators.radiance_xml(tree, 2)).find("integer").get("value") == "2"
 
 
 def test_depth_cap_on_a_diffuse_scene_keeps_the_image():

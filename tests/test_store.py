@@ -205,6 +205,20 @@ def test_auction_events_are_recorded(tmp_path: Path) -> None:
     assert store.progress("job-1").eta_s == 0.0
 
 
+def test_the_eta_counts_down_the_unit_an_agent_renders_not_the_one_it_has_queued(tmp_path: Path) -> None:
+    store = new_store(tmp_path / "farm.db", n=3)
+    cost = {u.index: u.cost for u in store.units("job-1")}
+    store.record_award("job-1", 0, "A", "aa" * 16, 100.0, 1.0)
+    store.record_result("job-1", 0, "/t/0.exr", "00" * 32, {"spp": 16}, 101.0)
+    store.finish_attempt("aa" * 16, "done", 101.0, cost[0], {"spp": 16})  # one second per unit of cost
+    store.mark_done("job-1", 0, 101.0)
+    store.record_award("job-1", 1, "A", "bb" * 16, 101.0, 1.0)  # rendering
+    store.record_award("job-1", 2, "A", "cc" * 16, 101.0 + cost[1] / 4, 1.0)  # queued behind it
+    left = cost[1] + cost[2]
+    assert store.progress("job-1").eta_s == pytest.approx(left)
+    assert store.progress("job-1", 101.0 + cost[1] / 2).eta_s == pytest.approx(left - cost[1] / 2)
+
+
 def test_cancel_ends_units_and_attempts(tmp_path: Path) -> None:
     store = new_store(tmp_path / "farm.db", n=2)
     store.record_award("job-1", 0, "A", "aa" * 16, 101.0, 2.0)

@@ -188,15 +188,30 @@ def test_a_flooding_sender_is_refused_unread_past_its_rate_and_the_others_are_he
 
 
 def test_a_senders_allowance_is_its_burst_then_its_rate() -> None:
-    from core.transport.rates import SenderRates
+    from core.transport import rates as r
 
-    rates = SenderRates(rate=2.0, burst=3.0)
+    rates = r.SenderRates(rate=2.0, burst=3.0)
     assert [rates.allow("a", 0.0) for _ in range(5)] == [True, True, True, False, False]
-    assert rates.refused("a") == 2 and rates.allow("b", 0.0)  # each sender its own bucket
-    assert rates.allow("a", 0.5) and not rates.allow("a", 0.5) and rates.refused("a") == 3
+    assert rates.report("a", 0.0) == 2 and rates.allow("b", 0.0)  # each sender its own bucket
+    assert rates.allow("a", 0.5) and not rates.allow("a", 0.5)
+    assert rates.report("a", 0.5) == 0  # reported under REPORT_S ago: it counts toward the next
     assert [rates.allow("a", 10.0) for _ in range(4)] == [True, True, True, False]  # refilled to the burst only
+    assert rates.report("a", r.REPORT_S) == 2 and rates.report("a", 100.0) == 0
     with pytest.raises(ValueError, match="rate"):
-        SenderRates(rate=0.0, burst=3.0)
+        r.SenderRates(rate=0.0, burst=3.0)
+
+
+def test_the_buckets_of_quiet_senders_are_dropped_once_there_are_many(monkeypatch) -> None:
+    from core.transport import rates as r
+
+    monkeypatch.setattr(r, "MAX_SENDERS", 3)
+    rates = r.SenderRates(rate=1.0, burst=2.0)
+    for name in ("a", "b", "c"):
+        rates.allow(name, 0.0)
+    rates.allow("c", 0.0)
+    rates.allow("c", 0.0)  # c is still empty at 1.0, a and b full again
+    rates.allow("d", 1.0)
+    assert set(rates.buckets) == {"c", "d"}
 
 
 @pytest.mark.slow

@@ -139,8 +139,7 @@ def with_depth(elem: etree._Element | None, depth: int) -> str:
     for e in walk(tree):
         if not kind(e.get("type", "")).depth:
             continue
-        own = _depth_value(e)
-        new = int(depth) if own == deepest else shallower(own, int(depth))
+        new = _depth_in_tree(_depth_value(e), deepest, int(depth))
         for child in [c for c in e if c.tag == "integer" and c.get("name") == "max_depth"]:
             e.remove(child)
         etree.SubElement(e, "integer", name="max_depth", value=str(new))
@@ -152,9 +151,18 @@ def with_depth(elem: etree._Element | None, depth: int) -> str:
 
 def radiance_xml(elem: etree._Element | None, depth: int) -> str:
     """The first integrator of the tree that renders radiance itself (not a wrapper such as moment or aov),
-    at `depth`, as standalone XML: what a pre-pass estimates cost and noise with."""
+    at the depth the whole tree at `depth` gives it (`with_depth`), as standalone XML: what a pre-pass
+    estimates cost and noise with."""
     leaf = next((e for e in walk(elem) if not kind(e.get("type", "")).nests), None)
-    return with_depth(leaf, depth)
+    if leaf is None or elem is None or not kind(leaf.get("type", "")).depth:
+        return with_depth(leaf, depth)
+    return with_depth(leaf, _depth_in_tree(_depth_value(leaf), depth_of(elem), depth))
+
+
+def _depth_in_tree(own: int, deepest: int | None, depth: int) -> int:
+    """The max_depth an integrator of its own `own` takes when its tree, whose deepest is `deepest`, is
+    given `depth`: the deepest take it, a shallower one keeps its own unless `depth` is less."""
+    return depth if own == deepest else shallower(own, depth)
 
 
 def _clean_copy(elem: etree._Element) -> etree._Element:

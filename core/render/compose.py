@@ -82,15 +82,17 @@ def ramp(start: int, stop: int, core_start: int, core_stop: int, cut_before: int
     return w
 
 
-def tile_weight(rect: Rect, core: Rect, reach: int = 0, image: tuple[int, int] | None = None) -> np.ndarray:
-    """Un-normalised weight (h, w) of a tile over its rendered rectangle: 1 on its core, 0 on the `reach`
-    outer pixels of each side that is not the edge of the `image` (width, height), > 0 between."""
+def tile_weight(rect: Rect, core: Rect, reach: int = 0, image: tuple[int, int] | None = None,
+                rows: slice = slice(None)) -> np.ndarray:
+    """Un-normalised weight (h, w) of a tile over its rendered rectangle (only its `rows`, if given): 1 on
+    its core, 0 on the `reach` outer pixels of each side that is not the edge of the `image` (width,
+    height), > 0 between."""
     width, height = image if image is not None else (rect.x1, rect.y1)
     if reach and image is None:
         raise ValueError("tile_weight: a reach needs the image size, to know which sides are its edges")
     wx = ramp(rect.x, rect.x1, core.x, core.x1, reach * (rect.x > 0), reach * (rect.x1 < width))
     wy = ramp(rect.y, rect.y1, core.y, core.y1, reach * (rect.y > 0), reach * (rect.y1 < height))
-    return np.outer(wy, wx)
+    return np.outer(wy[rows], wx)
 
 
 def blend_weights(geometry: Sequence[tuple[Rect, Rect]], width: int, height: int,
@@ -226,7 +228,7 @@ def _accumulate(tile: TileLike, y0: int, y1: int, acc: np.ndarray, wsum: np.ndar
     rows = slice(top - rect.y, bottom - rect.y)
     pixels = np.asarray(tile.pixels[rows, :, :acc.shape[0]], dtype=np.float64)
     finite = np.all(np.isfinite(pixels), axis=2)
-    placed = tile_weight(rect, tile.core, reach, image)[rows]
+    placed = tile_weight(rect, tile.core, reach, image, rows)
     w = placed * finite
     cols = slice(rect.x, rect.x1)
     acc[:, top - y0:bottom - y0, cols] += np.moveaxis(np.where(finite[..., None], pixels, 0.0) * w[..., None], 2, 0)

@@ -171,11 +171,11 @@ def _resolved(file: Path, elem: etree._Element, kind: str, name: str, folders: S
 
 
 def _refuse_outside(where: str, name: str, candidates: Sequence[Path], within: Path | None) -> None:
-    """SceneError if a place `name` may resolve to lies outside `within`, read as written (`..` folded)
-    and, where it exists, with its links followed."""
+    """SceneError if a place `name` may resolve to lies outside `within` (resolved): each candidate is
+    resolved as the file system would reach it, links followed and `..` taken where it leads, whether
+    or not it exists."""
     for candidate in candidates if within is not None else ():
-        if not (Path(os.path.normpath(candidate.absolute())).is_relative_to(within)
-                and candidate.resolve().is_relative_to(within)):
+        if not candidate.absolute().resolve().is_relative_to(within):
             raise SceneError(f"{where}: reference {name!r} leads outside the bundle")
 
 

@@ -10,12 +10,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+REPORT_S = 10.0
+MAX_SENDERS = 4096
+
 
 @dataclass
 class _Bucket:
     tokens: float
     at: float
-    refused: int = 0  # messages refused so far
+    refused: int = 0  # messages refused since the last report
+    reported_at: float = float("-inf")
 
 
 @dataclass
@@ -34,6 +38,8 @@ class SenderRates:
         """Whether `sender` may send one more message at `now` (monotonic seconds); takes its token."""
         bucket = self.buckets.get(sender)
         if bucket is None:
+            if len(self.buckets) >= MAX_SENDERS:
+                self._forget_quiet(now)
             bucket = self.buckets[sender] = _Bucket(self.burst, now)
         bucket.tokens = min(self.burst, bucket.tokens + max(0.0, now - bucket.at) * self.rate)
         bucket.at = now
@@ -43,7 +49,16 @@ class SenderRates:
         bucket.refused += 1
         return False
 
-    def refused(self, sender: str) -> int:
-        """Messages of `sender` refused so far."""
+    def report(self, sender: str, now: float) -> int:
+        """How many messages of `sender` were refused since the last report, if that was over REPORT_S ago
+        (the first refusal of a flood is reported at once); else 0, and they count toward the next."""
         bucket = self.buckets.get(sender)
-        return 0 if bucket is None else bucket.refused
+        if bucket is None or not bucket.refused or now - bucket.reported_at < REPORT_S:
+            return 0
+        count, bucket.refused, bucket.reported_at = bucket.refused, 0, now
+        return count
+
+    def _forget_quiet(self, now: float) -> None:
+        full = [s for s, b in self.buckets.items() if b.tokens + (now - b.at) * self.rate >= self.burst]
+        for sender in full:
+            del self.buckets[sender]

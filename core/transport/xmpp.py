@@ -373,22 +373,23 @@ class FarmAgent(Agent):
     # ---- the gate -----------------------------------------------------------------------------------
 
     def _message_received(self, msg: Any) -> list[asyncio.Task]:
-        """A message stanza from the XMPP stream: a sender past its allowance (`rates`) is refused here,
-        before SPADE converts the stanza, so that a refused message costs no conversion."""
+        """A message stanza from the XMPP stream: a sender past its allowance (`rates`), known or not, is
+        refused here, before SPADE converts the stanza, so that a refused message costs no conversion."""
         if self.rates is not None:
             sender = str(msg["from"].bare)
-            if self._sender_known(sender) and not self.rates.allow(sender, time.monotonic()):
+            if not self.rates.allow(sender, time.monotonic()):
                 self._rate_refused(self.rates, sender, msg)
                 return []
         return super()._message_received(msg)
 
     def _rate_refused(self, rates: SenderRates, sender: str, stanza: Any) -> None:
-        self._record_refusal(Refusal(sender=sender, kind="rate", reason=f"over {rates.rate:g} messages a second "
-                                     f"(burst {rates.burst:g})", performative=None, conversation_id=None,
-                                     size=len(str(stanza["body"]).encode())))
-        count = rates.refused(sender)
-        if count % 1000 == 0:
-            log.warning("%s has refused %d messages from %s, over its allowance", self.bare_jid, count, sender)
+        reason = f"over {rates.rate:g} messages a second (burst {rates.burst:g})"
+        self._record_refusal(Refusal(sender=sender, kind="rate", reason=reason, performative=None,
+                                     conversation_id=None, size=len(str(stanza["body"]).encode())))
+        count = rates.report(sender, time.monotonic())
+        if count:
+            log.warning("%s refused %d message(s) from %s since it last said so: %s", self.bare_jid, count,
+                        sender, reason)
 
     def dispatch(self, msg: Message) -> list[asyncio.Task]:
         """Every incoming message passes here (SPADE calls it for XMPP and in-process delivery alike)."""
@@ -455,8 +456,7 @@ class FarmAgent(Agent):
     def _record_refusal(self, refusal: Refusal) -> None:
         self.refusals[refusal.kind] += 1
         self.recent_refusals.append(refusal)
-        if refusal.kind != "rate" or self.rates is None or self.rates.refused(refusal.sender) == 1:
-            # a flood is logged where it starts, then every 1000 messages (`_rate_refused`), not each one
+        if refusal.kind != "rate":  # a flood is logged now and then by `_rate_refused`, not per message
             log.warning("%s refused a message from %s: %s", self.bare_jid, refusal.sender or "(none)",
                         refusal.reason)
         if self.on_refusal is not None:

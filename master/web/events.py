@@ -7,7 +7,8 @@ anything changed and sends only what did, each as a named event whose data is on
 - `job`: the job the page shows, with its units (`views.job_view`), when `?job=` names one;
 - `agents`: the agents table (`views.agents_view`) with `server_now`. The page ages "last heard" itself,
   so the table is sent again when a row changes otherwise, or when an agent's age drifts more than
-  `AGE_SLACK_S` from what the page shows: heartbeats alone do not make an idle farm's stream talk.
+  `AGE_SLACK_S` from what the page shows: an idle farm's heartbeats (every 2 s) make its stream talk
+  every few seconds, not every second, and "last heard" is shown up to AGE_SLACK_S late.
 
 Whether jobs changed is read from the job store's own change counter (`sqlite3.Connection.total_changes`
 of the master's connection: every award, tile, status change and submission is a row written through it)
