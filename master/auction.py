@@ -861,7 +861,8 @@ class Auction:
     def _seen(self, agent: Agent, now: float) -> list[Command]:
         agent.last_seen = max(agent.last_seen, now)
         if agent.lost:
-            agent.lost = False
+            # Back from an outage long enough to lose it: the calls it missed meanwhile are not held against it.
+            agent.lost, agent.silences, agent.silent_until = False, 0, None
             return [AgentBack(agent.name)]
         return []
 

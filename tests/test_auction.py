@@ -214,6 +214,20 @@ def test_a_fast_agent_that_never_bids_does_not_keep_the_units_from_the_others() 
     assert called == {"mute"}  # projected everything: the honest agent is not called
     a.decide(a.config.cfp_timeout_s)
     assert {s.to for s in sends(a.announce(a.config.cfp_timeout_s), m.CallForProposal)} == {"honest"}
+    a.register("mute", 3.0, speed=1000.0)  # registering again does not end its pause
+    assert a.agents["mute"].silent_until is not None
+
+
+def test_an_agent_back_from_being_lost_is_not_held_to_the_calls_it_missed() -> None:
+    a = make([1.0], ["A"])
+    a.announce(0.0)
+    a.decide(a.config.cfp_timeout_s)  # its link is down: the call goes unanswered
+    assert a.agents["A"].silences == 1
+    a.expire(a.config.heartbeat_timeout_s + 1.0)
+    assert a.agents["A"].lost
+    back = a.on_heartbeat("A", m.Heartbeat(conversation="h", busy=()), 20.0)
+    assert events(back, au.AgentBack) and a.agents["A"].silences == 0 and a.agents["A"].silent_until is None
+    assert sends(a.announce(20.0), m.CallForProposal, to="A")
 
 
 def test_refusal_resolves_the_round_at_once() -> None:
