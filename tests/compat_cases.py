@@ -58,7 +58,7 @@ CASES = (
     Case("spectral-spiky", "spectral_spiky.xml", variant=SPECTRAL),
     Case("spectral-file", "spectral_file.xml", variant=SPECTRAL),  # a .spd file read before any variant is set
     Case("spectral-grey-box", "spectral_grey_box.xml", variant=SPECTRAL),  # colours stored as coefficients
-    Case("nested-depths", "nested_depths.xml"),  # nested integrators of different depths, the deeper capped
+    Case("nested-depths", "nested_depths.xml"),  # nested integrators of different depths
     Case("instancing", "instancing.xml"),
     Case("medium-homogeneous", "medium_homogeneous.xml"),
     Case("medium-grid", "medium_grid.xml"),

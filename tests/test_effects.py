@@ -3,14 +3,11 @@ where it would change it (media, dielectrics, an envmap seen through glass)."""
 
 from pathlib import Path
 
-import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from core.errors import QuekaroError, SceneError
 from core.model.job import SceneSpec
-from core.render.effects import SPECTRAL_RANGE_NM, analyse, analyse_loaded, depth_cap, largest_reflectance
+from core.render.effects import analyse, analyse_loaded
 from core.render.worker import render_full
 
 REPO = Path(__file__).resolve().parent.parent
@@ -20,12 +17,6 @@ SMALL = {"width": "24", "height": "24"}
 
 def _mean(spec, integrator, depth, spp=256, seed=0):
     return render_full(spec, "llvm_ad_rgb", integrator, depth, spp, seed=seed, threads=1).mean()
-
-
-def test_depth_cap_formula():
-    assert depth_cap(0.0) == 2 and depth_cap(1.0) is None
-    cap = depth_cap(0.73)
-    assert 0.73 ** (cap - 1) / (1 - 0.73) <= 5e-3 < 0.73 ** (cap - 2) / (1 - 0.73)
 
 
 def test_the_analysis_hands_over_the_scene_it_loaded_in_the_chosen_variant():
@@ -67,33 +58,6 @@ def test_nested_integrators_are_described_and_ptracer_is_not_split(tmp_path):
     assert not effects.splittable and any("splat anywhere" in r for r in effects.reasons)
 
 
-@settings(max_examples=200, deadline=None)
-@given(st.lists(st.floats(-1e-3, 1e-3), min_size=1, max_size=6), st.floats(-2.0, 2.0), st.floats(-60.0, 60.0))
-def test_the_largest_reflectance_of_spectral_coefficients_is_their_spectrums_largest(c0s, c1, c2):
-    """Mitsuba's sRGB model s(x) = 1/2 + x / (2 sqrt(1 + x^2)), x = c0 l^2 + c1 l + c2: the closed form
-    against the spectrum sampled every 0.05 nm (tolerance: what a step that fine can miss, 1e-6)."""
-    coefficients = np.array([[c0, c1, c2] for c0 in c0s])
-    wavelengths = np.linspace(*SPECTRAL_RANGE_NM, 9401)
-    x = (coefficients[:, :1] * wavelengths + c1) * wavelengths + c2
-    sampled = float(np.max(0.5 + 0.5 * x / np.sqrt(x * x + 1)))
-    texels = coefficients.reshape(1, -1, 3)  # a bitmap's (h, w, 3) coefficients
-    assert largest_reflectance(texels, spectral=True) == pytest.approx(sampled, abs=1e-6)
-    assert largest_reflectance(coefficients[:1].T, spectral=True) == pytest.approx(
-        largest_reflectance(texels[:, :1], spectral=True))  # a colour's value, (3, 1)
-    assert largest_reflectance(texels, spectral=False) == np.max(texels)  # rgb: the values are reflectances
-
-
-def test_a_spectral_scenes_depth_cap_reads_its_colours_as_reflectances(tmp_path):
-    """A grey 0.5 is stored as the coefficients (0, 0, 0) in a spectral variant: read as reflectances they
-    said albedo 0 and capped the depth at 2, and the image came out half as bright."""
-    scene = tmp_path / "box.xml"
-    text = (REPO / "tests" / "compat" / "scenes" / "spectral_grey_box.xml").read_text()
-    scene.write_text(text.replace('name="max_depth" value="8"', 'name="max_depth" value="-1"'))
-    effects = analyse(SceneSpec(scene))
-    assert effects.variant == "llvm_ad_spectral" and effects.max_depth == depth_cap(0.5)
-    assert any("largest albedo 0.50" in r for r in effects.reasons), effects.reasons
-
-
 def test_a_cut_or_cap_leaves_a_shallower_nested_integrator_as_written():
     """with_depth: the deepest nested integrators take the new depth; a shallower one keeps its own unless
     the new depth is less (an aov's depth-2 child was rendered at the -1 sibling's cap of 20: 19 % brighter)."""
@@ -121,20 +85,22 @@ def test_a_cut_or_cap_leaves_a_shallower_nested_integrator_as_written():
     assert etree.fromstring(integrators.radiance_xml(tree, 2)).find("integer").get("value") == "2"
 
 
-def test_depth_cap_on_a_diffuse_scene_keeps_the_image():
-    spec = SceneSpec(REPO / "scenes" / "cbox.xml", {"res": "24", "max_depth": "-1"})
-    effects = analyse(spec)
-    assert effects.integrator == "path" and 2 < effects.max_depth < 40
-    assert any("diffuse only" in r for r in effects.reasons)
-    capped, full = _mean(spec, "path", effects.max_depth), _mean(spec, "path", -1, seed=1)
-    assert abs(capped / full - 1) < 0.03
-
-
-@pytest.mark.parametrize("name", ["glass_envmap.xml", "fog_ball.xml"])
-def test_no_depth_cap_with_specular_chains_or_media(name):
+@pytest.mark.parametrize("name", ["glass_envmap.xml", "fog_ball.xml", "baffled_tunnel.xml"])
+def test_the_scenes_depth_is_kept_with_its_reason(name):
     effects = analyse(SceneSpec(DATA / name, SMALL))
-    assert effects.integrator == "path" and effects.max_depth == 8
-    assert any("no cap with specular/glossy chains or media" in r for r in effects.reasons)
+    depth = 8 if name != "baffled_tunnel.xml" else -1
+    assert effects.integrator == "path" and effects.max_depth == depth
+    assert f"max_depth {depth}: the scene's own" in effects.reasons
+
+
+def test_a_reflectance_bound_on_the_depth_is_no_bound_on_a_pixels_light():
+    """Why the analysis lowers no depth: a diffuse scene of albedo 0.3 bounds the light of paths deeper than
+    6 at 0.5 % of its lamp's radiance, but where the camera sees light that came round a baffle, those
+    paths carry more of the pixel. Paired seeds: the same paths up to depth 6, so the difference is the
+    tail itself; at 2048 spp its share measured 0.87-1.02 % over five seeds against the bound's 0.5 %."""
+    spec = SceneSpec(DATA / "baffled_tunnel.xml", {"refl": "0.3", "width": "32"})
+    cut, full = _mean(spec, "path", 6, spp=2048), _mean(spec, "path", -1, spp=2048)
+    assert full > cut and 1 - cut / full > 0.005, (cut, full)
 
 
 def test_glass_corner_keeps_its_depth():
