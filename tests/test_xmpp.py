@@ -250,7 +250,8 @@ def test_both_agents_reconnect_by_themselves_after_a_server_restart(tmp_path, pe
 @pytest.mark.slow
 @needs_prosody
 def test_two_processes_through_prosody_with_tls_and_closed_registration(tmp_path, peers) -> None:
-    server = ProsodyServer(tmp_path / "prosody")
+    # Both exempt from the config's rate per client: the figures are Prosody's own, as the master sees it.
+    server = ProsodyServer(tmp_path / "prosody", unlimited=["echo@localhost", "ping@localhost"])
     passwords = server.register_all(["echo", "ping"])
     server.start()
     try:
@@ -267,6 +268,36 @@ def test_two_processes_through_prosody_with_tls_and_closed_registration(tmp_path
         assert "login refused" in stranger.wait_for("error", timeout=30)["reason"]
         wrong = peers(server.port, "echo@localhost", "wrong-password", "echo", "--connect-timeout", "3")
         assert "login refused" in wrong.wait_for("error", timeout=30)["reason"]
+    finally:
+        server.stop()
+
+
+@pytest.mark.slow
+@needs_prosody
+def test_prosody_slows_a_client_that_floods_and_never_the_master(tmp_path, peers) -> None:
+    """deploy/prosody's mod_limits: a client sending 300 KB at once is read at its rate (32 kB/s after a
+    burst of 64 kB, so no sooner than 7 s), nothing is dropped, and master@ is exempt."""
+    server = ProsodyServer(tmp_path / "prosody")
+    passwords = server.register_all(["sink", "friend", "master"])
+    server.start()
+    try:
+        sink = peers(server.port, "sink@localhost", passwords["sink"], "sink",
+                     peers="friend@localhost,master@localhost")
+        sink.wait_for("online")
+
+        def flood(name: str) -> list[float]:
+            sender = peers(server.port, f"{name}@localhost", passwords[name], "send", "--to", "sink@localhost",
+                           "--copies", "300", "--body-size", "1000", "--linger", "30")
+            sender.wait_for("sent")
+            times = [sink.wait_for("got", timeout=40, sender=f"{name}@localhost")["t"] for _ in range(300)]
+            sender.stop()
+            return times
+
+        friend, master = flood("friend"), flood("master")
+        friend_s, master_s = friend[-1] - friend[0], master[-1] - master[0]
+        assert friend_s >= 5.0, friend_s
+        assert master_s < min(3.0, friend_s / 2), (master_s, friend_s)
+        print(f"\nflood of 300 KB: the client's read over {friend_s:.1f} s, the master's over {master_s:.2f} s")
     finally:
         server.stop()
 

@@ -1,4 +1,4 @@
-"""A FarmAgent in its own process, driven by tests/test_xmpp.py: echo, ping, stream or send one message.
+"""A FarmAgent in its own process, driven by tests/test_xmpp.py: echo, ping, stream, send one message, or sink.
 
 Agents in one process bypass XMPP (design.md section 4), so every XMPP test runs two of these. Each
 prints JSON lines on stdout: {"event": "online"|"refused"|"reconnected"|"pong"|"result"|"error", ...};
@@ -52,6 +52,15 @@ async def run_echo(agent: FarmAgent, args: argparse.Namespace, stop: asyncio.Eve
                          protocol=env.protocol)
 
     agent.set_handler(echo)
+    await stop.wait()
+
+
+async def run_sink(agent: FarmAgent, args: argparse.Namespace, stop: asyncio.Event) -> None:
+    """Say when each message arrives, and answer none."""
+    async def got(env: Envelope) -> None:
+        emit("got", sender=env.sender, conversation=env.conversation_id)
+
+    agent.set_handler(got)
     await stop.wait()
 
 
@@ -125,7 +134,7 @@ async def run_send(agent: FarmAgent, args: argparse.Namespace, stop: asyncio.Eve
     await asyncio.sleep(args.linger)
 
 
-MODES = {"echo": run_echo, "ping": run_ping, "stream": run_stream, "send": run_send}
+MODES = {"echo": run_echo, "ping": run_ping, "stream": run_stream, "send": run_send, "sink": run_sink}
 
 
 async def amain(args: argparse.Namespace) -> int:

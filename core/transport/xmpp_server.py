@@ -270,7 +270,8 @@ class ProsodyServer(_ChildServer):
     """
 
     def __init__(self, data_dir: Path | str, domain: str = "localhost", port: int | None = None,
-                 config: Path = PROSODY_CONFIG, stanza_limit: int = 256 * 1024) -> None:
+                 config: Path = PROSODY_CONFIG, stanza_limit: int = 256 * 1024, c2s_rate: str | None = None,
+                 unlimited: Iterable[str] | None = None) -> None:
         for tool in ("prosody", "prosodyctl"):
             if shutil.which(tool) is None:
                 raise XmppServerError(f"{tool} is not installed (Debian package 'prosody')")
@@ -279,6 +280,7 @@ class ProsodyServer(_ChildServer):
         super().__init__(data_dir, domain, port)
         self.config = Path(config)
         self.stanza_limit = stanza_limit
+        self.c2s_rate, self.unlimited = c2s_rate, None if unlimited is None else ",".join(unlimited)
 
     @property
     def cert_dir(self) -> Path:
@@ -299,6 +301,8 @@ class ProsodyServer(_ChildServer):
             QUEKARO_XMPP_STANZA_LIMIT=str(self.stanza_limit),
             # Running as root in a container: keep files owned by us rather than switch to `prosody`.
             QUEKARO_PROSODY_USER=_current_user(),
+            **{k: v for k, v in (("QUEKARO_XMPP_C2S_RATE", self.c2s_rate),
+                                 ("QUEKARO_XMPP_UNLIMITED", self.unlimited)) if v is not None},
         )
 
     def _prepare(self) -> None:

@@ -16,6 +16,8 @@
 --   QUEKARO_PROSODY_USER     user to run as when started as root                (default "prosody")
 --   QUEKARO_XMPP_STANZA_LIMIT  largest stanza accepted, bytes                   (default 262144)
 --   QUEKARO_REGISTRATION_ALLOWLIST  addresses/CIDRs allowed to register in-band (default: none, closed)
+--   QUEKARO_XMPP_C2S_RATE    bytes a client may send per second, Prosody's "N kb/s" (default "32kb/s")
+--   QUEKARO_XMPP_UNLIMITED   comma-separated JIDs exempt from that rate        (default master@<domain>)
 
 local env = os.getenv
 local domain = env("QUEKARO_XMPP_DOMAIN") or "xmpp"
@@ -24,6 +26,19 @@ local domain = env("QUEKARO_XMPP_DOMAIN") or "xmpp"
 -- Prosody close the sender's stream, and SPADE raises nothing: the farm keeps XMPP bodies under
 -- 64 KiB (core.xmpp.DEFAULT_MAX_BODY) and moves scenes and tiles over HTTP.
 c2s_stanza_size_limit = tonumber(env("QUEKARO_XMPP_STANZA_LIMIT") or "262144")
+
+-- Each client may send QUEKARO_XMPP_C2S_RATE after a burst of two seconds' worth (mod_limits): past it
+-- Prosody stops reading that connection for a while, so a peer that floods slows itself down before
+-- the master has to parse what it sends (the master also refuses, unread, what an agent sends past 20
+-- messages a second: core.transport.rates). An agent's messages are small (a heartbeat every 2 s, bids,
+-- informs; its largest, 64 bids, about 3 KB). The master calls every agent at once and is exempt: name
+-- it in QUEKARO_XMPP_UNLIMITED if its JID is not master@<domain>.
+limits = { c2s = { rate = env("QUEKARO_XMPP_C2S_RATE") or "32kb/s"; burst = "2s"; } }
+local unlimited = {}
+for jid in (env("QUEKARO_XMPP_UNLIMITED") or ("master@" .. domain)):gmatch("[^,%s]+") do
+	unlimited[#unlimited + 1] = jid
+end
+unlimited_jids = unlimited
 
 c2s_ports = { tonumber(env("QUEKARO_XMPP_PORT") or "5222") }
 c2s_interfaces = { env("QUEKARO_XMPP_INTERFACE") or "*" }
@@ -51,6 +66,7 @@ local enabled = {
 	"ping";        -- SPADE's keepalive (XEP-0199)
 	"offline";     -- messages to an agent that is reconnecting wait for it
 	"posix";       -- pid file
+	"limits";      -- each client's send rate (above)
 }
 -- Registration is closed: only accounts made with prosodyctl exist. The one exception is
 -- QUEKARO_REGISTRATION_ALLOWLIST (comma-separated addresses or CIDR ranges): clients from there, and
