@@ -3,6 +3,7 @@ where it would change it (media, dielectrics, an envmap seen through glass)."""
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from core.errors import QuekaroError, SceneError
@@ -103,9 +104,50 @@ def test_a_reflectance_bound_on_the_depth_is_no_bound_on_a_pixels_light():
     assert full > cut and 1 - cut / full > 0.005, (cut, full)
 
 
-def test_glass_corner_keeps_its_depth():
+def test_glass_corner_keeps_its_depth_and_its_gold_needs_spectral():
     effects = analyse(SceneSpec(REPO / "scenes" / "glass-corner.xml", {"res": "16"}))
-    assert (effects.variant, effects.integrator, effects.max_depth) == ("llvm_ad_rgb", "path", 12)
+    assert (effects.variant, effects.integrator, effects.max_depth) == ("llvm_ad_spectral", "path", 12)
+    assert "material 'Au' is measured per wavelength" in effects.reasons[0]
+
+
+@pytest.mark.parametrize(("bsdf", "variant"), [
+    ('<bsdf type="conductor"><string name="material" value="Au"/></bsdf>', "llvm_ad_spectral"),
+    ('<bsdf type="twosided"><bsdf type="roughconductor"><string name="material" value="$metal"/></bsdf></bsdf>',
+     "llvm_ad_spectral"),
+    ('<bsdf type="conductor"/>', "llvm_ad_rgb"),  # Mitsuba's default material: none, a perfect mirror
+    ('<bsdf type="conductor"><string name="material" value="none"/></bsdf>', "llvm_ad_rgb"),
+    ('<bsdf type="conductor"><rgb name="eta" value="0.2, 0.4, 1.4"/><rgb name="k" value="3.9, 2.4, 1.9"/></bsdf>',
+     "llvm_ad_rgb"),
+])
+def test_a_conductor_of_a_measured_metal_needs_spectral(tmp_path, bsdf, variant):
+    scene = tmp_path / "s.xml"
+    scene.write_text(f'<scene version="3.0.0"><default name="metal" value="Cr"/><shape type="sphere">{bsdf}'
+                     '</shape></scene>')
+    assert analyse(SceneSpec(scene)).variant == variant
+
+
+def test_a_measured_metal_renders_another_colour_in_rgb():
+    """Why: a gold ball under a white sky (noise-free: a mirror of a constant), rgb against spectral, off
+    by more than the analysis's RGB_TOLERANCE of the brightest channel (measured: about 5 % per channel)."""
+    import mitsuba as mi
+
+    from core.render import mitsuba_env
+    from core.render.spectral_data import RGB_TOLERANCE
+
+    colours = {}
+    for variant in ("llvm_ad_rgb", "llvm_ad_spectral"):
+        mitsuba_env.init(variant, threads=1)
+        scene = mi.load_dict({
+            "type": "scene", "integrator": {"type": "path", "max_depth": 3},
+            "sensor": {"type": "orthographic", "film": {"type": "hdrfilm", "width": 8, "height": 8},
+                       "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0])
+                       @ mi.ScalarTransform4f().scale([0.3, 0.3, 1]),
+                       "sampler": {"type": "independent", "sample_count": 4}},
+            "sky": {"type": "constant"},
+            "ball": {"type": "sphere", "bsdf": {"type": "conductor", "material": "Au"}}})
+        colours[variant] = np.array(mi.render(scene)).reshape(-1, 3).mean(axis=0)
+    rgb, spectral = colours["llvm_ad_rgb"], colours["llvm_ad_spectral"]
+    assert np.max(np.abs(rgb - spectral)) / spectral.max() > RGB_TOLERANCE, (rgb, spectral)
 
 
 def _spectrum_scene(tmp_path, spectrum: str) -> SceneSpec:

@@ -8,7 +8,8 @@ given per wavelength (or read from a file): light that bounces two and three tim
 and once off each of any two of them, must keep its linear-sRGB colour within RGB_TOLERANCE of the
 brightest channel when computed channel by channel. A flat spectrum passes exactly; narrow emission lines
 and spectra with structure fail. An index of refraction that varies with wavelength (dispersion) always
-needs spectral; blackbody spectra exist only in spectral variants.
+needs spectral, and so does a conductor made of one of Mitsuba's measured metals (`material`, whose
+spectra Mitsuba reads from its own data); blackbody spectra exist only in spectral variants.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ RGB_TOLERANCE = 0.02  # of the brightest channel, after up to three bounces (a f
 IOR_TOLERANCE = 1e-4  # relative spread of an index of refraction over wavelength
 _GRID = np.arange(360.0, 831.0, 5.0)  # Mitsuba's CIE range, 5 nm steps
 _IOR_NAMES = {"eta", "k", "int_ior", "ext_ior"}
+CONDUCTORS = ("conductor", "roughconductor")
 # Linear sRGB from CIE XYZ (IEC 61966-2-1).
 _XYZ_TO_SRGB = np.array([[3.2404542, -1.5371385, -0.4985314],
                          [-0.9692660, 1.8760108, 0.0415560],
@@ -104,6 +106,9 @@ def _from_file(path: Path, where: str) -> tuple[np.ndarray, np.ndarray]:
 
 def spectral_need(root: Any, scene_path: Path) -> str | None:
     """Why the scene needs a spectral variant, or None when rgb renders its spectral data the same."""
+    named = _named_conductor(root, scene_path)
+    if named:
+        return named
     colours: list[tuple[str, np.ndarray]] = []
     for elem in root.iter("spectrum"):
         src = Path(elem.get(SRC_ATTR, scene_path))
@@ -127,6 +132,21 @@ def spectral_need(root: Any, scene_path: Path) -> str | None:
         names = "; ".join(n for n, _ in colours[:3])
         return (f"per-wavelength data that rgb would render differently (colour after bounces off it off by "
                 f"{error:.1%} > {RGB_TOLERANCE:.0%}): {names}")
+    return None
+
+
+def _named_conductor(root: Any, scene_path: Path) -> str | None:
+    """A conductor whose `material` names one of Mitsuba's measured metals: its eta and k are spectra that
+    Mitsuba reads from its own data, not the XML, and they vary with wavelength (gold's colour off by
+    about 5 % per channel in rgb, chromium's 8 %: tests/test_effects.py)."""
+    for elem in root.iter("bsdf"):
+        if elem.get("type") not in CONDUCTORS:
+            continue
+        for child in elem.iterfind("string[@name='material']"):
+            if child.get("value", "none") != "none":
+                where = child.get(SRC_ATTR, elem.get(SRC_ATTR, str(scene_path)))
+                return (f"{where}: <bsdf type={elem.get('type')!r}> material {child.get('value')!r} is measured "
+                        "per wavelength (its index of refraction varies: dispersion)")
     return None
 
 
