@@ -387,3 +387,19 @@ def test_a_dead_link_is_noticed_by_the_keepalive_and_the_agent_reconnects(tmp_pa
     print(f"\ndead link noticed after {noticed:.2f} s; back {back:.2f} s after the link")
     assert noticed < 3.0  # keepalive 0.5 s + timeout 1 s, not SPADE's 55 s
     assert back < 5.0 and reconnects == 1
+
+
+def test_empty_pyjabber_folders_of_killed_processes_are_swept_once_stale(tmp_path) -> None:
+    """pyjabber makes a folder at import and never removes it; a killed process cannot at exit."""
+    from core.transport.pyjabber_tmp import PREFIX, STALE_S, sweep_stale
+
+    now = time.time()
+    old, fresh, full, other = (tmp_path / f"{PREFIX}{n}" for n in ("old", "fresh", "full", "x"))
+    for folder in (old, fresh, full):
+        folder.mkdir()
+    (full / "upload").write_text("kept")
+    other.write_text("a file of that name")
+    for path in (old, full, other):
+        os.utime(path, (now - 2 * STALE_S, now - 2 * STALE_S))
+    assert sweep_stale(tmp_path, now) == 1
+    assert not old.exists() and fresh.is_dir() and (full / "upload").read_text() == "kept" and other.is_file()
