@@ -9,12 +9,12 @@ is which, so that depth is cut only where the scene does not call for the deeper
 
 At the noise pre-pass's low resolution the scene renders at the user's depth and at each shallower depth
 the planner can choose (core.render.planner.DEPTH_STEPS), with one seed: each sample follows the same
-path up to the cut, so the difference of two passes is the light of the longer paths alone, with little
-noise. A unit's floor is the shallowest of those depths (and every deeper one) whose loss over the unit,
-its mean plus Z_BOUND standard errors over the unit's low-resolution pixels, stays within LOSS_TOLERANCE
-of the unit's light. The planner never renders a unit below its floor; the master refuses a tile that
-says it did.
-"""
+path up to the cut, so the difference of two passes is the light of the longer paths alone. That light
+comes from rare long paths, so a few samples mostly miss it, and then their spread is small too: the
+passes take enough samples per pixel that the smallest unit has MIN_UNIT_SAMPLES. A unit's floor is the
+shallowest of those depths (and every deeper one) whose loss over the unit, its mean plus Z_BOUND
+standard errors over the unit's low-resolution pixels, stays within LOSS_TOLERANCE of the unit's light.
+The planner never renders a unit below its floor; the master refuses a tile that says it did."""
 
 from __future__ import annotations
 
@@ -35,6 +35,10 @@ from planning.complexity import PREPASS_SPP, film_size, finite_mean
 LOSS_TOLERANCE = 0.01
 Z_BOUND = 2.0  # the loss's upper bound: mean + 2 standard errors (about 2.5 % of units judged too leniently)
 DARK = 1e-6  # a unit with less light than this (mean over RGB) loses nothing that can be seen
+# Samples per unit and pass. With 256 (4 per pixel of an 8 x 8 px unit) a dark corner that loses 1.4 %
+# at its cut passed the test for 10 seeds of 80; with 512, for none (tests/test_depth_floors.py).
+MIN_UNIT_SAMPLES = 512
+MAX_FLOOR_SPP = 64  # a unit of fewer than 8 low-resolution pixels takes fewer samples
 
 
 @dataclass(frozen=True)
@@ -44,11 +48,13 @@ class DepthFloors:
     floors: tuple[int, ...]
     depths: tuple[int, ...]
     seconds: float
+    spp: int
 
     def to_info(self) -> dict[str, Any]:
         cut = sum(1 for f in self.floors if f < max(self.depths))
         return {"depth_floor_depths": list(self.depths), "depth_floor_seconds": self.seconds,
-                "depth_floor_units_cuttable": cut, "depth_floor_tolerance": LOSS_TOLERANCE}
+                "depth_floor_spp": self.spp, "depth_floor_units_cuttable": cut,
+                "depth_floor_tolerance": LOSS_TOLERANCE}
 
 
 def cut_depths(depth: int) -> list[int]:
@@ -57,16 +63,29 @@ def cut_depths(depth: int) -> list[int]:
 
 
 def measure(scene: Any, integrator_at: Callable[[int], str], depth: int, rects: Sequence[Rect],
-            low_size: tuple[int, int], image_size: tuple[int, int], seed: int = 0, sensor: int = 0,
-            spp: int = PREPASS_SPP) -> DepthFloors:
+            low_size: tuple[int, int], image_size: tuple[int, int], seed: int = 0, sensor: int = 0) -> DepthFloors:
     """Render `scene` at `low_size` with `integrator_at(d)` (standalone integrator XML) for the user's
     `depth` and each cut depth, one seed, and return each rect's floor (rects in `image_size` pixels)."""
     start = time.perf_counter()
     depths = [depth, *cut_depths(depth)]
+    spp = floor_spp(rects, low_size, image_size)
     with film_size(scene, *low_size, sensor):
         light = {d: _luminance(scene, integrator_at(d), spp, seed, sensor) for d in depths}
     floors = floors_from_passes(light, rects, image_size)
-    return DepthFloors(tuple(floors), tuple(depths), time.perf_counter() - start)
+    return DepthFloors(tuple(floors), tuple(depths), time.perf_counter() - start, spp)
+
+
+def floor_spp(rects: Sequence[Rect], low_size: tuple[int, int], image_size: tuple[int, int]) -> int:
+    """Samples per low-resolution pixel that give the smallest rect MIN_UNIT_SAMPLES, within
+    [PREPASS_SPP, MAX_FLOOR_SPP]."""
+    low_shape = (low_size[1], low_size[0])
+    pixels = min((_window_pixels(_low_window(r, low_shape, *image_size)) for r in rects), default=1)
+    return int(np.clip(-(-MIN_UNIT_SAMPLES // pixels), PREPASS_SPP, MAX_FLOOR_SPP))
+
+
+def _window_pixels(window: tuple[slice, slice]) -> int:
+    ys, xs = window
+    return (ys.stop - ys.start) * (xs.stop - xs.start)
 
 
 def floors_from_passes(light: dict[int, np.ndarray], rects: Sequence[Rect],
