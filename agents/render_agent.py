@@ -331,10 +331,12 @@ class RenderAgent:
             await asyncio.to_thread(write_tile, path, tile, durable=False)
         except Exception as exc:
             return RenderFailed(command.ticket, describe(exc))
-        return RenderFinished(command.ticket, path, float(tile.meta["seconds"]), int(tile.meta.get("nonfinite", 0)))
+        return RenderFinished(command.ticket, path, float(tile.meta["seconds"]), int(tile.meta.get("nonfinite", 0)),
+                              int(tile.meta["spp"]))
 
     def _tile_meta(self, job: m.JobInfo, unit: WorkUnit, params: Params) -> dict[str, Any]:
-        return {"job_id": job.job_id, "unit_index": unit.index, "spp": params.spp, "depth": params.depth,
+        # No spp: the render's own header says what Mitsuba took (a stratified sampler rounds the rules' count).
+        return {"job_id": job.job_id, "unit_index": unit.index, "depth": params.depth,
                 "band": params.band, "outputs": dict(getattr(params, "outputs", {})), "agent": self.jid,
                 "level": job.level, "rules": self._planner_for(job).rules_path.name, "integrator": job.integrator}
 

@@ -108,12 +108,14 @@ class BundleFailed:
 
 @dataclass(frozen=True)
 class RenderFinished:
-    """The unit is rendered and its tile written at `path`; `seconds` the render's own time."""
+    """The unit is rendered and its tile written at `path`; `seconds` the render's own time, `spp` the samples
+    per pixel Mitsuba took (a stratified sampler rounds the rules' count; None: the rules' count)."""
 
     ticket: int
     path: Path
     seconds: float
     nonfinite: int = 0
+    spp: int | None = None
 
 
 @dataclass(frozen=True)
@@ -503,11 +505,12 @@ class AgentState:
         predicted = self.uncorrected(award.job, award.unit, params)
         self.kernels.add(kernel_key(award.job, award.unit, params))
         self.calibration.learn(key[0], predicted, wall)
+        spp = params.spp if rendered.spp is None else rendered.spp
         text = (f"unit {key[0]}/{key[1]} done: {wall:.3f} s in all, render {rendered.seconds:.3f} s, spp "
-                f"{params.spp} depth {params.depth} band {params.band} (award estimate {award.estimate_s:.3f} s)")
+                f"{spp} depth {params.depth} band {params.band} (award estimate {award.estimate_s:.3f} s)")
         return [Log(logging.INFO, text), Send(m.Inform(
             conversation=award.conversation, job_id=key[0], index=key[1], token=award.token, tile_hash=sha256,
-            depth=params.depth, spp=params.spp, band=params.band, seconds=rendered.seconds,
+            depth=params.depth, spp=spp, band=params.band, seconds=rendered.seconds,
             nonfinite=rendered.nonfinite))]
 
     def _fail(self, work: Work, reason: str) -> list[Command]:

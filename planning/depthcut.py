@@ -11,10 +11,11 @@ At the noise pre-pass's low resolution the scene renders at the user's depth and
 the planner can choose (core.render.planner.DEPTH_STEPS), with one seed: each sample follows the same
 path up to the cut, so the difference of two passes is the light of the longer paths alone. That light
 comes from rare long paths, so a few samples mostly miss it, and then their spread is small too: the
-passes take enough samples per pixel that the smallest unit has MIN_UNIT_SAMPLES. A unit's floor is the
-shallowest of those depths (and every deeper one) whose loss over the unit, its mean plus Z_BOUND
-standard errors over the unit's low-resolution pixels, stays within LOSS_TOLERANCE of the unit's light.
-The planner never renders a unit below its floor; the master refuses a tile that says it did."""
+passes take enough samples per pixel that the smallest unit has MIN_UNIT_SAMPLES (at most
+MAX_FLOOR_SPP). A unit's floor is the shallowest of those depths (and every deeper one) whose loss over
+the unit, its mean plus Z_BOUND standard errors over the unit's low-resolution pixels, stays within
+LOSS_TOLERANCE of the unit's light. The planner never renders a unit below its floor; the master refuses
+a tile that says it did."""
 
 from __future__ import annotations
 
@@ -36,7 +37,7 @@ LOSS_TOLERANCE = 0.01
 Z_BOUND = 2.0  # the loss's upper bound: mean + 2 standard errors (about 2.5 % of units judged too leniently)
 DARK = 1e-6  # a unit with less light than this (mean over RGB) loses nothing that can be seen
 # Samples per unit and pass. With 256 (4 per pixel of an 8 x 8 px unit) a dark corner that loses 1.4 %
-# at its cut passed the test for 10 seeds of 80; with 512, for none (tests/test_depth_floors.py).
+# at its cut passed the test for 10 pre-pass seeds of 80; with 512, for none (tests/test_depth_floors.py).
 MIN_UNIT_SAMPLES = 512
 MAX_FLOOR_SPP = 64  # a unit of fewer than 8 low-resolution pixels takes fewer samples
 

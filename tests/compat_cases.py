@@ -39,6 +39,12 @@ class Case:
     units: int = 6  # enough to have bands between tiles in both directions
     search: tuple[str, ...] = ()  # -a folders, relative to SCENES
     whole: bool = False  # rendered as one unit whatever --units asks (its samples or crops cannot be tiled)
+    rendered_spp: int | None = None  # what Mitsuba's sampler takes for `spp`, where it rounds it
+
+    @property
+    def unit_spp(self) -> int:
+        """The spp each unit's report entry must give: what was rendered."""
+        return self.rendered_spp or self.spp
 
     @property
     def scene(self) -> Path:
@@ -53,6 +59,9 @@ CASES = (
     Case("file-names", "file names/scène d'été.xml"),  # spaces and accents in the scene's and its include's names
     Case("default-integrator", "default_integrator.xml", defines={"integrator": "direct"}),
     Case("sampler-default", "sampler_default.xml", spp=4),  # no sample_count: the sampler's default
+    Case("sampler-stratified", "sampler_stratified.xml", spp=50, rendered_spp=64),  # rounded to a square
+    Case("thinlens", "thinlens.xml"),  # depth of field
+    Case("film-sample-border", "sample_border.xml"),  # samples beyond the tiles' and the image's edges
     Case("direct", "direct.xml"),
     Case("spectral-flat", "spectral_flat.xml"),
     Case("spectral-spiky", "spectral_spiky.xml", variant=SPECTRAL),
@@ -154,8 +163,8 @@ def compare_files(case: Case, images: np.ndarray | list[np.ndarray]) -> Verdict:
 
 def problems(case: Case, out: Path) -> list[str]:
     """What differs between the job's image (beside OUT's report, with the suffix the report names) and
-    plain Mitsuba's: the file's suffix and component format, its channels, their values; empty when
-    nothing does."""
+    plain Mitsuba's: the file's suffix and component format, its channels, their values, and the spp the
+    report gives its units; empty when nothing does."""
     report = json.loads(out.with_suffix(".json").read_text())
     written = out.with_suffix(Path(report["image"]["file"]).suffix)
     kind = file_kind(written)
@@ -174,6 +183,9 @@ def problems(case: Case, out: Path) -> list[str]:
     units = 1 if case.whole else case.units
     if len(report["units"]) != units:
         found.append(f"{len(report['units'])} units, expected {units}")
+    said = sorted({u["spp"] for u in report["units"]})
+    if said != [case.unit_spp]:
+        found.append(f"the report's unit spp {said}, rendered {case.unit_spp}")
     return found
 
 

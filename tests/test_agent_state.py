@@ -254,6 +254,19 @@ def test_a_duplicate_award_renders_once_also_after_the_unit_is_done() -> None:
     assert agent.held() == []
 
 
+def test_the_inform_gives_the_spp_mitsuba_rendered_not_the_rules_count() -> None:
+    """A stratified sampler rounds the rules' count to a square: the tile and the Inform say what was rendered."""
+    agent = Agent()
+    fetch = only(agent(award(job(), unit(0))), FetchBundle)
+    start = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
+    rendered = start.params.spp + 7  # any other count
+    upload = only(agent(RenderFinished(start.ticket, Path("/t.exr"), 1.0, 0, rendered), dt=1.0), Upload)
+    out = agent(UploadDone(upload.ticket, "cd" * 32))
+    (inform,) = sent(out, m.Inform)
+    assert inform.spp == rendered != start.params.spp
+    assert any(f"spp {rendered} " in c.text for c in out if isinstance(c, Log))
+
+
 def test_a_re_award_with_a_new_token_is_answered_under_the_new_award() -> None:
     agent = Agent()
     info = job()

@@ -59,9 +59,9 @@ def test_nested_integrators_are_described_and_ptracer_is_not_split(tmp_path):
     assert not effects.splittable and any("splat anywhere" in r for r in effects.reasons)
 
 
-def test_a_cut_or_cap_leaves_a_shallower_nested_integrator_as_written():
+def test_a_cut_or_depth_leaves_a_shallower_nested_integrator_as_written():
     """with_depth: the deepest nested integrators take the new depth; a shallower one keeps its own unless
-    the new depth is less (an aov's depth-2 child was rendered at the -1 sibling's cap of 20: 19 % brighter)."""
+    the new depth is less (an aov's depth-2 child was once rendered at its -1 sibling's new depth 20: 19 % brighter)."""
     from lxml import etree
 
     from core.model import integrators
@@ -94,6 +94,7 @@ def test_the_scenes_depth_is_kept_with_its_reason(name):
     assert f"max_depth {depth}: the scene's own" in effects.reasons
 
 
+@pytest.mark.slow
 def test_a_reflectance_bound_on_the_depth_is_no_bound_on_a_pixels_light():
     """Why the analysis lowers no depth: a diffuse scene of albedo 0.3 bounds the light of paths deeper than
     6 at 0.5 % of its lamp's radiance, but where the camera sees light that came round a baffle, those
@@ -115,14 +116,15 @@ def test_glass_corner_keeps_its_depth_and_its_gold_needs_spectral():
     ('<bsdf type="twosided"><bsdf type="roughconductor"><string name="material" value="$metal"/></bsdf></bsdf>',
      "llvm_ad_spectral"),
     ('<bsdf type="conductor"/>', "llvm_ad_rgb"),  # Mitsuba's default material: none, a perfect mirror
+    ('<bsdf type="conductor"><string name="material" value="$plain"/></bsdf>', "llvm_ad_rgb"),
     ('<bsdf type="conductor"><string name="material" value="none"/></bsdf>', "llvm_ad_rgb"),
     ('<bsdf type="conductor"><rgb name="eta" value="0.2, 0.4, 1.4"/><rgb name="k" value="3.9, 2.4, 1.9"/></bsdf>',
      "llvm_ad_rgb"),
 ])
 def test_a_conductor_of_a_measured_metal_needs_spectral(tmp_path, bsdf, variant):
     scene = tmp_path / "s.xml"
-    scene.write_text(f'<scene version="3.0.0"><default name="metal" value="Cr"/><shape type="sphere">{bsdf}'
-                     '</shape></scene>')
+    scene.write_text('<scene version="3.0.0"><default name="metal" value="Cr"/><default name="plain" value="none"/>'
+                     f'<shape type="sphere">{bsdf}</shape></scene>')
     assert analyse(SceneSpec(scene)).variant == variant
 
 

@@ -18,7 +18,7 @@ import pytest
 from prosody_support import needs_prosody
 
 from core.transport.xmpp import FarmAgent
-from core.transport.xmpp_server import EmbeddedXmppServer, ProsodyServer, free_port
+from core.transport.xmpp_server import EmbeddedXmppServer, ProsodyServer, XmppServerError, free_port
 
 REPO = Path(__file__).resolve().parent.parent
 PEER = REPO / "tests" / "xmpp_peer.py"
@@ -275,8 +275,8 @@ def test_two_processes_through_prosody_with_tls_and_closed_registration(tmp_path
 @pytest.mark.slow
 @needs_prosody
 def test_prosody_slows_a_client_that_floods_and_never_the_master(tmp_path, peers) -> None:
-    """deploy/prosody's mod_limits: a client sending 300 KB at once is read at its rate (32 kB/s after a
-    burst of 64 kB, so no sooner than 7 s), nothing is dropped, and master@ is exempt."""
+    """deploy/prosody's mod_limits: a client sending 300 KB at once is read at its rate (32 kB/s, so over
+    9 s or more: 5 s is the bound, for slack), nothing is dropped, and master@ is exempt."""
     server = ProsodyServer(tmp_path / "prosody")
     passwords = server.register_all(["sink", "friend", "master"])
     server.start()
@@ -300,6 +300,13 @@ def test_prosody_slows_a_client_that_floods_and_never_the_master(tmp_path, peers
         print(f"\nflood of 300 KB: the client's read over {friend_s:.1f} s, the master's over {master_s:.2f} s")
     finally:
         server.stop()
+
+
+@needs_prosody
+def test_prosody_refuses_a_rate_it_would_misread_naming_the_variable(tmp_path) -> None:
+    """mod_limits reads "32768" as nothing and falls back to 3000 bytes a second with one log line."""
+    with pytest.raises(XmppServerError, match="QUEKARO_XMPP_C2S_RATE: 32768 is not a rate like 32kb/s"):
+        ProsodyServer(tmp_path / "prosody", c2s_rate="32768").start()
 
 
 class FreezingRelay:

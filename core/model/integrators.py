@@ -132,7 +132,7 @@ def with_depth(elem: etree._Element | None, depth: int) -> str:
     """The integrator tree as a standalone XML string at `depth` (the rest exactly as written): the deepest
     depth-bearing integrators in it (those at `depth_of`) get max_depth = depth, and a shallower nested one
     keeps its own unless `depth` is less (an aov's direct child at 2 stays at 2 when its path sibling is
-    cut to 6, or capped from -1 to 20). Private attributes of the XML reader are dropped."""
+    cut to 6, or set from -1 to 20 by --depth). Private attributes of the XML reader are dropped."""
     tree = etree.Element("integrator", type=DEFAULT_TYPE) if elem is None else _clean_copy(elem)
     tree.set("version", "3.0.0")
     deepest = depth_of(tree)

@@ -6,7 +6,8 @@ statistically the same, and says why:
 - variant: rgb unless the XML's spectral data would render differently in rgb (spectral_data.py's test:
   paths of up to three bounces off each spectrum, and between any two, keep their colour in rgb within
   RGB_TOLERANCE; a wavelength-dependent index of refraction always needs spectral; blackbody spectra are
-  spectral-only in Mitsuba). A flat reflectance passes; narrow lines and structured spectra do not.
+  spectral-only in Mitsuba; a conductor of one of Mitsuba's measured metals, `material`, whose spectra are
+  Mitsuba's own data, too). A flat reflectance passes; narrow lines and structured spectra do not.
   Polarized spectral where the scene computes polarization: a `stokes` integrator (Mitsuba refuses it
   in any other variant) or a polarizing BSDF (POLARIZING_BSDFS: unpolarized variants render them
   without the effect they exist for, e.g. crossed polarizers let light through).

@@ -146,7 +146,7 @@ def _named_conductor(root: Any, scene_path: Path) -> str | None:
             if child.get("value", "none") != "none":
                 where = child.get(SRC_ATTR, elem.get(SRC_ATTR, str(scene_path)))
                 return (f"{where}: <bsdf type={elem.get('type')!r}> material {child.get('value')!r} is measured "
-                        "per wavelength (its index of refraction varies: dispersion)")
+                        "per wavelength (its complex index of refraction, hence its colour, varies)")
     return None
 
 

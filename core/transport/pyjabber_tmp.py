@@ -5,7 +5,7 @@ folder with `tempfile.mkdtemp` at import, for its HTTP upload feature, and never
 agent, master and server process left one behind (thousands after a test run). The farm never uses
 that feature, so the folder, private to this process, is removed when the process exits normally;
 those of processes that were killed are swept by the next process once they are an hour old and
-still empty.
+still empty (a process running for longer loses its own too: harmless, as nothing here uploads).
 """
 
 from __future__ import annotations

@@ -16,10 +16,15 @@
 --   QUEKARO_PROSODY_USER     user to run as when started as root                (default "prosody")
 --   QUEKARO_XMPP_STANZA_LIMIT  largest stanza accepted, bytes                   (default 262144)
 --   QUEKARO_REGISTRATION_ALLOWLIST  addresses/CIDRs allowed to register in-band (default: none, closed)
---   QUEKARO_XMPP_C2S_RATE    bytes a client may send per second, Prosody's "N kb/s" (default "32kb/s")
+--   QUEKARO_XMPP_C2S_RATE    what a client may send per second, "N kb/s" (1 kb = 1000 bytes)  (default "32kb/s")
 --   QUEKARO_XMPP_UNLIMITED   comma-separated JIDs exempt from that rate        (default master@<domain>)
+-- (an empty variable counts as unset)
 
-local env = os.getenv
+local function env(name)
+	local value = os.getenv(name)
+	if value == "" then return nil end
+	return value
+end
 local domain = env("QUEKARO_XMPP_DOMAIN") or "xmpp"
 
 -- Stanza size limit: 256 KiB (Prosody's default, stated here on purpose). A larger stanza makes
@@ -27,13 +32,18 @@ local domain = env("QUEKARO_XMPP_DOMAIN") or "xmpp"
 -- 64 KiB (core.xmpp.DEFAULT_MAX_BODY) and moves scenes and tiles over HTTP.
 c2s_stanza_size_limit = tonumber(env("QUEKARO_XMPP_STANZA_LIMIT") or "262144")
 
--- Each client may send QUEKARO_XMPP_C2S_RATE after a burst of two seconds' worth (mod_limits): past it
--- Prosody stops reading that connection for a while, so a peer that floods slows itself down before
--- the master has to parse what it sends (the master also refuses, unread, what an agent sends past 20
--- messages a second: core.transport.rates). An agent's messages are small (a heartbeat every 2 s, bids,
--- informs; its largest, 64 bids, about 3 KB). The master calls every agent at once and is exempt: name
--- it in QUEKARO_XMPP_UNLIMITED if its JID is not master@<domain>.
-limits = { c2s = { rate = env("QUEKARO_XMPP_C2S_RATE") or "32kb/s"; burst = "2s"; } }
+-- Prosody reads each client at QUEKARO_XMPP_C2S_RATE (mod_limits; 0.12's epoll backend paces a
+-- connection from its first byte, with no burst): a peer that floods slows itself down before the master
+-- has to parse what it sends (the master also refuses, unread, what an agent sends past 20 messages a
+-- second: core.transport.rates). An agent's messages are small (a heartbeat every 2 s, bids, informs; its
+-- largest, 64 bids, about 3 KB). The master calls every agent at once and is exempt: name it in
+-- QUEKARO_XMPP_UNLIMITED if its JID is not master@<domain>.
+local rate = env("QUEKARO_XMPP_C2S_RATE") or "32kb/s"
+if not rate:match("^%d+ ?[kKmMgG]?[bB]/s$") then
+	-- mod_limits would log one line and fall back to 3000 bytes a second
+	error("QUEKARO_XMPP_C2S_RATE: " .. rate .. " is not a rate like 32kb/s")
+end
+limits = { c2s = { rate = rate; } }
 local unlimited = {}
 for jid in (env("QUEKARO_XMPP_UNLIMITED") or ("master@" .. domain)):gmatch("[^,%s]+") do
 	unlimited[#unlimited + 1] = jid
