@@ -324,7 +324,7 @@ class RenderAgent:
                 tile = await asyncio.to_thread(self.worker.render, request, command.timeout_s)
             except QuekaroError as exc:
                 raise UnitFailed(f"render failed: {exc}") from exc
-            meta = self._tile_meta(job, unit, params)
+            meta = self._tile_meta(job, params)
             tile.meta.update(self.emulation.mark(meta) if self.emulation else meta)
             path = self._tile_path(job.job_id, unit.index)
             # Not fsynced: the file lives until its upload; a crash loses the unit, which is rendered again.
@@ -334,11 +334,12 @@ class RenderAgent:
         return RenderFinished(command.ticket, path, float(tile.meta["seconds"]), int(tile.meta.get("nonfinite", 0)),
                               int(tile.meta["spp"]))
 
-    def _tile_meta(self, job: m.JobInfo, unit: WorkUnit, params: Params) -> dict[str, Any]:
-        # No spp: the render's own header says what Mitsuba took (a stratified sampler rounds the rules' count).
-        return {"job_id": job.job_id, "unit_index": unit.index, "depth": params.depth,
-                "band": params.band, "outputs": dict(getattr(params, "outputs", {})), "agent": self.jid,
-                "level": job.level, "rules": self._planner_for(job).rules_path.name, "integrator": job.integrator}
+    def _tile_meta(self, job: m.JobInfo, params: Params) -> dict[str, Any]:
+        """What the agent adds to the render's header. The render states what it did (job, unit, spp as
+        Mitsuba took it, depth, band, integrator): writing the plan's values over them had reported a
+        stratified sampler's rounded spp as the rules' count."""
+        return {"outputs": dict(getattr(params, "outputs", {})), "agent": self.jid, "level": job.level,
+                "rules": self._planner_for(job).rules_path.name}
 
     async def _upload(self, command: Upload) -> UploadDone | UploadFailed:
         """Hash the tile and upload it with the award's token."""
