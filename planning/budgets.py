@@ -25,6 +25,7 @@ from core.model.geometry import Rect
 from core.model.units import WorkUnit
 from core.render.adaptive import BLUR_PX, PAYS_BELOW, blurred, first_spp, second_pass
 from core.render.planner import RenderParams
+from fuzzy.render_params import SPP_MAX
 
 
 def level_spp(units: Sequence[WorkUnit], chosen: Sequence[RenderParams]) -> int:
@@ -54,9 +55,9 @@ class Shares:
 def shares(noise: np.ndarray, rects: Sequence[Rect], mean_spp: int) -> Shares:
     """Split `mean_spp` x the image's pixels over `rects` by the pre-pass's per-pixel relative noise
     (H x W): each rect's mean of the image-wide two-pass allocation on that noise, blurred
-    (core.render.adaptive.second_pass, never below the first pass), rounded to whole spp. The rects then
-    place their own samples from their own first pass, so the image-wide split is what the pre-pass
-    contributes; its samples are independent of the render's, so no pixel's neighbourhood is left out."""
+    (core.render.adaptive.second_pass, never below the first pass), rounded to whole spp, at most SPP_MAX.
+    The rects then place their own samples from their own first pass, so the image-wide split is what the
+    pre-pass contributes; its samples are independent of the render's, so no pixel's neighbourhood is left out."""
     if noise.ndim != 2 or not np.isfinite(noise).all() or (noise < 0).any():
         raise QuekaroError(f"pre-pass noise map {noise.shape} is not a finite non-negative image")
     first = first_spp(mean_spp)
@@ -64,7 +65,7 @@ def shares(noise: np.ndarray, rects: Sequence[Rect], mean_spp: int) -> Shares:
     adapted = predicted < PAYS_BELOW
     if not adapted:
         return Shares(tuple(mean_spp for _ in rects), mean_spp, first, predicted, False)
-    split = tuple(first + round(float(extra[r.y:r.y1, r.x:r.x1].mean())) for r in rects)
+    split = tuple(min(SPP_MAX, first + round(float(extra[r.y:r.y1, r.x:r.x1].mean()))) for r in rects)
     return Shares(split, mean_spp, first, predicted, True)
 
 

@@ -22,6 +22,7 @@ from core.model.units import WorkUnit
 from core.render.imageio import read_image_channels
 from core.render.planner import RenderParams, adaptive_params
 from core.render.worker import RenderRequest, render_job_here
+from fuzzy.render_params import SPP_MAX
 from master.service import _check_planned, _params_from_meta
 from planning.budgets import level_spp, shares
 
@@ -87,6 +88,14 @@ def test_shares_go_where_the_noise_is_and_keep_the_budget():
     assert one.spp == (1, 1, 1, 1) and one.first == 1
     with pytest.raises(QuekaroError, match="not a finite non-negative image"):
         shares(np.full((8, 32), np.nan), _rects(4), 16)
+
+
+def test_no_share_passes_the_most_spp_a_unit_may_carry():
+    noise = np.full((8, 32), 0.01)
+    noise[:, :8] = 10.0
+    split = shares(noise, _rects(4), SPP_MAX)
+    assert split.adapted and max(split.spp) == SPP_MAX
+    WorkUnit(index=0, rect=Rect(0, 0, 8, 8), C=1.0, S=64, Nd=0.0, cost=1.0, spp=max(split.spp))
 
 
 def test_the_level_spends_the_rules_samples_by_area():

@@ -13,6 +13,7 @@ from core.errors import MessageError
 from core.model import messages as m
 from core.model.geometry import Rect
 from core.model.units import WorkUnit
+from fuzzy.render_params import SPP_MAX
 
 HASH = "ab" * 32
 TOKEN = "0123456789abcdef" * 2
@@ -114,6 +115,16 @@ def test_bad_inform_fields_are_refused_by_name(change, field: str) -> None:
     data = body_of(ONE_OF_EACH[5])
     change(data)
     assert refused("inform", data).field == field
+
+
+def test_an_inform_carries_the_spp_a_sampler_rounds_a_jobs_most_up_to() -> None:
+    """Mitsuba's orthogonal sampler renders 1031^2 samples where it is given 2^20, the most a job asks for:
+    the agent reports what it rendered, so the master must read that count."""
+    data = body_of(ONE_OF_EACH[5])
+    data["spp"] = 1031**2
+    assert m.parse("inform", json.dumps(data)).spp == 1031**2
+    data["spp"] = 2 * SPP_MAX + 1
+    assert refused("inform", data).field == "spp"
 
 
 def test_cfp_cross_field_checks() -> None:

@@ -9,9 +9,11 @@ import pytest
 from fuzzy_helpers import DATA, RULES
 
 from core.data import default_rules_path
+from core.model.geometry import Rect
+from core.model.units import WorkUnit
 from core.render.planner import DEPTH_STEPS, Planner, RenderParams, quantise_depth_factor
 from fuzzy import RuleFileError
-from fuzzy.render_params import LS_MAX
+from fuzzy.render_params import LS_MAX, SPP_MAX
 
 FEATURES = {"C": np.array([1.0, 5.0, 9.0, 5.0]), "S": np.array([100, 400, 900, 400.0]),
             "Nd": np.array([0.0, 2.0, 8.0, 0.5])}
@@ -38,6 +40,15 @@ def test_plans_are_bounded_and_banded(planner):
             assert p.depth in (8, 6, 4)  # quantised to 1, 3/4, 1/2 of the user's depth
             assert 1 <= p.spp <= LS_MAX * 32 and p.band >= 3
             assert set(p.outputs) == {"Rl", "Ls", "Ibs"}
+
+
+def test_a_job_at_the_most_spp_plans_units_its_messages_carry(planner):
+    """The rules may raise a unit's spp to LS_MAX x the user's; at the job's own limit (SPP_MAX) that would
+    be a count no award or tile may carry, so the unit stays at SPP_MAX, the others below it."""
+    for level in ("VS", "S"):
+        spp = [p.spp for p in planner.plan(FEATURES, level, user_depth=8, user_spp=SPP_MAX)]
+        assert max(spp) == SPP_MAX and min(spp) < SPP_MAX, (level, spp)
+        WorkUnit(index=0, rect=Rect(0, 0, 4, 4), C=1.0, S=16, Nd=0.0, cost=1.0, spp=max(spp))
 
 
 def test_depth_is_quantised_to_few_steps():

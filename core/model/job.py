@@ -22,6 +22,7 @@ from core.model.integrators import CATALOGUE
 from core.model.units import WorkUnit
 from fuzzy.engine import DEFUZZIFIERS
 from fuzzy.levels import LEVELS, OFF, RULE_LEVELS
+from fuzzy.render_params import SPP_MAX
 
 VARIANT_PATTERN = re.compile(r"(scalar|llvm|cuda)(_ad)?_(rgb|spectral|mono)[a-z_]*")  # a Mitsuba variant name
 
@@ -66,7 +67,7 @@ class SceneSpec:
 
 
 # Integer options and their ranges (the message schema's limits, core.model.messages.JobInfo).
-_INT_RANGES = {"spp": (1, 1 << 20), "depth": (1, 1024), "threads": (1, 4096), "units": (1, 4096),
+_INT_RANGES = {"spp": (1, SPP_MAX), "depth": (1, 1024), "threads": (1, 4096), "units": (1, 4096),
                "sensor": (0, 1024)}
 
 

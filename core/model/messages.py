@@ -28,6 +28,7 @@ from core.model.job import VARIANT_PATTERN
 from core.model.units import WorkUnit
 from fuzzy.engine import DEFUZZIFIERS
 from fuzzy.levels import LEVELS
+from fuzzy.render_params import SPP_MAX
 
 PROTOCOL_VERSION = 1
 ONTOLOGY = "quekaro-render"
@@ -64,7 +65,7 @@ class JobInfo:
     scene_hash: str = constrained(pattern=_HEX)
     width: int = constrained(lo=1, hi=65536)
     height: int = constrained(lo=1, hi=65536)
-    spp: int = constrained(lo=1, hi=1 << 20)
+    spp: int = constrained(lo=1, hi=SPP_MAX)
     depth: int = constrained(lo=-1, hi=1024)  # Mitsuba's max_depth: -1 means unbounded
     level: str = constrained(choices=LEVELS)
     # Observed (lo, hi) of the dynamic input variables (C, S, Nd) over the whole scene.
@@ -85,7 +86,7 @@ class JobInfo:
     min_band: int = constrained(lo=0, hi=64, default=filter_reach(DEFAULT_FILTER_RADIUS))
     # Adaptive jobs: the first pass's samples per pixel in every unit, whose own mean spp the plan set
     # (WorkUnit.spp); the agent renders each unit in two passes (core.render.adaptive), not by its rules.
-    first_spp: int | None = constrained(lo=1, hi=1 << 20, default=None)
+    first_spp: int | None = constrained(lo=1, hi=SPP_MAX, default=None)
 
     def check(self) -> None:
         for name, (lo, hi) in self.ranges.items():
@@ -204,7 +205,9 @@ class Inform(Message):
     token: str = constrained(pattern=_HEX)
     tile_hash: str = constrained(pattern=_HEX)
     depth: int = constrained(lo=-1, hi=1024)
-    spp: int = constrained(lo=1, hi=1 << 20)
+    # As rendered: a sampler rounds the count it is given up (orthogonal to the next prime squared,
+    # 1031^2 for SPP_MAX), so a unit at the limit renders a little more.
+    spp: int = constrained(lo=1, hi=2 * SPP_MAX)
     band: int = constrained(lo=0, hi=65536)
     seconds: float = constrained(lo=0.0, hi=1e9)
     nonfinite: int = constrained(lo=0, hi=1 << 32)  # pixels that were NaN/inf before clamping

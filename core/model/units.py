@@ -9,6 +9,7 @@ from typing import Any
 from core.errors import MessageError
 from core.model.fields import constrained
 from core.model.geometry import Rect
+from fuzzy.render_params import SPP_MAX
 
 
 class UnitError(MessageError):
@@ -38,7 +39,7 @@ class WorkUnit:
     cost: float = constrained(lo=0.0, hi=1e12)  # seconds on a reference agent of speed 1
     # The partition's adjacency: the planner's business, not the agents' (so never on the wire).
     neighbours: tuple[int, ...] = constrained(wire=False, default=())
-    spp: int | None = constrained(lo=1, hi=1 << 20, default=None)
+    spp: int | None = constrained(lo=1, hi=SPP_MAX, default=None)
     depth_floor: int | None = constrained(lo=1, hi=1 << 16, default=None)
 
     def __post_init__(self) -> None:
