@@ -32,10 +32,16 @@ DEFUZZIFIERS = ("centroid", "centre-of-sums")
 _ALIASES = {"centroid": "centroid", "centre-of-sums": "centre-of-sums", "center-of-sums": "centre-of-sums"}
 
 
+def default_defuzzifier(rulebase: RuleBase) -> str:
+    """MASYRO's published inference is a centre of sums; the paper dialect's default is the exact centroid."""
+    return "centre-of-sums" if rulebase.dialect == "masyro" else "centroid"
+
+
 class Engine:
     """A compiled rule base; `evaluate` runs it on a batch of units."""
 
-    def __init__(self, rulebase: RuleBase, defuzzifier: str = "centroid") -> None:
+    def __init__(self, rulebase: RuleBase, defuzzifier: str | None = None) -> None:
+        defuzzifier = defuzzifier or default_defuzzifier(rulebase)
         if defuzzifier not in _ALIASES:
             choices = ", ".join(DEFUZZIFIERS)
             raise ValueError(f"unknown defuzzifier {defuzzifier!r}; expected one of {choices}")

@@ -29,11 +29,12 @@ from lxml import etree
 from fuzzy.errors import RuleFileError
 from fuzzy.rulebase import Antecedent, Consequent, Rule, RuleBase
 from fuzzy.terms import Trapezoid
-from fuzzy.variables import InputVariable, OutputVariable
+from fuzzy.variables import MAGNITUDE_MAX, InputVariable, OutputVariable
 
 MAX_BYTES = 1 << 20  # 1 MiB: a rule base of thousands of rules fits; anything larger is refused
 _SET_TAGS = ("fset", "fuzzyset")
 _CONSEQUENT_TAGS = ("consequent", "consequence")
+_LABEL_SPLIT = re.compile(r"[\s,{}]+")  # a clause's labels: "VS,S", "VS S", "{VS, S}"
 _FORBIDDEN = re.compile(rb"<!\s*(DOCTYPE|ENTITY)", re.IGNORECASE)
 _FORBIDDEN_TEXT = re.compile(r"<!\s*(DOCTYPE|ENTITY)", re.IGNORECASE)
 
@@ -174,6 +175,10 @@ def _build_variable(el: etree._Element, file: str, masyro: bool = False) -> Inpu
         raise RuleFileError("variable has no fuzzy sets", file=file, line=el.sourceline, variable=name)
     labels: list[str] = []
     for s in set_els:
+        if _LABEL_SPLIT.search(s.get("label") or " "):
+            raise RuleFileError("a label must be one word without commas or braces: a rule's label is split "
+                                "there, so no rule could name this set", file=file, line=s.sourceline,
+                                variable=name, label=s.get("label"))
         if s.get("label") in labels:
             raise RuleFileError(
                 "duplicate label", file=file, line=s.sourceline, variable=name, label=s.get("label")
@@ -212,8 +217,8 @@ def _number(
         value = math.nan
         msg = f"{attr}={raw!r} is not a number"
     else:
-        msg = f"{attr}={raw!r} is not a finite number"
-    if not math.isfinite(value):
+        msg = f"{attr}={raw!r} is not a finite number of magnitude up to {MAGNITUDE_MAX:g}"
+    if not abs(value) <= MAGNITUDE_MAX:
         raise RuleFileError(msg, file=file, line=el.sourceline, variable=variable, label=label)
     return value
 
@@ -272,7 +277,7 @@ def _clause(el: etree._Element, file: str) -> tuple[str, tuple[str, ...]]:
             f"<{el.tag}> needs exactly one of name/varname and one of label/linguisticlabel",
             file=file, line=el.sourceline, variable=names[0] if names else None,
         )
-    labels = tuple(t for t in re.split(r"[\s,]+", raw_labels[0].strip().strip("{}")) if t)
+    labels = tuple(t for t in _LABEL_SPLIT.split(raw_labels[0].strip().strip("{}")) if t)
     if not labels:
         raise RuleFileError("empty label", file=file, line=el.sourceline, variable=names[0])
     return names[0], labels

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from fuzzy.levels import RULE_LEVELS
-from fuzzy.variables import InputVariable, OutputVariable
+from fuzzy.terms import Trapezoid
+from fuzzy.variables import InputVariable, OutputVariable, checked_range, masyro_sets, widen_degenerate
 
 
 @dataclass(frozen=True)
@@ -59,6 +62,23 @@ class RuleBase:
         lo, hi = op.universe
         return lo + (hi - lo) * levels.index(level) / (len(levels) - 1)
 
+    def for_ranges(self, ranges: Mapping[str, tuple[float, float]]) -> RuleBase:
+        """The rule base a job evaluates. MASYRO's agent rebuilt the sets of C, Nd and S for each job from
+        the zones' observed range before it ran the rules (its src/RenderAgent.py): a MASYRO-dialect file
+        gets the same for each input named in `ranges` (fuzzy.variables.masyro_sets). The paper's dialect
+        builds its dynamic sets in the engine: itself, unchanged."""
+        if self.dialect != "masyro":
+            return self
+        inputs = []
+        for var in self.inputs:
+            if var.name in ranges:
+                lo, hi = widen_degenerate(*checked_range(var.name, ranges[var.name]))
+                rows = masyro_sets(len(var.labels), lo, hi)
+                sets = tuple(Trapezoid(label, *row) for label, row in zip(var.labels, rows, strict=True))
+                var = dataclasses.replace(var, sets=sets, universe=(float(rows[0, 0]), float(rows[-1, 3])))
+            inputs.append(var)
+        return dataclasses.replace(self, inputs=tuple(inputs))
+
     def input(self, name: str) -> InputVariable:
         return next(v for v in self.inputs if v.name == name)
 
@@ -69,4 +89,5 @@ class RuleBase:
         """One line: rules, inputs and outputs (used by `quekaro rules check`)."""
         ins = ", ".join(f"{v.name}{'*' if v.dynamic else ''}" for v in self.inputs)
         outs = ", ".join(v.name for v in self.outputs)
-        return f"{len(self.rules)} rules; inputs {ins}; outputs {outs} (* = sets built at run time)"
+        how = "MASYRO's dialect (a <fuzzyset> element)" if self.dialect == "masyro" else "the paper's dialect"
+        return f"{len(self.rules)} rules; inputs {ins}; outputs {outs} (* = sets built at run time); {how}"

@@ -31,6 +31,11 @@ from fuzzy.terms import Trapezoid
 
 # Relative width under which an observed range counts as degenerate (min == max up to rounding).
 _DEGENERATE_REL = 1e-12
+# Largest |value| a set vertex, universe, default or observed range may have. The exact centroid sums
+# cubic terms of the vertices, and a set's width is a difference: far below this, neither overflows (near
+# 1e154 the centroid's terms become inf, which would read as "no rule fired"). A unit's features stay
+# below 1e12 (core.model), S below 2^32.
+MAGNITUDE_MAX = 1e30
 
 
 def spread_sets(n_labels: int, lo: float, hi: float) -> np.ndarray:
@@ -53,6 +58,16 @@ def widen_degenerate(lo: float, hi: float) -> tuple[float, float]:
         return lo, hi
     half = 0.5 * max(1.0, abs(lo))
     return lo - half, lo + half
+
+
+def checked_range(name: str, observed: tuple[float, float]) -> tuple[float, float]:
+    """An observed (lo, hi) of input `name` as floats, refused where it is no range the sets can span."""
+    lo, hi = (float(v) for v in observed)
+    if not (abs(lo) <= MAGNITUDE_MAX and abs(hi) <= MAGNITUDE_MAX):
+        raise FuzzyInputError(f"observed range of {name!r} is not finite or beyond +-{MAGNITUDE_MAX:g}: ({lo}, {hi})")
+    if hi < lo:
+        raise FuzzyInputError(f"observed range of {name!r} has max {hi} < min {lo}")
+    return lo, hi
 
 
 def masyro_sets(n_labels: int, lo: float, hi: float) -> np.ndarray:
@@ -96,12 +111,7 @@ class InputVariable:
             return params, self.universe  # type: ignore[return-value]
         if observed is None:
             raise FuzzyInputError(f"input variable {self.name!r} is dynamic and needs an observed range")
-        lo, hi = (float(v) for v in observed)
-        if not (np.isfinite(lo) and np.isfinite(hi)):
-            raise FuzzyInputError(f"observed range of {self.name!r} is not finite: ({lo}, {hi})")
-        if hi < lo:
-            raise FuzzyInputError(f"observed range of {self.name!r} has max {hi} < min {lo}")
-        wlo, whi = widen_degenerate(lo, hi)
+        wlo, whi = widen_degenerate(*checked_range(self.name, observed))
         return spread_sets(len(self.labels), wlo, whi), (wlo, whi)
 
 

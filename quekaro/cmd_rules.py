@@ -10,7 +10,7 @@ import argparse
 import csv
 import sys
 
-from fuzzy import Engine, FuzzyInputError, RuleFileError, load_rulebase
+from fuzzy import DEFUZZIFIERS, Engine, FuzzyInputError, RuleBase, RuleFileError, load_rulebase
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -23,9 +23,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     ev = rules_sub.add_parser("eval", help="evaluate a rule file on inputs; CSV of crisp outputs on stdout")
     ev.add_argument("file", metavar="FILE")
-    ev.add_argument("--defuzzifier", choices=("centroid", "centre-of-sums"), default="centroid")
+    ev.add_argument("--defuzzifier", choices=DEFUZZIFIERS, default=None,
+                    help="default: the file's own, as a render uses it (centroid; MASYRO's files centre of sums)")
     ev.add_argument("--range", action="append", default=[], metavar="NAME=LO:HI",
-                    help="observed range of a dynamic input variable (default: the inputs' own min and max)")
+                    help="observed range of a dynamic input variable (default: the inputs' own min and max); "
+                         "in a MASYRO file, of an input whose sets MASYRO rebuilds per job, as a render does "
+                         "for C, S and Nd (default: the file's sets as written)")
     source = ev.add_mutually_exclusive_group(required=True)
     source.add_argument("--set", action="append", metavar="NAME=VALUE", help="one input value (one row)")
     source.add_argument("--csv", metavar="INPUTS.csv", help="a CSV file with a header of input names")
@@ -48,8 +51,9 @@ def run_check(args: argparse.Namespace) -> int:
 
 def run_eval(args: argparse.Namespace) -> int:
     try:
-        engine = Engine(load_rulebase(args.file), args.defuzzifier)
-        ranges = dict(_parse_range(r) for r in args.range)
+        rulebase = load_rulebase(args.file)
+        ranges = _parse_ranges(args.range, rulebase)
+        engine = Engine(rulebase.for_ranges(ranges), args.defuzzifier)
         inputs = _read_csv(args.csv) if args.csv else _parse_sets(args.set)
         outputs = engine.evaluate(inputs, ranges)
     except (RuleFileError, FuzzyInputError, _UsageError) as exc:
@@ -69,12 +73,25 @@ def _number(text: str, what: str) -> float:
         raise _UsageError(f"{what}: {text!r} is not a number") from None
 
 
-def _parse_range(text: str) -> tuple[str, tuple[float, float]]:
-    name, sep, rest = text.partition("=")
-    lo, sep2, hi = rest.partition(":")
-    if not (sep and sep2 and name):
-        raise _UsageError(f"--range {text!r}: expected NAME=LO:HI")
-    return name, (_number(lo, f"--range {name}"), _number(hi, f"--range {name}"))
+def _parse_ranges(items: list[str], rulebase: RuleBase) -> dict[str, tuple[float, float]]:
+    """--range NAME=LO:HI at most once per input whose sets a range builds: the paper dialect's dynamic
+    inputs, any input of a MASYRO file (as a render rebuilds C, S and Nd: RuleBase.for_ranges). A range
+    the file would not read (a misspelt name, a static variable) is refused, not left out unsaid."""
+    masyro = rulebase.dialect == "masyro"
+    dynamic = [v.name for v in rulebase.inputs if v.dynamic or masyro]
+    ranges: dict[str, tuple[float, float]] = {}
+    for text in items:
+        name, sep, rest = text.partition("=")
+        lo, sep2, hi = rest.partition(":")
+        if not (sep and sep2 and name):
+            raise _UsageError(f"--range {text!r}: expected NAME=LO:HI")
+        if name not in dynamic:
+            raise _UsageError(f"--range {name}: not an input whose sets a range builds in this rule file "
+                              f"(those are: {', '.join(dynamic) or 'none'})")
+        if name in ranges:
+            raise _UsageError(f"--range {name} given twice")
+        ranges[name] = (_number(lo, f"--range {name}"), _number(hi, f"--range {name}"))
+    return ranges
 
 
 def _parse_sets(items: list[str]) -> dict[str, list[float]]:
@@ -91,11 +108,14 @@ def _parse_sets(items: list[str]) -> dict[str, list[float]]:
 
 def _read_csv(path: str) -> dict[str, list[float]]:
     try:
-        with open(path, newline="") as fh:
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: the BOM spreadsheets write
             reader = csv.reader(fh)
             header = [h.strip() for h in next(reader, [])]
             if not header:
                 raise _UsageError(f"{path}: empty CSV (need a header of input names)")
+            twice = sorted({h for h in header if header.count(h) > 1})
+            if twice:
+                raise _UsageError(f"{path}:1: column {', '.join(twice)} given twice")
             cols: dict[str, list[float]] = {h: [] for h in header}
             for lineno, row in enumerate(reader, 2):
                 if not row:
@@ -106,4 +126,6 @@ def _read_csv(path: str) -> dict[str, list[float]]:
                     cols[h].append(_number(v.strip(), f"{path}:{lineno} column {h}"))
     except OSError as exc:
         raise _UsageError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise _UsageError(f"{path}: not UTF-8 text: {exc.reason} at byte {exc.start}") from None
     return cols

@@ -76,3 +76,56 @@ def test_eval_errors_exit_2(tmp_path):
     assert res.returncode == 2 and "NaN" in res.stderr
     res = _quekaro("rules", "eval", str(RULES), "--set", "C=1", "--range", "C=1")
     assert res.returncode == 2 and "NAME=LO:HI" in res.stderr
+
+
+def _eval_csv(*args: str) -> list[list[float]]:
+    res = _quekaro("rules", "eval", *args)
+    assert res.returncode == 0, res.stderr
+    return [[float(v) for v in line.split(",")] for line in res.stdout.strip().splitlines()[1:]]
+
+
+def test_eval_of_a_masyro_file_gives_what_a_render_plans():
+    """MASYRO's rules run with its centre of sums, on sets rebuilt for the job's ranges (the planner's
+    evaluation engine): eval must show those numbers, not the file's sets under the paper's centroid."""
+    from core.render.planner import Planner
+
+    path = DATA / "masyro_fixed.xml"
+    ranges = {"C": (0.0, 200.0), "Nd": (0.0, 100.0), "S": (0.0, 1e6)}
+    planner = Planner(path)
+    for c, nd, s in ((100.0, 50.0, 1e5), (20.0, 90.0, 7e5), (180.0, 5.0, 3e4)):
+        shown = _eval_csv(str(path), "--set", f"C={c}", "--set", f"Nd={nd}", "--set", f"S={s}", "--set", "Op=15",
+                          *(f"--range={k}={lo}:{hi}" for k, (lo, hi) in ranges.items()))[0]
+        planned = planner.evaluation_engine(ranges).evaluate({"C": [c], "Nd": [nd], "S": [s], "Op": [15.0]})
+        names = ["Ibs", "Ls", "Rl"]
+        assert shown == pytest.approx([float(planned[k][0]) for k in names], rel=1e-12, nan_ok=True)
+    assert planner.engine.defuzzifier == "centre-of-sums"
+    args = (str(path), "--set", "C=100", "--set", "Nd=50", "--set", "S=1e5", "--set", "Op=15")
+    plain, centroid = _eval_csv(*args)[0], _eval_csv(*args, "--defuzzifier", "centroid")[0]
+    assert plain == pytest.approx(_eval_csv(*args, "--defuzzifier", "centre-of-sums")[0], nan_ok=True)
+    assert plain[0] != pytest.approx(centroid[0], rel=1e-6)  # Ibs: 7.5611 against 7.5721
+
+
+@pytest.mark.parametrize(("given", "fault"), [
+    (["--range", "c=0:1"], "--range c: not an input"),  # misspelt: it was left out, and Ls changed
+    (["--range", "Op=0:100"], "--range Op: not an input"),  # static: its sets are the file's
+    (["--range", "C=0:1", "--range", "C=0:2"], "--range C given twice"),
+    (["--range", "C=-1e308:1e308"], "beyond"),  # hi - lo overflows
+])
+def test_a_range_the_rules_would_not_read_as_given_is_refused(given, fault):
+    res = _quekaro("rules", "eval", str(RULES), "--set", "C=0.8", "--set", "S=4096", "--set", "Nd=0.1",
+                   "--set", "Op=2", *given)
+    assert res.returncode == 2 and fault in res.stderr and "Traceback" not in res.stderr, res.stderr
+
+
+def test_eval_csv_as_a_spreadsheet_writes_it_and_a_column_given_twice(tmp_path):
+    csv_path = tmp_path / "in.csv"
+    csv_path.write_bytes(b"\xef\xbb\xbfC,S,Nd,Op\n0.5,0.5,0.5,2\n")  # the BOM a spreadsheet writes
+    assert len(_eval_csv(str(RULES), "--csv", str(csv_path))) == 1
+    csv_path.write_text("C,S,Nd,Op,C\n0.5,0.5,0.5,2,0.1\n")
+    res = _quekaro("rules", "eval", str(RULES), "--csv", str(csv_path))
+    assert res.returncode == 2 and "in.csv:1: column C given twice" in res.stderr
+
+
+def test_check_says_which_dialect_a_file_is_read_in():
+    assert "MASYRO's dialect" in _quekaro("rules", "check", str(DATA / "masyro_fixed.xml")).stdout
+    assert "the paper's dialect" in _quekaro("rules", "check", str(RULES)).stdout

@@ -56,6 +56,7 @@ def test_system_as_root_parses_from_bytes():
         ('a="1" b="x" c="4" d="6"', "schema"),
         ('a="1" b="NaN" c="4" d="6"', "not a finite number"),
         ('a="1" b="INF" c="4" d="6"', "not a finite number"),
+        ('a="0" b="0" c="1e300" d="1.5e300"', "magnitude up to 1e+30"),  # its centroid's terms overflow
         ('a="1" b="2" c="4"', "no 'd' vertex"),
     ],
 )
@@ -66,6 +67,17 @@ def test_bad_trapezoid_names_file_line_variable_label(tmp_path, fset, fault):
     assert fault in str(err)
     assert (err.variable, err.label) == ("y", "Odd")
     assert err.line == 8
+
+
+@pytest.mark.parametrize("label", ["L,M", "{L}", "very L", ""])
+def test_a_set_label_no_rule_could_name_is_refused_at_its_line(tmp_path, label):
+    """A rule's label is split at spaces, commas and braces ("{B, VB}" is B or VB): a set labelled across
+    one could never fire, and a rule naming it would be refused as an unknown label elsewhere."""
+    out = f'<linguisticvar type="out" name="y" default="5">\n  <fset label="{label}" a="0" b="1" c="2" d="3"/>' \
+          '\n</linguisticvar>'
+    err = _refuse(system_xml(SIMPLE_IN, out, SIMPLE_RULES), tmp_path)
+    assert err.line == 8 and err.variable == "y"
+    assert "one word" in str(err) or "schema" in str(err)
 
 
 def test_masyro_typo_d_smaller_than_c_is_refused():

@@ -19,7 +19,6 @@ same in the farm as in `quekaro render`. How many samples a level spends overall
 
 from __future__ import annotations
 
-import dataclasses
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
@@ -32,8 +31,6 @@ from core.model.units import WorkUnit
 from fuzzy import Engine, load_rulebase
 from fuzzy.levels import RULE_LEVELS
 from fuzzy.render_params import masyro_render_params, to_render_params
-from fuzzy.terms import Trapezoid
-from fuzzy.variables import masyro_sets, widen_degenerate
 
 FEATURES = ("C", "S", "Nd")
 DEPTH_STEPS = (1.0, 0.75, 0.5)  # the fractions of the user's depth a unit may render with
@@ -81,9 +78,7 @@ class Planner:
             raise ValueError(f"min_band must be >= 0, got {min_band}")
         self.rules_path = Path(rules_path) if rules_path is not None else default_rules_path()
         self.rulebase = load_rulebase(self.rules_path)
-        # MASYRO's published inference is a centre of sums; the paper dialect's default is the exact centroid.
-        default = "centre-of-sums" if self.rulebase.dialect == "masyro" else "centroid"
-        self.engine = Engine(self.rulebase, defuzzifier or default)
+        self.engine = Engine(self.rulebase, defuzzifier)  # None: the file's dialect's (fuzzy.engine)
         self.min_band = int(min_band)
         needed = {*FEATURES, "Op"}
         if set(self.engine.input_names) != needed:
@@ -120,7 +115,7 @@ class Planner:
             ranges = {k: (float(v.min()), float(v.max())) for k, v in cols.items()}
         inputs = {**cols, "Op": np.full(n, self.rulebase.op_value(level))}
         if self.rulebase.dialect == "masyro":
-            outputs = self._masyro_engine(ranges).evaluate(inputs)
+            outputs = self.evaluation_engine(ranges).evaluate(inputs)
             maxima = {k: self.rulebase.output(k).universe[1] for k in ("Rl", "Ls")}
             depth, spp, band = masyro_render_params(outputs, max(user_depth, 0), user_spp, maxima)
         else:
@@ -135,18 +130,13 @@ class Planner:
         return [RenderParams(int(depth[i]), int(spp[i]), int(band[i]), crisp[i]) for i in range(n)]
 
 
-    def _masyro_engine(self, ranges: Mapping[str, tuple[float, float]]) -> Engine:
-        """MASYRO's agent rewrote the sets of C, Nd and S for each job from the zones' range before it ran
-        the rules (its src/RenderAgent.py): the same here, with fuzzy.variables.masyro_sets."""
-        inputs = []
-        for var in self.rulebase.inputs:
-            if var.name in FEATURES:
-                lo, hi = widen_degenerate(*(float(v) for v in ranges[var.name]))
-                rows = masyro_sets(len(var.labels), lo, hi)
-                sets = tuple(Trapezoid(label, *row) for label, row in zip(var.labels, rows, strict=True))
-                var = dataclasses.replace(var, sets=sets, universe=(float(rows[0, 0]), float(rows[-1, 3])))
-            inputs.append(var)
-        return Engine(dataclasses.replace(self.rulebase, inputs=tuple(inputs)), self.engine.defuzzifier)
+    def evaluation_engine(self, ranges: Mapping[str, tuple[float, float]]) -> Engine:
+        """The engine a job's units run: the file's own, or for a MASYRO-dialect file one whose sets of C, S
+        and Nd are rebuilt for the job's ranges (fuzzy.rulebase.RuleBase.for_ranges)."""
+        if self.rulebase.dialect != "masyro":
+            return self.engine
+        rulebase = self.rulebase.for_ranges({k: ranges[k] for k in FEATURES})
+        return Engine(rulebase, self.engine.defuzzifier)
 
 
 def _floors(depth_floor: Sequence[int | None] | None, n: int, user_depth: int) -> np.ndarray:

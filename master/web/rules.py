@@ -75,10 +75,8 @@ def rule_strengths(rulebase: RuleBase, inputs: Mapping[str, float],
 
 def evaluation_rulebase(planner: Planner, ranges: Mapping[str, tuple[float, float]]) -> RuleBase:
     """The rule base the planner evaluates: a MASYRO-dialect file gets its sets rewritten for the scene's
-    ranges first (the planner's own `_masyro_engine`, so that both read the same sets)."""
-    if planner.rulebase.dialect == "masyro":
-        return planner._masyro_engine(ranges).rulebase
-    return planner.rulebase
+    ranges first (the planner's own `evaluation_engine`, so that both read the same sets)."""
+    return planner.evaluation_engine(ranges).rulebase
 
 
 def fired_rules(planner: Planner, unit: Mapping[str, float], level: str,
