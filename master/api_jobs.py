@@ -26,7 +26,7 @@ from aiohttp import web
 
 from core.errors import QuekaroError
 from core.model.job import JobSpec, RenderOptions
-from master.http_guard import bearer_token, read_body_chunks
+from master.http_guard import Refusal, bearer_token, json_error, read_body_chunks
 from master.store import JobStore, StoreError
 from planning import budgets
 
@@ -66,16 +66,11 @@ def add_job_routes(app: web.Application, service: MasterService) -> None:
     app.router.add_get("/api/farm", farm)
 
 
-def _error(status: int, reason: str) -> web.Response:
-    return web.json_response({"error": reason}, status=status)
-
-
 def _service(request: web.Request) -> MasterService:
     service = request.app[SERVICE_KEY]
     token = bearer_token(request)
     if not token or not hmac.compare_digest(token.encode(), service.admin_token.encode()):
-        raise web.HTTPUnauthorized(text=json.dumps({"error": "missing or wrong admin token"}),
-                                   content_type="application/json")
+        raise Refusal(401, "missing or wrong admin token")
     return service
 
 
@@ -104,14 +99,14 @@ async def submit(request: web.Request) -> web.Response:
     try:
         spec = JobSpec.from_dict(json.loads(request.headers.get("X-Quekaro-Job", "{}")))
     except (ValueError, TypeError, AttributeError, RecursionError) as exc:
-        return _error(400, f"header X-Quekaro-Job: {exc}")
+        return json_error(400, f"header X-Quekaro-Job: {exc}")
     except QuekaroError as exc:
-        return _error(400, str(exc))
+        return json_error(400, str(exc))
     bundle = await _receive_to_file(request, service.jobs_dir, MAX_BUNDLE_BYTES)
     try:
         job_id = await service.submit(bundle, spec.defines, spec.options)
     except QuekaroError as exc:
-        return _error(422, str(exc))
+        return json_error(422, str(exc))
     finally:
         bundle.unlink(missing_ok=True)
     return web.json_response({"job_id": job_id}, status=201)
@@ -144,7 +139,7 @@ async def job_status(request: web.Request) -> web.Response:
     try:
         return web.json_response(job_summary(service, request.match_info["job"]))
     except StoreError as exc:
-        return _error(404, str(exc))
+        return json_error(404, str(exc))
 
 
 async def _finished_result(request: web.Request) -> tuple[MasterService, str] | web.Response:
@@ -153,9 +148,9 @@ async def _finished_result(request: web.Request) -> tuple[MasterService, str] | 
     try:
         record = service.store.job(job_id)
     except StoreError as exc:
-        return _error(404, str(exc))
+        return json_error(404, str(exc))
     if record.status != "done":
-        return _error(409, f"job {job_id} is {record.status}" + (f": {record.error}" if record.error else ""))
+        return json_error(409, f"job {job_id} is {record.status}" + (f": {record.error}" if record.error else ""))
     await service.ensure_assembled(job_id)
     return service, job_id
 
@@ -183,7 +178,7 @@ async def job_cancel(request: web.Request) -> web.Response:
     try:
         cancelled = await service.cancel(job_id)
     except StoreError as exc:
-        return _error(404, str(exc))
+        return json_error(404, str(exc))
     return web.json_response({"job_id": job_id, "cancelled": cancelled})
 
 

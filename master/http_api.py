@@ -52,7 +52,7 @@ from aiohttp import web
 from core.errors import TileError
 from core.model.geometry import Rect
 from core.render.tiles import MAX_CHANNELS, durable_replace, read_tile
-from master.http_guard import JOB_PART, UNIT_PART, bearer_token, read_body_chunks
+from master.http_guard import JOB_PART, UNIT_PART, Refusal, bearer_token, json_error, read_body_chunks
 from master.http_guard import serve as guarded_serve
 
 log = logging.getLogger(__name__)
@@ -91,14 +91,6 @@ class DataPlane:
         return self.tile_dir / job / "tiles" / f"unit-{unit}.exr"
 
 
-class Refusal(Exception):
-    """An upload or fetch refused with an HTTP status and a reason for the client."""
-
-    def __init__(self, status: int, reason: str) -> None:
-        super().__init__(reason)
-        self.status, self.reason = status, reason
-
-
 KEY: web.AppKey[DataPlane] = web.AppKey("quekaro_data_plane", DataPlane)
 
 
@@ -128,10 +120,6 @@ async def serve(app: web.Application, host: str = DEFAULT_HOST, port: int = DEFA
     return await guarded_serve(app, host, port, ssl_context=ssl_context)
 
 
-def _error(status: int, reason: str) -> web.Response:
-    return web.json_response({"error": reason, "status": status}, status=status)
-
-
 @web.middleware
 async def _json_errors(request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
                        ) -> web.StreamResponse:
@@ -139,16 +127,16 @@ async def _json_errors(request: web.Request, handler: Callable[[web.Request], Aw
         return await handler(request)
     except Refusal as exc:
         log.info("%s %s refused (%d): %s", request.method, request.path, exc.status, exc.reason)
-        return _error(exc.status, exc.reason)
+        return json_error(exc.status, exc.reason)
     except OSError as exc:
         if exc.errno != errno.ENOSPC:
             raise
         # The master's disk, not the sender's doing: 507, and the sender keeps its data to send again.
         log.error("%s %s: disk full on the master (%s)", request.method, request.path, exc)
-        return _error(507, DISK_FULL)
+        return json_error(507, DISK_FULL)
     except web.HTTPException as exc:
         if exc.status >= 400:  # aiohttp's own 404/405/413: same JSON shape as ours
-            return _error(exc.status, exc.reason)
+            return json_error(exc.status, exc.reason)
         raise
 
 

@@ -123,3 +123,17 @@ async def read_body_chunks(request: web.Request, chunk: int = 1 << 20) -> AsyncI
             return
         received += len(data)
         yield data
+
+
+class Refusal(Exception):
+    """A request refused with an HTTP status and a reason for the client (the apps' error middleware
+    answers it as `json_error`)."""
+
+    def __init__(self, status: int, reason: str) -> None:
+        super().__init__(reason)
+        self.status, self.reason = status, reason
+
+
+def json_error(status: int, reason: str) -> web.Response:
+    """Every error the master's APIs answer: {"error": reason, "status": status}."""
+    return web.json_response({"error": reason, "status": status}, status=status)

@@ -258,7 +258,9 @@ class MasterService:
 
     async def submit(self, bundle: bytes | Path, defines: dict[str, str], options: RenderOptions) -> str:
         """Accept a job: keep its bundle (bytes, or a file of the jobs folder, moved), plan it (pre-pass in a
-        child process), auction its units."""
+        child process), auction its units. The job is stored as created when it arrived: its time includes
+        the planning (pre-pass) it waited for."""
+        received = time.time()
         job_id = uuid.uuid4().hex[:12]
         job_dir = self.job_dir(job_id)
         job_dir.mkdir(parents=True)
@@ -283,7 +285,7 @@ class MasterService:
             if isinstance(exc, QuekaroError):
                 raise _as_submitted(exc, job_dir / "scene") from exc
             raise
-        self._create_job(job_id, scene_name, JobSpec(defines, options), plan)
+        self._create_job(job_id, scene_name, JobSpec(defines, options), plan, received)
         return job_id
 
     async def _plan(self, spec: SceneSpec, options: RenderOptions, seed: int) -> JobPlan:
@@ -299,9 +301,9 @@ class MasterService:
         live = sum(not a.lost for a in self.auction.agents.values()) if self.auction else 0
         return farm_min_units(live)
 
-    def _create_job(self, job_id: str, scene_name: str, spec: JobSpec, plan: JobPlan) -> None:
+    def _create_job(self, job_id: str, scene_name: str, spec: JobSpec, plan: JobPlan, received: float) -> None:
         now = time.time()
-        self.store.create_job(job_id, scene_name, spec, plan, now)
+        self.store.create_job(job_id, scene_name, spec, plan, received)
         events = self.auction.add_job(self.job_info(self.store.job(job_id)), plan.units)
         self.store.apply(events, now)
 

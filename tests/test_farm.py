@@ -75,9 +75,13 @@ def farm3(tmp_path):
 
 def test_job_on_three_agents_matches_local_render(farm3, tmp_path):
     client = farm3.client()
+    sent = time.time()
     job_id = client.submit(bundle_of(SCENE, DEFINES), DEFINES, {"level": "off", "units": 6})
+    accepted = time.time()
     job = wait_job(farm3, job_id)
     assert job["status"] == "done", job
+    # Created when it arrived, not once planned: its time includes the planning the user waited for.
+    assert job["created"] - sent < 0.5 * (accepted - sent), (sent, job["created"], accepted)
     out = client.result(job_id, tmp_path / "farm.exr")
     image = read_image(out)
     report = json.loads(out.with_suffix(".json").read_text())
@@ -340,6 +344,11 @@ def test_a_job_no_message_can_carry_is_refused_at_submit_with_a_reason(farm3):
     with pytest.raises(urllib.error.HTTPError) as refused:
         urllib.request.urlopen(deep, timeout=60)
     assert refused.value.code == 400 and b"X-Quekaro-Job" in refused.value.read()
+    wrong = urllib.request.Request(client.url + "/api/jobs", headers={"Authorization": "Bearer wrong"})
+    with pytest.raises(urllib.error.HTTPError) as refused:
+        urllib.request.urlopen(wrong, timeout=60)
+    assert refused.value.code == 401  # the reason, not aiohttp's bare "Unauthorized"
+    assert json.loads(refused.value.read()) == {"error": "missing or wrong admin token", "status": 401}
     assert client.jobs() == []
 
 

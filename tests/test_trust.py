@@ -122,7 +122,7 @@ def test_a_failure_while_the_disk_is_full_is_not_held_against_its_agent(tmp_path
         plan = JobPlan(SceneSpec(Path("scene.xml")), options, 16, 8, Effects("llvm_ad_rgb", "path", 8), 4, 8,
                        [WorkUnit(index=0, rect=Rect(0, 0, 16, 8), C=0.1, S=128, Nd=0.0, cost=1.0)],
                        bundle_sha256="ef" * 32)
-        service._create_job("job0000001", "scene.xml", JobSpec({}, options), plan)
+        service._create_job("job0000001", "scene.xml", JobSpec({}, options), plan, time.time())
         agent, auction, now = "agent-0-abc@localhost", service.auction, service.auction_now()
         service._record(auction.register(agent, now))
         [cfp] = [c.message for c in auction.announce(now) if isinstance(c, au.Send)]

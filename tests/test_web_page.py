@@ -124,6 +124,36 @@ def test_an_eta_counts_down_between_events_but_not_while_the_farm_is_paused(farm
     assert shown == ["1 min 40 s", "1 min 40 s", "1 min 10 s", "1 min 40 s"]
 
 
+def test_a_running_jobs_time_counts_up_between_events_and_an_ended_ones_stays(farm, browser):
+    """The master sends a job again only when a row of it changes: its time froze between units."""
+    logged_in(browser, farm)
+    shown = browser.execute_script("""
+        const ago = Date.now() / 1000 - 30;  // the row arrived 30 s ago, 10 s into the job
+        const running = el("td", {}, elapsed({status: "running", elapsed_s: 10, finished: null, receivedAt: ago}));
+        const ended = el("td", {}, elapsed({status: "done", elapsed_s: 10, finished: 1, receivedAt: ago}));
+        document.body.append(running, ended);
+        tickEtas();
+        const after = [running.textContent, ended.textContent];
+        running.remove(); ended.remove();
+        return after;""")
+    assert shown[0] in ("40.0 s", "40.1 s") and shown[1] == "10.0 s", shown
+
+
+@pytest.mark.parametrize("link", ["nonexistent1", ".hidden", "a" * 130, "%zz"])
+def test_a_link_to_no_job_says_so_and_leaves_nothing_of_another_job(farm, browser, link):
+    """An id the master could never have made was retried every 3 s ('reconnecting' for ever) under the
+    title of the job shown before."""
+    logged_in(browser, farm)
+    browser.get(farm.url + "/ui/#/job/shown0before")
+    wait_until(lambda: "no job" in browser.find_element(By.ID, "job-summary").text, 20, "the first refusal")
+    browser.get(farm.url + f"/ui/#/job/{link}")
+    summary = wait_until(lambda: (t := browser.find_element(By.ID, "job-summary").text) and "no job" in t and t,
+                         20, f"the page to say there is no job {link!r}")
+    assert "shown0before" not in summary and "shown0before" not in browser.find_element(By.ID, "job-title").text
+    time.sleep(4)  # past the page's 3 s retry
+    assert browser.find_element(By.ID, "live").text == "live"
+
+
 def test_watch_a_job_render_until_its_image_is_complete_then_click_a_unit(farm, browser, tmp_path):
     logged_in(browser, farm)
     browser.execute_script("window.__notReloaded = true;")

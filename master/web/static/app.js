@@ -63,10 +63,20 @@ function eta(job) {
   return el("span", { class: "eta", dataset }, fmtSeconds(job.eta_s));
 }
 
+function elapsed(job) {
+  // Counts up here between the master's sends (tickEtas), like the ETA counts down, until the job ends.
+  if (job.finished !== null && job.finished !== undefined) return fmtSeconds(job.elapsed_s);
+  const dataset = { elapsed: String(job.elapsed_s), at: String(job.receivedAt || Date.now() / 1000) };
+  return el("span", { class: "elapsed", dataset }, fmtSeconds(job.elapsed_s));
+}
+
 function tickEtas() {
   const now = Date.now() / 1000;
   for (const span of document.querySelectorAll("span.eta[data-eta]")) {
     span.textContent = fmtSeconds(Math.max(0, Number(span.dataset.eta) - (now - Number(span.dataset.at))));
+  }
+  for (const span of document.querySelectorAll("span.elapsed[data-elapsed]")) {
+    span.textContent = fmtSeconds(Number(span.dataset.elapsed) + Math.max(0, now - Number(span.dataset.at)));
   }
 }
 
@@ -99,11 +109,16 @@ async function getJSON(url) {
 
 // ---- routing and the event stream ---------------------------------------------------------------------
 
+const JOB_ID = /^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$/;  // the master's own pattern (master/http_guard.py)
+
+function decoded(text) {
+  try { return decodeURIComponent(text); } catch { return text; }  // "%zz": shown as typed
+}
+
 function route() {
   const hash = window.location.hash || "#/jobs";
-  const job = hash.match(/^#\/job\/([A-Za-z0-9_.-]+)$/);
-  state.view = job ? "job" : hash === "#/agents" ? "agents" : "jobs";
-  const jobId = job ? job[1] : null;
+  const jobId = hash.startsWith("#/job/") ? decoded(hash.slice("#/job/".length)) : null;
+  state.view = jobId !== null ? "job" : hash === "#/agents" ? "agents" : "jobs";
   if (jobId !== state.jobId || state.source === null) {
     state.jobId = jobId;
     state.job = null;
@@ -114,6 +129,8 @@ function route() {
     fill(document.getElementById("unit-details"),
       el("p", { class: "muted" }, "Click a unit of the partition to see its features, the rules that fired, its agent and its attempts."));
     document.getElementById("report").hidden = true;
+    // An id the master could never have made is answered here: its stream would be refused, and retried.
+    if (jobId !== null && !JOB_ID.test(jobId)) state.job = { error: `no job ${JSON.stringify(jobId)}: not a job id` };
     connect();
   }
   for (const name of ["jobs", "job", "agents"]) document.getElementById(`${name}-view`).hidden = state.view !== name;
@@ -125,7 +142,8 @@ function route() {
 function connect() {
   if (state.source) state.source.close();
   const live = document.getElementById("live");
-  const url = "/ui/events" + (state.jobId ? `?job=${encodeURIComponent(state.jobId)}` : "");
+  const watched = state.jobId !== null && JOB_ID.test(state.jobId);
+  const url = "/ui/events" + (watched ? `?job=${encodeURIComponent(state.jobId)}` : "");
   const source = new EventSource(url);
   source.addEventListener("open", () => { live.textContent = "live"; live.className = "live ok"; });
   source.addEventListener("jobs", (e) => {
@@ -225,7 +243,7 @@ function renderJobs() {
     el("td", {}, progressBar(job)),
     el("td", {}, eta(job)),
     el("td", {}, fmtTime(job.created)),
-    el("td", {}, fmtSeconds(job.elapsed_s) + (job.finished ? ` (ended ${fmtTime(job.finished)})` : "")),
+    el("td", {}, elapsed(job), job.finished ? ` (ended ${fmtTime(job.finished)})` : ""),
     el("td", {}, effectsCell(job.effects)),
     el("td", {}, actionButtons(job))));
   fill(document.querySelector("#jobs-table tbody"), ...rows);
@@ -238,7 +256,11 @@ function renderJob() {
   if (state.view !== "job") return;
   const job = state.job;
   const view = document.getElementById("job-view");
-  if (!job) return;
+  if (!job) {  // the stream has not sent this job yet: nothing of the job shown before stays
+    document.getElementById("job-title").textContent = `Job ${state.jobId}`;
+    fill(document.getElementById("job-summary"), el("div", { class: "muted" }, "waiting for the master"));
+    return;
+  }
   if (job.error && !job.units) {
     document.getElementById("job-title").textContent = `Job ${state.jobId}`;
     fill(document.getElementById("job-summary"), el("div", {}, job.error));
@@ -253,8 +275,8 @@ function renderJob() {
     item("state", badge(job.status)), item("level", job.level),
     item("progress", progressBar(job)),
     item("ETA", eta(job) || "-"),
-    item("image", `${job.width} x ${job.height}, spp ${job.spp}, depth ${job.depth}`),
-    item("submitted", fmtTime(job.created)), item("time", fmtSeconds(job.elapsed_s)),
+    item("image", `${job.width} x ${job.height}, spp ${job.spp}, depth ${job.depth} (the job's: each unit's own are on the partition)`),
+    item("submitted", fmtTime(job.created)), item("time", elapsed(job)),
     item("effects", effectsCell(job.effects)),
     job.adaptive_text ? el("div", { id: "job-adaptive" }, el("b", {}, "adaptive"), " " + job.adaptive_text) : null,
     el("div", {}, actionButtons(job)),
