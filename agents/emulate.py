@@ -143,9 +143,14 @@ class EmulatedWorker:
         self.emulation = emulation
         self.starts = 0
         self._lock = threading.Lock()
+        self._interrupted = threading.Event()
 
     def start(self) -> None:
         self.starts += 1
+
+    def interrupt(self) -> None:
+        """End the render in flight (as RenderWorker.interrupt)."""
+        self._interrupted.set()
 
     def stop(self) -> None:
         self.emulation.finish()
@@ -158,12 +163,14 @@ class EmulatedWorker:
         window = job.window
         planned = emu.costs.seconds(window, job.spp, job.width, job.height, emu.factor)
         with self._lock:
+            self._interrupted.clear()
             start = time.perf_counter()
             if timeout is not None and planned > timeout:
-                time.sleep(timeout)
+                self._interrupted.wait(timeout)
                 raise RenderError(f"unit {job.unit_index} {job.unit.as_list()}: timed out after {timeout:.1f} s "
                                   f"(emulated render of {planned:.1f} s)")
-            time.sleep(planned)
+            if self._interrupted.wait(planned):
+                raise RenderError(f"unit {job.unit_index} {job.unit.as_list()}: interrupted (emulated)")
             seconds = time.perf_counter() - start
         rendered_at = time.time()  # the render's end on the wall clock: bench.hosts times the delivery from it
         rng = np.random.default_rng(job.seed)

@@ -54,6 +54,7 @@ from agents.state import (
     HEARTBEAT_S,
     MAX_RENDER_S,
     SLOTS,
+    AbortRender,
     AgentState,
     BundleFailed,
     BundleReady,
@@ -137,6 +138,7 @@ class RenderAgent:
         # --emulate: the render process and the speed measurement are the emulation's (agents/emulate.py).
         self.emulation = Emulation.load(config.emulate, config.emulate_speed, self.workdir) if config.emulate else None
         self.worker = self.emulation.worker if self.emulation else RenderWorker()
+        self._rendering_ticket: int | None = None  # the render in the worker now (AbortRender's target)
         self.farm = FarmAgent(
             config.jid, config.password, port=config.port, server=config.server, ontology=m.ONTOLOGY,
             peers=[config.master], validate=m.parse, performatives=ACCEPTED, ca_file=config.ca_file,
@@ -252,6 +254,10 @@ class RenderAgent:
                     log.log(level, "%s", text)
                 case DiscardTile(job_id=job_id, index=index):
                     self._remove_tile(job_id, index)
+                case AbortRender(ticket=ticket):
+                    if ticket == self._rendering_ticket:
+                        log.info("ending the render of ticket %d: its unit was cancelled", ticket)
+                        self.worker.interrupt()
                 case FetchBundle() | StartRender() | Upload():
                     name = f"{type(command).__name__} {command.ticket}"
                     task = asyncio.create_task(self._perform(command), name=name)
@@ -320,10 +326,13 @@ class RenderAgent:
             unit=unit.rect, band=params.band, threads=self.config.threads, job_id=job.job_id,
             unit_index=unit.index, sensor=job.sensor, first=job.first_spp)
         try:
+            self._rendering_ticket = command.ticket
             try:
                 tile = await asyncio.to_thread(self.worker.render, request, command.timeout_s)
             except QuekaroError as exc:
                 raise UnitFailed(f"render failed: {exc}") from exc
+            finally:
+                self._rendering_ticket = None
             meta = self._tile_meta(job, params)
             tile.meta.update(self.emulation.mark(meta) if self.emulation else meta)
             path = self._tile_path(job.job_id, unit.index)

@@ -10,7 +10,8 @@ Events: the master's messages (`m.CallForProposal`, `m.Award`, `m.Reject`, `m.Ca
 `m.Introduce`, as parsed), `Measured` (the agent's speed), `Tick` (time passes; the connection's state),
 and the ends of the commands it gave: `BundleReady`/`BundleFailed`, `RenderFinished`/`RenderFailed`,
 `UploadDone`/`UploadFailed`.
-Commands: `Send` (a message to the master), `FetchBundle`, `StartRender`, `Upload`, `DiscardTile`, `Log`.
+Commands: `Send` (a message to the master), `FetchBundle`, `StartRender`, `AbortRender`, `Upload`, `DiscardTile`,
+`Log`.
 
 What it decides (the protocol is in agents/render_agent.py's docstring):
   slots      it holds at most `slots` units (awarded, not answered, not cancelled) and bids only below
@@ -19,8 +20,9 @@ What it decides (the protocol is in agents/render_agent.py's docstring):
   awards     a duplicate (same unit, same token) is ignored, also after the unit is done; a re-award with
              a new token replaces the token it answers under. A unit it never bid on is planned afresh.
   cancel     one unit or a whole job: queued units never start, a unit whose bundle is being fetched is
-             not rendered, a render in flight runs to its end (the render process cannot be interrupted
-             without losing its compiled kernels) and its tile is thrown away; nothing is answered.
+             not rendered, a render in flight is ended (its render process killed: the compiled kernels
+             go with it, but a long render left to run held the agent, which looked free, and made the
+             next unit awarded to it miss its deadline); nothing is answered.
   heartbeat  Register on every (re)connection, when the master's Introduce asks (it knows the agent from
              heartbeats only), and again with each heartbeat until the master's Welcome answers one; a
              Heartbeat every `heartbeat_s` listing the held units.
@@ -175,6 +177,14 @@ class StartRender:
 
 
 @dataclass(frozen=True)
+class AbortRender:
+    """End the render under `ticket` now, if it still runs (its unit was cancelled); it then answers
+    RenderFailed, and the next render starts a new render process."""
+
+    ticket: int
+
+
+@dataclass(frozen=True)
 class Upload:
     """Hash the tile at `path` and upload it with the award's token; answer UploadDone or UploadFailed."""
 
@@ -197,7 +207,7 @@ class Log:
     text: str
 
 
-Command = Send | FetchBundle | StartRender | Upload | DiscardTile | Log
+Command = Send | FetchBundle | StartRender | AbortRender | Upload | DiscardTile | Log
 
 
 # ---- state -----------------------------------------------------------------------------------------
@@ -386,6 +396,8 @@ class AgentState:
                 work.cancelled = True
                 del self.works[key]
                 out.append(Log(logging.INFO, f"unit {key[0]}/{key[1]} cancelled by the master: {cancel.reason}"))
+                if self.rendering is work and work.params is not None:  # in its render step
+                    out.append(AbortRender(work.ticket))
         self.queue = deque(w for w in self.queue if not w.cancelled)
         return out
 

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from agents.state import (
+    AbortRender,
     AgentState,
     BundleFailed,
     BundleReady,
@@ -393,6 +394,7 @@ def test_cancel_of_a_queued_unit_drops_it() -> None:
     agent(award(info, unit(1)))
     out = agent(m.Cancel(conversation="c-1", job_id="job-1", index=1, reason="gone"))
     assert "unit job-1/1 cancelled by the master: gone" in only(out, Log).text
+    assert not [c for c in out if isinstance(c, AbortRender)]  # unit 0 renders on
     assert agent.held() == [("job-1", 0)]
     upload = render(agent, fetch)
     assert agent.state.rendering is None  # the cancelled unit never starts
@@ -406,7 +408,8 @@ def test_cancel_of_a_rendering_unit_discards_its_tile_and_answers_nothing() -> N
     fetch = only(agent(award(info, unit(0))), FetchBundle)
     agent(award(info, unit(1)))
     start = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
-    assert agent(m.Cancel(conversation="c-1", job_id="job-1", index=0, reason="x")) != []
+    out = agent(m.Cancel(conversation="c-1", job_id="job-1", index=0, reason="x"))
+    assert only(out, AbortRender) == AbortRender(start.ticket)  # not left to hold the agent, looking free
     assert agent.held() == [("job-1", 1)]
     out = agent(RenderFinished(start.ticket, Path("/tiles/0.exr"), 1.0))
     assert DiscardTile("job-1", 0) in out and not sent(out) and not [c for c in out if isinstance(c, Upload)]
@@ -426,7 +429,8 @@ def test_a_failure_of_a_cancelled_render_is_not_reported() -> None:
 def test_a_unit_cancelled_while_its_bundle_is_fetched_is_not_rendered() -> None:
     agent = Agent()
     fetch = only(agent(award(job(), unit(0))), FetchBundle)
-    agent(m.Cancel(conversation="c-1", job_id="job-1", index=0, reason="x"))
+    out = agent(m.Cancel(conversation="c-1", job_id="job-1", index=0, reason="x"))
+    assert not [c for c in out if isinstance(c, AbortRender)]  # nothing renders yet
     out = agent(BundleReady(fetch.ticket, SCENE))
     assert not [c for c in out if isinstance(c, StartRender)] and agent.state.rendering is None
 

@@ -269,6 +269,23 @@ def test_a_farm_starts_again_on_the_same_home(tmp_path):
             assert farm.client().agents()
 
 
+def test_a_cancelled_render_ends_and_the_next_job_on_its_agent_is_not_held_behind_it(tmp_path):
+    """A cancelled unit's render ran to its end (here ~30 s) while its agent, holding no unit, bid and
+    took the next job's unit: that unit missed its deadline, and with one agent its whole job failed."""
+    with LocalFarm(tmp_path / "farm", agents=1, threads=1) as farm:
+        farm.wait_for_agents()
+        client = farm.client()
+        long = {"res": "64", "spp": "65536"}
+        job_id = client.submit(bundle_of(SCENE, long), long, {"level": "off", "units": 4})
+        wait_job(farm, job_id, until=lambda j: j["agents_busy"] > 0)
+        time.sleep(3.0)  # its bundle fetched, into the render (a unit renders for ~30 s)
+        assert client.cancel(job_id)
+        small = client.submit(bundle_of(SCENE, DEFINES), DEFINES, {"level": "off", "units": 4})
+        job = wait_job(farm, small, timeout=120)
+        assert job["status"] == "done", job
+        assert b"ending the render" in (farm.home / "logs" / "agent-0.log").read_bytes()
+
+
 def _planner_child(master_pid: int) -> int | None:
     """The master's planning process (a render process, core.render.worker), if it runs."""
     for pid in _children(master_pid):

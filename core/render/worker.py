@@ -474,6 +474,13 @@ class RenderWorker:
             self._proc.wait(5)
         self._kill()
 
+    def interrupt(self) -> None:
+        """Kill the child mid-render, from any thread: the render in flight ends in a RenderError naming the
+        signal, and the next call starts a new child (the compiled kernels are lost with this one)."""
+        proc = self._proc
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+
     def __enter__(self) -> RenderWorker:
         self.start()
         return self
