@@ -25,8 +25,9 @@ Estimates are clamped where they steer the projection: a bid below `min_estimate
 agent's rate is kept within `rate_clamp` times the median rate of the job's other agents, and an agent
 whose last unit of a job took longer than its estimate allowed is projected at the rate it showed until
 it finishes one on time (so a bid of 0 s cannot draw every unit to one agent). Failure handling follows
-Flamenco (design.md section 5): a failed unit is retried on another agent, an agent failing three
-units of a job is blocklisted for that job, and a lost agent's units return to the auction.
+Flamenco (design.md section 5): a failed unit is retried on another agent (on the same one where no
+other live agent may take it), an agent failing three units of a job is blocklisted for that job, and a
+lost agent's units return to the auction.
 """
 
 from __future__ import annotations
@@ -771,7 +772,7 @@ class Auction:
                 units = tuple(
                     u.spec.index
                     for u in pending
-                    if self._worth_offering(agent.name, u, plan, rates, now, callable_now)
+                    if self._worth_offering(agent.name, u, job, plan, rates, now, callable_now)
                 )
                 if units:
                     offered[agent.name] = units
@@ -943,7 +944,7 @@ class Auction:
 
     def _project(self, job: Job, now: float, rates: dict[str, float]) -> dict[int, Placement]:
         units = [
-            ProjectedUnit(u.spec.index, u.spec.work, frozenset(u.failed_on))
+            ProjectedUnit(u.spec.index, u.spec.work, self._excluded(job, u))
             for u in job.units.values()
             if u.status in (UnitStatus.PENDING, UnitStatus.ANNOUNCED)
         ]
@@ -1014,13 +1015,14 @@ class Auction:
         self,
         name: str,
         unit: UnitState,
+        job: Job,
         plan: dict[int, Placement],
         rates: dict[str, float],
         now: float,
         callable_now: set[str],
     ) -> bool:
         place = plan.get(unit.spec.index)
-        if place is None or name in unit.failed_on:
+        if place is None or name in self._excluded(job, unit):
             return False
         if place.agent == name:
             return True
@@ -1041,7 +1043,7 @@ class Auction:
             and name in self.agents
             and not self.agents[name].lost
             and name not in job.blocklist
-            and name not in unit.failed_on
+            and name not in self._excluded(job, unit)
         }
         if not bids:
             return None
@@ -1121,19 +1123,27 @@ class Auction:
             out.append(AgentBlocklisted(key[0], agent, why))
         return out + self._fail_if_stuck(job)
 
-    def _fail_if_stuck(self, job: Job) -> list[Command]:
-        """Fail the job when a remaining unit failed too often or no live agent may take it."""
+    def _excluded(self, job: Job, unit: UnitState) -> frozenset[str]:
+        """The agents not offered `unit`: those it failed on, while a live agent not blocklisted for the job
+        has not. Else none: the unit is retried where it failed (a render killed for memory, an agent's
+        brief loss), bounded by `blocklist_after` and `max_unit_failures` rather than failing its job at
+        the first failure on a one-agent farm."""
         live = {a.name for a in self.agents.values() if not a.lost} - job.blocklist
+        return frozenset(unit.failed_on) if live - unit.failed_on else frozenset()
+
+    def _fail_if_stuck(self, job: Job) -> list[Command]:
+        """Fail the job when a remaining unit failed too often, or every agent the farm knows (lost ones
+        may come back until they are forgotten) is blocklisted for it."""
         for unit in sorted(job.units.values(), key=lambda u: u.spec.index):
             if unit.status != UnitStatus.PENDING:
                 continue
             if unit.failures >= self.config.max_unit_failures:
                 why = f"unit {unit.spec.index} failed {unit.failures} times; last: {unit.last_reason}"
-            elif self.agents and unit.failures and not live - unit.failed_on:
-                blocked = ", ".join(sorted(job.blocklist)) or "none"
+            elif self.agents and unit.failures and not set(self.agents) - job.blocklist:
                 why = (
                     f"no agent can take unit {unit.spec.index}: it failed on "
-                    f"{', '.join(sorted(unit.failed_on))} (last: {unit.last_reason}); blocklisted: {blocked}"
+                    f"{', '.join(sorted(unit.failed_on))} (last: {unit.last_reason}); every agent is "
+                    f"blocklisted for the job: {', '.join(sorted(job.blocklist))}"
                 )
             else:
                 continue

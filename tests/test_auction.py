@@ -330,17 +330,68 @@ def test_failure_is_retried_on_another_agent_and_blocklists_after_three() -> Non
     assert a.jobs["job-1"].status == JobStatus.DONE
 
 
-def test_job_fails_with_a_reason_when_no_agent_can_take_a_unit() -> None:
+def test_a_unit_failing_everywhere_goes_to_another_agent_first_and_fails_its_job_with_the_reason() -> None:
     a = make([1.0, 1.0], ["A", "B"])
     got = round_trip(a, 0.0)
-    a.on_failure(got[0].to, failure(got[0], "scene crashed"), 0.5)
     a.on_inform(got[1].to, inform(got[1], 1.0), 0.5)
-    retry = round_trip(a, 1.0)
-    assert retry[0].to != got[0].to
-    out = a.on_failure(retry[0].to, failure(retry[0], "scene crashed"), 1.5)
-    failed = events(out, au.JobFailed)
-    assert failed and "no agent can take unit 0" in failed[0].reason and "scene crashed" in failed[0].reason
-    assert a.jobs["job-1"].status == JobStatus.FAILED and a.announce(2.0) == []
+    tried, out, now = [], a.on_failure(got[0].to, failure(got[0], "scene crashed"), 0.5), 1.0
+    tried.append(got[0].to)
+    while not events(out, au.JobFailed):
+        retry = round_trip(a, now)
+        tried.append(retry[0].to)
+        out = a.on_failure(retry[0].to, failure(retry[0], "scene crashed"), now + 0.5)
+        now += 1.0
+    assert tried[1] != tried[0]  # retried elsewhere first, then where it failed too
+    assert len(tried) == a.config.max_unit_failures
+    reason = events(out, au.JobFailed)[0].reason
+    assert "unit 0 failed 5 times" in reason and "scene crashed" in reason, reason
+    assert a.jobs["job-1"].status == JobStatus.FAILED and a.announce(now) == []
+
+
+def _finish(a: au.Auction, now: float) -> list[tuple[int, str]]:
+    """Rounds until the job ends, every award informed; the (unit, agent) of each award."""
+    given = []
+    while a.jobs["job-1"].status == JobStatus.RUNNING and now < 100.0:
+        for index, award in round_trip(a, now).items():
+            given.append((index, award.to))
+            a.on_inform(award.to, inform(award, 1.0), now + 0.5)
+        now += 1.0
+    return given
+
+
+def test_on_one_agent_a_failed_unit_is_retried_there_and_the_job_completes() -> None:
+    """A render killed once (for memory, say) failed the job at once: no other agent to retry it on."""
+    a = make([1.0, 1.0], ["A"])
+    got = round_trip(a, 0.0)
+    (index, award), = got.items()
+    out = a.on_failure("A", failure(award, "render process killed by SIGKILL"), 0.5)
+    assert not events(out, au.JobFailed)
+    assert (index, "A") in _finish(a, 1.0)
+    assert a.jobs["job-1"].status == JobStatus.DONE
+
+
+def test_a_unit_goes_back_to_where_it_failed_while_the_other_agent_is_lost() -> None:
+    a = make([1.0, 1.0, 1.0], ["A", "B"])
+    got = round_trip(a, 0.0)
+    on_a = next(i for i, s in got.items() if s.to == "A")
+    a.on_failure("A", failure(got[on_a], "killed"), 0.5)
+    late = a.config.heartbeat_timeout_s + 1.0
+    a.on_heartbeat("A", m.Heartbeat(conversation="h", busy=()), late - 0.5)
+    a.tick(late)  # B, silent past the timeout, is lost: its unit returns to the auction
+    assert a.agents["B"].lost and a.jobs["job-1"].status == JobStatus.RUNNING
+    assert (on_a, "A") in _finish(a, late)
+    assert a.jobs["job-1"].status == JobStatus.DONE
+
+
+def test_a_job_fails_when_every_agent_is_blocklisted_for_it() -> None:
+    a = make([1.0] * 4, ["A"])
+    now, out = 0.0, []
+    while not events(out, au.JobFailed):
+        for award in round_trip(a, now).values():
+            out += a.on_failure("A", failure(award, "scene crashed"), now + 0.5)
+        now += 1.0
+    reason = events(out, au.JobFailed)[0].reason
+    assert a.jobs["job-1"].blocklist == {"A"} and "every agent is blocklisted for the job: A" in reason, reason
 
 
 def test_no_agents_at_all_is_waiting_not_failing() -> None:

@@ -286,9 +286,35 @@ def test_a_cancelled_render_ends_and_the_next_job_on_its_agent_is_not_held_behin
         assert b"ending the render" in (farm.home / "logs" / "agent-0.log").read_bytes()
 
 
+def test_a_render_killed_once_on_a_one_agent_farm_is_retried_and_its_job_completes(tmp_path):
+    """The unit went to no other agent, so the job failed at its first failure ('render process killed by
+    SIGKILL'), though an agent is blocklisted only after 3 and a unit fails its job only after 5."""
+    with LocalFarm(tmp_path / "farm", agents=1, threads=1) as farm:
+        farm.wait_for_agents()
+        client = farm.client()
+        slow = {"res": "64", "spp": "4096"}
+        job_id = client.submit(bundle_of(SCENE, slow), slow, {"level": "off", "units": 4})
+        wait_job(farm, job_id, until=lambda j: j["agents_busy"] > 0)
+        agent = next(p.pid for name, p in farm.procs if name.startswith("agent-"))
+        deadline, child = time.monotonic() + 60, None
+        while child is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+            child = _render_child(agent)
+        assert child is not None, "the agent's render process"
+        time.sleep(1.0)  # into its render
+        os.kill(child, signal.SIGKILL)
+        job = wait_job(farm, job_id)
+        assert job["status"] == "done", job
+
+
 def _planner_child(master_pid: int) -> int | None:
     """The master's planning process (a render process, core.render.worker), if it runs."""
-    for pid in _children(master_pid):
+    return _render_child(master_pid)
+
+
+def _render_child(parent: int) -> int | None:
+    """A render process (core.render.worker) under `parent`, if one runs."""
+    for pid in _children(parent):
         try:
             if b"_child_entry" in Path(f"/proc/{pid}/cmdline").read_bytes():
                 return pid
