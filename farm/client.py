@@ -14,7 +14,7 @@ from typing import Any
 from core.errors import QuekaroError
 from core.home import ADMIN_TOKEN, FARM_FILE, default_home
 from core.model.job import JobSpec, RenderOptions
-from core.render.imageio import read_image, write_png
+from core.render.imageio import read_image, write_png, written_atomically
 from core.transport.tls import client_context
 
 
@@ -112,16 +112,23 @@ class FarmClient:
         the tonemapped PNG beside them; return the image's path: `out` with the suffix of the film's file
         format (.exr, .pfm, .rgbe), as Mitsuba names its output."""
         out = Path(out)
-        out.parent.mkdir(parents=True, exist_ok=True)
         body, headers = self._exchange("GET", f"/api/jobs/{job_id}/result")
         name = headers.get_filename() or ""
         out = out.with_suffix(Path(name).suffix or out.suffix or ".exr")
-        out.write_bytes(body)
         report = json.loads(self._request("GET", f"/api/jobs/{job_id}/report"))
         if isinstance(report.get("image"), dict):  # the file written here, not the master's own
             report["image"]["file"] = str(out.resolve())
-        out.with_suffix(".json").write_text(json.dumps(report, indent=2))
-        write_png(out.with_suffix(".png"), read_image(out))
+        written: list[Path] = []
+        try:  # all three or none: a full disk leaves no truncated image behind
+            out.parent.mkdir(parents=True, exist_ok=True)
+            written.append(written_atomically(out, lambda tmp: tmp.write_bytes(body), "the image"))
+            text = json.dumps(report, indent=2)
+            written.append(written_atomically(out.with_suffix(".json"), lambda tmp: tmp.write_text(text), "JSON"))
+            written.append(write_png(out.with_suffix(".png"), read_image(out)))
+        except (OSError, QuekaroError) as exc:
+            for path in written:
+                path.unlink(missing_ok=True)
+            raise QuekaroError(f"job {job_id}: result not written: {exc}") from exc
         return out
 
     def cancel(self, job_id: str) -> bool:

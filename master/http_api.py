@@ -67,6 +67,7 @@ _CHUNK = 1 << 20
 # An EXR's header, offsets and compression overhead on top of the raw float32 RGB pixels.
 _EXR_SLACK = 1 << 20
 DISK_FULL = "disk full on the master: nothing was stored; send it again once space is freed"
+DISK_FULL_RESULT = "disk full on the master: the job's image is written once space is freed; ask again then"
 
 Expected = Callable[[str, int], Any]  # (job, unit) -> (token, unit Rect, image (width, height)) or None
 BundleProvider = Callable[[str], Any]
@@ -128,16 +129,27 @@ async def _json_errors(request: web.Request, handler: Callable[[web.Request], Aw
     except Refusal as exc:
         log.info("%s %s refused (%d): %s", request.method, request.path, exc.status, exc.reason)
         return json_error(exc.status, exc.reason)
-    except OSError as exc:
-        if exc.errno != errno.ENOSPC:
-            raise
-        # The master's disk, not the sender's doing: 507, and the sender keeps its data to send again.
-        log.error("%s %s: disk full on the master (%s)", request.method, request.path, exc)
-        return json_error(507, DISK_FULL)
     except web.HTTPException as exc:
         if exc.status >= 400:  # aiohttp's own 404/405/413: same JSON shape as ours
             return json_error(exc.status, exc.reason)
         raise
+    except Exception as exc:
+        if not _disk_full(exc):
+            raise
+        # The master's disk, not the sender's doing: 507, and the sender keeps its data to send again (a
+        # result asked for is composed once there is space).
+        log.error("%s %s: disk full on the master (%s)", request.method, request.path, exc)
+        return json_error(507, DISK_FULL if request.method != "GET" else DISK_FULL_RESULT)
+
+
+def _disk_full(exc: BaseException | None) -> bool:
+    """ENOSPC, raised as is or as the cause of an error that names the file (core.render.imageio)."""
+    seen = 0
+    while exc is not None and seen < 8:
+        if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+            return True
+        exc, seen = exc.__cause__ or exc.__context__, seen + 1
+    return False
 
 
 async def _call(fn: Callable[..., Any], *args: Any) -> Any:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import time
 import uuid
 from collections.abc import Callable, Iterable, Sequence
@@ -27,7 +26,7 @@ from core.model.seeds import plan_seed, unit_seed
 from core.model.units import WorkUnit
 from core.render.compose import TileSource, compose_planar
 from core.render.film import display_rgb, film_output
-from core.render.imageio import write_image, write_png_planar
+from core.render.imageio import write_image, write_png_planar, written_atomically
 from core.render.planner import Planner, RenderParams
 from core.render.tiles import Tile
 from core.render.worker import ADAPTIVE_META, RenderRequest, RenderWorker, adopt_scene
@@ -95,14 +94,34 @@ def composed(plan: JobPlan, units: Sequence[WorkUnit], tiles: Iterable[Tile | Ti
 def write_outputs(plan: JobPlan, job: Composed, out: Path, started: float,
                   extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """Write the image as the film asks (OUT.exr, or OUT.pfm / OUT.rgbe: every channel), OUT.png and the
-    report OUT.json; return the report."""
+    report OUT.json; return the report. All three or none: what one call wrote is removed when another
+    fails (a full disk), so no image stands without its report."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     image, channels = film_output(job.image, job.channels, plan.colour)
-    with ThreadPoolExecutor(1) as pool:  # both encoders release the GIL: 0.05 s together, not 0.09 at 512 px
-        png = pool.submit(write_png_planar, out.with_suffix(".png"), display_rgb(job.image, plan.colour))
-        written, lossy = write_image(out, image, channels, plan.image_file)
-        png.result()
+    made: list[Path] = []
+    try:
+        with ThreadPoolExecutor(1) as pool:  # both encoders release the GIL: 0.05 s together, not 0.09 at 512 px
+            png = pool.submit(write_png_planar, out.with_suffix(".png"), display_rgb(job.image, plan.colour))
+            try:
+                written, lossy = write_image(out, image, channels, plan.image_file)
+                made.append(written)
+            finally:
+                if png.exception() is None:  # waits for the PNG
+                    made.append(png.result())
+            png.result()  # its failure, if any
+        report = _report(plan, job, out, written, lossy, channels, started, extra)
+        write_json_atomic(out.with_suffix(".json"), report)
+    except BaseException:
+        for path in made:
+            path.unlink(missing_ok=True)
+        raise
+    return report
+
+
+def _report(plan: JobPlan, job: Composed, out: Path, written: Path, lossy: Any, channels: tuple[str, ...],
+            started: float, extra: dict[str, Any] | None) -> dict[str, Any]:
+    """The job's report (OUT.json) as `write_outputs` writes it."""
     units = job.units
     report = {
         "scene": plan.spec.to_dict(), "options": plan.options.to_dict(),
@@ -122,15 +141,12 @@ def write_outputs(plan: JobPlan, job: Composed, out: Path, started: float,
     }
     report.update(extra or {})
     report["totals"]["seconds"] = time.perf_counter() - started
-    write_json_atomic(out.with_suffix(".json"), report)
     return report
 
 
 def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
-    """Write JSON through a .part file: a full disk leaves the .part, never a torn file."""
-    tmp = path.with_name(f".{path.name}.part")
-    tmp.write_text(json.dumps(data, indent=2))
-    os.replace(tmp, path)
+    """Write JSON through a .part file: a full disk leaves neither a torn file nor the .part."""
+    written_atomically(path, lambda tmp: tmp.write_text(json.dumps(data, indent=2)), "JSON")
 
 
 @dataclass(frozen=True)

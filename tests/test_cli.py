@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
+from disk_support import small_tmpfs
 
 from core.errors import QuekaroError
 from core.home import AGENTS_ALLOW, FARM_FILE
@@ -108,6 +109,18 @@ def test_render_refuses_an_output_it_cannot_write_before_rendering(tmp_path: Pat
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("free", [16 << 10, 36 << 10])
+def test_a_render_onto_a_full_disk_says_so_and_leaves_no_part_of_its_outputs(tmp_path: Path, free: int) -> None:
+    """The PNG is written beside the image: with room for it and not for the EXR (16 KiB), or for both and
+    not the report (36 KiB), a full disk left an image without a report or a PNG without its image."""
+    with small_tmpfs(tmp_path / "small", "128k", free=free) as disk:
+        done = quekaro("render", str(SCENES / "cbox.xml"), "-D", "res=64", "-D", "spp=4", "-t", "1", "--no-progress",
+                       "-o", str(disk / "x.exr"))
+        left = sorted(p.name for p in disk.iterdir())
+    assert done.returncode == 2 and "x." in done.stderr and "Traceback" not in done.stderr, done.stderr[-2000:]
+    assert left == ["filler"], left
+
+
 def test_render_several_scenes_into_a_folder_with_progress(tmp_path: Path) -> None:
     done = quekaro("render", str(SCENES / "cbox.xml"), str(SCENES / "glass-corner.xml"), "-D", "res=32",
                    "--spp", "4", "-t", "1", "--units", "4", "-o", str(tmp_path / "out"), cwd=tmp_path)

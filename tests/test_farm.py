@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from disk_support import small_tmpfs
 
 from core.errors import QuekaroError
 from core.render.bundle import make_bundle
@@ -100,6 +101,10 @@ def test_job_on_three_agents_matches_local_render(farm3, tmp_path):
     # differ by 1.3 % (1 sigma): 6 % is ~5 sigma, while one missing tile of six is off by ~17 %.
     assert abs(image.mean() - reference.mean()) / reference.mean() < 0.06
     assert len(agents) >= 2, agents  # the work was spread over several agents
+    with small_tmpfs(tmp_path / "small", "64k", free=16 << 10) as disk:  # under the image's 20 KiB
+        with pytest.raises(QuekaroError, match=f"job {job_id}: result not written: .*r.exr"):
+            client.result(job_id, disk / "r.exr")
+        assert sorted(p.name for p in disk.iterdir()) == ["filler"]  # a truncated r.exr was left
 
 
 def _agent_pids(farm: LocalFarm) -> list[int]:

@@ -6,9 +6,7 @@ import asyncio
 import contextlib
 import hashlib
 import io
-import os
 import socket
-import subprocess
 import tarfile
 import threading
 import time
@@ -16,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from disk_support import small_tmpfs
 
 from agents.transfer import TransferError, fetch_bundle, upload_tile
 from core.model.geometry import Rect
@@ -382,14 +381,9 @@ def test_a_tile_whose_header_names_no_unit_or_another_is_refused(farm, tmp_path)
 
 @pytest.fixture
 def small_disk(tmp_path):
-    """A real 256 KiB filesystem (tmpfs; needs root, which CI has) for the master's tiles."""
-    mount = tmp_path / "small"
-    mount.mkdir()
-    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mount)],
-                                           capture_output=True).returncode != 0:
-        pytest.skip("needs root to mount a small tmpfs (CI runs as root)")
-    yield mount
-    subprocess.run(["umount", "-l", str(mount)], check=False)
+    """A real 256 KiB filesystem for the master's tiles."""
+    with small_tmpfs(tmp_path / "small", "256k") as mount:
+        yield mount
 
 
 def test_a_full_disk_is_a_507_and_the_tile_waits_on_its_agent(small_disk, tmp_path):
