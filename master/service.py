@@ -54,6 +54,9 @@ TICK_S = 0.2
 AGENT_RATE, AGENT_BURST = 20.0, 100.0
 
 
+MIN_FREE_BYTES = 64 << 20  # the master's default for MasterConfig.min_free_bytes
+
+
 @dataclass
 class MasterConfig:
     """Where the master keeps its state, and how agents and users reach it."""
@@ -74,7 +77,7 @@ class MasterConfig:
     agent_pattern: str = r"^agent[-\w.]*@{domain}$"  # bare JIDs allowed to bid
     agent_allowlist: Path | None = None  # and, if given, only the bare JIDs listed in this file
     threads: int | None = None  # Dr.Jit threads of the pre-pass
-    min_free_bytes: int = 64 << 20  # below this free space in its home the master pauses every job
+    min_free_bytes: int = MIN_FREE_BYTES  # below this free space in its home the master pauses every job
     auction: au.Config = field(default_factory=au.Config)
 
     @property

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 import tempfile
 import time
@@ -20,6 +21,7 @@ from core.render.bundle import make_bundle
 from core.render.scene import parse_defines
 from farm.client import FarmClient
 from farm.local import LocalFarm
+from master.service import MIN_FREE_BYTES
 from planning import budgets
 from quekaro.cmd_render import add_job_arguments, options_from_args, search_paths, writable_outputs
 
@@ -129,8 +131,18 @@ def _register_client(sub: argparse._SubParsersAction) -> None:
 def run_up(args: argparse.Namespace) -> int:
     with LocalFarm(args.home, args.agents, args.threads, args.rules, args.http_port, supervise=True) as farm:
         print(f"farm up: master {farm.url}, {args.agents} agents, home {farm.home} (Ctrl-C stops it)")
+        _warn_if_short_of_space(farm.home)
         farm.wait()
     return 0
+
+
+def _warn_if_short_of_space(home: Path) -> None:
+    """The master pauses every job below MIN_FREE_BYTES free in its home: say so at once, not only when a
+    job sits paused."""
+    free = shutil.disk_usage(home).free
+    if free < MIN_FREE_BYTES:
+        print(f"warning: {home} has {free >> 20} MiB free; the master pauses every job below "
+              f"{MIN_FREE_BYTES >> 20} MiB (quekaro status says so) until space is freed", file=sys.stderr)
 
 
 def run_demo(args: argparse.Namespace) -> int:
@@ -265,11 +277,16 @@ def watch(client, job_id: str, poll_s: float = 0.5) -> int:
     print_effects(client.status(job_id).get("effects") or {})
     with Progress(*columns, transient=False) as progress:
         task = progress.add_task(job_id, total=None, busy=0, eta="-")
+        said = None
         while True:
             job = client.status(job_id)
             eta = f"{job['eta_s']:.0f}s" if job.get("eta_s") is not None else "-"
+            if (job.get("paused") or None) != said:  # a line of its own: a bar in a pipe shows only at the end
+                said = job.get("paused") or None
+                progress.console.print(f"{job_id} paused: {said}" if said else f"{job_id} goes on")
+            paused = " (paused)" if said else ""
             progress.update(task, total=job["units_total"], completed=job["units_done"],
-                            busy=job["agents_busy"], eta=eta, description=f"{job_id} {job['status']}")
+                            busy=job["agents_busy"], eta=eta, description=f"{job_id} {job['status']}{paused}")
             if job["status"] != "running":
                 break
             time.sleep(poll_s)

@@ -219,6 +219,30 @@ def test_logs_lists_tails_and_follows(tmp_path: Path, capsys: pytest.CaptureFixt
 
 
 @pytest.mark.slow
+def test_a_farm_short_of_space_says_so_at_start_and_while_a_job_waits(tmp_path: Path) -> None:
+    """A home under the master's 64 MiB started without a word, and `--wait` showed a job 'running' while
+    it sat paused for ever; only `quekaro status` said why."""
+    with small_tmpfs(tmp_path / "small", "48m") as disk:
+        up = subprocess.Popen([sys.executable, "-m", "quekaro", "up", "--agents", "1", "--threads", "1", "--home",
+                               str(disk / "home")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            assert "farm up" in up.stdout.readline()
+            assert "MiB free; the master pauses every job below 64 MiB" in up.stderr.readline()
+            sent = quekaro("submit", str(SCENES / "cbox.xml"), "-D", "res=32", "--spp", "4", "--home",
+                           str(disk / "home"))
+            assert sent.returncode == 0, sent.stderr
+            job_id = sent.stdout.split()[0]
+            with pytest.raises(subprocess.TimeoutExpired) as watching:
+                subprocess.run([sys.executable, "-m", "quekaro", "watch", job_id, "--home", str(disk / "home")],
+                               capture_output=True, text=True, timeout=8)
+            shown = (watching.value.stdout or b"").decode(errors="replace")
+            assert "paused: disk full on the master" in shown, shown[-2000:]
+        finally:
+            up.terminate()
+            up.wait(60)
+
+
+@pytest.mark.slow
 def test_agents_lists_a_real_farms_agents(tmp_path: Path) -> None:
     with LocalFarm(tmp_path / "farm", agents=2, threads=1) as farm:
         farm.wait_for_agents()
