@@ -229,7 +229,8 @@ def run_status(args: argparse.Namespace) -> int:
     if "insecure" in plane:
         print(f"WARNING: data plane {plane}")
     for job in jobs:
-        eta = f"{job['eta_s']:.0f} s" if job.get("eta_s") is not None else "-"
+        running = job["status"] == "running" and job.get("eta_s") is not None
+        eta = f"{job['eta_s']:.0f} s" if running else "-"  # an ended job has none (it read "0 s")
         print(f"{job['job_id']}  {job['status']:<9} {job['units_done']}/{job['units_total']} units  "
               f"agents busy {job['agents_busy']}  ETA {eta}  {job['scene']}"
               + (f"  error: {job['error']}" if job.get("error") else "")

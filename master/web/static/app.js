@@ -478,7 +478,7 @@ function loadReport(jobId) {
       ["units", totals.units], ["render seconds (agents)", fmtNumber(totals.render_seconds, 4)],
       ["samples", totals.samples], ["non-finite pixels", totals.nonfinite],
       ["pre-pass seconds", fmtNumber(totals.prepass_seconds, 3)], ["compose seconds", fmtNumber(totals.seconds, 3)],
-      ["tiles used", compose.tiles_used], ["pixels filled", compose.filled], ["pixels uncovered", compose.uncovered],
+      ["tiles used", compose.tiles_used], ["pixels filled from neighbours (no finite sample)", compose.filled], ["pixels uncovered", compose.uncovered],
     ];
     fill(box, el("h3", {}, "Report"),
       el("dl", {}, pairs.flatMap(([k, v]) => [el("dt", {}, k), el("dd", {}, v ?? "-")])),
