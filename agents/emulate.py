@@ -143,14 +143,12 @@ class EmulatedWorker:
         self.emulation = emulation
         self.starts = 0
         self._lock = threading.Lock()
-        self._interrupted = threading.Event()
 
     def start(self) -> None:
         self.starts += 1
 
     def interrupt(self) -> None:
-        """End the render in flight (as RenderWorker.interrupt)."""
-        self._interrupted.set()
+        """Nothing to kill: a render sleeps on its `abort` event, whose setting ends it (RenderWorker's)."""
 
     def stop(self) -> None:
         self.emulation.finish()
@@ -158,18 +156,17 @@ class EmulatedWorker:
     def alive(self) -> bool:
         return True
 
-    def render(self, job: RenderRequest, timeout: float | None = None) -> Tile:
+    def render(self, job: RenderRequest, timeout: float | None = None, abort: threading.Event | None = None) -> Tile:
         emu = self.emulation
+        abort = abort or threading.Event()
         window = job.window
         planned = emu.costs.seconds(window, job.spp, job.width, job.height, emu.factor)
         with self._lock:
-            self._interrupted.clear()
             start = time.perf_counter()
-            if timeout is not None and planned > timeout:
-                self._interrupted.wait(timeout)
+            if timeout is not None and planned > timeout and not abort.wait(timeout):
                 raise RenderError(f"unit {job.unit_index} {job.unit.as_list()}: timed out after {timeout:.1f} s "
                                   f"(emulated render of {planned:.1f} s)")
-            if self._interrupted.wait(planned):
+            if abort.wait(planned):
                 raise RenderError(f"unit {job.unit_index} {job.unit.as_list()}: interrupted (emulated)")
             seconds = time.perf_counter() - start
         rendered_at = time.time()  # the render's end on the wall clock: bench.hosts times the delivery from it

@@ -17,8 +17,8 @@ master/auction.py expects it:
             seconds, non-finite pixels, spp, depth, band, the rules' crisp outputs, the agent's JID),
             upload it with the award's token, then Inform (tile sha256 and the parameters). Any error
             of that unit -> Failure with the reason; the agent itself carries on.
-  cancel    the unit (or every unit of the job) is dropped: a render in flight finishes and is thrown
-            away, queued ones (and one whose bundle is still being fetched) never start.
+  cancel    the unit (or every unit of the job) is dropped: a render in flight is ended (its render
+            process killed), queued ones (and one whose bundle is still being fetched) never start.
 
 Duplicate awards (same unit, same token) are ignored; a re-award with a new token replaces the old one's
 token. Every decision (slots, awards, cancels, which unit renders next, heartbeats, estimates and their
@@ -42,6 +42,7 @@ import re
 import signal
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -138,7 +139,7 @@ class RenderAgent:
         # --emulate: the render process and the speed measurement are the emulation's (agents/emulate.py).
         self.emulation = Emulation.load(config.emulate, config.emulate_speed, self.workdir) if config.emulate else None
         self.worker = self.emulation.worker if self.emulation else RenderWorker()
-        self._rendering_ticket: int | None = None  # the render in the worker now (AbortRender's target)
+        self._aborts: dict[int, threading.Event] = {}  # per render ticket: set to end it (AbortRender)
         self.farm = FarmAgent(
             config.jid, config.password, port=config.port, server=config.server, ontology=m.ONTOLOGY,
             peers=[config.master], validate=m.parse, performatives=ACCEPTED, ca_file=config.ca_file,
@@ -255,14 +256,20 @@ class RenderAgent:
                 case DiscardTile(job_id=job_id, index=index):
                     self._remove_tile(job_id, index)
                 case AbortRender(ticket=ticket):
-                    if ticket == self._rendering_ticket:
+                    if ticket in self._aborts:
                         log.info("ending the render of ticket %d: its unit was cancelled", ticket)
+                        self._aborts[ticket].set()
                         self.worker.interrupt()
-                case FetchBundle() | StartRender() | Upload():
-                    name = f"{type(command).__name__} {command.ticket}"
-                    task = asyncio.create_task(self._perform(command), name=name)
-                    self._io.add(task)
-                    task.add_done_callback(self._io.discard)
+                case StartRender(ticket=ticket):
+                    self._aborts[ticket] = threading.Event()  # now: a cancel may come before its task runs
+                    self._perform_later(command)
+                case FetchBundle() | Upload():
+                    self._perform_later(command)
+
+    def _perform_later(self, command: FetchBundle | StartRender | Upload) -> None:
+        task = asyncio.create_task(self._perform(command), name=f"{type(command).__name__} {command.ticket}")
+        self._io.add(task)
+        task.add_done_callback(self._io.discard)
 
     async def _perform(self, command: FetchBundle | StartRender | Upload) -> None:
         """One I/O step of a unit, as a task of its own; its end goes back to the state as an event."""
@@ -325,14 +332,14 @@ class RenderAgent:
             max_depth=params.depth, spp=params.spp, seed=award.seed, width=job.width, height=job.height,
             unit=unit.rect, band=params.band, threads=self.config.threads, job_id=job.job_id,
             unit_index=unit.index, sensor=job.sensor, first=job.first_spp)
+        abort = self._aborts.get(command.ticket)
         try:
-            self._rendering_ticket = command.ticket
             try:
-                tile = await asyncio.to_thread(self.worker.render, request, command.timeout_s)
+                tile = await asyncio.to_thread(self.worker.render, request, command.timeout_s, abort)
             except QuekaroError as exc:
                 raise UnitFailed(f"render failed: {exc}") from exc
             finally:
-                self._rendering_ticket = None
+                self._aborts.pop(command.ticket, None)
             meta = self._tile_meta(job, params)
             tile.meta.update(self.emulation.mark(meta) if self.emulation else meta)
             path = self._tile_path(job.job_id, unit.index)

@@ -10,6 +10,7 @@ ADMIN_TOKEN = "admin.token"  # the job API's secret, written by the master (mode
 FARM_FILE = "farm.json"  # the master's URL, JID and token file, written by the master when it is up
 AGENTS_ALLOW = "agents.allow"  # bare JIDs allowed to bid (a supervised local farm writes it)
 PROCESSES_FILE = "processes.json"  # a local farm's children, written by its supervisor
+MIN_FREE_BYTES = 64 << 20  # below this free in its home the master pauses every job (MasterConfig's default)
 
 
 def default_home() -> Path:

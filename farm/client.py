@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import time
 import urllib.error
 import urllib.request
@@ -14,7 +15,7 @@ from typing import Any
 from core.errors import QuekaroError
 from core.home import ADMIN_TOKEN, FARM_FILE, default_home
 from core.model.job import JobSpec, RenderOptions
-from core.render.imageio import read_image, write_png, written_atomically
+from core.render.imageio import read_image, write_png
 from core.transport.tls import client_context
 
 
@@ -118,17 +119,22 @@ class FarmClient:
         report = json.loads(self._request("GET", f"/api/jobs/{job_id}/report"))
         if isinstance(report.get("image"), dict):  # the file written here, not the master's own
             report["image"]["file"] = str(out.resolve())
-        written: list[Path] = []
-        try:  # all three or none: a full disk leaves no truncated image behind
+        staged: list[tuple[Path, Path]] = []  # (temporary, final): renamed only once all three are written
+        try:
             out.parent.mkdir(parents=True, exist_ok=True)
-            written.append(written_atomically(out, lambda tmp: tmp.write_bytes(body), "the image"))
-            text = json.dumps(report, indent=2)
-            written.append(written_atomically(out.with_suffix(".json"), lambda tmp: tmp.write_text(text), "JSON"))
-            written.append(write_png(out.with_suffix(".png"), read_image(out)))
-        except (OSError, QuekaroError) as exc:
-            for path in written:
-                path.unlink(missing_ok=True)
-            raise QuekaroError(f"job {job_id}: result not written: {exc}") from exc
+            for final in (out, out.with_suffix(".json"), out.with_suffix(".png")):
+                staged.append((final.with_name(f".{final.stem}.{os.getpid()}.part{final.suffix}"), final))
+            (image, _), (text, _), (png, _) = staged
+            image.write_bytes(body)
+            text.write_text(json.dumps(report, indent=2))
+            write_png(png, read_image(image))
+            for temporary, final in staged:
+                os.replace(temporary, final)
+        except (OSError, QuekaroError) as exc:  # a full disk: what was there before stays as it was
+            raise QuekaroError(f"job {job_id}: result not written to {out}: {exc}") from exc
+        finally:
+            for temporary, _ in staged:
+                temporary.unlink(missing_ok=True)
         return out
 
     def cancel(self, job_id: str) -> bool:

@@ -41,6 +41,7 @@ class Engine:
     """A compiled rule base; `evaluate` runs it on a batch of units."""
 
     def __init__(self, rulebase: RuleBase, defuzzifier: str | None = None) -> None:
+        """`defuzzifier` None: the rule file's dialect's own (`default_defuzzifier`)."""
         defuzzifier = defuzzifier or default_defuzzifier(rulebase)
         if defuzzifier not in _ALIASES:
             choices = ", ".join(DEFUZZIFIERS)

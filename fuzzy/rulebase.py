@@ -10,6 +10,9 @@ from fuzzy.levels import RULE_LEVELS
 from fuzzy.terms import Trapezoid
 from fuzzy.variables import InputVariable, OutputVariable, checked_range, masyro_sets, widen_degenerate
 
+# The inputs whose sets MASYRO's agent rebuilt for each job from the observed range (RuleBase.for_ranges).
+MASYRO_REBUILT = ("C", "S", "Nd")
+
 
 @dataclass(frozen=True)
 class Antecedent:
@@ -65,13 +68,13 @@ class RuleBase:
     def for_ranges(self, ranges: Mapping[str, tuple[float, float]]) -> RuleBase:
         """The rule base a job evaluates. MASYRO's agent rebuilt the sets of C, Nd and S for each job from
         the zones' observed range before it ran the rules (its src/RenderAgent.py): a MASYRO-dialect file
-        gets the same for each input named in `ranges` (fuzzy.variables.masyro_sets). The paper's dialect
+        gets the same for those of them named in `ranges` (fuzzy.variables.masyro_sets). The paper's dialect
         builds its dynamic sets in the engine: itself, unchanged."""
         if self.dialect != "masyro":
             return self
         inputs = []
         for var in self.inputs:
-            if var.name in ranges:
+            if var.name in ranges and var.name in MASYRO_REBUILT:
                 lo, hi = widen_degenerate(*checked_range(var.name, ranges[var.name]))
                 rows = masyro_sets(len(var.labels), lo, hi)
                 sets = tuple(Trapezoid(label, *row) for label, row in zip(var.labels, rows, strict=True))

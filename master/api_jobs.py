@@ -26,7 +26,7 @@ from aiohttp import web
 
 from core.errors import QuekaroError
 from core.model.job import JobSpec, RenderOptions
-from master.http_guard import Refusal, bearer_token, json_error, read_body_chunks
+from master.http_guard import Refusal, bearer_token, disk_full, json_error, read_body_chunks
 from master.store import JobStore, StoreError
 from planning import budgets
 
@@ -151,7 +151,13 @@ async def _finished_result(request: web.Request) -> tuple[MasterService, str] | 
         return json_error(404, str(exc))
     if record.status != "done":
         return json_error(409, f"job {job_id} is {record.status}" + (f": {record.error}" if record.error else ""))
-    await service.ensure_assembled(job_id)
+    try:
+        await service.ensure_assembled(job_id)
+    except Exception as exc:
+        if disk_full(exc):
+            raise Refusal(507, "disk full on the master: the job's image is composed once space is freed; "
+                               "ask again then") from exc
+        raise
     return service, job_id
 
 

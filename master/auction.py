@@ -1,12 +1,13 @@
 """The contract net and the life-cycle of work units, as a pure state machine (no I/O, no clock).
 
 Units go PENDING -> ANNOUNCED -> AWARDED -> DONE, or back to PENDING when an auction leaves them
-unsold, an agent fails them, misses their render deadline or is lost; a job whose remaining units no
-live agent may take any more is FAILED with the reason. Every call takes `now` (seconds, any epoch) and
-returns plain commands, `Send(to, message)` for the transport to deliver and events (one dataclass per kind,
-`Event`) for the job store and the logs, so the SPADE layer only delivers messages and the same code runs
-under the simulated clock of `bench.simulate` (the scaling benchmark). Every status change goes through the
-transition table of `core.model.status`, which the job store checks too.
+unsold, an agent fails them, misses their render deadline or is lost; a job with a unit that failed
+`max_unit_failures` times, or that every agent the farm knows is blocklisted for, is FAILED with the
+reason. Every call takes `now` (seconds, any epoch) and returns plain commands, `Send(to, message)` for
+the transport to deliver and events (one dataclass per kind, `Event`) for the job store and the logs, so
+the SPADE layer only delivers messages and the same code runs under the simulated clock of
+`bench.simulate` (the scaling benchmark). Every status change goes through the transition table of
+`core.model.status`, which the job store checks too.
 
 The award rule is MAgArRO's (design.md section 2) with an earliest-finish-time look-ahead. Before each
 call for proposals the master projects a list schedule of the job's open units, most costly first, over
@@ -485,6 +486,15 @@ def _move(
     finish[dst] += agent_of[dst].rate * unit_of[index].cost
 
 
+def _excluded(unit: UnitState, usable: Iterable[str]) -> frozenset[str]:
+    """The agents not offered `unit`: those it failed on, while one of the `usable` agents (live, answering,
+    not blocklisted for the job: `Auction._rates`'s keys) has not. Else none: the unit is retried where it
+    failed (a render killed for memory, an agent briefly lost), bounded by `blocklist_after` and
+    `max_unit_failures`, rather than failing or stalling its job on a one-agent farm."""
+    failed = frozenset(unit.failed_on)
+    return failed if not failed or any(name not in failed for name in usable) else frozenset()
+
+
 def _first_allowed(heap: list[tuple[float, str]], excluded: frozenset[str]) -> tuple[float, str] | None:
     if not excluded:
         return heap[0] if heap else None
@@ -767,12 +777,13 @@ class Auction:
                 continue
             rates = self._rates(job)
             plan = self._project(job, now, rates)
+            excluded = {u.spec.index: _excluded(u, rates.keys()) for u in pending}
             offered = {}
             for agent in agents:
                 units = tuple(
                     u.spec.index
                     for u in pending
-                    if self._worth_offering(agent.name, u, job, plan, rates, now, callable_now)
+                    if self._worth_offering(agent.name, u, excluded[u.spec.index], plan, rates, now, callable_now)
                 )
                 if units:
                     offered[agent.name] = units
@@ -908,10 +919,11 @@ class Auction:
             return out
         winners: set[str] = set()
         units = sorted((job.units[i] for i in round_.units), key=lambda u: (-u.spec.work, u.spec.index))
+        usable = self._rates(job).keys()
         for unit in units:
             if unit.status != UnitStatus.ANNOUNCED:
                 continue
-            winner = self._pick(round_, unit, job, winners, now)
+            winner = self._pick(round_, unit, job, winners, now, _excluded(unit, usable))
             if winner is None:
                 self._set_unit(job, unit, UnitStatus.PENDING)
             else:
@@ -944,7 +956,7 @@ class Auction:
 
     def _project(self, job: Job, now: float, rates: dict[str, float]) -> dict[int, Placement]:
         units = [
-            ProjectedUnit(u.spec.index, u.spec.work, self._excluded(job, u))
+            ProjectedUnit(u.spec.index, u.spec.work, _excluded(u, rates.keys()))
             for u in job.units.values()
             if u.status in (UnitStatus.PENDING, UnitStatus.ANNOUNCED)
         ]
@@ -1015,14 +1027,14 @@ class Auction:
         self,
         name: str,
         unit: UnitState,
-        job: Job,
+        excluded: frozenset[str],
         plan: dict[int, Placement],
         rates: dict[str, float],
         now: float,
         callable_now: set[str],
     ) -> bool:
         place = plan.get(unit.spec.index)
-        if place is None or name in self._excluded(job, unit):
+        if place is None or name in excluded:
             return False
         if place.agent == name:
             return True
@@ -1034,7 +1046,8 @@ class Auction:
             and duration <= (place.finish - now) * (1 + self.config.finish_tolerance) + 1e-9
         )
 
-    def _pick(self, round_: Round, unit: UnitState, job: Job, taken: set[str], now: float) -> str | None:
+    def _pick(self, round_: Round, unit: UnitState, job: Job, taken: set[str], now: float,
+              excluded: frozenset[str]) -> str | None:
         bids = {
             name: bids[unit.spec.index]
             for name, bids in round_.bids.items()
@@ -1043,7 +1056,7 @@ class Auction:
             and name in self.agents
             and not self.agents[name].lost
             and name not in job.blocklist
-            and name not in self._excluded(job, unit)
+            and name not in excluded
         }
         if not bids:
             return None
@@ -1122,14 +1135,6 @@ class Auction:
             why = f"{job.failures_by_agent[agent]} failed units of this job"
             out.append(AgentBlocklisted(key[0], agent, why))
         return out + self._fail_if_stuck(job)
-
-    def _excluded(self, job: Job, unit: UnitState) -> frozenset[str]:
-        """The agents not offered `unit`: those it failed on, while a live agent not blocklisted for the job
-        has not. Else none: the unit is retried where it failed (a render killed for memory, an agent's
-        brief loss), bounded by `blocklist_after` and `max_unit_failures` rather than failing its job at
-        the first failure on a one-agent farm."""
-        live = {a.name for a in self.agents.values() if not a.lost} - job.blocklist
-        return frozenset(unit.failed_on) if live - unit.failed_on else frozenset()
 
     def _fail_if_stuck(self, job: Job) -> list[Command]:
         """Fail the job when a remaining unit failed too often, or every agent the farm knows (lost ones

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import errno
 import hashlib
 import hmac
 import inspect
@@ -52,7 +51,7 @@ from aiohttp import web
 from core.errors import TileError
 from core.model.geometry import Rect
 from core.render.tiles import MAX_CHANNELS, durable_replace, read_tile
-from master.http_guard import JOB_PART, UNIT_PART, Refusal, bearer_token, json_error, read_body_chunks
+from master.http_guard import JOB_PART, UNIT_PART, Refusal, bearer_token, disk_full, json_error, read_body_chunks
 from master.http_guard import serve as guarded_serve
 
 log = logging.getLogger(__name__)
@@ -67,7 +66,6 @@ _CHUNK = 1 << 20
 # An EXR's header, offsets and compression overhead on top of the raw float32 RGB pixels.
 _EXR_SLACK = 1 << 20
 DISK_FULL = "disk full on the master: nothing was stored; send it again once space is freed"
-DISK_FULL_RESULT = "disk full on the master: the job's image is written once space is freed; ask again then"
 
 Expected = Callable[[str, int], Any]  # (job, unit) -> (token, unit Rect, image (width, height)) or None
 BundleProvider = Callable[[str], Any]
@@ -134,22 +132,11 @@ async def _json_errors(request: web.Request, handler: Callable[[web.Request], Aw
             return json_error(exc.status, exc.reason)
         raise
     except Exception as exc:
-        if not _disk_full(exc):
+        if not disk_full(exc):
             raise
-        # The master's disk, not the sender's doing: 507, and the sender keeps its data to send again (a
-        # result asked for is composed once there is space).
+        # The master's disk, not the sender's doing: 507, and the sender keeps its data to send again.
         log.error("%s %s: disk full on the master (%s)", request.method, request.path, exc)
-        return json_error(507, DISK_FULL if request.method != "GET" else DISK_FULL_RESULT)
-
-
-def _disk_full(exc: BaseException | None) -> bool:
-    """ENOSPC, raised as is or as the cause of an error that names the file (core.render.imageio)."""
-    seen = 0
-    while exc is not None and seen < 8:
-        if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
-            return True
-        exc, seen = exc.__cause__ or exc.__context__, seen + 1
-    return False
+        return json_error(507, DISK_FULL)
 
 
 async def _call(fn: Callable[..., Any], *args: Any) -> Any:

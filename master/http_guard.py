@@ -12,6 +12,7 @@ a request that every route checks alike are here too: job ids and unit indices i
 from __future__ import annotations
 
 import asyncio
+import errno
 import re
 import ssl
 import time
@@ -137,3 +138,14 @@ class Refusal(Exception):
 def json_error(status: int, reason: str) -> web.Response:
     """Every error the master's APIs answer: {"error": reason, "status": status}."""
     return web.json_response({"error": reason, "status": status}, status=status)
+
+
+def disk_full(exc: BaseException | None) -> bool:
+    """ENOSPC, raised as is or as the cause of an error that names the file (core.render.imageio)."""
+    for _ in range(8):  # a cause chain is short; a cycle must not hang the handler
+        if exc is None:
+            return False
+        if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False

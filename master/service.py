@@ -25,7 +25,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from core.errors import MessageError, QuekaroError, TileError
-from core.home import ADMIN_TOKEN, FARM_FILE
+from core.home import ADMIN_TOKEN, FARM_FILE, MIN_FREE_BYTES
 from core.model import messages as m
 from core.model.hashing import sha256_file
 from core.model.job import IMAGE_SUFFIXES, JobPlan, JobSpec, RenderOptions, SceneSpec
@@ -52,9 +52,6 @@ TICK_S = 0.2
 # What one agent may send: a heartbeat every 2 s, a proposal per auction it is called to, an inform or a
 # failure per unit come to a few a second; more is a flood, refused unread (core.transport.rates).
 AGENT_RATE, AGENT_BURST = 20.0, 100.0
-
-
-MIN_FREE_BYTES = 64 << 20  # the master's default for MasterConfig.min_free_bytes
 
 
 @dataclass
@@ -261,8 +258,8 @@ class MasterService:
 
     async def submit(self, bundle: bytes | Path, defines: dict[str, str], options: RenderOptions) -> str:
         """Accept a job: keep its bundle (bytes, or a file of the jobs folder, moved), plan it (pre-pass in a
-        child process), auction its units. The job is stored as created when it arrived: its time includes
-        the planning (pre-pass) it waited for."""
+        child process), auction its units. The job is stored as created when its upload had arrived: its
+        time includes the planning (pre-pass) it waited for."""
         received = time.time()
         job_id = uuid.uuid4().hex[:12]
         job_dir = self.job_dir(job_id)

@@ -20,13 +20,14 @@ from typing import Any
 import numpy as np
 
 from core.errors import SceneError
+from core.files import written_atomically
 from core.model.hashing import sha256_file
 from core.model.job import JobPlan, RenderOptions, SceneSpec
 from core.model.seeds import plan_seed, unit_seed
 from core.model.units import WorkUnit
 from core.render.compose import TileSource, compose_planar
 from core.render.film import display_rgb, film_output
-from core.render.imageio import write_image, write_png_planar, written_atomically
+from core.render.imageio import write_image, write_png_planar
 from core.render.planner import Planner, RenderParams
 from core.render.tiles import Tile
 from core.render.worker import ADAPTIVE_META, RenderRequest, RenderWorker, adopt_scene

@@ -16,12 +16,11 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from core.data import DEMO_SCENE
 from core.errors import QuekaroError
-from core.home import ADMIN_TOKEN, PROCESSES_FILE, default_home
+from core.home import ADMIN_TOKEN, MIN_FREE_BYTES, PROCESSES_FILE, default_home
 from core.render.bundle import make_bundle
 from core.render.scene import parse_defines
 from farm.client import FarmClient
 from farm.local import LocalFarm
-from master.service import MIN_FREE_BYTES
 from planning import budgets
 from quekaro.cmd_render import add_job_arguments, options_from_args, search_paths, writable_outputs
 

@@ -11,6 +11,7 @@ import csv
 import sys
 
 from fuzzy import DEFUZZIFIERS, Engine, FuzzyInputError, RuleBase, RuleFileError, load_rulebase
+from fuzzy.rulebase import MASYRO_REBUILT
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -27,8 +28,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="default: the file's own, as a render uses it (centroid; MASYRO's files centre of sums)")
     ev.add_argument("--range", action="append", default=[], metavar="NAME=LO:HI",
                     help="observed range of a dynamic input variable (default: the inputs' own min and max); "
-                         "in a MASYRO file, of an input whose sets MASYRO rebuilds per job, as a render does "
-                         "for C, S and Nd (default: the file's sets as written)")
+                         "in a MASYRO file, of C, S or Nd, whose sets MASYRO rebuilds per job as a render does "
+                         "(default there too: the inputs' own min and max)")
     source = ev.add_mutually_exclusive_group(required=True)
     source.add_argument("--set", action="append", metavar="NAME=VALUE", help="one input value (one row)")
     source.add_argument("--csv", metavar="INPUTS.csv", help="a CSV file with a header of input names")
@@ -53,8 +54,10 @@ def run_eval(args: argparse.Namespace) -> int:
     try:
         rulebase = load_rulebase(args.file)
         ranges = _parse_ranges(args.range, rulebase)
-        engine = Engine(rulebase.for_ranges(ranges), args.defuzzifier)
         inputs = _read_csv(args.csv) if args.csv else _parse_sets(args.set)
+        if rulebase.dialect == "masyro":  # as the planner: the inputs' own min and max where not given
+            ranges = {**_own_ranges(inputs, rulebase), **ranges}
+        engine = Engine(rulebase.for_ranges(ranges), args.defuzzifier)
         outputs = engine.evaluate(inputs, ranges)
     except (RuleFileError, FuzzyInputError, _UsageError) as exc:
         print(f"quekaro: error: {exc}", file=sys.stderr)
@@ -75,10 +78,10 @@ def _number(text: str, what: str) -> float:
 
 def _parse_ranges(items: list[str], rulebase: RuleBase) -> dict[str, tuple[float, float]]:
     """--range NAME=LO:HI at most once per input whose sets a range builds: the paper dialect's dynamic
-    inputs, any input of a MASYRO file (as a render rebuilds C, S and Nd: RuleBase.for_ranges). A range
-    the file would not read (a misspelt name, a static variable) is refused, not left out unsaid."""
+    inputs, a MASYRO file's C, S and Nd (as a render rebuilds them: RuleBase.for_ranges). A range the file
+    would not read (a misspelt name, a static variable) is refused, not left out unsaid."""
     masyro = rulebase.dialect == "masyro"
-    dynamic = [v.name for v in rulebase.inputs if v.dynamic or masyro]
+    dynamic = [v.name for v in rulebase.inputs if (v.name in MASYRO_REBUILT if masyro else v.dynamic)]
     ranges: dict[str, tuple[float, float]] = {}
     for text in items:
         name, sep, rest = text.partition("=")
@@ -92,6 +95,12 @@ def _parse_ranges(items: list[str], rulebase: RuleBase) -> dict[str, tuple[float
             raise _UsageError(f"--range {name} given twice")
         ranges[name] = (_number(lo, f"--range {name}"), _number(hi, f"--range {name}"))
     return ranges
+
+
+def _own_ranges(inputs: dict[str, list[float]], rulebase: RuleBase) -> dict[str, tuple[float, float]]:
+    """The (min, max) of each given input whose sets MASYRO rebuilds (the planner's default ranges)."""
+    names = {v.name for v in rulebase.inputs} & set(MASYRO_REBUILT)
+    return {k: (min(v), max(v)) for k, v in inputs.items() if k in names and v}
 
 
 def _parse_sets(items: list[str]) -> dict[str, list[float]]:

@@ -383,6 +383,30 @@ def test_a_unit_goes_back_to_where_it_failed_while_the_other_agent_is_lost() -> 
     assert a.jobs["job-1"].status == JobStatus.DONE
 
 
+def test_a_unit_goes_back_to_where_it_failed_while_the_other_agent_does_not_answer() -> None:
+    """An agent that beats but never bids is live, not usable: the unit waited for it for ever."""
+    a = make([1.0], ["A", "B"])
+    now = 0.0
+    while not a.jobs["job-1"].units[0].failures:
+        for send in sends(a.announce(now), m.CallForProposal, to="A"):  # B stays silent
+            a.on_propose("A", m.Propose(conversation=send.message.conversation, job_id="job-1", estimates=tuple(
+                m.Estimate(index=u.index, seconds=1.0) for u in send.message.units)), now)
+        for award in awards(a.decide(now + a.config.cfp_timeout_s)).values():
+            a.on_failure(award.to, failure(award, "killed"), now + 2.5)
+        now += 3.0
+    given = []
+    while a.jobs["job-1"].status == JobStatus.RUNNING and now < 60.0:
+        for send in sends(a.announce(now), m.CallForProposal, to="A"):
+            a.on_propose("A", m.Propose(conversation=send.message.conversation, job_id="job-1", estimates=tuple(
+                m.Estimate(index=u.index, seconds=1.0) for u in send.message.units)), now)
+        for award in awards(a.decide(now + a.config.cfp_timeout_s)).values():
+            given.append(award.to)
+            a.on_inform(award.to, inform(award, 1.0), now + 2.5)
+        now += 3.0
+    assert a.agents["B"].silent_until is not None and given == ["A"]
+    assert a.jobs["job-1"].status == JobStatus.DONE
+
+
 def test_a_job_fails_when_every_agent_is_blocklisted_for_it() -> None:
     a = make([1.0] * 4, ["A"])
     now, out = 0.0, []

@@ -6,6 +6,7 @@ restarted, a forged message and a forged upload.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -102,9 +103,11 @@ def test_job_on_three_agents_matches_local_render(farm3, tmp_path):
     assert abs(image.mean() - reference.mean()) / reference.mean() < 0.06
     assert len(agents) >= 2, agents  # the work was spread over several agents
     with small_tmpfs(tmp_path / "small", "64k", free=16 << 10) as disk:  # under the image's 20 KiB
-        with pytest.raises(QuekaroError, match=f"job {job_id}: result not written: .*r.exr"):
+        (disk / "r.exr").write_bytes(b"an earlier result")
+        with pytest.raises(QuekaroError, match=f"job {job_id}: result not written to {disk / 'r.exr'}"):
             client.result(job_id, disk / "r.exr")
-        assert sorted(p.name for p in disk.iterdir()) == ["filler"]  # a truncated r.exr was left
+        assert sorted(p.name for p in disk.iterdir()) == ["filler", "r.exr"]  # a truncated r.exr was left
+        assert (disk / "r.exr").read_bytes() == b"an earlier result"
 
 
 def _agent_pids(farm: LocalFarm) -> list[int]:
@@ -310,6 +313,26 @@ def test_a_render_killed_once_on_a_one_agent_farm_is_retried_and_its_job_complet
         os.kill(child, signal.SIGKILL)
         job = wait_job(farm, job_id)
         assert job["status"] == "done", job
+
+
+def test_a_result_the_master_cannot_compose_for_a_full_disk_is_a_507_and_composed_once_there_is_space(tmp_path):
+    """Composing (write_outputs) names the file it could not write, caused by ENOSPC: that was a 500."""
+    with small_tmpfs(tmp_path / "small", "160m") as disk, LocalFarm(disk / "home", agents=1, threads=1) as farm:
+        farm.wait_for_agents()
+        client = farm.client()
+        job_id = client.submit(bundle_of(SCENE, DEFINES), DEFINES, {"level": "off", "units": 4})
+        assert wait_job(farm, job_id)["status"] == "done"
+        client.result(job_id, tmp_path / "first.exr")  # composed once, as every job is when it ends
+        for made in (farm.home / "jobs" / job_id).glob("result.*"):
+            made.unlink()  # as if never composed: the next request composes it
+        filler = disk / "filler"
+        with filler.open("wb") as fh, contextlib.suppress(OSError):
+            fh.write(b"\0" * (200 << 20))
+        with pytest.raises(QuekaroError, match="HTTP 507: disk full on the master: the job's image is composed"):
+            client.result(job_id, tmp_path / "full.exr")
+        filler.unlink()
+        out = client.result(job_id, tmp_path / "later.exr")
+        assert np.array_equal(read_image(out), read_image(tmp_path / "first.exr"))
 
 
 def _planner_child(master_pid: int) -> int | None:

@@ -152,6 +152,30 @@ def test_killed_child_is_a_render_error_and_the_worker_restarts():
         assert tile.meta["pid"] != pid and w.starts == 2
 
 
+def test_an_abort_ends_its_own_render_only_also_one_set_before_the_render_began():
+    """A cancelled unit's render (the agent's AbortRender): set before the render began, the abort was lost
+    and the render ran in full; `interrupt` with no render aborted, or another render's, kills nothing."""
+    with RenderWorker() as w:
+        w.render(job(), timeout=60)
+        pid = w.pid
+        w.interrupt()  # idle: the child and its compiled kernels stay
+        assert w.pid == pid and w.alive()
+        early = threading.Event()
+        early.set()
+        with pytest.raises(RenderError, match="interrupted"):
+            w.render(job(), timeout=60, abort=early)
+        assert w.render(job(), timeout=60, abort=threading.Event()).meta["pid"] == pid  # not this render's
+        late = threading.Event()
+        ender = threading.Timer(0.3, lambda: (late.set(), w.interrupt()))
+        ender.start()
+        started = time.monotonic()
+        with pytest.raises(RenderError, match="SIGKILL"):
+            w.render(job(unit=Rect(0, 0, 48, 48), spp=20000, band=0), timeout=60, abort=late)
+        ender.join()
+        assert time.monotonic() - started < 20  # ended, not rendered to its end
+        assert w.render(job(), timeout=60).meta["pid"] != pid
+
+
 def test_a_released_child_exits_and_the_next_render_starts_another():
     with RenderWorker() as w:
         first = w.render(job(), timeout=60)

@@ -8,8 +8,7 @@ No NaN passes silently: writing an image with non-finite values is an error unle
 
 from __future__ import annotations
 
-import os
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +16,7 @@ import OpenEXR
 from PIL import Image
 
 from core.errors import QuekaroError
+from core.files import written_atomically
 from core.model.job import ImageFile
 
 # Mitsuba and Dr.Jit are imported where used: `import mitsuba` costs ~0.35 s and 85 MB, must follow the
@@ -147,19 +147,6 @@ def _write_with_mitsuba(path: Path, planar: np.ndarray, channels: tuple[str, ...
     bitmap = mi.Bitmap(pixels, getattr(mi.Bitmap.PixelFormat, _PIXEL_FORMATS[channels]))
     file_format = {"pfm": mi.Bitmap.FileFormat.PFM, "rgbe": mi.Bitmap.FileFormat.RGBE}[image_file.format]
     written_atomically(path, lambda tmp: bitmap.write(str(tmp), file_format), image_file.format.upper())
-
-
-def written_atomically(path: Path, write: Callable[[Path], None], what: str) -> Path:
-    """`write(tmp)` to a temporary name beside `path`, then rename: a failure leaves no partial file."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except (OSError, RuntimeError, ValueError) as exc:
-        raise ImageError(f"{path}: cannot write {what} ({exc})") from exc
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
 
 
 def _planes(image: np.ndarray, channels: tuple[str, ...], path: Path) -> dict[str, np.ndarray]:

@@ -135,7 +135,7 @@ class Planner:
         and Nd are rebuilt for the job's ranges (fuzzy.rulebase.RuleBase.for_ranges)."""
         if self.rulebase.dialect != "masyro":
             return self.engine
-        rulebase = self.rulebase.for_ranges({k: ranges[k] for k in FEATURES})
+        rulebase = self.rulebase.for_ranges(ranges)
         return Engine(rulebase, self.engine.defuzzifier)
 
 

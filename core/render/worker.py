@@ -23,6 +23,7 @@ import os
 import pickle
 import signal
 import subprocess
+import threading
 import time
 import traceback
 from collections.abc import Callable
@@ -406,6 +407,7 @@ class RenderWorker:
         self._ready = False
         self._released = False
         self.import_seconds: float | None = None
+        self._abort: threading.Event | None = None  # the render in flight's (see `interrupt`)
 
     @property
     def pid(self) -> int | None:
@@ -475,10 +477,11 @@ class RenderWorker:
         self._kill()
 
     def interrupt(self) -> None:
-        """Kill the child mid-render, from any thread: the render in flight ends in a RenderError naming the
-        signal, and the next call starts a new child (the compiled kernels are lost with this one)."""
-        proc = self._proc
-        if proc is not None and proc.poll() is None:
+        """From any thread: kill the child if the render in flight was given an `abort` event that is set
+        (the render then ends in a RenderError; the next call starts a new child, without the compiled
+        kernels of this one). An idle child, or one rendering another unit, is left alone."""
+        abort, proc = self._abort, self._proc
+        if abort is not None and abort.is_set() and proc is not None and proc.poll() is None:
             proc.kill()
 
     def __enter__(self) -> RenderWorker:
@@ -488,19 +491,31 @@ class RenderWorker:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
-    def render(self, job: RenderRequest, timeout: float | None = None) -> Tile:
-        """Render one unit in the child; a crash or timeout is a RenderError, and the next call restarts."""
+    def render(self, job: RenderRequest, timeout: float | None = None, abort: threading.Event | None = None) -> Tile:
+        """Render one unit in the child; a crash or timeout is a RenderError, and the next call restarts.
+        `abort` set (and `interrupt` called) ends it, also before it has begun (as a RenderError)."""
         where = f"unit {job.unit_index} {job.unit.as_list()}"
-        return self._tile_from_answer(self._exchange(job.to_dict(), timeout, where), job, where)
+        self._abort = abort
+        try:
+            if abort is not None and abort.is_set():
+                raise RenderError(f"{where}: interrupted before it began")
+            answer = self._exchange(job.to_dict(), timeout, where, abort)
+        finally:
+            self._abort = None
+        return self._tile_from_answer(answer, job, where)
 
-    def _exchange(self, message: Any, timeout: float | None, where: str) -> Any:
+    def _exchange(self, message: Any, timeout: float | None, where: str,
+                  abort: threading.Event | None = None) -> Any:
         """Send the child one message and return its answer; RenderError (`where`: why) if it dies or
-        does not answer within `timeout` (then it is killed)."""
+        does not answer within `timeout` (then it is killed), or `abort` was set while it started."""
         self.start()
         try:
             self._conn.send(message)
         except OSError:
             raise RenderError(f"{where}: {_death_reason(self._reap())}") from None
+        if abort is not None and abort.is_set():  # set while the child started: `interrupt` found none
+            self._kill()
+            raise RenderError(f"{where}: interrupted")
         if not self._conn.poll(timeout):
             self._kill()
             raise RenderError(f"{where}: timed out after {timeout:.1f} s (render process killed)")

@@ -1,0 +1,30 @@
+"""Files written whole or not at all: through a temporary name beside the target, renamed once complete."""
+
+from __future__ import annotations
+
+import errno
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+from core.errors import QuekaroError
+
+
+class WriteError(QuekaroError):
+    """A file could not be written; nothing of it is left. Its cause is ENOSPC on a full disk."""
+
+
+def written_atomically(path: Path, write: Callable[[Path], None], what: str) -> Path:
+    """`write(tmp)` to a temporary name beside `path`, then rename: a failure leaves no partial file."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except (OSError, RuntimeError, ValueError) as exc:
+        cause = exc
+        if not isinstance(exc, OSError) and os.strerror(errno.ENOSPC) in str(exc):
+            cause = OSError(errno.ENOSPC, str(exc))  # OpenEXR and Mitsuba say a full disk only in words
+        raise WriteError(f"{path}: cannot write {what} ({exc})") from cause
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
