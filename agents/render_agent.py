@@ -366,7 +366,7 @@ class RenderAgent:
                 await upload_tile(award.upload_url, award.token, command.path, sha256, agent=self.jid,
                                   ssl_context=self._tls)
             except Exception as exc:
-                raise UnitFailed(f"tile upload to {award.upload_url} refused: {describe(exc)}") from exc
+                raise UnitFailed(f"tile upload to {award.upload_url} failed: {describe(exc)}") from exc
         except Exception as exc:
             return UploadFailed(command.ticket, describe(exc))
         return UploadDone(command.ticket, sha256)
@@ -388,7 +388,7 @@ class RenderAgent:
                     await fetch_bundle(job.scene_url, digest, folder, self.config.bundle_limits, token=token,
                                        ssl_context=self._tls)
                 except Exception as exc:
-                    raise UnitFailed(f"scene bundle {job.scene_url} refused: {describe(exc)}") from exc
+                    raise UnitFailed(f"scene bundle {job.scene_url} not fetched: {describe(exc)}") from exc
         manifest = read_manifest(folder)
         name = getattr(job, "scene_name", None) or manifest["scene"]
         scene = (folder / name).resolve()

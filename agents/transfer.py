@@ -35,6 +35,9 @@ AGENT_HEADER = "X-Quekaro-Agent"
 _CHUNK = 1 << 20
 _RETRY_STATUS = {500, 502, 503, 504}
 DISK_FULL_STATUS = 507  # the master's disk is full: wait for space, never count it as the unit's failure
+# A connection not made by then fails the transfer: a firewall that drops packets left a bundle fetch
+# waiting past the unit's render deadline (30 s and up), the agent saying nothing of why.
+CONNECT_TIMEOUT_S = 15.0
 
 
 class TransferError(QuekaroError):
@@ -79,7 +82,8 @@ async def _download(url: str, out: Any, cap: int, token: str | None, timeout_s: 
     headers = {TOKEN_HEADER: token} if token else {}
     digest, size = hashlib.sha256(), 0
     try:
-        async with aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=timeout_s)) as session, \
+        timeout = aiohttp.ClientTimeout(total=timeout_s, sock_connect=CONNECT_TIMEOUT_S)
+        async with aiohttp.ClientSession(timeout=timeout) as session, \
                 session.get(url, headers=headers, ssl=ssl_context or True) as resp:
             if resp.status != 200:
                 raise TransferError(url, await _reason(resp), resp.status)
@@ -112,7 +116,7 @@ async def upload_tile(url: str, token: str, path: str | Path, sha256: str | None
     headers = {TOKEN_HEADER: token, HASH_HEADER: sha256, "Content-Type": "image/x-exr"}
     if agent:
         headers[AGENT_HEADER] = agent
-    timeout = aiohttp.ClientTimeout(total=timeout_s)
+    timeout = aiohttp.ClientTimeout(total=timeout_s, sock_connect=CONNECT_TIMEOUT_S)
     full_until = asyncio.get_running_loop().time() + disk_full_wait_s
     attempt = -1
     while attempt < retries:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 import time
 import urllib.error
 import urllib.request
@@ -11,12 +12,34 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 from core.errors import QuekaroError
 from core.home import ADMIN_TOKEN, FARM_FILE, default_home
 from core.model.job import JobSpec, RenderOptions
 from core.render.imageio import read_image, write_png
 from core.transport.tls import client_context
+
+CONNECT_TIMEOUT_S = 15.0
+_REACHED: set[str] = set()  # masters that took a connection in this process
+
+
+def _reach(url: str) -> None:
+    """Fail within CONNECT_TIMEOUT_S where nothing answers a connection (a firewall dropping packets):
+    urllib's one timeout, long enough for a submit's planning, also bounds its connection, which the
+    system gives up only after about 2 minutes. Checked once per master and process."""
+    if url in _REACHED:
+        return
+    parts = urlsplit(url)
+    port = parts.port or (443 if parts.scheme == "https" else 80)
+    try:
+        socket.create_connection((parts.hostname, port), timeout=CONNECT_TIMEOUT_S).close()
+    except TimeoutError:
+        raise QuekaroError(f"cannot reach the master at {url}: no answer to a connection within "
+                           f"{CONNECT_TIMEOUT_S:.0f} s (a firewall dropping it?)") from None
+    except OSError:
+        return  # refused, no route: urllib says so at once, in its words
+    _REACHED.add(url)
 
 
 @dataclass(frozen=True)
@@ -60,6 +83,7 @@ class FarmClient:
     def _exchange(self, method: str, path: str, body: bytes | None = None,
                   headers: dict[str, str] | None = None) -> tuple[bytes, Any]:
         """The response's body and headers."""
+        _reach(self.url)
         req = urllib.request.Request(self.url + path, data=body, method=method, headers={
             "Authorization": f"Bearer {self.token}", **(headers or {})})
         try:

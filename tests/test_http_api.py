@@ -17,6 +17,7 @@ import pytest
 from disk_support import small_tmpfs
 
 from agents.transfer import TransferError, fetch_bundle, upload_tile
+from core.errors import QuekaroError
 from core.model.geometry import Rect
 from core.render.bundle import BundleError, make_bundle
 from core.render.tiles import Tile, write_tile
@@ -455,3 +456,52 @@ def test_trickled_headers_and_bodies_are_cut_off(tmp_path, monkeypatch):
         assert answer["status"] == "accepted"  # a normal client is not hurt
     finally:
         farm.stop()
+
+
+@contextlib.contextmanager
+def _unanswering_port():
+    """A port whose connections are never taken, as behind a firewall that drops packets: a listening
+    socket with a full accept queue, whose SYNs the kernel drops."""
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen(0)
+        port = server.getsockname()[1]
+        queued = [socket.socket() for _ in range(3)]
+        try:
+            for sock in queued:
+                sock.setblocking(False)
+                with contextlib.suppress(BlockingIOError):
+                    sock.connect(("127.0.0.1", port))
+            time.sleep(0.5)
+            yield port
+        finally:
+            for sock in queued:
+                sock.close()
+
+
+def test_a_master_that_never_takes_a_connection_fails_a_transfer_at_the_connect_timeout(tmp_path, monkeypatch):
+    """A firewall that drops packets left a bundle fetch waiting its whole 300 s, past the unit's render
+    deadline, the agent saying nothing of why."""
+    from agents import transfer
+
+    monkeypatch.setattr(transfer, "CONNECT_TIMEOUT_S", 2.0)
+    with _unanswering_port() as port:
+        url = f"http://127.0.0.1:{port}/jobs/j/bundle"
+        for transfer_once in (lambda: fetch_bundle(url, "ab" * 32, tmp_path / "b", timeout_s=120),
+                              lambda: upload_tile(url, TOKEN, _tile(tmp_path, "t.exr"), retries=0, timeout_s=120)):
+            started = time.monotonic()
+            with pytest.raises(TransferError, match=r"(?i)timeout"):
+                asyncio.run(transfer_once())
+            assert time.monotonic() - started < 30
+
+
+def test_the_cli_says_at_once_that_a_master_never_takes_a_connection(monkeypatch):
+    """`quekaro submit` to a port a firewall drops waited 2 min 15 s (the system's SYN retries)."""
+    from farm import client as farm_client
+
+    monkeypatch.setattr(farm_client, "CONNECT_TIMEOUT_S", 2.0)
+    with _unanswering_port() as port:
+        started = time.monotonic()
+        with pytest.raises(QuekaroError, match="no answer to a connection within 2 s"):
+            farm_client.FarmClient(f"http://127.0.0.1:{port}", "token").jobs()
+        assert time.monotonic() - started < 30

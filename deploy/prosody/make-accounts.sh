@@ -27,7 +27,9 @@ random_password() { openssl rand -base64 18 | tr -d '/+=\n'; }
 umask 077
 : > "$out"
 register() {  # user password
-    prosodyctl --config "$config" register "$1" "$domain" "$2" >/dev/null
+    # prosodyctl says why it failed on stdout (a data folder the Prosody user cannot write, say): shown
+    said=$(prosodyctl --config "$config" register "$1" "$domain" "$2" 2>&1) || {
+        printf 'prosodyctl register %s@%s failed:\n%s\n' "$1" "$domain" "$said" >&2; exit 1; }
     printf '%s@%s %s\n' "$1" "$domain" "$2" >> "$out"
 }
 

@@ -66,7 +66,8 @@ prosody_group = user
 run_as_root = (user == "root")
 
 local log_to = env("QUEKARO_PROSODY_LOG") or "console"
-log = { info = log_to }
+-- Prosody's console sink is "*console"; a bare "console" would be a file of that name in the folder.
+log = { info = (log_to == "console") and "*console" or log_to }
 
 local enabled = {
 	"roster";      -- SPADE asks for its roster at login
