@@ -71,3 +71,23 @@ def test_master_and_two_agents_render_through_prosody(tmp_path):
             assert "agent-1@localhost" in master_log or "agent-2@localhost" in master_log
         finally:
             stop_processes(procs)
+
+
+def test_an_agent_given_the_wrong_ca_file_says_so_at_once(tmp_path):
+    """It tried for 30 s, logged slixmpp's 'Invalid certificate trust chain' about 50 times and exited
+    with 'no session', naming neither the certificate nor the CA file."""
+    server = ProsodyServer(tmp_path / "prosody", domain="localhost")
+    passwords = server.register_all(["agent-1"])
+    subprocess.run([sys.executable, "-m", "quekaro", "ca", "init", "--dir", str(tmp_path / "other")], cwd=REPO,
+                   check=True, capture_output=True)
+    wrong = tmp_path / "other" / "ca.pem"
+    with server:
+        started = time.monotonic()
+        done = subprocess.run([sys.executable, "-m", "quekaro", "agent", "--server", "127.0.0.1", "--port",
+                               str(server.port), "--jid", "agent-1@localhost", f"--password={passwords['agent-1']}",
+                               "--master", "master@localhost", "--ca-file", str(wrong), "--threads", "1",
+                               "--workdir", str(tmp_path / "agent")], cwd=REPO, capture_output=True, text=True,
+                              timeout=120)
+    said = done.stdout + done.stderr
+    assert done.returncode != 0 and f"its certificate is not trusted by the CA file {wrong}" in said, said[-3000:]
+    assert time.monotonic() - started < 25, "it gave up only at the session timeout"

@@ -200,6 +200,9 @@ class FarmAgent(Agent):
             try:
                 await super().start(auto_register=auto_register)
                 return
+            except XmppError:  # a certificate not trusted: trying again for `timeout` changes nothing
+                await self._drop_client()
+                raise
             except AuthenticationFailure as exc:
                 await self._drop_client()
                 raise XmppError(f"XMPP login refused for {self.bare_jid} on {self.server}:{self.xmpp_port}"
@@ -292,8 +295,21 @@ class FarmAgent(Agent):
         client.add_event_handler("failed_all_auth", settle("auth"), disposable=True)
         client.add_event_handler("disconnected", settle("down"), disposable=True)
         client.add_event_handler("connection_failed", settle("down"), disposable=True)
+
+        untrusted: list[str] = []  # the STARTTLS verification's error: its event follows the disconnect
+
+        def distrust(exc: object) -> None:  # handled here, slixmpp leaves the disconnect to us
+            untrusted.append(str(exc))
+            outcome.done() or outcome.set_result("down")
+            client.disconnect()
+
+        client.add_event_handler("ssl_invalid_chain", distrust, disposable=True)
         client.connect(host=self.server, port=self.xmpp_port)
         result = await asyncio.wait_for(outcome, timeout=SESSION_TIMEOUT_S)
+        if untrusted:
+            trusted = f"the CA file {self.ca_file}" if self.ca_file else "the system's CAs"
+            raise XmppError(f"XMPP server {self.server}:{self.xmpp_port}: its certificate is not trusted by "
+                            f"{trusted} ({untrusted[0]})")
         if result == "auth":
             raise AuthenticationFailure(f"authentication failed for {self.bare_jid}")
         if result == "down":
