@@ -36,7 +36,7 @@ from core.render.bundle import BundleLimits, bundle_hash, check_rules, check_unp
 from core.render.tiles import read_tile_bytes, tile_source
 from core.render.worker import RenderWorker
 from core.transport.rates import SenderRates
-from core.transport.tls import is_loopback, server_context
+from core.transport.tls import check_names, is_loopback, server_context
 from core.transport.xmpp import FarmAgent
 from master import auction as au
 from master.api_jobs import add_job_routes
@@ -187,7 +187,11 @@ class MasterService:
                          tile_dir=self.jobs_dir, authorize_bundle=self._bundle_allowed)
         add_job_routes(app, self)
         add_web_routes(app, self)  # the web page: same application, same bind address
-        tls = server_context(self.config.tls_cert, self.config.tls_key) if self.config.tls_cert else None
+        tls = None
+        if self.config.tls_cert:
+            tls = server_context(self.config.tls_cert, self.config.tls_key)
+            if self.config.public_url:  # what agents connect to: the certificate must name it
+                check_names(self.config.tls_cert, urlsplit(self.config.public_url).hostname or "", "--public-url")
         self._runner, _ = await serve(app, self.config.http_host, self.config.http_port, ssl_context=tls)
 
     async def _start_xmpp(self) -> None:

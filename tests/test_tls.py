@@ -16,7 +16,7 @@ from cryptography import x509
 
 from agents.render_agent import url_refusal
 from core.errors import QuekaroError
-from core.transport.tls import TlsError, client_context, is_loopback, issue, make_ca, server_context
+from core.transport.tls import TlsError, check_names, client_context, is_loopback, issue, make_ca, server_context
 from master.http_api import serve
 from master.service import MasterConfig
 
@@ -78,6 +78,23 @@ def test_a_farm_keeps_its_ca_and_bad_files_are_named(ca: Path, tmp_path: Path) -
                                                 ("0.0.0.0", False), ("master", False), (None, False)])
 def test_loopback(host: str | None, loopback: bool) -> None:
     assert is_loopback(host) is loopback
+
+
+def test_a_certificate_that_does_not_name_the_masters_public_host_is_refused_naming_both(ca: Path,
+                                                                                         tmp_path: Path) -> None:
+    """The master started with it, and every agent then refused its data plane (a hostname mismatch)."""
+    cert = ca / "master.pem"
+    for host in ("127.0.0.1", "master.farm.test", "MASTER.farm.test."):
+        check_names(cert, host, "--public-url")
+    with pytest.raises(TlsError, match=r"master.pem: names master.farm.test, 127.0.0.1, not master-host of "
+                                       r"--public-url"):
+        check_names(cert, "master-host", "--public-url")
+    with pytest.raises(TlsError, match=r"not 10\.0\.0\.2"):
+        check_names(cert, "10.0.0.2", "--public-url")
+    issue(ca, "wild", ["*.farm.test"], tmp_path)
+    check_names(tmp_path / "wild.pem", "agent.farm.test", "--public-url")
+    with pytest.raises(TlsError):  # a wildcard covers one label only
+        check_names(tmp_path / "wild.pem", "a.b.farm.test", "--public-url")
 
 
 def test_the_master_says_how_its_data_plane_travels(ca: Path, tmp_path: Path) -> None:

@@ -77,6 +77,28 @@ def server_context(cert: Path, key: Path) -> ssl.SSLContext:
     return context
 
 
+def check_names(cert: Path, host: str, what: str) -> None:
+    """Refuse (TlsError) a certificate whose names (subjectAltName: DNS, one-label wildcards, IP) do not
+    include `host`: every client verifying it would refuse the connection, far from the cause."""
+    try:
+        names = x509.load_pem_x509_certificate(cert.read_bytes()).extensions.get_extension_for_class(
+            x509.SubjectAlternativeName).value
+    except (OSError, ValueError, x509.ExtensionNotFound) as exc:
+        raise TlsError(f"{cert}: cannot read the certificate's names ({exc})") from exc
+    try:
+        if ipaddress.ip_address(host.strip("[]")) in names.get_values_for_type(x509.IPAddress):
+            return
+    except ValueError:
+        lowered = host.lower().rstrip(".")
+        for name in (n.lower() for n in names.get_values_for_type(x509.DNSName)):
+            if name == lowered or (name.startswith("*.") and lowered.partition(".")[2] == name[2:]):
+                return
+    listed = ", ".join(str(v) for v in names.get_values_for_type(x509.DNSName) + [
+        str(a) for a in names.get_values_for_type(x509.IPAddress)])
+    raise TlsError(f"{cert}: names {listed or 'nothing'}, not {host} of {what}; clients would refuse it "
+                   f"(issue one for that name: quekaro ca issue --dir CA NAME {host})")
+
+
 def client_context(ca_file: Path | None) -> ssl.SSLContext:
     """TLS 1.2+ for a client verifying the server's certificate and name against `ca_file` (the farm's
     CA), or against the system's CAs when None."""
