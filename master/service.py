@@ -38,6 +38,7 @@ from core.render.worker import RenderWorker
 from core.transport.rates import SenderRates
 from core.transport.tls import check_names, is_loopback, server_context
 from core.transport.xmpp import FarmAgent
+from fuzzy.render_params import SPP_MAX
 from master import auction as au
 from master.api_jobs import add_job_routes
 from master.http_api import create_app, serve
@@ -283,6 +284,10 @@ class MasterService:
             digest = bundle_hash(bundle)
             plan = await self._plan(SceneSpec(scene, defines), options, plan_seed(digest, defines, options.to_dict()))
             plan = dataclasses.replace(plan, bundle_sha256=digest, rules_sha256=rules_sha256)
+            if plan.spp > SPP_MAX:  # the scene's own count: the message's field would not say which option
+                raise QuekaroError(f"{scene_name}: sample_count {plan.spp} (the scene's, or its -D) is above "
+                                   f"{SPP_MAX}, the most samples per pixel a farm job carries; give --spp "
+                                   f"(up to {SPP_MAX}), or render it with quekaro render")
             m.check_job(self._job_info(job_id, scene_name, defines, plan))  # now, not at its first message
         except BaseException as exc:
             shutil.rmtree(job_dir, ignore_errors=True)

@@ -57,7 +57,7 @@ def _stated_spp(sensors: list[etree._Element] | None, spec: SceneSpec, sensor_in
                 count = int(child.get("value", ""))
             except ValueError:
                 return None
-            if count < 1:  # Mitsuba reads 0 as "the sampler's default": say so instead of guessing
+            if count < 1:  # Mitsuba loads 0, and its render then dies of a floating-point exception
                 raise QuekaroError(f"{spec.path}: sample_count {count} (e.g. from -D) is not a sample count; "
                                    "give 1 or more, or --spp")
             return count
@@ -145,9 +145,11 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     plan = JobPlan(spec, options, width, height, effects, spp, effects.max_depth, [],
                    filter_radius=info.filter_radius, colour=info.colour, image_file=info.image_file,
                    channels=_tile_channels(loaded, options.sensor, info.colour, added))
-    # An adaptive job's --units are its render units (render_units); its rules see the level's own partition.
+    # An adaptive job's --units are its render units (render_units); its rules see the level's own partition,
+    # the same wherever it runs: a farm's minimum count (min_units) is its render units' (_adaptive), else
+    # the level's budget fell with the farm's size (the rules weigh each unit's size).
     chosen = None if options.adaptive else options.units
-    target = chosen or default_unit_count(width, height, options.level, min_units, spp)
+    target = chosen or default_unit_count(width, height, options.level, 1 if options.adaptive else min_units, spp)
     if not effects.splittable:
         return _one_unit(plan, "this integrator renders as one unit")
     sensor_type, sampler = _sensor_kind(sensors, loaded, options.sensor)
