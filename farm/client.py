@@ -27,10 +27,13 @@ _REACHED: set[str] = set()  # masters that took a connection in this process
 def _reach(url: str) -> None:
     """Fail within CONNECT_TIMEOUT_S where nothing answers a connection (a firewall dropping packets):
     urllib's one timeout, long enough for a submit's planning, also bounds its connection, which the
-    system gives up only after about 2 minutes. Checked once per master and process."""
-    if url in _REACHED:
-        return
+    system gives up only after about 2 minutes. Checked once per master and process, and not through a
+    proxy (HTTPS_PROXY and the like), which urllib uses."""
     parts = urlsplit(url)
+    if url in _REACHED or not parts.hostname:
+        return
+    if urllib.request.getproxies() and not urllib.request.proxy_bypass(parts.hostname):
+        return  # urllib goes through the proxy: the master itself may be out of this host's reach
     port = parts.port or (443 if parts.scheme == "https" else 80)
     try:
         socket.create_connection((parts.hostname, port), timeout=CONNECT_TIMEOUT_S).close()

@@ -44,7 +44,7 @@ from master.api_jobs import add_job_routes
 from master.http_api import create_app, serve
 from master.store import JobRecord, JobStore
 from master.web import add_web_routes
-from planning.jobplan import farm_min_units, plan_job
+from planning.jobplan import farm_min_units, plan_job, scene_spp
 from planning.pipeline import assemble
 
 log = logging.getLogger(__name__)
@@ -92,6 +92,8 @@ class MasterConfig:
         if self.tls_cert:
             if public.scheme != "https":
                 raise QuekaroError(f"--public-url {self.url}: the master serves HTTPS (--tls-cert), use https://")
+            if public.hostname not in (None, "0.0.0.0", "::"):  # what agents connect to: the certificate's names
+                check_names(self.tls_cert, public.hostname, "--public-url" if self.public_url else "--http-host")
             return "https"
         if public.scheme == "https":
             raise QuekaroError(f"--public-url {self.url}: HTTPS needs --tls-cert and --tls-key")
@@ -188,11 +190,7 @@ class MasterService:
                          tile_dir=self.jobs_dir, authorize_bundle=self._bundle_allowed)
         add_job_routes(app, self)
         add_web_routes(app, self)  # the web page: same application, same bind address
-        tls = None
-        if self.config.tls_cert:
-            tls = server_context(self.config.tls_cert, self.config.tls_key)
-            if self.config.public_url:  # what agents connect to: the certificate must name it
-                check_names(self.config.tls_cert, urlsplit(self.config.public_url).hostname or "", "--public-url")
+        tls = server_context(self.config.tls_cert, self.config.tls_key) if self.config.tls_cert else None
         self._runner, _ = await serve(app, self.config.http_host, self.config.http_port, ssl_context=tls)
 
     async def _start_xmpp(self) -> None:
@@ -282,12 +280,9 @@ class MasterService:
             options, rules_sha256 = _job_rules(job_dir / "scene", options)
             options.check_used()
             digest = bundle_hash(bundle)
+            _check_stated_spp(SceneSpec(scene, defines), scene_name, options)  # before the pre-pass
             plan = await self._plan(SceneSpec(scene, defines), options, plan_seed(digest, defines, options.to_dict()))
             plan = dataclasses.replace(plan, bundle_sha256=digest, rules_sha256=rules_sha256)
-            if plan.spp > SPP_MAX:  # the scene's own count: the message's field would not say which option
-                raise QuekaroError(f"{scene_name}: sample_count {plan.spp} (the scene's, or its -D) is above "
-                                   f"{SPP_MAX}, the most samples per pixel a farm job carries; give --spp "
-                                   f"(up to {SPP_MAX}), or render it with quekaro render")
             m.check_job(self._job_info(job_id, scene_name, defines, plan))  # now, not at its first message
         except BaseException as exc:
             shutil.rmtree(job_dir, ignore_errors=True)
@@ -513,6 +508,16 @@ class MasterService:
                           extra={"job_id": job_id, "scene": scene, "created": record.created,
                                  "finished": record.finished})
         return report
+
+
+def _check_stated_spp(spec: SceneSpec, scene_name: str, options: RenderOptions) -> None:
+    """A scene's own sample_count above SPP_MAX: refused naming it (the job message's field would not say
+    which option), where `quekaro render`, like plain Mitsuba, renders it."""
+    stated = options.spp or scene_spp(spec, options.sensor)
+    if stated is not None and stated > SPP_MAX:
+        raise QuekaroError(f"{scene_name}: sample_count {stated} (the scene's, or its -D) is above {SPP_MAX}, the "
+                           f"most samples per pixel a farm job carries; give --spp (up to {SPP_MAX}), or render "
+                           "it with quekaro render")
 
 
 def _as_submitted(exc: QuekaroError, folder: Path) -> QuekaroError:

@@ -74,7 +74,7 @@ def test_an_adaptive_job_renders_its_units_in_two_passes(tmp_path):
 
 def test_an_adaptive_jobs_budget_is_the_same_on_a_farm_as_in_one_process():
     """The rules ran on a partition cut into at least the farm's minimum units, smaller, and the rules
-    weigh a unit's size: the same job spent 49 spp per pixel on a 2-agent farm and 104 in one process."""
+    weigh a unit's size: this job's level spent 50 spp per pixel with a farm's 8-unit minimum, 83 alone."""
     spec = SceneSpec(REPO / "scenes" / "cbox.xml", {"res": "96", "spp": "128"})
     options = RenderOptions(level="S", adaptive=True, units=3)
     alone, farm = (plan_job(spec, options, seed=5, min_units=n) for n in (1, 8))

@@ -101,7 +101,7 @@ def test_the_master_says_how_its_data_plane_travels(ca: Path, tmp_path: Path) ->
     cert, key = ca / "master.pem", ca / "master.key"
     assert MasterConfig(tmp_path).data_plane() == "http (loopback)"
     https = MasterConfig(tmp_path, http_host="0.0.0.0", tls_cert=cert, tls_key=key,
-                         public_url="https://10.0.0.2:8765")
+                         public_url="https://master.farm.test:8765")
     assert https.data_plane() == "https"
     assert MasterConfig(tmp_path, http_host="0.0.0.0", tls_cert=cert, tls_key=key).url.startswith("https://")
     with pytest.raises(QuekaroError, match="--insecure-http"):
@@ -116,6 +116,8 @@ def test_the_master_says_how_its_data_plane_travels(ca: Path, tmp_path: Path) ->
         MasterConfig(tmp_path, tls_cert=cert).data_plane()
     with pytest.raises(QuekaroError, match="use https"):
         MasterConfig(tmp_path, tls_cert=cert, tls_key=key, public_url="http://127.0.0.1:1").data_plane()
+    with pytest.raises(QuekaroError, match=r"names master\.farm\.test, 127\.0\.0\.1, not master-host of --public-url"):
+        MasterConfig(tmp_path, tls_cert=cert, tls_key=key, public_url="https://master-host:8765").data_plane()
 
 
 def test_an_agent_refuses_plain_http_across_a_network_unless_told() -> None:

@@ -78,25 +78,40 @@ def server_context(cert: Path, key: Path) -> ssl.SSLContext:
 
 
 def check_names(cert: Path, host: str, what: str) -> None:
-    """Refuse (TlsError) a certificate whose names (subjectAltName: DNS, one-label wildcards, IP) do not
-    include `host`: every client verifying it would refuse the connection, far from the cause."""
-    try:
-        names = x509.load_pem_x509_certificate(cert.read_bytes()).extensions.get_extension_for_class(
-            x509.SubjectAlternativeName).value
-    except (OSError, ValueError, x509.ExtensionNotFound) as exc:
-        raise TlsError(f"{cert}: cannot read the certificate's names ({exc})") from exc
-    try:
-        if ipaddress.ip_address(host.strip("[]")) in names.get_values_for_type(x509.IPAddress):
-            return
-    except ValueError:
-        lowered = host.lower().rstrip(".")
-        for name in (n.lower() for n in names.get_values_for_type(x509.DNSName)):
-            if name == lowered or (name.startswith("*.") and lowered.partition(".")[2] == name[2:]):
-                return
-    listed = ", ".join(str(v) for v in names.get_values_for_type(x509.DNSName) + [
-        str(a) for a in names.get_values_for_type(x509.IPAddress)])
-    raise TlsError(f"{cert}: names {listed or 'nothing'}, not {host} of {what}; clients would refuse it "
+    """Refuse (TlsError) a certificate whose names do not include `host`: every client verifying it would
+    refuse the connection, far from the cause. Its names: subjectAltName's DNS names (one-label wildcards)
+    and IP addresses; without that extension, its common name, as Python's clients fall back to."""
+    dns, ips = _cert_names(cert)
+    if _names_host(dns, ips, host):
+        return
+    listed = ", ".join([*dns, *(str(ip) for ip in ips)]) or "nothing"
+    raise TlsError(f"{cert}: names {listed}, not {host} of {what}; clients would refuse it "
                    f"(issue one for that name: quekaro ca issue --dir CA NAME {host})")
+
+
+def _cert_names(cert: Path) -> tuple[list[str], list[ipaddress.IPv4Address | ipaddress.IPv6Address]]:
+    try:
+        loaded = x509.load_pem_x509_certificate(cert.read_bytes())
+    except (OSError, ValueError) as exc:
+        raise TlsError(f"{cert}: cannot read the certificate ({exc})") from exc
+    try:
+        names = loaded.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    except x509.ExtensionNotFound:
+        return [str(a.value) for a in loaded.subject.get_attributes_for_oid(NameOID.COMMON_NAME)], []
+    return names.get_values_for_type(x509.DNSName), names.get_values_for_type(x509.IPAddress)
+
+
+def _names_host(dns: list[str], ips: list, host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host.strip("[]")) in ips
+    except ValueError:
+        pass
+    wanted = host.lower().rstrip(".")
+    for name in (n.lower().rstrip(".") for n in dns):
+        parent = wanted.partition(".")[2]
+        if name == wanted or (name.startswith("*.") and "." in name[2:] and parent == name[2:]):
+            return True
+    return False
 
 
 def client_context(ca_file: Path | None) -> ssl.SSLContext:

@@ -296,25 +296,36 @@ class FarmAgent(Agent):
         client.add_event_handler("disconnected", settle("down"), disposable=True)
         client.add_event_handler("connection_failed", settle("down"), disposable=True)
 
-        untrusted: list[str] = []  # the STARTTLS verification's error: its event follows the disconnect
+        failed_tls: list[str] = []  # why STARTTLS failed; slixmpp fires this after its connection_lost
 
-        def distrust(exc: object) -> None:  # handled here, slixmpp leaves the disconnect to us
-            untrusted.append(str(exc))
+        def tls_failed(exc: object) -> None:  # handled here, slixmpp leaves the disconnect to us
+            failed_tls.append(self._tls_failure(exc))
             outcome.done() or outcome.set_result("down")
             client.disconnect()
 
-        client.add_event_handler("ssl_invalid_chain", distrust, disposable=True)
+        client.add_event_handler("ssl_invalid_chain", tls_failed, disposable=True)
         client.connect(host=self.server, port=self.xmpp_port)
-        result = await asyncio.wait_for(outcome, timeout=SESSION_TIMEOUT_S)
-        if untrusted:
-            trusted = f"the CA file {self.ca_file}" if self.ca_file else "the system's CAs"
-            raise XmppError(f"XMPP server {self.server}:{self.xmpp_port}: its certificate is not trusted by "
-                            f"{trusted} ({untrusted[0]})")
+        try:
+            result = await asyncio.wait_for(outcome, timeout=SESSION_TIMEOUT_S)
+        finally:  # a reconnect's failure is slixmpp's own again (its reconnect loop retries)
+            client.del_event_handler("ssl_invalid_chain", tls_failed)
+        if failed_tls:
+            raise XmppError(failed_tls[0])
         if result == "auth":
             raise AuthenticationFailure(f"authentication failed for {self.bare_jid}")
         if result == "down":
             raise DisconnectedException(f"no session with {self.server}:{self.xmpp_port}")
         log.info("%s connected to %s:%d (tls=%s)", self.bare_jid, self.server, self.xmpp_port, self.tls)
+
+    def _tls_failure(self, exc: object) -> str:
+        """Why STARTTLS with the XMPP server failed, naming what the user can fix."""
+        where = f"XMPP server {self.server}:{self.xmpp_port}"
+        if not isinstance(exc, ssl.SSLCertVerificationError):
+            return f"{where}: TLS handshake failed ({exc})"
+        if exc.verify_code == 62:  # X509_V_ERR_HOSTNAME_MISMATCH
+            return f"{where}: its certificate does not name the domain {self.jid.host} ({exc.verify_message})"
+        trusted = f"the CA file {self.ca_file}" if self.ca_file else "the system's CAs"
+        return f"{where}: its certificate is not trusted by {trusted} ({exc.verify_message})"
 
     # ---- connection state ---------------------------------------------------------------------------
 
