@@ -277,7 +277,10 @@ class RenderAgent:
             case FetchBundle():
                 event: Event = await self._fetch(command)
             case StartRender():
-                event = await self._render(command)
+                try:
+                    event = await self._render(command)
+                finally:  # however the render ended: its abort has no render left to end
+                    self._aborts.pop(command.ticket, None)
             case Upload():
                 event = await self._upload(command)
         with _logged(f"handling {event!r}"):
@@ -338,8 +341,6 @@ class RenderAgent:
                 tile = await asyncio.to_thread(self.worker.render, request, command.timeout_s, abort)
             except QuekaroError as exc:
                 raise UnitFailed(f"render failed: {exc}") from exc
-            finally:
-                self._aborts.pop(command.ticket, None)
             meta = self._tile_meta(job, params)
             tile.meta.update(self.emulation.mark(meta) if self.emulation else meta)
             path = self._tile_path(job.job_id, unit.index)
