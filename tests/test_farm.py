@@ -277,15 +277,20 @@ def test_a_farm_starts_again_on_the_same_home(tmp_path):
             assert farm.client().agents()
 
 
+def _a_job_under_way(farm: LocalFarm, defines: dict[str, str]) -> tuple:
+    """The farm's client and a 4-unit level-off job of `defines`, once an agent holds one of its units."""
+    farm.wait_for_agents()
+    client = farm.client()
+    job_id = client.submit(bundle_of(SCENE, defines), defines, {"level": "off", "units": 4})
+    wait_job(farm, job_id, until=lambda j: j["agents_busy"] > 0)
+    return client, job_id
+
+
 def test_a_cancelled_render_ends_and_the_next_job_on_its_agent_is_not_held_behind_it(tmp_path):
     """A cancelled unit's render ran to its end (here ~30 s) while its agent, holding no unit, bid and
     took the next job's unit: that unit missed its deadline, and with one agent its whole job failed."""
     with LocalFarm(tmp_path / "farm", agents=1, threads=1) as farm:
-        farm.wait_for_agents()
-        client = farm.client()
-        long = {"res": "64", "spp": "65536"}
-        job_id = client.submit(bundle_of(SCENE, long), long, {"level": "off", "units": 4})
-        wait_job(farm, job_id, until=lambda j: j["agents_busy"] > 0)
+        client, job_id = _a_job_under_way(farm, {"res": "64", "spp": "65536"})
         time.sleep(3.0)  # its bundle fetched, into the render (a unit renders for ~30 s)
         assert client.cancel(job_id)
         small = client.submit(bundle_of(SCENE, DEFINES), DEFINES, {"level": "off", "units": 4})
@@ -298,11 +303,7 @@ def test_a_render_killed_once_on_a_one_agent_farm_is_retried_and_its_job_complet
     """The unit went to no other agent, so the job failed at its first failure ('render process killed by
     SIGKILL'), though an agent is blocklisted only after 3 and a unit fails its job only after 5."""
     with LocalFarm(tmp_path / "farm", agents=1, threads=1) as farm:
-        farm.wait_for_agents()
-        client = farm.client()
-        slow = {"res": "64", "spp": "4096"}
-        job_id = client.submit(bundle_of(SCENE, slow), slow, {"level": "off", "units": 4})
-        wait_job(farm, job_id, until=lambda j: j["agents_busy"] > 0)
+        _, job_id = _a_job_under_way(farm, {"res": "64", "spp": "4096"})
         agent = next(p.pid for name, p in farm.procs if name.startswith("agent-"))
         deadline, child = time.monotonic() + 60, None
         while child is None and time.monotonic() < deadline:
