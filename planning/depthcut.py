@@ -36,10 +36,10 @@ from planning.complexity import PREPASS_SPP, film_size, finite_mean
 LOSS_TOLERANCE = 0.01
 Z_BOUND = 2.0  # the loss's upper bound: mean + 2 standard errors (about 2.5 % of units judged too leniently)
 DARK = 1e-6  # a unit with less light than this (mean over RGB) loses nothing that can be seen
-# Samples per unit and pass. With 256 (4 per pixel of an 8 x 8 px unit) a dark corner that loses 1.4 %
-# at its cut passed the test for 10 pre-pass seeds of 80; with 512, for none (tests/test_depth_floors.py).
-MIN_UNIT_SAMPLES = 512
-MAX_FLOOR_SPP = 64  # a unit of fewer than 8 low-resolution pixels takes fewer samples
+# Samples per unit and pass: the light of rare long paths is heavy-tailed, and fewer samples let a unit that
+# loses more than the tolerance pass too often (tests/test_depth_floors.py counts how often).
+MIN_UNIT_SAMPLES = 2048
+MAX_FLOOR_SPP = 64  # a unit of fewer than 32 low-resolution pixels takes fewer samples
 
 
 @dataclass(frozen=True)

@@ -152,10 +152,12 @@ def test_a_diffuse_interior_keeps_its_light_at_level_vb_where_the_rules_alone_da
 
 def test_a_dark_corner_that_a_cut_darkens_by_more_than_the_tolerance_keeps_its_depth(tmp_path):
     """The compat room at 96 x 80, its top-left 32 px unit a dark corner: cut from depth 4 to 3 it loses
-    1.4 % of its light (plain Mitsuba, paired passes: the same paths up to depth 3). With 4 samples per
-    low-resolution pixel (256 for the unit) the floor test let that cut through for 4 of these 40 pre-pass
-    seeds (and 6 of seeds 1000-1039): the passes mostly missed the rare long paths, and then their spread
-    was small too. With MIN_UNIT_SAMPLES it holds for each of them."""
+    about 1.4 % of its light (plain Mitsuba, paired passes: the same paths up to depth 3). The passes mostly
+    miss the rare long paths that carry it, and then their spread is small too, so now and then a pre-pass
+    seed lets the cut through: with MIN_UNIT_SAMPLES at 2048 about 1 seed in 1000 did (at 512, 1 in 30).
+    Of 200 seeds at most 2 may: at 1 in 1000 that fails once in a thousand runs, at 1 in 30 nearly always.
+    Which seeds do depends on what the process rendered before (Mitsuba's sample sequence for a seed does),
+    so the test counts them rather than naming them."""
     from core.model import integrators
     from core.render.scene import expand, load
     from core.render.worker import render_full
@@ -172,9 +174,10 @@ def test_a_dark_corner_that_a_cut_darkens_by_more_than_the_tolerance_keeps_its_d
     scene = load(spec, "llvm_ad_rgb", threads=1)
     element = integrators.scene_element(expand(spec).root)
     floors = [depthcut.measure(scene, lambda d: integrators.radiance_xml(element, d), 4, [corner], (24, 20),
-                               (96, 80), seed=seed) for seed in range(40)]
-    assert floors[0].spp == 8 and depthcut.floor_spp([corner, Rect(32, 0, 64, 80)], (24, 20), (96, 80)) == 8
-    assert [f.floors for f in floors] == [(4,)] * 40
+                               (96, 80), seed=seed) for seed in range(200)]
+    assert floors[0].spp == 32 and depthcut.floor_spp([corner, Rect(32, 0, 64, 80)], (24, 20), (96, 80)) == 32
+    let_through = [seed for seed, f in enumerate(floors) if f.floors != (4,)]
+    assert len(let_through) <= 2, let_through
 
 
 @pytest.mark.slow
