@@ -193,6 +193,20 @@ def test_overrides_win_and_say_so():
         analyse(SceneSpec(DATA / "tiny.xml"), {"spp": 3})
 
 
+def test_an_integrator_override_says_which_of_the_scenes_parameters_it_drops(tmp_path):
+    """`--integrator` replaces the scene's integrator by a bare type: the reasons name what goes with it."""
+    scene = tmp_path / "s.xml"
+    scene.write_text('<scene version="3.0.0"><integrator type="moment"><integrator type="path">'
+                     '<boolean name="hide_emitters" value="true"/><integer name="rr_depth" value="2"/>'
+                     '</integrator></integrator><shape type="sphere"/></scene>')
+    reasons = analyse(SceneSpec(scene), {"integrator": "volpath"}).reasons
+    assert "integrator volpath: user override, with its type's defaults (the scene's moment(path) and its " \
+           "hide_emitters, rr_depth are not used)" in reasons, reasons
+    scene.write_text('<scene version="3.0.0"><integrator type="path"/><shape type="sphere"/></scene>')
+    assert "integrator volpath: user override, with its type's defaults" in \
+        analyse(SceneSpec(scene), {"integrator": "volpath"}).reasons
+
+
 def test_a_depth_for_an_integrator_that_takes_none_is_refused(tmp_path):
     scene = tmp_path / "s.xml"
     scene.write_text('<scene version="3.0.0"><integrator type="direct"/><shape type="sphere"/></scene>')

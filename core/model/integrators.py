@@ -93,6 +93,13 @@ def describe(elem: etree._Element | None) -> str:
     return f"{name}({', '.join(children)})" if children else name
 
 
+def parameter_names(elem: etree._Element | None) -> list[str]:
+    """The named parameters of the integrator tree (`hide_emitters`, `rr_depth`, a nested integrator's
+    own), what an override by a bare type leaves behind."""
+    return [c.get("name") for e in walk(elem) for c in e
+            if isinstance(c.tag, str) and c.tag != "integrator" and c.get("name")]
+
+
 def splittable(elem: etree._Element | None) -> tuple[bool, str]:
     """(can the integrator tree be rendered as tiles, why)."""
     for name in types(elem):

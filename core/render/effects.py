@@ -71,7 +71,7 @@ def analyse_loaded(spec: SceneSpec, overrides: dict[str, Any] | None = None) -> 
     elem = integrators.scene_element(root)
     override = overrides.get("integrator")
     name = override or integrators.describe(elem)
-    reasons.append(f"integrator {name}: " + ("user override" if override else "the scene's own, kept as written"))
+    reasons.append(f"integrator {name}: " + (_replaced(elem) if override else "the scene's own, kept as written"))
     if override:
         entry = integrators.kind(override)
         split, why = entry.splittable, f"{override}: {entry.note}"
@@ -98,6 +98,12 @@ def polarization_need(root: Any, scene_path: Any) -> str | None:
             where = elem.get(scene_mod.SRC_ATTR, str(scene_path))
             return f"{where}: <{elem.tag} type={kind!r}> computes polarization, which only polarized variants do"
     return None
+
+
+def _replaced(elem: Any) -> str:
+    dropped = integrators.parameter_names(elem)
+    return "user override, with its type's defaults" + (
+        f" (the scene's {integrators.describe(elem)} and its {', '.join(dropped)} are not used)" if dropped else "")
 
 
 def _override(overrides: dict[str, Any], key: str, chosen: Any, reasons: list[str]) -> Any:
