@@ -1,10 +1,12 @@
-"""Files written whole or not at all: through a temporary name beside the target, renamed once complete."""
+"""Files written whole or not at all: through a temporary name beside the target, renamed once complete;
+several files that belong together (an image, its preview, its report) renamed only once all are written."""
 
 from __future__ import annotations
 
 import errno
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 from core.errors import QuekaroError
@@ -28,3 +30,18 @@ def written_atomically(path: Path, write: Callable[[Path], None], what: str) -> 
     finally:
         tmp.unlink(missing_ok=True)
     return path
+
+
+@contextmanager
+def staged_together(finals: Sequence[Path]) -> Iterator[list[Path]]:
+    """Temporary names beside `finals` (keeping each suffix, which writers go by) to write into; renamed
+    onto `finals` only when the block ends without error, else removed: a failure (a full disk) leaves
+    the files that were there before as they were."""
+    staged = [final.with_name(f".{final.stem}.{os.getpid()}.part{final.suffix}") for final in finals]
+    try:
+        yield staged
+        for temporary, final in zip(staged, finals, strict=True):
+            os.replace(temporary, final)
+    finally:
+        for temporary in staged:
+            temporary.unlink(missing_ok=True)

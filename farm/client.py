@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import socket
 import time
 import urllib.error
@@ -15,6 +14,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from core.errors import QuekaroError
+from core.files import staged_together
 from core.home import ADMIN_TOKEN, FARM_FILE, default_home
 from core.model.job import JobSpec, RenderOptions
 from core.render.imageio import read_image, write_png
@@ -146,22 +146,14 @@ class FarmClient:
         report = json.loads(self._request("GET", f"/api/jobs/{job_id}/report"))
         if isinstance(report.get("image"), dict):  # the file written here, not the master's own
             report["image"]["file"] = str(out.resolve())
-        staged: list[tuple[Path, Path]] = []  # (temporary, final): renamed only once all three are written
         try:
             out.parent.mkdir(parents=True, exist_ok=True)
-            for final in (out, out.with_suffix(".json"), out.with_suffix(".png")):
-                staged.append((final.with_name(f".{final.stem}.{os.getpid()}.part{final.suffix}"), final))
-            (image, _), (text, _), (png, _) = staged
-            image.write_bytes(body)
-            text.write_text(json.dumps(report, indent=2))
-            write_png(png, read_image(image))
-            for temporary, final in staged:
-                os.replace(temporary, final)
+            with staged_together([out, out.with_suffix(".json"), out.with_suffix(".png")]) as (image, text, png):
+                image.write_bytes(body)
+                text.write_text(json.dumps(report, indent=2))
+                write_png(png, read_image(image))
         except (OSError, QuekaroError) as exc:  # a full disk: what was there before stays as it was
             raise QuekaroError(f"job {job_id}: result not written to {out}: {exc}") from exc
-        finally:
-            for temporary, _ in staged:
-                temporary.unlink(missing_ok=True)
         return out
 
     def cancel(self, job_id: str) -> bool:

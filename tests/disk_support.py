@@ -21,9 +21,14 @@ def small_tmpfs(mount: Path, size: str, free: int | None = None) -> Iterator[Pat
         pytest.skip("needs root to mount a small tmpfs (CI runs as root)")
     try:
         if free is not None:
-            stat = os.statvfs(mount)
-            with (mount / "filler").open("wb") as fh, contextlib.suppress(OSError):
-                fh.write(b"\0" * max(0, stat.f_bavail * stat.f_frsize - free))
+            fill(mount, free)
         yield mount
     finally:
         subprocess.run(["umount", "-l", str(mount)], check=False)
+
+
+def fill(mount: Path, free: int) -> None:
+    """Add to the file `filler` on `mount` until about `free` bytes are left."""
+    stat = os.statvfs(mount)
+    with (mount / "filler").open("ab") as fh, contextlib.suppress(OSError):
+        fh.write(b"\0" * max(0, stat.f_bavail * stat.f_frsize - free))

@@ -13,12 +13,16 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
-from disk_support import small_tmpfs
+from disk_support import fill, small_tmpfs
 
 from core.errors import QuekaroError
 from core.home import AGENTS_ALLOW, FARM_FILE
+from core.model.job import RenderOptions, SceneSpec
 from farm.local import LocalFarm
+from planning.jobplan import plan_job
+from planning.pipeline import Composed, write_outputs
 from quekaro.cli import OWNERS, build_parser
 from quekaro.cmd_farm import follow_log
 from quekaro.cmd_render import outputs
@@ -119,6 +123,42 @@ def test_a_render_onto_a_full_disk_says_so_and_leaves_no_part_of_its_outputs(tmp
         left = sorted(p.name for p in disk.iterdir())
     assert done.returncode == 2 and "x." in done.stderr and "Traceback" not in done.stderr, done.stderr[-2000:]
     assert left == ["filler"], left
+
+
+@pytest.mark.slow
+def test_a_render_again_to_the_same_output_on_a_full_disk_leaves_the_earlier_files_as_they_were(
+        tmp_path: Path) -> None:
+    """The new image, PNG and report are written beside the earlier render's three and replace them only
+    together: with room for the new image and PNG but not all three, the earlier three stay as they were."""
+    args = ["render", str(SCENES / "cbox.xml"), "-D", "res=64", "-D", "spp=4", "-t", "1", "--no-progress",
+            "-o", None]
+    with small_tmpfs(tmp_path / "small", "256k") as disk:
+        args[-1] = str(disk / "x.exr")
+        assert quekaro(*args).returncode == 0
+        before = {p.name: p.read_bytes() for p in disk.iterdir()}
+        fill(disk, 36 << 10)
+        done = quekaro(*args)
+        after = {p.name: p.read_bytes() for p in disk.iterdir() if p.name != "filler"}
+    assert sorted(before) == ["x.exr", "x.json", "x.png"], sorted(before)
+    assert done.returncode == 2 and "x." in done.stderr and "Traceback" not in done.stderr, done.stderr[-2000:]
+    assert after == before
+
+
+def test_outputs_that_fail_at_the_report_leave_an_earlier_renders_three_files(tmp_path: Path) -> None:
+    """All three or none, whichever write fails: here the report (a value JSON cannot hold), after the
+    image and the PNG were written. The earlier image and PNG were replaced and then removed, leaving
+    its report about an image that was gone."""
+    plan = plan_job(SceneSpec(SCENES / "cbox.xml", {"res": "16"}), RenderOptions(spp=1, threads=1), seed=1)
+    out = tmp_path / "x.exr"
+    first = Composed(np.full((3, 16, 16), 0.5, np.float32), ("R", "G", "B"), {}, [])
+    write_outputs(plan, first, out, time.perf_counter())
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    second = Composed(np.full((3, 16, 16), 0.25, np.float32), ("R", "G", "B"), {}, [])
+    with pytest.raises(TypeError):
+        write_outputs(plan, second, out, time.perf_counter(), {"unserialisable": object()})
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    write_outputs(plan, second, out, time.perf_counter())
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(before) and out.read_bytes() != before["x.exr"]
 
 
 def test_render_several_scenes_into_a_folder_with_progress(tmp_path: Path) -> None:
