@@ -1,10 +1,14 @@
 """Whole-image files: exact EXR round trip, a job's image in the film's file and component format (as
 Mitsuba's own Bitmap writes them), sRGB tonemapping, no silent NaN."""
 
+import errno
+
 import numpy as np
 import pytest
+from disk_support import small_tmpfs
 from render_check import file_kind
 
+from core.files import WriteError
 from core.model.job import ImageFile
 from core.render.imageio import (
     FLOAT16_MAX,
@@ -137,3 +141,17 @@ def test_a_film_file_is_refused_where_its_format_cannot_hold_the_channels(tmp_pa
     nan = np.full((3, 2, 2), np.nan, np.float32)
     with pytest.raises(ImageError, match="non-finite"):
         write_image(tmp_path / "a.exr", nan, ("R", "G", "B"), ImageFile("rgbe"))
+
+
+@pytest.mark.parametrize("image_file", [ImageFile("openexr", "float32"), ImageFile("pfm", "float32"),
+                                        ImageFile("rgbe", "float32")], ids=lambda f: f.format)
+def test_a_film_file_that_meets_a_full_disk_says_enospc_and_leaves_nothing(tmp_path, image_file):
+    """OpenEXR and Mitsuba's Bitmap say a full disk only in words: the error is an ENOSPC all the same,
+    which the master answers with 507, not 500."""
+    pixels = np.random.default_rng(1).random((3, 256, 256), dtype=np.float32)  # incompressible: over 64 KiB
+    with small_tmpfs(tmp_path / "small", "64k") as disk:
+        with pytest.raises(WriteError, match="cannot write") as caught:
+            write_image(disk / "x", pixels, ("R", "G", "B"), image_file)
+        left = list(disk.iterdir())
+    assert isinstance(caught.value.__cause__, OSError) and caught.value.__cause__.errno == errno.ENOSPC
+    assert left == []
