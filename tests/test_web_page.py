@@ -252,6 +252,24 @@ def test_an_adaptive_jobs_page_says_how_its_samples_were_shared(farm, browser, t
     assert client.wait(job_id, JOB_TIMEOUT_S)["status"] == "done"
 
 
+def test_a_link_to_a_job_opened_without_a_session_leads_to_that_job_after_the_login(farm, browser):
+    """The view is in the URL's fragment (#/job/ID), which no request carries: the login ended on the
+    job list."""
+    client = farm.client()
+    job_id = client.submit(bundle_of(SMALL), SMALL, {"level": "off", "units": 4})
+    browser.delete_all_cookies()
+    browser.get(f"{farm.url}/ui/#/job/{job_id}")
+    wait_until(lambda: browser.find_element(By.ID, "token"), 20, "the login form")
+    assert browser.current_url == f"{farm.url}/ui/login#/job/{job_id}", browser.current_url
+    browser.find_element(By.ID, "token").send_keys(admin_token(farm))
+    browser.find_element(By.ID, "login-button").click()
+    title = wait_until(lambda: job_id in browser.find_element(By.ID, "job-title").text and
+                       browser.find_element(By.ID, "job-title").text, 30, "the job's own page")
+    assert browser.current_url == f"{farm.url}/ui/#/job/{job_id}" and job_id in title
+    assert not browser.find_element(By.ID, "job-view").get_attribute("hidden")
+    assert client.wait(job_id, JOB_TIMEOUT_S)["status"] == "done"
+
+
 def test_cancel_and_resubmit_from_the_page(farm, browser, tmp_path):
     logged_in(browser, farm)
     client = farm.client()

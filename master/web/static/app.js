@@ -94,14 +94,14 @@ function say(text, isError = false) {
 async function post(url) {
   const response = await fetch(url, { method: "POST", headers: { "X-CSRF-Token": CSRF }, credentials: "same-origin" });
   const body = await response.json().catch(() => ({}));
-  if (response.status === 401) window.location.assign("/ui/login");
+  if (response.status === 401) window.location.assign("/ui/login" + window.location.hash);
   if (!response.ok) throw new Error(body.error || `HTTP ${response.status}`);
   return body;
 }
 
 async function getJSON(url) {
   const response = await fetch(url, { credentials: "same-origin" });
-  if (response.status === 401) window.location.assign("/ui/login");
+  if (response.status === 401) window.location.assign("/ui/login" + window.location.hash);
   const body = await response.json();
   if (!response.ok) throw new Error(body.error || `HTTP ${response.status}`);
   return body;
@@ -163,7 +163,7 @@ function connect() {
     if (source.readyState === EventSource.CLOSED) {
       // A refused stream (session gone) is not retried by the browser: ask once whether we are logged out.
       fetch("/ui/api/agents", { credentials: "same-origin" }).then((r) => {
-        if (r.status === 401) window.location.assign("/ui/login");
+        if (r.status === 401) window.location.assign("/ui/login" + window.location.hash);
         else setTimeout(connect, 3000);
       }).catch(() => setTimeout(connect, 3000));
     }
@@ -510,7 +510,7 @@ document.getElementById("overlay").addEventListener("click", (event) => {
 document.getElementById("colour-by").addEventListener("change", (event) => { state.colour = event.target.value; drawOverlay(); });
 document.getElementById("show-grid").addEventListener("change", (event) => { state.showGrid = event.target.checked; drawOverlay(); });
 document.getElementById("logout").addEventListener("click", () => {
-  post("/ui/logout").finally(() => window.location.assign("/ui/login"));
+  post("/ui/logout").finally(() => window.location.assign("/ui/login" + window.location.hash));
 });
 window.addEventListener("hashchange", route);
 window.addEventListener("resize", () => drawOverlay());
