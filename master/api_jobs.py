@@ -26,6 +26,7 @@ from aiohttp import web
 
 from core.errors import QuekaroError
 from core.model.job import JobSpec, RenderOptions
+from master import sessions
 from master.http_guard import Refusal, bearer_token, disk_full, json_error, read_body_chunks
 from master.store import JobStore, StoreError
 from planning import budgets
@@ -41,6 +42,7 @@ class MasterService(Protocol):
     auction: Any
     paused: str | None
     data_plane: str
+    shared_accounts: sessions.SharedAccounts
 
     async def submit(self, bundle: Path, defines: dict[str, str], options: RenderOptions) -> str: ...
     async def cancel(self, job_id: str) -> bool: ...
@@ -201,7 +203,8 @@ async def agents(request: web.Request) -> web.Response:
 def agent_rows(service: MasterService, counts: dict[str, tuple[int, int]] | None = None) -> list[dict[str, Any]]:
     """Every agent the master knows: its state (lost, rendering, idle), speed, credits, the units it holds,
     units done and failed (`counts`: the store's `agent_counts`, read if not given), and seconds since it
-    was last heard from (the web page shows the same rows)."""
+    was last heard from, and `shared`, what the master says if several clients log in with its JID (the
+    web page shows the same rows)."""
     counts = service.store.agent_counts() if counts is None else counts
     now = service.auction_now()
     rows = []
@@ -211,5 +214,10 @@ def agent_rows(service: MasterService, counts: dict[str, tuple[int, int]] | None
         rows.append({"jid": agent.name, "state": state, "lost": agent.lost, "credits": agent.credits,
                      "speed": agent.speed, "holding": sorted(f"{j}/{i}" for j, i in agent.holding),
                      "units_done": done, "units_failed": failed,
-                     "last_seen_s": round(max(0.0, now - agent.last_seen), 1)})
+                     "last_seen_s": round(max(0.0, now - agent.last_seen), 1), "shared": _shared(service, agent.name)})
     return rows
+
+
+def _shared(service: MasterService, jid: str) -> str | None:
+    clients = service.shared_accounts.sharing(jid, time.monotonic())
+    return sessions.note(jid, clients) if clients else None

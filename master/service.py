@@ -42,6 +42,7 @@ from fuzzy.render_params import SPP_MAX
 from master import auction as au
 from master.api_jobs import add_job_routes
 from master.http_api import create_app, serve
+from master.sessions import SharedAccounts
 from master.store import JobRecord, JobStore
 from master.web import add_web_routes
 from planning.jobplan import farm_min_units, plan_job, scene_spp
@@ -137,6 +138,7 @@ class MasterService:
         self._paused_since: float | None = None
         self._unrecorded: list[au.Event] = []  # events the store could not write yet (`_record`)
         self._channels: dict[str, list[str] | None] = {}  # job -> the channels its tiles carry
+        self.shared_accounts = SharedAccounts()  # agent JIDs that several clients log in with
         self._allowed: set[str] = set()
         self._allow_stamp: tuple[int, int] | None = None
 
@@ -372,6 +374,9 @@ class MasterService:
     # ---- messages and time --------------------------------------------------------------------------
 
     async def _on_envelope(self, env: Any) -> None:
+        shared = self.shared_accounts.seen(env.sender, env.resource, env.received_at)
+        if shared:
+            log.warning("%s", shared)
         try:
             msg = m.parse(env.performative, env.body)
         except MessageError as exc:

@@ -317,6 +317,9 @@ def run_agents(args: argparse.Namespace) -> int:
     for row in rows:
         print(f"{row['jid']:<32} {row['state']:<10} {row['speed']:>6.2f} {row['units_done']:>5} "
               f"{row['units_failed']:>6} {row['credits']:>7} {row['last_seen_s']:>6.1f}s  {' '.join(row['holding'])}")
+    for row in rows:
+        if row.get("shared"):
+            print(f"warning: {row['shared']}")
     return 0
 
 

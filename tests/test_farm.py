@@ -458,3 +458,40 @@ def test_a_farm_job_renders_no_unit_below_its_depth_floor(farm3, tmp_path):
     assert len(wanted) >= len(units) // 2, [u["outputs"] for u in units]
     assert sum(u["depth"] == 8 for u in wanted) >= len(wanted) // 2, [u["depth"] for u in units]
     assert report["prepass"]["depth_floor_depths"] == [8, 6, 4]
+
+
+@pytest.mark.slow
+def test_a_second_agent_logged_in_with_the_same_jid_is_named_in_the_log_and_by_quekaro_agents(tmp_path):
+    """Two processes with one JID both receive the master's messages and render every unit awarded to
+    it (the second upload of each is refused): the master says so instead of leaving it to be guessed."""
+    from test_cli import quekaro
+
+    with LocalFarm(tmp_path / "home", agents=1, threads=1) as farm:
+        farm.wait_for_agents()
+        (agent,) = [c for c in farm.children if c.name == "agent-0"]
+        args = [a for a in agent.proc.args if a != "--register"]
+        args[args.index("--workdir") + 1] = str(tmp_path / "twin")
+        with (tmp_path / "twin.log").open("wb") as log:
+            twin = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT, cwd=REPO,
+                                    env=dict(os.environ, **agent.env, PYTHONPATH=str(REPO)))
+        try:
+            jid = args[args.index("--jid") + 1]
+            wait_until_logged(tmp_path / "twin.log", "connected to", 60)
+            job_id = farm.client().submit(bundle_of(SCENE, DEFINES), DEFINES, {"level": "off", "units": 4})
+            assert wait_job(farm, job_id)["status"] == "done"
+            (row,) = farm.client().agents()
+            listed = quekaro("agents", "--home", str(farm.home))
+        finally:
+            twin.terminate()
+            twin.wait(30)
+        master_log = (farm.home / "logs" / "master.log").read_text()
+    assert row["jid"] == jid and row["shared"] and f"2 clients log in as {jid}" in row["shared"], row
+    assert f"2 clients log in as {jid}" in master_log
+    assert f"warning: 2 clients log in as {jid}" in listed.stdout, listed.stdout
+
+
+def wait_until_logged(path: Path, text: str, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while text not in path.read_text(errors="replace"):
+        assert time.monotonic() < deadline, f"{path} never said {text!r}: {path.read_text(errors='replace')[-2000:]}"
+        time.sleep(0.2)

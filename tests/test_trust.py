@@ -107,12 +107,12 @@ def test_a_failure_while_the_disk_is_full_is_not_held_against_its_agent(tmp_path
     """A local farm's agents write their tiles on the master's disk: one that fails while it is full may
     fail for that, and three such failures blocklisted the farm's only agent and failed the job."""
     import asyncio
-    from types import SimpleNamespace
 
     from core.model import messages as m
     from core.model.geometry import Rect
     from core.model.job import Effects, JobPlan, JobSpec, RenderOptions, SceneSpec
     from core.model.units import WorkUnit
+    from core.transport.xmpp import Envelope
     from master import auction as au
 
     service = MasterService(MasterConfig(home=tmp_path / "home"))
@@ -136,7 +136,10 @@ def test_a_failure_while_the_disk_is_full_is_not_held_against_its_agent(tmp_path
         failure = m.Failure(conversation=award.conversation, job_id="job0000001", index=0, token=award.token,
                             reason="cannot write the tile: No space left on device")
         performative, body = m.encode(failure)
-        asyncio.run(service._on_envelope(SimpleNamespace(performative=performative, body=body, sender=agent)))
+        envelope = Envelope(sender=agent, to=service.config.jid, performative=performative, ontology=m.ONTOLOGY,
+                            protocol=m.PROTOCOL, conversation_id=award.conversation, body=body,
+                            received_at=time.monotonic(), resource="r1")
+        asyncio.run(service._on_envelope(envelope))
         assert auction.agents[agent].credits == 0 and auction.jobs["job0000001"].units[0].failures == 0
         [attempt] = service.store.attempts("job0000001", 0)
         assert attempt.outcome == "requeued" and "not counted" in attempt.reason

@@ -68,6 +68,7 @@ class Envelope:
     conversation_id: str
     body: str
     received_at: float  # time.monotonic() on arrival
+    resource: str = ""  # the sender's resource: which of the clients logged in as `sender` sent it
 
 
 @dataclass(frozen=True)
@@ -241,7 +242,10 @@ class FarmAgent(Agent):
         if not self.online or self.client is None:
             log.info("%s offline: %s to %s not sent", self.bare_jid, performative, to)
             return False
-        msg = Message(to=to, sender=str(self.jid), body=body, thread=thread or conversation_id, metadata=meta)
+        # The full JID (with this session's resource), as Prosody stamps it and the embedded server does not:
+        # the master tells apart two clients that log in with one JID by it (master.sessions).
+        msg = Message(to=to, sender=str(self.client.boundjid), body=body, thread=thread or conversation_id,
+                      metadata=meta)
         msg.prepare(self.client).send()
         return True
 
@@ -464,7 +468,8 @@ class FarmAgent(Agent):
         return Envelope(sender=sender, to=str(msg.to.bare) if msg.to else "",
                         performative=meta["performative"], ontology=meta["ontology"],
                         protocol=meta["protocol"], conversation_id=meta["conversation-id"],
-                        body=body, received_at=time.monotonic())
+                        body=body, received_at=time.monotonic(),
+                        resource=str(msg.sender.resource or "") if msg.sender else "")
 
     def _sender_known(self, sender: str) -> bool:
         if not sender:

@@ -493,7 +493,8 @@ function renderAgents() {
   if (state.view !== "agents") return;
   const age = Date.now() / 1000 - state.agentsAt;
   const rows = state.agents.map((a) => el("tr", { "data-agent": a.jid, "data-state": a.state },
-    el("td", {}, a.jid), el("td", {}, badge(a.state), a.blocklisted_for && a.blocklisted_for.length ? el("div", { class: "muted" }, `for ${a.blocklisted_for.join(", ")}`) : null),
+    el("td", {}, a.jid, a.shared ? el("div", { class: "warning" }, a.shared) : null),
+    el("td", {}, badge(a.state), a.blocklisted_for && a.blocklisted_for.length ? el("div", { class: "muted" }, `for ${a.blocklisted_for.join(", ")}`) : null),
     el("td", {}, fmtNumber(a.speed, 3)), el("td", {}, a.units_done), el("td", {}, a.units_failed),
     el("td", {}, a.holding.join(" ")), el("td", {}, a.credits),
     el("td", {}, `${(a.last_seen_s + age).toFixed(0)} s ago`), el("td", {}, a.restarts)));
