@@ -35,8 +35,9 @@ def written_atomically(path: Path, write: Callable[[Path], None], what: str) -> 
 @contextmanager
 def staged_together(finals: Sequence[Path]) -> Iterator[list[Path]]:
     """Temporary names beside `finals` (keeping each suffix, which writers go by) to write into; renamed
-    onto `finals` only when the block ends without error, else removed: a failure (a full disk) leaves
-    the files that were there before as they were."""
+    onto `finals`, in their order, only when the block ends without error, else removed: a failed write (a
+    full disk) leaves the files that were there before as they were. The renames are not one atomic step:
+    put last the file that says the set is complete (a report)."""
     staged = [final.with_name(f".{final.stem}.{os.getpid()}.part{final.suffix}") for final in finals]
     try:
         yield staged

@@ -148,7 +148,7 @@ class FarmClient:
             report["image"]["file"] = str(out.resolve())
         try:
             out.parent.mkdir(parents=True, exist_ok=True)
-            with staged_together([out, out.with_suffix(".json"), out.with_suffix(".png")]) as (image, text, png):
+            with staged_together([out, out.with_suffix(".png"), out.with_suffix(".json")]) as (image, png, text):
                 image.write_bytes(body)
                 text.write_text(json.dumps(report, indent=2))
                 write_png(png, read_image(image))

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 WINDOW_S = 60.0  # a resource silent this long no longer counts (a few missed heartbeats)
+MAX_RESOURCES = 8  # kept per JID, the most recent: a client that makes up resources costs no more
 
 
 @dataclass
@@ -33,6 +34,8 @@ class SharedAccounts:
         spans = self._spans.setdefault(jid, {})
         span = spans.setdefault(resource, _Span(now, now))
         span.last = now
+        if len(spans) > MAX_RESOURCES:
+            del spans[min(spans, key=lambda r: spans[r].last)]
         sharing = self.sharing(jid, now)
         if len(sharing) < 2:
             self._said.discard(jid)
@@ -47,6 +50,9 @@ class SharedAccounts:
         spans = self._spans.get(jid, {})
         for resource in [r for r, s in spans.items() if now - s.last > self.window_s]:
             del spans[resource]
+        if not spans:
+            self._spans.pop(jid, None)
+            return []
         live = sorted(spans)
         return [r for r in live if any(o != r and _overlap(spans[r], spans[o]) for o in live)]
 

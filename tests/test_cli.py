@@ -129,7 +129,8 @@ def test_a_render_onto_a_full_disk_says_so_and_leaves_no_part_of_its_outputs(tmp
 def test_a_render_again_to_the_same_output_on_a_full_disk_leaves_the_earlier_files_as_they_were(
         tmp_path: Path) -> None:
     """The new image, PNG and report are written beside the earlier render's three and replace them only
-    together: with room for the new image and PNG but not all three, the earlier three stay as they were."""
+    together: with 36 KiB free, less than the new three need beside the old, whichever write fails, the
+    earlier three stay as they were (tests/test_cli.py's in-process test fails the report itself)."""
     args = ["render", str(SCENES / "cbox.xml"), "-D", "res=64", "-D", "spp=4", "-t", "1", "--no-progress",
             "-o", None]
     with small_tmpfs(tmp_path / "small", "256k") as disk:

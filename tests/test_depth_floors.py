@@ -154,8 +154,9 @@ def test_a_dark_corner_that_a_cut_darkens_by_more_than_the_tolerance_keeps_its_d
     """The compat room at 96 x 80, its top-left 32 px unit a dark corner: cut from depth 4 to 3 it loses
     about 1.4 % of its light (plain Mitsuba, paired passes: the same paths up to depth 3). The passes mostly
     miss the rare long paths that carry it, and then their spread is small too, so now and then a pre-pass
-    seed lets the cut through: with MIN_UNIT_SAMPLES at 2048 about 1 seed in 1000 did (at 512, 1 in 30).
-    Of 200 seeds at most 2 may: at 1 in 1000 that fails once in a thousand runs, at 1 in 30 nearly always.
+    seed lets the cut through: with MIN_UNIT_SAMPLES at 2048, 2 seeds of 2000 did (at 512, 28 of 800).
+    Of 200 seeds at most 3 may: at 1 in 1000 that fails once in 18000 runs (at 1 in 280, the upper end
+    of what 2 in 2000 allows, once in 170), and at 1 in 30 nine times in ten.
     Which seeds do depends on what the process rendered before (Mitsuba's sample sequence for a seed does),
     so the test counts them rather than naming them."""
     from core.model import integrators
@@ -177,7 +178,7 @@ def test_a_dark_corner_that_a_cut_darkens_by_more_than_the_tolerance_keeps_its_d
                                (96, 80), seed=seed) for seed in range(200)]
     assert floors[0].spp == 32 and depthcut.floor_spp([corner, Rect(32, 0, 64, 80)], (24, 20), (96, 80)) == 32
     let_through = [seed for seed, f in enumerate(floors) if f.floors != (4,)]
-    assert len(let_through) <= 2, let_through
+    assert len(let_through) <= 3, let_through
 
 
 @pytest.mark.slow

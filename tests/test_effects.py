@@ -196,13 +196,16 @@ def test_overrides_win_and_say_so():
 def test_an_integrator_override_says_which_of_the_scenes_parameters_it_drops(tmp_path):
     """`--integrator` replaces the scene's integrator by a bare type: the reasons name what goes with it."""
     scene = tmp_path / "s.xml"
-    scene.write_text('<scene version="3.0.0"><integrator type="moment"><integrator type="path">'
-                     '<boolean name="hide_emitters" value="true"/><integer name="rr_depth" value="2"/>'
-                     '</integrator></integrator><shape type="sphere"/></scene>')
-    reasons = analyse(SceneSpec(scene), {"integrator": "volpath"}).reasons
-    assert "integrator volpath: user override, with its type's defaults (the scene's moment(path) and its " \
-           "hide_emitters, rr_depth are not used)" in reasons, reasons
-    scene.write_text('<scene version="3.0.0"><integrator type="path"/><shape type="sphere"/></scene>')
+    path = ('<integrator type="path"><boolean name="hide_emitters" value="true"/><integer name="rr_depth" '
+            'value="2"/><integer name="max_depth" value="5"/></integrator>')
+    scene.write_text(f'<scene version="3.0.0"><integrator type="moment">{path}{path}</integrator>'
+                     '<shape type="sphere"/></scene>')
+    effects = analyse(SceneSpec(scene), {"integrator": "volpath"})
+    assert "integrator volpath: user override, with its type's defaults (the scene's moment(path, path) and its " \
+           "hide_emitters, rr_depth are not used)" in effects.reasons, effects.reasons
+    assert effects.max_depth == 5  # the scene's depth goes on to the override
+    scene.write_text('<scene version="3.0.0"><integrator type="path"><integer name="max_depth" value="3"/>'
+                     '</integrator><shape type="sphere"/></scene>')
     assert "integrator volpath: user override, with its type's defaults" in \
         analyse(SceneSpec(scene), {"integrator": "volpath"}).reasons
 

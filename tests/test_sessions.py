@@ -1,7 +1,7 @@
 """Agent JIDs that several clients log in with (master.sessions): two live clients are told apart from an
 agent that restarted, and said once per episode."""
 
-from master.sessions import WINDOW_S, SharedAccounts
+from master.sessions import MAX_RESOURCES, WINDOW_S, SharedAccounts
 
 JID = "agent-0@farm"
 
@@ -36,3 +36,11 @@ def test_a_client_silent_for_the_window_no_longer_counts_and_a_new_episode_is_sa
     assert shared.seen(JID, "b", later) is None and shared.sharing(JID, later) == []  # a went quiet
     shared.seen(JID, "c", later + 1)
     assert shared.seen(JID, "b", later + 2) is not None  # b and c: said again
+
+
+def test_a_client_that_makes_up_resources_keeps_only_the_most_recent_few_and_a_gone_jid_is_forgotten():
+    shared = SharedAccounts()
+    for i in range(1000):
+        shared.seen(JID, f"r{i}", float(i) / 100)
+    assert len(shared.sharing(JID, 10.0)) <= MAX_RESOURCES
+    assert shared.sharing(JID, 10.0 + WINDOW_S + 1) == [] and JID not in shared._spans

@@ -35,6 +35,7 @@ from fuzzy.levels import RULE_LEVELS
 from master import auction as au
 from master.api_jobs import add_job_routes
 from master.http_api import close, create_app, serve
+from master.sessions import SharedAccounts
 from master.store import JobStore
 from master.web import add_web_routes, events, preview
 from master.web.auth import COOKIE, CSRF_HEADER
@@ -64,6 +65,7 @@ class FakeMaster:
     admin_token: str = ADMIN
     paused: str | None = None
     data_plane: str = "http (loopback)"
+    shared_accounts: SharedAccounts = field(default_factory=SharedAccounts)
     submitted: list[tuple[bytes, dict[str, str], RenderOptions]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -332,7 +334,12 @@ def test_agents_view_names_restarting_and_blocklisted_agents(tmp_path):
         (page.master.home / "processes.json").unlink()
         page.master.auction.jobs[JOB] = SimpleNamespace(blocklist={AGENT})
         rows = (await (await page.http.get(f"{page.url}/ui/api/agents", headers={"Cookie": cookie})).json())["agents"]
-        assert rows[0]["state"] == "blocklisted" and rows[0]["blocklisted_for"] == [JOB]
+        assert rows[0]["state"] == "blocklisted" and rows[0]["blocklisted_for"] == [JOB] and rows[0]["shared"] is None
+        now = time.monotonic()
+        for t, resource in ((now - 3, "a"), (now - 2, "b"), (now - 1, "a")):  # two clients, one JID
+            page.master.shared_accounts.seen(AGENT, resource, t)
+        rows = (await (await page.http.get(f"{page.url}/ui/api/agents", headers={"Cookie": cookie})).json())["agents"]
+        assert f"2 clients log in as {AGENT} (resources a, b)" in rows[0]["shared"], rows[0]
 
     run(tmp_path, scenario)
 

@@ -95,9 +95,10 @@ def describe(elem: etree._Element | None) -> str:
 
 def parameter_names(elem: etree._Element | None) -> list[str]:
     """The named parameters of the integrator tree (`hide_emitters`, `rr_depth`, a nested integrator's
-    own), what an override by a bare type leaves behind."""
-    return [c.get("name") for e in walk(elem) for c in e
-            if isinstance(c.tag, str) and c.tag != "integrator" and c.get("name")]
+    own), each once, but `max_depth`: what an override by a bare type leaves behind (the depth goes on)."""
+    names = (c.get("name") for e in walk(elem) for c in e
+             if isinstance(c.tag, str) and c.tag != "integrator" and c.get("name") not in (None, "max_depth"))
+    return list(dict.fromkeys(names))
 
 
 def splittable(elem: etree._Element | None) -> tuple[bool, str]:
