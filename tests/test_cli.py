@@ -131,10 +131,9 @@ def test_a_render_again_to_the_same_output_on_a_full_disk_leaves_the_earlier_fil
     """The new image, PNG and report are written beside the earlier render's three and replace them only
     together: with 36 KiB free, less than the new three need beside the old, whichever write fails, the
     earlier three stay as they were (tests/test_cli.py's in-process test fails the report itself)."""
-    args = ["render", str(SCENES / "cbox.xml"), "-D", "res=64", "-D", "spp=4", "-t", "1", "--no-progress",
-            "-o", None]
     with small_tmpfs(tmp_path / "small", "256k") as disk:
-        args[-1] = str(disk / "x.exr")
+        args = ["render", str(SCENES / "cbox.xml"), "-D", "res=64", "-D", "spp=4", "-t", "1", "--no-progress",
+                "-o", str(disk / "x.exr")]
         assert quekaro(*args).returncode == 0
         before = {p.name: p.read_bytes() for p in disk.iterdir()}
         fill(disk, 36 << 10)

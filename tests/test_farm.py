@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from disk_support import small_tmpfs
+from web_support import wait_until
 
 from core.errors import QuekaroError
 from core.render.bundle import make_bundle
@@ -476,7 +477,8 @@ def test_a_second_agent_logged_in_with_the_same_jid_is_named_in_the_log_and_by_q
                                     env=dict(os.environ, **agent.env, PYTHONPATH=str(REPO)))
         try:
             jid = args[args.index("--jid") + 1]
-            wait_until_logged(tmp_path / "twin.log", "connected to", 60)
+            wait_until(lambda: "connected to" in (tmp_path / "twin.log").read_text(errors="replace"), 60,
+                       "the twin agent's connection")
             job_id = farm.client().submit(bundle_of(SCENE, DEFINES), DEFINES, {"level": "off", "units": 4})
             assert wait_job(farm, job_id)["status"] == "done"
             (row,) = farm.client().agents()
@@ -489,9 +491,3 @@ def test_a_second_agent_logged_in_with_the_same_jid_is_named_in_the_log_and_by_q
     assert f"2 clients log in as {jid}" in master_log
     assert f"warning: 2 clients log in as {jid}" in listed.stdout, listed.stdout
 
-
-def wait_until_logged(path: Path, text: str, timeout: float) -> None:
-    deadline = time.monotonic() + timeout
-    while text not in path.read_text(errors="replace"):
-        assert time.monotonic() < deadline, f"{path} never said {text!r}: {path.read_text(errors='replace')[-2000:]}"
-        time.sleep(0.2)

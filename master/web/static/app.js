@@ -91,17 +91,20 @@ function say(text, isError = false) {
   box.hidden = !text;
 }
 
+// To the login form, keeping the view (#/job/ID) to come back to after it (login.js).
+function toLogin() { window.location.assign("/ui/login" + window.location.hash); }
+
 async function post(url) {
   const response = await fetch(url, { method: "POST", headers: { "X-CSRF-Token": CSRF }, credentials: "same-origin" });
   const body = await response.json().catch(() => ({}));
-  if (response.status === 401) window.location.assign("/ui/login" + window.location.hash);
+  if (response.status === 401) toLogin();
   if (!response.ok) throw new Error(body.error || `HTTP ${response.status}`);
   return body;
 }
 
 async function getJSON(url) {
   const response = await fetch(url, { credentials: "same-origin" });
-  if (response.status === 401) window.location.assign("/ui/login" + window.location.hash);
+  if (response.status === 401) toLogin();
   const body = await response.json();
   if (!response.ok) throw new Error(body.error || `HTTP ${response.status}`);
   return body;
@@ -163,7 +166,7 @@ function connect() {
     if (source.readyState === EventSource.CLOSED) {
       // A refused stream (session gone) is not retried by the browser: ask once whether we are logged out.
       fetch("/ui/api/agents", { credentials: "same-origin" }).then((r) => {
-        if (r.status === 401) window.location.assign("/ui/login" + window.location.hash);
+        if (r.status === 401) toLogin();
         else setTimeout(connect, 3000);
       }).catch(() => setTimeout(connect, 3000));
     }
@@ -511,7 +514,7 @@ document.getElementById("overlay").addEventListener("click", (event) => {
 document.getElementById("colour-by").addEventListener("change", (event) => { state.colour = event.target.value; drawOverlay(); });
 document.getElementById("show-grid").addEventListener("change", (event) => { state.showGrid = event.target.checked; drawOverlay(); });
 document.getElementById("logout").addEventListener("click", () => {
-  post("/ui/logout").finally(() => window.location.assign("/ui/login" + window.location.hash));
+  post("/ui/logout").finally(() => toLogin());
 });
 window.addEventListener("hashchange", route);
 window.addEventListener("resize", () => drawOverlay());
