@@ -14,8 +14,9 @@ comes from rare long paths, so a few samples mostly miss it, and then their spre
 passes take enough samples per pixel that the smallest unit has MIN_UNIT_SAMPLES (at most
 MAX_FLOOR_SPP). A unit's floor is the shallowest of those depths (and every deeper one) whose loss over
 the unit, its mean plus Z_BOUND standard errors over the unit's low-resolution pixels, stays within
-LOSS_TOLERANCE of the unit's light. The planner never renders a unit below its floor; the master refuses
-a tile that says it did."""
+LOSS_TOLERANCE of the unit's light, and whose loss relative to each lit pixel's own light does too, on
+average over those pixels (a seam shows against the pixels beside it, not against the unit's mean).
+The planner never renders a unit below its floor; the master refuses a tile that says it did."""
 
 from __future__ import annotations
 
@@ -109,15 +110,23 @@ def floors_from_passes(light: dict[int, np.ndarray], rects: Sequence[Rect],
 
 
 def _within(full: np.ndarray, cut: np.ndarray) -> bool:
-    """Whether the light lost between these pixels' full and cut passes is within LOSS_TOLERANCE of
-    their light, at the upper bound of its estimate."""
-    loss = (full - cut).ravel()
+    """Whether the light lost between these pixels' full and cut passes is within LOSS_TOLERANCE both of
+    their light together and, on average, of each lit pixel's own light, at the upper bound of each
+    estimate. The second keeps a cut from a unit whose mean is a bright light's (its own emitter, or the
+    film filter's spill of a neighbour's at low resolution) while its other pixels lose more."""
     light = float(full.mean())
     if light <= DARK:
         return True
-    spread = float(loss.std(ddof=1)) if loss.size > 1 else abs(float(loss[0]))  # one pixel: its own size
-    bound = float(loss.mean()) + Z_BOUND * spread / np.sqrt(loss.size)
-    return bound <= LOSS_TOLERANCE * light
+    lit = full > DARK
+    relative = (full[lit] - cut[lit]) / full[lit]  # in [0, 1]: paired passes, longer paths only add light
+    return (_upper_bound((full - cut).ravel()) <= LOSS_TOLERANCE * light
+            and _upper_bound(relative.ravel()) <= LOSS_TOLERANCE)
+
+
+def _upper_bound(values: np.ndarray) -> float:
+    """The mean of `values` plus Z_BOUND standard errors; one value is its own spread."""
+    spread = float(values.std(ddof=1)) if values.size > 1 else abs(float(values[0]))
+    return float(values.mean()) + Z_BOUND * spread / np.sqrt(values.size)
 
 
 def _low_window(rect: Rect, low_shape: tuple[int, ...], width: int, height: int) -> tuple[slice, slice]:
