@@ -51,9 +51,11 @@ from planning.pipeline import assemble
 log = logging.getLogger(__name__)
 
 TICK_S = 0.2
-# What one agent may send: a heartbeat every 2 s, a proposal per auction it is called to, an inform or a
-# failure per unit come to a few a second; more is a flood, refused unread (core.transport.rates).
-AGENT_RATE, AGENT_BURST = 20.0, 100.0
+# What one agent may send: a heartbeat every 2 s, and per unit a proposal (or a refusal) for each auction it
+# is called to and an inform or a failure. On units that render in tens of milliseconds that is 25-60 a
+# second for seconds on end; a refused proposal stalls its auction for the CFP timeout and the agent's
+# pause after it. Several times more is a flood, refused unread (core.transport.rates).
+AGENT_RATE, AGENT_BURST = 250.0, 500.0
 
 
 @dataclass

@@ -441,6 +441,26 @@ def test_submitting_several_scenes_one_refused_still_submits_the_others(farm3, t
     assert wait_job(farm3, job_id)["status"] == "done"
 
 
+@pytest.mark.slow
+def test_agents_rendering_tiny_units_are_not_refused_as_a_flood(tmp_path):
+    """Units that render in milliseconds make each agent send a proposal (or a refusal) and an inform per
+    unit, dozens a second for the whole job. The master's per-sender allowance must hold that: a proposal
+    refused unread leaves its auction waiting out the CFP timeout and the agent left out after it (the
+    farm's benchmark read 2-4 s stalls on 3-7 s jobs when the allowance was 20 a second)."""
+    with LocalFarm(tmp_path / "farm", agents=2, threads=1) as farm:
+        farm.wait_for_agents()
+        client = farm.client()
+        defines = {"res": "512", "spp": "16"}
+        for _ in range(2):
+            job_id = client.submit(bundle_of(SCENE, defines), defines, {"level": "S", "spp": 2, "units": 256})
+            assert wait_job(farm, job_id)["status"] == "done"
+        master_log = (farm.home / "logs" / "master.log").read_text()
+    units = master_log.count("UnitDone(")
+    assert units >= 2 * 200, units  # enough messages to exceed the old allowance's burst of 100 per agent
+    refused = [line for line in master_log.splitlines() if "messages a second" in line or "AgentSilent(" in line]
+    assert not refused, refused[:5]
+
+
 def test_a_farm_job_renders_no_unit_below_its_depth_floor(farm3, tmp_path):
     """The master measures each unit's depth floor (planning.depthcut) and the agents' rules hold to it:
     on the suite's interior at level VB the rules alone cut most units to depth 4 or 6, which darkens them
