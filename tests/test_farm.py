@@ -457,7 +457,8 @@ def test_agents_rendering_tiny_units_are_not_refused_as_a_flood(tmp_path):
         master_log = (farm.home / "logs" / "master.log").read_text()
     units = master_log.count("UnitDone(")
     assert units >= 2 * 200, units  # enough messages to exceed the old allowance's burst of 100 per agent
-    refused = [line for line in master_log.splitlines() if "messages a second" in line or "AgentSilent(" in line]
+    # The refusals themselves, not the silences they cause: a loaded machine may let a call time out anyway.
+    refused = [line for line in master_log.splitlines() if "messages a second" in line]
     assert not refused, refused[:5]
 
 
