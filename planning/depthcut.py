@@ -32,11 +32,12 @@ from core.render.film import film_channels
 from core.render.planner import DEPTH_STEPS
 from planning.complexity import PREPASS_SPP, film_size, finite_mean
 
-# At most 1 % of a unit's light may go with a cut: under the 1.21 % mean pixel difference the paper
-# reports for its level S, and several times below a pixel's noise at the levels that cut.
+# At most 1 % of a unit's light (and, on average, of its lit pixels' own) may go with a cut: under the
+# 1.21 % mean pixel difference the paper reports for its level S, and several times below a pixel's noise
+# at the levels that cut.
 LOSS_TOLERANCE = 0.01
 Z_BOUND = 2.0  # the loss's upper bound: mean + 2 standard errors (about 2.5 % of units judged too leniently)
-DARK = 1e-6  # a unit with less light than this (mean over RGB) loses nothing that can be seen
+DARK = 1e-6  # a unit or pixel with less light than this (mean over RGB) loses nothing that can be seen
 # Samples per unit and pass: the light of rare long paths is heavy-tailed, and fewer samples let a unit that
 # loses more than the tolerance pass too often (tests/test_depth_floors.py counts how often).
 MIN_UNIT_SAMPLES = 2048
@@ -118,7 +119,7 @@ def _within(full: np.ndarray, cut: np.ndarray) -> bool:
     if light <= DARK:
         return True
     lit = full > DARK
-    relative = (full[lit] - cut[lit]) / full[lit]  # in [0, 1]: paired passes, longer paths only add light
+    relative = (full[lit] - cut[lit]) / full[lit]  # in [0, 1] for paired passes: longer paths only add light
     return (_upper_bound((full - cut).ravel()) <= LOSS_TOLERANCE * light
             and _upper_bound(relative.ravel()) <= LOSS_TOLERANCE)
 

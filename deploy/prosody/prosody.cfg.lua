@@ -34,8 +34,8 @@ c2s_stanza_size_limit = tonumber(env("QUEKARO_XMPP_STANZA_LIMIT") or "262144")
 
 -- Prosody reads each client at QUEKARO_XMPP_C2S_RATE (mod_limits; 0.12's epoll backend paces a
 -- connection from its first byte, with no burst): a peer that floods slows itself down before the master
--- has to parse what it sends (the master also refuses, unread, what an agent sends past 20 messages a
--- second: core.transport.rates). An agent's messages are small (a heartbeat every 2 s, bids, informs; its
+-- has to parse what it sends (the master also refuses, unread, what an agent sends past a burst of 500
+-- messages and then 250 a second: core.transport.rates). An agent's messages are small (a heartbeat every 2 s, bids, informs; its
 -- largest, 64 bids, about 3 KB). The master calls every agent at once and is exempt: name it in
 -- QUEKARO_XMPP_UNLIMITED if its JID is not master@<domain>.
 local rate = env("QUEKARO_XMPP_C2S_RATE") or "32kb/s"
