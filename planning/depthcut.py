@@ -118,10 +118,9 @@ def _within(full: np.ndarray, cut: np.ndarray) -> bool:
     light = float(full.mean())
     if light <= DARK:
         return True
-    lit = full > DARK
-    relative = (full[lit] - cut[lit]) / full[lit]  # in [0, 1] for paired passes: longer paths only add light
-    return (_upper_bound((full - cut).ravel()) <= LOSS_TOLERANCE * light
-            and _upper_bound(relative.ravel()) <= LOSS_TOLERANCE)
+    loss, lit = full - cut, full > DARK
+    relative = loss[lit] / full[lit]  # in [0, 1] for paired passes: longer paths only add light
+    return _upper_bound(loss.ravel()) <= LOSS_TOLERANCE * light and _upper_bound(relative) <= LOSS_TOLERANCE
 
 
 def _upper_bound(values: np.ndarray) -> float:

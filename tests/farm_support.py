@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import time
 from pathlib import Path
@@ -13,6 +14,13 @@ def log_tails(folder: Path, lines: int = 15) -> str:
     """The last lines of every log file in `folder`, for an assertion message."""
     return "\n".join(f"--- {p.name}\n" + "\n".join(p.read_text(errors="replace").splitlines()[-lines:])
                      for p in sorted(folder.glob("*.log")))
+
+
+def log_time(line: str) -> float:
+    """The wall-clock time a log line was written at, by the writer's clock (logging's asctime)."""
+    stamp = re.match(r"(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3})", line)
+    assert stamp, line
+    return time.mktime(time.strptime(stamp.group(1), "%Y-%m-%d %H:%M:%S")) + int(stamp.group(2)) / 1000
 
 
 def wait_for_agents(home: Path, procs: list[subprocess.Popen], agents: int, logs: Path,

@@ -22,11 +22,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from disk_support import small_tmpfs
+from farm_support import log_time
 from web_support import wait_until
 
 from core.errors import QuekaroError
 from core.render.bundle import make_bundle
 from core.render.imageio import read_image
+from core.transport.rates import SenderRates
 from farm.local import LocalFarm
 
 pytestmark = pytest.mark.slow
@@ -457,27 +459,17 @@ def test_agents_rendering_tiny_units_are_not_refused_as_a_flood(tmp_path):
         master_log = (farm.home / "logs" / "master.log").read_text()
         agent_logs = [log.read_text() for log in (farm.home / "logs").glob("agent-*.log")]
     # The agents did send more than the old allowance (a burst of 100, then 20 a second) let through.
-    assert max(_beyond_allowance(_sent_at(log), 20.0) for log in agent_logs) > 100
+    assert max(_refused_by(SenderRates(20.0, 100.0), log) for log in agent_logs) > 0
     # The refusals themselves, not the silences they cause: a loaded machine may let a call time out anyway.
     refused = [line for line in master_log.splitlines() if "messages a second" in line]
     assert not refused, refused[:5]
 
 
-def _sent_at(agent_log: str) -> np.ndarray:
-    """Seconds of the agent's proposals and informs that its log shows (refusals are not logged)."""
-    stamps = [line[:23] for line in agent_log.splitlines() if "proposing for" in line or " done: " in line]
-    return np.array(sorted(time.mktime(time.strptime(t[:19], "%Y-%m-%d %H:%M:%S")) + int(t[20:]) / 1000
-                           for t in stamps))
-
-
-def _beyond_allowance(sent: np.ndarray, rate: float) -> float:
-    """The most messages any stretch of time held beyond `rate` a second over its length: a sender
-    refused nothing under a token bucket of `rate` and a burst larger than this."""
-    if not sent.size:
-        return 0.0
-    count = np.arange(1, sent.size + 1)
-    # Over messages i..j: (j - i + 1) - rate (t_j - t_i) = (j + 1 - rate t_j) + max over i <= j of (rate t_i - i)
-    return float(np.max(count - rate * sent + np.maximum.accumulate(rate * sent - (count - 1))))
+def _refused_by(rates: SenderRates, agent_log: str) -> int:
+    """How many of the proposals and informs an agent's log shows (refusals are not logged) `rates` would
+    have refused, replayed at the times they were logged."""
+    sent = sorted(log_time(line) for line in agent_log.splitlines() if "proposing for" in line or " done: " in line)
+    return sum(not rates.allow("agent", t) for t in sent)
 
 
 def test_a_farm_job_renders_no_unit_below_its_depth_floor(farm3, tmp_path):

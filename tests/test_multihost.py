@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from farm_support import log_tails
+from farm_support import log_tails, log_time
 from netns_support import Network, leftovers, require_netns
 from prosody_support import needs_prosody
 
@@ -329,13 +329,6 @@ def test_master_host_unreachable_for_30_s(tmp_path):
         farm.check_image(job_id, 64)
 
 
-def _log_time(line: str) -> float:
-    """The wall-clock time a log line was written at, by the writer's clock (logging's asctime)."""
-    stamp = re.match(r"(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3})", line)
-    assert stamp, line
-    return time.mktime(time.strptime(stamp.group(1), "%Y-%m-%d %H:%M:%S")) + int(stamp.group(2)) / 1000
-
-
 def test_agents_with_clocks_10_minutes_off(tmp_path):
     """Agents whose clocks are 10 minutes ahead and 10 minutes behind (libfaketime; the one behind keeps a
     true monotonic clock, the one ahead has it shifted too) log in over TLS, verify the master's HTTPS and
@@ -361,5 +354,5 @@ def test_agents_with_clocks_10_minutes_off(tmp_path):
             # Its clock really is off: its login, by its own log, against the master's record of it.
             own = next(line for line in farm.log(name).splitlines() if f"{jid} connected to" in line)
             seen = next(line for line in master_log if f"AgentRegistered(agent='{jid}'" in line)
-            assert abs(_log_time(own) - _log_time(seen) - offset) < 30, (own, seen)
+            assert abs(log_time(own) - log_time(seen) - offset) < 30, (own, seen)
         print(f"\nunits done by agent: { {n: sum(a['agent'] == farm.jid(n) for a in done) for n in farm.agents} }")
