@@ -13,7 +13,7 @@ import time
 import uuid
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +30,9 @@ from core.render.film import display_rgb, film_output
 from core.render.imageio import write_image, write_png_planar
 from core.render.planner import Planner, RenderParams
 from core.render.tiles import Tile
+from core.render.together import batches, render_batch_here, together_problem_here
 from core.render.worker import ADAPTIVE_META, RenderRequest, RenderWorker, adopt_scene
+from fuzzy.levels import OFF
 from planning.jobplan import plan_job_loaded, plan_params
 
 log = logging.getLogger(__name__)
@@ -198,9 +200,10 @@ def render_plan(plan: JobPlan, out: Path, worker: RenderWorker, started: float, 
     job_id = job_id or uuid.uuid4().hex[:12]
     planner = Planner(plan.options.rules, plan.options.defuzzifier)
     chosen = plan_params(plan, planner)
-    job = UnitRun(plan, chosen, job_id, plan.options.threads, worker, planner.rules_path.name, progress).render()
+    run = UnitRun(plan, chosen, job_id, plan.options.threads, worker, planner.rules_path.name, progress)
+    job = run.render()
     worker.release()  # the child's shutdown (~0.07 s) overlaps the writing
-    return write_outputs(plan, job, out, started, {"job_id": job_id})
+    return write_outputs(plan, job, out, started, {"job_id": job_id, "render_calls": run.calls})
 
 
 @dataclass
@@ -215,22 +218,48 @@ class UnitRun:
     rules: str
     progress: Callable[[Progress], None] | None = None
     samples_done: int = 0
+    # How the units rendered: {"calls": render calls, "together": bool, "why_not": reason or None}.
+    calls: dict[str, Any] = field(default_factory=dict)
 
     def render(self) -> Composed:
-        """Every unit at the spp its plan or the rules chose for it."""
-        samples = [p.spp * u.rect.area for u, p in zip(self.plan.units, self.chosen, strict=True)]
-        self._tell(0, sum(samples))
+        """Every unit at the spp its plan or the rules chose for it: at a rule level in batches of one
+        render call each where the scene allows (core.render.together), else unit by unit."""
+        jobs = [unit_job(self.plan, u, p, self.job_id, self.threads) for u, p in zip(self.plan.units, self.chosen,
+                                                                                     strict=True)]
+        total = sum(j.spp * j.unit.area for j in jobs)
+        self._tell(0, total)
         tiles, params = [], {}
-        for unit, p, n in zip(self.plan.units, self.chosen, samples, strict=True):
-            tiles.append(self._render(unit_job(self.plan, unit, p, self.job_id, self.threads)))
-            # The spp Mitsuba rendered: a stratified sampler rounds the rules' count (worker.rendered_spp).
-            params[unit.index] = {**p.to_dict(), "spp": int(tiles[-1].meta["spp"]), "rules": self.rules}
-            self.samples_done += n
-            self._tell(len(tiles), sum(samples))
+        together = self._together(jobs)
+        groups = batches(jobs) if together else [[j] for j in jobs]
+        self.calls["calls"] = len(groups)
+        for batch in groups:
+            for tile in self._render(batch, together):
+                tiles.append(tile)
+                index = int(tile.meta["unit_index"])
+                # The spp Mitsuba rendered: a stratified sampler rounds the rules' count (worker.rendered_spp).
+                params[index] = {**self.chosen[index].to_dict(), "spp": int(tile.meta["spp"]), "rules": self.rules}
+                self.samples_done += jobs[index].spp * jobs[index].unit.area
+            self._tell(len(tiles), total)
         return composed(self.plan, self.plan.units, tiles, params)
 
-    def _render(self, job: RenderRequest) -> Tile:
-        return self.worker.render(job, timeout=UNIT_TIMEOUT_S)
+    def _together(self, jobs: list[RenderRequest]) -> bool:
+        """Whether the units render in batches: not at level off, whose units are plain Mitsuba's render
+        call, nor in a scene render_counts cannot render as Mitsuba does (the reason goes in the report)."""
+        if self.plan.options.level == OFF or not jobs:
+            problem = "level off renders each unit with Mitsuba's own render call"
+        else:
+            problem = self.worker.call(together_problem_here, jobs[0], doing="checking the scene",
+                                       timeout=UNIT_TIMEOUT_S)
+        if problem:
+            log.info("units render one by one: %s", problem)
+        self.calls.update(together=not problem, why_not=problem)
+        return not problem
+
+    def _render(self, batch: list[RenderRequest], together: bool) -> list[Tile]:
+        if not together:
+            return [self.worker.render(batch[0], timeout=UNIT_TIMEOUT_S)]
+        return self.worker.call(render_batch_here, batch, doing=f"units {[j.unit_index for j in batch]}",
+                                timeout=UNIT_TIMEOUT_S)
 
     def _tell(self, done: int, samples_total: int) -> None:
         if self.progress is not None:

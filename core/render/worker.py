@@ -275,33 +275,45 @@ def set_window(scene: Any, window: Rect, base: tuple[float, float] | None, senso
 
 def render_job_here(job: RenderRequest, cache: _SceneCache | None = None) -> Tile:
     """Render the unit in this process (the child calls this; so can a test or a benchmark)."""
-    import mitsuba as mi
-
     cache = cache or _local_cache
-    scene, load_s = cache.scene_for(job.scene, job.variant, job.threads)
+    window = job.window
+    scene, load_s, method = aim(job, window, cache)
     sensor = sensor_of(scene, job.sensor, str(job.scene.path))
     film = sensor.film()
-    image = cache.image(job.sensor)
-    if (image.w, image.h) != (job.width, job.height):
-        raise RenderError(f"{job.scene.path}: the film's image (its crop window) is {image.w}x{image.h}, "
-                          f"job says {job.width}x{job.height}")
-    window = job.window
-    in_film = Rect(window.x + image.x, window.y + image.y, window.w, window.h)
-    method = set_window(scene, in_film, cache.principal_point(job.sensor), job.sensor)
     integrator = cache.integrator(job.integrator, job.max_depth)
     start = time.perf_counter()
     raw, channels, passes = _render_window(scene, film, job, integrator)
     pixels, nonfinite = sanitize(raw)
     nonfinite = max(nonfinite, passes.pop("nonfinite", 0))
     seconds = time.perf_counter() - start
-    meta = {
-        "job_id": job.job_id, "unit_index": job.unit_index, "seconds": seconds, "load_seconds": load_s,
-        "nonfinite": nonfinite, "spp": job.spp if job.first is not None else rendered_spp(sensor, job.spp),
-        "depth": job.max_depth, "integrator": job.integrator,
-        "variant": mi.variant(), "seed": job.seed, "band": job.band, "window_method": method,
-        "pid": os.getpid(), "sensor": job.sensor, "filter_radius": float(film.rfilter().radius()), **passes,
-    }
+    spp = job.spp if job.first is not None else rendered_spp(sensor, job.spp)
+    meta = unit_meta(job, sensor, seconds, load_s, nonfinite, spp, method) | passes
     return Tile(pixels, window, job.unit, meta, channels)
+
+
+def unit_meta(job: RenderRequest, sensor: Any, seconds: float, load_s: float, nonfinite: int, spp: int,
+              method: str) -> dict[str, Any]:
+    """A rendered unit's tile header: what rendered it, how, and what it cost."""
+    import mitsuba as mi
+
+    return {
+        "job_id": job.job_id, "unit_index": job.unit_index, "seconds": seconds, "load_seconds": load_s,
+        "nonfinite": nonfinite, "spp": spp, "depth": job.max_depth, "integrator": job.integrator,
+        "variant": mi.variant(), "seed": job.seed, "band": job.band, "window_method": method,
+        "pid": os.getpid(), "sensor": job.sensor, "filter_radius": float(sensor.film().rfilter().radius()),
+    }
+
+
+def aim(job: RenderRequest, window: Rect, cache: _SceneCache) -> tuple[Any, float, str]:
+    """(scene, seconds spent loading it, window method): the job's scene loaded (or cached) with its sensor
+    aimed at `window`, in the image's pixels."""
+    scene, load_s = cache.scene_for(job.scene, job.variant, job.threads)
+    image = cache.image(job.sensor)
+    if (image.w, image.h) != (job.width, job.height):
+        raise RenderError(f"{job.scene.path}: the film's image (its crop window) is {image.w}x{image.h}, "
+                          f"job says {job.width}x{job.height}")
+    in_film = Rect(window.x + image.x, window.y + image.y, window.w, window.h)
+    return scene, load_s, set_window(scene, in_film, cache.principal_point(job.sensor), job.sensor)
 
 
 def rendered_spp(sensor: Any, spp: int) -> int:

@@ -1,0 +1,146 @@
+"""Units rendered together (core.render.together): how they are batched, the samples each pixel draws, and
+that each unit's tile is plain Mitsuba's render at the unit's own depth and spp (render_check)."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from render_check import by_name, compare, reference_renders
+
+from core.errors import RenderError
+from core.model.geometry import Rect
+from core.model.job import SceneSpec
+from core.model.seeds import unit_seed
+from core.render.together import batch_counts, batches, render_batch_here, together_problem_here
+from core.render.worker import RenderRequest, RenderWorker
+
+SCENES = Path(__file__).resolve().parent / "compat" / "scenes"
+W, H = 48, 40
+
+
+def job(unit: Rect, spp: int = 8, depth: int | None = 4, band: int = 2, index: int = 0, job_id: str = "j",
+        scene: Path = SCENES / "rgba.xml", variant: str = "llvm_ad_rgb") -> RenderRequest:
+    return RenderRequest(SceneSpec(scene, {}), variant, None, depth, spp, unit_seed(job_id, index, 0), W, H, unit,
+                         band=band, threads=2, job_id=job_id, unit_index=index)
+
+
+def six_units(depths: tuple[int, ...], spps: tuple[int, ...], **kw) -> list[RenderRequest]:
+    """The 48x40 image as 3 x 2 units of 16x20, unit i at depths[i % len], spps[i % len]."""
+    rects = [Rect(x, y, 16, 20) for y in (0, 20) for x in (0, 16, 32)]
+    return [job(r, spps[i % len(spps)], depths[i % len(depths)], index=i, **kw) for i, r in enumerate(rects)]
+
+
+def test_batches_hold_one_depth_in_order_and_respect_the_cap():
+    jobs = six_units((4, 2), (8,))
+    assert [[j.unit_index for j in b] for b in batches(jobs)] == [[0, 2, 4], [1, 3, 5]]
+    window = jobs[0].window.area * 8  # each unit's window (20x24 with its band) at 8 spp
+    assert [[j.unit_index for j in b] for b in batches(jobs, cap=2 * window)] == [[0, 2], [1, 3], [4], [5]]
+    # a unit larger than the cap is a batch of its own, and the next unit starts a new one
+    assert [[j.unit_index for j in b] for b in batches(jobs, cap=window - 1)] == [[0], [1], [2], [3], [4], [5]]
+    assert batches([]) == []
+
+
+def test_each_pixel_draws_its_units_spp_and_band_pixels_of_other_batches_their_windows():
+    jobs = six_units((4, 2), (8, 32))  # units 0, 2, 4 at depth 4 and 8 spp; 1, 3, 5 at depth 2, 32 spp
+    counts = batch_counts([j for j in jobs if j.max_depth == 4])
+    assert counts.shape == (H, W)
+    for j in jobs:
+        inner = counts[j.unit.y:j.unit.y + j.unit.h, j.unit.x:j.unit.x + j.unit.w]
+        if j.max_depth == 4:
+            assert (inner == 8).all()
+        else:  # another batch's unit: drawn only within 2 px (the band) of a depth-4 unit's rectangle
+            assert set(np.unique(inner)) == {0, 8}
+            assert (inner[:, 2:-2] == 0).any()
+    # a pixel is drawn exactly where a depth-4 unit's window (its rectangle grown by its band, shifted inside
+    # at the image's edge) holds it
+    held = np.zeros((H, W), dtype=bool)
+    for j in jobs:
+        if j.max_depth == 4:
+            held[j.window.y:j.window.y + j.window.h, j.window.x:j.window.x + j.window.w] = True
+    assert ((counts > 0) == held).all()
+    # unit 1 (x 16..32, y 0..20) between units 0, 2 and 4: its middle is left to its own batch
+    assert (counts[0:16, 20:28] == 0).all() and (counts[0:16, 16:20] == 8).all()
+
+
+def test_a_batch_of_mixed_depths_is_refused():
+    with pytest.raises(RenderError, match="one job, depth and sensor"):
+        render_batch_here(six_units((4, 2), (8,))[:2])
+
+
+@pytest.mark.parametrize(("xml", "reason"), [("sampler_stratified.xml", "independent sampler"),
+                                             ("sample_border.xml", "sample_border")])
+def test_scenes_render_counts_cannot_render_are_named(xml, reason):
+    with RenderWorker() as worker:
+        problem = worker.call(together_problem_here, job(Rect(0, 0, 16, 16), scene=SCENES / xml), timeout=120)
+    assert problem is not None and reason in problem
+
+
+def _at_depth(tmp_path: Path, scene: Path, depth: int) -> Path:
+    """A copy of `scene` whose integrator has max_depth `depth` (for plain Mitsuba's references)."""
+    text, n = re.subn(r'(name="max_depth" value=")\d+', rf"\g<1>{depth}", scene.read_text())
+    assert n == 1
+    out = tmp_path / f"{scene.stem}-d{depth}.xml"
+    out.write_text(text)
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("xml", "variant", "depths"), [("rgba.xml", "llvm_ad_rgb", (4, 1)),
+                                                        ("spectral_grey_box.xml", "llvm_ad_spectral", (8, 2)),
+                                                        ("medium_homogeneous.xml", "llvm_ad_rgb", (8, 2))])
+def test_units_rendered_together_are_mitsubas_render_at_each_units_depth_and_spp(tmp_path, xml, variant, depths):
+    """Six units at two depths and three spp, in two batches (alpha, spectral, a medium); each unit's core
+    pixels against 32 plain Mitsuba renders of the file at that unit's depth and spp: means and variance.
+    One render is compared, as render_check compares a job: with several, their own variance estimate
+    from a few renders at 4 spp made plain Mitsuba's per-unit renders fail it too."""
+    spps = (4, 16, 8)
+    jobs = six_units(depths, spps, scene=SCENES / xml, variant=variant)
+    with RenderWorker() as worker:
+        tiles = {int(t.meta["unit_index"]): t for b in batches(jobs) for t in worker.call(render_batch_here, b,
+                                                                                         timeout=300)}
+    assert sorted(tiles) == list(range(6))
+    refs = {}
+    for d in depths:
+        path = _at_depth(tmp_path, SCENES / xml, d)
+        for spp in spps:
+            refs[d, spp], names = reference_renders(path, variant, spp, search_paths=(SCENES,))
+    test = np.zeros((H, W, len(tiles[0].channels)), dtype=np.float32)
+    ref = np.zeros((32, H, W, len(names)), dtype=np.float32)
+    for u in jobs:
+        ys, xs = slice(u.unit.y, u.unit.y + u.unit.h), slice(u.unit.x, u.unit.x + u.unit.w)
+        ref[:, ys, xs] = refs[u.max_depth, u.spp][:, ys, xs]
+        tile = tiles[u.unit_index]
+        assert tile.meta["window_method"].startswith("together") and tile.meta["depth"] == u.max_depth
+        test[ys, xs] = tile.core_pixels()
+    verdict = compare(by_name(test, tiles[0].channels, names), ref)
+    assert verdict.passed, f"{xml}: {verdict}"
+    # the depths differ where it matters: the two depths' references differ far beyond their noise
+    a, b = (refs[d, 16].mean(axis=(1, 2, 3)) for d in depths)
+    assert abs(a.mean() - b.mean()) > 10 * np.sqrt(a.var() / 32 + b.var() / 32)
+
+
+@pytest.mark.slow
+def test_a_rule_level_job_renders_together_and_a_stratified_scene_unit_by_unit(tmp_path):
+    """`quekaro render --opt S`: an independent-sampler scene's units come from one call per batch; a
+    stratified sampler's from Mitsuba's render per unit, and the report says why."""
+    from test_cli import quekaro
+
+    for xml, together in (("rgba.xml", True), ("sampler_stratified.xml", False)):
+        scene = tmp_path / xml  # at 128x96, room for several units of at least 32 px
+        scene.write_text((SCENES / xml).read_text().replace('"width" value="48"', '"width" value="128"')
+                         .replace('"height" value="40"', '"height" value="96"'))
+        done = quekaro("render", str(scene), "-a", str(SCENES), "--opt", "S", "--units", "6", "-o", str(tmp_path),
+                       "--threads", "2",
+                       "--no-progress")
+        assert done.returncode == 0, done.stderr
+        report = json.loads((tmp_path / scene.stem).with_suffix(".json").read_text())
+        calls, units = report["render_calls"], len(report["units"])
+        assert units >= 4 and calls["together"] is together
+        if together:
+            assert calls["calls"] < units and calls["why_not"] is None
+        else:
+            assert calls["calls"] == units and "independent sampler" in calls["why_not"]
