@@ -15,7 +15,7 @@ from core.errors import RenderError
 from core.model.geometry import Rect
 from core.model.job import SceneSpec
 from core.model.seeds import unit_seed
-from core.render.together import batch_counts, batches, render_batch_here, together_problem_here
+from core.render.together import batch_counts, batches, bounds, render_batch_here, together_problem_here
 from core.render.worker import RenderRequest, RenderWorker
 
 SCENES = Path(__file__).resolve().parent / "compat" / "scenes"
@@ -42,6 +42,11 @@ def test_batches_hold_one_depth_in_order_and_respect_the_cap():
     # a unit larger than the cap is a batch of its own, and the next unit starts a new one
     assert [[j.unit_index for j in b] for b in batches(jobs, cap=window - 1)] == [[0], [1], [2], [3], [4], [5]]
     assert batches([]) == []
+    # the bounding rectangle of a batch's windows is capped too: units 0 and 2 (x 0..20 and 28..48 with
+    # their bands) span 48 x 24 pixels, unit 4 (y 16..40) would make it 48 x 40; units 1 and 3 would span
+    # 34 x 40, units 3 and 5 span 48 x 24
+    assert [[j.unit_index for j in b] for b in batches(jobs, pixels=48 * 24)] == [[1], [0, 2], [3, 5], [4]]
+    assert bounds([jobs[0], jobs[2]]) == Rect(0, 0, 48, 24)
 
 
 def test_each_pixel_draws_its_units_spp_and_band_pixels_of_other_batches_their_windows():

@@ -46,6 +46,11 @@ class Rect:
         x1, y1 = min(self.x1, other.x1), min(self.y1, other.y1)
         return Rect(x0, y0, max(0, x1 - x0), max(0, y1 - y0))
 
+    def bounding(self, other: Rect) -> Rect:
+        """The least rectangle holding both."""
+        x0, y0 = min(self.x, other.x), min(self.y, other.y)
+        return Rect(x0, y0, max(self.x1, other.x1) - x0, max(self.y1, other.y1) - y0)
+
     def slices(self) -> tuple[slice, slice]:
         """Numpy index (rows, columns) of this rectangle in a full image."""
         return slice(self.y, self.y1), slice(self.x, self.x1)

@@ -1,5 +1,6 @@
 """Several units of one job rendered in one wavefront (`render_batch_here`): every pixel at its unit's spp
-through core.render.counts.render_counts over the whole image, and each unit's tile cut from that image.
+through core.render.counts.render_counts over the units' windows at once, and each unit's tile cut from
+that render.
 
 Why: besides its samples, a Mitsuba render call costs milliseconds (tracing the kernel, seeding the
 sampler, preparing and developing the film), and a unit's window renders its band's pixels again; a
@@ -9,8 +10,9 @@ unit's border draws on its neighbours' samples as in an image rendered whole.
 The tiles are statistically the per-unit ones: each pixel's expectation is Mitsuba's at its unit's depth
 (render_counts weights each sample by one over its pixel's count, tests/test_adaptive.py), so the units'
 bands blend as before. A batch holds units of one depth (the depth is part of the integrator, one per
-call), up to BATCH_SAMPLES samples (the wavefront a level-off unit holds, planning.jobplan), and band
-pixels that belong to a unit of another batch render at the spp of the unit whose window holds them.
+call), up to BATCH_SAMPLES samples (the wavefront a level-off unit holds, planning.jobplan) and
+BATCH_PIXELS pixels, and band pixels that belong to a unit of another batch render at the spp of the unit
+whose window holds them.
 Where render_counts cannot render the scene as Mitsuba does (a stratified sampler, a film that samples
 its border, a particle tracer, a scalar variant), `together_problem_here` says why and the units render
 one by one.
@@ -32,23 +34,32 @@ from core.render.tiles import Tile
 from core.render.worker import RenderRequest, _local_cache, aim, unit_meta
 
 BATCH_SAMPLES = 1 << 24
+# A batch renders the least rectangle holding its units' windows, at most this many pixels: the film's
+# memory and its development stay bounded whatever the image's size (a 2048 x 2048 film).
+BATCH_PIXELS = 1 << 22
 METHOD = "together"  # the tiles' window_method
 
 
-def batches(jobs: Sequence[RenderRequest], cap: int = BATCH_SAMPLES) -> list[list[RenderRequest]]:
+def batches(jobs: Sequence[RenderRequest], cap: int = BATCH_SAMPLES,
+            pixels: int = BATCH_PIXELS) -> list[list[RenderRequest]]:
     """The units grouped into batches that each render in one call: one depth per batch, in the order
-    given, each batch's windows at their spp (`cost`) adding up to at most `cap` samples; a unit whose
-    window alone holds more is a batch of its own."""
+    given, each batch's windows at their spp (`cost`) adding up to at most `cap` samples and their bounding
+    rectangle at most `pixels`; a unit beyond either alone is a batch of its own."""
     open_batches: dict[int | None, list[RenderRequest]] = {}
-    held: dict[int | None, int] = {}
+    held: dict[int | None, tuple[int, Rect]] = {}
     done: list[list[RenderRequest]] = []
     for job in jobs:
         key = job.max_depth
-        if key in open_batches and held[key] + cost(job) > cap:
-            done.append(open_batches.pop(key))
-        batch = open_batches.setdefault(key, [])
-        held[key] = (held.get(key, 0) if batch else 0) + cost(job)
-        batch.append(job)
+        if key in open_batches:
+            samples, bounds = held[key]
+            if samples + cost(job) > cap or bounds.bounding(job.window).area > pixels:
+                done.append(open_batches.pop(key))
+        if key in open_batches:
+            samples, bounds = held[key]
+            held[key] = (samples + cost(job), bounds.bounding(job.window))
+        else:
+            held[key] = (cost(job), job.window)
+        open_batches.setdefault(key, []).append(job)
     return done + list(open_batches.values())
 
 
@@ -57,15 +68,23 @@ def cost(job: RenderRequest) -> int:
     return job.window.area * job.spp
 
 
+def bounds(batch: Sequence[RenderRequest]) -> Rect:
+    """The least rectangle holding the batch's windows: what its call renders."""
+    out = batch[0].window
+    for job in batch[1:]:
+        out = out.bounding(job.window)
+    return out
+
+
 def batch_counts(batch: Sequence[RenderRequest]) -> np.ndarray:
-    """Per pixel of the image (H x W), the samples the batch draws there: each unit's spp on its
+    """Per pixel of the batch's `bounds`, the samples the batch draws there: each unit's spp on its
     rectangle, then on the band pixels left at zero the spp of the (first) unit whose window holds them."""
-    first = batch[0]
-    counts = np.zeros((first.height, first.width), dtype=np.int64)
+    area = bounds(batch)
+    counts = np.zeros((area.h, area.w), dtype=np.int64)
     for job in batch:
-        counts[_slices(job.unit)] = job.spp
+        counts[_within(job.unit, area)] = job.spp
     for job in batch:
-        window = counts[_slices(job.window)]
+        window = counts[_within(job.window, area)]
         window[window == 0] = job.spp
     return counts
 
@@ -89,8 +108,8 @@ def render_batch_here(batch: Sequence[RenderRequest]) -> list[Tile]:
     mixed = {(j.scene.key(), j.variant, j.integrator, j.max_depth, j.sensor, j.width, j.height) for j in batch}
     if len(mixed) > 1 or any(j.first is not None for j in batch):
         raise RenderError("a batch holds units of one job, depth and sensor, none of them two-pass")
-    image = Rect(0, 0, first.width, first.height)
-    scene, load_s, method = aim(first, image, _local_cache)
+    area = bounds(batch)
+    scene, load_s, method = aim(first, area, _local_cache)
     sensor = sensor_of(scene, first.sensor, str(first.scene.path))
     integrator = _local_cache.integrator(first.integrator, first.max_depth)
     counts = batch_counts(batch)
@@ -99,15 +118,16 @@ def render_batch_here(batch: Sequence[RenderRequest]) -> list[Tile]:
     seconds = time.perf_counter() - start
     bad = ~np.isfinite(made.pixels).all(axis=-1)
     pixels, _ = sanitize(made.pixels)
-    own = [int(counts[_slices(j.unit)].sum()) for j in batch]
+    own = [int(counts[_within(j.unit, area)].sum()) for j in batch]
     tiles = []
     for job, samples in zip(batch, own, strict=True):
-        window = _slices(job.window)
+        window = _within(job.window, area)
         meta = unit_meta(job, sensor, seconds * samples / max(sum(own), 1), load_s if job is first else 0.0,
                          int(bad[window].sum()), job.spp, f"{METHOD} ({method})")
         tiles.append(Tile(pixels[window], job.window, job.unit, meta, made.channels))
     return tiles
 
 
-def _slices(rect: Rect) -> tuple[slice, slice]:
-    return slice(rect.y, rect.y + rect.h), slice(rect.x, rect.x + rect.w)
+def _within(rect: Rect, area: Rect) -> tuple[slice, slice]:
+    """Numpy index of `rect` in an array of `area`'s pixels."""
+    return Rect(rect.x - area.x, rect.y - area.y, rect.w, rect.h).slices()
