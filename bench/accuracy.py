@@ -16,7 +16,8 @@ The uniform baseline is plain Mitsuba as a user runs it (`python -m planning.pla
 write; the whole process timed) at the single spp whose time equals the cell's. Its time is linear in
 spp: two timings give t(spp) = t0 + k spp, and the spp for a time follows. Two matchings per level, both
 against the level's cell with the fewest agents: `uniform_spp` matches the job's wall time (what a user
-waits for), `render_uniform_spp` only its render seconds (the allocation alone, overheads excluded).
+waits for), `render_uniform_spp` only its render seconds (the allocation alone, overheads excluded: by
+the slope k alone, `render_time_spp`).
 Each uniform image is averaged over as many seeds as the cell's errors.
 """
 
@@ -338,14 +339,25 @@ def uniform_baseline(spec: Any, cells: list[dict[str, Any]], n: int, args: argpa
     out = {}
     for cell in (c for c in cells if c["agents"] == n):
         entry = {"uniform_t0_s": t0, "uniform_s_per_spp": k}
-        for prefix, seconds in (("uniform", cell["seconds"]), ("render_uniform", cell["render_seconds"])):
-            figures, first = plain_at(spec, max(1, round((seconds - t0) / k)), args, variant, ref)
+        wall_spp = max(1, round((cell["seconds"] - t0) / k))
+        for prefix, spp in (("uniform", wall_spp), ("render_uniform", render_time_spp(cell["render_seconds"], k, n,
+                                                                                        args.threads))):
+            figures, first = plain_at(spec, spp, args, variant, ref)
             entry.update({f"{prefix}_{m}": v for m, v in figures.items()})
             if prefix == "uniform" and units.get(cell["level"]):
                 seams = seam_measure(first, ref, units[cell["level"]]).to_dict()
                 entry.update({f"uniform_seam_{m}": v for m, v in seams.items()})
         out[cell["level"]] = entry
     return out
+
+
+def render_time_spp(render_seconds: float, k: float, agents: int, threads: int) -> int:
+    """The uniform spp whose render alone takes the job's render seconds: by the slope k of plain Mitsuba's
+    time in spp at `threads` threads, without its intercept t0 (the process's start, load and writing,
+    which a job's render seconds do not hold either). A farm's render seconds are its agents' added up,
+    each on threads // agents threads (farm_runner), so they are scaled to `threads`."""
+    per_renderer = max(1, threads // agents)
+    return max(1, round(render_seconds * per_renderer / threads / k))
 
 
 def plain_at(spec: Any, spp: int, args: argparse.Namespace, variant: str,

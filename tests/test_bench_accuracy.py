@@ -159,3 +159,14 @@ def test_tree_cpu_seconds_counts_a_busy_child():
 def test_grey_levels_bin_the_difference_and_clip_it():
     levels = bench_accuracy.grey_levels(np.array([-1.0, 0.0, 1 / 256 - 1e-9, 1 / 256, 0.5, 255 / 256, 1.0, 7.0]))
     assert levels.dtype == np.uint8 and levels.tolist() == [0, 0, 0, 1, 128, 255, 255, 255]
+
+
+def test_the_render_time_baseline_matches_render_seconds_by_the_slope_alone():
+    """A job's render seconds hold no process start, load or writing: the uniform spp at equal render time
+    is render seconds / k, not (render seconds - t0) / k, which gave plain Mitsuba about half its samples
+    at a cheap level (cbox at level B: 8 spp for 1.24 s of render at 0.08 s a sample). A farm's render
+    seconds are its agents' added up, each on threads // agents threads."""
+    assert bench_accuracy.render_time_spp(1.24, 0.0795, agents=1, threads=2) == 16
+    assert bench_accuracy.render_time_spp(4.0, 0.1, agents=2, threads=2) == 20  # two agents of one thread
+    assert bench_accuracy.render_time_spp(4.0, 0.1, agents=4, threads=8) == 10  # four agents of two threads
+    assert bench_accuracy.render_time_spp(0.0, 0.1, agents=1, threads=2) == 1
