@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import SceneError
+from core.errors import QuekaroError, RenderError, SceneError
 from core.files import staged_together, written_atomically
 from core.model.hashing import sha256_file
 from core.model.job import JobPlan, RenderOptions, SceneSpec
@@ -161,7 +161,8 @@ class Progress:
 def render_job(spec: SceneSpec, options: RenderOptions, out: Path, job_id: str | None = None,
                progress: Callable[[Progress], None] | None = None) -> dict:
     """Render the scene as units in one process (each in two passes with `options.adaptive`); write
-    OUT.exr/.png/.json and return the report. `progress` hears after the plan and after every unit."""
+    OUT.exr/.png/.json and return the report. `progress` hears after the plan and after every unit, or
+    every batch of units rendered together (core.render.together)."""
     start = time.perf_counter()
     worker = RenderWorker()
     worker.launch()  # the child imports Mitsuba while this process hashes the scene
@@ -244,9 +245,14 @@ class UnitRun:
 
     def _together(self, jobs: list[RenderRequest]) -> bool:
         """Whether the units render in batches: not at level off, whose units are plain Mitsuba's render
-        call, nor in a scene render_counts cannot render as Mitsuba does (the reason goes in the report)."""
-        if self.plan.options.level == OFF or not jobs:
+        call, nor in a two-pass (adaptive) job or a scene render_counts cannot render as Mitsuba does
+        (the reason goes in the report)."""
+        if self.plan.options.level == OFF:
             problem = "level off renders each unit with Mitsuba's own render call"
+        elif self.plan.first_spp is not None:
+            problem = "an adaptive job's units each place their own samples in two passes"
+        elif len(jobs) < 2:
+            problem = "one unit"
         else:
             problem = self.worker.call(together_problem_here, jobs[0], doing="checking the scene",
                                        timeout=UNIT_TIMEOUT_S)
@@ -256,10 +262,18 @@ class UnitRun:
         return not problem
 
     def _render(self, batch: list[RenderRequest], together: bool) -> list[Tile]:
-        if not together:
+        """A batch's tiles; a batch of one unit is Mitsuba's render call. What a batch's render raises
+        beyond the project's own errors (a Dr.Jit failure) is a RenderError naming its units, as a unit's
+        is."""
+        if not together or len(batch) == 1:
             return [self.worker.render(batch[0], timeout=UNIT_TIMEOUT_S)]
-        return self.worker.call(render_batch_here, batch, doing=f"units {[j.unit_index for j in batch]}",
-                                timeout=UNIT_TIMEOUT_S)
+        where = f"units {[j.unit_index for j in batch]}"
+        try:
+            return self.worker.call(render_batch_here, batch, doing=where, timeout=UNIT_TIMEOUT_S)
+        except QuekaroError:
+            raise
+        except Exception as exc:
+            raise RenderError(f"{where}: {type(exc).__name__}: {exc}") from exc
 
     def _tell(self, done: int, samples_total: int) -> None:
         if self.progress is not None:

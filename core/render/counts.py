@@ -65,6 +65,9 @@ def check_renderable(scene: Any, sensor: int = 0, integrator: Any = None) -> Non
     import mitsuba as mi
 
     mitsuba_env.require_vectorised("adaptive sampling (per-pixel sample counts in one wavefront)")
+    if mi.is_polarized:  # the stokes integrator's wavefront crashed Dr.Jit's LLVM backend (SIGSEGV)
+        raise RenderError(f"variant {mi.variant()}: per-pixel sample counts are not rendered in polarized "
+                          "variants (with the stokes integrator their render crashed)")
     cam = scene.sensors()[sensor]
     kind = cam.sampler().class_name()
     if kind not in SAMPLERS:
@@ -76,6 +79,10 @@ def check_renderable(scene: Any, sensor: int = 0, integrator: Any = None) -> Non
     if not isinstance(integ, mi.SamplingIntegrator):
         raise RenderError(f"integrator {integ.class_name()} is not a sampling integrator "
                           "(it does not draw its samples per pixel)")
+    if isinstance(integ, getattr(mi, "CppADIntegrator", ())):  # prb, prbvolpath, direct_projective ...
+        raise RenderError(f"integrator {integ.class_name()} is one of Mitsuba's Python differentiable "
+                          "integrators, whose sample() takes a differentiation mode and state: per-pixel counts "
+                          "drive the sampling integrators written in C++")
 
 
 def render_counts(scene: Any, counts: np.ndarray, seed: int, sensor: int = 0, integrator: Any = None,

@@ -10,9 +10,10 @@ unit's border draws on its neighbours' samples as in an image rendered whole.
 The tiles are statistically the per-unit ones: each pixel's expectation is Mitsuba's at its unit's depth
 (render_counts weights each sample by one over its pixel's count, tests/test_adaptive.py), so the units'
 bands blend as before. A batch holds units of one depth (the depth is part of the integrator, one per
-call), up to BATCH_SAMPLES samples (the wavefront a level-off unit holds, planning.jobplan) and
-BATCH_PIXELS pixels, and band pixels that belong to a unit of another batch render at the spp of the unit
-whose window holds them.
+call), up to BATCH_SAMPLES samples (the least a level-off unit holds, planning.jobplan.OFF_UNIT_SAMPLES)
+and a bounding rectangle of BATCH_PIXELS pixels, and band pixels that belong to a unit of another batch
+render at the spp of the unit whose window holds them. Windows of one batch share their common pixels: a
+pixel there that comes out non-finite is zeroed, and counted, in every tile that holds it.
 Where render_counts cannot render the scene as Mitsuba does (a stratified sampler, a film that samples
 its border, a particle tracer, a scalar variant), `together_problem_here` says why and the units render
 one by one.
@@ -31,7 +32,7 @@ from core.render.counts import check_renderable, render_counts
 from core.render.film import sanitize
 from core.render.scene import sensor_of
 from core.render.tiles import Tile
-from core.render.worker import RenderRequest, _local_cache, aim, unit_meta
+from core.render.worker import RenderRequest, aim, local_cache, unit_meta
 
 BATCH_SAMPLES = 1 << 24
 # A batch renders the least rectangle holding its units' windows, at most this many pixels: the film's
@@ -46,17 +47,17 @@ def batches(jobs: Sequence[RenderRequest], cap: int = BATCH_SAMPLES,
     given, each batch's windows at their spp (`cost`) adding up to at most `cap` samples and their bounding
     rectangle at most `pixels`; a unit beyond either alone is a batch of its own."""
     open_batches: dict[int | None, list[RenderRequest]] = {}
-    held: dict[int | None, tuple[int, Rect]] = {}
+    held: dict[int | None, tuple[int, Rect]] = {}  # per open batch: its samples and bounding rectangle
     done: list[list[RenderRequest]] = []
     for job in jobs:
         key = job.max_depth
         if key in open_batches:
-            samples, bounds = held[key]
-            if samples + cost(job) > cap or bounds.bounding(job.window).area > pixels:
+            samples, box = held[key]
+            if samples + cost(job) > cap or box.bounding(job.window).area > pixels:
                 done.append(open_batches.pop(key))
         if key in open_batches:
-            samples, bounds = held[key]
-            held[key] = (samples + cost(job), bounds.bounding(job.window))
+            samples, box = held[key]
+            held[key] = (samples + cost(job), box.bounding(job.window))
         else:
             held[key] = (cost(job), job.window)
         open_batches.setdefault(key, []).append(job)
@@ -93,38 +94,38 @@ def together_problem_here(job: RenderRequest) -> str | None:
     """Why the job's units cannot render together in this process (loading its scene if needed), or None."""
     if job.first is not None:
         return "a two-pass (adaptive) unit places its own samples"
-    scene, _, _ = aim(job, job.window, _local_cache)
+    cache = local_cache()
+    scene, _ = cache.scene_for(job.scene, job.variant, job.threads)
     try:
-        check_renderable(scene, job.sensor, _local_cache.integrator(job.integrator, job.max_depth))
+        check_renderable(scene, job.sensor, cache.integrator(job.integrator, job.max_depth))
     except RenderError as exc:
         return str(exc)
     return None
 
 
 def render_batch_here(batch: Sequence[RenderRequest]) -> list[Tile]:
-    """The batch's tiles (one per unit, its window cut from one render of the image), in this process.
-    Each tile's seconds are the call's, shared by the samples drawn on the units' rectangles."""
+    """The batch's tiles (one per unit, its window cut from one render of the batch's `bounds`), in this
+    process. The call's seconds are shared among the tiles by the samples drawn on their units' rectangles;
+    every tile's header gives the batch's seed, the first unit's."""
     first = batch[0]
     mixed = {(j.scene.key(), j.variant, j.integrator, j.max_depth, j.sensor, j.width, j.height) for j in batch}
     if len(mixed) > 1 or any(j.first is not None for j in batch):
         raise RenderError("a batch holds units of one job, depth and sensor, none of them two-pass")
-    area = bounds(batch)
-    scene, load_s, method = aim(first, area, _local_cache)
+    cache, area = local_cache(), bounds(batch)
+    scene, load_s, method = aim(first, area, cache)
     sensor = sensor_of(scene, first.sensor, str(first.scene.path))
-    integrator = _local_cache.integrator(first.integrator, first.max_depth)
+    integrator = cache.integrator(first.integrator, first.max_depth)
     counts = batch_counts(batch)
     start = time.perf_counter()
     made = render_counts(scene, counts, first.seed, first.sensor, integrator, moments=False)
     seconds = time.perf_counter() - start
-    bad = ~np.isfinite(made.pixels).all(axis=-1)
-    pixels, _ = sanitize(made.pixels)
     own = [int(counts[_within(j.unit, area)].sum()) for j in batch]
     tiles = []
     for job, samples in zip(batch, own, strict=True):
-        window = _within(job.window, area)
+        pixels, nonfinite = sanitize(made.pixels[_within(job.window, area)])
         meta = unit_meta(job, sensor, seconds * samples / max(sum(own), 1), load_s if job is first else 0.0,
-                         int(bad[window].sum()), job.spp, f"{METHOD} ({method})")
-        tiles.append(Tile(pixels[window], job.window, job.unit, meta, made.channels))
+                         nonfinite, job.spp, f"{METHOD} ({method})") | {"seed": first.seed}
+        tiles.append(Tile(pixels, job.window, job.unit, meta, made.channels))
     return tiles
 
 

@@ -231,6 +231,11 @@ def build_integrator(override: str | None, depth: int | None, scene_xml: Any) ->
 _local_cache = _SceneCache()  # this process's: the render process's units, or a caller rendering in process
 
 
+def local_cache() -> _SceneCache:
+    """This process's scene cache: what `adopt_scene` adopted and the units rendered here find."""
+    return _local_cache
+
+
 def adopt_scene(spec: SceneSpec, variant: str, loaded: Any) -> None:
     """Let this process's next units render `loaded` instead of loading `spec` again: a scene loaded
     from `spec` in `variant` and left as loaded (a render that changed its film's size put it back).
