@@ -300,7 +300,7 @@ def run_cell(run_job: Callable, spec: SceneSpec, level: str, args: argparse.Name
              ref: np.ndarray) -> tuple[dict[str, Any], np.ndarray, list[Rect]]:
     """One level's jobs (warm-up, then the timed runs): the cell's figures, its last image, its units."""
     images, first = [], {}
-    if args.warmup:  # compiles this job's kernels (one per unit window size) before timing it
+    if args.warmup:  # compiles this job's kernels (one per window or batch rectangle size) before timing it
         warm, wall, _ = run_job(spec, level, args.spp, stem.with_name(stem.name + "-warm.exr"))
         images.append(read_image(warm["image"]["file"])[..., :3])  # the film's file: .pfm, .rgbe or .exr
         first = {"first_seconds": wall}

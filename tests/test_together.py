@@ -15,7 +15,14 @@ from core.errors import RenderError
 from core.model.geometry import Rect, filter_reach
 from core.model.job import SceneSpec
 from core.model.seeds import unit_seed
-from core.render.together import batch_counts, batches, bounds, render_batch_here, together_problem_here
+from core.render.together import (
+    BATCH_SAMPLES,
+    batch_counts,
+    batches,
+    bounds,
+    render_batch_here,
+    together_problem_here,
+)
 from core.render.worker import RenderRequest, RenderWorker
 
 SCENES = Path(__file__).resolve().parent / "compat" / "scenes"
@@ -69,6 +76,12 @@ def test_each_pixel_draws_its_units_spp_and_band_pixels_of_other_batches_their_w
     assert ((counts > 0) == held).all()
     # unit 1 (x 16..32, y 0..20) between units 0, 2 and 4: its middle is left to its own batch
     assert (counts[0:16, 20:28] == 0).all() and (counts[0:16, 16:20] == 8).all()
+
+
+def test_a_batch_holds_at_most_what_a_level_off_unit_does():
+    from planning.jobplan import OFF_UNIT_SAMPLES
+
+    assert BATCH_SAMPLES == OFF_UNIT_SAMPLES
 
 
 def test_a_batch_of_mixed_depths_is_refused():
@@ -140,7 +153,6 @@ def test_units_rendered_together_are_mitsubas_render_at_each_units_depth_and_spp
             assert tile.meta["window_method"].startswith("together") and tile.meta["depth"] == u.max_depth
             taken = _taken(u.window, filter_reach(tile.meta["filter_radius"]))
             drawn = counts[u.window.slices()]
-            assert set(np.unique(drawn[taken])) <= set(spps)
             test.append(by_name(tile.pixels, tile.channels, names)[taken])
             ref.append(np.stack([refs[u.max_depth, int(n)][:, u.window.y + y, u.window.x + x]
                                  for y, x, n in zip(*np.nonzero(taken), drawn[taken], strict=True)], axis=1))

@@ -5,7 +5,7 @@ A scene case is rendered along one of two routes, and every scene test runs on b
     equal tiles at `off`; the planner; every unit in one shared `RenderWorker` child, one by one as an
     agent renders them; `compose`). Cheap, since one child process serves the whole catalogue.
   - "pipeline": `planning.pipeline.render_job` with `RenderOptions`, exactly as `quekaro render` runs it
-    (at level S its units in batches, core.render.together).
+    (at a rule level its units in batches where the scene allows, core.render.together).
     Skipped, with the import error as the reason, while `planning.pipeline` cannot be imported.
 Both return a `Run`: the composed image, the non-finite pixels counted, the units' parameters and windows.
 """
