@@ -53,14 +53,14 @@ def batches(jobs: Sequence[RenderRequest], cap: int = BATCH_SAMPLES,
         key = job.max_depth
         if key in open_batches:
             samples, box = held[key]
-            if samples + cost(job) > cap or box.bounding(job.window).area > pixels:
-                done.append(open_batches.pop(key))
-        if key in open_batches:
-            samples, box = held[key]
-            held[key] = (samples + cost(job), box.bounding(job.window))
-        else:
-            held[key] = (cost(job), job.window)
-        open_batches.setdefault(key, []).append(job)
+            grown = box.bounding(job.window)
+            if samples + cost(job) <= cap and grown.area <= pixels:
+                open_batches[key].append(job)
+                held[key] = (samples + cost(job), grown)
+                continue
+            done.append(open_batches.pop(key))
+        open_batches[key] = [job]
+        held[key] = (cost(job), job.window)
     return done + list(open_batches.values())
 
 
