@@ -7,13 +7,14 @@ master/auction.py expects it:
   start     measure speed (agents/speed.py) -> Register; Register again after every reconnect, when the
             master's Introduce asks, and with each heartbeat until the master's Welcome answers;
             Heartbeat every 2 s listing the units it holds (awarded, not yet answered, not cancelled).
-  cfp       room for another unit (it holds fewer than `slots`: 2 by default, one rendering and one
-            waiting, so the render process goes on to the next unit while the last one's tile uploads)
+  cfp       room for another unit (it holds fewer than `slots`: 8 by default, half of them rendering in
+            one call and half waiting, so the render process goes on while the last tiles upload)
             -> Propose with an estimate per offered unit (cost x the spp its own rules pick / speed, + a
             kernel compilation for a new window size, times a per-job correction learnt from its
             finished units); the master adds the wait behind the unit it holds. Else Refuse.
   award     fetch the job's scene bundle once (cached by sha256 under the work dir), plan the unit
-            with its own rules, render it with the award's seed, write the tile EXR (meta: the unit,
+            with its own rules, render it with the award's seed (with the waiting units of its job and
+            depth in one call where the scene allows: core.render.together), write the tile EXR (meta: the unit,
             seconds, non-finite pixels, spp, depth, band, the rules' crisp outputs, the agent's JID),
             upload it with the award's token, then Inform (tile sha256 and the parameters). Any error
             of that unit -> Failure with the reason; the agent itself carries on.
@@ -26,7 +27,7 @@ calibration) is agents.state.AgentState's, a pure state machine; `RenderAgent` i
 message, tick and end of an I/O step goes in as an event, and its commands are carried out. Messages are
 handled one at a time on the XMPP loop and never wait for a render: a bundle fetch, a render (in a worker
 thread that talks to the render process) and an upload each run as a task of their own, which feeds its
-end back as an event; units render one at a time, each tile uploading while the next unit renders.
+end back as an event; one render step at a time, its tiles uploading while the next step renders.
 
 Run it with `python -m agents.render_agent --server HOST --port P --jid J --password PW --master M`.
 """
@@ -44,6 +45,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -85,7 +87,8 @@ from core.model.job import SceneSpec
 from core.model.units import WorkUnit
 from core.render.bundle import RULES_NAME, BundleLimits, check_unpacked, read_manifest
 from core.render.planner import Planner, RenderParams, adaptive_params
-from core.render.tiles import write_tile
+from core.render.tiles import Tile, write_tile
+from core.render.together import batches, render_batch_here, together_problem_here
 from core.render.worker import RenderRequest, RenderWorker
 from core.transport.credentials import xmpp_password
 from core.transport.tls import client_context, is_loopback
@@ -117,7 +120,7 @@ class AgentConfig:
     verify_security: bool = False
     insecure_http: bool = False  # accept a plain-HTTP data plane across a network (said in every refusal)
     heartbeat_s: float = HEARTBEAT_S
-    slots: int = SLOTS  # units held at once (one rendering, the others waiting); 1: no overlap
+    slots: int = SLOTS  # units held at once (a batch rendering, the others waiting); 1: no overlap
     max_render_s: float = MAX_RENDER_S  # a render longer than this is killed whatever the estimate
     bundle_limits: BundleLimits = field(default_factory=BundleLimits)
     emulate: Path | None = None  # a cost map (agents/emulate.py): renders are slept, Mitsuba never loads
@@ -140,6 +143,7 @@ class RenderAgent:
         self.emulation = Emulation.load(config.emulate, config.emulate_speed, self.workdir) if config.emulate else None
         self.worker = self.emulation.worker if self.emulation else RenderWorker()
         self._aborts: dict[int, threading.Event] = {}  # per render ticket: set to end it (AbortRender)
+        self._together: dict[str, str | None] = {}  # per job: why its units render one by one (None: they need not)
         self.farm = FarmAgent(
             config.jid, config.password, port=config.port, server=config.server, ontology=m.ONTOLOGY,
             peers=[config.master], validate=m.parse, performatives=ACCEPTED, ca_file=config.ca_file,
@@ -151,7 +155,8 @@ class RenderAgent:
         self.speed: SpeedSample | None = None
         self.state = AgentState(self._plan, estimate_seconds, slots=config.slots, threads=config.threads,
                                 rules=self.planner.rules_path.name, heartbeat_s=config.heartbeat_s,
-                                max_render_s=config.max_render_s, session=_stamp(), check_url=self._url_refusal)
+                                max_render_s=config.max_render_s, session=_stamp(), check_url=self._url_refusal,
+                                batch=1 if self.emulation else None)  # an emulated render sleeps a unit at a time
         self._tls = client_context(Path(config.ca_file) if config.ca_file else None)
         self._planners: dict[tuple[str | None, str | None], Planner] = {(None, config.defuzzifier): self.planner}
         self._stop = asyncio.Event()
@@ -272,19 +277,21 @@ class RenderAgent:
         task.add_done_callback(self._io.discard)
 
     async def _perform(self, command: FetchBundle | StartRender | Upload) -> None:
-        """One I/O step of a unit, as a task of its own; its end goes back to the state as an event."""
+        """One I/O step of a unit (of a batch's units), as a task of its own; its end goes back to the state
+        as an event per unit."""
         match command:
             case FetchBundle():
-                event: Event = await self._fetch(command)
+                events: list[Event] = [await self._fetch(command)]
             case StartRender():
                 try:
-                    event = await self._render(command)
+                    events = list(await self._render(command))
                 finally:  # however the render ended: its abort has no render left to end
                     self._aborts.pop(command.ticket, None)
             case Upload():
-                event = await self._upload(command)
-        with _logged(f"handling {event!r}"):
-            await self._feed(event)
+                events = [await self._upload(command)]
+        for event in events:
+            with _logged(f"handling {event!r}"):
+                await self._feed(event)
 
     async def _send(self, msg: m.Message) -> bool:
         performative, body = m.encode(msg)
@@ -326,30 +333,92 @@ class RenderAgent:
         except Exception as exc:
             return BundleFailed(command.ticket, describe(exc))
 
-    async def _render(self, command: StartRender) -> RenderFinished | RenderFailed:
-        """Render the unit in the render process and write its tile EXR (meta: the unit, the parameters)."""
-        award, params = command.award, command.params
+    async def _render(self, command: StartRender) -> list[RenderFinished | RenderFailed]:
+        """Render the command's units in the render process, in one call where they can (core.render.together),
+        and write their tile EXRs (meta: the unit, the parameters): an event per unit, in the command's order."""
+        items = [(command.ticket, command.award, command.params),
+                 *((b.ticket, b.award, b.params) for b in command.more)]
+        requests = [self._request(command.scene, award, params) for _, award, params in items]
+        abort = self._aborts.get(command.ticket)
+        job = command.award.job
+        may_batch = self.emulation is None and job.level != "off" and job.first_spp is None
+        results = await asyncio.to_thread(self._render_tiles, requests, command.timeout_s, abort, may_batch)
+        return [await self._written(ticket, award, params, result)
+                for (ticket, award, params), result in zip(items, results, strict=True)]
+
+    def _request(self, scene: SceneSpec, award: m.Award, params: Params) -> RenderRequest:
         job, unit = award.job, award.unit
-        request = RenderRequest(
-            scene=command.scene, variant=job.variant, integrator=job.integrator,
+        return RenderRequest(
+            scene=scene, variant=job.variant, integrator=job.integrator,
             max_depth=params.depth, spp=params.spp, seed=award.seed, width=job.width, height=job.height,
             unit=unit.rect, band=params.band, threads=self.config.threads, job_id=job.job_id,
             unit_index=unit.index, sensor=job.sensor, first=job.first_spp)
-        abort = self._aborts.get(command.ticket)
+
+    def _render_tiles(self, requests: list[RenderRequest], timeout: float, abort: threading.Event | None,
+                      may_batch: bool) -> list[Tile | Exception]:
+        """Each request's tile, or the error that ended it: in batches of one call each where `may_batch`
+        (not emulated, not level off, not two-pass) and the scene allows, else one by one. A batch of one
+        unit renders as a batch too: on the film of the others, it reuses their kernel where its own window
+        would compile one. Runs in a worker thread."""
+        together = may_batch and self._together_problem(requests[0], timeout) is None
+        groups = batches(requests) if together else [[r] for r in requests]
+        tiles: dict[int, Tile | Exception] = {}
+        for group in groups:
+            if together:
+                made = self._attempt(lambda g=group: self.worker.call(
+                    render_batch_here, g, doing=f"units {[r.unit_index for r in g]}", timeout=timeout, abort=abort),
+                    len(group))
+                if len(group) > 1 and isinstance(made[0], Exception) and not (abort and abort.is_set()):
+                    # Each unit on its own, so that one bad unit (or a crash) fails it alone and its
+                    # agent is not blocklisted for the job by a whole batch's failures at once.
+                    log.warning("units %s failed together (%s): each rendered alone", [r.unit_index for r in group],
+                                made[0])
+                    made = [self._attempt(lambda r=r: [self.worker.render(r, timeout, abort)], 1)[0] for r in group]
+            else:
+                made = self._attempt(lambda r=group[0]: [self.worker.render(r, timeout, abort)], 1)
+            tiles.update(zip((r.unit_index for r in group), made, strict=True))
+        return [tiles[r.unit_index] for r in requests]
+
+    @staticmethod
+    def _attempt(render: Callable[[], list[Tile]], units: int) -> list[Tile | Exception]:
+        """`render()`'s tiles, or its error (a render error named as the unit's Failure says it) for each unit."""
         try:
             try:
-                tile = await asyncio.to_thread(self.worker.render, request, command.timeout_s, abort)
+                return list(render())
             except QuekaroError as exc:
                 raise UnitFailed(f"render failed: {exc}") from exc
-            meta = self._tile_meta(job, params)
-            tile.meta.update(self.emulation.mark(meta) if self.emulation else meta)
-            path = self._tile_path(job.job_id, unit.index)
-            # Not fsynced: the file lives until its upload; a crash loses the unit, which is rendered again.
-            await asyncio.to_thread(write_tile, path, tile, durable=False)
         except Exception as exc:
-            return RenderFailed(command.ticket, describe(exc))
-        return RenderFinished(command.ticket, path, float(tile.meta["seconds"]), int(tile.meta.get("nonfinite", 0)),
-                              int(tile.meta["spp"]))
+            return [exc] * units
+
+    def _together_problem(self, request: RenderRequest, timeout: float) -> str | None:
+        """Why the job's units render one by one (core.render.together), asked of the render process once a job."""
+        if request.job_id not in self._together:
+            try:
+                problem = self.worker.call(together_problem_here, request, doing="checking the scene", timeout=timeout)
+            except Exception as exc:
+                problem = describe(exc)
+            if problem:
+                log.info("job %s: units render one by one: %s", request.job_id, problem)
+            self._together[request.job_id] = problem
+            while len(self._together) > 64:
+                self._together.pop(next(iter(self._together)))
+        return self._together[request.job_id]
+
+    async def _written(self, ticket: int, award: m.Award, params: Params,
+                       result: Tile | Exception) -> RenderFinished | RenderFailed:
+        """The unit's tile written where its upload reads it (meta: the unit, the parameters), as an event."""
+        try:
+            if isinstance(result, Exception):
+                raise result
+            meta = self._tile_meta(award.job, params)
+            result.meta.update(self.emulation.mark(meta) if self.emulation else meta)
+            path = self._tile_path(award.job.job_id, award.unit.index)
+            # Not fsynced: the file lives until its upload; a crash loses the unit, which is rendered again.
+            await asyncio.to_thread(write_tile, path, result, durable=False)
+        except Exception as exc:
+            return RenderFailed(ticket, describe(exc))
+        return RenderFinished(ticket, path, float(result.meta["seconds"]), int(result.meta.get("nonfinite", 0)),
+                              int(result.meta["spp"]))
 
     def _tile_meta(self, job: m.JobInfo, params: Params) -> dict[str, Any]:
         """What the agent adds to the render's header. The render states what it did (job, unit, spp as
@@ -458,8 +527,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--insecure-http", action="store_true",
                    help="accept a master serving plain HTTP across a network (award tokens and tiles in clear)")
     p.add_argument("--heartbeat", type=float, default=HEARTBEAT_S, help="seconds between heartbeats")
-    p.add_argument("--slots", type=int, default=2,
-                   help="units held at once: 2 (default) renders the next while the last uploads; 1 none")
+    p.add_argument("--slots", type=int, default=SLOTS,
+                   help=f"units held at once (default {SLOTS}): half of them render in one call while the next "
+                        "half is awarded; 2: one unit a call, the next awarded while it renders; 1: no overlap")
     p.add_argument("--log-level", default=os.environ.get("QUEKARO_LOG", "INFO"))
     p.add_argument("--emulate", type=Path, metavar="COSTS.json",
                    help="emulate the renders: sleep each unit's time from this cost map (agents/emulate.py)")

@@ -15,14 +15,17 @@ Commands: `Send` (a message to the master), `FetchBundle`, `StartRender`, `Abort
 
 What it decides (the protocol is in agents/render_agent.py's docstring):
   slots      it holds at most `slots` units (awarded, not answered, not cancelled) and bids only below
-             that; with one slot, only when no render at all is in flight. One unit renders at a time,
-             in award order; the next starts as soon as the last one's tile is written, while it uploads.
+             that; with one slot, only when no render at all is in flight. One render step at a time, in
+             award order: the oldest waiting unit and, at a rule level, the waiting units of its job and
+             depth, up to `batch` (half the slots) in all, in one call; the next step starts as soon as
+             the last one's tiles are written, while they upload.
   awards     a duplicate (same unit, same token) is ignored, also after the unit is done; a re-award with
              a new token replaces the token it answers under. A unit it never bid on is planned afresh.
   cancel     one unit or a whole job: queued units never start, a unit whose bundle is being fetched is
-             not rendered, a render in flight is ended (its render process killed: the compiled kernels
-             go with it, but a long render left to run held the agent, which looked free, and made the
-             next unit awarded to it miss its deadline); nothing is answered.
+             not rendered, a render in flight is ended once none of its units is wanted (its render
+             process killed: the compiled kernels go with it, but a long render left to run held the
+             agent, which looked free, and made the next unit awarded to it miss its deadline); nothing
+             is answered.
   heartbeat  Register on every (re)connection, when the master's Introduce asks (it knows the agent from
              heartbeats only), and again with each heartbeat until the master's Welcome answers one; a
              Heartbeat every `heartbeat_s` listing the held units.
@@ -45,10 +48,9 @@ from typing import Any, Protocol
 from core.errors import QuekaroError
 from core.model import messages as m
 from core.model.job import SceneSpec
-from core.model.units import WorkUnit
+from core.model.units import SLOTS, WorkUnit, batch_size
 
 HEARTBEAT_S = 2.0
-SLOTS = 2
 MAX_RENDER_S = 6 * 3600.0  # a render longer than this is killed whatever the estimate
 FINISHED_MEMORY = 4096  # (job, unit, token) of finished awards remembered to ignore their duplicates
 MAX_BUSY = 256  # units listed in one heartbeat (Heartbeat.busy's limit)
@@ -165,15 +167,30 @@ class FetchBundle:
 
 
 @dataclass(frozen=True)
+class Batched:
+    """A further unit of a StartRender: rendered in the same call as the first."""
+
+    ticket: int
+    award: m.Award = field(repr=False)
+    params: Params
+
+
+@dataclass(frozen=True)
 class StartRender:
-    """Render the award's unit with `params` in the render process, killed after `timeout_s`; write its tile;
-    answer RenderFinished or RenderFailed."""
+    """Render the award's unit with `params` in the render process, and the units in `more` (same job and
+    depth) with it in one call where the scene allows, killed after `timeout_s`; write their tiles; answer
+    RenderFinished or RenderFailed for each ticket."""
 
     ticket: int
     award: m.Award = field(repr=False)
     scene: SceneSpec
     params: Params
     timeout_s: float
+    more: tuple[Batched, ...] = ()
+
+    @property
+    def tickets(self) -> tuple[int, ...]:
+        return (self.ticket, *(b.ticket for b in self.more))
 
 
 @dataclass(frozen=True)
@@ -222,6 +239,7 @@ class Work:
     award: m.Award
     cancelled: bool = False
     started: float = 0.0  # when its render step began (bundle, plan, render, tile)
+    share: float = 1.0  # its part of its render step's seconds: its base estimate over its batch's
     params: Params | None = None
     rendered: RenderFinished | None = None
     uploaded_as: m.Award | None = None  # the award its tile was uploaded under (the latest at the time)
@@ -262,9 +280,13 @@ class AgentState:
 
     def __init__(self, plan: PlanFn, seconds: SecondsFn, *, slots: int = SLOTS, threads: int = 1,
                  rules: str = "", heartbeat_s: float = HEARTBEAT_S, max_render_s: float = MAX_RENDER_S,
-                 session: str = "0", check_url: Callable[[str], str | None] = lambda _url: None) -> None:
+                 session: str = "0", check_url: Callable[[str], str | None] = lambda _url: None,
+                 batch: int | None = None) -> None:
         if slots < 1:
             raise ValueError(f"slots must be at least 1, got {slots}")
+        self.batch = batch_size(slots) if batch is None else batch
+        if not 1 <= self.batch <= slots:
+            raise ValueError(f"batch must be from 1 to slots ({slots}), got {batch}")
         self.plan, self.seconds = plan, seconds
         self.check_url = check_url  # why a job's data plane URL is refused (plain HTTP across a network), or None
         self.slots, self.threads, self.rules = slots, threads, rules[:256]
@@ -273,7 +295,10 @@ class AgentState:
         self.calibration = Calibration()
         self.works: dict[Key, Work] = {}  # held: awarded, not answered, not cancelled (award order)
         self.queue: deque[Work] = deque()  # held, waiting for the render process
-        self.rendering: Work | None = None  # in its render step (perhaps cancelled since)
+        # In the render step (perhaps cancelled since): the first unit from its bundle fetch on, the units
+        # batched with it from its StartRender on; `_step_ticket` the first's ticket (an abort's).
+        self.step: list[Work] = []
+        self._step_ticket = 0
         self.delivering: dict[int, Work] = {}  # tiles uploading, by ticket
         self.finished: dict[tuple[str, int, str], None] = {}  # (job, unit, token) answered, oldest first
         self.planned: dict[Key, Params] = {}  # the rules' choice per unit bid on, oldest first
@@ -325,11 +350,16 @@ class AgentState:
         """The units this agent holds: awarded, not answered, not cancelled."""
         return tuple(m.HeldUnit(job_id=j, index=i) for j, i in sorted(self.works))
 
+    @property
+    def rendering(self) -> Work | None:
+        """The first unit of the render step, if one is in it."""
+        return self.step[0] if self.step else None
+
     def is_free(self) -> bool:
         """Room for another unit: it holds fewer than `slots` (rendering, waiting or uploading). With one
         slot, also not rendering at all (not even a cancelled unit)."""
         if self.slots == 1:
-            return self.rendering is None and not self.works
+            return not self.step and not self.works
         return len(self.works) < self.slots
 
     # ---- estimates ------------------------------------------------------------------------------------
@@ -341,7 +371,7 @@ class AgentState:
 
     def uncorrected(self, job: m.JobInfo, unit: WorkUnit, params: Params) -> float:
         compile_s = 0.0
-        if self.speed is not None and kernel_key(job, unit, params) not in self.kernels:
+        if self.speed is not None and self._kernel(job, unit, params) not in self.kernels:
             compile_s = self.speed.compile_s  # Dr.Jit bakes the window size and the depth into the kernel
         return self.base_estimate(unit, params) + compile_s
 
@@ -391,14 +421,18 @@ class AgentState:
 
     def _on_cancel(self, cancel: m.Cancel) -> list[Command]:
         out: list[Command] = []
+        cancelled: list[Work] = []
         for key, work in list(self.works.items()):
             if key[0] == cancel.job_id and cancel.index in (None, key[1]):
                 work.cancelled = True
+                cancelled.append(work)
                 del self.works[key]
                 out.append(Log(logging.INFO, f"unit {key[0]}/{key[1]} cancelled by the master: {cancel.reason}"))
-                if self.rendering is work and work.params is not None:  # in its render step
-                    out.append(AbortRender(work.ticket))
         self.queue = deque(w for w in self.queue if not w.cancelled)
+        # A render in flight is ended once nothing in it is still wanted (a batch's other units go on).
+        rendering = self.step and self.step[0].params is not None
+        if rendering and all(w.cancelled for w in self.step) and any(w in cancelled for w in self.step):
+            out.append(AbortRender(self._step_ticket))
         return out
 
     def _on_tick(self, tick: Tick, now: float) -> list[Command]:
@@ -444,47 +478,96 @@ class AgentState:
 
     def _start_next(self, now: float) -> list[Command]:
         """The render process is free and a unit waits: the oldest award goes first."""
-        if self.rendering is not None or not self.queue:
+        if self.step or not self.queue:
             return []
-        work = self.rendering = self.queue.popleft()
+        work = self.queue.popleft()
+        self.step, self._step_ticket = [work], work.ticket
         work.started = now
         return [FetchBundle(work.ticket, work.award.job, work.award.token)]
 
     def _on_bundle(self, ready: BundleReady, now: float) -> list[Command]:
-        work = self._rendering(ready.ticket)
+        work = self._in_step(ready.ticket)
         if work is None:
             return [Log(logging.DEBUG, f"bundle of ticket {ready.ticket}: no such render")]
-        key, job, unit = work.key, work.award.job, work.award.unit
+        key = work.key
         if work.cancelled:
-            self.rendering = None
+            self.step = []
             return [Log(logging.INFO, f"unit {key[0]}/{key[1]} cancelled before its render: not rendered"),
                     *self._start_next(now)]
-        # What it bid on (a job's units and their features never change); planned afresh if forgotten or
-        # never bid on, and always with the job's own rules (in the bundle) when it has some.
-        remembered = self.planned.pop(key, None)
         try:
-            params = remembered if remembered is not None and not job.rules_sha256 else self.plan(job, (unit,))[0]
+            params = self._params_for(work, take=True)
         except Exception as exc:
             return self._on_render_failed(RenderFailed(work.ticket, describe(exc)), now)
         work.params = params
+        more = self._batch_with(work, now)
+        base = [self.base_estimate(w.award.unit, w.params) for w in self.step]
+        for member, seconds in zip(self.step, base, strict=True):
+            member.share = seconds / sum(base) if sum(base) > 0 else 1.0 / len(base)
         # Generous: the master's own deadline (estimate x 3 + 30 s) decides when it gives up.
-        timeout = min(self.max_render_s, 120.0 + 10.0 * self.base_estimate(unit, params))
-        return [StartRender(work.ticket, work.award, ready.scene, params, timeout)]
+        timeout = min(self.max_render_s, 120.0 + 10.0 * sum(base))
+        return [StartRender(work.ticket, work.award, ready.scene, params, timeout, more)]
+
+    def _params_for(self, work: Work, take: bool) -> Params:
+        """What it bid on (a job's units and their features never change); planned afresh if forgotten or
+        never bid on, and always with the job's own rules (in the bundle) when it has some. `take`: forget
+        the remembered plan (the unit renders now)."""
+        key, job = work.key, work.award.job
+        remembered = self.planned.pop(key, None) if take else self.planned.get(key)
+        if remembered is not None and not job.rules_sha256:
+            return remembered
+        return self.plan(job, (work.award.unit,))[0]
+
+    def _batch_with(self, first: Work, now: float) -> tuple[Batched, ...]:
+        """Waiting units of `first`'s job and depth that render in its call, oldest first, up to `batch`
+        in all: not at level off (plain Mitsuba's render, one call a unit) nor in a two-pass (adaptive)
+        job. A unit that cannot be planned stays queued (and fails when its turn comes)."""
+        job = first.award.job
+        if not self._batches(job):
+            return ()
+        more: list[Batched] = []
+        for work in list(self.queue):
+            if len(self.step) >= self.batch:
+                break
+            if work.cancelled or work.award.job.job_id != job.job_id:
+                continue
+            try:
+                params = self._params_for(work, take=False)
+            except Exception:
+                continue
+            if params.depth != first.params.depth:
+                continue
+            self.planned.pop(work.key, None)
+            self.queue.remove(work)
+            work.params, work.started = params, now
+            self.step.append(work)
+            more.append(Batched(work.ticket, work.award, params))
+        return tuple(more)
+
+    def _batches(self, job: m.JobInfo) -> bool:
+        """Whether the job's units render in batches here: at a rule level, not two-pass, batch above 1."""
+        return self.batch > 1 and job.level != "off" and job.first_spp is None
+
+    def _kernel(self, job: m.JobInfo, unit: WorkUnit, params: Params) -> tuple[Any, ...]:
+        """What the render process compiles for the unit: a batch's kernel is the whole film's (one per
+        depth, core.render.together.bounds), a unit's own its window's (`kernel_key`)."""
+        if self._batches(job):
+            return job.scene_hash, "film", job.width, job.height, params.depth, job.integrator
+        return kernel_key(job, unit, params)
 
     def _on_render_failed(self, failed: BundleFailed | RenderFailed, now: float) -> list[Command]:
-        work = self._rendering(failed.ticket)
+        work = self._in_step(failed.ticket)
         if work is None:
             return [Log(logging.DEBUG, f"failure of ticket {failed.ticket}: no such render")]
-        self.rendering = None
+        self.step.remove(work)
         out: list[Command] = [DiscardTile(*work.key), *self._fail(work, failed.reason)]
         self._forget(work)
         return out + self._start_next(now)
 
     def _on_rendered(self, rendered: RenderFinished, now: float) -> list[Command]:
-        work = self._rendering(rendered.ticket)
+        work = self._in_step(rendered.ticket)
         if work is None:
             return [Log(logging.DEBUG, f"render of ticket {rendered.ticket}: no such render")]
-        self.rendering = None
+        self.step.remove(work)
         key = work.key
         if work.cancelled:
             out: list[Command] = [Log(logging.INFO, f"unit {key[0]}/{key[1]} rendered after its cancellation: "
@@ -511,11 +594,11 @@ class AgentState:
         """Learn from the unit (kernel compiled, time taken), remember its award, and Inform."""
         award, rendered, params = work.uploaded_as, work.rendered, work.params
         assert award is not None and rendered is not None and params is not None
-        key, wall = work.key, now - work.started
+        key, wall = work.key, (now - work.started) * work.share
         self.units_done += 1
         _remember(self.finished, (*key, award.token), None)
         predicted = self.uncorrected(award.job, award.unit, params)
-        self.kernels.add(kernel_key(award.job, award.unit, params))
+        self.kernels.add(self._kernel(award.job, award.unit, params))
         self.calibration.learn(key[0], predicted, wall)
         spp = params.spp if rendered.spp is None else rendered.spp
         text = (f"unit {key[0]}/{key[1]} done: {wall:.3f} s in all, render {rendered.seconds:.3f} s, spp "
@@ -535,9 +618,8 @@ class AgentState:
                 Send(m.Failure(conversation=award.conversation, job_id=key[0], index=key[1], token=award.token,
                                reason=reason[:MAX_REASON] or "failed"))]
 
-    def _rendering(self, ticket: int) -> Work | None:
-        work = self.rendering
-        return work if work is not None and work.ticket == ticket else None
+    def _in_step(self, ticket: int) -> Work | None:
+        return next((w for w in self.step if w.ticket == ticket), None)
 
     def _forget(self, work: Work) -> None:
         if self.works.get(work.key) is work:

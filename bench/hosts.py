@@ -54,7 +54,7 @@ from agents.state import HEARTBEAT_S
 from bench.accuracy import proc_stat
 from bench.report import DEFAULT_OUT, write_report
 from bench.scaling import default_cache_dir, measure_cached
-from bench.simulate import simulate
+from bench.simulate import UNBATCHED_AUCTION, simulate
 from core.errors import QuekaroError
 from core.model.geometry import Rect
 from core.model.hashing import sha256_file
@@ -64,7 +64,6 @@ from core.supervision import die_with_parent
 from core.transport.xmpp_server import EmbeddedXmppServer, ProsodyServer, free_port
 from farm.client import FarmClient
 from farm.local import stop_processes
-from master.auction import Config
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_SCENE = REPO / "scenes" / "caustic-corner.xml"
@@ -237,12 +236,13 @@ class EmulatedFarm:
 
     def _master_command(self) -> list[str]:
         return [sys.executable, "-m", "quekaro", "master", "--home", str(self.home), "--jid", MASTER_JID,
-                "--http-port", str(free_port()), "--threads", "1", *self._xmpp_options()]
+                "--http-port", str(free_port()), "--threads", "1", "--slots", str(UNBATCHED_AUCTION.slots),
+                *self._xmpp_options()]
 
     def _agent_command(self, i: int, speed: float) -> list[str]:
         return [sys.executable, "-m", "quekaro", "agent", "--jid", f"agent-{i}@{DOMAIN}", "--master", MASTER_JID,
                 "--workdir", str(self.workdir(i)), "--emulate", str(self.costs), "--speed", repr(speed),
-                *self._xmpp_options()]
+                "--slots", str(UNBATCHED_AUCTION.slots), *self._xmpp_options()]
 
     def _spawn(self, cmd: list[str], name: str, password: str) -> subprocess.Popen:
         # The password travels in the environment: not in `ps`.
@@ -467,7 +467,7 @@ def predict(costs: CostMap, job: BenchJob, store: StoreView, speeds: list[float]
 
     def makespan(estimates: list[float] | None) -> float:
         return statistics.mean(
-            simulate(unit_s, speeds, latency=latency, config=Config(), seed=s, heartbeat_s=HEARTBEAT_S,
+            simulate(unit_s, speeds, latency=latency, config=UNBATCHED_AUCTION, seed=s, heartbeat_s=HEARTBEAT_S,
                      delivery=delivery_s, estimates=estimates).makespan for s in range(SIM_SEEDS))
 
     sim, exact = makespan(bids(store, unit_s)), makespan(None)

@@ -50,7 +50,6 @@ from core.model.job import SceneSpec
 from core.render import scene as scene_mod
 from core.render.scene import film_info
 from core.render.worker import RenderRequest, RenderWorker
-from master.auction import Config
 from planning.accuracy import default_cache as default_cache_dir
 from planning.accuracy import job_variant
 from planning.complexity import COST_SPP, NOISE_SHARE, PREPASS_SPP, ComplexityMap, prepass
@@ -63,7 +62,6 @@ DEFAULT_OUT = REPO / "docs" / "benchmarks"
 MIXED_SPEEDS = (1.0, 0.5, 1.5, 2.0)  # cycled: agent i has speed MIXED_SPEEDS[i % 4]
 BAND = 2  # every unit renders this many extra pixels on each side (the gaussian filter's reach)
 TARGETS = {8: 0.9, 32: 0.8}
-FARM_AUCTION = Config()  # as the farm's master runs it by default
 # A unit's delivery on this machine: the agent log's "in all" minus "render", 22-30 ms a unit
 # (caustic-corner 320x320, level S, one agent).
 DELIVERY_S = 0.025
@@ -274,7 +272,7 @@ def simulate_row(tmap: TimeMap, cmap: Any, n: int, mixed: bool, args: argparse.N
     def run(rects: list[Rect], on: list[float]) -> float:
         costs = [tmap.unit_seconds(r, args.spp) for r in rects]
         # Mean over a few seeds: the jitter makes one run's tail a matter of luck.
-        runs = [simulate(costs, on, latency=args.latency, seed=s, jitter=args.jitter, config=FARM_AUCTION,
+        runs = [simulate(costs, on, latency=args.latency, seed=s, jitter=args.jitter,
                          delivery=args.delivery)
                 for s in range(args.repeats)]
         return float(np.mean([r.makespan for r in runs]))

@@ -30,6 +30,11 @@ class SimResult:
     messages: int
 
 
+# The simulated agents render a unit a call, as the farm's did before its agents rendered units in batches:
+# 2 slots (one unit a round and a call), the setting the scaling and hosts figures were measured with.
+UNBATCHED_AUCTION = Config(slots=2)
+
+
 def simulate(
     costs: Sequence[float],
     speeds: Sequence[float],
@@ -64,7 +69,7 @@ def simulate(
     if len(bids) != len(costs):
         raise ValueError(f"simulate: {len(bids)} estimates for {len(costs)} units")
     rng = random.Random(seed)
-    auction = Auction(config, rng=random.Random(seed + 1))
+    auction = Auction(config or UNBATCHED_AUCTION, rng=random.Random(seed + 1))
     info = m.JobInfo(
         job_id="sim",
         scene_url="http://sim/scene",

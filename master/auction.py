@@ -47,7 +47,7 @@ from typing import Protocol
 from core.model import messages as m
 from core.model.seeds import unit_seed
 from core.model.status import JobStatus, UnitStatus, job_transition, unit_transition
-from core.model.units import WorkUnit
+from core.model.units import SLOTS, WorkUnit, batch_size
 
 
 @dataclass(frozen=True)
@@ -78,10 +78,10 @@ class Config:
     rate_clamp: float = 100.0  # an agent's rate stays within this factor of the job's median rate
     refine_moves: int = 64  # moves and swaps that shorten each projection (0: plain list schedule)
     refine_below: float = 3.0  # refine only while open units are at most this many per agent (end game)
-    # Units an agent may hold at once: 2 lets it be awarded its next unit while it renders one, so its
-    # render process never waits for the upload, the inform and the next auction (~35 ms a unit on one
-    # machine: a 33-unit job on one agent took 4.4 s instead of 4.9 s).
-    slots: int = 2
+    # Units an agent may hold at once, and (half of them, `batch_size`) win in one round and render in one
+    # call: its next batch is awarded while one renders, so its render process never waits for the upload,
+    # the inform and the next auction (~35 ms a unit on one machine). 2: one unit a round and a call.
+    slots: int = SLOTS
     # A second unit is queued only while the open units are at least this many per live agent (and at
     # least `slots`): in the end game a queued unit is committed before anyone knows which agent frees up
     # first, and the simulation's tail grew (64 agents: efficiency 0.77 -> 0.71 with 3 here instead of 4).
@@ -309,6 +309,7 @@ class Round:
     offered: dict[str, tuple[int, ...]]  # agent -> unit indices it was called to bid on
     units: frozenset[int]  # every unit this round holds as ANNOUNCED, even if its bidders are lost
     deadline: float
+    room: dict[str, int] = field(default_factory=dict)  # agent -> units it may win in this round (default 1)
     bids: dict[str, dict[int, float]] = field(default_factory=dict)
     answered: set[str] = field(default_factory=set)
 
@@ -484,6 +485,13 @@ def _move(
     owned[dst].append(index)
     finish[src] -= agent_of[src].rate * unit_of[index].cost
     finish[dst] += agent_of[dst].rate * unit_of[index].cost
+
+
+def _own_first(units: tuple[int, ...], agent: str, plan: dict[int, Placement], room: int) -> tuple[int, ...]:
+    """The units offered to `agent`, those the projection places on it first where it may win several."""
+    if room <= 1:
+        return units
+    return tuple(sorted(units, key=lambda i: plan[i].agent != agent))
 
 
 def _excluded(unit: UnitState, usable: Iterable[str]) -> frozenset[str]:
@@ -778,7 +786,7 @@ class Auction:
             rates = self._rates(job)
             plan = self._project(job, now, rates)
             excluded = {u.spec.index: _excluded(u, rates.keys()) for u in pending}
-            offered = {}
+            offered, room = {}, {}
             for agent in agents:
                 units = tuple(
                     u.spec.index
@@ -786,15 +794,17 @@ class Auction:
                     if self._worth_offering(agent.name, u, excluded[u.spec.index], plan, rates, now, callable_now)
                 )
                 if units:
-                    offered[agent.name] = units
+                    offered[agent.name], room[agent.name] = units, self._room(agent, queueing)
             if not offered:
                 continue
-            # No round awards more units than it calls agents (one unit each).
-            limit = min(self.config.max_cfp_units, len(offered))
-            offered = {name: units[:limit] for name, units in offered.items()}
+            # No agent is offered more units than the round calls agents or than it may win; one that may
+            # win a batch is offered the units projected to it first, so that the agents' batches differ.
+            offered = {name: _own_first(units, name, plan, room[name])[:min(self.config.max_cfp_units,
+                                                                            max(len(offered), room[name]))]
+                       for name, units in offered.items()}
             conv = self._new_id()
             held = frozenset(i for indices in offered.values() for i in indices)
-            self.rounds[conv] = Round(conv, job.info.job_id, offered, held, now + self.config.cfp_timeout_s)
+            self.rounds[conv] = Round(conv, job.info.job_id, offered, held, now + self.config.cfp_timeout_s, room)
             for index in sorted(held):
                 self._set_unit(job, job.units[index], UnitStatus.ANNOUNCED)
             for name, indices in offered.items():
@@ -863,6 +873,14 @@ class Auction:
             return False
         return not agent.holding or (len(agent.holding) < self.config.slots and queueing)
 
+    def _room(self, agent: Agent, queueing: bool) -> int:
+        """Units a free agent may win in one round: a batch (`batch_size`), within its free slots while units
+        may queue; in the end game one batch, and only when it holds nothing."""
+        batch = batch_size(self.config.slots)
+        if agent.holding:
+            return min(batch, self.config.slots - len(agent.holding)) if queueing else 0
+        return batch
+
     def _queueing(self) -> bool:
         """Whether units may be queued behind others: only while the open units are at least
         max(`slots`, `queue_above`) times the live agents (see `Config.queue_above`)."""
@@ -917,19 +935,20 @@ class Auction:
         out: list[Command] = self._silenced(round_, now)
         if job is None or job.status != JobStatus.RUNNING:
             return out
-        winners: set[str] = set()
+        wins: Counter[str] = Counter()
         units = sorted((job.units[i] for i in round_.units), key=lambda u: (-u.spec.work, u.spec.index))
         usable = self._rates(job).keys()
         for unit in units:
             if unit.status != UnitStatus.ANNOUNCED:
                 continue
-            winner = self._pick(round_, unit, job, winners, now, _excluded(unit, usable))
+            full = {name for name, won in wins.items() if won >= round_.room.get(name, 1)}
+            winner = self._pick(round_, unit, job, full, now, _excluded(unit, usable))
             if winner is None:
                 self._set_unit(job, unit, UnitStatus.PENDING)
             else:
-                winners.add(winner)
+                wins[winner] += 1
                 out += self._award(job, unit, winner, round_.bids[winner][unit.spec.index], now)
-        for name in sorted(set(round_.bids) - winners):
+        for name in sorted(set(round_.bids) - set(wins)):
             if name in self.agents and round_.bids[name]:
                 reject = m.Reject(
                     conversation=round_.conversation,

@@ -17,6 +17,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from core.data import DEMO_SCENE
 from core.errors import QuekaroError
 from core.home import ADMIN_TOKEN, MIN_FREE_BYTES, PROCESSES_FILE, default_home
+from core.model.units import SLOTS
 from core.render.bundle import make_bundle
 from core.render.scene import parse_defines
 from farm.client import FarmClient
@@ -77,8 +78,9 @@ def _register_master(sub: argparse._SubParsersAction) -> None:
                         help="serve plain HTTP although agents reach it over a network (logged and shown by status)")
     parser.add_argument("--threads", type=int, help="Dr.Jit threads of the pre-pass")
     parser.add_argument("--slots", type=int,
-                        help="units an agent may hold at once (default 2: its next unit is awarded while it "
-                             "renders one, outside the end game; 1: one at a time)")
+                        help=f"units an agent may hold at once (default {SLOTS}: it wins up to half of them a round "
+                             "and renders them in one call, the next half awarded while it renders; 2: one unit a "
+                             "call; 1: one at a time). Agents must hold as many: give them the same --slots")
     parser.add_argument("--agents-allow", type=Path,
                         help="file of agent JIDs (one a line, read again when it changes): only these may bid; "
                              "default: any JID matching agent*@DOMAIN that the XMPP server authenticated")

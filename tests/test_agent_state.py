@@ -1,7 +1,9 @@
 """The render agent's state machine (agents.state.AgentState), driven with events and a fake clock: no network,
 no render process, no Mitsuba. What tests/test_auction.py is to the master's auction.
 
-Covered: slots (a second award queues, one render at a time, a full agent refuses), duplicate awards and
+Covered: slots (a second award queues, one render step at a time, a full agent refuses), batches (waiting
+units of one job and depth in one StartRender, their shares of its time, a cancel within one, one kernel
+per depth), duplicate awards and
 re-awards, awards never bid on, cancel of a queued, a fetching, a rendering and an uploading unit and of a
 whole job, heartbeats and registration, estimates and their calibration, Failure on every kind of error.
 """
@@ -11,7 +13,7 @@ from __future__ import annotations
 import logging
 import subprocess
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import pytest
@@ -452,14 +454,17 @@ def test_cancel_of_a_whole_job_leaves_the_other_jobs_units() -> None:
     agent(award(two, unit(0)))
     agent(award(one, unit(1)))
     start = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
+    assert [b.award.unit.index for b in start.more] == [1]  # job-1's two units render in one call
     agent(m.Cancel(conversation="c-1", job_id="job-1", index=5, reason="x"))  # not one it holds
     assert agent.held() == [("job-1", 0), ("job-1", 1), ("job-2", 0)]
     out = agent(m.Cancel(conversation="c-2", job_id="job-1", index=None, reason="job cancelled"))
-    assert len([c for c in out if isinstance(c, Log)]) == 2
+    assert len([c for c in out if isinstance(c, Log)]) == 2 and only(out, AbortRender) == AbortRender(start.ticket)
     assert agent.held() == [("job-2", 0)]
     out = agent(RenderFinished(start.ticket, Path("/t.exr"), 1.0))  # the abandoned render ends: discarded
-    assert DiscardTile("job-1", 0) in out and not sent(out)
-    assert only(out, FetchBundle).job.job_id == "job-2"  # ... job-1/1 never starts
+    assert DiscardTile("job-1", 0) in out and not sent(out) and not [c for c in out if isinstance(c, FetchBundle)]
+    out = agent(RenderFailed(start.more[0].ticket, "interrupted"))  # its batch's end: not reported
+    assert DiscardTile("job-1", 1) in out and not sent(out)
+    assert only(out, FetchBundle).job.job_id == "job-2"  # job-2 waited for the whole batch
 
 
 def test_a_unit_awarded_again_after_its_cancel_renders_again() -> None:
@@ -606,3 +611,97 @@ def test_logs_go_out_as_commands_with_levels() -> None:
     agent = Agent()
     out = agent(m.Reject(conversation="cfp-1", job_id="job-1", reason="lost"))
     assert out == [Log(logging.DEBUG, "rejected in cfp-1: lost")]
+
+
+# ---- units rendered together (a batch: half the slots) --------------------------------------------------
+
+
+class DepthRules(Rules):
+    """Depth 6 for units below 10, depth 4 for the others."""
+
+    def __call__(self, job: m.JobInfo, units: tuple[WorkUnit, ...]) -> list[Params]:
+        return [Params(depth=p.depth if u.index < 10 else 4, spp=p.spp, band=p.band)
+                for u, p in zip(units, super().__call__(job, units), strict=True)]
+
+
+def two_in_one_call(agent: Agent, info: m.JobInfo) -> StartRender:
+    """Units 0 and 1 of the job awarded back to back: the first one's StartRender (the second in it, if batched)."""
+    fetch = only(agent(award(info, unit(0))), FetchBundle)
+    agent(award(info, unit(1)))
+    return only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
+
+
+def test_waiting_units_of_the_job_and_depth_render_in_one_call_up_to_half_the_slots() -> None:
+    agent = Agent(slots=8, rules=DepthRules())
+    assert agent.state.batch == 4
+    info, other = job("job-1"), job("job-2")
+    fetch = only(agent(award(info, unit(0))), FetchBundle)
+    for u in (10, 1, 2, 3, 4):  # unit 10 has another depth
+        agent(award(info, unit(u)))
+    agent(award(other, unit(5)))
+    start = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
+    assert [b.award.unit.index for b in start.more] == [1, 2, 3]  # oldest first, four in all
+    assert {b.params.depth for b in start.more} == {6} and len(set(start.tickets)) == 4
+    assert agent.state.rendering.key == ("job-1", 0) and [w.key[1] for w in agent.state.queue] == [10, 4, 5]
+    uploads = []
+    for ticket in start.tickets[:-1]:
+        out = agent(RenderFinished(ticket, Path(f"/tiles/{ticket}.exr"), 0.25), dt=0.1)
+        uploads.append(only(out, Upload))
+        assert not [c for c in out if isinstance(c, FetchBundle)]  # the render process is still busy
+    out = agent(RenderFinished(start.tickets[-1], Path("/tiles/last.exr"), 0.25), dt=0.1)
+    assert only(out, Upload) and only(out, FetchBundle).ticket not in start.tickets  # the next one: unit 10
+    assert sorted(u.award.unit.index for u in uploads) == [0, 1, 2]
+
+
+def test_a_batch_is_timed_by_shares_of_its_estimate_for_the_calibration() -> None:
+    agent = Agent(slots=4)
+    info = job()
+    start = two_in_one_call(agent, info)
+    shares = [w.share for w in agent.state.step]
+    # unit i costs 10 (i + 1) at 4 i + 4 spp: 40 and 160 units of work
+    assert shares == pytest.approx([0.2, 0.8])
+    for ticket in start.tickets:
+        agent(RenderFinished(ticket, Path(f"/tiles/{ticket}.exr"), 1.0))
+    assert sent(agent(UploadDone(start.tickets[0], "cd" * 32), dt=2.0), m.Inform)
+    # unit 0 took its share of the 2 s since the batch began, against its estimate of 20 s + a compilation
+    predicted = seconds(10.0, 4, SPEED) + COMPILE_S
+    assert agent.state.calibration.factor("job-1") == pytest.approx(2.0 * 0.2 / predicted)
+
+
+@pytest.mark.parametrize("kind", ["off", "adaptive"])
+def test_level_off_and_two_pass_units_render_one_a_call(kind: str) -> None:
+    agent = Agent(slots=8)
+    info = job()
+    info = replace(info, level="off") if kind == "off" else replace(info, first_spp=4)
+    assert two_in_one_call(agent, info).more == ()
+
+
+def test_cancel_of_one_unit_of_a_batch_lets_the_others_render() -> None:
+    agent = Agent(slots=4)
+    start = two_in_one_call(agent, job())
+    assert len(start.tickets) == 2
+    out = agent(m.Cancel(conversation="c-1", job_id="job-1", index=0, reason="x"))
+    assert not [c for c in out if isinstance(c, AbortRender)]  # unit 1 is still wanted
+    out = agent(RenderFinished(start.ticket, Path("/tiles/0.exr"), 1.0))
+    assert DiscardTile("job-1", 0) in out and not [c for c in out if isinstance(c, Upload)]
+    out = agent(RenderFinished(start.more[0].ticket, Path("/tiles/1.exr"), 1.0))
+    assert only(out, Upload).award.unit.index == 1
+    out = agent(m.Cancel(conversation="c-2", job_id="job-1", index=1, reason="x"))
+    assert not [c for c in out if isinstance(c, AbortRender)]  # nothing renders any more
+
+
+def test_batch_must_fit_the_slots() -> None:
+    with pytest.raises(ValueError, match="batch must be from 1 to slots"):
+        AgentState(Rules(), seconds, slots=2, batch=3)
+
+
+def test_units_rendered_in_batches_compile_one_kernel_per_depth_whatever_their_size() -> None:
+    agent = Agent(slots=8)
+    info = job()
+    small, big = unit(0, Rect(0, 0, 8, 8)), unit(1, Rect(0, 0, 16, 16))
+    p = Params(6, 4, 2)
+    assert agent.state.uncorrected(info, big, p) == pytest.approx(seconds(big.cost, 4, SPEED) + COMPILE_S)
+    deliver(agent, only(agent(award(info, small)), FetchBundle))
+    assert agent.state.uncorrected(info, big, p) == pytest.approx(seconds(big.cost, 4, SPEED))  # the film's
+    assert agent.state.uncorrected(info, big, Params(3, 4, 2)) > seconds(big.cost, 4, SPEED)  # another depth
+    assert agent.state.uncorrected(replace(info, level="off"), big, p) > seconds(big.cost, 4, SPEED)

@@ -57,8 +57,12 @@ def events(cmds: list[au.Command], kind: type[E] = au.Event) -> list[E]:
     return [c for c in cmds if isinstance(c, kind)]
 
 
+# One unit a round and a call (2 slots): what most tests here take; units won in batches have their own tests.
+ONE_A_ROUND = au.Config(slots=2)
+
+
 def make(costs: list[float], agents: list[str], config: au.Config | None = None) -> au.Auction:
-    a = au.Auction(config, rng=random.Random(7))
+    a = au.Auction(config or ONE_A_ROUND, rng=random.Random(7))
     a.add_job(info(), specs(costs))
     for name in agents:
         a.register(name, 0.0)
@@ -833,7 +837,7 @@ def test_no_unit_is_queued_behind_another_in_the_end_game() -> None:
 def test_an_adaptive_jobs_units_are_scheduled_by_their_share_of_samples() -> None:
     # cost is at 1 spp; a unit given 8x the samples of a costlier one is the job's biggest unit, and its
     # agent's rate is learnt per unit of work (seconds per cost x spp), not per cost.
-    a = au.Auction(None, rng=random.Random(7))
+    a = au.Auction(ONE_A_ROUND, rng=random.Random(7))
     units = [dataclasses.replace(u, spp=spp) for u, spp in zip(specs([4.0, 1.0, 1.0]), [8, 64, 8], strict=True)]
     a.add_job(dataclasses.replace(info(), first_spp=4), units)
     a.register("A", 0.0)
@@ -872,3 +876,45 @@ def test_every_register_is_answered_with_a_welcome_of_its_conversation() -> None
     again = a.on_message("A", dataclasses.replace(reg, conversation="register-s-2", speed=3.0), 1.0)
     assert not events(again, au.AgentRegistered) and a.agents["A"].speed == 3.0  # known: its speed updated
     assert [s.message.conversation for s in sends(again, m.Welcome, to="A")] == ["register-s-2"]
+
+
+# ---- units won and rendered in batches (Config.slots 8: batches of 4) ---------------------------------
+
+
+def test_with_eight_slots_a_free_agent_wins_a_batch_a_round_and_the_next_while_it_renders() -> None:
+    a = make([1.0] * 40, ["A", "B"], au.Config(slots=8))
+    first = round_trip(a, 0.0)
+    by_agent = Counter(s.to for s in first.values())
+    assert by_agent == {"A": 4, "B": 4}  # au.batch_size(8): four units each in one round
+    second = round_trip(a, 0.1)  # 32 open units, at least 8 per agent: the next batch is queued
+    assert Counter(s.to for s in second.values()) == {"A": 4, "B": 4}
+    assert not set(first) & set(second)
+    assert round_trip(a, 0.2) == {}  # eight held each: not called
+    # Each agent's units follow one another: the last of its eight starts when the seven before it end.
+    held = sorted((u for u in a.jobs["job-1"].units.values() if u.agent == "A"), key=lambda u: u.deadline)
+    assert held[-1].deadline == pytest.approx(0.1 + 8 * 1.0 - 1.0 + 1.0 * a.config.render_factor
+                                              + a.config.render_slack_s, abs=0.11)
+
+
+def test_a_batch_round_offers_each_agent_its_batch_and_rejects_bidders_that_won_nothing() -> None:
+    a = make([1.0] * 40, ["A", "B"], au.Config(slots=8))
+    cfps = sends(a.announce(0.0), m.CallForProposal)
+    assert sorted(len(s.message.units) for s in cfps) == [4, 4]
+    bid_all(a, cfps, 0.0)
+    out = a.decide(0.0)
+    assert len(awards(out)) == 8 and not sends(out, m.Reject)
+
+
+def test_in_the_end_game_an_agent_holding_units_is_not_called_and_an_idle_one_wins_one_batch() -> None:
+    a = make([1.0] * 6, ["A"], au.Config(slots=8))  # 6 open units < 8 per agent: the end game from the start
+    first = round_trip(a, 0.0)
+    assert len(first) == 4  # one batch
+    assert round_trip(a, 0.1) == {}  # it holds units: nothing is queued behind them
+    for index, award in first.items():
+        a.on_inform("A", inform(award, 1.0), 1.0 + index * 0.01)
+    assert sorted(round_trip(a, 2.0)) == sorted(set(range(6)) - set(first))
+
+
+def test_two_slots_keep_one_unit_a_round() -> None:
+    a = make([1.0] * 40, ["A", "B"], au.Config(slots=2))
+    assert Counter(s.to for s in round_trip(a, 0.0).values()) == {"A": 1, "B": 1}

@@ -17,6 +17,7 @@ import threading
 import time
 import urllib.error
 import urllib.request
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,7 @@ from web_support import wait_until
 from core.errors import QuekaroError
 from core.render.bundle import make_bundle
 from core.render.imageio import read_image
+from core.render.tiles import read_tile
 from core.transport.rates import SenderRates
 from farm.local import LocalFarm
 
@@ -522,3 +524,25 @@ def test_a_second_agent_logged_in_with_the_same_jid_is_named_in_the_log_and_by_q
     assert f"2 clients log in as {jid}" in master_log
     assert f"warning: 2 clients log in as {jid}" in listed.stdout, listed.stdout
 
+
+
+def test_a_rule_level_job_renders_each_agents_units_in_batches_and_matches_a_local_render(tmp_path):
+    """Units of one job and depth an agent holds render in one call (core.render.together via
+    agents.state's batches): every tile says so, several share a call (its seed), and the image agrees
+    with `quekaro render` of the same level up to noise."""
+    defines = {"res": "96", "spp": "16"}
+    with LocalFarm(tmp_path / "farm", agents=2, threads=1) as farm:
+        farm.wait_for_agents()
+        client = farm.client()
+        job_id = client.submit(bundle_of(SCENE, defines), defines, {"level": "S"})
+        job = wait_job(farm, job_id)
+        assert job["status"] == "done", job
+        out = client.result(job_id, tmp_path / "farm.exr")
+        tiles = sorted((farm.home / "jobs" / job_id / "tiles").glob("*.exr"))
+        seeds = Counter(read_tile(t).meta["seed"] for t in tiles)
+    report = json.loads(out.with_suffix(".json").read_text())
+    assert len(report["units"]) >= 8 and all(u["method"].startswith("together") for u in report["units"])
+    assert len(tiles) == len(report["units"]) and max(seeds.values()) >= 2, seeds  # units shared a call
+    image, reference = read_image(out), local_render(tmp_path, defines, "S")
+    a, b = block_means(image), block_means(reference)
+    assert np.abs(a - b).mean() / b.mean() < 0.08  # as test_job_on_three_agents_matches_local_render

@@ -5,7 +5,8 @@ that serves scene bundles and takes tile uploads. It drives the contract net by 
 and checks what comes back over XMPP and HTTP: the proposal, the uploaded tile (its rectangle with the
 band, finite pixels, the parameters in its header), the Inform; a refusal while busy; a cancelled unit
 that is never delivered; Failures for a broken scene, a bundle with the wrong hash and a refused upload;
-an agent that survives a malformed message and stops cleanly on SIGTERM.
+units awarded together rendered in one call, and a batch that fails together rendered unit by unit; an
+agent that survives a malformed message and stops cleanly on SIGTERM.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ import pytest
 
 from core.model import messages as m
 from core.model.geometry import Rect
-from core.model.units import WorkUnit
+from core.model.units import SLOTS, WorkUnit
 from core.render.bundle import make_bundle
 from core.render.tiles import read_tile_bytes
 from core.transport.xmpp import Envelope, FarmAgent
@@ -311,13 +312,14 @@ def test_cancelled_units_are_dropped_and_a_full_agent_refuses(farm: Farm, bundle
     farm.run(farm.master.send(farm.award(job, whole, "award-b0")))
     farm.run(farm.master.expect(m.Heartbeat, since=since, where=lambda h: len(h.busy) == 1
                                 and (h.busy[0].job_id, h.busy[0].index) == ("job-b", 0)))
-    # One unit rendering leaves a slot (agents hold two): it bids, and takes a second unit to queue.
+    # One unit rendering leaves slots (agents hold eight): it bids, and takes the next units to queue.
     farm.run(farm.master.send(cfp(job, "cfp-slot", unit(1, Rect(0, 0, 8, 8)))))
     propose = farm.run(farm.master.expect(m.Propose, since=since))
     assert propose.conversation == "cfp-slot"
-    farm.run(farm.master.send(farm.award(job, unit(1, Rect(0, 0, 8, 8)), "award-b1")))
-    farm.run(farm.master.expect(m.Heartbeat, since=since, where=lambda h: len(h.busy) == 2))
-    farm.run(farm.master.send(cfp(job, "cfp-busy", unit(2, Rect(8, 0, 8, 8)))))
+    for i in range(1, SLOTS):
+        farm.run(farm.master.send(farm.award(job, unit(i, Rect(0, 0, 8, 8)), f"award-b{i}")))
+    farm.run(farm.master.expect(m.Heartbeat, since=since, where=lambda h: len(h.busy) == SLOTS))
+    farm.run(farm.master.send(cfp(job, "cfp-busy", unit(SLOTS, Rect(8, 0, 8, 8)))))
     refuse = farm.run(farm.master.expect(m.Refuse, since=since))
     assert refuse.conversation == "cfp-busy" and "busy" in refuse.reason
 
@@ -376,6 +378,46 @@ def test_registers_again_after_the_server_restarts(farm: Farm, bundles: dict) ->
     job = farm.job("job-a", sha_of(bundles, "cbox"), scene)
     farm.run(farm.master.send(cfp(job, "after-restart", unit(6, Rect(0, 0, 8, 8)))))
     farm.run(farm.master.expect(m.Propose, since=restarted, where=lambda p: p.conversation == "after-restart"))
+
+
+def test_units_awarded_together_render_in_one_call_and_each_is_delivered(farm: Farm, bundles: dict) -> None:
+    scene, _ = bundles["cbox"]
+    job = farm.job("job-t", sha_of(bundles, "cbox"), scene, level="S")
+    # alike units (the rules give them one depth) in the four quarters of the 32 px image
+    units = [unit(i, Rect(16 * (i % 2), 16 * (i // 2), 16, 16)) for i in range(4)]
+    since = time.monotonic()
+    for u in units:  # sent back to back: they arrive while the first one's bundle is fetched
+        farm.run(farm.master.send(farm.award(job, u, f"award-t{u.index}")))
+    for u in units:
+        farm.run(farm.master.expect(m.Inform, since=since, where=lambda x, i=u.index: x.index == i), 60)
+    tiles = {i: read_tile_bytes(data, "upload") for j, i, data in farm.master.uploads if j == "job-t"}
+    assert sorted(tiles) == [0, 1, 2, 3]
+    assert all(t.meta["window_method"].startswith("together") for t in tiles.values())
+    seeds = [t.meta["seed"] for t in tiles.values()]
+    assert max(seeds.count(s) for s in seeds) >= 2, seeds  # units shared a call (its first unit's seed)
+    for i, tile in tiles.items():
+        assert tile.core == units[i].rect and np.isfinite(tile.pixels).all() and tile.pixels.mean() > 0.01
+
+
+def test_a_batch_that_fails_together_renders_its_units_alone(tmp_path: Path) -> None:
+    """A batch's call fails (here: two integrators, which one call cannot render): each unit is rendered
+    alone, so that one bad unit fails by itself and does not take its batch with it."""
+    from agents.render_agent import AgentConfig, RenderAgent
+    from core.model.job import SceneSpec
+    from core.render.worker import RenderRequest
+
+    agent = RenderAgent(AgentConfig(jid=AGENT, password=PASSWORD, master=MASTER, workdir=tmp_path))
+    try:
+        scene = SceneSpec(CBOX, {"res": "32"})
+        requests = [RenderRequest(scene, "llvm_ad_rgb", integrator, 4, 4, i, 32, 32, Rect(16 * i, 0, 16, 16),
+                                  band=2, threads=1, job_id="job-f", unit_index=i)
+                    for i, integrator in enumerate(["path", "direct"])]
+        tiles = agent._render_tiles(requests, 120.0, None, True)
+        assert [t.core for t in tiles] == [r.unit for r in requests]
+        assert not any(t.meta["window_method"].startswith("together") for t in tiles)  # each its own call
+        assert all(np.isfinite(t.pixels).all() for t in tiles)
+    finally:
+        agent.worker.stop()
 
 
 def test_stops_cleanly_on_sigterm(farm: Farm) -> None:

@@ -25,6 +25,8 @@ from master.store import _SCHEMA, JobStore, RunningJob, StoreError
 HASH = "ef" * 32
 
 
+ONE_A_ROUND = au.Config(slots=2)  # one unit a round and a call: what the auction tests here trace
+
 def specs(n: int) -> list[WorkUnit]:
     return [
         WorkUnit(index=i, rect=Rect(8 * i, 0, 8, 8), C=0.5, S=64, Nd=0.1, cost=1.0 + i) for i in range(n)
@@ -165,7 +167,7 @@ def test_done_needs_a_durable_result_and_happens_once(tmp_path: Path) -> None:
 
 def test_auction_events_are_recorded(tmp_path: Path) -> None:
     store = new_store(tmp_path / "farm.db", n=3)
-    auction = au.Auction(rng=random.Random(5))
+    auction = au.Auction(ONE_A_ROUND, rng=random.Random(5))
     auction.add_job(info_of(store.job("job-1")), [u.unit() for u in store.units("job-1")])
     for name in ("A", "B"):
         store.apply(auction.register(name, 100.0), 100.0)
@@ -243,7 +245,7 @@ def _crashing_master(path: str) -> None:
     import os
 
     store = new_store(Path(path), n=5)
-    auction = au.Auction(rng=random.Random(9))
+    auction = au.Auction(ONE_A_ROUND, rng=random.Random(9))
     auction.add_job(info_of(store.job("job-1")), [u.unit() for u in store.units("job-1")])
     for name in ("A", "B", "C", "D"):
         store.apply(auction.register(name, 100.0), 100.0)
@@ -413,7 +415,7 @@ def test_status_changes_are_checked_against_the_transition_table(tmp_path: Path)
 
 def test_requeued_and_cancelled_units_are_recorded(tmp_path: Path) -> None:
     store = new_store(tmp_path / "farm.db", n=2)
-    auction = au.Auction(rng=random.Random(5))
+    auction = au.Auction(ONE_A_ROUND, rng=random.Random(5))
     auction.add_job(info_of(store.job("job-1")), [u.unit() for u in store.units("job-1")])
     for name in ("A", "B"):
         store.apply(auction.register(name, 100.0), 100.0)

@@ -53,7 +53,10 @@ def test_batches_hold_one_depth_in_order_and_respect_the_cap():
     # their bands) span 48 x 24 pixels, unit 4 (y 16..40) would make it 48 x 40; units 1 and 3 would span
     # 34 x 40, units 3 and 5 span 48 x 24
     assert [[j.unit_index for j in b] for b in batches(jobs, pixels=48 * 24)] == [[1], [0, 2], [3, 5], [4]]
-    assert bounds([jobs[0], jobs[2]]) == Rect(0, 0, 48, 24)
+    # what a batch renders: the whole image (one kernel for every batch of a depth), or where the image
+    # is larger than the cap, the least rectangle holding its windows
+    assert bounds([jobs[0], jobs[2]]) == Rect(0, 0, 48, 40)
+    assert bounds([jobs[0], jobs[2]], pixels=48 * 40 - 1) == Rect(0, 0, 48, 24)
 
 
 def test_each_pixel_draws_its_units_spp_and_band_pixels_of_other_batches_their_windows():

@@ -11,6 +11,16 @@ from core.model.fields import constrained
 from core.model.geometry import Rect
 from fuzzy.render_params import SPP_MAX
 
+# Units an agent holds at once (rendering, waiting, uploading), master and agent alike: its next batch is
+# awarded while one renders. 2 is one unit a call, as before units were batched on agents.
+SLOTS = 8
+
+
+def batch_size(slots: int) -> int:
+    """Units an agent renders in one call, and wins in one auction round: half its slots, so that the next
+    batch is awarded while one renders (2 slots: one unit a call)."""
+    return max(1, slots // 2)
+
 
 class UnitError(MessageError):
     """A unit description (e.g. from a message or a job file) that is malformed."""

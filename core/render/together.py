@@ -69,9 +69,15 @@ def cost(job: RenderRequest) -> int:
     return job.window.area * job.spp
 
 
-def bounds(batch: Sequence[RenderRequest]) -> Rect:
-    """The least rectangle holding the batch's windows: what its call renders."""
-    out = batch[0].window
+def bounds(batch: Sequence[RenderRequest], pixels: int = BATCH_PIXELS) -> Rect:
+    """What the batch's call renders: the whole image where it has at most `pixels` pixels, else the least
+    rectangle holding the batch's windows. Dr.Jit bakes the film's size into the kernel: batches of one
+    depth on one film size share it, where each bounding rectangle compiled its own (scattered units on an
+    agent: 0.37 s a batch of four against 0.21 s, cbox 512 px at 1 thread)."""
+    first = batch[0]
+    if first.width * first.height <= pixels:
+        return Rect(0, 0, first.width, first.height)
+    out = first.window
     for job in batch[1:]:
         out = out.bounding(job.window)
     return out

@@ -463,13 +463,14 @@ class RenderWorker:
         self.import_seconds = float(info["import_seconds"])
         self._ready = True
 
-    def call(self, fn: Callable[..., Any], *args: Any, doing: str = "its work", timeout: float | None = None) -> Any:
+    def call(self, fn: Callable[..., Any], *args: Any, doing: str = "its work", timeout: float | None = None,
+             abort: threading.Event | None = None) -> Any:
         """`fn(*args)` run in the child, which keeps what it imported and loaded for the units that follow
         (`quekaro render` plans there, so that its own process never imports Mitsuba); `fn` must be a
         module-level function and its arguments and result picklable. What `fn` raises is raised here
         (the child's traceback as a note); a crash is a RenderError naming `doing`, and the child restarts
-        on next use; past `timeout` seconds it is killed."""
-        answer = self._exchange(("call", fn, args), timeout, doing)
+        on next use; past `timeout` seconds it is killed, and `abort` ends it as in `render`."""
+        answer = self._abortable(("call", fn, args), timeout, doing, abort)
         if answer[0] == "result":
             return answer[1]
         _, exc, trace = answer
@@ -512,14 +513,18 @@ class RenderWorker:
         """Render one unit in the child; a crash or timeout is a RenderError, and the next call restarts.
         `abort` set (and `interrupt` called) ends it, also before it has begun (as a RenderError)."""
         where = f"unit {job.unit_index} {job.unit.as_list()}"
+        answer = self._abortable(job.to_dict(), timeout, where, abort)
+        return self._tile_from_answer(answer, job, where)
+
+    def _abortable(self, message: Any, timeout: float | None, where: str, abort: threading.Event | None) -> Any:
+        """`_exchange`, which `interrupt` ends while `abort` is set, as it does before it begins."""
         self._abort = abort
         try:
             if abort is not None and abort.is_set():
                 raise RenderError(f"{where}: interrupted before it began")
-            answer = self._exchange(job.to_dict(), timeout, where, abort)
+            return self._exchange(message, timeout, where, abort)
         finally:
             self._abort = None
-        return self._tile_from_answer(answer, job, where)
 
     def _exchange(self, message: Any, timeout: float | None, where: str,
                   abort: threading.Event | None = None) -> Any:
