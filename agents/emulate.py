@@ -137,7 +137,8 @@ def _decode(raw: Any) -> np.ndarray:
 
 class EmulatedWorker:
     """Stands in for `core.render.worker.RenderWorker`: `render(request, timeout)` sleeps the unit's time from
-    the cost map, then returns a real tile of the unit's window. Renders one unit at a time, as the real one."""
+    the cost map, then returns a real tile of the unit's window. Renders one unit at a time (an emulated agent
+    renders no batches: agents.render_agent gives its state machine batches of one)."""
 
     def __init__(self, emulation: Emulation) -> None:
         self.emulation = emulation

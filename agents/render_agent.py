@@ -18,8 +18,9 @@ master/auction.py expects it:
             seconds, non-finite pixels, spp, depth, band, the rules' crisp outputs, the agent's JID),
             upload it with the award's token, then Inform (tile sha256 and the parameters). Any error
             of that unit -> Failure with the reason; the agent itself carries on.
-  cancel    the unit (or every unit of the job) is dropped: a render in flight is ended (its render
-            process killed), queued ones (and one whose bundle is still being fetched) never start.
+  cancel    the unit (or every unit of the job) is dropped: a render in flight is ended once none of its
+            units is wanted (its render process killed), queued ones (and one whose bundle is still being
+            fetched) never start.
 
 Duplicate awards (same unit, same token) are ignored; a re-award with a new token replaces the old one's
 token. Every decision (slots, awards, cancels, which unit renders next, heartbeats, estimates and their
@@ -262,7 +263,7 @@ class RenderAgent:
                     self._remove_tile(job_id, index)
                 case AbortRender(ticket=ticket):
                     if ticket in self._aborts:
-                        log.info("ending the render of ticket %d: its unit was cancelled", ticket)
+                        log.info("ending the render of ticket %d: its units were cancelled", ticket)
                         self._aborts[ticket].set()
                         self.worker.interrupt()
                 case StartRender(ticket=ticket):
@@ -285,6 +286,8 @@ class RenderAgent:
             case StartRender():
                 try:
                     events = list(await self._render(command))
+                except Exception as exc:  # every unit of the step is answered, or the agent would wait forever
+                    events = [RenderFailed(ticket, describe(exc)) for ticket in command.tickets]
                 finally:  # however the render ended: its abort has no render left to end
                     self._aborts.pop(command.ticket, None)
             case Upload():
@@ -368,9 +371,10 @@ class RenderAgent:
                 made = self._attempt(lambda g=group: self.worker.call(
                     render_batch_here, g, doing=f"units {[r.unit_index for r in g]}", timeout=timeout, abort=abort),
                     len(group))
-                if len(group) > 1 and isinstance(made[0], Exception) and not (abort and abort.is_set()):
-                    # Each unit on its own, so that one bad unit (or a crash) fails it alone and its
-                    # agent is not blocklisted for the job by a whole batch's failures at once.
+                if isinstance(made[0], Exception) and not (abort and abort.is_set()):
+                    # Each unit on its own (Mitsuba's render call), so that one bad unit (or a crash) fails
+                    # alone, its agent is not blocklisted for the job by a whole batch's failures at once,
+                    # and a unit the batch's path cannot render is rendered the other way.
                     log.warning("units %s failed together (%s): each rendered alone", [r.unit_index for r in group],
                                 made[0])
                     made = [self._attempt(lambda r=r: [self.worker.render(r, timeout, abort)], 1)[0] for r in group]
@@ -395,8 +399,10 @@ class RenderAgent:
         if request.job_id not in self._together:
             try:
                 problem = self.worker.call(together_problem_here, request, doing="checking the scene", timeout=timeout)
-            except Exception as exc:
-                problem = describe(exc)
+            except Exception as exc:  # not kept: a crash or a timeout says nothing of the scene
+                log.warning("job %s: the scene's check failed (%s): its units render one by one", request.job_id,
+                            describe(exc))
+                return describe(exc)
             if problem:
                 log.info("job %s: units render one by one: %s", request.job_id, problem)
             self._together[request.job_id] = problem

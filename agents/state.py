@@ -240,6 +240,7 @@ class Work:
     cancelled: bool = False
     started: float = 0.0  # when its render step began (bundle, plan, render, tile)
     share: float = 1.0  # its part of its render step's seconds: its base estimate over its batch's
+    predicted: float | None = None  # its uncorrected estimate when its step began (calibration's reference)
     params: Params | None = None
     rendered: RenderFinished | None = None
     uploaded_as: m.Award | None = None  # the award its tile was uploaded under (the latest at the time)
@@ -456,7 +457,7 @@ class AgentState:
         conversation = self._conversation("register")
         self._unwelcomed.add(conversation)
         return Send(m.Register(conversation=conversation, speed=self.speed.speed, threads=self.threads,
-                               rules=self.rules))
+                               rules=self.rules, slots=self.slots))
 
     def _on_welcome(self, welcome: m.Welcome) -> list[Command]:
         """The master heard a Register of this connection: no more of them until the next connection."""
@@ -501,8 +502,11 @@ class AgentState:
         work.params = params
         more = self._batch_with(work, now)
         base = [self.base_estimate(w.award.unit, w.params) for w in self.step]
+        # One kernel a call: a new one's compilation is shared by the batch, as its seconds are.
+        compile_s = self.uncorrected(work.award.job, work.award.unit, params) - base[0]
         for member, seconds in zip(self.step, base, strict=True):
             member.share = seconds / sum(base) if sum(base) > 0 else 1.0 / len(base)
+            member.predicted = seconds + compile_s * member.share
         # Generous: the master's own deadline (estimate x 3 + 30 s) decides when it gives up.
         timeout = min(self.max_render_s, 120.0 + 10.0 * sum(base))
         return [StartRender(work.ticket, work.award, ready.scene, params, timeout, more)]
@@ -569,6 +573,8 @@ class AgentState:
             return [Log(logging.DEBUG, f"render of ticket {rendered.ticket}: no such render")]
         self.step.remove(work)
         key = work.key
+        if work.params is not None:  # its kernel is compiled now, whatever becomes of its tile
+            self.kernels.add(self._kernel(work.award.job, work.award.unit, work.params))
         if work.cancelled:
             out: list[Command] = [Log(logging.INFO, f"unit {key[0]}/{key[1]} rendered after its cancellation: "
                                                     "discarded"), DiscardTile(*key)]
@@ -591,14 +597,13 @@ class AgentState:
         return out
 
     def _done(self, work: Work, sha256: str, now: float) -> list[Command]:
-        """Learn from the unit (kernel compiled, time taken), remember its award, and Inform."""
+        """Learn from the unit (time taken), remember its award, and Inform."""
         award, rendered, params = work.uploaded_as, work.rendered, work.params
         assert award is not None and rendered is not None and params is not None
         key, wall = work.key, (now - work.started) * work.share
         self.units_done += 1
         _remember(self.finished, (*key, award.token), None)
-        predicted = self.uncorrected(award.job, award.unit, params)
-        self.kernels.add(self._kernel(award.job, award.unit, params))
+        predicted = self.uncorrected(award.job, award.unit, params) if work.predicted is None else work.predicted
         self.calibration.learn(key[0], predicted, wall)
         spp = params.spp if rendered.spp is None else rendered.spp
         text = (f"unit {key[0]}/{key[1]} done: {wall:.3f} s in all, render {rendered.seconds:.3f} s, spp "

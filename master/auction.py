@@ -34,6 +34,7 @@ lost agent's units return to the auction.
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import heapq
 import hmac
 import math
@@ -82,9 +83,10 @@ class Config:
     # call: its next batch is awarded while one renders, so its render process never waits for the upload,
     # the inform and the next auction (~35 ms a unit on one machine). 2: one unit a round and a call.
     slots: int = SLOTS
-    # A second unit is queued only while the open units are at least this many per live agent (and at
-    # least `slots`): in the end game a queued unit is committed before anyone knows which agent frees up
-    # first, and the simulation's tail grew (64 agents: efficiency 0.77 -> 0.71 with 3 here instead of 4).
+    # Units are queued behind others only while the open units are at least this many per live agent (and
+    # at least `slots`): in the end game a queued unit is committed before anyone knows which agent frees
+    # up first, and the simulation's tail grew (64 agents, 2 slots: efficiency 0.77 -> 0.71 with 3 here
+    # instead of 4).
     queue_above: float = 4.0
     max_cfp_units: int = m.MAX_CFP_UNITS
     upload_url: str = "http://127.0.0.1:8765/jobs/{job}/units/{index}/tile"
@@ -282,6 +284,7 @@ class Agent:
     registered: bool = True  # False: known from heartbeats alone, its speed not yet told
     silences: int = 0  # calls for proposals it let time out in a row
     silent_until: float | None = None  # left out of auctions until then (Config.silence_max_s)
+    slots: int | None = None  # units it holds at once, as its Register told (None: Config.slots)
     # Seconds per unit of cost, per job: from its latest bids, and from its last unit that overran.
     rates: dict[str, float] = field(default_factory=dict)
     late_rates: dict[str, float] = field(default_factory=dict)
@@ -487,6 +490,19 @@ def _move(
     finish[dst] += agent_of[dst].rate * unit_of[index].cost
 
 
+def _batch_deadlines(out: list[Command], wins: dict[str, list[UnitState]]) -> list[Command]:
+    """Units one agent won in one round render in one call and end together, after the last of them would
+    have ended one by one: each is given the last one's deadline (its own would pass before the batch ends
+    when the others take more than twice its estimate plus the slack)."""
+    deadlines = {}
+    for won in wins.values():
+        last = max(u.deadline for u in won)
+        for unit in won:
+            unit.deadline = deadlines[unit.spec.index] = last
+    return [dataclasses.replace(c, deadline=deadlines[c.index]) if isinstance(c, UnitAwarded) else c
+            for c in out]
+
+
 def _own_first(units: tuple[int, ...], agent: str, plan: dict[int, Placement], room: int) -> tuple[int, ...]:
     """The units offered to `agent`, those the projection places on it first where it may win several."""
     if room <= 1:
@@ -591,17 +607,20 @@ class Auction:
         return self._finish_if_done(job) + self._fail_if_stuck(job)
 
     def register(self, agent: str, now: float, speed: float = 1.0, credits: int = 0,
-                 registered: bool = True) -> list[Command]:
+                 registered: bool = True, slots: int | None = None) -> list[Command]:
         """An agent announces itself (or comes back); its record (credits) may come from the store.
-        `registered` False: heard from by heartbeat only, at speed 1.0 until its Register comes."""
+        `registered` False: heard from by heartbeat only, at speed 1.0 until its Register comes. `slots`:
+        the units it told it holds at once (None: the master's `Config.slots`)."""
         known = self.agents.get(agent)
         if known is None:
             credits = self.known_credits.get(agent, credits)
-            known = self.agents[agent] = Agent(agent, now, credits=credits, speed=speed, registered=registered)
+            known = self.agents[agent] = Agent(agent, now, credits=credits, speed=speed, registered=registered,
+                                               slots=slots)
             known.recent = deque(maxlen=self.config.recent_window)
             return [AgentRegistered(agent, speed)]
         known.speed = speed
         known.registered = True
+        known.slots = slots if registered else known.slots
         return self._seen(known, now)
 
     # --- messages in ---------------------------------------------------------------------------------
@@ -611,7 +630,7 @@ class Auction:
         match msg:
             case m.Register():
                 welcome = Send(sender, m.Welcome(conversation=msg.conversation))  # the agent retries until it
-                return [*self.register(sender, now, speed=msg.speed), welcome]
+                return [*self.register(sender, now, speed=msg.speed, slots=msg.slots), welcome]
             case m.Heartbeat():
                 return self.on_heartbeat(sender, msg, now)
             case m.Propose():
@@ -771,10 +790,11 @@ class Auction:
         for agent in self.agents.values():
             if agent.silent_until is not None and now >= agent.silent_until:
                 agent.silent_until = None  # called again; its silences count on until it answers
-        queueing = self._queueing()
-        free = sorted((a for a in self.agents.values() if self._is_free(a, queueing)),
-                      key=lambda a: (-a.score, a.name))
+        open_units = sum(u.status == UnitStatus.PENDING for j in self._running() for u in j.units.values())
         for job in self._running():
+            queueing = self._queueing(job, open_units)
+            free = sorted((a for a in self.agents.values() if self._is_free(a, queueing)),
+                          key=lambda a: (-a.score, a.name))
             callable_now = {a.name for a in free if a.invited is None}  # earlier jobs' rounds took some
             agents = [a for a in free if a.name in callable_now and a.name not in job.blocklist]
             pending = sorted(
@@ -794,7 +814,7 @@ class Auction:
                     if self._worth_offering(agent.name, u, excluded[u.spec.index], plan, rates, now, callable_now)
                 )
                 if units:
-                    offered[agent.name], room[agent.name] = units, self._room(agent, queueing)
+                    offered[agent.name], room[agent.name] = units, self._room(agent, queueing, job)
             if not offered:
                 continue
             # No agent is offered more units than the round calls agents or than it may win; one that may
@@ -871,22 +891,32 @@ class Auction:
         unit while the farm has plenty of work (`queueing`, from `_queueing`, decided once per tick)."""
         if agent.lost or agent.invited is not None or agent.silent_until is not None:
             return False
-        return not agent.holding or (len(agent.holding) < self.config.slots and queueing)
+        return not agent.holding or (len(agent.holding) < self._slots(agent) and queueing)
 
-    def _room(self, agent: Agent, queueing: bool) -> int:
-        """Units a free agent may win in one round: a batch (`batch_size`), within its free slots while units
-        may queue; in the end game one batch, and only when it holds nothing."""
-        batch = batch_size(self.config.slots)
+    def _room(self, agent: Agent, queueing: bool, job: Job) -> int:
+        """Units a free agent may win in one round of `job`: a batch (`_batch`), within its free slots while
+        units may queue; in the end game one batch, and only when it holds nothing."""
+        slots = self._slots(agent)
+        batch = self._batch(job, slots)
         if agent.holding:
-            return min(batch, self.config.slots - len(agent.holding)) if queueing else 0
+            return min(batch, slots - len(agent.holding)) if queueing else 0
         return batch
 
-    def _queueing(self) -> bool:
-        """Whether units may be queued behind others: only while the open units are at least
-        max(`slots`, `queue_above`) times the live agents (see `Config.queue_above`)."""
+    def _slots(self, agent: Agent) -> int:
+        """Units the agent may hold: the master's `Config.slots`, or fewer where its Register said so."""
+        return min(self.config.slots, agent.slots or self.config.slots)
+
+    @staticmethod
+    def _batch(job: Job, slots: int) -> int:
+        """Units of `job` an agent with `slots` renders in one call and wins in one round: `batch_size`, or
+        one where its units render one a call (level off, two-pass units)."""
+        return batch_size(slots) if job.info.level != "off" and job.info.first_spp is None else 1
+
+    def _queueing(self, job: Job, open_units: int) -> bool:
+        """Whether units of `job` may be queued behind others: only while the farm's `open_units` are at
+        least max(two of its batches, `queue_above`) per live agent (see `Config.queue_above`)."""
         live = sum(not a.lost for a in self.agents.values())
-        open_units = sum(u.status == UnitStatus.PENDING for j in self._running() for u in j.units.values())
-        return open_units >= max(self.config.slots, self.config.queue_above) * live
+        return open_units >= max(2 * self._batch(job, self.config.slots), self.config.queue_above) * live
 
     def _seen(self, agent: Agent, now: float) -> list[Command]:
         agent.last_seen = max(agent.last_seen, now)
@@ -935,19 +965,20 @@ class Auction:
         out: list[Command] = self._silenced(round_, now)
         if job is None or job.status != JobStatus.RUNNING:
             return out
-        wins: Counter[str] = Counter()
+        wins: dict[str, list[UnitState]] = {}
         units = sorted((job.units[i] for i in round_.units), key=lambda u: (-u.spec.work, u.spec.index))
         usable = self._rates(job).keys()
         for unit in units:
             if unit.status != UnitStatus.ANNOUNCED:
                 continue
-            full = {name for name, won in wins.items() if won >= round_.room.get(name, 1)}
+            full = {name for name, won in wins.items() if len(won) >= round_.room.get(name, 1)}
             winner = self._pick(round_, unit, job, full, now, _excluded(unit, usable))
             if winner is None:
                 self._set_unit(job, unit, UnitStatus.PENDING)
             else:
-                wins[winner] += 1
+                wins.setdefault(winner, []).append(unit)
                 out += self._award(job, unit, winner, round_.bids[winner][unit.spec.index], now)
+        out = _batch_deadlines(out, wins)
         for name in sorted(set(round_.bids) - set(wins)):
             if name in self.agents and round_.bids[name]:
                 reject = m.Reject(
@@ -1095,8 +1126,8 @@ class Auction:
         unit.deadline = start + estimate * self.config.render_factor + self.config.render_slack_s
         self.agents[agent].holding.add((job.info.job_id, unit.spec.index))
         url = self.config.upload_url.format(job=job.info.job_id, index=unit.spec.index)
-        # The seed depends on the unit only, so a retried unit renders the same samples as the first try
-        # and as `quekaro render` of the same job.
+        # The seed depends on the unit only, so a retried unit rendered alone renders the same samples as the
+        # first try and as `quekaro render` of the same job (a batch draws from its first unit's seed).
         award = m.Award(
             conversation=unit.conversation,
             job=job.info,

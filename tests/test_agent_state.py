@@ -663,8 +663,9 @@ def test_a_batch_is_timed_by_shares_of_its_estimate_for_the_calibration() -> Non
     for ticket in start.tickets:
         agent(RenderFinished(ticket, Path(f"/tiles/{ticket}.exr"), 1.0))
     assert sent(agent(UploadDone(start.tickets[0], "cd" * 32), dt=2.0), m.Inform)
-    # unit 0 took its share of the 2 s since the batch began, against its estimate of 20 s + a compilation
-    predicted = seconds(10.0, 4, SPEED) + COMPILE_S
+    # unit 0 took its share of the 2 s since the batch began, against its estimate of 20 s and its share of
+    # the batch's one compilation
+    predicted = seconds(10.0, 4, SPEED) + 0.2 * COMPILE_S
     assert agent.state.calibration.factor("job-1") == pytest.approx(2.0 * 0.2 / predicted)
 
 
@@ -686,8 +687,59 @@ def test_cancel_of_one_unit_of_a_batch_lets_the_others_render() -> None:
     assert DiscardTile("job-1", 0) in out and not [c for c in out if isinstance(c, Upload)]
     out = agent(RenderFinished(start.more[0].ticket, Path("/tiles/1.exr"), 1.0))
     assert only(out, Upload).award.unit.index == 1
-    out = agent(m.Cancel(conversation="c-2", job_id="job-1", index=1, reason="x"))
-    assert not [c for c in out if isinstance(c, AbortRender)]  # nothing renders any more
+
+
+def test_a_batch_cancelled_unit_by_unit_is_ended_at_the_last_cancel() -> None:
+    agent = Agent(slots=4)
+    start = two_in_one_call(agent, job())
+    assert not [c for c in agent(m.Cancel(conversation="c-1", job_id="job-1", index=1, reason="x"))
+                if isinstance(c, AbortRender)]
+    out = agent(m.Cancel(conversation="c-2", job_id="job-1", index=0, reason="x"))
+    assert only(out, AbortRender) == AbortRender(start.ticket)  # the first unit's ticket: the render's
+    for ticket in start.tickets:
+        out = agent(RenderFailed(ticket, "interrupted"))
+        assert not sent(out)
+    assert agent.held() == [] and agent.state.step == [] and agent.state.units_failed == 0
+
+
+def test_a_batched_unit_re_awarded_during_its_render_uploads_under_the_new_award() -> None:
+    agent = Agent(slots=4)
+    info = job()
+    start = two_in_one_call(agent, info)
+    agent(award(info, unit(1), token="b2" * 16, conversation="again"))
+    out = agent(RenderFinished(start.more[0].ticket, Path("/tiles/1.exr"), 1.0))
+    upload = only(out, Upload)
+    assert upload.award.token == "b2" * 16
+    (inform,) = sent(agent(UploadDone(upload.ticket, "cd" * 32)), m.Inform)
+    assert (inform.conversation, inform.token) == ("again", "b2" * 16)
+
+
+def test_a_waiting_unit_that_cannot_be_planned_stays_out_of_the_batch_and_fails_alone() -> None:
+    rules = Rules()
+    agent = Agent(slots=4, rules=rules)
+    info = job(rules_sha256="ef" * 32)  # its own rules: planned afresh, here failing for unit 1 only
+    fetch = only(agent(award(info, unit(0))), FetchBundle)
+    agent(award(info, unit(1)))
+    original = rules.__class__.__call__
+
+    def failing_for_one(self: Rules, job_: m.JobInfo, units: tuple[WorkUnit, ...]) -> list[Params]:
+        if any(u.index == 1 for u in units):
+            raise ValueError("no rule fires")
+        return original(self, job_, units)
+
+    agent.state.plan = lambda job_, units: failing_for_one(rules, job_, units)
+    start = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
+    assert start.more == () and [w.key for w in agent.state.queue] == [("job-1", 1)]
+    out = agent(RenderFinished(start.ticket, Path("/tiles/0.exr"), 1.0))
+    fetch = only(out, FetchBundle)
+    (failure,) = sent(agent(BundleReady(fetch.ticket, SCENE)), m.Failure)
+    assert failure.index == 1 and "no rule fires" in failure.reason
+
+
+def test_register_tells_the_master_its_slots() -> None:
+    agent = Agent(slots=6)
+    (register,) = sent(agent(Tick(online=True, connection=1)), m.Register)
+    assert register.slots == 6
 
 
 def test_batch_must_fit_the_slots() -> None:

@@ -896,13 +896,46 @@ def test_with_eight_slots_a_free_agent_wins_a_batch_a_round_and_the_next_while_i
                                               + a.config.render_slack_s, abs=0.11)
 
 
-def test_a_batch_round_offers_each_agent_its_batch_and_rejects_bidders_that_won_nothing() -> None:
+def test_a_batch_round_offers_each_agent_the_units_projected_to_it_and_each_wins_them() -> None:
     a = make([1.0] * 40, ["A", "B"], au.Config(slots=8))
     cfps = sends(a.announce(0.0), m.CallForProposal)
-    assert sorted(len(s.message.units) for s in cfps) == [4, 4]
+    offers = {s.to: {u.index for u in s.message.units} for s in cfps}
+    assert sorted(len(units) for units in offers.values()) == [4, 4] and not offers["A"] & offers["B"]
     bid_all(a, cfps, 0.0)
     out = a.decide(0.0)
-    assert len(awards(out)) == 8 and not sends(out, m.Reject)
+    assert {i: s.to for i, s in awards(out).items()} == {i: name for name, units in offers.items() for i in units}
+    assert not sends(out, m.Reject)
+
+
+def test_units_won_in_one_round_share_the_deadline_of_the_last_one() -> None:
+    # Long units: the batch ends after all four, later than 3 x the first's estimate + 30 s after its start.
+    a = make([100.0] * 40, ["A", "B"], au.Config(slots=8))
+    bid_all(a, a.announce(0.0), 0.0)
+    out = a.decide(0.0)
+    events = {e.index: e for e in out if isinstance(e, au.UnitAwarded)}
+    for name in ("A", "B"):
+        won = [i for i, e in events.items() if e.agent == name]
+        assert len(won) == 4
+        last = 3 * 100.0 + 100.0 * a.config.render_factor + a.config.render_slack_s  # the fourth's own
+        assert all(a.jobs["job-1"].units[i].deadline == pytest.approx(last) for i in won)
+        assert all(events[i].deadline == pytest.approx(last) for i in won)  # as the store records it
+
+
+def test_an_agent_that_registered_fewer_slots_is_awarded_no_more() -> None:
+    a = make([1.0] * 40, [], au.Config(slots=8))
+    a.register("A", 0.0, slots=2)
+    assert len(round_trip(a, 0.0)) == 1  # batch_size(2): one a round
+    assert len(round_trip(a, 0.1)) == 1
+    assert round_trip(a, 0.2) == {}  # two held: full
+    assert a.on_message("A", m.Register(conversation="r", speed=1.0, threads=1, rules="", slots=8), 0.3)
+    assert len(round_trip(a, 0.4)) == 4 and a.agents["A"].slots == 8
+
+
+def test_an_idle_agent_in_the_end_game_wins_one_unit_of_a_level_off_job() -> None:
+    a = au.Auction(au.Config(slots=8), rng=random.Random(7))
+    a.add_job(dataclasses.replace(info(), level="off"), specs([1.0] * 6))
+    a.register("A", 0.0)
+    assert len(round_trip(a, 0.0)) == 1  # its units render one a call: nothing to batch
 
 
 def test_in_the_end_game_an_agent_holding_units_is_not_called_and_an_idle_one_wins_one_batch() -> None:

@@ -232,6 +232,8 @@ class Register(Message):
     speed: float = constrained(lo=1e-6, hi=1e6)
     threads: int = constrained(lo=1, hi=4096)
     rules: str = constrained(max_len=256)
+    # Units it holds at once (its --slots): the master awards it no more. None: not told (the master's own).
+    slots: int | None = constrained(lo=1, hi=MAX_CFP_UNITS, default=None)
 
 
 @dataclass(frozen=True, kw_only=True)
