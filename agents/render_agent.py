@@ -344,7 +344,7 @@ class RenderAgent:
         requests = [self._request(command.scene, award, params) for _, award, params in items]
         abort = self._aborts.get(command.ticket)
         job = command.award.job
-        may_batch = self.emulation is None and job.level != "off" and job.first_spp is None
+        may_batch = self.state.batches(job)  # emulated agents have batches of one
         results = await asyncio.to_thread(self._render_tiles, requests, command.timeout_s, abort, may_batch)
         return [await self._written(ticket, award, params, result)
                 for (ticket, award, params), result in zip(items, results, strict=True)]
@@ -360,14 +360,19 @@ class RenderAgent:
     def _render_tiles(self, requests: list[RenderRequest], timeout: float, abort: threading.Event | None,
                       may_batch: bool) -> list[Tile | Exception]:
         """Each request's tile, or the error that ended it: in batches of one call each where `may_batch`
-        (not emulated, not level off, not two-pass) and the scene allows, else one by one. A batch of one
+        (AgentState.batches) and the scene allows, else one by one. A batch of one
         unit renders as a batch too: on the film of the others, it reuses their kernel where its own window
         would compile one. Runs in a worker thread."""
         together = may_batch and self._together_problem(requests[0], timeout) is None
         groups = batches(requests) if together else [[r] for r in requests]
         tiles: dict[int, Tile | Exception] = {}
+        def alone(request: RenderRequest) -> Tile | Exception:
+            return self._attempt(lambda: [self.worker.render(request, timeout, abort)], 1)[0]
+
         for group in groups:
-            if together:
+            if not together:
+                made = [alone(group[0])]
+            else:
                 made = self._attempt(lambda g=group: self.worker.call(
                     render_batch_here, g, doing=f"units {[r.unit_index for r in g]}", timeout=timeout, abort=abort),
                     len(group))
@@ -377,9 +382,7 @@ class RenderAgent:
                     # and a unit the batch's path cannot render is rendered the other way.
                     log.warning("units %s failed together (%s): each rendered alone", [r.unit_index for r in group],
                                 made[0])
-                    made = [self._attempt(lambda r=r: [self.worker.render(r, timeout, abort)], 1)[0] for r in group]
-            else:
-                made = self._attempt(lambda r=group[0]: [self.worker.render(r, timeout, abort)], 1)
+                    made = [alone(r) for r in group]
             tiles.update(zip((r.unit_index for r in group), made, strict=True))
         return [tiles[r.unit_index] for r in requests]
 
@@ -547,8 +550,8 @@ def config_from_args(args: argparse.Namespace) -> AgentConfig:
     password = xmpp_password(args.password, args.password_file)
     if args.threads < 1:
         raise QuekaroError(f"--threads {args.threads}: must be at least 1")
-    if args.slots < 1:
-        raise QuekaroError(f"--slots {args.slots}: must be at least 1")
+    if not 1 <= args.slots <= m.MAX_CFP_UNITS:
+        raise QuekaroError(f"--slots {args.slots}: must be from 1 to {m.MAX_CFP_UNITS} (what a Register holds)")
     if args.speed is not None and (args.emulate is None or not args.speed > 0):
         raise QuekaroError(f"--speed {args.speed}: a factor above 0, and only with --emulate")
     workdir = args.workdir or Path(tempfile.gettempdir()) / "quekaro-agent" / _safe(args.jid)

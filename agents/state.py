@@ -48,7 +48,7 @@ from typing import Any, Protocol
 from core.errors import QuekaroError
 from core.model import messages as m
 from core.model.job import SceneSpec
-from core.model.units import SLOTS, WorkUnit, batch_size
+from core.model.units import SLOTS, WorkUnit, batch_size, batched
 
 HEARTBEAT_S = 2.0
 MAX_RENDER_S = 6 * 3600.0  # a render longer than this is killed whatever the estimate
@@ -526,7 +526,7 @@ class AgentState:
         in all: not at level off (plain Mitsuba's render, one call a unit) nor in a two-pass (adaptive)
         job. A unit that cannot be planned stays queued (and fails when its turn comes)."""
         job = first.award.job
-        if not self._batches(job):
+        if not self.batches(job):
             return ()
         more: list[Batched] = []
         for work in list(self.queue):
@@ -547,14 +547,16 @@ class AgentState:
             more.append(Batched(work.ticket, work.award, params))
         return tuple(more)
 
-    def _batches(self, job: m.JobInfo) -> bool:
-        """Whether the job's units render in batches here: at a rule level, not two-pass, batch above 1."""
-        return self.batch > 1 and job.level != "off" and job.first_spp is None
+    def batches(self, job: m.JobInfo) -> bool:
+        """Whether the job's units render in batches here (`batched`, and a batch above 1): the render step
+        then renders them on the whole film (core.render.together), else each on its window."""
+        return self.batch > 1 and batched(job.level, job.first_spp)
 
     def _kernel(self, job: m.JobInfo, unit: WorkUnit, params: Params) -> tuple[Any, ...]:
         """What the render process compiles for the unit: a batch's kernel is the whole film's (one per
-        depth, core.render.together.bounds), a unit's own its window's (`kernel_key`)."""
-        if self._batches(job):
+        depth, core.render.together.bounds; an image above BATCH_PIXELS or a scene the batches cannot
+        render compiles per window, which this does not foresee), a unit's own its window's (`kernel_key`)."""
+        if self.batches(job):
             return job.scene_hash, "film", job.width, job.height, params.depth, job.integrator
         return kernel_key(job, unit, params)
 

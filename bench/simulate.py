@@ -54,8 +54,10 @@ def simulate(
     agent's next render may start meanwhile if that unit was already awarded (a second slot). The agents register
     at `latency` and the job is submitted at twice that, as a user submits to a running farm (were the job
     first, the first agent to register would be alone to take the biggest unit, whatever its speed). The
-    master side is the real `Auction`, so the benchmark measures the award logic that the farm runs. The
-    makespan counts from the submission.
+    master side is the real `Auction`, so the benchmark measures the award logic that the farm runs; its
+    agents render a unit a call, so by default it runs that logic with 2 slots (`UNBATCHED_AUCTION`), as
+    a farm does whose agents do not batch (emulated ones, or `--slots 2`). The makespan counts from the
+    submission.
 
     `estimates`: what the agents bid for each unit, in seconds at speed 1 (default: `costs`, exact bids),
     also the unit's cost as the master knows it. Real agents bid from the master's cost (the pixel count at

@@ -48,7 +48,7 @@ from typing import Protocol
 from core.model import messages as m
 from core.model.seeds import unit_seed
 from core.model.status import JobStatus, UnitStatus, job_transition, unit_transition
-from core.model.units import SLOTS, WorkUnit, batch_size
+from core.model.units import SLOTS, WorkUnit, batch_size, batched
 
 
 @dataclass(frozen=True)
@@ -84,9 +84,9 @@ class Config:
     # the inform and the next auction (~35 ms a unit on one machine). 2: one unit a round and a call.
     slots: int = SLOTS
     # Units are queued behind others only while the open units are at least this many per live agent (and
-    # at least `slots`): in the end game a queued unit is committed before anyone knows which agent frees
-    # up first, and the simulation's tail grew (64 agents, 2 slots: efficiency 0.77 -> 0.71 with 3 here
-    # instead of 4).
+    # at least two batches, `_queueing`): in the end game a queued unit is committed before anyone knows
+    # which agent frees up first, and the simulation's tail grew (64 agents, 2 slots: efficiency 0.77 ->
+    # 0.71 with 3 here instead of 4).
     queue_above: float = 4.0
     max_cfp_units: int = m.MAX_CFP_UNITS
     upload_url: str = "http://127.0.0.1:8765/jobs/{job}/units/{index}/tile"
@@ -888,7 +888,7 @@ class Auction:
 
     def _is_free(self, agent: Agent, queueing: bool) -> bool:
         """Callable to an auction: live, not in one already, and holding nothing, or with a slot for another
-        unit while the farm has plenty of work (`queueing`, from `_queueing`, decided once per tick)."""
+        unit while the farm has plenty of work (`queueing`, from `_queueing`, decided per job at each call)."""
         if agent.lost or agent.invited is not None or agent.silent_until is not None:
             return False
         return not agent.holding or (len(agent.holding) < self._slots(agent) and queueing)
@@ -910,7 +910,7 @@ class Auction:
     def _batch(job: Job, slots: int) -> int:
         """Units of `job` an agent with `slots` renders in one call and wins in one round: `batch_size`, or
         one where its units render one a call (level off, two-pass units)."""
-        return batch_size(slots) if job.info.level != "off" and job.info.first_spp is None else 1
+        return batch_size(slots) if batched(job.info.level, job.info.first_spp) else 1
 
     def _queueing(self, job: Job, open_units: int) -> bool:
         """Whether units of `job` may be queued behind others: only while the farm's `open_units` are at
@@ -1096,13 +1096,13 @@ class Auction:
             and duration <= (place.finish - now) * (1 + self.config.finish_tolerance) + 1e-9
         )
 
-    def _pick(self, round_: Round, unit: UnitState, job: Job, taken: set[str], now: float,
+    def _pick(self, round_: Round, unit: UnitState, job: Job, full: set[str], now: float,
               excluded: frozenset[str]) -> str | None:
         bids = {
             name: bids[unit.spec.index]
             for name, bids in round_.bids.items()
             if unit.spec.index in bids
-            and name not in taken
+            and name not in full
             and name in self.agents
             and not self.agents[name].lost
             and name not in job.blocklist

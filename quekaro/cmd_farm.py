@@ -80,7 +80,8 @@ def _register_master(sub: argparse._SubParsersAction) -> None:
     parser.add_argument("--slots", type=int,
                         help=f"units an agent may hold at once (default {SLOTS}: it wins up to half of them a round "
                              "and renders them in one call, the next half awarded while it renders; 2: one unit a "
-                             "call; 1: one at a time). Agents must hold as many: give them the same --slots")
+                             "call; 1: one at a time). An agent started with fewer says so when it registers, "
+                             "and is awarded no more")
     parser.add_argument("--agents-allow", type=Path,
                         help="file of agent JIDs (one a line, read again when it changes): only these may bid; "
                              "default: any JID matching agent*@DOMAIN that the XMPP server authenticated")

@@ -27,6 +27,7 @@ from farm_support import log_time
 from web_support import wait_until
 
 from core.errors import QuekaroError
+from core.model import messages as m
 from core.render.bundle import make_bundle
 from core.render.imageio import read_image
 from core.render.tiles import read_tile
@@ -186,7 +187,7 @@ def test_forged_upload_and_unknown_sender_are_refused(farm3, tmp_path):
     peer = subprocess.run(
         [sys.executable, "tests/xmpp_peer.py", "--jid", "intruder@localhost", "--password", "pw",
          "--register", "--server", "127.0.0.1", "--port", str(farm3.server.port), "--to", "master@localhost",
-         "--ontology", "quekaro-render", "--body", '{"v":1,"conversation":"x"}', "send"],
+         "--ontology", "quekaro-render", "--body", json.dumps({"v": m.PROTOCOL_VERSION, "conversation": "x"}), "send"],
         cwd=REPO, capture_output=True, text=True, timeout=60)
     job = wait_job(farm3, job_id)
     assert job["status"] == "done", (job, peer.stderr[-2000:])

@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
+import json
 import os
 import signal
 import subprocess
@@ -252,7 +253,8 @@ def test_survives_malformed_and_stray_messages(farm: Farm, bundles: dict) -> Non
     job = farm.job("job-a", sha_of(bundles, "cbox"), scene)
     since = time.monotonic()
     farm.run(farm.master.send_raw("cfp", "{not json", "bad-1"))
-    farm.run(farm.master.send_raw("cfp", '{"v":1,"conversation":"bad-2","job":{}}', "bad-2"))
+    bad = json.dumps({"v": m.PROTOCOL_VERSION, "conversation": "bad-2", "job": {}})
+    farm.run(farm.master.send_raw("cfp", bad, "bad-2"))
     # Valid, but of conversations and jobs the agent never saw: harmless.
     farm.run(farm.master.send(m.Cancel(conversation="stray-1", job_id="nojob", index=7, reason="old")))
     farm.run(farm.master.send(m.Reject(conversation="stray-2", job_id="nojob", reason="old")))

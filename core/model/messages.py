@@ -30,7 +30,7 @@ from fuzzy.engine import DEFUZZIFIERS
 from fuzzy.levels import LEVELS
 from fuzzy.render_params import SPP_MAX
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2  # 2: an agent wins several units a round and tells its slots in Register
 ONTOLOGY = "quekaro-render"
 PROTOCOL = "fipa-contract-net"
 # Prosody drops a sender whose stanza exceeds 256 KiB (design.md section 4): stay well below it.

@@ -16,6 +16,12 @@ from fuzzy.render_params import SPP_MAX
 SLOTS = 8
 
 
+def batched(level: str, first_spp: int | None) -> bool:
+    """Whether a job's units render in batches on an agent: at a rule level, not as two-pass (adaptive)
+    units. Level off is plain Mitsuba's render call, one a unit."""
+    return level != "off" and first_spp is None
+
+
 def batch_size(slots: int) -> int:
     """Units an agent renders in one call, and wins in one auction round: half its slots, so that the next
     batch is awarded while one renders (2 slots: one unit a call)."""

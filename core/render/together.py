@@ -35,8 +35,9 @@ from core.render.tiles import Tile
 from core.render.worker import RenderRequest, aim, local_cache, unit_meta
 
 BATCH_SAMPLES = 1 << 24
-# A batch renders the least rectangle holding its units' windows, at most this many pixels: the film's
-# memory and its development stay bounded whatever the image's size (a 2048 x 2048 film).
+# A batch renders the whole image's film where the image has at most this many pixels, else the least
+# rectangle holding its units' windows, itself at most this many: the film's memory and its development
+# stay bounded whatever the image's size (a 2048 x 2048 film).
 BATCH_PIXELS = 1 << 22
 METHOD = "together"  # the tiles' window_method
 
