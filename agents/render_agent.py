@@ -89,7 +89,7 @@ from core.model.units import WorkUnit
 from core.render.bundle import RULES_NAME, BundleLimits, check_unpacked, read_manifest
 from core.render.planner import Planner, RenderParams, adaptive_params
 from core.render.tiles import Tile, write_tile
-from core.render.together import batches, render_batch_here, together_problem_here
+from core.render.together import batch_name, batches, render_batch, together_problem_here
 from core.render.worker import RenderRequest, RenderWorker
 from core.transport.credentials import xmpp_password
 from core.transport.tls import client_context, is_loopback
@@ -373,15 +373,12 @@ class RenderAgent:
             if not together:
                 made = [alone(group[0])]
             else:
-                made = self._attempt(lambda g=group: self.worker.call(
-                    render_batch_here, g, doing=f"units {[r.unit_index for r in g]}", timeout=timeout, abort=abort),
-                    len(group))
+                made = self._attempt(lambda g=group: render_batch(self.worker, g, timeout, abort), len(group))
                 if isinstance(made[0], Exception) and not (abort and abort.is_set()):
                     # Each unit on its own (Mitsuba's render call), so that one bad unit (or a crash) fails
                     # alone, its agent is not blocklisted for the job by a whole batch's failures at once,
                     # and a unit the batch's path cannot render is rendered the other way.
-                    log.warning("units %s failed together (%s): each rendered alone", [r.unit_index for r in group],
-                                made[0])
+                    log.warning("%s failed together (%s): each rendered alone", batch_name(group), made[0])
                     made = [alone(r) for r in group]
             tiles.update(zip((r.unit_index for r in group), made, strict=True))
         return [tiles[r.unit_index] for r in requests]

@@ -600,12 +600,11 @@ class AgentState:
 
     def _done(self, work: Work, sha256: str, now: float) -> list[Command]:
         """Learn from the unit (time taken), remember its award, and Inform."""
-        award, rendered, params = work.uploaded_as, work.rendered, work.params
-        assert award is not None and rendered is not None and params is not None
+        award, rendered, params, predicted = work.uploaded_as, work.rendered, work.params, work.predicted
+        assert award is not None and rendered is not None and params is not None and predicted is not None
         key, wall = work.key, (now - work.started) * work.share
         self.units_done += 1
         _remember(self.finished, (*key, award.token), None)
-        predicted = self.uncorrected(award.job, award.unit, params) if work.predicted is None else work.predicted
         self.calibration.learn(key[0], predicted, wall)
         spp = params.spp if rendered.spp is None else rendered.spp
         text = (f"unit {key[0]}/{key[1]} done: {wall:.3f} s in all, render {rendered.seconds:.3f} s, spp "

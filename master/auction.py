@@ -791,10 +791,13 @@ class Auction:
             if agent.silent_until is not None and now >= agent.silent_until:
                 agent.silent_until = None  # called again; its silences count on until it answers
         open_units = sum(u.status == UnitStatus.PENDING for j in self._running() for u in j.units.values())
+        free_when: dict[bool, list[Agent]] = {}  # the free agents, whether units may queue or not
         for job in self._running():
             queueing = self._queueing(job, open_units)
-            free = sorted((a for a in self.agents.values() if self._is_free(a, queueing)),
-                          key=lambda a: (-a.score, a.name))
+            if queueing not in free_when:
+                free_when[queueing] = sorted((a for a in self.agents.values() if self._is_free(a, queueing)),
+                                             key=lambda a: (-a.score, a.name))
+            free = free_when[queueing]
             callable_now = {a.name for a in free if a.invited is None}  # earlier jobs' rounds took some
             agents = [a for a in free if a.name in callable_now and a.name not in job.blocklist]
             pending = sorted(

@@ -30,7 +30,7 @@ from core.render.film import display_rgb, film_output
 from core.render.imageio import write_image, write_png_planar
 from core.render.planner import Planner, RenderParams
 from core.render.tiles import Tile
-from core.render.together import batches, render_batch_here, together_problem_here
+from core.render.together import batch_name, batches, render_batch, together_problem_here
 from core.render.worker import ADAPTIVE_META, RenderRequest, RenderWorker, adopt_scene
 from fuzzy.levels import OFF
 from planning.jobplan import plan_job_loaded, plan_params
@@ -267,13 +267,12 @@ class UnitRun:
         is."""
         if not together or len(batch) == 1:
             return [self.worker.render(batch[0], timeout=UNIT_TIMEOUT_S)]
-        where = f"units {[j.unit_index for j in batch]}"
         try:
-            return self.worker.call(render_batch_here, batch, doing=where, timeout=UNIT_TIMEOUT_S)
+            return render_batch(self.worker, batch, UNIT_TIMEOUT_S)
         except QuekaroError:
             raise
         except Exception as exc:
-            raise RenderError(f"{where}: {type(exc).__name__}: {exc}") from exc
+            raise RenderError(f"{batch_name(batch)}: {type(exc).__name__}: {exc}") from exc
 
     def _tell(self, done: int, samples_total: int) -> None:
         if self.progress is not None:

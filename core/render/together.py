@@ -21,6 +21,7 @@ one by one.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Sequence
 
@@ -32,7 +33,7 @@ from core.render.counts import check_renderable, render_counts
 from core.render.film import sanitize
 from core.render.scene import sensor_of
 from core.render.tiles import Tile
-from core.render.worker import RenderRequest, aim, local_cache, unit_meta
+from core.render.worker import RenderRequest, RenderWorker, aim, local_cache, unit_meta
 
 BATCH_SAMPLES = 1 << 24
 # A batch renders the whole image's film where the image has at most this many pixels, else the least
@@ -134,6 +135,16 @@ def render_batch_here(batch: Sequence[RenderRequest]) -> list[Tile]:
                          nonfinite, job.spp, f"{METHOD} ({method})") | {"seed": first.seed}
         tiles.append(Tile(pixels, job.window, job.unit, meta, made.channels))
     return tiles
+
+
+def render_batch(worker: RenderWorker, batch: Sequence[RenderRequest], timeout: float | None,
+                 abort: threading.Event | None = None) -> list[Tile]:
+    """The batch's tiles, rendered by `render_batch_here` in `worker`'s render process."""
+    return worker.call(render_batch_here, batch, doing=batch_name(batch), timeout=timeout, abort=abort)
+
+
+def batch_name(batch: Sequence[RenderRequest]) -> str:
+    return f"units {[j.unit_index for j in batch]}"
 
 
 def _within(rect: Rect, area: Rect) -> tuple[slice, slice]:
