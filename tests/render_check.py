@@ -60,10 +60,13 @@ class Verdict:
     worst_p: float
     variance_ratio: float
     detail: str
+    pixels: int = 0  # pixels with at least one significant channel: what FIREFLY_PIXELS bounds
+
 
     def __str__(self) -> str:
         return (f"{'same' if self.passed else 'DIFFERENT'}: {self.failing} of {self.tested} pixel channels "
-                f"significant, smallest p {self.worst_p:.3g}, variance ratio {self.variance_ratio:.3f}; {self.detail}")
+                f"significant ({self.pixels} pixels), smallest p {self.worst_p:.3g}, "
+                f"variance ratio {self.variance_ratio:.3f}; {self.detail}")
 
 
 def reference_renders(scene: Path, variant: str, spp: int, sensor: int = 0, defines: dict[str, str] | None = None,
@@ -195,7 +198,7 @@ def compare(test: np.ndarray | list[np.ndarray], reference: np.ndarray, alpha: f
         where += f"worst at (y, x, channel) {tuple(int(i) for i in idx)}; "
     detail = f"{where}{exact_bad} noiseless channels differ; Sidak alpha per channel {alpha_px:.2g}"
     return Verdict(pixels <= FIREFLY_PIXELS and var_ok, failing + exact_bad, n,
-                   float(p.min()) if n else 1.0, ratio, detail)
+                   float(p.min()) if n else 1.0, ratio, detail, pixels)
 
 
 def moment_channels(image: np.ndarray, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -222,7 +225,7 @@ def compare_moment_renders(a: tuple[np.ndarray, np.ndarray, np.ndarray], b: tupl
     detail = f"Sidak alpha per channel {alpha_px:.2g}"
     if pixels:
         detail = f"worst at (y, x, channel) {tuple(int(i) for i in np.unravel_index(np.argmin(p), p.shape))}; " + detail
-    return Verdict(pixels <= FIREFLY_PIXELS, int(significant.sum()), p.size, float(p.min()), 1.0, detail)
+    return Verdict(pixels <= FIREFLY_PIXELS, int(significant.sum()), p.size, float(p.min()), 1.0, detail, pixels)
 
 
 def least_spp(report: dict) -> np.ndarray:
