@@ -132,6 +132,16 @@ class UnitFailed(QuekaroError):
     """A unit that could not be rendered or delivered; the message is the Failure's reason."""
 
 
+def _time_left(deadline: float, timeout: float) -> Callable[[], float]:
+    """The seconds left until `deadline` (time.monotonic), raising UnitFailed once none are."""
+    def left() -> float:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise UnitFailed(f"the step's {timeout:.0f} s were spent before this unit's call")
+        return remaining
+    return left
+
+
 class RenderAgent:
     """A render agent; `await run()` serves until `await stop()` (or a signal, in `main`). Its decisions are
     `self.state`'s (agents.state.AgentState); this class carries out their I/O."""
@@ -362,18 +372,22 @@ class RenderAgent:
         """Each request's tile, or the error that ended it: in batches of one call each where `may_batch`
         (AgentState.batches) and the scene allows, else one by one. A batch of one
         unit renders as a batch too: on the film of the others, it reuses their kernel where its own window
-        would compile one. Runs in a worker thread."""
-        together = may_batch and self._together_problem(requests[0], timeout) is None
+        would compile one. `timeout` is the whole step's: each call gets what is left of it, so that a batch
+        that fails and is rendered again unit by unit never holds its units past it. Runs in a worker thread."""
+        deadline = time.monotonic() + timeout
+        left = _time_left(deadline, timeout)
+        problem = self._together_problem(requests[0], left()) if may_batch else "no batches"
+        together = problem is None
         groups = batches(requests) if together else [[r] for r in requests]
         tiles: dict[int, Tile | Exception] = {}
         def alone(request: RenderRequest) -> Tile | Exception:
-            return self._attempt(lambda: [self.worker.render(request, timeout, abort)], 1)[0]
+            return self._attempt(lambda: [self.worker.render(request, left(), abort)], 1)[0]
 
         for group in groups:
             if not together:
                 made = [alone(group[0])]
             else:
-                made = self._attempt(lambda g=group: render_batch(self.worker, g, timeout, abort), len(group))
+                made = self._attempt(lambda g=group: render_batch(self.worker, g, left(), abort), len(group))
                 if isinstance(made[0], Exception) and not (abort and abort.is_set()):
                     # Each unit on its own (Mitsuba's render call), so that one bad unit (or a crash) fails
                     # alone, its agent is not blocklisted for the job by a whole batch's failures at once,
