@@ -167,7 +167,8 @@ class RenderAgent:
         self.state = AgentState(self._plan, estimate_seconds, slots=config.slots, threads=config.threads,
                                 rules=self.planner.rules_path.name, heartbeat_s=config.heartbeat_s,
                                 max_render_s=config.max_render_s, session=_stamp(), check_url=self._url_refusal,
-                                batch=1 if self.emulation else None)  # an emulated render sleeps a unit at a time
+                                batch=1 if self.emulation else None,  # an emulated render sleeps a unit at a time
+                                rules_sha256=sha256_file(self.planner.rules_path), defuzzifier=config.defuzzifier)
         self._tls = client_context(Path(config.ca_file) if config.ca_file else None)
         self._planners: dict[tuple[str | None, str | None], Planner] = {(None, config.defuzzifier): self.planner}
         self._stop = asyncio.Event()

@@ -282,7 +282,8 @@ class AgentState:
     def __init__(self, plan: PlanFn, seconds: SecondsFn, *, slots: int = SLOTS, threads: int = 1,
                  rules: str = "", heartbeat_s: float = HEARTBEAT_S, max_render_s: float = MAX_RENDER_S,
                  session: str = "0", check_url: Callable[[str], str | None] = lambda _url: None,
-                 batch: int | None = None) -> None:
+                 batch: int | None = None, rules_sha256: str | None = None,
+                 defuzzifier: str | None = None) -> None:
         if slots < 1:
             raise ValueError(f"slots must be at least 1, got {slots}")
         self.batch = batch_size(slots) if batch is None else batch
@@ -291,6 +292,7 @@ class AgentState:
         self.plan, self.seconds = plan, seconds
         self.check_url = check_url  # why a job's data plane URL is refused (plain HTTP across a network), or None
         self.slots, self.threads, self.rules = slots, threads, rules[:256]
+        self.rules_sha256, self.defuzzifier = rules_sha256, defuzzifier  # told in Register
         self.heartbeat_s, self.max_render_s, self.session = heartbeat_s, max_render_s, session
         self.speed: Measured | None = None
         self.calibration = Calibration()
@@ -457,7 +459,8 @@ class AgentState:
         conversation = self._conversation("register")
         self._unwelcomed.add(conversation)
         return Send(m.Register(conversation=conversation, speed=self.speed.speed, threads=self.threads,
-                               rules=self.rules, slots=self.slots))
+                               rules=self.rules, slots=self.slots, rules_sha256=self.rules_sha256,
+                               defuzzifier=self.defuzzifier))
 
     def _on_welcome(self, welcome: m.Welcome) -> list[Command]:
         """The master heard a Register of this connection: no more of them until the next connection."""

@@ -285,6 +285,7 @@ class Agent:
     silences: int = 0  # calls for proposals it let time out in a row
     silent_until: float | None = None  # left out of auctions until then (Config.silence_max_s)
     slots: int | None = None  # units it holds at once, as its Register told (None: Config.slots)
+    rules: tuple[str | None, str | None] = (None, None)  # its rule file's sha256 and defuzzifier, as told
     # Seconds per unit of cost, per job: from its latest bids, and from its last unit that overran.
     rates: dict[str, float] = field(default_factory=dict)
     late_rates: dict[str, float] = field(default_factory=dict)
@@ -607,21 +608,34 @@ class Auction:
         return self._finish_if_done(job) + self._fail_if_stuck(job)
 
     def register(self, agent: str, now: float, speed: float = 1.0, credits: int = 0,
-                 registered: bool = True, slots: int | None = None) -> list[Command]:
+                 registered: bool = True, slots: int | None = None,
+                 rules: tuple[str | None, str | None] = (None, None)) -> list[Command]:
         """An agent announces itself (or comes back); its record (credits) may come from the store.
         `registered` False: heard from by heartbeat only, at speed 1.0 until its Register comes. `slots`:
-        the units it told it holds at once (None: the master's `Config.slots`)."""
+        the units it told it holds at once (None: the master's `Config.slots`); `rules`: its rule file's
+        sha256 and defuzzifier (None, None: not told)."""
         known = self.agents.get(agent)
         if known is None:
             credits = self.known_credits.get(agent, credits)
             known = self.agents[agent] = Agent(agent, now, credits=credits, speed=speed, registered=registered,
-                                               slots=slots)
+                                               slots=slots, rules=rules)
             known.recent = deque(maxlen=self.config.recent_window)
             return [AgentRegistered(agent, speed)]
         known.speed = speed
         known.registered = True
         known.slots = slots if registered else known.slots
+        known.rules = rules if registered else known.rules
         return self._seen(known, now)
+
+    def plan_alike(self, rules_sha256: str | None, defuzzifier: str | None) -> bool:
+        """Whether every live agent plans a job's units as the master's plan does: a job without rules of its
+        own with the master's rules (`rules_sha256`; None: the job has its own, which every agent takes),
+        and each agent its own defuzzifier where the job names none (`defuzzifier`). False without live
+        agents, or with one that did not tell its rules (an agent known from heartbeats alone)."""
+        live = [a for a in self.agents.values() if not a.lost]
+        return bool(live) and all(
+            a.rules[0] is not None and (rules_sha256 is None or a.rules[0] == rules_sha256)
+            and (defuzzifier is not None or a.rules[1] is None) for a in live)
 
     # --- messages in ---------------------------------------------------------------------------------
 
@@ -630,7 +644,8 @@ class Auction:
         match msg:
             case m.Register():
                 welcome = Send(sender, m.Welcome(conversation=msg.conversation))  # the agent retries until it
-                return [*self.register(sender, now, speed=msg.speed, slots=msg.slots), welcome]
+                return [*self.register(sender, now, speed=msg.speed, slots=msg.slots,
+                                       rules=(msg.rules_sha256, msg.defuzzifier)), welcome]
             case m.Heartbeat():
                 return self.on_heartbeat(sender, msg, now)
             case m.Propose():

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
+from core.data import default_rules_path
 from core.errors import MessageError, QuekaroError, TileError
 from core.home import ADMIN_TOKEN, FARM_FILE, MIN_FREE_BYTES
 from core.model import messages as m
@@ -45,7 +46,7 @@ from master.http_api import create_app, serve
 from master.sessions import SharedAccounts
 from master.store import JobRecord, JobStore
 from master.web import add_web_routes
-from planning.jobplan import farm_min_units, plan_job, scene_spp
+from planning.jobplan import Floors, farm_min_units, plan_job, scene_spp
 from planning.pipeline import assemble
 
 log = logging.getLogger(__name__)
@@ -133,6 +134,7 @@ class MasterService:
         # names the crash and starts a new child for the next job).
         self._planner = RenderWorker()
         self._planning = asyncio.Lock()
+        self._rules_sha256 = sha256_file(default_rules_path())  # what a job without rules is planned with
         self._lock = asyncio.Lock()
         self._assembling: dict[str, asyncio.Task] = {}
         self._agent_re = re.compile(config.agent_pattern.format(domain=re.escape(config.domain)))
@@ -299,10 +301,18 @@ class MasterService:
     async def _plan(self, spec: SceneSpec, options: RenderOptions, seed: int) -> JobPlan:
         """The job's plan, made in the planner's child process (one job at a time)."""
         async with self._planning:
-            # Without a rule file of its own, each agent's rules choose, and they may cut depth at any level.
             return await asyncio.to_thread(self._planner.call, plan_job, spec, options, seed,
-                                           self._units_for_agents(), options.rules is None,
+                                           self._units_for_agents(), self._floors(options),
                                            doing=f"planning {spec.path.name}")
+
+    def _floors(self, options: RenderOptions) -> Floors:
+        """Where the live agents plan the job's units as the master's plan does, its depth floors are measured
+        only where its rules cut depth (else every unit is held at the user's depth, for an agent with other
+        rules that joins later); otherwise the agents' own rules may cut depth at any level."""
+        if self.auction is None:
+            return Floors.ALWAYS
+        mine = None if options.rules is not None else self._rules_sha256
+        return Floors.HELD if self.auction.plan_alike(mine, options.defuzzifier) else Floors.ALWAYS
 
     def _units_for_agents(self) -> int:
         """Units a job needs at least so that every live agent gets several (load balance)."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable
+from enum import StrEnum
 from typing import Any
 
 from lxml import etree
@@ -100,22 +101,30 @@ def default_unit_count(width: int, height: int, level: str, min_units: int = 1, 
     return max(1, min(256, wanted, width * height))
 
 
+class Floors(StrEnum):
+    """When a rule level's plan measures its units' depth floors (planning.depthcut)."""
+
+    RULES = "rules"  # where the plan's rules cut some unit's depth (the rules that render it: one process)
+    ALWAYS = "always"  # at every rule level: rules the plan cannot see choose (a farm's agents with others)
+    HELD = "held"  # as RULES, and where they cut none every unit's floor is the user's depth: a farm whose
+    # agents plan as the master does, where an agent with other rules may still join and must not cut
+
+
 def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: int = 1,
-             floors_always: bool = False) -> JobPlan:
+             floors: Floors = Floors.RULES) -> JobPlan:
     """Analyse the scene's effects, run the pre-pass (optimised levels only) on the scene as the analysis
     loaded it, and partition the image (into `options.units` units, else the default count and at least
-    `min_units`). `floors_always`: measure the units' depth floors at every rule level, not only where
-    `options.rules` cut depth (a farm job without a rule file: each agent's own rules choose)."""
-    return plan_job_loaded(spec, options, seed, min_units, floors_always)[0]
+    `min_units`). `floors`: when the units' depth floors are measured (Floors)."""
+    return plan_job_loaded(spec, options, seed, min_units, floors)[0]
 
 
 def plan_job_loaded(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: int = 1,
-                    floors_always: bool = False) -> tuple[JobPlan, Any]:
+                    floors: Floors = Floors.RULES) -> tuple[JobPlan, Any]:
     """`plan_job`, and the scene as the analysis loaded it in the plan's variant (the pre-pass leaves it
     as loaded), for a process that renders the units next."""
     effects, loaded = analyse_loaded(spec, options.overrides())
     _check_renders(spec, options, loaded)
-    plan = _plan(spec, options, seed, min_units, effects, loaded, floors_always)
+    plan = _plan(spec, options, seed, min_units, effects, loaded, floors)
     if options.units and len(plan.units) != options.units and plan.effects.splittable:
         plan.effects.reasons.append(
             f"--units {options.units} is a target: {len(plan.units)} made (units are at least {DEFAULT_SIZES[0]} "
@@ -133,7 +142,7 @@ def _check_renders(spec: SceneSpec, options: RenderOptions, loaded: Any) -> None
 
 
 def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, effects: Effects,
-          loaded: Any, floors_always: bool = False) -> JobPlan:
+          loaded: Any, floors: Floors = Floors.RULES) -> JobPlan:
     """The plan for the analysed scene (`loaded`, its effects `effects`)."""
     info = film_info(spec, options.sensor)
     width, height = info.width, info.height
@@ -170,7 +179,7 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     plan, cmap = _with_prepass(plan, target, seed, loaded, radiance(plan.depth))
     if options.adaptive:
         return _adaptive(plan, cmap, min_units)
-    return _with_depth_floors(plan, cmap, seed, loaded, radiance, floors_always)
+    return _with_depth_floors(plan, cmap, seed, loaded, radiance, floors)
 
 
 def _sampler_default(loaded: Any, sensor: int, effects: Effects) -> int:
@@ -227,27 +236,32 @@ def _with_prepass(plan: JobPlan, target: int, seed: int, scene: Any,
 
 
 def _with_depth_floors(plan: JobPlan, cmap: ComplexityMap, seed: int, scene: Any,
-                       radiance_at: Callable[[int], str], always: bool = False) -> JobPlan:
+                       radiance_at: Callable[[int], str], floors: Floors = Floors.RULES) -> JobPlan:
     """The plan with each unit's depth floor (planning.depthcut, measured with `radiance_at`) where its
-    rules cut some unit's depth at this level, or `always`; unchanged where they cut none (the passes
-    would be pure overhead)."""
+    rules cut some unit's depth at this level, or at every level (Floors.ALWAYS). Where they cut none the
+    passes would be pure overhead: the plan is unchanged, or (Floors.HELD) holds every unit at its depth."""
     if plan.depth < 2:
         return plan
-    if not always:
+    if floors != Floors.ALWAYS:
         chosen = plan_params(plan, Planner(plan.options.rules, plan.options.defuzzifier))
         if all(p.depth >= plan.depth for p in chosen):
-            return plan
+            return _held(plan) if floors == Floors.HELD else plan
     if expand(plan.spec).root.find(".//medium") is not None:
         plan.effects.reasons.append(f"depth: no unit is cut below max_depth {plan.depth}: in a participating "
                                     "medium the pre-pass's few samples miss the rare long paths whose light a "
                                     "cut would lose, so the loss cannot be bounded")
-        return dataclasses.replace(plan, units=[dataclasses.replace(u, depth_floor=plan.depth) for u in plan.units])
+        return _held(plan)
     low = tuple(max(1, v // 2) for v in cmap.info["low_size"])  # a unit's mean needs no finer grid
     found = depthcut.measure(scene, radiance_at, plan.depth, [u.rect for u in plan.units], low,
                              (plan.width, plan.height), seed=seed, sensor=plan.options.sensor)
     units = [dataclasses.replace(u, depth_floor=f) for u, f in zip(plan.units, found.floors, strict=True)]
     return dataclasses.replace(plan, units=units, prepass_seconds=plan.prepass_seconds + found.seconds,
                                prepass_info={**plan.prepass_info, **found.to_info()})
+
+
+def _held(plan: JobPlan) -> JobPlan:
+    """Every unit's floor at the user's depth: no unit is cut."""
+    return dataclasses.replace(plan, units=[dataclasses.replace(u, depth_floor=plan.depth) for u in plan.units])
 
 
 def _radiance_at(plan: JobPlan) -> Callable[[int], str]:

@@ -93,7 +93,8 @@ class Agent:
     def __init__(self, slots: int = 2, rules: Rules | None = None, refuse_url: str | None = None) -> None:
         self.rules = rules or Rules()
         self.state = AgentState(self.rules, seconds, slots=slots, threads=1, rules="test.xml", heartbeat_s=2.0,
-                                session="s", check_url=lambda url: refuse_url and f"{refuse_url}: {url}")
+                                session="s", check_url=lambda url: refuse_url and f"{refuse_url}: {url}",
+                                rules_sha256="ab" * 32, defuzzifier="centroid")
         self.clock = Clock()
         self.in_flight: set[int] = set()  # tickets between FetchBundle and the render's end
         self.state.handle(Measured(SPEED, COMPILE_S), self.clock.now)
@@ -488,6 +489,7 @@ def test_registers_on_every_connection_and_beats_the_held_units() -> None:
     assert agent(Tick(online=False)) == []
     reg, beat = sent(agent(Tick(connection=0)))
     assert isinstance(reg, m.Register) and (reg.speed, reg.threads, reg.rules) == (SPEED, 1, "test.xml")
+    assert (reg.rules_sha256, reg.defuzzifier) == ("ab" * 32, "centroid")
     assert isinstance(beat, m.Heartbeat) and beat.busy == ()
     assert agent(m.Welcome(conversation=reg.conversation)) == []  # the master heard it
     assert agent(Tick(), dt=1.0) == []  # the next beat is due 2 s later

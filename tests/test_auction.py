@@ -931,6 +931,27 @@ def test_an_agent_that_registered_fewer_slots_is_awarded_no_more() -> None:
     assert len(round_trip(a, 0.4)) == 4 and a.agents["A"].slots == 8
 
 
+def test_agents_plan_alike_only_when_every_live_one_told_the_same_rules() -> None:
+    """Whether the master's plan sees the rules every live agent plans with (MasterService._floors): the
+    same rule file by sha256 where the job has none, and no defuzzifier of their own unless the job names
+    one; never without live agents or with one that did not tell."""
+    mine, other = "ab" * 32, "cd" * 32
+    a = au.Auction(au.Config(), rng=random.Random(1))
+    assert not a.plan_alike(mine, None)  # nobody to ask
+    a.on_message("A", m.Register(conversation="r", speed=1.0, threads=1, rules="x", rules_sha256=mine), 0.0)
+    assert a.plan_alike(mine, None) and a.plan_alike(None, None) and a.plan_alike(mine, "centroid")
+    a.on_message("B", m.Register(conversation="r", speed=1.0, threads=1, rules="x", rules_sha256=mine,
+                                 defuzzifier="centre-of-sums"), 0.0)
+    assert not a.plan_alike(mine, None)  # B defuzzifies its own way where the job says nothing
+    assert a.plan_alike(mine, "centroid")  # the job's defuzzifier is everyone's
+    a.on_message("B", m.Register(conversation="r", speed=1.0, threads=1, rules="x", rules_sha256=other), 1.0)
+    assert not a.plan_alike(mine, None) and a.plan_alike(None, None)  # other rules; a job's own rules are all's
+    a.agents["B"].lost = True
+    assert a.plan_alike(mine, None)  # only live agents plan
+    a.on_message("C", m.Heartbeat(conversation="h", busy=()), 2.0)  # known from heartbeats alone
+    assert not a.plan_alike(mine, None) and not a.plan_alike(None, None)
+
+
 def test_an_idle_agent_in_the_end_game_wins_one_unit_of_a_level_off_job() -> None:
     a = au.Auction(au.Config(slots=8), rng=random.Random(7))
     a.add_job(dataclasses.replace(info(), level="off"), specs([1.0] * 6))

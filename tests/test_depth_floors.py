@@ -24,7 +24,7 @@ from core.render.worker import RenderWorker
 from master.service import _check_planned, _params_from_meta
 from planning import depthcut
 from planning.accuracy import reference
-from planning.jobplan import plan_job
+from planning.jobplan import Floors, plan_job
 from planning.pipeline import render_plan
 
 BENCH_SCENES = Path(__file__).resolve().parents[1] / "bench" / "scenes"
@@ -104,7 +104,7 @@ def test_the_units_round_a_cornell_box_light_keep_the_depth_plain_mitsuba_says_t
     from core.render.worker import render_full
 
     spec = SceneSpec(CBOX, {"res": "256"})
-    plan = plan_job(spec, RenderOptions(level="VB", spp=64, threads=2), seed=1, min_units=8, floors_always=True)
+    plan = plan_job(spec, RenderOptions(level="VB", spp=64, threads=2), seed=1, min_units=8, floors=Floors.ALWAYS)
     depths = plan.prepass_info["depth_floor_depths"]
     assert depths == [6, 4, 3]
     full, *cuts = (render_full(spec, plan.effects.variant, None, d, 256, seed=5, threads=2)[..., :3].mean(-1)
@@ -260,16 +260,24 @@ def test_no_unit_of_a_scene_with_a_medium_is_cut_and_the_effects_say_why():
 
 def test_levels_whose_rules_cut_no_depth_measure_no_floors_unless_other_rules_may():
     """At level S the default rules keep the user's depth everywhere: the passes would be pure overhead.
-    A farm job without a rule file of its own is planned with `floors_always`: each agent's own rules
-    choose there, and they may cut depth at any level."""
+    A farm job whose agents plan with other rules is planned with Floors.ALWAYS: their rules may cut depth
+    at any level. One whose agents plan as the master does (Floors.HELD) measures none where the master's
+    rules cut none, and holds every unit at the user's depth, for an agent with other rules that joins."""
     spec = SceneSpec(BENCH_SCENES / "outdoor.xml", {"res": "64"})
     options = RenderOptions(level="S", spp=16, threads=2)
     plan = plan_job(spec, options, seed=1)
     assert all(u.depth_floor is None for u in plan.units)
     assert "depth_floor_depths" not in plan.prepass_info
-    farm = plan_job(spec, options, seed=1, floors_always=True)
+    farm = plan_job(spec, options, seed=1, floors=Floors.ALWAYS)
     assert all(u.depth_floor is not None and 1 <= u.depth_floor <= farm.depth for u in farm.units)
     assert farm.prepass_info["depth_floor_depths"] == [6, 4, 3]
     assert [u.rect for u in farm.units] == [u.rect for u in plan.units]
-    off = plan_job(spec, dataclasses.replace(options, level="off"), seed=1, floors_always=True)
+    off = plan_job(spec, dataclasses.replace(options, level="off"), seed=1, floors=Floors.ALWAYS)
     assert all(u.depth_floor is None for u in off.units)  # level off: the user's depth, nothing to hold
+    held = plan_job(spec, options, seed=1, floors=Floors.HELD)
+    assert "depth_floor_depths" not in held.prepass_info
+    assert [u.depth_floor for u in held.units] == [held.depth] * len(held.units)
+    assert [u.rect for u in held.units] == [u.rect for u in plan.units]
+    cut = plan_job(spec, dataclasses.replace(options, level="VB"), seed=1, floors=Floors.HELD)
+    assert cut.prepass_info["depth_floor_depths"] == [6, 4, 3]  # the master's rules cut there: measured
+    assert min(u.depth_floor for u in cut.units) < cut.depth

@@ -544,6 +544,10 @@ def test_a_rule_level_job_renders_each_agents_units_in_batches_and_matches_a_loc
     report = json.loads(out.with_suffix(".json").read_text())
     assert len(report["units"]) >= 8 and all(u["method"].startswith("together") for u in report["units"])
     assert len(tiles) == len(report["units"]) and max(seeds.values()) >= 2, seeds  # units shared a call
+    # Its agents plan with the master's rules, which cut no depth at level S: no depth floors measured
+    # (MasterService._floors), every unit held at the user's depth for an agent with other rules.
+    assert "depth_floor_depths" not in report["prepass"], report["prepass"]
+    assert {(u["depth"], u["depth_floor"]) for u in report["units"]} == {(report["units"][0]["depth"],) * 2}
     image, reference = read_image(out), local_render(tmp_path, defines, "S")
     a, b = block_means(image), block_means(reference)
     assert np.abs(a - b).mean() / b.mean() < 0.08  # as test_job_on_three_agents_matches_local_render

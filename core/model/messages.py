@@ -30,7 +30,7 @@ from fuzzy.engine import DEFUZZIFIERS
 from fuzzy.levels import LEVELS
 from fuzzy.render_params import SPP_MAX
 
-PROTOCOL_VERSION = 2  # 2: an agent wins several units a round and tells its slots in Register
+PROTOCOL_VERSION = 3  # 2: several awards a round, slots in Register; 3: the rules an agent plans with, in Register
 ONTOLOGY = "quekaro-render"
 PROTOCOL = "fipa-contract-net"
 # Prosody drops a sender whose stanza exceeds 256 KiB (design.md section 4): stay well below it.
@@ -234,6 +234,10 @@ class Register(Message):
     rules: str = constrained(max_len=256)
     # Units it holds at once (its --slots): the master awards it no more. None: not told (the master's own).
     slots: int | None = constrained(lo=1, hi=MAX_CFP_UNITS, default=None)
+    # What it plans a job without rules of its own with: its rule file's sha256 and its --defuzzifier (None:
+    # the file's dialect decides). The master measures depth floors only where such rules may cut depth.
+    rules_sha256: str | None = constrained(pattern=_HEX, default=None)
+    defuzzifier: str | None = constrained(choices=DEFUZZIFIERS, default=None)
 
 
 @dataclass(frozen=True, kw_only=True)
