@@ -132,14 +132,24 @@ class UnitFailed(QuekaroError):
     """A unit that could not be rendered or delivered; the message is the Failure's reason."""
 
 
-def _time_left(deadline: float, timeout: float) -> Callable[[], float]:
-    """The seconds left until `deadline` (time.monotonic), raising UnitFailed once none are."""
-    def left() -> float:
-        remaining = deadline - time.monotonic()
-        if remaining <= 0:
-            raise UnitFailed(f"the step's {timeout:.0f} s were spent before this unit's call")
-        return remaining
-    return left
+class OutOfTime(UnitFailed):
+    """A unit not rendered: its render step's time was spent before its call."""
+
+
+class _StepTime:
+    """What is left of a render step's timeout."""
+
+    def __init__(self, timeout: float) -> None:
+        self.timeout, self.deadline = timeout, time.monotonic() + timeout
+
+    def spent(self) -> bool:
+        return time.monotonic() >= self.deadline
+
+    def left(self) -> float:
+        """The seconds left, raising OutOfTime once none are."""
+        if self.spent():
+            raise OutOfTime(f"not rendered: its render step's {self.timeout:.0f} s were spent before its call")
+        return self.deadline - time.monotonic()
 
 
 class RenderAgent:
@@ -371,30 +381,31 @@ class RenderAgent:
     def _render_tiles(self, requests: list[RenderRequest], timeout: float, abort: threading.Event | None,
                       may_batch: bool) -> list[Tile | Exception]:
         """Each request's tile, or the error that ended it: in batches of one call each where `may_batch`
-        (AgentState.batches) and the scene allows, else one by one. A batch of one
-        unit renders as a batch too: on the film of the others, it reuses their kernel where its own window
-        would compile one. `timeout` is the whole step's: each call gets what is left of it, so that a batch
-        that fails and is rendered again unit by unit never holds its units past it. Runs in a worker thread."""
-        deadline = time.monotonic() + timeout
-        left = _time_left(deadline, timeout)
-        problem = self._together_problem(requests[0], left()) if may_batch else "no batches"
-        together = problem is None
+        (AgentState.batches) and the scene allows, else one by one, each call within `timeout`. A batch of
+        one unit renders as a batch too: on the film of the others, it reuses their kernel where its own
+        window would compile one. Batches share the step's `timeout`, and a batch that fails is rendered
+        again unit by unit only within what is left of it, so that its units are never held past it (their
+        deadline at the master has passed by then). Runs in a worker thread."""
+        step = _StepTime(timeout)
+        together = may_batch and self._together_problem(requests[0], timeout) is None
         groups = batches(requests) if together else [[r] for r in requests]
         tiles: dict[int, Tile | Exception] = {}
-        def alone(request: RenderRequest) -> Tile | Exception:
-            return self._attempt(lambda: [self.worker.render(request, left(), abort)], 1)[0]
+        def alone(request: RenderRequest, budget: Callable[[], float]) -> Tile | Exception:
+            return self._attempt(lambda: [self.worker.render(request, budget(), abort)], 1)[0]
 
         for group in groups:
             if not together:
-                made = [alone(group[0])]
+                made = [alone(group[0], lambda: timeout)]
             else:
-                made = self._attempt(lambda g=group: render_batch(self.worker, g, left(), abort), len(group))
-                if isinstance(made[0], Exception) and not (abort and abort.is_set()):
+                made = self._attempt(lambda g=group: render_batch(self.worker, g, step.left(), abort), len(group))
+                failed = made[0] if isinstance(made[0], Exception) else None
+                if failed and not step.spent() and not (abort and abort.is_set()):
                     # Each unit on its own (Mitsuba's render call), so that one bad unit (or a crash) fails
                     # alone, its agent is not blocklisted for the job by a whole batch's failures at once,
-                    # and a unit the batch's path cannot render is rendered the other way.
-                    log.warning("%s failed together (%s): each rendered alone", batch_name(group), made[0])
-                    made = [alone(r) for r in group]
+                    # and a unit the batch's path cannot render is rendered the other way; a batch that ran
+                    # out of the step's time leaves none to them, and fails its units with its own reason.
+                    log.warning("%s failed together (%s): each rendered alone", batch_name(group), failed)
+                    made = [alone(r, step.left) for r in group]
             tiles.update(zip((r.unit_index for r in group), made, strict=True))
         return [tiles[r.unit_index] for r in requests]
 
@@ -404,6 +415,8 @@ class RenderAgent:
         try:
             try:
                 return list(render())
+            except UnitFailed:
+                raise
             except QuekaroError as exc:
                 raise UnitFailed(f"render failed: {exc}") from exc
         except Exception as exc:

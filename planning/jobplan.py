@@ -122,6 +122,7 @@ def plan_job_loaded(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_
                     floors: Floors = Floors.RULES) -> tuple[JobPlan, Any]:
     """`plan_job`, and the scene as the analysis loaded it in the plan's variant (the pre-pass leaves it
     as loaded), for a process that renders the units next."""
+    floors = Floors(floors)  # a stale boolean (the former floors_always) is refused, not read as RULES
     effects, loaded = analyse_loaded(spec, options.overrides())
     _check_renders(spec, options, loaded)
     plan = _plan(spec, options, seed, min_units, effects, loaded, floors)

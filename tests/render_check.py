@@ -165,7 +165,8 @@ def compare(test: np.ndarray | list[np.ndarray], reference: np.ndarray, alpha: f
     tests = np.stack(test if isinstance(test, list) else [test]).astype(np.float64)
     ref = np.asarray(reference, dtype=np.float64)
     if tests.shape[1:] != ref.shape[1:]:
-        return Verdict(False, -1, 0, 0.0, np.nan, f"shape {tests.shape[1:]} != reference {ref.shape[1:]}")
+        return Verdict(False, -1, 0, 0.0, np.nan, f"shape {tests.shape[1:]} != reference {ref.shape[1:]}",
+                       pixels=max(1, int(np.prod(tests.shape[1:3]))))  # no pixel is the reference's
     k, n_t = ref.shape[0], tests.shape[0]
     m, v = ref.mean(axis=0), ref.var(axis=0, ddof=1)
     mt = tests.mean(axis=0)

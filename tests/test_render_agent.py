@@ -427,25 +427,28 @@ def test_a_batch_that_fails_together_renders_its_units_alone(tmp_path: Path) -> 
 
 
 def test_a_batch_out_of_time_leaves_its_units_none_of_the_step(tmp_path: Path) -> None:
-    """The step's timeout is the whole step's: a batch killed at its end fails its units at once, where each
-    unit rendered alone again would have held the step for another timeout each (a real render process,
-    units of about a minute each at this spp)."""
+    """The step's timeout is the whole step's: a batch killed at its end fails its units with its reason,
+    where each unit rendered alone again would have held the step for another timeout each (a real render
+    process)."""
     from agents.render_agent import AgentConfig, RenderAgent
     from core.model.job import SceneSpec
+    from core.render.together import batches
     from core.render.worker import RenderRequest
 
     agent = RenderAgent(AgentConfig(jid=AGENT, password=PASSWORD, master=MASTER, workdir=tmp_path))
     try:
         scene = SceneSpec(CBOX, {"res": "256"})
-        requests = [RenderRequest(scene, "llvm_ad_rgb", None, 4, 8192, i, 256, 256, Rect(128 * i, 0, 128, 128),
+        # Two 64 px units at 1800 spp: one batch (under core.render.together.BATCH_SAMPLES), about 9 s
+        requests = [RenderRequest(scene, "llvm_ad_rgb", None, 4, 1800, i, 256, 256, Rect(64 * i, 0, 64, 64),
                                   band=2, threads=1, job_id="job-t", unit_index=i) for i in range(2)]
-        timeout = 8.0
+        assert len(batches(requests)) == 1
+        timeout = 4.0
         start = time.monotonic()
         results = agent._render_tiles(requests, timeout, None, True)
         took = time.monotonic() - start
         assert all(isinstance(r, Exception) for r in results), results
-        assert "spent before this unit's call" in str(results[0]), results
-        assert took < 1.5 * timeout, took  # rendered alone again, the two units would add 2 x 8 s
+        assert all("units [0, 1]: timed out" in str(r) for r in results), results  # the batch's call, killed
+        assert took < 1.5 * timeout, took  # rendered alone again, the two units would add 2 x 4 s
     finally:
         agent.worker.stop()
 
