@@ -551,3 +551,24 @@ def test_a_rule_level_job_renders_each_agents_units_in_batches_and_matches_a_loc
     image, reference = read_image(out), local_render(tmp_path, defines, "S")
     a, b = block_means(image), block_means(reference)
     assert np.abs(a - b).mean() / b.mean() < 0.08  # as test_job_on_three_agents_matches_local_render
+
+
+def test_a_farm_with_an_agent_on_other_rules_measures_depth_floors_at_every_rule_level(tmp_path):
+    """One agent plans with a rule file of its own (the default's text and a comment: another sha256), so
+    the master cannot see what its rules cut: a level-S job measures every unit's depth floor, which the
+    master's own rules alone would not (test_a_rule_level_job_renders_each_agents_units_in_batches...)."""
+    from core.data import default_rules_path
+
+    other = tmp_path / "other-rules.xml"
+    other.write_text(default_rules_path().read_text() + "\n<!-- an agent's own copy -->\n")
+    defines = {"res": "64", "spp": "8"}
+    with LocalFarm(tmp_path / "farm", agents=2, threads=1, rules=[default_rules_path(), other]) as farm:
+        farm.wait_for_agents()
+        client = farm.client()
+        job_id = client.submit(bundle_of(SCENE, defines), defines, {"level": "S"})
+        job = wait_job(farm, job_id)
+        assert job["status"] == "done", job
+        out = client.result(job_id, tmp_path / "s.exr")
+    report = json.loads(out.with_suffix(".json").read_text())
+    assert report["prepass"]["depth_floor_depths"], report["prepass"]
+    assert all(u["depth"] >= u["depth_floor"] for u in report["units"])
