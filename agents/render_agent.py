@@ -132,10 +132,6 @@ class UnitFailed(QuekaroError):
     """A unit that could not be rendered or delivered; the message is the Failure's reason."""
 
 
-class OutOfTime(UnitFailed):
-    """A unit not rendered: its render step's time was spent before its call."""
-
-
 class _StepTime:
     """What is left of a render step's timeout."""
 
@@ -146,9 +142,9 @@ class _StepTime:
         return time.monotonic() >= self.deadline
 
     def left(self) -> float:
-        """The seconds left, raising OutOfTime once none are."""
+        """The seconds left, raising UnitFailed once none are."""
         if self.spent():
-            raise OutOfTime(f"not rendered: its render step's {self.timeout:.0f} s were spent before its call")
+            raise UnitFailed(f"not rendered: its render step's {self.timeout:.0f} s were spent before its call")
         return self.deadline - time.monotonic()
 
 

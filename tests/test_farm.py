@@ -527,18 +527,23 @@ def test_a_second_agent_logged_in_with_the_same_jid_is_named_in_the_log_and_by_q
 
 
 
+def _level_s_job(farm: LocalFarm, defines: dict[str, str], out: Path) -> tuple[Path, str]:
+    """A level-S job of SCENE on the farm once its agents are up, done; its image at `out`, and its id."""
+    farm.wait_for_agents()
+    client = farm.client()
+    job_id = client.submit(bundle_of(SCENE, defines), defines, {"level": "S"})
+    job = wait_job(farm, job_id)
+    assert job["status"] == "done", job
+    return client.result(job_id, out), job_id
+
+
 def test_a_rule_level_job_renders_each_agents_units_in_batches_and_matches_a_local_render(tmp_path):
     """Units of one job and depth an agent holds render in one call (core.render.together via
     agents.state's batches): every tile says so, several share a call (its seed), and the image agrees
     with `quekaro render` of the same level up to noise."""
     defines = {"res": "96", "spp": "16"}
     with LocalFarm(tmp_path / "farm", agents=2, threads=1) as farm:
-        farm.wait_for_agents()
-        client = farm.client()
-        job_id = client.submit(bundle_of(SCENE, defines), defines, {"level": "S"})
-        job = wait_job(farm, job_id)
-        assert job["status"] == "done", job
-        out = client.result(job_id, tmp_path / "farm.exr")
+        out, job_id = _level_s_job(farm, defines, tmp_path / "farm.exr")
         tiles = sorted((farm.home / "jobs" / job_id / "tiles").glob("*.exr"))
         seeds = Counter(read_tile(t).meta["seed"] for t in tiles)
     report = json.loads(out.with_suffix(".json").read_text())
@@ -563,12 +568,7 @@ def test_a_farm_with_an_agent_on_other_rules_measures_depth_floors_at_every_rule
     other.write_text(default_rules_path().read_text() + "\n<!-- an agent's own copy -->\n")
     defines = {"res": "64", "spp": "8"}
     with LocalFarm(tmp_path / "farm", agents=2, threads=1, rules=[default_rules_path(), other]) as farm:
-        farm.wait_for_agents()
-        client = farm.client()
-        job_id = client.submit(bundle_of(SCENE, defines), defines, {"level": "S"})
-        job = wait_job(farm, job_id)
-        assert job["status"] == "done", job
-        out = client.result(job_id, tmp_path / "s.exr")
+        out, _ = _level_s_job(farm, defines, tmp_path / "s.exr")
     report = json.loads(out.with_suffix(".json").read_text())
     assert report["prepass"]["depth_floor_depths"], report["prepass"]
     assert all(u["depth"] >= u["depth_floor"] for u in report["units"])
