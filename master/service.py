@@ -34,7 +34,8 @@ from core.model.seeds import plan_seed
 from core.model.status import JobStatus, UnitStatus
 from core.model.units import WorkUnit
 from core.render.bundle import BundleLimits, bundle_hash, check_rules, check_unpacked, extract_bundle, read_manifest
-from core.render.tiles import read_tile_bytes, tile_source
+from core.render.compose import TileSource
+from core.render.tiles import tile_source
 from core.render.worker import RenderWorker
 from core.transport.rates import SenderRates
 from core.transport.tls import check_names, is_loopback, server_context
@@ -360,7 +361,7 @@ class MasterService:
             unit = job.units.get(index) if job else None
             if unit is None or unit.status != UnitStatus.AWARDED:
                 return
-            tile = read_tile_bytes(path.read_bytes(), str(path))  # the master's own read error is no TileError
+            tile = _stored_header(path)
             _check_channels(tile.channels, self._planned_channels(job_id), job_id, index)
             params = {**_params_from_meta(tile.meta), "agent": unit.agent}  # who holds the award
             _check_planned(job.info, unit.spec, params)
@@ -576,6 +577,16 @@ def _params_from_meta(meta: dict[str, Any]) -> dict[str, Any]:
         except (TypeError, ValueError) as exc:
             raise TileError(f"tile header's first_spp {meta['first_spp']!r} is not a sample count") from exc
     return params
+
+
+def _stored_header(path: Path) -> TileSource:
+    """The header of a tile the data plane decoded in full before storing it (master.http_api._validate),
+    so its pixels are not decoded again here. Failing to read it back is the master's fault (its disk), not
+    the agent's: a QuekaroError, not a TileError."""
+    try:
+        return tile_source(path)
+    except TileError as exc:
+        raise QuekaroError(f"stored tile {path}: {exc}") from exc
 
 
 def _check_channels(channels: tuple[str, ...], planned: list[str] | None, job_id: str, index: int) -> None:

@@ -188,3 +188,25 @@ def test_a_peer_whose_tiles_lie_is_refused_or_named_and_the_job_completes(tmp_pa
     assert all(u["agent"] != "agent-0-honest@localhost" for u in report["units"])
     assert all(u["spp"] == 4 and 0 <= u["seconds"] < 300 for u in report["units"]), report["units"]
     assert report["totals"]["samples"] == 4 * 64 * 64
+
+
+def test_the_master_reads_a_stored_tiles_header_back_and_blames_itself_when_it_cannot(tmp_path):
+    """master.service reads back only the header of a tile the data plane decoded in full; a stored tile it
+    cannot read is the master's error (a 500 upload answer), not the agent's (a TileError, a 422)."""
+    import numpy as np
+
+    from core.errors import QuekaroError, TileError
+    from core.model.geometry import Rect
+    from core.render.tiles import Tile, write_tile
+    from master.service import _stored_header
+
+    meta = {"job_id": "j1", "unit_index": 3, "spp": 16, "depth": 5, "band": 2}
+    tile = Tile(np.ones((6, 8, 4), np.float32), Rect(0, 0, 8, 6), Rect(2, 2, 4, 2), meta, ("R", "G", "B", "A"))
+    header = _stored_header(write_tile(tmp_path / "good.exr", tile))
+    assert (header.rect, header.core, header.channels) == (tile.rect, tile.core, tile.channels)
+    assert header.meta == meta
+    torn = tmp_path / "torn.exr"
+    torn.write_bytes((tmp_path / "good.exr").read_bytes()[:40])  # a disk that lost the file's tail
+    with pytest.raises(QuekaroError, match="stored tile") as raised:
+        _stored_header(torn)
+    assert not isinstance(raised.value, TileError)
