@@ -43,7 +43,7 @@ import statistics
 from collections import Counter, deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 from core.model import messages as m
 from core.model.seeds import unit_seed
@@ -271,6 +271,16 @@ class UnitState:
     deadline: float = math.inf
 
 
+class PlansWith(NamedTuple):
+    """What an agent plans a job's units with, as its Register told (None: not told)."""
+
+    rules_sha256: str | None  # its rule file's, for a job without rules of its own
+    defuzzifier: str | None  # its --defuzzifier, for a job that names none (None: the file's dialect)
+
+
+NOT_TOLD = PlansWith(None, None)  # an agent known from heartbeats alone, or whose Register did not tell
+
+
 @dataclass
 class Agent:
     name: str
@@ -285,7 +295,7 @@ class Agent:
     silences: int = 0  # calls for proposals it let time out in a row
     silent_until: float | None = None  # left out of auctions until then (Config.silence_max_s)
     slots: int | None = None  # units it holds at once, as its Register told (None: Config.slots)
-    rules: tuple[str | None, str | None] = (None, None)  # its rule file's sha256 and defuzzifier, as told
+    rules: PlansWith = NOT_TOLD  # what it plans with, as its Register told
     # Seconds per unit of cost, per job: from its latest bids, and from its last unit that overran.
     rates: dict[str, float] = field(default_factory=dict)
     late_rates: dict[str, float] = field(default_factory=dict)
@@ -609,11 +619,11 @@ class Auction:
 
     def register(self, agent: str, now: float, speed: float = 1.0, credits: int = 0,
                  registered: bool = True, slots: int | None = None,
-                 rules: tuple[str | None, str | None] = (None, None)) -> list[Command]:
+                 rules: PlansWith = NOT_TOLD) -> list[Command]:
         """An agent announces itself (or comes back); its record (credits) may come from the store.
         `registered` False: heard from by heartbeat only, at speed 1.0 until its Register comes. `slots`:
         the units it told it holds at once (None: the master's `Config.slots`); `rules`: its rule file's
-        sha256 and defuzzifier (None, None: not told)."""
+        sha256 and defuzzifier (None: not told)."""
         known = self.agents.get(agent)
         if known is None:
             credits = self.known_credits.get(agent, credits)
@@ -634,8 +644,8 @@ class Auction:
         agents, or with one that did not tell its rules (an agent known from heartbeats alone)."""
         live = [a for a in self.agents.values() if not a.lost]
         return bool(live) and all(
-            a.rules[0] is not None and (rules_sha256 is None or a.rules[0] == rules_sha256)
-            and (defuzzifier is not None or a.rules[1] is None) for a in live)
+            a.rules.rules_sha256 is not None and (rules_sha256 is None or a.rules.rules_sha256 == rules_sha256)
+            and (defuzzifier is not None or a.rules.defuzzifier is None) for a in live)
 
     # --- messages in ---------------------------------------------------------------------------------
 
@@ -645,7 +655,7 @@ class Auction:
             case m.Register():
                 welcome = Send(sender, m.Welcome(conversation=msg.conversation))  # the agent retries until it
                 return [*self.register(sender, now, speed=msg.speed, slots=msg.slots,
-                                       rules=(msg.rules_sha256, msg.defuzzifier)), welcome]
+                                       rules=PlansWith(msg.rules_sha256, msg.defuzzifier)), welcome]
             case m.Heartbeat():
                 return self.on_heartbeat(sender, msg, now)
             case m.Propose():
