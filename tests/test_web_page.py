@@ -257,6 +257,9 @@ def test_a_link_to_a_job_opened_without_a_session_leads_to_that_job_after_the_lo
     job list."""
     client = farm.client()
     job_id = client.submit(bundle_of(SMALL), SMALL, {"level": "off", "units": 4})
+    # From the login page (no event stream): on the app's page, the cookie's removal could send the page
+    # of the previous test's job to the login first (its stream's 401), racing this test's navigation.
+    browser.get(f"{farm.url}/ui/login")
     browser.delete_all_cookies()
     browser.get(f"{farm.url}/ui/#/job/{job_id}")
     wait_until(lambda: browser.find_element(By.ID, "token"), 20, "the login form")
