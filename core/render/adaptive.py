@@ -21,9 +21,11 @@ from core.render.film import sanitize
 # where the rest go: each pixel's total in proportion to the square root of its relative variance
 # (Neyman allocation, equal cost per sample assumed), never below the first pass. Both constants were
 # chosen on the tune half of the suite (bench/suite.py), from a model of the allocation on measured noise
-# maps (issue 15's note); `quekaro bench adaptive` measures the result on the whole suite.
+# maps (issue 15's notes; the wider blur since heavy-tailed noise, a glossy highlight's rare bright
+# paths, shows in few of a pixel's first-pass samples); `quekaro bench adaptive` measures the result on
+# the whole suite.
 FIRST_SHARE = 0.5
-BLUR_PX = 4.0
+BLUR_PX = 8.0
 # Moved samples land on pixels that may cost more per sample: on the tune half the reallocation cost up to
 # ~5 % more time at the same spp. So the second pass stays uniform unless the first pass predicts a
 # larger gain than that (relMSE at the same spp below PAYS_BELOW of uniform's).
