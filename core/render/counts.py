@@ -52,9 +52,10 @@ class WindowRender:
 
     def relative_variance(self, epsilon: float = RELMSE_EPSILON) -> np.ndarray:
         """Per pixel, the per-sample variance (mean over RGB) over (mean^2 + epsilon), the mean also over
-        RGB: about the relMSE one sample adds there (core.render.metrics.relmse weighs each channel by
-        its own mean; weighted so, a saturated colour's dim channels made the allocation's predicted gain
-        noisier and placed the samples no better on the suite). Pixels with < 2 samples: 0."""
+        RGB: about the relMSE one sample adds there. core.render.metrics.relmse weighs each channel by
+        its own mean; weighted so, a saturated colour's dim channels make the predicted gain of an
+        allocation noisier, enough to cross the threshold that decides whether to adapt
+        (core.render.adaptive.PAYS_BELOW). Pixels with < 2 samples: 0."""
         n = np.maximum(self.counts, 1)[..., None].astype(np.float64)
         mean = self.sum / n
         var = np.maximum(self.sum_sq / n - mean * mean, 0.0) * n / np.maximum(n - 1, 1)
