@@ -160,10 +160,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     rows, bounds = [], []
     for level in LEVELS:
         options = RenderOptions(level=level, spp=args.spp, threads=args.threads, rules=args.rules)
-        # Seeds from the options without the rule file, so two rule files are compared on the same
-        # pre-passes (the pre-pass's noise moves a level's ratio by +-0.1).
-        unruled = RenderOptions(level=level, spp=args.spp, threads=args.threads).to_dict()
-        base = plan_seed(digest, spec.defines, unruled)
+        # The rule file and the level shape no pre-pass (core.model.seeds), so two rule files, and the
+        # levels, are compared on the same pre-passes (the pre-pass's noise moves a level's ratio by +-0.1).
+        base = plan_seed(digest, spec.defines, options.to_dict())
         runs = []
         for k in range(args.seeds):  # k = 0: the plan `quekaro render` makes with the default rules
             plan = plan_job(spec, options, seed=base + k)

@@ -18,11 +18,14 @@ from render_check import FIREFLY_PIXELS, by_name
 from core.errors import MessageError, QuekaroError, RenderError
 from core.model import messages as m
 from core.model.geometry import Rect
+from core.model.hashing import sha256_file
 from core.model.job import RenderOptions, SceneSpec
+from core.model.seeds import plan_seed
 from core.model.units import WorkUnit
 from core.render.imageio import read_image_channels
 from core.render.planner import RenderParams, adaptive_params
 from core.render.worker import RenderRequest, render_job_here
+from fuzzy.levels import RULE_LEVELS
 from fuzzy.render_params import SPP_MAX
 from master.service import _check_planned, _params_from_meta
 from planning.budgets import level_spp, shares
@@ -80,6 +83,19 @@ def test_an_adaptive_jobs_budget_is_the_same_on_a_farm_as_in_one_process():
     alone, farm = (plan_job(spec, options, seed=5, min_units=n) for n in (1, 8))
     assert alone.shares["mean_spp"] == farm.shares["mean_spp"], (alone.shares, farm.shares)
     assert alone.shares["rule_units"] == farm.shares["rule_units"] and len(farm.units) == 3
+
+
+def test_the_levels_of_a_scene_read_one_pre_pass_and_spend_in_the_rules_order():
+    """Seeded as `quekaro render` seeds it (core.model.seeds.plan_seed). A level's budget moves with the
+    pre-pass's noise (here the sunlit glossy units'), so levels seeded apart could spend in another order
+    than the rules' (this scene and size did, with a seed per level)."""
+    spec = SceneSpec(REPO / "bench" / "scenes" / "outdoor.xml", {"res": "128"})
+    spent = []
+    for level in RULE_LEVELS:
+        options = RenderOptions(level=level, spp=64, threads=2, adaptive=True)
+        plan = plan_job(spec, options, seed=plan_seed(sha256_file(spec.path), spec.defines, options.to_dict()))
+        spent.append(plan.shares["mean_spp"])
+    assert spent == sorted(spent, reverse=True) and spent[0] > spent[-1], dict(zip(RULE_LEVELS, spent, strict=True))
 
 
 def _rects(n: int) -> list[Rect]:

@@ -47,14 +47,18 @@ def worker():
         yield w
 
 
-def test_plan_seeds_follow_the_scene_and_the_plan_options_only():
+def test_plan_seeds_follow_the_scene_and_the_pre_pass_options_only():
     opts = {"level": "S", "spp": 64, "threads": 2}
     seed = plan_seed("ab" * 32, {"res": "64"}, opts)
     assert 0 <= seed < 2**31
-    assert seed == plan_seed("ab" * 32, {"res": "64"}, {**opts, "threads": 1})  # threads shape no plan
     assert seed != plan_seed("cd" * 32, {"res": "64"}, opts)
     assert seed != plan_seed("ab" * 32, {"res": "65"}, opts)
-    assert seed != plan_seed("ab" * 32, {"res": "64"}, {**opts, "level": "N"})
+    for shaping in ({"spp": 65}, {"depth": 3}, {"sensor": 1}, {"integrator": "direct"}, {"variant": "scalar_rgb"}):
+        assert seed != plan_seed("ab" * 32, {"res": "64"}, {**opts, **shaping}), shaping
+    # what only reads the pre-pass: every level of a scene reads one, so the levels keep the rules' order
+    for reading in ({"threads": 1}, {"level": "N"}, {"rules": "x.xml"}, {"defuzzifier": "mom"}, {"units": 9},
+                    {"adaptive": True}):
+        assert seed == plan_seed("ab" * 32, {"res": "64"}, {**opts, **reading}), reading
 
 
 def test_unit_seeds_are_distinct_and_stable():

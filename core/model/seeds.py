@@ -16,13 +16,19 @@ def unit_seed(job_id: str, unit: int, pass_: int) -> int:
     return int.from_bytes(digest, "little") & ((1 << SEED_BITS) - 1)
 
 
+# The options that shape a job's pre-pass (its samples, depth, integrator and sensor). A level, a rule file,
+# a defuzzifier, a unit count or adaptive sampling only read the pre-pass, so they leave the seed alone.
+PREPASS_OPTIONS = ("spp", "depth", "variant", "integrator", "sensor")
+
+
 def plan_seed(scene_digest: str, defines: dict[str, str], options: dict[str, Any]) -> int:
-    """The pre-pass seed of a job, from the scene's content and the options that shape its plan.
+    """The pre-pass seed of a job, from the scene's content and the options that shape its pre-pass.
 
     The same job submitted again then gets the same units: their window sizes, which Dr.Jit compiles one
     kernel for each (~0.5 s apiece, cached on disk), are reused instead of compiled anew because the
-    pre-pass noise moved a split. Thread counts do not change a plan and are left out.
+    pre-pass noise moved a split. And every level of one scene reads one pre-pass: a level's budget moves
+    with the pre-pass's noise, so levels seeded apart could spend in another order than the rules'.
     """
-    shaping = {k: v for k, v in options.items() if k != "threads"}
+    shaping = {k: options.get(k) for k in PREPASS_OPTIONS}
     text = json.dumps([scene_digest, sorted(defines.items()), shaping], sort_keys=True, default=str)
     return unit_seed(text, -1, 0)
