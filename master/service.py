@@ -288,7 +288,10 @@ class MasterService:
             options.check_used()
             digest = bundle_hash(bundle)
             _check_stated_spp(SceneSpec(scene, defines), scene_name, options)  # before the pre-pass
-            plan = await self._plan(SceneSpec(scene, defines), options, plan_seed(digest, defines, options.to_dict()))
+            # Seeded from the scene file, as `quekaro render` seeds it: a job reads the same pre-pass on
+            # a farm as in one process (the bundle's hash would also follow its packing and rule file).
+            seed = plan_seed(sha256_file(scene), defines, options.to_dict())
+            plan = await self._plan(SceneSpec(scene, defines), options, seed)
             plan = dataclasses.replace(plan, bundle_sha256=digest, rules_sha256=rules_sha256)
             m.check_job(self._job_info(job_id, scene_name, defines, plan))  # now, not at its first message
         except BaseException as exc:

@@ -233,7 +233,7 @@ def _with_prepass(plan: JobPlan, target: int, seed: int, scene: Any,
                            f"failed in Mitsuba: {str(exc).strip()[-300:]}; level off renders without it") from exc
     units = partition(cmap, target_units=target)
     return dataclasses.replace(plan, units=units, prepass_seconds=time.perf_counter() - start,
-                               prepass_info=dict(cmap.info)), cmap
+                               prepass_info={**cmap.info, "seed": seed}), cmap
 
 
 def _with_depth_floors(plan: JobPlan, cmap: ComplexityMap, seed: int, scene: Any,

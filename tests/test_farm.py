@@ -556,6 +556,10 @@ def test_a_rule_level_job_renders_each_agents_units_in_batches_and_matches_a_loc
     image, reference = read_image(out), local_render(tmp_path, defines, "S")
     a, b = block_means(image), block_means(reference)
     assert np.abs(a - b).mean() / b.mean() < 0.08  # as test_job_on_three_agents_matches_local_render
+    # Seeded from the scene file on both sides (core.model.seeds.plan_seed): the job reads the pre-pass
+    # it reads in one process, so a level spends alike on a farm and in `quekaro render`.
+    local = json.loads((tmp_path / "local.json").read_text())
+    assert report["prepass"] == local["prepass"], (report["prepass"], local["prepass"])
 
 
 def test_a_farm_with_an_agent_on_other_rules_measures_depth_floors_at_every_rule_level(tmp_path):
