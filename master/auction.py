@@ -269,6 +269,7 @@ class UnitState:
     awarded_at: float = 0.0
     estimate: float = 0.0
     deadline: float = math.inf
+    delivered_by: str | None = None  # the agent whose tile made it done
 
 
 class PlansWith(NamedTuple):
@@ -682,6 +683,8 @@ class Auction:
             if now - unit.awarded_at > self.config.award_grace_s:
                 out += self._requeue(key, "award not acknowledged by the agent")
         for job_id, index in sorted(busy - state.holding):
+            if self._delivered(agent, job_id, index):
+                continue  # a heartbeat sent while its tile's upload was ending: the unit is done, by it
             # Work the master did not award to it (revoked, or before a master restart): stop it.
             cancel = m.Cancel(
                 conversation=self._new_id(), job_id=job_id, index=index, reason="not awarded to you"
@@ -737,7 +740,14 @@ class Auction:
         )  # fmt: skip
         job = self.jobs[msg.job_id]
         self._clear_award(job, unit, UnitStatus.DONE)
+        unit.delivered_by = agent
         return [done, *self._finish_if_done(job)]
+
+    def _delivered(self, agent: str, job_id: str, index: int) -> bool:
+        """Whether the unit is done by this agent's tile."""
+        job = self.jobs.get(job_id)
+        unit = job.units.get(index) if job else None
+        return unit is not None and unit.status == UnitStatus.DONE and unit.delivered_by == agent
 
     def on_failure(self, agent: str, msg: m.Failure, now: float, blame: bool = True) -> list[Command]:
         """The agent could not render its unit: the unit fails on it (counted against it, toward its

@@ -476,6 +476,21 @@ def test_heartbeat_reconciles_lost_awards_and_stale_work() -> None:
     assert [s.message.index for s in sends(stale, m.Cancel, to="A")] == [0]
 
 
+def test_a_heartbeat_that_crossed_its_own_delivery_cancels_nothing() -> None:
+    """An agent lists a unit as busy until its upload's answer comes; a heartbeat sent just before the
+    tile landed arrives after it. Cancelling then would make the agent drop its own delivered unit (no
+    Inform, no timing learned); another agent still on the done unit is stopped."""
+    a = make([1.0], ["A", "B"])
+    got = round_trip(a, 0.0)
+    winner = got[0].to
+    other = "B" if winner == "A" else "A"
+    assert events(a.on_inform(winner, inform(got[0], 0.5), 1.0), au.UnitDone)
+    held = (m.HeldUnit(job_id="job-1", index=0),)
+    assert sends(a.on_heartbeat(winner, m.Heartbeat(conversation="h", busy=held), 1.1), m.Cancel) == []
+    stale = a.on_heartbeat(other, m.Heartbeat(conversation="h", busy=held), 1.2)
+    assert [s.message.index for s in sends(stale, m.Cancel, to=other)] == [0]
+
+
 def test_upload_allowed_only_for_the_current_token() -> None:
     a = make([1.0], ["A"])
     got = round_trip(a, 0.0)

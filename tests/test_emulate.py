@@ -91,7 +91,10 @@ def _wait_for_informs(logs: Path, job_id: str, units: int, timeout: float = 30.0
         if sum(len(pattern.findall(log.read_text())) for log in logs.glob("agent-*.log")) >= units:
             return
         time.sleep(0.1)
-    raise AssertionError(f"the agents logged fewer than {units} units of job {job_id} done within {timeout} s")
+    told = [line for log in sorted(logs.glob("agent-*.log")) for line in log.read_text().splitlines()
+            if job_id in line]
+    raise AssertionError(f"the agents logged fewer than {units} units of job {job_id} done within {timeout} s; "
+                         "what they logged of it:\n" + "\n".join(told[-40:]))
 
 
 def test_two_emulated_agents_complete_a_job(tmp_path):
