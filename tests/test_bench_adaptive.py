@@ -7,7 +7,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bench.adaptive import oracle_ratio
+from core.render.adaptive import predicted_ratio
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -26,9 +32,12 @@ def test_bench_adaptive_measures_each_scene_at_equal_time(tmp_path):
         assert run["equal_spp"] >= 1 and run["adaptive_s"] > 0 and run["uniform_s"] > 0
         assert run["relmse_adaptive"] > 0 and run["relmse_equal"] > 0
         assert run["ratio_equal_time"] == pytest.approx(run["relmse_adaptive"] / run["relmse_equal"])
+        assert 0 < scene["oracle_equal_spp"] <= 1 + 1e-9
+    assert (tmp_path / "cache" / "noise").is_dir()  # the oracle's noise maps are cached beside the references
     text = (tmp_path / "out" / "adaptive.md").read_text()
     assert text.startswith("# The two-pass adaptive render against uniform spp (`quekaro bench adaptive`)")
     assert "| outdoor | report |" in text and "Median relMSE / uniform at equal render time" in text
+    assert "Median of the oracle at the same spp" in text
 
 
 @pytest.mark.slow
@@ -42,3 +51,32 @@ def test_bench_adaptive_takes_scene_files_outside_the_suite(tmp_path):
     scenes = json.loads(done.stdout)["scenes"]
     assert set(scenes) == {"caustic-corner", "glass-corner"}
     assert all(s["role"] == "report" and s["runs"][0]["relmse_adaptive"] > 0 for s in scenes.values())
+
+
+def test_the_oracle_of_even_or_no_noise_is_uniform_spp():
+    assert oracle_ratio(np.full((4, 5), 0.3), 16) == pytest.approx(1.0, abs=1e-12)
+    assert oracle_ratio(np.zeros((4, 5)), 16) == 1.0
+
+
+def test_the_oracle_of_two_noise_levels_is_neymans_closed_form():
+    # Half the pixels at noise a, half at b, no floor binding: (mean sqrt v)^2 / mean v.
+    noise = np.array([[1.0, 0.01]] * 8)
+    assert oracle_ratio(noise, 64) == pytest.approx(((1 + 0.1) / 2) ** 2 / ((1 + 0.01) / 2), rel=1e-9)
+
+
+def test_the_oracle_keeps_one_sample_in_noiseless_pixels():
+    # Noise 0 in half the pixels: they keep 1 sample, the rest get 2 spp - 1; ratio spp / (2 spp - 1).
+    noise = np.array([[1.0, 0.0]] * 8)
+    assert oracle_ratio(noise, 8) == pytest.approx(8 / 15, rel=1e-9)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(0.0, 100.0), min_size=2, max_size=40), st.integers(1, 64),
+       st.lists(st.floats(0.0, 1.0), min_size=40, max_size=40))
+def test_no_allocation_of_at_least_one_sample_a_pixel_beats_the_oracle(noise, spp, shares):
+    """Any other allocation with the same mean spp and one sample a pixel at least predicts no less."""
+    v = np.array(noise)
+    other = 1.0 + np.array(shares[: len(v)])
+    extra = spp * len(v) - len(v)
+    other = 1.0 + (other - 1.0) * (extra / (other - 1.0).sum()) if (other - 1.0).sum() > 0 else np.full(len(v), spp)
+    assert oracle_ratio(v, spp) <= predicted_ratio(v, other, spp) + 1e-9
