@@ -453,11 +453,12 @@ def resumed_cells(out: Path, settings: dict[str, Any]) -> list[dict[str, Any]]:
 
 
 def _shown(path: Path) -> str:
-    """A scene's path as the report shows it: relative to the repository's parent where it lies inside."""
-    try:
-        return str(path.resolve().relative_to(REPO.parent))
-    except ValueError:
-        return str(path)
+    """A scene's path as the report shows it: relative to the repository's parent where it lies inside,
+    as named (../shared may be a link to elsewhere) or once resolved."""
+    for candidate in (Path(os.path.abspath(path)), path.resolve()):
+        if candidate.is_relative_to(REPO.parent):
+            return str(candidate.relative_to(REPO.parent))
+    return str(path)
 
 
 def targets(cells: list[dict[str, Any]], n: int) -> list[dict[str, Any]]:

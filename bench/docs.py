@@ -5,8 +5,10 @@ wrote. A block
     ...
     <!-- /include -->
 
-holds the cited file without its title line; this rewrites every block from its file, and
-tests/test_docs_figures.py checks that each block equals its file, so no figure is typed by hand."""
+holds the cited file without its title line, its other headings nested NEST levels deeper (a file's
+`## scene` sits under the README's `### section`, not beside its `## Benchmarks`); this rewrites every
+block from its file, and tests/test_docs_figures.py checks that each block equals its file, so no figure
+is typed by hand."""
 
 from __future__ import annotations
 
@@ -16,14 +18,18 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 BLOCK = re.compile(r"(<!-- include (?P<path>\S+) -->\n)(?P<body>.*?)(<!-- /include -->)", re.S)
+HEADING = re.compile(r"^(#{1,6}) ")
+NEST = 2  # the README's blocks sit under `###` sections
 
 
 def included(path: Path) -> str:
-    """What a block holds of the file at `path`: everything after its `# title` line, trimmed."""
+    """What a block holds of the file at `path`: everything after its `# title` line, trimmed, with
+    its headings NEST levels deeper (at most six)."""
     lines = path.read_text().splitlines()
     if lines and lines[0].startswith("# "):
         lines = lines[1:]
-    return "\n".join(lines).strip() + "\n"
+    nested = [HEADING.sub(lambda m: "#" * min(6, len(m.group(1)) + NEST) + " ", line) for line in lines]
+    return "\n".join(nested).strip() + "\n"
 
 
 def blocks(text: str) -> list[tuple[str, str]]:

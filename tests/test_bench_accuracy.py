@@ -170,3 +170,14 @@ def test_the_render_time_baseline_matches_render_seconds_by_the_slope_alone():
     assert bench_accuracy.render_time_spp(4.0, 0.1, agents=2, threads=2) == 20  # two agents of one thread
     assert bench_accuracy.render_time_spp(4.0, 0.1, agents=4, threads=8) == 10  # four agents of two threads
     assert bench_accuracy.render_time_spp(0.0, 0.1, agents=1, threads=2) == 1
+
+
+def test_a_scene_path_is_shown_relative_to_the_checkouts_parent_even_through_a_link(tmp_path):
+    repo, shown = bench_accuracy.REPO, bench_accuracy._shown
+    # ../shared is a link in a CI clone: the name as given counts, not where the link leads.
+    assert shown(repo / ".." / "shared" / "scenes" / "x.xml") == "shared/scenes/x.xml"
+    assert shown(repo / "bench" / "scenes" / "volume.xml") == f"{repo.name}/bench/scenes/volume.xml"
+    link = tmp_path / "link"
+    link.symlink_to(repo)
+    assert shown(link / "bench" / "x.xml") == f"{repo.name}/bench/x.xml"  # outside, but resolves inside
+    assert shown(tmp_path / "other.xml") == str(tmp_path / "other.xml")

@@ -40,6 +40,19 @@ def test_no_figure_is_typed_in_the_benchmarks_section() -> None:
     assert not typed, f"figures typed by hand in README.md: {typed}"
 
 
+def test_an_included_files_headings_nest_under_the_readmes_section(tmp_path: Path) -> None:
+    (tmp_path / "fig.md").write_text(
+        "# Title (`cmd`)\n\n## scene a\n\n| a |\n|---|\n| 1.5 |\n#### deep\n#not a heading\n")
+    assert included(tmp_path / "fig.md") == "#### scene a\n\n| a |\n|---|\n| 1.5 |\n###### deep\n#not a heading\n"
+
+
+def test_no_included_heading_sits_beside_the_readmes_sections() -> None:
+    readme = (REPO / "README.md").read_text()
+    for path, body in blocks(readme):
+        shallow = [line for line in body.splitlines() if re.match(r"#{1,3} ", line)]
+        assert not shallow, f"README.md's block of {path} has headings at the README's own levels: {shallow}"
+
+
 def test_refresh_rewrites_a_stale_block(tmp_path: Path) -> None:
     (tmp_path / "fig.md").write_text("# Title (`cmd`)\n\n| a |\n|---|\n| 1.5 |\n")
     readme = tmp_path / "README.md"
