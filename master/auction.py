@@ -41,7 +41,7 @@ import math
 import random
 import statistics
 from collections import Counter, deque
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple, Protocol
 
@@ -253,6 +253,8 @@ class ResumedJob(Protocol):
     def done(self) -> Sequence[int]: ...
     @property
     def failures(self) -> Sequence[tuple[int, str, str]]: ...  # (unit index, agent, reason), oldest first
+    @property
+    def delivered_by(self) -> Mapping[int, str]: ...  # done unit -> the agent whose tile made it done
 
 
 @dataclass
@@ -584,7 +586,7 @@ class Auction:
             except Exception as exc:  # one job the master cannot describe must not stop the others
                 out.append(JobFailed(job.job_id, f"cannot resume the job: {type(exc).__name__}: {exc}"))
                 continue
-            out += auction.add_job(info, job.units, job.done, job.failures)
+            out += auction.add_job(info, job.units, job.done, job.failures, job.delivered_by)
         return auction, out
 
     # --- set-up --------------------------------------------------------------------------------------
@@ -595,9 +597,11 @@ class Auction:
         units: Sequence[WorkUnit],
         done: Iterable[int] = (),
         failures: Iterable[tuple[int, str, str]] = (),
+        delivered_by: Mapping[int, str] | None = None,
     ) -> list[Command]:
-        """Start auctioning a job's units. A resumed job passes the units already `done` and its past
-        `failures` as (unit index, agent, reason), so retries and blocklists survive a master restart."""
+        """Start auctioning a job's units. A resumed job passes the units already `done` (and `delivered_by`,
+        whose tile made each one done) and its past `failures` as (unit index, agent, reason), so retries,
+        blocklists and deliveries survive a master restart."""
         if info.job_id in self.jobs:
             raise ValueError(f"job {info.job_id!r} already known")
         if len({u.index for u in units}) != len(units) or not units:
@@ -608,6 +612,9 @@ class Auction:
         # Units done before a restart start as done: a state, not a change of it.
         job = Job(info, {u.index: UnitState(u, UnitStatus.DONE if u.index in done else UnitStatus.PENDING)
                          for u in units}, order=len(self.jobs))
+        for index, agent in (delivered_by or {}).items():
+            if index in done:
+                job.units[index].delivered_by = agent
         for index, agent, reason in failures:
             unit = job.units[index]
             unit.failures += 1

@@ -17,7 +17,7 @@ import json
 import sqlite3
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -161,6 +161,7 @@ class RunningJob:
     units: list[WorkUnit]
     done: list[int]  # indices of the units done
     failures: list[tuple[int, str, str]]  # (unit index, agent, reason) of its failed attempts, oldest first
+    delivered_by: dict[int, str] = field(default_factory=dict)  # done unit -> the agent whose tile it has
 
 
 @dataclass(frozen=True)
@@ -502,14 +503,20 @@ class JobStore:
         return [j.id for j in self.list_jobs(JobStatus.RUNNING)]
 
     def running_jobs(self) -> list[RunningJob]:
-        """Every running job with its units, those done and its past failures: what the auction rebuilds
-        itself from after a restart (with `credits`)."""
+        """Every running job with its units, those done (and by whom) and its past failures: what the auction
+        rebuilds itself from after a restart (with `credits`)."""
         out = []
         for record in self.list_jobs(JobStatus.RUNNING):
             units = self.units(record.id)
             done = [u.index for u in units if u.status == UnitStatus.DONE]
-            out.append(RunningJob(record.id, [u.unit() for u in units], done, self.failures(record.id)))
+            out.append(RunningJob(record.id, [u.unit() for u in units], done, self.failures(record.id),
+                                  self._delivered_by(record.id, done)))
         return out
+
+    def _delivered_by(self, job_id: str, done: list[int]) -> dict[int, str]:
+        """The agent of each done unit's done attempt (a unit is never done twice)."""
+        rows = self.db.execute("SELECT idx, agent FROM attempts WHERE job_id = ? AND outcome = 'done'", (job_id,))
+        return {r["idx"]: r["agent"] for r in rows if r["idx"] in set(done)}
 
     def repair(self, job_ids: list[str], now: float) -> list[tuple[str, int]]:
         """Units of these jobs marked done whose tile is gone (or never recorded) go back to pending, and a

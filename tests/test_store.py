@@ -287,6 +287,27 @@ def test_master_killed_mid_job_resumes_with_done_units_kept(tmp_path: Path) -> N
     assert all(n == 1 for _, n in done_attempts)
 
 
+def test_a_restarted_master_still_knows_who_delivered_a_unit(tmp_path: Path) -> None:
+    """A heartbeat that crossed a delivery reaches a master that restarted since: the deliverer is not told
+    to drop the unit its own tile made done; another agent listing it is."""
+    store = new_store(tmp_path / "farm.db", n=2)
+    auction, _ = restore(store, 100.0)
+    for name in ("A", "B"):
+        auction.register(name, 100.0)
+    awarded = play(auction, store, 101.0, finish=1)
+    deliverer, index = awarded[0].to, awarded[0].message.unit.index
+    other = "B" if deliverer == "A" else "A"
+    assert store.running_jobs()[0].delivered_by == {index: deliverer}
+    auction, _ = restore(store, 200.0)
+    held = (m.HeldUnit(job_id="job-1", index=index),)
+
+    def cancels(agent: str) -> list[int]:
+        out = auction.on_heartbeat(agent, m.Heartbeat(conversation="h", busy=held), 201.0)
+        return [c.message.index for c in out if isinstance(c, au.Send) and isinstance(c.message, m.Cancel)]
+
+    assert cancels(deliverer) == [] and cancels(other) == [index]
+
+
 def test_restored_job_that_was_complete_ends_at_once(tmp_path: Path) -> None:
     store = new_store(tmp_path / "farm.db", n=1)
     store.record_award("job-1", 0, "A", "aa" * 16, 100.0, 1.0)
