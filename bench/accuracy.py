@@ -44,8 +44,9 @@ from PIL import Image
 from bench.suite import SUITE, SuiteScene, scene_from_argument
 from core.errors import QuekaroError
 from core.model.geometry import Rect
+from core.model.hashing import sha256_file
 from core.model.job import RenderOptions, SceneSpec
-from core.render.bundle import make_bundle
+from core.render.bundle import check_rules, make_bundle
 from core.render.imageio import read_image
 from core.render.metrics import all_metrics, diff_image
 from core.render.seams import seam_measure
@@ -96,6 +97,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="time the whole `quekaro render` process instead of a farm (smallest agent count)")
     parser.add_argument("--adaptive", action="store_true",
                         help="the optimised levels as adaptive jobs (`--adaptive`), through the farm or in one process")
+    parser.add_argument("--rules", type=Path, default=None,
+                        help="rule file for the rule levels (default: rules/pathtracing.xml): a retune tried on "
+                             "the suite; the output names it and its sha256")
     parser.add_argument("--resume", action="store_true",
                         help="keep the scenes already finished in OUT/accuracy.partial.jsonl by a run with the "
                              "same settings, and measure only the others")
@@ -193,17 +197,18 @@ def _self_cpu() -> float:
 
 @contextmanager
 def farm_runner(agents: int, threads: int, home: Path, units: int | None = None,
-                adaptive: bool = False, asked: Asked = AS_WRITTEN) -> Iterator[Any]:
+                adaptive: bool = False, asked: Asked = AS_WRITTEN, rules: Path | None = None) -> Iterator[Any]:
     """A function (spec, level, spp, out) -> (report, wall s, CPU s) running jobs on a real local farm
-    (`adaptive`: the optimised levels as adaptive jobs; `asked`: the sensor, integrator and depth)."""
+    (`adaptive`: the optimised levels as adaptive jobs; `asked`: the sensor, integrator and depth; `rules`:
+    the rule levels' rule file, carried in each job's bundle as `quekaro submit --rules` does)."""
 
     with LocalFarm(home, agents=agents, threads=max(1, threads // agents)) as farm:
         farm.wait_for_agents()
         client = farm.client()
 
         def run_job(spec: Any, level: str, spp: int, out: Path) -> tuple[dict, float, float]:
-            bundle = make_bundle(spec.path, spec.defines, out.with_suffix(".tar"),
-                                 search_paths=spec.search_paths).path.read_bytes()
+            bundle = make_bundle(spec.path, spec.defines, out.with_suffix(".tar"), search_paths=spec.search_paths,
+                                 rules=rules if level != "off" else None).path.read_bytes()
             roots = [p.pid for _, p in farm.procs]  # this process (and the XMPP server in it): _self_cpu
             cpu0, start = tree_cpu_seconds(roots) + _self_cpu(), time.perf_counter()
             options = {"level": level, "spp": spp, **asked.options()}
@@ -223,12 +228,13 @@ def farm_runner(agents: int, threads: int, home: Path, units: int | None = None,
 
 @contextmanager
 def inprocess_runner(threads: int, units: int | None = None, adaptive: bool = False,
-                     asked: Asked = AS_WRITTEN) -> Iterator[Any]:
+                     asked: Asked = AS_WRITTEN, rules: Path | None = None) -> Iterator[Any]:
     """The same function as `farm_runner`, timing the whole `quekaro render` process a user runs."""
 
     def run_job(spec: Any, level: str, spp: int, out: Path) -> tuple[dict, float, float]:
         chosen = ["--units", str(units)] if units and level != "off" else []
         chosen += ["--adaptive"] if adaptive and level != "off" else []
+        chosen += ["--rules", str(rules)] if rules is not None and level != "off" else []
         chosen += [*asked.args(), *(arg for folder in spec.search_paths for arg in ("-a", str(folder)))]
         cmd = [sys.executable, "-m", "quekaro", "render", str(spec.path), "--opt", level, "--spp", str(spp),
                "-t", str(threads), "-o", str(out), *chosen, *(f"-D{k}={v}" for k, v in spec.defines.items())]
@@ -277,9 +283,9 @@ def scene_cells(scene: SuiteScene, agents: list[int], levels: list[str], args: a
     t0, k = spp_timing(spec, args.spp, args.threads, variant, asked(args))
     cells, diffs, units = [], {}, {}
     for n in agents:
-        runner = (inprocess_runner(args.threads, args.units, args.adaptive, asked(args)) if args.inprocess
-                  else farm_runner(n, args.threads, work / f"farm-{scene.name}-{n}", args.units, args.adaptive,
-                                   asked(args)))
+        runner = (inprocess_runner(args.threads, args.units, args.adaptive, asked(args), args.rules)
+                  if args.inprocess else farm_runner(n, args.threads, work / f"farm-{scene.name}-{n}", args.units,
+                                                     args.adaptive, asked(args), args.rules))
         with runner as run_job:
             for level in levels:
                 cell, image, rects = run_cell(run_job, spec, level, args, work / f"{scene.name}-{n}-{level}", ref)
@@ -391,6 +397,8 @@ def grey_levels(value: np.ndarray) -> np.ndarray:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     scenes, agents, levels = parse_grid(args)
+    if args.rules is not None:  # refused (naming file, line and label) before any scene renders
+        check_rules(args.rules)
     started, load_before = time.perf_counter(), os.getloadavg()[0]
     settings = run_settings(args, agents, levels)
     cells = resumed_cells(Path(args.out), settings) if args.resume else []
@@ -421,12 +429,15 @@ def run_settings(args: argparse.Namespace, agents: list[int], levels: list[str])
             "defines": sorted(args.defines), "agents": agents, "levels": levels, "runs": args.runs,
             "warmup": args.warmup, "inprocess": args.inprocess, "units": args.units, "adaptive": args.adaptive,
             **asked(args).options(),  # only what differs from the scene as written: older partial runs still match
+            **({"rules_sha256": sha256_file(args.rules)} if args.rules is not None else {}),
             **({"search_paths": [str(p) for p in args.search_paths]} if args.search_paths else {})}
 
 
 def mode(args: argparse.Namespace) -> str:
-    """How the jobs ran: through a farm or in one process, and whether the optimised levels were adaptive."""
-    return ("inprocess" if args.inprocess else "farm") + (", adaptive" if args.adaptive else "")
+    """How the jobs ran: through a farm or in one process, whether the optimised levels were adaptive, and with
+    which rule file when not the default."""
+    rules = f", rules {_shown(args.rules)} (sha256 {sha256_file(args.rules)[:12]})" if args.rules is not None else ""
+    return ("inprocess" if args.inprocess else "farm") + (", adaptive" if args.adaptive else "") + rules
 
 
 def write_partial(settings: dict[str, Any], cells: list[dict[str, Any]], out: Path) -> None:
@@ -445,10 +456,10 @@ def resumed_cells(out: Path, settings: dict[str, Any]) -> list[dict[str, Any]]:
     saved = lines[0].get("settings") if lines else None
     if saved is None:
         raise QuekaroError(f"--resume: {path} has no settings line (written by an older version)")
-    for key, value in settings.items():
-        if saved.get(key) != value:
+    for key in dict.fromkeys([*settings, *saved]):  # a key only one side has differs too (e.g. --rules)
+        if saved.get(key) != settings.get(key):
             raise QuekaroError(f"--resume: {path} was written with {key}={saved.get(key)!r}, "
-                               f"this run asks for {value!r}")
+                               f"this run asks for {settings.get(key)!r}")
     return lines[1:]
 
 

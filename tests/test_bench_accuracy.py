@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import hashlib
 import os
+import re
 import time
 from pathlib import Path
 
@@ -114,6 +116,50 @@ def test_resume_refuses_other_settings_and_missing_files(tmp_path):
     assert bench_accuracy.resumed_cells(args.out, settings) == [cell]
     with pytest.raises(QuekaroError, match="spp=4, this run asks for 8"):
         bench_accuracy.resumed_cells(args.out, {**settings, "spp": 8})
+
+
+def test_resume_refuses_a_partial_run_of_other_rules(tmp_path):
+    """A key only one side has differs too: a run with --rules does not resume one with the default rules,
+    nor the other way round."""
+    args = args_for(tmp_path)
+    default = bench_accuracy.run_settings(args, [1], ["off", "S"])
+    retuned = {**default, "rules_sha256": "ab" * 32}
+    bench_accuracy.write_partial(default, [{"scene": "cbox"}], args.out)
+    with pytest.raises(QuekaroError, match="rules_sha256=None, this run asks for 'abab"):
+        bench_accuracy.resumed_cells(args.out, retuned)
+    bench_accuracy.write_partial(retuned, [{"scene": "cbox"}], args.out)
+    with pytest.raises(QuekaroError, match=r"rules_sha256='abab.*this run asks for None"):
+        bench_accuracy.resumed_cells(args.out, default)
+
+
+def test_a_rule_file_the_planner_cannot_use_is_refused_before_anything_renders(tmp_path):
+    bad = tmp_path / "bad.xml"
+    bad.write_text(RULES.read_text().replace('<fset label="VB" a="0.9" b="1.6" c="1.6" d="3.0"/>', ""))
+    with pytest.raises(QuekaroError, match=r"--rules: .*bad\.xml.*VB"):
+        bench_accuracy.run(args_for(tmp_path, "--inprocess", "--rules", str(bad)))
+    assert not (tmp_path / "cache").exists() and not (tmp_path / "out").exists()
+
+
+RULES = Path(bench_accuracy.__file__).parent.parent / "rules" / "pathtracing.xml"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["--inprocess", "farm"])
+def test_the_rule_levels_run_the_rule_file_given(tmp_path, mode):
+    """A retune tried on the suite: every Ls consequent raised to VB (about 1.8x the user's spp, where the
+    shipped rules spend less than it at level S) reaches the jobs in one process and through a farm's
+    bundles, and the output names the file and its sha256."""
+    raised = tmp_path / "raised.xml"
+    raised.write_text(re.sub(r'<consequent name="Ls" label="\w+"/>', '<consequent name="Ls" label="VB"/>',
+                             RULES.read_text()))
+    shipped = one_cell(tmp_path / "shipped", mode, COMPAT / "film_pfm.xml", 4, 32, 1, "--levels", "S")
+    retuned = one_cell(tmp_path / "retuned", mode, COMPAT / "film_pfm.xml", 4, 32, 1, "--levels", "S",
+                       "--rules", str(raised))
+    [s], [r] = shipped["cells"], retuned["cells"]
+    assert s["spp_mean"] < 4 < r["spp_mean"]
+    header = (tmp_path / "retuned" / "out" / "accuracy.md").read_text().splitlines()[2]
+    assert f"rules {raised} (sha256 {hashlib.sha256(raised.read_bytes()).hexdigest()[:12]})" in header
+    assert "rules" not in (tmp_path / "shipped" / "out" / "accuracy.md").read_text().splitlines()[2]
 
 
 def test_grid_arguments_are_checked(tmp_path):
