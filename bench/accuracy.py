@@ -92,7 +92,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="timed runs per cell (median time; errors averaged over these and the warm-up, "
                              "and each uniform baseline over as many seeds)")
     parser.add_argument("--no-warmup", dest="warmup", action="store_false",
-                        help="time each cell's first run (cold kernels) instead of a second, warm one")
+                        help="time each cell's first run instead of a second, warm one: it compiles the "
+                             "kernels Dr.Jit's on-disk cache (~/.drjit) does not hold yet, so a cell's time "
+                             "depends on what ran before it")
     parser.add_argument("--inprocess", action="store_true",
                         help="time the whole `quekaro render` process instead of a farm (smallest agent count)")
     parser.add_argument("--adaptive", action="store_true",
