@@ -402,7 +402,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.rules is not None:  # refused (naming file, line and label) before any scene renders
         check_rules(args.rules)
     started, load_before = time.perf_counter(), os.getloadavg()[0]
-    settings = run_settings(args, agents, levels)
+    settings = run_settings(args, agents, levels)  # hashes --rules once; `mode` shows that hash
     cells = resumed_cells(Path(args.out), settings) if args.resume else []
     done = {c["scene"] for c in cells}
     with tempfile.TemporaryDirectory(prefix="quekaro-bench-") as tmp:
@@ -415,7 +415,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     result = {
         "scenes": {s.name: {"role": s.role, "path": _shown(s.path), "defines": scene_spec(s, args).defines}
                    for s in scenes}, "spp": args.spp, "ref_spp": args.ref_spp, "threads": args.threads,
-        "mode": mode(args), "agents": agents, "levels": levels, "asked": asked(args).options(),
+        "mode": mode(args, settings.get("rules_sha256")), "agents": agents, "levels": levels,
+        "asked": asked(args).options(),
         "cells": cells, "targets": targets(cells, agents[0]), "seconds": time.perf_counter() - started,
         "load": [load_before, os.getloadavg()[0]], "resumed": resumed,
     }
@@ -435,10 +436,10 @@ def run_settings(args: argparse.Namespace, agents: list[int], levels: list[str])
             **({"search_paths": [str(p) for p in args.search_paths]} if args.search_paths else {})}
 
 
-def mode(args: argparse.Namespace) -> str:
+def mode(args: argparse.Namespace, rules_sha256: str | None = None) -> str:
     """How the jobs ran: through a farm or in one process, whether the optimised levels were adaptive, and with
-    which rule file when not the default."""
-    rules = f", rules {_shown(args.rules)} (sha256 {sha256_file(args.rules)[:12]})" if args.rules is not None else ""
+    which rule file (`rules_sha256`, its hash) when not the default."""
+    rules = f", rules {_shown(args.rules)} (sha256 {rules_sha256[:12]})" if rules_sha256 else ""
     return ("inprocess" if args.inprocess else "farm") + (", adaptive" if args.adaptive else "") + rules
 
 

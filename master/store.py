@@ -510,13 +510,15 @@ class JobStore:
             units = self.units(record.id)
             done = [u.index for u in units if u.status == UnitStatus.DONE]
             out.append(RunningJob(record.id, [u.unit() for u in units], done, self.failures(record.id),
-                                  self._delivered_by(record.id, done)))
+                                  self._delivered_by(record.id)))
         return out
 
-    def _delivered_by(self, job_id: str, done: list[int]) -> dict[int, str]:
+    def _delivered_by(self, job_id: str) -> dict[int, str]:
         """The agent of each done unit's done attempt (a unit is never done twice)."""
-        rows = self.db.execute("SELECT idx, agent FROM attempts WHERE job_id = ? AND outcome = 'done'", (job_id,))
-        return {r["idx"]: r["agent"] for r in rows if r["idx"] in set(done)}
+        rows = self.db.execute(
+            "SELECT a.idx, a.agent FROM attempts a JOIN units u ON u.job_id = a.job_id AND u.idx = a.idx"
+            " WHERE a.job_id = ? AND a.outcome = 'done' AND u.status = ?", (job_id, UnitStatus.DONE))
+        return {r["idx"]: r["agent"] for r in rows}
 
     def repair(self, job_ids: list[str], now: float) -> list[tuple[str, int]]:
         """Units of these jobs marked done whose tile is gone (or never recorded) go back to pending, and a
