@@ -49,5 +49,11 @@ lint: setup
 docs-figures: setup
 	$(BIN)/python -m bench.docs
 
+# README.md's figure files written again by the commands that wrote them (each report's .provenance.json),
+# then its blocks refreshed: the stale ones (planned with another rule file than the shipped one), or
+# every one with BENCH=--all (BENCH=--dry-run lists the commands). Hours; run it alone on the machine.
+bench: setup
+	$(BIN)/python -m bench.rerun $(BENCH)
+
 clean:
 	rm -rf $(VENV) out var .pytest_cache .ruff_cache

@@ -41,6 +41,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from PIL import Image
 
+from bench.provenance import rules_for
 from bench.suite import SUITE, SuiteScene, scene_from_argument
 from core.errors import QuekaroError
 from core.model.geometry import Rect
@@ -421,9 +422,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "load": [load_before, os.getloadavg()[0]], "resumed": resumed,
     }
     result["outputs"] = [str(p) for p in write_outputs(result, Path(args.out))]
+    result["report"] = result["outputs"][0]  # accuracy.md, whose provenance bench.commands keeps
     if not args.json:
         print(format_report(result))
     return result
+
+
+def rules_file(args: argparse.Namespace) -> Path | None:
+    """The rule file the levels planned with (bench.commands records its hash)."""
+    return rules_for(args, parse_levels(args.levels))
 
 
 def run_settings(args: argparse.Namespace, agents: list[int], levels: list[str]) -> dict[str, Any]:

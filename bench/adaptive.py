@@ -142,8 +142,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
               "pays_below": PAYS_BELOW, "scenes": scenes, "median_ratio_equal_time": float(np.median(ratios)),
               "median_oracle_equal_spp": float(np.median([s["oracle_equal_spp"] for s in scenes.values()]))}
     report = format_report(result)
-    publish_markdown(args.out, "adaptive", "The two-pass adaptive render against uniform spp",
-                     "quekaro bench adaptive", report, show=not args.json)
+    result["report"] = str(publish_markdown(args.out, "adaptive", "The two-pass adaptive render against uniform spp",
+                                            "quekaro bench adaptive", report, show=not args.json))
     return result
 
 

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from bench.accuracy import DEFAULT_OUT, HETEROGENEOUS, SCENES
+from bench.provenance import rules_for
 from bench.report import publish_markdown
 from bench.scaling import measure_cached, measured_spec
 from core.model.geometry import Rect
@@ -143,6 +144,11 @@ def pixel_bound(weight: np.ndarray, tmap: Any) -> float:
     return float(np.sqrt(err * per).sum() ** 2 / total) if total > 0 else 1.0
 
 
+def rules_file(args: argparse.Namespace) -> Path | None:
+    """The rule file every level planned with (bench.commands records its hash)."""
+    return rules_for(args, LEVELS)
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
 
     defines = parse_defines(args.defines) if args.defines else None
@@ -180,8 +186,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
               "rules": str(planner.rules_path), "seeds": args.seeds, "off_render_seconds": off_seconds,
               "rows": rows, "neyman_ratio_S": float(np.mean(bounds)), "pixel_bound": pixel_bound(weight, tmap)}
     report = format_report(result)
-    publish_markdown(args.out, "allocation", "Each level's allocation against uniform spp",
-                     "quekaro bench allocation", report, show=not args.json)
+    result["report"] = str(publish_markdown(args.out, "allocation", "Each level's allocation against uniform spp",
+                                            "quekaro bench allocation", report, show=not args.json))
     return result
 
 

@@ -1,15 +1,18 @@
 """The benchmarks' command line (`quekaro bench BENCHMARK ...`, via `bench.cli`): each benchmark module
-exposes `add_arguments(parser)` (optional) and `run(args) -> dict`; this wires them to a parser and
-prints the result (one JSON object with `--json`)."""
+exposes `add_arguments(parser)` (optional) and `run(args) -> dict`; this wires them to a parser, prints
+the result (one JSON object with `--json`) and keeps the provenance of the report it wrote (the result's
+`report`: the command, and the hash of the rule file that the module's `rules_file(args)` names)."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import time
 from collections.abc import Callable
+from pathlib import Path
 from types import ModuleType
 
-from bench import accuracy, adaptive, allocation, fuzzy_engine, hosts, overhead, scaling
+from bench import accuracy, adaptive, allocation, fuzzy_engine, hosts, overhead, provenance, scaling
 from bench import farm as farm_bench
 
 BENCHMARKS: dict[str, tuple[ModuleType, str]] = {
@@ -26,7 +29,7 @@ BENCHMARKS: dict[str, tuple[ModuleType, str]] = {
 
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
-    return args.func(args)
+    return args.func(args, argv)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -41,9 +44,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _runner(module: ModuleType) -> Callable[[argparse.Namespace], int]:
-    def run(args: argparse.Namespace) -> int:
+def _runner(module: ModuleType) -> Callable[[argparse.Namespace, list[str]], int]:
+    def run(args: argparse.Namespace, argv: list[str]) -> int:
+        started = time.perf_counter()
         result = module.run(args)
+        if result.get("report"):
+            rules = module.rules_file(args) if hasattr(module, "rules_file") else None
+            provenance.record(Path(result["report"]), argv, rules, time.perf_counter() - started,
+                              out_is_file=Path(args.out).suffix == ".md")
         if args.json:
             print(json.dumps(result, indent=2, sort_keys=True))
         return 0

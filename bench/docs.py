@@ -48,12 +48,16 @@ def refresh(readme: Path, root: Path = REPO) -> str:
     return BLOCK.sub(body, readme.read_text())
 
 
-def main() -> int:
-    readme = REPO / "README.md"
-    new = refresh(readme)
+def refresh_file(readme: Path) -> str:
+    """Rewrite `readme`'s blocks from the files beside it that they cite; a line saying what changed."""
+    new = refresh(readme, readme.parent)
     changed = new != readme.read_text()
     readme.write_text(new)
-    print(f"{readme}: {len(blocks(new))} included figure blocks" + (", updated" if changed else ", unchanged"))
+    return f"{readme}: {len(blocks(new))} included figure blocks" + (", updated" if changed else ", unchanged")
+
+
+def main() -> int:
+    print(refresh_file(REPO / "README.md"))
     return 0
 
 

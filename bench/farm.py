@@ -27,6 +27,7 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
+from bench.provenance import rules_for
 from bench.report import DEFAULT_OUT, write_report
 from core.render.bundle import make_bundle
 from farm.local import LocalFarm
@@ -96,6 +97,11 @@ def _up(stack: ExitStack, home: Path, agents: int, threads: int) -> Any:
     return farm
 
 
+def rules_file(args: argparse.Namespace) -> Path | None:
+    """The rule file the job's level planned with (bench.commands records its hash)."""
+    return rules_for(args, [args.level])
+
+
 def run(args: argparse.Namespace) -> dict:
     if args.repeats < 1:
         raise ValueError(f"--repeats {args.repeats}: must be at least 1")
@@ -112,7 +118,8 @@ def run(args: argparse.Namespace) -> dict:
                                args.repeats)
     result = _result(args, first, second)
     text = format_report(result)
-    write_report(args.out, "farm", "Farm overhead and 2-agent speedup", text, "quekaro bench farm")
+    result["report"] = str(write_report(args.out, "farm", "Farm overhead and 2-agent speedup", text,
+                                        "quekaro bench farm"))
     if not args.json:
         print(text)
     return result

@@ -41,6 +41,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder for fuzzy.md")
 
 
+def rules_file(args: argparse.Namespace) -> Path:
+    """The rule file evaluated (bench.commands records its hash)."""
+    return Path(args.rules)
+
+
 def run(args: argparse.Namespace) -> dict:
     rb = load_rulebase(args.rules)
     engine = Engine(rb)
@@ -61,7 +66,8 @@ def run(args: argparse.Namespace) -> dict:
     }
     result.update(_pyfuzzylite(rb, engine, x, ranges, ours))
     text = format_table(result)
-    write_report(args.out, "fuzzy", "Fuzzy engine against pyfuzzylite", text, "quekaro bench fuzzy")
+    result["report"] = str(write_report(args.out, "fuzzy", "Fuzzy engine against pyfuzzylite", text,
+                                        "quekaro bench fuzzy"))
     if not getattr(args, "json", False):
         print(text)
     return result

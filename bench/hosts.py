@@ -532,7 +532,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
               "t1_s": job.t1, "costs": str(args.costs), "measured": costs.info, "mixed_speeds": list(MIXED_SPEEDS),
               "load": os.getloadavg(), "cpus": os.cpu_count(), "rows": rows}
     text = format_report(result)
-    write_outputs(result, text, args.out)
+    result["report"] = str(write_outputs(result, text, args.out))
     if not args.json:
         print(text)
     return result
@@ -599,8 +599,10 @@ def targets(rows: list[dict[str, Any]]) -> list[str]:
     return out
 
 
-def write_outputs(result: dict[str, Any], text: str, out: Path) -> None:
-    """OUT (.md, bench.report's convention) and the figures beside it as .json."""
+def write_outputs(result: dict[str, Any], text: str, out: Path) -> Path:
+    """OUT (.md, bench.report's convention) and the figures beside it as .json; returns OUT."""
     out = Path(out)
-    write_report(out.parent, out.stem, "The real protocol at 8-64 emulated agents", text, "quekaro bench hosts")
+    report = write_report(out.parent, out.stem, "The real protocol at 8-64 emulated agents", text,
+                          "quekaro bench hosts")
     out.with_suffix(".json").write_text(json.dumps(result, indent=1, default=str))
+    return report

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from bench.accuracy import inprocess_runner, parse_levels
+from bench.provenance import rules_for
 from bench.report import DEFAULT_OUT, publish_markdown
 from core.errors import QuekaroError
 from core.model.job import SceneSpec
@@ -47,6 +48,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder for overhead.md")
 
 
+def rules_file(args: argparse.Namespace) -> Path | None:
+    """The rule file the levels planned with (bench.commands records its hash)."""
+    return rules_for(args, parse_levels(args.levels))
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.repeats < 1:
         raise QuekaroError(f"--repeats {args.repeats}: at least one timed run")
@@ -59,8 +65,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         rows = [_level_row(run_job, spec, variant, level, args, Path(tmp)) for level in levels]
     result = {"scene": str(args.scene), "defines": spec.defines, "spp": args.spp, "threads": args.threads,
               "variant": variant, "adaptive": args.adaptive, "repeats": args.repeats, "levels": rows}
-    publish_markdown(args.out, "overhead", "Pipeline overhead against plain Mitsuba", _command(args),
-                     format_report(result), show=not args.json)
+    result["report"] = str(publish_markdown(args.out, "overhead", "Pipeline overhead against plain Mitsuba",
+                                            _command(args), format_report(result), show=not args.json))
     return result
 
 

@@ -307,6 +307,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     }
     paths = write_outputs(result, Path(args.out))
     result["outputs"] = [str(p) for p in paths]
+    result["report"] = result["outputs"][0]  # scaling.md
     if not args.json:
         print(format_report(result))
     return result

@@ -5,6 +5,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+from bench import provenance
+from bench.commands import build_parser
 from bench.docs import BLOCK, blocks, included, refresh
 
 REPO = Path(__file__).resolve().parent.parent
@@ -27,6 +29,33 @@ def test_every_included_figure_block_is_its_file() -> None:
     for path, body in found:
         assert (REPO / path).is_file(), f"README.md includes {path}, which does not exist"
         assert body == included(REPO / path), f"README.md's block of {path} differs from it: make docs-figures"
+
+
+def test_every_included_report_says_how_it_was_made_and_planned_with_the_shipped_rules() -> None:
+    """A block's report keeps the command that wrote it (one `quekaro bench` parses, writing where the report
+    is) and the hash of the rule file its levels planned with: a retuned rule file whose figures were not
+    written again (make bench) fails here, naming them."""
+    parser = build_parser()
+    stale = []
+    for path, _ in blocks((REPO / "README.md").read_text()):
+        report = REPO / path
+        made = provenance.load(report)
+        args = parser.parse_args(provenance.rerun_argv(report, made))
+        assert args.bench == made.command[0], f"{path}: its provenance's command runs {args.bench}"
+        assert Path(args.out) in (report, report.parent), f"{path}: its command writes to {args.out}"
+        if provenance.stale(made):
+            stale.append(path)
+    assert not stale, f"planned with another rule file than the shipped one (run make bench): {stale}"
+
+
+def test_every_report_under_docs_says_how_it_was_made() -> None:
+    """Reports the README only cites (a rerun, a tried and dropped setting) keep their provenance too."""
+    parser = build_parser()
+    found = [md for md in sorted((REPO / "docs" / "benchmarks").rglob("*.md")) if md.name != "README.md"]
+    assert len(found) >= 15
+    for report in found:
+        made = provenance.load(report)
+        assert parser.parse_args(provenance.rerun_argv(report, made)).bench == made.command[0], report
 
 
 def test_no_figure_is_typed_in_the_benchmarks_section() -> None:
