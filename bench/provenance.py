@@ -71,11 +71,13 @@ def reproducible(argv: list[str]) -> list[str]:
 
 
 def revision(repo: Path = REPO) -> str:
-    """The checkout's commit, `+dirty` when tracked files differ from it; `unknown` outside a git checkout."""
+    """The checkout's commit, `+dirty` when tracked files other than the reports (docs/, README.md, which
+    a run of several benchmarks rewrites as it goes) differ from it; `unknown` outside a git checkout."""
     try:
         head = subprocess.run(["git", "-C", str(repo), "rev-parse", "HEAD"], capture_output=True, text=True,
                               timeout=30, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--untracked-files=no"],
+        dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--untracked-files=no", "--",
+                                ".", ":!docs", ":!README.md"],
                                capture_output=True, text=True, timeout=30, check=True).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return "unknown"

@@ -140,3 +140,23 @@ def test_a_benchmark_keeps_its_provenance_and_rerun_writes_the_report_again(tmp_
     assert "200 random units" in again and "evals/s" in again  # the recorded command's --units, measured anew
     assert readme.read_text() == f"<!-- include fuzzy.md -->\n{included(report)}<!-- /include -->\n"
     assert provenance.load(report).written >= made.written
+
+
+def test_the_revision_is_dirty_for_code_not_for_the_reports_a_run_rewrites(tmp_path: Path) -> None:
+    def git(*args: str) -> None:
+        subprocess.run(["git", "-C", str(tmp_path), *args], check=True, capture_output=True)
+
+    git("init", "-q")
+    (tmp_path / "docs").mkdir()
+    for name in ("docs/a.md", "README.md", "code.py"):
+        (tmp_path / name).write_text("1\n")
+    git("add", "-A")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "c")
+    clean = provenance.revision(tmp_path)
+    assert re.fullmatch(r"[0-9a-f]{40}", clean), clean
+    (tmp_path / "docs" / "a.md").write_text("2\n")
+    (tmp_path / "README.md").write_text("2\n")
+    assert provenance.revision(tmp_path) == clean
+    (tmp_path / "code.py").write_text("2\n")
+    assert provenance.revision(tmp_path) == clean + "+dirty"
+    assert provenance.revision(tmp_path / "docs" / "nowhere") == "unknown"
