@@ -28,12 +28,10 @@ def planned(readme: Path, everything: bool, only: list[Path] | None = None) -> l
     """(report, arguments after `quekaro bench`) for each report to write again: `only` these (README's
     order first, then any it does not include), else every included one that is stale, or `everything`."""
     included = reports(readme)
-    if only:
-        wanted = {p.resolve() for p in only}
-        todo = [r for r in included if r.resolve() in wanted]
-        todo += [p for p in only if p.resolve() not in {r.resolve() for r in todo}]
-    else:
-        todo = included
+    todo = included
+    if only:  # resolved: the reruns run in the README's folder, whatever the caller's
+        place = {r.resolve(): i for i, r in enumerate(included)}
+        todo = sorted(dict.fromkeys(p.resolve() for p in only), key=lambda p: place.get(p, len(place)))
     chosen = []
     for report in todo:
         made = provenance.load(report)
