@@ -1,4 +1,4 @@
-"""rules/pathtracing.xml: 33 rules, full coverage, the published rules as printed, the expertise."""
+"""rules/pathtracing.xml: 35 rules, full coverage, the published rules as printed, the expertise."""
 
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ def _peak(engine: Engine, var: str, label: str) -> float:
 
 def test_size_and_variables(engine):
     rb = engine.rulebase
-    assert len(rb.rules) == 33
+    assert len(rb.rules) == 35
     assert engine.input_names == ("C", "S", "Nd", "Op")
     assert engine.output_names == ("Ls", "Rl", "Ibs")
 
@@ -61,7 +61,7 @@ PUBLISHED = [
     ("R4", {"C": "B", "S": "S", "Op": "VB"}, {"Ls": "N", "Rl": "B"}),  # Ls from R4c
     ("R5", {"C": "B", "S": "N", "Op": "B"}, {"Ls": "N", "Rl": "B"}),
     ("R7", {"C": "S", "S": "B", "Op": "B"}, {"Ls": "XS", "Rl": "B"}),
-    ("R14", {"C": "VS", "S": "S", "Op": "S"}, {"Ls": "S", "Rl": "VB"}),
+    ("R14", {"C": "VS", "S": "S", "Op": "S"}, {"Ls": "N", "Rl": "VB"}),  # Ls with R14n: between S and N
     ("R22", {"Nd": "VB", "Op": "N"}, {"Ibs": "VB"}),
 ]
 
