@@ -41,11 +41,10 @@ import numpy as np
 from matplotlib.figure import Figure
 from PIL import Image
 
-from bench.provenance import rules_for
+from bench.provenance import rules_digest, rules_for
 from bench.suite import SUITE, SuiteScene, scene_from_argument
 from core.errors import QuekaroError
 from core.model.geometry import Rect
-from core.model.hashing import sha256_file
 from core.model.job import RenderOptions, SceneSpec
 from core.render.bundle import check_rules, make_bundle
 from core.render.imageio import read_image
@@ -102,7 +101,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the optimised levels as adaptive jobs (`--adaptive`), through the farm or in one process")
     parser.add_argument("--rules", type=Path, default=None,
                         help="rule file for the rule levels (default: rules/pathtracing.xml): a retune tried on "
-                             "the suite; the output names it and its sha256")
+                             "the suite; the output names it and its rules' digest")
     parser.add_argument("--resume", action="store_true",
                         help="keep the scenes already finished in OUT/accuracy.partial.jsonl by a run with the "
                              "same settings, and measure only the others")
@@ -403,7 +402,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.rules is not None:  # refused (naming file, line and label) before any scene renders
         check_rules(args.rules)
     started, load_before = time.perf_counter(), os.getloadavg()[0]
-    settings = run_settings(args, agents, levels)  # hashes --rules once; `mode` shows that hash
+    settings = run_settings(args, agents, levels)  # digests --rules once; `mode` shows that digest
     cells = resumed_cells(Path(args.out), settings) if args.resume else []
     done = {c["scene"] for c in cells}
     with tempfile.TemporaryDirectory(prefix="quekaro-bench-") as tmp:
@@ -416,7 +415,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     result = {
         "scenes": {s.name: {"role": s.role, "path": _shown(s.path), "defines": scene_spec(s, args).defines}
                    for s in scenes}, "spp": args.spp, "ref_spp": args.ref_spp, "threads": args.threads,
-        "mode": mode(args, settings.get("rules_sha256")), "agents": agents, "levels": levels,
+        "mode": mode(args, settings.get("rules_digest")), "agents": agents, "levels": levels,
         "asked": asked(args).options(),
         "cells": cells, "targets": targets(cells, agents[0]), "seconds": time.perf_counter() - started,
         "load": [load_before, os.getloadavg()[0]], "resumed": resumed,
@@ -439,14 +438,14 @@ def run_settings(args: argparse.Namespace, agents: list[int], levels: list[str])
             "defines": sorted(args.defines), "agents": agents, "levels": levels, "runs": args.runs,
             "warmup": args.warmup, "inprocess": args.inprocess, "units": args.units, "adaptive": args.adaptive,
             **asked(args).options(),  # only what differs from the scene as written: older partial runs still match
-            **({"rules_sha256": sha256_file(args.rules)} if args.rules is not None else {}),
+            **({"rules_digest": rules_digest(args.rules)} if args.rules is not None else {}),
             **({"search_paths": [str(p) for p in args.search_paths]} if args.search_paths else {})}
 
 
-def mode(args: argparse.Namespace, rules_sha256: str | None = None) -> str:
+def mode(args: argparse.Namespace, digest: str | None = None) -> str:
     """How the jobs ran: through a farm or in one process, whether the optimised levels were adaptive, and with
-    which rule file (`rules_sha256`, its hash) when not the default."""
-    rules = f", rules {_shown(args.rules)} (sha256 {rules_sha256[:12]})" if rules_sha256 else ""
+    which rule file (`digest`, what its rules compute: bench.provenance.rules_digest) when not the default."""
+    rules = f", rules {_shown(args.rules)} (digest {digest[:12]})" if digest else ""
     return ("inprocess" if args.inprocess else "farm") + (", adaptive" if args.adaptive else "") + rules
 
 

@@ -1,8 +1,9 @@
 """Where a benchmark report came from, kept beside it as NAME.provenance.json: the command that
-wrote it (less --out and --resume, so that it can write again anywhere, anew), the sha256 of the rule file
-its levels planned with, the code revision and when. A report planned with a rule file other than the
-shipped one is stale: the docs test names it, and `python -m bench.rerun` (make bench) writes it again
-with its own command."""
+wrote it (less --out and --resume, so that it can write again anywhere, anew), the digest of the rules
+its levels planned with (fuzzy.rulebase.RuleBase.digest: what they compute, so that an edit of the rule
+file's comments or layout stales nothing), the code revision and when. A report planned with rules other
+than the shipped ones is stale: the docs test names it, and `python -m bench.rerun` (make bench) writes it
+again with its own command."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from typing import Any
 from core.data import DATA, default_rules_path
 from core.errors import QuekaroError
 from core.files import written_atomically
-from core.model.hashing import sha256_file
+from fuzzy import load_rulebase
 
 SUFFIX = ".provenance.json"
 REPO = Path(__file__).resolve().parent.parent
@@ -30,11 +31,11 @@ class ProvenanceError(QuekaroError):
 @dataclass(frozen=True)
 class Provenance:
     """How a report was made. `command` follows `quekaro bench`; `out_is_file`: its --out names the report
-    itself (bench hosts), not the report's folder; `rules_sha256`: None where no rule file planned it."""
+    itself (bench hosts), not the report's folder; `rules_digest`: None where no rule file planned it."""
 
     command: list[str]
     out_is_file: bool
-    rules_sha256: str | None
+    rules_digest: str | None
     revision: str
     written: str
     seconds: float | None
@@ -88,7 +89,7 @@ def record(report: Path, argv: list[str], rules: Path | None, seconds: float | N
     """Write `report`'s provenance: `argv` as given after `quekaro bench`, `rules` the rule file it planned
     with (None: none)."""
     made = Provenance(command=reproducible(argv), out_is_file=out_is_file,
-                      rules_sha256=sha256_file(rules) if rules is not None else None, revision=revision(),
+                      rules_digest=rules_digest(rules) if rules is not None else None, revision=revision(),
                       written=datetime.now(UTC).isoformat(timespec="seconds"), seconds=seconds)
     return write(report, made)
 
@@ -127,6 +128,11 @@ def rerun_argv(report: Path, made: Provenance) -> list[str]:
     return [*made.command, "--out", str(report if made.out_is_file else report.parent)]
 
 
+def rules_digest(rules: Path) -> str:
+    """The digest of what the rule file computes (fuzzy.rulebase.RuleBase.digest)."""
+    return load_rulebase(rules).digest()
+
+
 def stale(made: Provenance, rules: Path = SHIPPED_RULES) -> bool:
-    """Whether the report planned with a rule file other than `rules` (the shipped one)."""
-    return made.rules_sha256 is not None and made.rules_sha256 != sha256_file(rules)
+    """Whether the report planned with rules that compute otherwise than `rules` (the shipped file)."""
+    return made.rules_digest is not None and made.rules_digest != rules_digest(rules)

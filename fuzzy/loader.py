@@ -308,11 +308,8 @@ def _build_rule(
                                     file=file, line=clause.sourceline, variable=var, label=label)
         if is_ante:
             antecedents.append(Antecedent(var, labels))
-        elif len(labels) != 1:
-            raise RuleFileError("a consequent names exactly one label", file=file,
-                                line=clause.sourceline, variable=var, label=",".join(labels))
-        else:
-            consequents.append(Consequent(var, labels[0]))
+        else:  # "{S, N}": each label concluded at the rule's strength, as by two rules of these antecedents
+            consequents.extend(Consequent(var, label) for label in dict.fromkeys(labels))
     name = el.get("name") or f"R{index}"
     if not antecedents or not consequents:
         raise RuleFileError(f"rule {name!r} needs at least one antecedent and one consequent",

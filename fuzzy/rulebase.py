@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -87,6 +89,19 @@ class RuleBase:
 
     def output(self, name: str) -> OutputVariable:
         return next(v for v in self.outputs if v.name == name)
+
+    def digest(self) -> str:
+        """Hex sha256 of what the rule base computes: its dialect, variables and the set of (antecedents,
+        output, label) it concludes. Names, comments, layout, rule order and how conclusions are grouped
+        into rules (one rule concluding {S, N}, or two of the same antecedents) leave it unchanged, since
+        the engine's AND (min) and its per-label aggregation (max) do not see them."""
+        conclusions = sorted({
+            (tuple(sorted({(a.variable, tuple(sorted(set(a.labels)))) for a in rule.antecedents})),
+             c.variable, c.label)
+            for rule in self.rules for c in rule.consequents})
+        canonical = {"dialect": self.dialect, "inputs": [dataclasses.asdict(v) for v in self.inputs],
+                     "outputs": [dataclasses.asdict(v) for v in self.outputs], "rules": conclusions}
+        return hashlib.sha256(json.dumps(canonical, sort_keys=True).encode()).hexdigest()
 
     def summary(self) -> str:
         """One line: rules, inputs and outputs (used by `quekaro rules check`)."""

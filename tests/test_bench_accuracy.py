@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import hashlib
 import os
 import re
 import time
@@ -16,6 +15,7 @@ from PIL import Image
 from bench import accuracy as bench_accuracy
 from core.errors import QuekaroError
 from core.render.imageio import read_image
+from fuzzy import load_rulebase
 
 
 def args_for(tmp_path, *extra: str) -> argparse.Namespace:
@@ -123,12 +123,12 @@ def test_resume_refuses_a_partial_run_of_other_rules(tmp_path):
     nor the other way round."""
     args = args_for(tmp_path)
     default = bench_accuracy.run_settings(args, [1], ["off", "S"])
-    retuned = {**default, "rules_sha256": "ab" * 32}
+    retuned = {**default, "rules_digest": "ab" * 32}
     bench_accuracy.write_partial(default, [{"scene": "cbox"}], args.out)
-    with pytest.raises(QuekaroError, match="rules_sha256=None, this run asks for 'abab"):
+    with pytest.raises(QuekaroError, match="rules_digest=None, this run asks for 'abab"):
         bench_accuracy.resumed_cells(args.out, retuned)
     bench_accuracy.write_partial(retuned, [{"scene": "cbox"}], args.out)
-    with pytest.raises(QuekaroError, match=r"rules_sha256='abab.*this run asks for None"):
+    with pytest.raises(QuekaroError, match=r"rules_digest='abab.*this run asks for None"):
         bench_accuracy.resumed_cells(args.out, default)
 
 
@@ -148,9 +148,9 @@ RULES = Path(bench_accuracy.__file__).parent.parent / "rules" / "pathtracing.xml
 def test_the_rule_levels_run_the_rule_file_given(tmp_path, mode):
     """A retune tried on the suite: every Ls consequent raised to VB (about 1.8x the user's spp, where the
     shipped rules spend less than it at level S) reaches the jobs in one process and through a farm's
-    bundles, and the output names the file and its sha256."""
+    bundles, and the output names the file and its rules' digest."""
     raised = tmp_path / "raised.xml"
-    raised.write_text(re.sub(r'<consequent name="Ls" label="\w+"/>', '<consequent name="Ls" label="VB"/>',
+    raised.write_text(re.sub(r'<consequent name="Ls" label="[^"]+"/>', '<consequent name="Ls" label="VB"/>',
                              RULES.read_text()))
     shipped = one_cell(tmp_path / "shipped", mode, COMPAT / "film_pfm.xml", 4, 32, 1, "--levels", "S")
     retuned = one_cell(tmp_path / "retuned", mode, COMPAT / "film_pfm.xml", 4, 32, 1, "--levels", "S",
@@ -158,7 +158,7 @@ def test_the_rule_levels_run_the_rule_file_given(tmp_path, mode):
     [s], [r] = shipped["cells"], retuned["cells"]
     assert s["spp_mean"] < 4 < r["spp_mean"]
     header = (tmp_path / "retuned" / "out" / "accuracy.md").read_text().splitlines()[2]
-    assert f"rules {raised} (sha256 {hashlib.sha256(raised.read_bytes()).hexdigest()[:12]})" in header
+    assert f"rules {raised} (digest {load_rulebase(raised).digest()[:12]})" in header
     assert "rules" not in (tmp_path / "shipped" / "out" / "accuracy.md").read_text().splitlines()[2]
 
 

@@ -15,7 +15,7 @@ from bench import accuracy, allocation, provenance, rerun
 from bench.commands import build_parser
 from bench.docs import included
 from core.data import default_rules_path
-from core.model.hashing import sha256_file
+from fuzzy import load_rulebase
 
 REPO = Path(__file__).resolve().parent.parent
 TINY_FUZZY = ["fuzzy", "--units", "200", "--repeats", "1", "--check-units", "2", "--check-points", "2000"]
@@ -27,21 +27,32 @@ def test_where_a_report_goes_and_resuming_are_not_part_of_its_command() -> None:
     assert provenance.reproducible(["scaling"]) == ["scaling"]
 
 
-def test_a_record_reads_back_and_names_its_rule_file_by_hash(tmp_path: Path) -> None:
-    report, rules = tmp_path / "accuracy.md", tmp_path / "rules.xml"
-    rules.write_text("<quekaro/>\n")
+def _retuned(path: Path) -> Path:
+    """The shipped rules with one Ls set moved: rules that compute otherwise."""
+    shipped = default_rules_path().read_text()
+    moved = shipped.replace('<fset label="S" a="0.15" b="0.3" c="0.3" d="0.5"/>',
+                            '<fset label="S" a="0.15" b="0.35" c="0.35" d="0.5"/>')
+    assert moved != shipped
+    path.write_text(moved)
+    return path
+
+
+def test_a_record_reads_back_and_names_its_rules_by_digest(tmp_path: Path) -> None:
+    report, rules = tmp_path / "accuracy.md", _retuned(tmp_path / "rules.xml")
     report.write_text("# figures\n")
     path = provenance.record(report, ["accuracy", "--out", str(tmp_path), "--levels", "off,S"], rules, 12.5,
                              out_is_file=False)
     assert path == tmp_path / "accuracy.provenance.json"
     made = provenance.load(report)
     assert made.command == ["accuracy", "--levels", "off,S"] and made.seconds == 12.5
-    assert made.rules_sha256 == sha256_file(rules)
+    assert made.rules_digest == load_rulebase(rules).digest() != load_rulebase(default_rules_path()).digest()
     assert re.fullmatch(r"[0-9a-f]{40}(\+dirty)?", made.revision), made.revision  # this is a git checkout
     assert provenance.rerun_argv(report, made) == ["accuracy", "--levels", "off,S", "--out", str(tmp_path)]
-    assert provenance.stale(made)  # planned with a rule file other than the shipped one
+    assert provenance.stale(made)  # planned with rules other than the shipped ones
     assert not provenance.stale(made, rules)
-    rules.write_text("<quekaro>changed</quekaro>\n")
+    rules.write_text(rules.read_text().replace("<quekaro", "<!-- prose only -->\n<quekaro"))
+    assert not provenance.stale(made, rules)  # the file's bytes changed, not what its rules compute
+    rules.write_text(default_rules_path().read_text())
     assert provenance.stale(made, rules)
 
 
@@ -49,7 +60,7 @@ def test_a_report_planned_without_rules_is_never_stale(tmp_path: Path) -> None:
     report = tmp_path / "hosts.md"
     provenance.record(report, ["hosts", "--out", str(report)], None, None, out_is_file=True)
     made = provenance.load(report)
-    assert made.rules_sha256 is None and not provenance.stale(made)
+    assert made.rules_digest is None and not provenance.stale(made)
     assert provenance.rerun_argv(report, made) == ["hosts", "--out", str(report)]
 
 
@@ -58,10 +69,10 @@ def test_a_report_planned_without_rules_is_never_stale(tmp_path: Path) -> None:
     ("{not json", "not readable JSON"),
     ("[1, 2]", "not a JSON object"),
     (json.dumps({"command": ["scaling"], "out_is_file": False}),
-     "missing field(s) revision, rules_sha256, seconds, written"),
-    (json.dumps({"command": ["scaling"], "out_is_file": False, "rules_sha256": None, "revision": "x",
+     "missing field(s) revision, rules_digest, seconds, written"),
+    (json.dumps({"command": ["scaling"], "out_is_file": False, "rules_digest": None, "revision": "x",
                  "written": "2026", "seconds": 1, "by": "hand"}), "unknown field(s) by"),
-    (json.dumps({"command": "scaling", "out_is_file": False, "rules_sha256": None, "revision": "x",
+    (json.dumps({"command": "scaling", "out_is_file": False, "rules_digest": None, "revision": "x",
                  "written": "2026", "seconds": 1}), "field command must be"),
 ])
 def test_a_missing_or_malformed_provenance_is_refused_naming_file_and_field(tmp_path: Path, text: str | None,
@@ -94,7 +105,7 @@ def test_rerun_picks_the_stale_reports_in_the_readmes_order(tmp_path: Path, caps
         report = tmp_path / name / "allocation.md"
         report.write_text(f"# t\n\n{name}\n")
         if rules is not None and not rules.exists():
-            rules.write_text("<quekaro/>\n")
+            _retuned(rules)
         provenance.record(report, ["allocation", "--spp", "8"], rules, 1.0, out_is_file=False)
     readme = tmp_path / "README.md"
     _include(readme, ["c/allocation.md", "b/allocation.md", "a/allocation.md"])
@@ -121,7 +132,7 @@ def test_rerun_refuses_a_report_without_provenance_naming_it(tmp_path: Path, cap
 
 @pytest.mark.slow
 def test_a_benchmark_keeps_its_provenance_and_rerun_writes_the_report_again(tmp_path: Path) -> None:
-    """A real `quekaro bench fuzzy` records its command and the shipped rules' hash; `bench.rerun --all`
+    """A real `quekaro bench fuzzy` records its command and the shipped rules' digest; `bench.rerun --all`
     runs that command again (a real process) and rewrites both the report and the README's block."""
     done = subprocess.run([sys.executable, "-m", "quekaro", "bench", *TINY_FUZZY, "--out", str(tmp_path)],
                           cwd=REPO, capture_output=True, text=True, timeout=300)
@@ -129,7 +140,7 @@ def test_a_benchmark_keeps_its_provenance_and_rerun_writes_the_report_again(tmp_
     report = tmp_path / "fuzzy.md"
     made = provenance.load(report)
     assert made.command == TINY_FUZZY and not made.out_is_file and made.seconds > 0
-    assert made.rules_sha256 == sha256_file(default_rules_path()) and not provenance.stale(made)
+    assert made.rules_digest == load_rulebase(default_rules_path()).digest() and not provenance.stale(made)
     figures = report.read_text()
     report.write_text("# Fuzzy engine\n\nfigures typed by hand\n")
     readme = tmp_path / "README.md"

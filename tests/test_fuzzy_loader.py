@@ -24,7 +24,7 @@ def _refuse(text: str | bytes, tmp_path) -> RuleFileError:
 
 def test_paper_dialect_rule_base_loads():
     rb = load_rulebase(RULES)
-    assert len(rb.rules) == 36
+    assert len(rb.rules) == 33
     assert [v.name for v in rb.inputs] == ["C", "S", "Nd", "Op"]
     assert [v.name for v in rb.outputs] == ["Ls", "Rl", "Ibs"]
     assert [v.dynamic for v in rb.inputs] == [True, True, True, False]
@@ -109,6 +109,30 @@ def test_bad_rule_references(tmp_path, rules, variable, label, fault):
     assert fault in str(err)
     assert (err.variable, err.label) == (variable, label)
     assert err.line is not None
+
+
+THREE_OUT = '<linguisticvar type="out" name="y" default="5">\n' \
+    '  <fset label="L" a="0" b="2" c="2" d="4"/>\n  <fset label="M" a="2" b="4" c="4" d="6"/>\n' \
+    '  <fset label="H" a="6" b="8" c="8" d="10"/>\n</linguisticvar>'
+
+
+@pytest.mark.parametrize("defuzzifier", ["centroid", "centre-of-sums"])
+def test_a_consequent_naming_two_labels_concludes_each_as_two_rules_would(tmp_path, defuzzifier):
+    """`label="{L, M}"` in a consequent: each label at the rule's strength, the same outputs as two rules
+    of the same antecedents (the shipped file's level S floor, between two labels)."""
+    one = '<rule name="R1"><antecedent name="x" label="L"/><consequent name="y" label="{L, M}"/></rule>\n' \
+        '<rule name="R2"><antecedent name="x" label="H"/><consequent name="y" label="H"/></rule>'
+    two = '<rule name="R1"><antecedent name="x" label="L"/><consequent name="y" label="L"/></rule>\n' \
+        '<rule name="R1n"><antecedent name="x" label="L"/><consequent name="y" label="M"/></rule>\n' \
+        '<rule name="R2"><antecedent name="x" label="H"/><consequent name="y" label="H"/></rule>'
+    x = np.linspace(-1, 11, 241)[:, None]
+    outs = [Engine(parse_rulebase(system_xml(SIMPLE_IN, THREE_OUT, r).encode()), defuzzifier).evaluate(x)["y"]
+            for r in (one, two)]
+    np.testing.assert_array_equal(outs[0], outs[1])
+    only_l = Engine(parse_rulebase(system_xml(SIMPLE_IN, THREE_OUT, SIMPLE_RULES).encode()), defuzzifier)
+    assert outs[0][0] > only_l.evaluate(x[:1])["y"][0]  # M's share moves x = -1 (L only) above L's peak
+    err = _refuse(system_xml(SIMPLE_IN, THREE_OUT, one.replace("{L, M}", "{L, Q}")), tmp_path)
+    assert "unknown label" in str(err) and (err.variable, err.label) == ("y", "Q")
 
 
 def test_rule_without_consequent(tmp_path):

@@ -1,14 +1,15 @@
-"""rules/pathtracing.xml: 36 rules, full coverage, the published rules as printed, the expertise."""
+"""rules/pathtracing.xml: 33 rules, full coverage, the published rules as printed, the expertise."""
 
 from __future__ import annotations
 
 import itertools
+import re
 
 import numpy as np
 import pytest
 from fuzzy_helpers import RULES
 
-from fuzzy import Engine, load_rulebase
+from fuzzy import Engine, load_rulebase, parse_rulebase
 from fuzzy.terms import membership
 from fuzzy.variables import spread_sets
 
@@ -30,7 +31,7 @@ def _peak(engine: Engine, var: str, label: str) -> float:
 
 def test_size_and_variables(engine):
     rb = engine.rulebase
-    assert len(rb.rules) == 36
+    assert len(rb.rules) == 33
     assert engine.input_names == ("C", "S", "Nd", "Op")
     assert engine.output_names == ("Ls", "Rl", "Ibs")
 
@@ -61,7 +62,7 @@ PUBLISHED = [
     ("R4", {"C": "B", "S": "S", "Op": "VB"}, {"Ls": "N", "Rl": "B"}),  # Ls from R4c
     ("R5", {"C": "B", "S": "N", "Op": "B"}, {"Ls": "N", "Rl": "B"}),
     ("R7", {"C": "S", "S": "B", "Op": "B"}, {"Ls": "XS", "Rl": "B"}),
-    ("R14", {"C": "VS", "S": "S", "Op": "S"}, {"Ls": "N", "Rl": "VB"}),  # Ls with R14n: between S and N
+    ("R14", {"C": "VS", "S": "S", "Op": "S"}, {"Ls": "N", "Rl": "VB"}),  # Ls S and N at once: between the two
     ("R22", {"Nd": "VB", "Op": "N"}, {"Ibs": "VB"}),
 ]
 
@@ -141,3 +142,42 @@ def test_centre_of_sums_agrees_in_direction(engine):
     a, b = engine.evaluate(x, RANGES), other.evaluate(x, RANGES)
     for name in engine.output_names:
         assert np.corrcoef(a[name], b[name])[0, 1] > 0.95
+
+
+def _split_s_n(rule: re.Match) -> str:
+    """A rule concluding Ls {S, N} written as two rules (the form before label sets), else as it is."""
+    both = '<consequent name="Ls" label="{S, N}"/>'
+    text = rule.group(0)
+    if both not in text:
+        return text
+    antecedents = "".join(re.findall(r"<antecedent [^>]*/>", text))
+    twin = f'<rule name="twin">{antecedents}<consequent name="Ls" label="N"/></rule>'
+    return text.replace(both, '<consequent name="Ls" label="S"/>') + twin
+
+
+def _digest(text: str) -> str:
+    return parse_rulebase(text.encode()).digest()
+
+
+def test_the_digest_follows_what_the_rules_compute_not_how_the_file_says_it():
+    """Reports record RuleBase.digest: comments, rule names and order, and one rule concluding {S, N}
+    against two rules of the same antecedents leave it as it is; a vertex or a label moves it."""
+    text = RULES.read_text()
+    shipped = _digest(text)
+    assert shipped == load_rulebase(RULES).digest()
+    assert text.count('<consequent name="Ls" label="{S, N}"/>') == 3
+    split = re.sub(r"<rule .*?</rule>", _split_s_n, text, flags=re.S)
+    assert split.count("<rule ") == text.count("<rule ") + 3 and 'name="Ls" label="{S, N}"' not in split
+    rules = re.findall(r"<rule .*?</rule>", text, flags=re.S)
+    shuffled = re.sub(r"<rule .*?</rule>", "", text, flags=re.S).replace(
+        "</system>", "\n".join(reversed(rules)) + "</system>")
+    assert shuffled != text
+    renamed = re.sub(r'<rule name="(\w+)"', r'<rule name="X\1"', text)
+    commented = text.replace("<quekaro", "<!-- an edit of the prose only -->\n<quekaro")
+    for same in (split, shuffled, renamed, commented):
+        assert _digest(same) == shipped
+    moved = text.replace('<fset label="S" a="0.15" b="0.3" c="0.3" d="0.5"/>',
+                         '<fset label="S" a="0.15" b="0.31" c="0.31" d="0.5"/>')
+    relabelled = text.replace('name="Ls" label="{S, N}"', 'name="Ls" label="S"', 1)
+    for other in (moved, relabelled):
+        assert other != text and _digest(other) != shipped

@@ -90,13 +90,10 @@ def first_spp(spp: int) -> int:
 
 
 def render_adaptive(scene: Any, spp: int, seed: int, sensor: int = 0, integrator: Any = None,
-                    cost: np.ndarray | None = None, first: int | None = None,
-                    blur_px: float = BLUR_PX) -> AdaptiveRender:
+                    first: int | None = None, blur_px: float = BLUR_PX) -> AdaptiveRender:
     """Render the film window with `spp` samples per pixel on average, `first` of them (default
-    `first_spp(spp)`) in a uniform first pass and the rest placed where its noise is. `cost` (the window's
-    shape) is each pixel's relative time per sample, e.g. the complexity pre-pass's ray counts
-    (planning.complexity): with it the samples cost what `spp` uniform ones would; None counts every sample
-    the same. With `first` >= `spp` there is no second pass.
+    `first_spp(spp)`) in a uniform first pass and the rest placed where its noise is, every sample counted
+    at the same cost. With `first` >= `spp` there is no second pass.
 
     The two passes are independent renders of the same pixels; each pixel's value is their average
     weighted by its sample count in each, so its expectation is Mitsuba's at any split.
@@ -109,7 +106,7 @@ def render_adaptive(scene: Any, spp: int, seed: int, sensor: int = 0, integrator
     start = time.perf_counter()
     one = render_counts(scene, np.full((height, width), first, dtype=np.int64), seed, sensor, integrator)
     noise = blurred(one.relative_variance(), blur_px, exclusion_px(cam.film().rfilter().radius()))
-    extra, predicted = second_pass(noise, first, spp, np.random.default_rng(seed), cost)
+    extra, predicted = second_pass(noise, first, spp, np.random.default_rng(seed))
     middle = time.perf_counter()
     a, bad_a = sanitize(one.pixels)
     if not extra.any():  # the first pass spent the budget
@@ -175,11 +172,10 @@ def exclusion_px(filter_radius: float) -> int:
     return int(np.ceil(filter_radius + 0.5))
 
 
-def second_pass(noise: np.ndarray, first: int, spp: int, rng: np.random.Generator,
-                cost: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+def second_pass(noise: np.ndarray, first: int, spp: int, rng: np.random.Generator) -> tuple[np.ndarray, float]:
     """(second-pass counts, predicted relMSE ratio at the same spp): Neyman's where it is predicted to
     pay (below PAYS_BELOW), else spp - first everywhere."""
-    extra = neyman_counts(noise, first, spp * noise.size, rng, cost)
+    extra = neyman_counts(noise, first, spp * noise.size, rng)
     predicted = predicted_ratio(noise, first + extra, spp)
     if predicted < PAYS_BELOW:
         return extra, predicted
