@@ -33,7 +33,15 @@ from core.model.job import IMAGE_SUFFIXES, JobPlan, JobSpec, RenderOptions, Scen
 from core.model.seeds import plan_seed
 from core.model.status import JobStatus, UnitStatus
 from core.model.units import WorkUnit
-from core.render.bundle import BundleLimits, bundle_hash, check_rules, check_unpacked, extract_bundle, read_manifest
+from core.render.bundle import (
+    BundleLimits,
+    bundle_hash,
+    check_rules,
+    check_unpacked,
+    extract_bundle,
+    read_manifest,
+    submitted_scene_sha256,
+)
 from core.render.compose import TileSource
 from core.render.tiles import tile_source
 from core.render.worker import RenderWorker
@@ -288,9 +296,10 @@ class MasterService:
             options.check_used()
             digest = bundle_hash(bundle)
             _check_stated_spp(SceneSpec(scene, defines), scene_name, options)  # before the pre-pass
-            # Seeded from the scene file, as `quekaro render` seeds it: a job reads the same pre-pass on
-            # a farm as in one process (the bundle's hash would also follow its packing and rule file).
-            seed = plan_seed(sha256_file(scene), defines, options.to_dict())
+            # Seeded from the scene file as submitted, as `quekaro render` seeds it: a job reads the same
+            # pre-pass on a farm as in one process (the bundle's hash would also follow its packing and
+            # rule file, and its copy of the scene names the files it packed).
+            seed = plan_seed(submitted_scene_sha256(scene), defines, options.to_dict())
             plan = await self._plan(SceneSpec(scene, defines), options, seed)
             plan = dataclasses.replace(plan, bundle_sha256=digest, rules_sha256=rules_sha256)
             m.check_job(self._job_info(job_id, scene_name, defines, plan))  # now, not at its first message

@@ -22,6 +22,7 @@ from core.render.bundle import (
     extract_bundle,
     make_bundle,
     read_manifest,
+    submitted_scene_sha256,
 )
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "scenes" / "mitsuba-data"
@@ -183,6 +184,27 @@ def test_files_outside_the_scene_folder_are_packed_and_references_rewritten(tmp_
     assert all(t.is_relative_to(folder) for t in targets)
     assert sorted(t.read_text() for t in targets if t.suffix == ".obj") == ["abs", "m"]
     assert "<path" not in out.read_text()
+
+
+def test_a_rewritten_scene_keeps_the_submitted_files_hash_that_seeds_its_pre_pass(tmp_path):
+    """The master seeds a job's pre-pass from the scene file as submitted (as `quekaro render` of it does),
+    not from the bundle's copy, which names the files it packed; a bundle without it seeds from its copy,
+    and a manifest whose hash is no sha256 is refused."""
+    (tmp_path / "common").mkdir()
+    (tmp_path / "common" / "m.obj").write_text("m")
+    scene = _scene_with(tmp_path, _shape("../common/m.obj"))
+    out = extract_bundle(make_bundle(scene, None, tmp_path / "b.tar").path, tmp_path / "x")
+    assert out.read_bytes() != scene.read_bytes()  # rewritten
+    assert submitted_scene_sha256(out) == hashlib.sha256(scene.read_bytes()).hexdigest()
+    kept = _tar([_reg(MANIFEST_NAME, _manifest({"scene.xml": SCENE})), _reg("scene.xml", SCENE)])
+    old = extract_bundle(kept, tmp_path / "old")
+    assert submitted_scene_sha256(old) == hashlib.sha256(SCENE).hexdigest()
+    for stated in ("ab" * 31, "AB" * 32, 7, "../" * 30):
+        manifest = json.loads(_manifest({"scene.xml": SCENE})) | {"scene_sha256": stated}
+        bad = _tar([_reg(MANIFEST_NAME, json.dumps(manifest).encode()), _reg("scene.xml", SCENE)])
+        with pytest.raises(BundleError, match=r"scene_sha256 .* is not a sha256"):
+            extract_bundle(bad, tmp_path / "bad")
+        assert not (tmp_path / "bad").exists()
 
 
 OUTSIDE = ["<shape type='obj'><string name='filename' value='{}'/></shape>", "<include filename='{}'/>",

@@ -562,6 +562,32 @@ def test_a_rule_level_job_renders_each_agents_units_in_batches_and_matches_a_loc
     assert report["prepass"] == local["prepass"], (report["prepass"], local["prepass"])
 
 
+def test_a_scene_the_bundle_rewrites_reads_the_pre_pass_it_reads_in_one_process(tmp_path):
+    """A scene that reads a file outside its folder is rewritten in the bundle (its copy names the packed
+    file); the job's pre-pass is still seeded from the file as submitted, as `quekaro render` seeds it."""
+    (tmp_path / "common").mkdir()
+    (tmp_path / "common" / "light.xml").write_text(
+        "<scene version='3.0.0'><emitter type='constant'><rgb name='radiance' value='0.05'/></emitter></scene>")
+    scene = tmp_path / "scene" / "cbox.xml"
+    scene.parent.mkdir()
+    scene.write_text(SCENE.read_text().replace("</scene>", "<include filename='../common/light.xml'/></scene>"))
+    defines = {"res": "48", "spp": "8"}
+    with LocalFarm(tmp_path / "farm", agents=1, threads=1) as farm:
+        farm.wait_for_agents()
+        client = farm.client()
+        job_id = client.submit(bundle_of(scene, defines), defines, {"level": "S"})
+        assert wait_job(farm, job_id)["status"] == "done"
+        out = client.result(job_id, tmp_path / "farm.exr")
+        unpacked = next((farm.home / "jobs" / job_id / "scene").glob("*.xml"))
+        assert unpacked.read_bytes() != scene.read_bytes()  # the bundle's copy names the packed file
+    local = tmp_path / "local.exr"
+    cmd = [sys.executable, "-m", "quekaro", "render", str(scene), "-o", str(local), "--opt", "S", "--threads", "1",
+           "--no-progress", *(f"-D{k}={v}" for k, v in defines.items())]
+    subprocess.run(cmd, check=True, cwd=REPO, capture_output=True, timeout=300)
+    farm_prepass = json.loads(out.with_suffix(".json").read_text())["prepass"]
+    assert farm_prepass == json.loads(local.with_suffix(".json").read_text())["prepass"], farm_prepass
+
+
 def test_a_farm_with_an_agent_on_other_rules_measures_depth_floors_at_every_rule_level(tmp_path):
     """One agent plans with a rule file of its own (the default's text and a comment: another sha256), so
     the master cannot see what its rules cut: a level-S job measures every unit's depth floor, which the

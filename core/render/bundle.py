@@ -1,8 +1,10 @@
 """Scene bundles: one archive holding a scene file and every file it references, and its safe unpacking.
 
 Format: an uncompressed POSIX tar whose first member is `QUEKARO-MANIFEST.json` (format, version, the
-scene's name, its `-D` parameters, the job's rule file if it has one, and the size and sha256 of every
-other member), followed by the files. The scene file lies at the top; every file it reads (found as
+scene's name, its `-D` parameters, the job's rule file if it has one, the size and sha256 of every
+other member, and the sha256 of the scene file as the submitter wrote it: `scene_sha256`, which seeds
+the job's pre-pass as `quekaro render` of that file seeds it, where the bundle rewrote it), followed by the
+files. The scene file lies at the top; every file it reads (found as
 Mitsuba finds it: core.render.resolver, through `<path>`, includes, `-a` search paths, absolute names, files
 outside the scene's folder too: the submitter owns them) lies at `files/<16 hex>/<its name>`, and the
 XML files are rewritten to name those members and lose their `<path>`s, so the unpacked scene reads
@@ -50,6 +52,7 @@ RULES_NAME = "QUEKARO-RULES.xml"
 MAX_MANIFEST_BYTES = 4 << 20
 _CHUNK = 1 << 20
 _PARAM_RE = re.compile(r"\$([A-Za-z_][A-Za-z0-9_]*)")
+_SHA256_RE = re.compile(r"[0-9a-f]{64}")
 
 
 class BundleError(SceneError):
@@ -179,7 +182,7 @@ def make_bundle(scene_path: str | Path, defines: dict[str, str] | None, out: str
     entries = [_entry(name, members[name], limits) for name in sorted(members)]
     manifest = {"format": FORMAT, "version": VERSION, "scene": Path(scene_path).name,
                 "defines": {str(k): str(v) for k, v in (defines or {}).items()}, "files": entries,
-                "rules": RULES_NAME if rules is not None else None}
+                "rules": RULES_NAME if rules is not None else None, "scene_sha256": sha256_file(scene_path)}
     blob = json.dumps(manifest, sort_keys=True, indent=1).encode()
     out = Path(out)
     tmp = out.with_name(f".{out.name}.{os.getpid()}.part")
@@ -273,6 +276,9 @@ def _read_manifest(tar: tarfile.TarFile, member: tarfile.TarInfo | None, dest: P
     if manifest.get("rules") not in (None, RULES_NAME) or (manifest.get("rules") and RULES_NAME not in files):
         raise BundleError(f"bundle manifest: rules {str(manifest.get('rules'))[:60]!r} is not {RULES_NAME!r} "
                           "among its files")
+    stated = manifest.get("scene_sha256")
+    if stated is not None and not (isinstance(stated, str) and _SHA256_RE.fullmatch(stated)):
+        raise BundleError(f"bundle manifest: scene_sha256 {str(stated)[:80]!r} is not a sha256 (64 hex digits)")
     # Kept beside the files so that the unpacked folder says what it is (read_manifest).
     (dest / MANIFEST_NAME).write_bytes(raw)
     return {"scene": scene, "files": files}
@@ -356,3 +362,9 @@ def extract_bundle(data: bytes | str | Path, dest: str | Path, limits: BundleLim
 def read_manifest(bundle_dir: str | Path) -> dict:
     """The manifest of an unpacked bundle (scene name, defines, files)."""
     return json.loads((Path(bundle_dir) / MANIFEST_NAME).read_text())
+
+
+def submitted_scene_sha256(scene: Path) -> str:
+    """The sha256 of an unpacked bundle's scene file as the submitter wrote it (its manifest's
+    `scene_sha256`, checked when unpacked), else of the unpacked file (a bundle made before it was kept)."""
+    return read_manifest(scene.parent).get("scene_sha256") or sha256_file(scene)
