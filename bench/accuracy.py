@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import json
 import os
 import resource
@@ -44,6 +45,7 @@ from PIL import Image
 from bench.provenance import rules_digest, rules_for
 from bench.suite import SUITE, SuiteScene, scene_from_argument
 from core.errors import QuekaroError
+from core.files import written_atomically
 from core.model.geometry import Rect
 from core.model.job import RenderOptions, SceneSpec
 from core.render.bundle import check_rules, make_bundle
@@ -52,7 +54,7 @@ from core.render.metrics import all_metrics, diff_image
 from core.render.seams import seam_measure
 from farm.local import LocalFarm
 from fuzzy.levels import LEVELS
-from planning.accuracy import Asked, default_cache, job_variant, plain_render, reference, spp_timing
+from planning.accuracy import Asked, content_key, default_cache, job_variant, plain_render, reference, spp_timing
 from quekaro.cmd_render import add_asked_arguments, search_paths
 
 REPO = Path(__file__).resolve().parent.parent
@@ -126,8 +128,8 @@ def parse_levels(text: str) -> list[str]:
 def parse_grid(args: argparse.Namespace) -> tuple[list[SuiteScene], list[int], list[str]]:
     """The scenes, agent counts and levels asked for, checked."""
     names = [s.name for s in SUITE] if args.suite else (args.scenes or [HETEROGENEOUS])
-    scenes = [SuiteScene(n, SCENES[n], {"res": "320"}, "tuned") if n in SCENES else scene_from_argument(n)
-              for n in names]
+    scenes = distinct([SuiteScene(n, SCENES[n], {"res": "320"}, "tuned") if n in SCENES else scene_from_argument(n)
+                       for n in names])
     for text in args.defines:
         if "=" not in text:
             raise QuekaroError(f"-D {text!r}: expected NAME=VALUE")
@@ -147,6 +149,36 @@ def parse_grid(args: argparse.Namespace) -> tuple[list[SuiteScene], list[int], l
         raise QuekaroError(f"--agents {text}: --inprocess times one `quekaro render` process, which is no farm of "
                            "agents; leave --agents out (or give 1)")
     return scenes, agents, levels
+
+
+def distinct(scenes: list[SuiteScene]) -> list[SuiteScene]:
+    """The scenes, each under a name of its own: a name is a scene's section, table rows, image files and
+    resumed cells, so files of one name in other folders (two `scene.xml`) are named by their folders as
+    far up as tells them apart (`sc-a`, `sc2-a`). One file given twice is refused."""
+    seen: dict[Path, str] = {}
+    for scene in scenes:
+        if scene.path in seen:
+            raise QuekaroError(f"scene {scene.path} given twice (as {seen[scene.path]!r} and {scene.name!r})")
+        seen[scene.path] = scene.name
+    out = []
+    for scene in scenes:
+        alike = [s.path for s in scenes if s.name == scene.name]
+        depth = 1
+        while len({_folders(p, depth) for p in alike}) < len(alike) and depth < len(scene.path.parts):
+            depth += 1
+        out.append(scene if len(alike) == 1 else dataclasses.replace(
+            scene, name="-".join([*_folders(scene.path, depth), scene.name])))
+    names = [s.name for s in out]
+    clash = sorted({n for n in names if names.count(n) > 1})
+    if clash:
+        raise QuekaroError(f"scenes named alike even by their folders: {', '.join(clash)}; rename a file")
+    return out
+
+
+def _folders(path: Path, depth: int) -> tuple[str, ...]:
+    """The last `depth` folder names above `path`, the root left out (fewer near the root)."""
+    names = [p for p in path.parent.parts if p != path.anchor]
+    return tuple(names[-depth:]) if depth else ()
 
 
 # ---- CPU time --------------------------------------------------------------------------------------
@@ -404,10 +436,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     started, load_before = time.perf_counter(), os.getloadavg()[0]
     settings = run_settings(args, agents, levels)  # digests --rules once; `mode` shows that digest
     cells = resumed_cells(Path(args.out), settings) if args.resume else []
+    keys = {s.name: content_key(scene_spec(s, args)) for s in scenes}
+    # A scene whose files changed since the partial run is measured again, not kept.
+    changed = sorted({c["scene"] for c in cells if c["scene"] in keys and c.get("scene_key") != keys[c["scene"]]})
+    cells = [c for c in cells if c["scene"] not in changed]
     done = {c["scene"] for c in cells}
     with tempfile.TemporaryDirectory(prefix="quekaro-bench-") as tmp:
         for scene in (s for s in scenes if s.name not in done):  # each scene's cells are kept as they come
-            cells += scene_cells(scene, agents, levels, args, Path(tmp))
+            cells += [{**c, "scene_key": keys[scene.name]} for c in scene_cells(scene, agents, levels, args, Path(tmp))]
             write_partial(settings, cells, Path(args.out))
     names = [s.name for s in scenes]
     cells = [c for c in cells if c["scene"] in names]
@@ -418,7 +454,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "mode": mode(args, settings.get("rules_digest")), "agents": agents, "levels": levels,
         "asked": asked(args).options(),
         "cells": cells, "targets": targets(cells, agents[0]), "seconds": time.perf_counter() - started,
-        "load": [load_before, os.getloadavg()[0]], "resumed": resumed,
+        "load": [load_before, os.getloadavg()[0]], "resumed": resumed, "changed": changed,
     }
     result["outputs"] = [str(p) for p in write_outputs(result, Path(args.out))]
     result["report"] = result["outputs"][0]  # accuracy.md, whose provenance bench.commands keeps
@@ -452,8 +488,9 @@ def mode(args: argparse.Namespace, digest: str | None = None) -> str:
 def write_partial(settings: dict[str, Any], cells: list[dict[str, Any]], out: Path) -> None:
     """The settings, then the cells so far, as JSON lines beside the outputs (accuracy.partial.jsonl)."""
     out.mkdir(parents=True, exist_ok=True)
-    lines = [{"settings": settings}, *cells]
-    (out / "accuracy.partial.jsonl").write_text("".join(json.dumps(c) + "\n" for c in lines))
+    text = "".join(json.dumps(c) + "\n" for c in [{"settings": settings}, *cells])
+    # Whole or not at all: a run killed while it writes leaves the previous scenes' file to resume from.
+    written_atomically(out / "accuracy.partial.jsonl", lambda tmp: tmp.write_text(text), "a partial run's cells")
 
 
 def resumed_cells(out: Path, settings: dict[str, Any]) -> list[dict[str, Any]]:
@@ -461,10 +498,17 @@ def resumed_cells(out: Path, settings: dict[str, Any]) -> list[dict[str, Any]]:
     path = out / "accuracy.partial.jsonl"
     if not path.exists():
         raise QuekaroError(f"--resume: {path} does not exist (no partial run to resume)")
-    lines = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    saved = lines[0].get("settings") if lines else None
+    lines = []
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        try:
+            lines += [json.loads(line)] if line.strip() else []
+        except ValueError as exc:
+            raise QuekaroError(f"--resume: {path} line {number} is not JSON ({exc}); run without --resume "
+                               "to measure every scene anew") from None
+    saved = lines[0].get("settings") if lines and isinstance(lines[0], dict) else None
     if saved is None:
-        raise QuekaroError(f"--resume: {path} has no settings line (written by an older version)")
+        raise QuekaroError(f"--resume: {path} has no settings line (empty, or written by an older version); "
+                           "run without --resume to measure every scene anew")
     for key in dict.fromkeys([*settings, *saved]):  # a key only one side has differs too (e.g. --rules)
         if saved.get(key) != settings.get(key):
             raise QuekaroError(f"--resume: {path} was written with {key}={saved.get(key)!r}, "
@@ -557,7 +601,9 @@ def format_report(result: dict[str, Any]) -> str:
              f"{result['threads']} threads; took {result['seconds']:.0f} s; load average (1 min) "
              f"{result['load'][0]:.1f} at the start, {result['load'][1]:.1f} at the end"
              + (f"; kept from a partial run (--resume): {', '.join(result['resumed'])}" if result.get("resumed")
-                else ""), ""]
+                else "")
+             + (f"; measured again, their files changed since the partial run: {', '.join(result['changed'])}"
+                if result.get("changed") else ""), ""]
     for scene in dict.fromkeys(c["scene"] for c in result["cells"]):
         about = result["scenes"][scene]
         lines += [f"## {scene} ({about['role']}: {about['path']} {about['defines']})", "",

@@ -106,10 +106,15 @@ def content_key(spec: Any, *extra: Any) -> str:
     return digest.hexdigest()[:16]
 
 
+def reference_path(spec: Any, spp: int, cache: Path, variant: str, asked: Asked = Asked()) -> Path:
+    """Where `reference` caches the scene's reference: named by content (`content_key`)."""
+    return cache / "references" / f"{spec.path.stem}-{content_key(spec, spp, variant, *asked.key())}.exr"
+
+
 def reference(spec: Any, spp: int, threads: int, cache: Path, variant: str, asked: Asked = Asked()) -> np.ndarray:
     """The scene at `spp` in `variant`, plain Mitsuba computing what `asked` says; cached under `cache` by
-    content (`content_key`)."""
-    path = cache / "references" / f"{spec.path.stem}-{content_key(spec, spp, variant, *asked.key())}.exr"
+    content (`reference_path`)."""
+    path = reference_path(spec, spp, cache, variant, asked)
     if path.exists():
         return read_image(path)[..., :3]
     pixels, _ = plain_render(spec, spp, threads, variant, seed=987654, asked=asked)

@@ -19,11 +19,12 @@ import sys
 import mitsuba as mi
 import numpy as np
 
+from core.errors import QuekaroError
 from core.model import integrators
 from core.model.job import SceneSpec
 from core.render.film import film_channels
 from core.render.imageio import write_exr
-from core.render.scene import expand, load
+from core.render.scene import expand, load, sensor_of
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,6 +43,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     spec = SceneSpec(args.scene, dict(d.split("=", 1) for d in args.defines), tuple(args.search_paths))
     scene = load(spec, args.variant, args.threads)
+    try:
+        sensor_of(scene, args.sensor, args.scene)
+    except QuekaroError as exc:  # as `quekaro render -s` says it, not an IndexError from mi.render
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     integrator = None  # the scene's own, as a user's plain render takes it
     if args.integrator or args.depth is not None:
         # Imported only here (~60 ms): the timed process imports what a user's plain render needs.

@@ -41,7 +41,11 @@ def run(args: argparse.Namespace) -> int:
         raise QuekaroError(f"--seam-width {args.seam_width}: at least one pixel on each side of a border")
     if args.output and Path(args.output).suffix.lower() != ".png":
         raise QuekaroError(f"-o {args.output}: the difference image is written as a PNG; give a name ending .png")
-    test, reference = imageio.read_image(args.test), imageio.read_image(args.reference)
+    (test, kind), (reference, ref_kind) = imageio.read_colour(args.test), imageio.read_colour(args.reference)
+    if kind != ref_kind:
+        raise QuekaroError(f"{args.test} holds {_colour_words(kind)} and {args.reference} {_colour_words(ref_kind)}: "
+                           "the metrics compare channel by channel, so both images must hold the same colour "
+                           "(render both with one film pixel format)")
     try:
         results = metrics.all_metrics(test, reference)
     except imageio.ImageError as exc:  # it says which image ("test image", "reference image"), not the file
@@ -51,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
         imageio.write_png(args.output, _grey_as_display(metrics.diff_image(test, reference)))
         results["diff_png"] = args.output
     if args.units:
-        results["seams"] = seam_measure(test, reference, read_unit_rects(args.units),
+        rects = read_unit_rects(args.units, test.shape[1], test.shape[0])
+        results["seams"] = seam_measure(test, reference, rects,
                                         args.seam_width if args.seam_width is not None else SEAM_WIDTH).to_dict()
     if args.json:
         print(json.dumps(results, indent=2))
@@ -73,12 +78,24 @@ def _grey_as_display(grey: Any) -> Any:
     return linear.astype(np.float32)
 
 
-def read_unit_rects(path: str) -> list[Rect]:
-    """The units' rectangles from a job report's `units` list."""
+def _colour_words(kind: str) -> str:
+    return {"RGB": "R, G, B", "XYZ": "X, Y, Z", "Y": "luminance (Y) only"}[kind]
+
+
+def read_unit_rects(path: str, width: int, height: int) -> list[Rect]:
+    """The units' rectangles from a job report's `units` list, refused unless the report's image is
+    width x height (another image's units would put borders where that image has none)."""
     try:
-        return [Rect.from_list(u["rect"]) for u in json.loads(open(path).read())["units"]]
+        report = json.loads(Path(path).read_text())
+        rects = [Rect.from_list(u["rect"]) for u in report["units"]]
+        size = (int(report["image"]["width"]), int(report["image"]["height"]))
     except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise QuekaroError(f"--units {path}: not a job report with units and their rects ({exc})") from exc
+        raise QuekaroError(f"--units {path}: not a job report with units, their rects and its image's size "
+                           f"({exc})") from exc
+    if size != (width, height):
+        raise QuekaroError(f"--units {path}: its job's image is {size[0]}x{size[1]}, the images compared are "
+                           f"{width}x{height}")
+    return rects
 
 
 def seam_line(seams: dict[str, Any]) -> str:

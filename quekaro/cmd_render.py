@@ -22,7 +22,7 @@ from core.render.scene import parse_defines
 from fuzzy.engine import DEFUZZIFIERS
 from fuzzy.levels import LEVELS
 from planning import budgets
-from planning.accuracy import REF_SPP, accuracy_report
+from planning.accuracy import REF_SPP, Asked, accuracy_report, default_cache, reference_path
 from planning.pipeline import Progress as RenderProgress
 from planning.pipeline import render_job, write_json_atomic
 from quekaro.cmd_diff import seam_line
@@ -192,7 +192,10 @@ def process_age() -> float:
 
 def add_accuracy(report: dict, spec: SceneSpec, out: Path, wall: float, args: argparse.Namespace) -> None:
     """`planning.accuracy`'s comparison, printed and written into OUT.json under "accuracy"."""
-    print(f"accuracy: reference {args.ref_spp} spp (cached), uniform spp for {wall:.2f} s ...")
+    cached = reference_path(spec, args.ref_spp, default_cache(), report["effects"]["variant"],
+                            Asked.of_report(report)).exists()
+    print(f"accuracy: reference {args.ref_spp} spp ({'cached' if cached else 'rendering it, then cached'}), "
+          f"uniform spp for {wall:.2f} s ...")
     image = read_image(report["image"]["file"])
     try:
         accuracy = accuracy_report(spec, image, wall, report, args.threads or os.cpu_count() or 1, args.ref_spp)

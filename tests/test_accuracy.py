@@ -74,10 +74,21 @@ def test_render_report_accuracy_compares_with_plain_mitsuba(tmp_path):
     assert report["line"]["k"] > 0 and "seam" in report["seams"]
     assert list((tmp_path / ".cache" / "quekaro" / "references").glob("cbox-*.exr"))
     assert "relMSE ratio" in done.stdout and "uniform" in done.stdout
+    assert "reference 256 spp (rendering it, then cached)" in done.stdout  # a fresh cache: not "(cached)"
     job_spp = json.loads(out.with_suffix(".json").read_text())["totals"]["samples"] / 48**2
     too_noisy = 4 * max(report["uniform"]["spp"], job_spp) > 256  # a 48 px job: plain Mitsuba gets many spp
     assert (report["reference_warning"] is not None) == too_noisy
     assert ("warning: the reference (256 spp)" in done.stdout) == too_noisy
+
+
+def test_plain_mitsuba_names_a_sensor_the_scene_lacks():
+    """The reference and the baseline are `python -m planning.plain`: a sensor index past the scene's
+    sensors is said as `quekaro render -s` says it, not as an IndexError from inside Mitsuba."""
+    scene = REPO / "tests" / "compat" / "scenes" / "two_sensors.xml"
+    done = subprocess.run([sys.executable, "-m", "planning.plain", str(scene), "--spp", "1", "-t", "1", "-s", "5",
+                           "-o", "unused.exr"], capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert f"{scene}: sensor 5 asked for, the scene has 2 (0..1)" in done.stderr
 
 
 def test_a_reference_with_too_few_samples_is_said_with_the_spp_to_give():

@@ -118,6 +118,58 @@ def test_resume_refuses_other_settings_and_missing_files(tmp_path):
         bench_accuracy.resumed_cells(args.out, {**settings, "spp": 8})
 
 
+def test_a_damaged_or_empty_partial_run_is_refused_naming_the_file_and_line(tmp_path):
+    """The progress file is written whole or not at all; one cut short by hand, or empty, is refused with
+    the way out (run without --resume), not a JSONDecodeError."""
+    args = args_for(tmp_path)
+    settings = bench_accuracy.run_settings(args, [1], ["off", "S"])
+    bench_accuracy.write_partial(settings, [{"scene": "cbox", "level": "off"}] * 3, args.out)
+    path = args.out / "accuracy.partial.jsonl"
+    assert [p.name for p in args.out.iterdir()] == [path.name]  # no temporary file left beside it
+    path.write_text(path.read_text()[:-20])
+    with pytest.raises(QuekaroError, match=rf"{path} line 4 is not JSON .*run without --resume"):
+        bench_accuracy.resumed_cells(args.out, settings)
+    path.write_text("")
+    with pytest.raises(QuekaroError, match=r"has no settings line \(empty, or written by an older version\)"):
+        bench_accuracy.resumed_cells(args.out, settings)
+
+
+def test_scenes_of_one_file_name_are_told_apart_by_their_folders(tmp_path):
+    """Two `scene.xml` in two folders were one section, one set of image files, and one plot panel; now
+    each is named by its folder. One file given twice is refused."""
+    for folder in ("sc", "sc2"):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "a.xml").write_text("<scene version='3.0.0'/>")
+    scenes, _, _ = bench_accuracy.parse_grid(args_for(tmp_path, str(tmp_path / "sc" / "a.xml"),
+                                                      str(tmp_path / "sc2" / "a.xml"), "caustic-corner"))
+    assert [s.name for s in scenes] == ["sc-a", "sc2-a", "caustic-corner"]
+    with pytest.raises(QuekaroError, match=r"a\.xml given twice"):
+        bench_accuracy.parse_grid(args_for(tmp_path, str(tmp_path / "sc" / "a.xml"),
+                                           str(tmp_path / "sc" / ".." / "sc" / "a.xml")))
+
+
+@pytest.mark.slow
+def test_resume_measures_again_a_scene_whose_files_changed(tmp_path):
+    """--resume kept a scene's figures after its file was edited (the cached reference follows the files,
+    the kept cells did not); now that scene is measured again and the output says so."""
+    scene = tmp_path / "ball.xml"
+    text = ("<scene version='3.0.0'><integrator type='path'/><sensor type='perspective'><film type='hdrfilm'>"
+            "<integer name='width' value='24'/><integer name='height' value='24'/></film>"
+            "<sampler type='independent'/></sensor><emitter type='constant'/>"
+            "<shape type='sphere'><point name='center' x='0' y='0' z='4'/><float name='radius' value='R'/>"
+            "</shape></scene>")
+    scene.write_text(text.replace("'R'", "'0.8'"))
+    first = one_cell(tmp_path, "--inprocess", scene, 4, 16, 1)
+    scene.write_text(text.replace("'R'", "'1.2'"))
+    again = one_cell(tmp_path, "--inprocess", scene, 4, 16, 1, "--resume")
+    assert again["resumed"] == [] and again["changed"] == ["ball"]
+    assert again["cells"][0]["relmse"] != first["cells"][0]["relmse"]
+    assert "measured again, their files changed since the partial run: ball" in \
+        (tmp_path / "out" / "accuracy.md").read_text()
+    kept = one_cell(tmp_path, "--inprocess", scene, 4, 16, 1, "--resume")
+    assert kept["resumed"] == ["ball"] and kept["cells"] == again["cells"]
+
+
 def test_resume_refuses_a_partial_run_of_other_rules(tmp_path):
     """A key only one side has differs too: a run with --rules does not resume one with the default rules,
     nor the other way round."""

@@ -207,3 +207,23 @@ def test_diff_names_the_files_of_an_image_it_cannot_measure(tmp_path) -> None:
     assert f"{tmp_path / 'nan.exr'} against {tmp_path / 'good.exr'}: test image: 1 non-finite pixels" in done.stderr
     done = run_quekaro("diff", str(tmp_path / "good.exr"), str(tmp_path / "small.exr"))
     assert done.returncode != 0 and "small.exr: images differ in size: 8x8 vs 8x4" in done.stderr
+
+
+def test_diff_refuses_images_of_other_colours_and_units_of_another_image(tmp_path) -> None:
+    """An X, Y, Z image against an R, G, B one compares unlike channels (it read 5.9 % where the colours
+    differ by 1 %), and a report of a 96 px job's units puts borders where a 128 px image has none."""
+    image = np.full((8, 8, 3), 0.5, dtype=np.float32)
+    imageio.write_exr(tmp_path / "rgb.exr", image)
+    imageio.write_exr(tmp_path / "xyz.exr", image, channels=("X", "Y", "Z"))
+    imageio.write_exr(tmp_path / "y.exr", image[..., :1], channels=("Y",))
+    for other, words in (("xyz.exr", "X, Y, Z"), ("y.exr", "luminance (Y) only")):
+        done = run_quekaro("diff", str(tmp_path / other), str(tmp_path / "rgb.exr"))
+        assert done.returncode != 0 and f"{tmp_path / other} holds {words} and {tmp_path / 'rgb.exr'} R, G, B" \
+            in done.stderr, done.stderr
+    done = run_quekaro("diff", str(tmp_path / "xyz.exr"), str(tmp_path / "xyz.exr"), "--json")
+    assert done.returncode == 0 and json.loads(done.stdout)["rmse"] == 0.0  # alike colours compare
+    report = tmp_path / "r.json"
+    report.write_text(json.dumps({"image": {"width": 6, "height": 8}, "units": [{"rect": [0, 0, 6, 8]}]}))
+    done = run_quekaro("diff", str(tmp_path / "rgb.exr"), str(tmp_path / "rgb.exr"), "--units", str(report))
+    assert done.returncode != 0 and f"--units {report}: its job's image is 6x8, the images compared are 8x8" \
+        in done.stderr, done.stderr

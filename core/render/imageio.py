@@ -203,13 +203,19 @@ def _read_with_mitsuba(path: Path) -> dict[str, np.ndarray]:
 def read_image(path: str | Path) -> np.ndarray:
     """Read an image file's colour (EXR, PFM, RGBE) as float32 (H, W, 3), whatever its stored precision:
     R, G, B; or X, Y, Z as they are (an X, Y, Z film's image compared with another's); or Y repeated."""
+    return read_colour(path)[0]
+
+
+def read_colour(path: str | Path) -> tuple[np.ndarray, str]:
+    """`read_image`'s pixels and which colour they hold: "RGB", "XYZ" or "Y" (luminance, repeated). Two
+    images compare channel by channel only where they hold the same."""
     path = Path(path)
     channels = _read_planes(path)
     for triple in ("RGB", "XYZ"):
         if all(c in channels for c in triple):
-            return np.stack([channels[c] for c in triple], axis=-1)
+            return np.stack([channels[c] for c in triple], axis=-1), triple
     if "Y" in channels:
-        return np.repeat(channels["Y"][..., None], 3, axis=-1)
+        return np.repeat(channels["Y"][..., None], 3, axis=-1), "Y"
     raise ImageError(f"{path}: no R, G, B; X, Y, Z or Y channels (has {sorted(channels)})")
 
 
