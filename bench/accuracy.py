@@ -51,6 +51,7 @@ from core.model.job import RenderOptions, SceneSpec
 from core.render.bundle import check_rules, make_bundle
 from core.render.imageio import read_image
 from core.render.metrics import all_metrics, diff_image
+from core.render.scene import parse_defines
 from core.render.seams import seam_measure
 from farm.local import LocalFarm
 from fuzzy.levels import LEVELS
@@ -122,6 +123,9 @@ def parse_levels(text: str) -> list[str]:
     for level in levels:
         if level not in LEVELS:
             raise QuekaroError(f"--levels: unknown level {level!r} (known: {', '.join(LEVELS)})")
+    twice = sorted({level for level in levels if levels.count(level) > 1})
+    if twice:
+        raise QuekaroError(f"--levels {text!r}: {', '.join(twice)} given twice (each level is one cell)")
     return levels
 
 
@@ -130,9 +134,9 @@ def parse_grid(args: argparse.Namespace) -> tuple[list[SuiteScene], list[int], l
     names = [s.name for s in SUITE] if args.suite else (args.scenes or [HETEROGENEOUS])
     scenes = distinct([SuiteScene(n, SCENES[n], {"res": "320"}, "tuned") if n in SCENES else scene_from_argument(n)
                        for n in names])
-    for text in args.defines:
-        if "=" not in text:
-            raise QuekaroError(f"-D {text!r}: expected NAME=VALUE")
+    parse_defines(args.defines)  # refused as `quekaro render -D` refuses it
+    if args.spp < 1 or args.ref_spp < 1:
+        raise QuekaroError(f"--spp {args.spp}, --ref-spp {args.ref_spp}: at least one sample per pixel each")
     text = args.agents or (DEFAULT_AGENTS if not args.inprocess else "1")
     try:
         agents = sorted({int(a) for a in _csv_list(text, "agents")})
@@ -141,6 +145,9 @@ def parse_grid(args: argparse.Namespace) -> tuple[list[SuiteScene], list[int], l
     if agents[0] < 1:
         raise QuekaroError(f"--agents {text!r}: counts must be at least 1")
     levels = parse_levels(args.levels)
+    if getattr(args, "rules", None) is not None and set(levels) == {"off"}:
+        raise QuekaroError(f"--rules {args.rules}: level off plans with no rules (as `quekaro render --opt off` "
+                           "refuses it); add a rule level to --levels")
     if args.runs < 1:
         raise QuekaroError(f"--runs {args.runs}: at least one timed run per cell")
     search_paths(args)
@@ -299,7 +306,7 @@ def spent(report: dict[str, Any]) -> dict[str, Any]:
 def scene_spec(scene: SuiteScene, args: argparse.Namespace) -> SceneSpec:
     """The scene with its suite parameters, sized by --res, the -D parameters and the -a folders given."""
     defines = scene.with_size(args.res) if args.res else dict(scene.defines)
-    defines.update(dict(d.split("=", 1) for d in args.defines))
+    defines.update(parse_defines(args.defines))
     return SceneSpec(scene.path, defines, tuple(args.search_paths))
 
 
@@ -443,7 +450,16 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     done = {c["scene"] for c in cells}
     with tempfile.TemporaryDirectory(prefix="quekaro-bench-") as tmp:
         for scene in (s for s in scenes if s.name not in done):  # each scene's cells are kept as they come
-            cells += [{**c, "scene_key": keys[scene.name]} for c in scene_cells(scene, agents, levels, args, Path(tmp))]
+            try:
+                cells += [{**c, "scene_key": keys[scene.name]}
+                          for c in scene_cells(scene, agents, levels, args, Path(tmp))]
+            except KeyboardInterrupt:
+                kept = sorted({c["scene"] for c in cells})
+                print(f"interrupted in {scene.name}; " + (
+                    f"the finished scenes ({', '.join(kept)}) are kept in {Path(args.out) / 'accuracy.partial.jsonl'}"
+                    ": the same command with --resume measures only the others" if kept else "no scene finished"),
+                    file=sys.stderr)
+                raise
             write_partial(settings, cells, Path(args.out))
     names = [s.name for s in scenes]
     cells = [c for c in cells if c["scene"] in names]

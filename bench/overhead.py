@@ -25,6 +25,7 @@ from bench.report import DEFAULT_OUT, publish_markdown
 from core.errors import QuekaroError
 from core.model.job import SceneSpec
 from core.render.imageio import read_image
+from core.render.scene import parse_defines
 from planning.accuracy import job_variant, plain_render
 
 REPO = Path(__file__).resolve().parent.parent
@@ -57,7 +58,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.repeats < 1:
         raise QuekaroError(f"--repeats {args.repeats}: at least one timed run")
     res = args.res or (DEFAULT_RES if args.scene == DEFAULT_SCENE else None)
-    spec = SceneSpec(args.scene, {**({"res": str(res)} if res else {}), **_defines(args.defines)})
+    spec = SceneSpec(args.scene, {**({"res": str(res)} if res else {}), **parse_defines(args.defines)})
     levels = parse_levels(args.levels)
     variant = job_variant(spec)
     with tempfile.TemporaryDirectory(prefix="quekaro-overhead-") as tmp, \
@@ -68,13 +69,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     result["report"] = str(publish_markdown(args.out, "overhead", "Pipeline overhead against plain Mitsuba",
                                             _command(args), format_report(result), show=not args.json))
     return result
-
-
-def _defines(items: list[str]) -> dict[str, str]:
-    for text in items:
-        if "=" not in text:
-            raise QuekaroError(f"-D {text!r}: expected NAME=VALUE")
-    return dict(text.split("=", 1) for text in items)
 
 
 def _level_row(run_job: Any, spec: SceneSpec, variant: str, level: str, args: argparse.Namespace,

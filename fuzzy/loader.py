@@ -34,7 +34,8 @@ from fuzzy.variables import MAGNITUDE_MAX, InputVariable, OutputVariable
 MAX_BYTES = 1 << 20  # 1 MiB: a rule base of thousands of rules fits; anything larger is refused
 _SET_TAGS = ("fset", "fuzzyset")
 _CONSEQUENT_TAGS = ("consequent", "consequence")
-_LABEL_SPLIT = re.compile(r"[\s,{}]+")  # a clause's labels: "VS,S", "VS S", "{VS, S}"
+_LABEL_SPLIT = re.compile(r"[\s,{}]+")  # what a set's label may not hold
+_LABEL_ITEMS = re.compile(r"\s*,\s*|\s+")  # a clause's labels: "VS,S", "VS S", "{VS, S}" (braces taken off)
 _FORBIDDEN = re.compile(rb"<!\s*(DOCTYPE|ENTITY)", re.IGNORECASE)
 _FORBIDDEN_TEXT = re.compile(r"<!\s*(DOCTYPE|ENTITY)", re.IGNORECASE)
 
@@ -277,10 +278,19 @@ def _clause(el: etree._Element, file: str) -> tuple[str, tuple[str, ...]]:
             f"<{el.tag}> needs exactly one of name/varname and one of label/linguisticlabel",
             file=file, line=el.sourceline, variable=names[0] if names else None,
         )
-    labels = tuple(t for t in _LABEL_SPLIT.split(raw_labels[0].strip().strip("{}")) if t)
-    if not labels:
+    text = raw_labels[0].strip()
+    inner = text[1:-1].strip() if text.startswith("{") and text.endswith("}") else text
+    if not inner:
         raise RuleFileError("empty label", file=file, line=el.sourceline, variable=names[0])
-    return names[0], labels
+    items = _LABEL_ITEMS.split(inner)
+    if any(not t or "{" in t or "}" in t for t in items):
+        raise RuleFileError(f"label {text!r} is not one label or a set of labels such as {{B, VB}} (a brace "
+                            "unmatched, or an empty item)", file=file, line=el.sourceline, variable=names[0],
+                            label=text)
+    if len(set(items)) != len(items):
+        raise RuleFileError(f"label {text!r} names a label twice", file=file, line=el.sourceline,
+                            variable=names[0], label=text)
+    return names[0], tuple(items)
 
 
 def _build_rule(
@@ -309,7 +319,7 @@ def _build_rule(
         if is_ante:
             antecedents.append(Antecedent(var, labels))
         else:  # "{S, N}": each label concluded at the rule's strength, as by two rules of these antecedents
-            consequents.extend(Consequent(var, label) for label in dict.fromkeys(labels))
+            consequents.extend(Consequent(var, label) for label in labels)
     name = el.get("name") or f"R{index}"
     if not antecedents or not consequents:
         raise RuleFileError(f"rule {name!r} needs at least one antecedent and one consequent",

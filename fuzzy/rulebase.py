@@ -105,7 +105,8 @@ class RuleBase:
 
     def summary(self) -> str:
         """One line: rules, inputs and outputs (used by `quekaro rules check`)."""
-        ins = ", ".join(f"{v.name}{'*' if v.dynamic else ''}" for v in self.inputs)
+        built = {v.name for v in self.inputs if v.dynamic or (self.dialect == "masyro" and v.name in MASYRO_REBUILT)}
+        ins = ", ".join(f"{v.name}{'*' if v.name in built else ''}" for v in self.inputs)
         outs = ", ".join(v.name for v in self.outputs)
         how = "MASYRO's dialect (a <fuzzyset> element)" if self.dialect == "masyro" else "the paper's dialect"
         return f"{len(self.rules)} rules; inputs {ins}; outputs {outs} (* = sets built at run time); {how}"

@@ -5,6 +5,9 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -62,6 +65,7 @@ def test_inprocess_grid_json_has_cells_and_baseline(tmp_path):
 
 
 COMPAT = Path(__file__).parent / "compat" / "scenes"
+REPO = Path(__file__).resolve().parent.parent
 
 
 def one_cell(tmp_path: Path, mode: str, scene: Path, spp: int, ref_spp: int, threads: int,
@@ -149,15 +153,40 @@ def test_scenes_of_one_file_name_are_told_apart_by_their_folders(tmp_path):
 
 
 @pytest.mark.slow
+def test_an_interrupted_run_says_what_it_kept_and_how_to_go_on(tmp_path):
+    """Ctrl-C (SIGINT) after the first scene: the exit is 130 as before, and the output names the scenes
+    kept and --resume (it printed nothing)."""
+    scenes = []
+    for name in ("one", "two"):
+        scenes.append(tmp_path / f"{name}.xml")
+        scenes[-1].write_text(BALL.replace("'R'", "'1.0'"))
+    partial = tmp_path / "out" / "accuracy.partial.jsonl"
+    cmd = [sys.executable, "-m", "quekaro", "bench", "accuracy", "--inprocess", "--levels", "off", "--spp", "4",
+           "--ref-spp", "16", "--threads", "1", "--runs", "1", "--out", str(tmp_path / "out"), "--cache",
+           str(tmp_path / "cache"), *map(str, scenes)]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 240
+    while not partial.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert proc.poll() is None, proc.communicate()
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert f"interrupted in two; the finished scenes (one) are kept in {partial}" in err and "--resume" in err, err
+
+
+BALL = ("<scene version='3.0.0'><integrator type='path'/><sensor type='perspective'><film type='hdrfilm'>"
+        "<integer name='width' value='24'/><integer name='height' value='24'/></film>"
+        "<sampler type='independent'/></sensor><emitter type='constant'/>"
+        "<shape type='sphere'><point name='center' x='0' y='0' z='4'/><float name='radius' value='R'/>"
+        "</shape></scene>")
+
+
+@pytest.mark.slow
 def test_resume_measures_again_a_scene_whose_files_changed(tmp_path):
     """--resume kept a scene's figures after its file was edited (the cached reference follows the files,
     the kept cells did not); now that scene is measured again and the output says so."""
-    scene = tmp_path / "ball.xml"
-    text = ("<scene version='3.0.0'><integrator type='path'/><sensor type='perspective'><film type='hdrfilm'>"
-            "<integer name='width' value='24'/><integer name='height' value='24'/></film>"
-            "<sampler type='independent'/></sensor><emitter type='constant'/>"
-            "<shape type='sphere'><point name='center' x='0' y='0' z='4'/><float name='radius' value='R'/>"
-            "</shape></scene>")
+    scene, text = tmp_path / "ball.xml", BALL
     scene.write_text(text.replace("'R'", "'0.8'"))
     first = one_cell(tmp_path, "--inprocess", scene, 4, 16, 1)
     scene.write_text(text.replace("'R'", "'1.2'"))
@@ -225,6 +254,14 @@ def test_grid_arguments_are_checked(tmp_path):
         bench_accuracy.parse_grid(args_for(tmp_path, "-D", "res"))
     with pytest.raises(QuekaroError, match="--runs 0"):
         bench_accuracy.parse_grid(args_for(tmp_path, "--runs", "0"))
+    with pytest.raises(QuekaroError, match=r"-D '=3': '' is not a parameter name"):
+        bench_accuracy.parse_grid(args_for(tmp_path, "-D", "=3"))
+    with pytest.raises(QuekaroError, match=r"--spp 0, --ref-spp 32: at least one sample"):
+        bench_accuracy.parse_grid(args_for(tmp_path, "--spp", "0"))
+    with pytest.raises(QuekaroError, match=r"--levels 'off,S,off': off given twice"):
+        bench_accuracy.parse_grid(args_for(tmp_path, "--levels", "off,S,off"))
+    with pytest.raises(QuekaroError, match=r"--rules .*: level off plans with no rules"):
+        bench_accuracy.parse_grid(args_for(tmp_path, "--levels", "off", "--rules", str(RULES)))
     # One process is no farm: agent counts other than 1 would be ignored, so they are refused.
     with pytest.raises(QuekaroError, match=r"--agents 2,1,2: --inprocess times one `quekaro render` process"):
         bench_accuracy.parse_grid(args_for(tmp_path, "--agents", "2,1,2", "--inprocess"))

@@ -135,6 +135,20 @@ def test_a_consequent_naming_two_labels_concludes_each_as_two_rules_would(tmp_pa
     assert "unknown label" in str(err) and (err.variable, err.label) == ("y", "Q")
 
 
+@pytest.mark.parametrize(("label", "fault"), [
+    ("{L, H", "is not one label or a set of labels"),
+    ("{L,}", "is not one label or a set of labels"),
+    ("L, ,H", "is not one label or a set of labels"),
+    ("H}", "is not one label or a set of labels"),
+    ("{L, L}", "names a label twice"),
+])
+def test_a_malformed_label_set_is_refused(tmp_path, label, fault):
+    """A brace left open, an empty item or a label twice read as a set before (`{L,}` as L)."""
+    rules = f'<rule><antecedent name="x" label="{label}"/><consequent name="y" label="L"/></rule>'
+    err = _refuse(system_xml(SIMPLE_IN, SIMPLE_OUT, rules), tmp_path)
+    assert fault in str(err) and (err.variable, err.label) == ("x", label)
+
+
 def test_rule_without_consequent(tmp_path):
     err = _refuse(system_xml(SIMPLE_IN, SIMPLE_OUT, '<rule name="R9"><antecedent name="x" label="L"/></rule>'),
                   tmp_path)
