@@ -600,7 +600,7 @@ def spending_lines(cells: list[dict[str, Any]]) -> list[str]:
         lines.append(
             f"| {c['scene']} | {c['agents']} | {c['level']} | {c['seconds']:.1f} | {first} | {c['cpu_seconds']:.1f} "
             f"| {c['render_seconds']:.1f} | {c['prepass_seconds']:.2f} | {c['units']} "
-            f"| {c['spp_mean']:.0f} ({c['spp_min']}-{c['spp_max']}) | {c['depth_min']}-{c['depth_max']} "
+            f"| {c['spp_mean']:.0f} ({c['spp_min']}-{c['spp_max']}) | {_depths(c)} "
             f"| {c['mean_pixel_diff_percent']:.2f} | {c['rmse']:.4f} | {c['relmse']:.4f} | {c['flip']:.4f} "
             f"| {_seam_text(c, 'seam_')} | {plain} |")
     return lines
@@ -609,6 +609,12 @@ def spending_lines(cells: list[dict[str, Any]]) -> list[str]:
 def _seam_text(cell: dict[str, Any], prefix: str) -> str:
     """"z (worst unit's z[ SEAM])" of the seam figures stored under `prefix` in a cell."""
     return f"{cell[prefix + 'z']:.1f} ({cell[prefix + 'unit_z']:.1f}{' SEAM' if cell[prefix + 'seam'] else ''})"
+
+
+def _depths(cell: dict[str, Any]) -> str:
+    """The cell's depth range; Mitsuba's -1 (no limit) in words, as "-1--1" read as a typo."""
+    low, high = (("unbounded" if d < 0 else str(d)) for d in (cell["depth_min"], cell["depth_max"]))
+    return low if low == high == "unbounded" else f"{low}-{high}"
 
 
 def format_report(result: dict[str, Any]) -> str:

@@ -100,5 +100,7 @@ def read_unit_rects(path: str, width: int, height: int) -> list[Rect]:
 
 def seam_line(seams: dict[str, Any]) -> str:
     verdict = "SEAM" if seams["seam"] else "no seam"
+    if seams["worst_unit"] < 0:  # one unit: no border between units to measure
+        return f"{verdict} (no border between units)"
     return (f"{verdict} (steps across borders: z^2 {seams['ratio']:.2f}x noise, z {seams['z']:.1f}; "
             f"worst unit {seams['worst_unit']} z {seams['unit_z']:.1f} of {seams['unit_threshold']:.1f})")

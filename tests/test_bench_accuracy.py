@@ -316,3 +316,10 @@ def test_a_scene_path_is_shown_relative_to_the_checkouts_parent_even_through_a_l
     link.symlink_to(repo)
     assert shown(link / "bench" / "x.xml") == f"{repo.name}/bench/x.xml"  # outside, but resolves inside
     assert shown(tmp_path / "other.xml") == str(tmp_path / "other.xml")
+
+
+def test_an_unbounded_depth_reads_as_words_in_the_table():
+    """Mitsuba's max_depth -1 showed as "-1--1"."""
+    assert bench_accuracy._depths({"depth_min": -1, "depth_max": -1}) == "unbounded"
+    assert bench_accuracy._depths({"depth_min": 3, "depth_max": 6}) == "3-6"
+    assert bench_accuracy._depths({"depth_min": 6, "depth_max": 6}) == "6-6"

@@ -197,3 +197,12 @@ def test_sensors_carried_by_shapes_are_numbered_as_mitsuba_numbers_them(tmp_path
     scene.write_text(SHAPE_SENSORS.format(file='<string name="file_format" value="pfm"/>'))
     with pytest.raises(SceneError, match=r"shapes.xml: a shape carries a sensor.*openexr float16, pfm float32"):
         film_info(SceneSpec(scene), 0)
+
+
+def test_a_missing_include_names_each_folder_searched_once(tmp_path):
+    """The including file's folder and the scene's are one folder here: it was listed twice."""
+    scene = tmp_path / "scene.xml"
+    scene.write_text("<scene version='3.0.0'><include filename='nope.xml'/></scene>")
+    with pytest.raises(SceneError, match=r"nope.xml' not found; searched: ") as err:
+        referenced_files(SceneSpec(scene))
+    assert str(err.value).count(str(tmp_path)) == 2, err.value  # the file's own name, then the folder once

@@ -19,6 +19,7 @@ from core.errors import QuekaroError
 from core.model.geometry import Rect
 from core.render import imageio
 from core.render.seams import seam_measure, unit_map
+from quekaro import cmd_diff
 
 REPO = Path(__file__).resolve().parent.parent
 SIDE = 128
@@ -227,3 +228,10 @@ def test_diff_refuses_images_of_other_colours_and_units_of_another_image(tmp_pat
     done = run_quekaro("diff", str(tmp_path / "rgb.exr"), str(tmp_path / "rgb.exr"), "--units", str(report))
     assert done.returncode != 0 and f"--units {report}: its job's image is 6x8, the images compared are 8x8" \
         in done.stderr, done.stderr
+
+
+def test_a_one_unit_job_has_no_border_to_measure_and_says_so() -> None:
+    """It read "worst unit -1 z 0.0 of 4.0", a unit index that is none."""
+    image = np.full((8, 8, 3), 0.5, dtype=np.float32)
+    line = cmd_diff.seam_line(seam_measure(image, image, [Rect(0, 0, 8, 8)]).to_dict())
+    assert line == "no seam (no border between units)"

@@ -164,7 +164,8 @@ def _resolved(file: Path, elem: etree._Element, kind: str, name: str, folders: S
     _refuse_outside(where, name, [Path(name)] if Path(name).is_absolute() else [f / name for f in folders], within)
     target = lookup(name, folders)
     if target is None or not target.is_file():
-        searched = ", ".join(str(f) for f in folders) if not Path(name).is_absolute() else "(absolute name)"
+        searched = (", ".join(dict.fromkeys(str(f) for f in folders)) if not Path(name).is_absolute()
+                    else "(absolute name)")
         what = "file" if kind == "file" else f"{kind} file"
         raise SceneError(f"{where}: {what} {name!r} not found; searched: {searched}")
     return Reference(file, elem.sourceline or 0, kind, name, Path(os.path.normpath(target.absolute())), elem)
