@@ -144,8 +144,9 @@ class FarmClient:
         name = headers.get_filename() or ""
         out = out.with_suffix(Path(name).suffix or out.suffix or ".exr")
         report = json.loads(self._request("GET", f"/api/jobs/{job_id}/report"))
-        if isinstance(report.get("image"), dict):  # the file written here, not the master's own
+        if isinstance(report.get("image"), dict):  # the files written here, not the master's own
             report["image"]["file"] = str(out.resolve())
+            report["image"]["png"] = str(out.with_suffix(".png").resolve())
         try:
             out.parent.mkdir(parents=True, exist_ok=True)
             with staged_together([out, out.with_suffix(".png"), out.with_suffix(".json")]) as (image, png, text):

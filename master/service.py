@@ -40,6 +40,7 @@ from core.render.bundle import (
     check_unpacked,
     extract_bundle,
     read_manifest,
+    submitted_scene,
     submitted_scene_sha256,
 )
 from core.render.compose import TileSource
@@ -532,9 +533,13 @@ class MasterService:
         # header, says which unit a tile is.
         tiles = [tile_source(r.tile_path, unit_index=r.index, job_id=job_id) for r in results]
         params = {r.index: r.params for r in results}
-        # The scene as submitted (its name in the bundle), not the master's copy, meaningless to the user.
-        scene = {**plan.spec.to_dict(), "path": record.scene}
-        report = assemble(plan, tiles, params, self.result_path(job_id), started=time.perf_counter(),
+        # The scene as submitted (its path and -a folders on the submitter's side), not the master's copy,
+        # meaningless to the user.
+        scene = {**plan.spec.to_dict(), **submitted_scene(self.job_dir(job_id) / "scene" / record.scene)}
+        # totals.seconds as `quekaro render` counts it, the whole job: from its upload's arrival to its last
+        # tile (the store's created and finished), then this assembly.
+        ran = (record.finished or time.time()) - record.created
+        report = assemble(plan, tiles, params, self.result_path(job_id), started=time.perf_counter() - ran,
                           extra={"job_id": job_id, "scene": scene, "created": record.created,
                                  "finished": record.finished})
         return report

@@ -17,6 +17,7 @@ from PIL import Image
 
 from bench import accuracy as bench_accuracy
 from core.errors import QuekaroError
+from core.model.job import SceneSpec
 from core.render.imageio import read_image
 from fuzzy import load_rulebase
 
@@ -323,3 +324,25 @@ def test_an_unbounded_depth_reads_as_words_in_the_table():
     assert bench_accuracy._depths({"depth_min": -1, "depth_max": -1}) == "unbounded"
     assert bench_accuracy._depths({"depth_min": 3, "depth_max": 6}) == "3-6"
     assert bench_accuracy._depths({"depth_min": 6, "depth_max": 6}) == "6-6"
+
+
+def test_a_cell_faster_than_plain_mitsubas_least_render_is_not_scored_against_it(tmp_path):
+    """A 0.3 s cell against plain Mitsuba whose start-up alone takes 0.37 s: the equal-wall-time baseline
+    was clamped to 1 spp, which took longer than the cell, and the median target read PASS. Now the
+    baseline says it takes longer, and the target is not measured (neither PASS nor MISS)."""
+    args = args_for(tmp_path, "--runs", "1", "--no-warmup")
+    spec = SceneSpec(COMPAT / "film_pfm.xml", {})
+    cells = [{"agents": 1, "level": "S", "seconds": 0.30, "render_seconds": 0.1, "scene": "a"},
+             {"agents": 1, "level": "N", "seconds": 1.00, "render_seconds": 0.1, "scene": "a"}]
+    variant = bench_accuracy.job_variant(spec)
+    ref = bench_accuracy.reference(spec, 4, 1, tmp_path / "cache", variant)
+    uniform = bench_accuracy.uniform_baseline(spec, cells, 1, args, (0.37, 0.01), ref, variant, {})
+    assert uniform["S"]["uniform_fits"] is False and uniform["S"]["uniform_spp"] == 1
+    assert uniform["N"]["uniform_fits"] is True and uniform["N"]["uniform_spp"] == 63
+    for cell in cells:
+        cell.update(uniform[cell["level"]], relmse=0.01, mean_pixel_diff_percent=1.0, seam_seam=False)
+    [s_target, n_target] = [t for t in bench_accuracy.targets(cells, 1) if t["name"].startswith("level")]
+    assert s_target["value"] is None and not s_target["pass"] and "on a the cell took less" in s_target["name"]
+    assert n_target["value"] is not None
+    table = "\n".join(bench_accuracy.paper_table(cells, "a", ["S", "N"]))
+    assert "1 spp (the least; takes longer than the cell)" in table and "63 spp," in table

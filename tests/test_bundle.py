@@ -22,6 +22,7 @@ from core.render.bundle import (
     extract_bundle,
     make_bundle,
     read_manifest,
+    submitted_scene,
     submitted_scene_sha256,
 )
 
@@ -199,6 +200,17 @@ def test_a_rewritten_scene_keeps_the_submitted_files_hash_that_seeds_its_pre_pas
     kept = _tar([_reg(MANIFEST_NAME, _manifest({"scene.xml": SCENE})), _reg("scene.xml", SCENE)])
     old = extract_bundle(kept, tmp_path / "old")
     assert submitted_scene_sha256(old) == hashlib.sha256(SCENE).hexdigest()
+    assert submitted_scene(out) == {"path": str(scene), "search_paths": []}  # the report names it so
+    assert submitted_scene(old) == {"path": "scene.xml", "search_paths": []}  # its name in the bundle
+    searched = extract_bundle(make_bundle(scene, None, tmp_path / "c.tar", search_paths=(tmp_path / "common",)).path,
+                              tmp_path / "y")
+    assert submitted_scene(searched)["search_paths"] == [str(tmp_path / "common")]
+    for submitted in ({"path": 3, "search_paths": []}, {"path": "a.xml"}, {"path": "a" * 5000, "search_paths": []},
+                      {"path": "a.xml", "search_paths": ["b"] * 65}, "a.xml"):
+        manifest = json.loads(_manifest({"scene.xml": SCENE})) | {"submitted": submitted}
+        bad = _tar([_reg(MANIFEST_NAME, json.dumps(manifest).encode()), _reg("scene.xml", SCENE)])
+        with pytest.raises(BundleError, match=r"bundle manifest: submitted .* is not the submitter's scene path"):
+            extract_bundle(bad, tmp_path / "bad")
     for stated in ("ab" * 31, "AB" * 32, 7, "../" * 30):
         manifest = json.loads(_manifest({"scene.xml": SCENE})) | {"scene_sha256": stated}
         bad = _tar([_reg(MANIFEST_NAME, json.dumps(manifest).encode()), _reg("scene.xml", SCENE)])

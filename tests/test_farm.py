@@ -94,7 +94,11 @@ def test_job_on_three_agents_matches_local_render(farm3, tmp_path):
     image = read_image(out)
     report = json.loads(out.with_suffix(".json").read_text())
     assert report["image"]["file"] == str(out.resolve())  # not the master's own file, meaningless here
-    assert report["scene"]["path"] == Path(SCENE).name and report["scene"]["defines"] == DEFINES  # as submitted
+    assert report["image"]["png"] == str(out.with_suffix(".png").resolve())  # the PNG written beside it
+    # As submitted: the submitter's path and -a folders (it was the name in the bundle, without the folders).
+    assert report["scene"] == {"path": str(SCENE), "defines": DEFINES, "search_paths": []}
+    # The whole job, as `quekaro render` counts it (it was the assembly's 0.01 s).
+    assert report["totals"]["seconds"] >= report["finished"] - report["created"] > 0.1
     agents = {u["agent"] for u in report["units"]}
     assert len(report["units"]) == job["units_total"]
     assert np.isfinite(image).all() and image.shape == (64, 64, 3)

@@ -2,8 +2,9 @@
 
 Format: an uncompressed POSIX tar whose first member is `QUEKARO-MANIFEST.json` (format, version, the
 scene's name, its `-D` parameters, the job's rule file if it has one, the size and sha256 of every
-other member, and the sha256 of the scene file as the submitter wrote it: `scene_sha256`, which seeds
-the job's pre-pass as `quekaro render` of that file seeds it, where the bundle rewrote it), followed by the
+other member, the sha256 of the scene file as the submitter wrote it: `scene_sha256`, which seeds
+the job's pre-pass as `quekaro render` of that file seeds it, where the bundle rewrote it, and where the
+submitter's scene and `-a` folders were: `submitted`, which the job's report names), followed by the
 files. The scene file lies at the top; every file it reads (found as
 Mitsuba finds it: core.render.resolver, through `<path>`, includes, `-a` search paths, absolute names, files
 outside the scene's folder too: the submitter owns them) lies at `files/<16 hex>/<its name>`, and the
@@ -53,6 +54,8 @@ MAX_MANIFEST_BYTES = 4 << 20
 _CHUNK = 1 << 20
 _PARAM_RE = re.compile(r"\$([A-Za-z_][A-Za-z0-9_]*)")
 _SHA256_RE = re.compile(r"[0-9a-f]{64}")
+MAX_NAME_CHARS = 4096  # a submitted path in the manifest (PATH_MAX)
+MAX_SEARCH_PATHS = 64
 
 
 class BundleError(SceneError):
@@ -182,7 +185,8 @@ def make_bundle(scene_path: str | Path, defines: dict[str, str] | None, out: str
     entries = [_entry(name, members[name], limits) for name in sorted(members)]
     manifest = {"format": FORMAT, "version": VERSION, "scene": Path(scene_path).name,
                 "defines": {str(k): str(v) for k, v in (defines or {}).items()}, "files": entries,
-                "rules": RULES_NAME if rules is not None else None, "scene_sha256": sha256_file(scene_path)}
+                "rules": RULES_NAME if rules is not None else None, "scene_sha256": sha256_file(scene_path),
+                "submitted": {"path": str(scene_path), "search_paths": [str(p) for p in search_paths]}}
     blob = json.dumps(manifest, sort_keys=True, indent=1).encode()
     out = Path(out)
     tmp = out.with_name(f".{out.name}.{os.getpid()}.part")
@@ -279,6 +283,10 @@ def _read_manifest(tar: tarfile.TarFile, member: tarfile.TarInfo | None, dest: P
     stated = manifest.get("scene_sha256")
     if stated is not None and not (isinstance(stated, str) and _SHA256_RE.fullmatch(stated)):
         raise BundleError(f"bundle manifest: scene_sha256 {str(stated)[:80]!r} is not a sha256 (64 hex digits)")
+    if not _submitted_ok(manifest.get("submitted", {"path": scene, "search_paths": []})):
+        raise BundleError(f"bundle manifest: submitted {str(manifest.get('submitted'))[:80]!r} is not the "
+                          f"submitter's scene path and -a folders (strings of at most {MAX_NAME_CHARS} characters, "
+                          f"at most {MAX_SEARCH_PATHS} folders)")
     # Kept beside the files so that the unpacked folder says what it is (read_manifest).
     (dest / MANIFEST_NAME).write_bytes(raw)
     return {"scene": scene, "files": files}
@@ -362,6 +370,19 @@ def extract_bundle(data: bytes | str | Path, dest: str | Path, limits: BundleLim
 def read_manifest(bundle_dir: str | Path) -> dict:
     """The manifest of an unpacked bundle (scene name, defines, files)."""
     return json.loads((Path(bundle_dir) / MANIFEST_NAME).read_text())
+
+
+def _submitted_ok(submitted: Any) -> bool:
+    if not isinstance(submitted, dict) or set(submitted) != {"path", "search_paths"}:
+        return False
+    names = [submitted["path"], *(submitted["search_paths"] if isinstance(submitted["search_paths"], list) else [0])]
+    return len(names) <= MAX_SEARCH_PATHS + 1 and all(isinstance(n, str) and len(n) <= MAX_NAME_CHARS for n in names)
+
+
+def submitted_scene(scene: Path) -> dict[str, Any]:
+    """Where an unpacked bundle's scene was on the submitter's side: its path and `-a` folders as given
+    (its manifest's `submitted`, checked when unpacked), else its name in the bundle and none."""
+    return read_manifest(scene.parent).get("submitted") or {"path": scene.name, "search_paths": []}
 
 
 def submitted_scene_sha256(scene: Path) -> str:
