@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from bench.accuracy import DEFAULT_OUT, REPO
+from bench.args import check_minimums
 from bench.report import publish_markdown
 from bench.scaling import default_cache_dir, measured_spec
 from bench.suite import BY_NAME, SUITE, scene_from_argument
@@ -128,6 +129,7 @@ def measure_scene(spec: Any, args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    check_minimums(args, res=1, spp=1, ref_spp=1, seeds=1, threads=1, oracle_spp=1)
     chosen = [scene_from_argument(s) for s in args.scenes] if args.scenes else list(SUITE)
     if len(chosen) == 1:
         entry = chosen[0]

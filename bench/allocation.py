@@ -20,14 +20,13 @@ All measurements are cached under `--cache-dir` (the reference is `quekaro bench
 from __future__ import annotations
 
 import argparse
-import hashlib
-import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from bench.accuracy import DEFAULT_OUT, HETEROGENEOUS, SCENES
+from bench.args import check_minimums
 from bench.provenance import rules_for
 from bench.report import publish_markdown
 from bench.scaling import measure_cached, measured_spec
@@ -40,7 +39,7 @@ from core.render.metrics import RELMSE_EPSILON
 from core.render.planner import Planner
 from core.render.scene import film_info, parse_defines
 from fuzzy.levels import RULE_LEVELS
-from planning.accuracy import job_variant, plain_render, reference
+from planning.accuracy import content_key, job_variant, plain_render, reference
 from planning.jobplan import plan_job
 from planning.pipeline import plan_params
 
@@ -66,11 +65,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder for allocation.md")
 
 
+def noise_path(spec: Any, spp: int, renders: int, cache: Path, variant: str) -> Path:
+    """Where `noise_map` caches the scene's noise map."""
+    return cache / f"allocation-noise-{content_key(spec, spp, renders, variant)}.npy"
+
+
 def noise_map(spec: Any, spp: int, renders: int, threads: int, cache: Path, variant: str) -> np.ndarray:
-    """Per-pixel, per-channel variance of one sample in `variant` (cached by scene content, defines, spp,
-    renders and variant)."""
-    key = hashlib.sha256(spec.path.read_bytes() + json.dumps([spec.defines, spp, renders, variant]).encode())
-    path = cache / f"allocation-noise-{key.hexdigest()[:16]}.npy"
+    """Per-pixel, per-channel variance of one sample in `variant` (cached by the content of every file the
+    scene reads, its defines, spp, renders and variant: planning.accuracy.content_key)."""
+    path = noise_path(spec, spp, renders, cache, variant)
     if path.exists():
         return np.load(path)
     if renders < 2:
@@ -150,7 +153,8 @@ def rules_file(args: argparse.Namespace) -> Path | None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-
+    # A variance needs two renders; the time map's cells a side; every count at least one.
+    check_minimums(args, spp=1, ref_spp=1, renders=2, seeds=1, threads=1, cell=1, measure_spp=1, res=1)
     defines = parse_defines(args.defines) if args.defines else None
     spec = measured_spec(args.scene.resolve(), args.res, defines=defines)  # as `bench accuracy`: one reference
     size = film_info(spec)

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import hashlib
 import json
 import sys
 import time
@@ -44,14 +43,14 @@ from matplotlib.figure import Figure
 
 from bench.simulate import simulate
 from core.errors import QuekaroError
+from core.model import integrators
 from core.model.geometry import Rect
-from core.model.hashing import sha256_file
 from core.model.job import SceneSpec
 from core.render import scene as scene_mod
-from core.render.scene import film_info
+from core.render.scene import expand, film_info
 from core.render.worker import RenderRequest, RenderWorker
+from planning.accuracy import content_key, job_variant
 from planning.accuracy import default_cache as default_cache_dir
-from planning.accuracy import job_variant
 from planning.complexity import COST_SPP, NOISE_SHARE, PREPASS_SPP, ComplexityMap, prepass
 from planning.jobplan import farm_min_units
 from planning.partition import equal_tiles, partition
@@ -128,7 +127,14 @@ def measure(spec: SceneSpec, cell: int, spp: int, threads: int) -> tuple[TimeMap
     variant = job_variant(spec)  # a job of this scene renders in it (spectral data: the spectral variant)
     kind, depth = scene_integrator(spec)
     loaded = scene_mod.load(spec, variant, threads)
-    cmap = prepass(loaded, width, height, integrator=kind, max_depth=depth, threads=threads)
+    # A wrapper (aov, moment) is no radiance integrator of its own: the pre-pass estimates with the one it
+    # wraps, as a job's does (core.model.integrators.radiance_xml), and the cells render the scene's own.
+    elem = integrators.scene_element(scene_mod.expand(spec).root)
+    wraps = elem is not None and integrators.kind(kind).nests
+    estimate = integrators.radiance_xml(elem, depth) if wraps else kind
+    cmap = prepass(loaded, width, height, integrator=estimate, max_depth=depth, threads=threads)
+    if wraps:
+        kind, depth = None, None
     cells = [Rect(x, y, min(cell, width - x), min(cell, height - y))
              for y in range(0, height, cell) for x in range(0, width, cell)]
 
@@ -168,9 +174,12 @@ def measure(spec: SceneSpec, cell: int, spp: int, threads: int) -> tuple[TimeMap
 def measured_spec(scene_path: Path, res: int, height: int | None = None,
                   defines: dict[str, str] | None = None) -> SceneSpec:
     """The scene as measured: its `defines` when given (the size is then the film's), else `-D res`, and
-    `-D height` when it differs (as bench.hosts's wide scene reads)."""
+    `-D height` when it differs (as bench.hosts's wide scene reads), where the scene has a `res` parameter;
+    a scene without one renders at its film's own size (Mitsuba refuses a -D it does not use)."""
     if defines is not None:
         return SceneSpec(scene_path, dict(defines))
+    if "res" not in expand(SceneSpec(scene_path)).params:
+        return SceneSpec(scene_path, {})
     height = height or res
     return SceneSpec(scene_path, {"res": str(res)} if height == res else {"res": str(res), "height": str(height)})
 
@@ -194,15 +203,14 @@ def spread_cell_times(cells: Sequence[Rect], seconds: Sequence[float], fixed: fl
 
 
 def cache_file(cache_dir: Path | None, spec: SceneSpec, cell: int, spp: int, threads: int, variant: str) -> Path:
-    """Where the measurement of these inputs is cached: keyed by the scene file's sha256 (not the files it
-    includes: remeasure after editing a mesh or texture), its -D parameters (hence its size), the cell
-    side, spp, threads, the pre-pass's sample split (the cached complexity map, hence the partition,
-    depends on it), the timing passes per cell and the variant the cells rendered in."""
-    digest = sha256_file(spec.path)[:16]
-    defines = hashlib.sha256(json.dumps(sorted(spec.defines.items())).encode()).hexdigest()[:12]
+    """Where the measurement of these inputs is cached: keyed by the content of every file the scene reads
+    and its -D parameters (hence its size; planning.accuracy.content_key), the cell side, spp, threads, the
+    pre-pass's sample split (the cached complexity map, hence the partition, depends on it), the timing
+    passes per cell and the variant the cells rendered in."""
+    digest = content_key(spec)
     prepass = f"p{PREPASS_SPP}-{COST_SPP}-{NOISE_SHARE}"
     return (Path(cache_dir or default_cache_dir())
-            / f"scaling-{digest}-d{defines}-c{cell}-s{spp}-t{threads}-{prepass}-m{MEASURE_PASSES}-{variant}.npz")
+            / f"scaling-{digest}-c{cell}-s{spp}-t{threads}-{prepass}-m{MEASURE_PASSES}-{variant}.npz")
 
 
 def measure_cached(scene_path: Path, res: int, cell: int, spp: int, threads: int,

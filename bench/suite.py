@@ -1,10 +1,12 @@
-"""The accuracy benchmark's scene suite: six scenes of different character, none used to tune the rules.
+"""The accuracy benchmark's scene suite: six scenes of different character, none used to tune the rules
+but for the floors of level S's and VS's simple units, chosen on all six (the rule file's header says so).
 
 Two are Mitsuba's own (../shared/scenes/mitsuba-data: cbox, matpreview), four are written for the suite
 (bench/scenes/: a diffuse interior lit through a small window, a glossy textured still life, a
 volumetric block under a spot light, an outdoor scene under an environment map). Each entry says its
 role: `tune` scenes are the ones any constant of the allocation may be chosen on, `report` scenes are
-held out and only reported. `python -m bench.suite --write-sky` writes bench/scenes/sky.exr.
+held out and only reported; a scene file from outside the suite is `user` (neither half).
+`python -m bench.suite --write-sky` writes bench/scenes/sky.exr.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ class SuiteScene:
     name: str
     path: Path
     defines: dict[str, str] = field(default_factory=dict)
-    role: str = "report"  # tune | report
+    role: str = "user"  # tune | report, or user: a file from outside the suite
     about: str = ""
 
     def with_size(self, res: int) -> dict[str, str]:
@@ -56,7 +58,7 @@ BY_NAME = {s.name: s for s in SUITE}
 
 
 def scene_from_argument(text: str) -> SuiteScene:
-    """A suite name, or the path of any Mitsuba scene file (role `report`, no -D of its own)."""
+    """A suite name, or the path of any Mitsuba scene file (role `user`, no -D of its own)."""
     if text in BY_NAME:
         scene = BY_NAME[text]
         if not scene.path.exists():

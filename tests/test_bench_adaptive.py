@@ -50,7 +50,8 @@ def test_bench_adaptive_takes_scene_files_outside_the_suite(tmp_path):
     assert done.returncode == 0, done.stderr[-2000:]
     scenes = json.loads(done.stdout)["scenes"]
     assert set(scenes) == {"caustic-corner", "glass-corner"}
-    assert all(s["role"] == "report" and s["runs"][0]["relmse_adaptive"] > 0 for s in scenes.values())
+    # Files from outside the suite are neither half (caustic-corner is the scene the rules were tuned on).
+    assert all(s["role"] == "user" and s["runs"][0]["relmse_adaptive"] > 0 for s in scenes.values())
 
 
 def test_the_oracle_of_even_or_no_noise_is_uniform_spp():
@@ -80,3 +81,13 @@ def test_no_allocation_of_at_least_one_sample_a_pixel_beats_the_oracle(noise, sp
     extra = spp * len(v) - len(v)
     other = 1.0 + (other - 1.0) * (extra / (other - 1.0).sum()) if (other - 1.0).sum() > 0 else np.full(len(v), spp)
     assert oracle_ratio(v, spp) <= predicted_ratio(v, other, spp) + 1e-9
+
+
+@pytest.mark.parametrize(("option", "says"), [("--seeds", "--seeds 0: at least 1"), ("--spp", "--spp 0: at least 1"),
+                                              ("--oracle-spp", "--oracle-spp 0: at least 1")])
+def test_a_count_of_zero_is_refused_before_anything_renders(tmp_path, option, says):
+    """--seeds 0 wrote a report of NaNs, --spp 0 ended in a ZeroDivisionError, --oracle-spp 0 ran."""
+    cmd = [sys.executable, "-m", "quekaro", "bench", "adaptive", "cbox", option, "0", "--out", str(tmp_path / "out")]
+    done = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert done.returncode == 2 and says in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert not (tmp_path / "out").exists()

@@ -10,9 +10,11 @@ import numpy as np
 import pytest
 
 from bench import allocation as ba
-from bench.scaling import TimeMap
-from core.errors import SceneError
+from bench.scaling import TimeMap, cache_file, measured_spec
+from core.errors import QuekaroError, SceneError
 from core.model.geometry import Rect
+from core.model.job import SceneSpec
+from planning.accuracy import content_key
 
 
 def _plan(rects: list[Rect]) -> SimpleNamespace:
@@ -134,7 +136,8 @@ def test_any_scene_with_its_parameters(tmp_path) -> None:
     assert result["size"] == [40, 24] and result["defines"] == {"width": "40", "height": "24"}
     assert (tmp_path / "allocation.md").read_text().splitlines()[2].startswith("tiny.xml 40x24, user spp 8")
     names = [p.name for p in tmp_path.glob("scaling-*.npz")]
-    assert len(names) == 1 and names[0].split("-")[2].startswith("d")  # the size part is the -D key
+    key = content_key(SceneSpec(scene, {"width": "40", "height": "24"}))  # every file read, and the -D
+    assert len(names) == 1 and names[0].startswith(f"scaling-{key}-"), names
 
 
 def test_a_bad_define_is_refused_naming_it(tmp_path) -> None:
@@ -144,3 +147,57 @@ def test_a_bad_define_is_refused_naming_it(tmp_path) -> None:
     args.json = True
     with pytest.raises(SceneError, match="-D 'width': expected NAME=VALUE"):
         ba.run(args)
+
+
+COMPAT = Path(__file__).resolve().parent / "compat" / "scenes"
+REPO = Path(__file__).resolve().parent.parent
+
+
+def test_the_caches_follow_every_file_the_scene_reads(tmp_path) -> None:
+    """Two scene.xml files alike but for the room they include: the noise and time maps of one were read
+    for the other (both keys hashed the top file only)."""
+    specs = []
+    for name, colour in (("a", "0.2"), ("b", "0.8")):
+        folder = tmp_path / name
+        folder.mkdir()
+        (folder / "room.xml").write_text(f"<scene version='3.0.0'><shape type='sphere'><bsdf type='diffuse'>"
+                                         f"<rgb name='reflectance' value='{colour}'/></bsdf></shape></scene>")
+        (folder / "scene.xml").write_text("<scene version='3.0.0'><include filename='room.xml'/></scene>")
+        specs.append(SceneSpec(folder / "scene.xml"))
+    noise = {ba.noise_path(s, 8, 2, tmp_path, "llvm_ad_rgb") for s in specs}
+    times = {cache_file(tmp_path, s, 32, 8, 1, "llvm_ad_rgb") for s in specs}
+    assert len(noise) == 2 and len(times) == 2
+
+
+def test_a_scene_without_a_res_parameter_is_measured_at_its_films_size() -> None:
+    """--res was passed as -D res to any scene, and Mitsuba refused it where the scene has no such parameter."""
+    assert measured_spec(COMPAT / "film_pfm.xml", 320).defines == {}
+    assert measured_spec(REPO / "scenes" / "cbox.xml", 320).defines == {"res": "320"}
+
+
+@pytest.mark.parametrize(("option", "value", "says"), [
+    ("--seeds", "0", "--seeds 0: at least 1"), ("--cell", "0", "--cell 0: at least 1"),
+    ("--renders", "1", "--renders 1: at least 2"), ("--ref-spp", "0", "--ref-spp 0: at least 1"),
+])
+def test_counts_it_cannot_run_with_are_refused_before_anything_renders(tmp_path, option, value, says) -> None:
+    """They ended in a traceback (min() of nothing, range() step 0) or ran with a reference of 0 spp."""
+    parser = argparse.ArgumentParser()
+    ba.add_arguments(parser)
+    args = parser.parse_args([option, value, "--cache-dir", str(tmp_path / "cache"), "--out", str(tmp_path)])
+    with pytest.raises(QuekaroError, match=says):
+        ba.run(args)
+    assert not (tmp_path / "cache").exists()
+
+
+@pytest.mark.slow  # a small real run of a scene whose integrator wraps another (aov around path)
+def test_a_scene_whose_integrator_wraps_another_is_measured(tmp_path) -> None:
+    """Its pre-pass estimates with the wrapped integrator, as a job's does: it crashed on aov's missing
+    `aovs` property."""
+    parser = argparse.ArgumentParser()
+    ba.add_arguments(parser)
+    args = parser.parse_args(["--scene", str(COMPAT / "aov.xml"), "--spp", "8", "--renders", "2", "--ref-spp", "32",
+                              "--seeds", "1", "--threads", "1", "--measure-spp", "16", "--cache-dir", str(tmp_path),
+                              "--out", str(tmp_path)])
+    args.json = True
+    result = ba.run(args)
+    assert result["size"] == [48, 40] and all(np.isfinite(r["ratio"]) for r in result["rows"])
