@@ -34,7 +34,7 @@ import numpy as np
 
 from bench.accuracy import DEFAULT_OUT, REPO
 from bench.args import check_minimums
-from bench.report import publish_markdown
+from bench.report import command_of, publish_markdown
 from bench.scaling import default_cache_dir, measured_spec
 from bench.suite import BY_NAME, SUITE, scene_from_argument
 from core.errors import QuekaroError
@@ -145,7 +145,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
               "median_oracle_equal_spp": float(np.median([s["oracle_equal_spp"] for s in scenes.values()]))}
     report = format_report(result)
     result["report"] = str(publish_markdown(args.out, "adaptive", "The two-pass adaptive render against uniform spp",
-                                            "quekaro bench adaptive", report, show=not args.json))
+                                            command_of(args, "quekaro bench adaptive"), report, show=not args.json))
     return result
 
 

@@ -28,7 +28,7 @@ import numpy as np
 from bench.accuracy import DEFAULT_OUT, HETEROGENEOUS, SCENES
 from bench.args import check_minimums
 from bench.provenance import rules_for
-from bench.report import publish_markdown
+from bench.report import command_of, publish_markdown
 from bench.scaling import measure_cached, measured_spec
 from core.model.geometry import Rect
 from core.model.hashing import sha256_file
@@ -191,7 +191,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
               "rows": rows, "neyman_ratio_S": float(np.mean(bounds)), "pixel_bound": pixel_bound(weight, tmap)}
     report = format_report(result)
     result["report"] = str(publish_markdown(args.out, "allocation", "Each level's allocation against uniform spp",
-                                            "quekaro bench allocation", report, show=not args.json))
+                                            command_of(args, "quekaro bench allocation"), report,
+                                            show=not args.json))
     return result
 
 

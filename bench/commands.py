@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -47,6 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _runner(module: ModuleType) -> Callable[[argparse.Namespace, list[str]], int]:
     def run(args: argparse.Namespace, argv: list[str]) -> int:
         started = time.perf_counter()
+        args.command_line = shlex.join(["quekaro", "bench", *provenance.reproducible(argv)])  # report titles
         result = module.run(args)
         if result.get("report"):
             rules = module.rules_file(args) if hasattr(module, "rules_file") else None

@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from bench.provenance import rules_for
-from bench.report import DEFAULT_OUT, write_report
+from bench.report import DEFAULT_OUT, command_of, write_report
 from core.render.bundle import make_bundle
 from farm.local import LocalFarm
 
@@ -119,7 +119,7 @@ def run(args: argparse.Namespace) -> dict:
     result = _result(args, first, second)
     text = format_report(result)
     result["report"] = str(write_report(args.out, "farm", "Farm overhead and 2-agent speedup", text,
-                                        "quekaro bench farm"))
+                                        command_of(args, "quekaro bench farm")))
     if not args.json:
         print(text)
     return result

@@ -17,7 +17,7 @@ from pathlib import Path
 import fuzzylite as fl
 import numpy as np
 
-from bench.report import DEFAULT_OUT, write_report
+from bench.report import DEFAULT_OUT, command_of, write_report
 from core.data import default_rules_path
 from fuzzy.defuzzify import centroid, numeric_centroid, plan_centroid
 from fuzzy.engine import Engine
@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> dict:
     result.update(_pyfuzzylite(rb, engine, x, ranges, ours))
     text = format_table(result)
     result["report"] = str(write_report(args.out, "fuzzy", "Fuzzy engine against pyfuzzylite", text,
-                                        "quekaro bench fuzzy"))
+                                        command_of(args, "quekaro bench fuzzy")))
     if not getattr(args, "json", False):
         print(text)
     return result

@@ -52,7 +52,7 @@ from typing import Any
 from agents.emulate import CostMap
 from agents.state import HEARTBEAT_S
 from bench.accuracy import proc_stat
-from bench.report import DEFAULT_OUT, write_report
+from bench.report import DEFAULT_OUT, command_of, write_report
 from bench.scaling import default_cache_dir, measure_cached
 from bench.simulate import UNBATCHED_AUCTION, simulate
 from core.errors import QuekaroError
@@ -532,7 +532,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
               "t1_s": job.t1, "costs": str(args.costs), "measured": costs.info, "mixed_speeds": list(MIXED_SPEEDS),
               "load": os.getloadavg(), "cpus": os.cpu_count(), "rows": rows}
     text = format_report(result)
-    result["report"] = str(write_outputs(result, text, args.out))
+    result["report"] = str(write_outputs(result, text, args.out, command_of(args, "quekaro bench hosts")))
     if not args.json:
         print(text)
     return result
@@ -599,10 +599,9 @@ def targets(rows: list[dict[str, Any]]) -> list[str]:
     return out
 
 
-def write_outputs(result: dict[str, Any], text: str, out: Path) -> Path:
+def write_outputs(result: dict[str, Any], text: str, out: Path, command: str = "quekaro bench hosts") -> Path:
     """OUT (.md, bench.report's convention) and the figures beside it as .json; returns OUT."""
     out = Path(out)
-    report = write_report(out.parent, out.stem, "The real protocol at 8-64 emulated agents", text,
-                          "quekaro bench hosts")
+    report = write_report(out.parent, out.stem, "The real protocol at 8-64 emulated agents", text, command)
     out.with_suffix(".json").write_text(json.dumps(result, indent=1, default=str))
     return report

@@ -21,7 +21,7 @@ from typing import Any
 
 from bench.accuracy import inprocess_runner, parse_levels
 from bench.provenance import rules_for
-from bench.report import DEFAULT_OUT, publish_markdown
+from bench.report import DEFAULT_OUT, command_of, publish_markdown
 from core.errors import QuekaroError
 from core.model.job import SceneSpec
 from core.render.imageio import read_image
@@ -67,7 +67,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     result = {"scene": str(args.scene), "defines": spec.defines, "spp": args.spp, "threads": args.threads,
               "variant": variant, "adaptive": args.adaptive, "repeats": args.repeats, "levels": rows}
     result["report"] = str(publish_markdown(args.out, "overhead", "Pipeline overhead against plain Mitsuba",
-                                            _command(args), format_report(result), show=not args.json))
+                                            command_of(args, _command(args)), format_report(result),
+                                            show=not args.json))
     return result
 
 

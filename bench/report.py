@@ -3,9 +3,16 @@ default), the text a benchmark printed kept verbatim, so README.md can include i
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 DEFAULT_OUT = Path(__file__).resolve().parent.parent / "docs" / "benchmarks"
+
+
+def command_of(args: argparse.Namespace, default: str) -> str:
+    """The command a report's title names: the one run (`bench.commands` keeps it as `args.command_line`,
+    less --out), else `default` (a benchmark's run called from Python)."""
+    return getattr(args, "command_line", None) or default
 
 
 def write_report(out: Path, name: str, title: str, body: str, command: str, fenced: bool = True) -> Path:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -35,7 +36,8 @@ def test_bench_adaptive_measures_each_scene_at_equal_time(tmp_path):
         assert 0 < scene["oracle_equal_spp"] <= 1 + 1e-9
     assert (tmp_path / "cache" / "noise").is_dir()  # the oracle's noise maps are cached beside the references
     text = (tmp_path / "out" / "adaptive.md").read_text()
-    assert text.startswith("# The two-pass adaptive render against uniform spp (`quekaro bench adaptive`)")
+    ran = cmd[4:cmd.index("--out")] + cmd[cmd.index("--out") + 2:]  # the title names the command run, less --out
+    assert text.startswith(f"# The two-pass adaptive render against uniform spp (`quekaro bench {shlex.join(ran)}`)")
     assert "| outdoor | report |" in text and "Median relMSE / uniform at equal render time" in text
     assert "Median of the oracle at the same spp" in text
 

@@ -142,6 +142,7 @@ def test_a_benchmark_keeps_its_provenance_and_rerun_writes_the_report_again(tmp_
     assert made.command == TINY_FUZZY and not made.out_is_file and made.seconds > 0
     assert made.rules_digest == load_rulebase(default_rules_path()).digest() and not provenance.stale(made)
     figures = report.read_text()
+    assert figures.startswith(f"# Fuzzy engine against pyfuzzylite (`quekaro bench {' '.join(TINY_FUZZY)}`)")
     report.write_text("# Fuzzy engine\n\nfigures typed by hand\n")
     readme = tmp_path / "README.md"
     _include(readme, ["fuzzy.md"])
