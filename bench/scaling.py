@@ -109,9 +109,9 @@ class TimeMap:
         return self.fixed_s + spp * float(self.per_sample[window.slices()].sum())
 
 
-def scene_integrator(spec: Any) -> tuple[str, int]:
-    """The scene's integrator type and max_depth as its XML states them (path, 8 if unstated)."""
-    node = scene_mod.expand(spec).root.find("integrator")
+def scene_integrator(node: Any) -> tuple[str, int]:
+    """The type and max_depth of the scene's top-level `<integrator>` element as its XML states them (path,
+    8 if unstated)."""
     kind = node.get("type", "path") if node is not None else "path"
     depth = 8
     for child in node if node is not None else ():
@@ -125,11 +125,11 @@ def measure(spec: SceneSpec, cell: int, spp: int, threads: int) -> tuple[TimeMap
     info = film_info(spec)
     width, height = info.width, info.height
     variant = job_variant(spec)  # a job of this scene renders in it (spectral data: the spectral variant)
-    kind, depth = scene_integrator(spec)
+    elem = integrators.scene_element(expand(spec).root)
+    kind, depth = scene_integrator(elem)
     loaded = scene_mod.load(spec, variant, threads)
     # A wrapper (aov, moment) is no radiance integrator of its own: the pre-pass estimates with the one it
     # wraps, as a job's does (core.model.integrators.radiance_xml), and the cells render the scene's own.
-    elem = integrators.scene_element(scene_mod.expand(spec).root)
     wraps = elem is not None and integrators.kind(kind).nests
     estimate = integrators.radiance_xml(elem, depth) if wraps else kind
     cmap = prepass(loaded, width, height, integrator=estimate, max_depth=depth, threads=threads)
