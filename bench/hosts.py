@@ -61,7 +61,7 @@ from core.model.hashing import sha256_file
 from core.render.bundle import make_bundle
 from core.render.tiles import tile_source
 from core.supervision import die_with_parent
-from core.transport.xmpp_server import EmbeddedXmppServer, ProsodyServer, free_port
+from core.transport.xmpp_server import EmbeddedXmppServer, ProsodyServer
 from farm.client import FarmClient
 from farm.local import stop_processes
 
@@ -236,7 +236,7 @@ class EmulatedFarm:
 
     def _master_command(self) -> list[str]:
         return [sys.executable, "-m", "quekaro", "master", "--home", str(self.home), "--jid", MASTER_JID,
-                "--http-port", str(free_port()), "--threads", "1", "--slots", str(UNBATCHED_AUCTION.slots),
+                "--http-port", "0", "--threads", "1", "--slots", str(UNBATCHED_AUCTION.slots),
                 *self._xmpp_options()]
 
     def _agent_command(self, i: int, speed: float) -> list[str]:

@@ -12,6 +12,7 @@ context) terminates the children in reverse order and waits for them. One farm a
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import functools
 import json
@@ -22,6 +23,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.parse
 import urllib.request
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -31,7 +33,7 @@ from core.errors import QuekaroError
 from core.home import AGENTS_ALLOW, FARM_FILE, PROCESSES_FILE, default_home
 from core.render.bundle import check_rules
 from core.supervision import RestartPolicy, die_with_parent
-from core.transport.xmpp_server import EmbeddedXmppServer, free_port
+from core.transport.xmpp_server import EmbeddedXmppServer
 from farm.client import FarmClient
 
 DOMAIN = "localhost"
@@ -80,8 +82,8 @@ class LocalFarm:
             raise QuekaroError(f"--rules: {len(self.rules)} rule files for {agents} agents; agent i takes file "
                                f"i, so {', '.join(r.name for r in self.rules[agents:])} would never be used "
                                f"(give --agents {len(self.rules)} or more)")
-        self.http_port = http_port or free_port()
-        self.url = f"http://127.0.0.1:{self.http_port}"
+        self.http_port = http_port  # 0: the master binds a free one and names it in farm.json (self.url)
+        self.url = f"http://127.0.0.1:{http_port}" if http_port else ""
         self.server: EmbeddedXmppServer | None = None
         self.children: list[Child] = []
         self._server_policy = RestartPolicy()
@@ -129,8 +131,8 @@ class LocalFarm:
         (self.home / AGENTS_ALLOW).write_text("")
         self.server.allow(["master"])  # registration closed to every account this farm does not make
         self.server.start()
-        master_command = self._master_command()
-        self._add(Child("master", lambda: master_command, {}))
+        self._secret_file("master.pw")
+        self._add(Child("master", self._master_command, {}))
         self._wait_for_master()
         for i in range(self.n_agents):
             # The password travels in the environment: not in `ps`, and never parsed as an option.
@@ -165,8 +167,9 @@ class LocalFarm:
         return path
 
     def _master_command(self) -> list[str]:
+        # Called again at each restart: the port is then the one the first start bound (uploads name it).
         return [sys.executable, "-m", "quekaro", "master", "--home", str(self.home), "--jid", MASTER_JID,
-                "--password-file", str(self._secret_file("master.pw")), "--server", "127.0.0.1",
+                "--password-file", str(self.home / "secrets" / "master.pw"), "--server", "127.0.0.1",
                 "--port", str(self.server.port), "--register", "--http-port", str(self.http_port),
                 "--threads", str(self.threads), "--agents-allow", str(self.home / AGENTS_ALLOW)]
 
@@ -273,6 +276,7 @@ class LocalFarm:
                 raise QuekaroError(f"the master exited with status {master.returncode} as it started: {last[0]} "
                                    f"(see {log})")
             if (self.home / FARM_FILE).exists():
+                self._read_url()
                 try:
                     urllib.request.urlopen(self.url + "/api/agents", timeout=2)
                 except urllib.error.HTTPError:
@@ -282,6 +286,12 @@ class LocalFarm:
             time.sleep(0.2)
         raise QuekaroError(f"the master did not come up within {START_TIMEOUT_S:.0f} s "
                            f"(see {self.home / 'logs' / 'master.log'})")
+
+    def _read_url(self) -> None:
+        """The master's URL from its farm.json, and its port for the master's restarts."""
+        with contextlib.suppress(OSError, ValueError, KeyError):
+            self.url = json.loads((self.home / FARM_FILE).read_text())["url"]
+            self.http_port = urllib.parse.urlsplit(self.url).port or self.http_port
 
     def check_alive(self) -> None:
         """Raise if a child is down for good (failed under supervision, or dead without it)."""

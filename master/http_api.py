@@ -38,6 +38,7 @@ import inspect
 import logging
 import os
 import re
+import socket
 import ssl
 import tempfile
 from collections.abc import Awaitable, Callable
@@ -113,10 +114,11 @@ async def healthz(request: web.Request) -> web.Response:
 
 
 async def serve(app: web.Application, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT,
-                ssl_context: ssl.SSLContext | None = None) -> tuple[web.AppRunner, int]:
-    """Start `app` on host:port (0 picks a free port; HTTPS with `ssl_context`) behind master.http_guard's
-    time limits; return the runner (cleanup() stops) and the port."""
-    return await guarded_serve(app, host, port, ssl_context=ssl_context)
+                ssl_context: ssl.SSLContext | None = None, sock: socket.socket | None = None
+                ) -> tuple[web.AppRunner, int]:
+    """Start `app` on host:port (0 picks a free port), or on a bound `sock`, HTTPS with `ssl_context`,
+    behind master.http_guard's time limits; return the runner (cleanup() stops) and the port."""
+    return await guarded_serve(app, host, port, ssl_context=ssl_context, sock=sock)
 
 
 @web.middleware

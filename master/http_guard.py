@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import errno
 import re
+import socket
 import ssl
 import time
 from collections.abc import AsyncIterator, Callable
@@ -80,11 +81,26 @@ class GuardedProtocol(asyncio.Protocol):
         self.inner.resume_writing()
 
 
+def bind_free_port(host: str) -> socket.socket:
+    """A socket bound now to a free port of `host` (its first address), for `serve(sock=...)`: its port is
+    known before the app is served, and nothing can take it in between."""
+    family, kind, proto, _, address = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)[0]
+    sock = socket.socket(family, kind, proto)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+    except OSError:
+        sock.close()
+        raise
+    return sock
+
+
 async def serve(app: web.Application, host: str, port: int, header_timeout: float | None = None,
-                ssl_context: ssl.SSLContext | None = None) -> tuple[web.AppRunner, int]:
-    """Serve `app` on host:port (0: a free port) behind the header guard, one request a connection, over
-    TLS with `ssl_context` (its handshake within the header time limit); returns the runner (its
-    cleanup() stops everything) and the port."""
+                ssl_context: ssl.SSLContext | None = None, sock: socket.socket | None = None
+                ) -> tuple[web.AppRunner, int]:
+    """Serve `app` on host:port (0: a free port), or on the bound `sock` when given, behind the header
+    guard, one request a connection, over TLS with `ssl_context` (its handshake within the header time
+    limit); returns the runner (its cleanup() stops everything) and the port."""
     header_timeout = HEADER_TIMEOUT_S if header_timeout is None else header_timeout
     listening: list[asyncio.AbstractServer] = []
 
@@ -100,9 +116,9 @@ async def serve(app: web.Application, host: str, port: int, header_timeout: floa
     await runner.setup()
     loop = asyncio.get_running_loop()
     handler: Callable[[], Any] = runner.server  # aiohttp's protocol factory
-    server = await loop.create_server(lambda: GuardedProtocol(handler(), loop, header_timeout), host, port,
-                                      reuse_address=True, ssl=ssl_context,
-                                      ssl_handshake_timeout=header_timeout if ssl_context else None)
+    where = {"sock": sock} if sock is not None else {"host": host, "port": port, "reuse_address": True}
+    server = await loop.create_server(lambda: GuardedProtocol(handler(), loop, header_timeout), **where,
+                                      ssl=ssl_context, ssl_handshake_timeout=header_timeout if ssl_context else None)
     listening.append(server)
     return runner, server.sockets[0].getsockname()[1]
 

@@ -16,6 +16,7 @@ import os
 import re
 import secrets
 import shutil
+import socket
 import sqlite3
 import time
 import uuid
@@ -53,6 +54,7 @@ from fuzzy.render_params import SPP_MAX
 from master import auction as au
 from master.api_jobs import add_job_routes
 from master.http_api import create_app, serve
+from master.http_guard import bind_free_port
 from master.sessions import SharedAccounts
 from master.store import JobRecord, JobStore
 from master.web import add_web_routes
@@ -138,6 +140,7 @@ class MasterService:
         self.agent = None
         self.data_plane = ""  # how bundles and tiles travel, set by start()
         self._runner = None
+        self._http_socket: socket.socket | None = None  # --http-port 0: bound at start (_bind_free_http_port)
         self._ticker: asyncio.Task | None = None
         # Jobs are planned in a child process, one at a time: the pre-pass renders, and a scene that
         # crashes Mitsuba must fail its own job, not the master nor the jobs after it (RenderWorker.call
@@ -163,6 +166,7 @@ class MasterService:
         if self.data_plane.startswith("http (insecure"):
             log.warning("data plane: %s", self.data_plane)
         self.jobs_dir.mkdir(parents=True, exist_ok=True)
+        self._bind_free_http_port()
         now = time.time()
         self._repair_store(now)
         upload = f"{self.config.url}/jobs/{{job}}/units/{{index}}/tile"
@@ -201,13 +205,25 @@ class MasterService:
         await asyncio.to_thread(self._planner.stop)
         self.store.close()
 
+    def _bind_free_http_port(self) -> None:
+        """--http-port 0: bind a free port now, so that the URL agents and farm.json are given names it
+        (a port chosen by a parent and bound here later may be taken in between)."""
+        if self.config.http_port:
+            return
+        try:
+            self._http_socket = bind_free_port(self.config.http_host)
+        except OSError as exc:
+            raise QuekaroError(f"--http-host {self.config.http_host}: cannot bind a free port ({exc})") from None
+        self.config = dataclasses.replace(self.config, http_port=self._http_socket.getsockname()[1])
+
     async def _start_http(self) -> None:
         app = create_app(expected=self._expected_upload, bundle=self._bundle_for, on_tile=self._on_tile,
                          tile_dir=self.jobs_dir, authorize_bundle=self._bundle_allowed)
         add_job_routes(app, self)
         add_web_routes(app, self)  # the web page: same application, same bind address
         tls = server_context(self.config.tls_cert, self.config.tls_key) if self.config.tls_cert else None
-        self._runner, _ = await serve(app, self.config.http_host, self.config.http_port, ssl_context=tls)
+        self._runner, _ = await serve(app, self.config.http_host, self.config.http_port, ssl_context=tls,
+                                      sock=self._http_socket)
 
     async def _start_xmpp(self) -> None:
         self.agent = FarmAgent(

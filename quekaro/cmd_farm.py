@@ -70,7 +70,8 @@ def _register_master(sub: argparse._SubParsersAction) -> None:
     parser.add_argument("--register", action="store_true", help="create the account in-band (embedded server)")
     parser.add_argument("--ca-file", help="CA certificate to verify the XMPP server's TLS certificate")
     parser.add_argument("--http-host", default="127.0.0.1", help="address the HTTP API binds to")
-    parser.add_argument("--http-port", type=int, default=8765)
+    parser.add_argument("--http-port", type=int, default=8765,
+                        help="HTTP API port (0: a free one, named in HOME/farm.json)")
     parser.add_argument("--public-url", help="URL agents use to reach the HTTP API (default http(s)://HOST:PORT)")
     parser.add_argument("--tls-cert", type=Path, help="HTTPS certificate of the data plane (quekaro ca issue)")
     parser.add_argument("--tls-key", type=Path, help="its private key")

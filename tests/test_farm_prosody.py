@@ -17,7 +17,7 @@ from prosody_support import needs_prosody
 
 from core.render.bundle import make_bundle
 from core.render.imageio import read_image
-from core.transport.xmpp_server import ProsodyServer, free_port
+from core.transport.xmpp_server import ProsodyServer
 from farm.local import stop_processes
 
 REPO = Path(__file__).resolve().parent.parent
@@ -40,7 +40,6 @@ def test_master_and_two_agents_render_through_prosody(tmp_path):
     ca = server.cert_dir / "localhost_cert.pem"
     home, logs = tmp_path / "master", tmp_path / "logs"
     logs.mkdir()
-    http_port = free_port()
     procs: list[subprocess.Popen] = []
     with server:
         try:
@@ -48,7 +47,7 @@ def test_master_and_two_agents_render_through_prosody(tmp_path):
             procs.append(_spawn([sys.executable, "-m", "quekaro", "master", "--home", str(home), "--jid",
                                  "master@localhost", "--password-file", str(tmp_path / "master.pw"),
                                  "--server", "127.0.0.1", "--port", str(server.port), "--ca-file", str(ca),
-                                 "--http-port", str(http_port), "--threads", "1"], logs / "master.log"))
+                                 "--http-port", "0", "--threads", "1"], logs / "master.log"))
             for name in ("agent-1", "agent-2"):
                 procs.append(_spawn([sys.executable, "-m", "quekaro", "agent", "--server", "127.0.0.1",
                                      "--port", str(server.port), "--jid", f"{name}@localhost",

@@ -91,6 +91,7 @@ def test_a_master_restarted_three_times_on_the_same_server_hears_its_agents(tmp_
         speed = farm.client().agents()[0]["speed"]
         assert speed != 1.0  # measured (a speed of exactly 1.0 would make the check below say nothing)
         master = farm.children[0]
+        url = farm.url  # the port the first master bound: a restart binds it again (uploads name it)
         for _ in range(3):
             master.proc.terminate()
             master.proc.wait(timeout=30)
@@ -98,6 +99,7 @@ def test_a_master_restarted_three_times_on_the_same_server_hears_its_agents(tmp_
             farm._spawn(master)
             farm._wait_for_master()
             client = farm.client()
+            assert client.url == farm.url == url
             deadline = time.monotonic() + 20
             while [a["speed"] for a in client.agents() if not a["lost"]] != [speed]:
                 assert time.monotonic() < deadline, f"the restarted master hears no agent, or not its speed: " \

@@ -8,6 +8,7 @@ import contextlib
 import json
 import os
 import queue
+import socket
 import subprocess
 import sys
 import threading
@@ -124,6 +125,22 @@ def test_embedded_server_binds_loopback_only_and_keeps_a_file_database(embedded:
     assert f"127.0.0.1:{embedded.port}" in addrs
     assert not any(a.endswith(":9090") for a in addrs)  # pyjabber's admin page is not started
     assert embedded.database.is_file()
+
+
+def test_the_embedded_server_binds_ports_the_os_chose_and_reports_both(embedded: EmbeddedXmppServer) -> None:
+    addrs = listening_sockets(embedded.pid)
+    assert embedded.port and embedded.s2s_port and embedded.port != embedded.s2s_port
+    assert {f"127.0.0.1:{embedded.port}", f"127.0.0.1:{embedded.s2s_port}"} <= set(addrs), addrs
+
+
+def test_a_server_that_cannot_bind_its_second_port_fails_to_start_naming_it(tmp_path) -> None:
+    """Its client port accepted before pyjabber found the server-to-server port taken and exited: start()
+    returned, and the farm's master tried a dead server for 30 s."""
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        server = EmbeddedXmppServer(tmp_path / "xmpp", s2s_port=taken.getsockname()[1])
+        with pytest.raises(XmppServerError, match="address already in use"):
+            server.start(timeout=60)
+        assert not server.running
 
 
 def test_two_processes_exchange_messages_through_the_embedded_server(embedded, peers) -> None:

@@ -20,6 +20,7 @@ import argparse
 import asyncio
 import contextlib
 import ipaddress
+import json
 import logging
 import os
 import pwd
@@ -36,6 +37,7 @@ from pathlib import Path
 from typing import IO
 
 from core.errors import QuekaroError
+from core.files import written_atomically
 from core.supervision import die_with_parent
 from core.transport.pyjabber_tmp import remove_upload_dir_at_exit
 
@@ -110,6 +112,16 @@ def _wait_until_accepting(proc: subprocess.Popen, host: str, port: int, timeout:
                           f"see {log_path}:\n" + _tail(log_path))
 
 
+def _first_error(path: Path) -> str:
+    """pyjabber's first ERROR line in its log (a port it could not bind), else the log's last line."""
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return "(no log)"
+    errors = [line.split(" - ", 1)[-1] for line in lines if "| ERROR" in line]
+    return (errors or lines[-1:] or ["(empty log)"])[0].strip()
+
+
 def _tail(path: Path, lines: int = 15) -> str:
     try:
         return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
@@ -160,20 +172,24 @@ class _ChildServer:
     def _prepare(self) -> None:
         """Create what the first start needs (directories, certificate, accounts)."""
 
+    def _await_ready(self, timeout: float) -> None:
+        """Return once the child serves clients; raise XmppServerError (with its log) if it exits first."""
+        _wait_until_accepting(self._proc, self.host, self.port, timeout, self.log_path)
+
     def start(self, timeout: float = 30.0) -> None:
         """Start the server and return once it accepts TCP connections on 127.0.0.1:port."""
         if self.running:
             return
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self._prepare()
-        if port_accepts(self.host, self.port, timeout=0.2):
+        if self.port and port_accepts(self.host, self.port, timeout=0.2):
             raise XmppServerError(f"port {self.host}:{self.port} is already in use")
         cmd, env = self._command()
         self._log_file = open(self.log_path, "ab")  # noqa: SIM115 (kept open for the child's life)
         self._proc = subprocess.Popen(cmd, stdout=self._log_file, stderr=subprocess.STDOUT, env=env,
                                       cwd=self.data_dir, start_new_session=True, preexec_fn=die_with_parent)
         try:
-            _wait_until_accepting(self._proc, self.host, self.port, timeout, self.log_path)
+            self._await_ready(timeout)
         except XmppServerError:
             self.stop()
             raise
@@ -208,6 +224,7 @@ class _ChildServer:
 
 
 ALLOWED_ACCOUNTS = "allowed-accounts"  # in the data dir: the only user names that may register
+READY_FILE = "ready.json"  # in the data dir: the ports the server bound, written once it serves
 
 
 class EmbeddedXmppServer(_ChildServer):
@@ -228,13 +245,19 @@ class EmbeddedXmppServer(_ChildServer):
             raise XmppServerError(f"embedded XMPP domain {domain!r} must resolve to 127.0.0.1 (pyjabber "
                                   "binds the domain's address): use localhost, or Prosody for several hosts")
         super().__init__(data_dir, domain, port)
-        self.s2s_port = s2s_port or free_port()
+        # Unless given, both ports are chosen by the server's own bind (0) and read back once it is ready:
+        # a port picked here and bound later may be taken in between (a farm failed to start so).
+        self.port, self.s2s_port = port or 0, s2s_port or 0
         self.message_persistence = message_persistence
         self.log_level = log_level
 
     @property
     def database(self) -> Path:
         return self.data_dir / "pyjabber.db"
+
+    @property
+    def ready_file(self) -> Path:
+        return self.data_dir / READY_FILE
 
     def allow(self, usernames: Iterable[str]) -> None:
         """Let these user names register (and close registration to every other)."""
@@ -251,7 +274,24 @@ class EmbeddedXmppServer(_ChildServer):
             # Our own certificate, so that pyjabber never signs one with the CA key it ships.
             make_self_signed_cert(certs, self.domain)
 
+    def _await_ready(self, timeout: float) -> None:
+        """Wait for the ports the child writes once both its listeners are bound (the client port alone
+        accepting does not say the server-to-server one was bound: pyjabber exits when it is not)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self._proc.poll() is not None:
+                raise XmppServerError(f"XMPP server exited with code {self._proc.returncode}: "
+                                      f"{_first_error(self.log_path)} (see {self.log_path})")
+            with contextlib.suppress(FileNotFoundError):
+                ports = json.loads(self.ready_file.read_text())
+                self.port, self.s2s_port = int(ports["port"]), int(ports["s2s_port"])
+                return
+            time.sleep(0.05)
+        raise XmppServerError(f"XMPP server did not bind its ports within {timeout:.0f} s; see {self.log_path}:\n"
+                              + _tail(self.log_path))
+
     def _command(self) -> tuple[list[str], dict[str, str]]:
+        self.ready_file.unlink(missing_ok=True)
         cmd = [sys.executable, "-m", "core.transport.xmpp_server", "embedded", "--domain", self.domain,
                "--port", str(self.port), "--s2s-port", str(self.s2s_port), "--data-dir", str(self.data_dir),
                "--log-level", self.log_level]
@@ -360,8 +400,21 @@ def _run_embedded(args: argparse.Namespace) -> int:
     # farm moves files over its own data plane). The feature itself must stay configured (pyjabber's
     # iq dispatch breaks without it), so only its web server is left unstarted.
     server._http_server = None
-    asyncio.run(server.start())
+    asyncio.run(_serve(server, data_dir / READY_FILE))
     return 0
+
+
+async def _serve(server: object, ready_file: Path) -> None:
+    """Run pyjabber; once both its listeners are bound, write their ports (the OS chose those given as 0)."""
+    running = asyncio.ensure_future(server.start())
+    ready = asyncio.ensure_future(server.ready.wait())
+    await asyncio.wait({running, ready}, return_when=asyncio.FIRST_COMPLETED)
+    if ready.done() and not running.done():
+        ports = {"port": server._client_listener.sockets[0].getsockname()[1],
+                 "s2s_port": server._server_listener.sockets[0].getsockname()[1]}
+        written_atomically(ready_file, lambda tmp: tmp.write_text(json.dumps(ports)), "the server's ports")
+    ready.cancel()
+    await running
 
 
 def _close_registration(allowed: Path) -> None:
@@ -413,8 +466,8 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="cmd", required=True)
     emb = sub.add_parser("embedded", help="run SPADE's pyjabber server on 127.0.0.1 in the foreground")
     emb.add_argument("--domain", default="localhost", help="JID domain, also the host pyjabber binds")
-    emb.add_argument("--port", type=int, default=5222, help="client port")
-    emb.add_argument("--s2s-port", type=int, default=5269, help="server-to-server port (loopback)")
+    emb.add_argument("--port", type=int, default=5222, help="client port (0: a free one)")
+    emb.add_argument("--s2s-port", type=int, default=5269, help="server-to-server port (loopback; 0: a free one)")
     emb.add_argument("--data-dir", required=True, help="directory of the database and certificate")
     emb.add_argument("--message-persistence", action="store_true", help="keep messages to offline JIDs")
     emb.add_argument("--log-level", default="WARNING")
