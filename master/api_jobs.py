@@ -124,6 +124,7 @@ def job_summary(service: MasterService, job_id: str) -> dict[str, Any]:
         "created": record.created, "finished": record.finished, "level": record.plan["options"]["level"],
         "units_done": progress.done, "units_total": progress.total, "units_failed": progress.failed,
         "agents_busy": progress.agents_busy, "eta_s": progress.eta_s,
+        "attempts_retried": progress.retried, "last_retry": progress.last_retry,
         "result_ready": service.result_path(job_id).with_suffix(".json").exists(),
         "effects": record.plan.get("effects", {}), "adaptive": shares,
         "adaptive_text": budgets.describe(shares) if shares else None,

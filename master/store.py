@@ -171,6 +171,8 @@ class Progress:
     failed: int
     agents_busy: int
     eta_s: float | None  # None until a unit has finished
+    retried: int = 0  # attempts that ended failed or requeued (their unit went back to auction)
+    last_retry: str | None = None  # the latest of those: "agent: outcome (reason)"
 
 
 class JobStore:
@@ -467,7 +469,20 @@ class JobStore:
             eta = max(0.0, left * per_work - self._rendered_so_far(job_id, per_work, now)) / max(1, busy)
         elif left == 0:
             eta = 0.0
-        return Progress(counts.get(UnitStatus.DONE, 0), total, counts.get(UnitStatus.FAILED, 0), busy, eta)
+        retried, last = self._retries(job_id)
+        return Progress(counts.get(UnitStatus.DONE, 0), total, counts.get(UnitStatus.FAILED, 0), busy, eta,
+                        retried, last)
+
+    def _retries(self, job_id: str) -> tuple[int, str | None]:
+        """How many attempts of the job ended without a tile (an agent that failed, died or lied), and
+        the latest: a user sees that a job went on after an agent was lost, and why."""
+        rows = self.db.execute(
+            "SELECT idx, agent, outcome, reason FROM attempts WHERE job_id = ? AND outcome IN ('failed', 'requeued')"
+            " ORDER BY id DESC", (job_id,)).fetchall()
+        if not rows:
+            return 0, None
+        index, agent, outcome, reason = rows[0]
+        return len(rows), f"unit {index} on {agent}: {outcome}" + (f" ({reason})" if reason else "")
 
     def _rendered_so_far(self, job_id: str, per_work: float, now: float | None) -> float:
         """Seconds the units of a job being rendered have rendered by `now`, each capped at its unit's work

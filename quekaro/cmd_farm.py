@@ -238,6 +238,9 @@ def run_status(args: argparse.Namespace) -> int:
               f"agents busy {job['agents_busy']}  ETA {eta}  {job['scene']}"
               + (f"  error: {job['error']}" if job.get("error") else "")
               + (f"  PAUSED: {job['paused']}" if job.get("paused") else ""))
+        if job.get("attempts_retried"):
+            print(f"  {job['attempts_retried']} attempt(s) ended without a tile, their units auctioned again; "
+                  f"latest: {job['last_retry']}")
         if args.job:
             print_effects(job.get("effects") or {})
             if job.get("adaptive"):
@@ -245,19 +248,25 @@ def run_status(args: argparse.Namespace) -> int:
     return 0
 
 
+def _processes(home: Path) -> list[dict]:
+    """A local farm's processes as its supervisor last wrote them (none for a farm of separate hosts)."""
+    try:
+        return list(json.loads((home / PROCESSES_FILE).read_text())["processes"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+
+
 def _not_running(home: Path) -> dict[str, str]:
     """A local farm's processes that are not running: name -> state (restarting, or failed)."""
-    try:
-        processes = json.loads((home / PROCESSES_FILE).read_text())["processes"]
-    except (OSError, ValueError, KeyError):
-        return {}
-    return {p["name"]: f"{p['state']} ({p.get('restarts', 0)} restarts)" for p in processes
+    return {p["name"]: f"{p['state']} ({p.get('restarts', 0)} restarts)" for p in _processes(home)
             if p.get("state") != "running"}
 
 
 def _print_processes(home: Path) -> None:
-    for name, state in _not_running(home).items():
-        print(f"process {name}: {state}")
+    """Processes down, and those restarted since the farm started (a job went on without them a while)."""
+    for p in _processes(home):
+        if p.get("state") != "running" or p.get("restarts"):
+            print(f"process {p['name']}: {p['state']} ({p.get('restarts', 0)} restarts)")
 
 
 def print_effects(effects: dict) -> None:

@@ -324,6 +324,7 @@ def test_a_render_killed_once_on_a_one_agent_farm_is_retried_and_its_job_complet
         os.kill(child, signal.SIGKILL)
         job = wait_job(farm, job_id)
         assert job["status"] == "done", job
+        assert job["attempts_retried"] >= 1 and "SIGKILL" in job["last_retry"], job  # as `quekaro status` says
 
 
 def test_a_result_the_master_cannot_compose_for_a_full_disk_is_a_507_and_composed_once_there_is_space(tmp_path):

@@ -65,6 +65,9 @@ def test_a_killed_agent_is_restarted_and_a_killed_farm_leaves_no_orphans(tmp_pat
         _wait_for(lambda: _states(home)["agent-0"]["restarts"] == 1 and _states(home)["agent-0"]["pid"] != victim
                   and _states(home)["agent-0"]["state"] == "running", 30, "the agent's restart", up)
         assert _states(home)["master"]["state"] == "running"
+        status = subprocess.run([sys.executable, "-m", "quekaro", "status", "--home", str(home)], cwd=REPO,
+                                capture_output=True, text=True, timeout=60)
+        assert "process agent-0: running (1 restarts)" in status.stdout, status
         defines = {"res": "48", "spp": "8"}
         job_id = client.submit(bundle_of(SCENE, defines), defines, {"level": "off", "units": 4})
         assert client.wait(job_id, 240, poll=0.3)["status"] == "done"
