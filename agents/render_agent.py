@@ -174,7 +174,7 @@ class RenderAgent:
                                 rules=self.planner.rules_path.name, heartbeat_s=config.heartbeat_s,
                                 max_render_s=config.max_render_s, session=_stamp(), check_url=self._url_refusal,
                                 batch=1 if self.emulation else None,  # an emulated render sleeps a unit at a time
-                                rules_sha256=sha256_file(self.planner.rules_path), defuzzifier=config.defuzzifier)
+                                rules_sha256=self.planner.rulebase.digest(), defuzzifier=config.defuzzifier)
         self._tls = client_context(Path(config.ca_file) if config.ca_file else None)
         self._planners: dict[tuple[str | None, str | None], Planner] = {(None, config.defuzzifier): self.planner}
         self._stop = asyncio.Event()

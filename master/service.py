@@ -50,6 +50,7 @@ from core.render.worker import RenderWorker
 from core.transport.rates import SenderRates
 from core.transport.tls import check_names, is_loopback, server_context
 from core.transport.xmpp import FarmAgent
+from fuzzy.loader import load_rulebase
 from fuzzy.render_params import SPP_MAX
 from master import auction as au
 from master.api_jobs import add_job_routes
@@ -147,7 +148,9 @@ class MasterService:
         # names the crash and starts a new child for the next job).
         self._planner = RenderWorker()
         self._planning = asyncio.Lock()
-        self._rules_sha256 = sha256_file(default_rules_path())  # what a job without rules is planned with
+        # What a job without rules is planned with, as agents tell theirs in Register: what the rules
+        # compute (a copy with other comments or layout plans alike), not the file's bytes.
+        self._rules_digest = load_rulebase(default_rules_path()).digest()
         self._lock = asyncio.Lock()
         self._assembling: dict[str, asyncio.Task] = {}
         self._agent_re = re.compile(config.agent_pattern.format(domain=re.escape(config.domain)))
@@ -341,7 +344,7 @@ class MasterService:
         rules that joins later); otherwise the agents' own rules may cut depth at any level."""
         if self.auction is None:
             return Floors.ALWAYS
-        mine = None if options.rules is not None else self._rules_sha256
+        mine = None if options.rules is not None else self._rules_digest
         return Floors.HELD if self.auction.plan_alike(mine, options.defuzzifier) else Floors.ALWAYS
 
     def _units_for_agents(self) -> int:

@@ -593,17 +593,29 @@ def test_a_scene_the_bundle_rewrites_reads_the_pre_pass_it_reads_in_one_process(
     assert farm_prepass == json.loads(local.with_suffix(".json").read_text())["prepass"], farm_prepass
 
 
-def test_a_farm_with_an_agent_on_other_rules_measures_depth_floors_at_every_rule_level(tmp_path):
-    """One agent plans with a rule file of its own (the default's text and a comment: another sha256), so
-    the master cannot see what its rules cut: a level-S job measures every unit's depth floor, which the
-    master's own rules alone would not (test_a_rule_level_job_renders_each_agents_units_in_batches...)."""
+VERTEX = '<fset label="VB" a="3" b="3.5" c="4" d="4"/>'  # the Ibs output's VB set in the shipped rules
+
+
+@pytest.mark.parametrize("edit, floors", [
+    (lambda text: text + "\n<!-- an agent's own copy -->\n", False),
+    (lambda text: text.replace(VERTEX, VERTEX.replace('b="3.5"', 'b="3.6"')), True),
+], ids=["a-comment-plans-alike", "a-moved-vertex-plans-otherwise"])
+def test_a_farm_measures_depth_floors_at_every_rule_level_only_for_an_agent_whose_rules_compute_otherwise(
+        tmp_path, edit, floors):
+    """One agent plans with a rule file of its own. Where it computes what the master's rules compute (a
+    comment: another file, the same RuleBase.digest), the master knows what its rules cut, and a level-S
+    job measures no depth floors; where it computes otherwise (a moved vertex), the master cannot see what
+    they cut, and it measures every unit's depth floor, which its own rules alone would not
+    (test_a_rule_level_job_renders_each_agents_units_in_batches...)."""
     from core.data import default_rules_path
 
+    text = default_rules_path().read_text()
     other = tmp_path / "other-rules.xml"
-    other.write_text(default_rules_path().read_text() + "\n<!-- an agent's own copy -->\n")
+    other.write_text(edit(text))
+    assert other.read_text() != text
     defines = {"res": "64", "spp": "8"}
     with LocalFarm(tmp_path / "farm", agents=2, threads=1, rules=[default_rules_path(), other]) as farm:
         out, _ = _level_s_job(farm, defines, tmp_path / "s.exr")
     report = json.loads(out.with_suffix(".json").read_text())
-    assert report["prepass"]["depth_floor_depths"], report["prepass"]
+    assert bool(report["prepass"].get("depth_floor_depths")) == floors, report["prepass"]
     assert all(u["depth"] >= u["depth_floor"] for u in report["units"])

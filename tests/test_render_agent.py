@@ -31,12 +31,12 @@ import pytest
 from core.data import default_rules_path
 from core.model import messages as m
 from core.model.geometry import Rect
-from core.model.hashing import sha256_file
 from core.model.units import SLOTS, WorkUnit
 from core.render.bundle import make_bundle
 from core.render.tiles import read_tile_bytes
 from core.transport.xmpp import Envelope, FarmAgent
 from core.transport.xmpp_server import EmbeddedXmppServer
+from fuzzy.loader import load_rulebase
 
 pytestmark = pytest.mark.slow
 
@@ -246,8 +246,9 @@ def sha_of(bundles: dict[str, tuple[str, bytes]], name: str) -> str:
 def test_registers_with_its_speed_and_beats(farm: Farm) -> None:
     reg = farm.run(farm.master.expect(m.Register, timeout=40.0), 45)
     assert 0.01 < reg.speed < 1e4 and reg.threads == 1 and reg.rules == "pathtracing.xml"
-    # What it plans a job without rules with: the master measures depth floors by it (MasterService._floors)
-    assert (reg.rules_sha256, reg.defuzzifier) == (sha256_file(default_rules_path()), None)
+    # What it plans a job without rules with: the master measures depth floors by it
+    # (MasterService._floors): what the rules compute, so a copy with other comments plans alike
+    assert (reg.rules_sha256, reg.defuzzifier) == (load_rulebase(default_rules_path()).digest(), None)
     beat = farm.run(farm.master.expect(m.Heartbeat, timeout=5.0))
     assert beat.busy == ()
 

@@ -234,7 +234,8 @@ class Register(Message):
     rules: str = constrained(max_len=256)
     # Units it holds at once (its --slots): the master awards it no more. None: not told (the master's own).
     slots: int | None = constrained(lo=1, hi=MAX_CFP_UNITS, default=None)
-    # What it plans with: its rule file's sha256 (for a job without rules of its own) and its --defuzzifier
+    # What it plans with: the digest of what its rules compute (fuzzy.rulebase.RuleBase.digest, a sha256;
+    # for a job without rules of its own) and its --defuzzifier
     # (for a job that names none; None: the file's dialect decides). The master measures depth floors
     # at every rule level unless every live agent plans as it does (Auction.plan_alike).
     rules_sha256: str | None = constrained(pattern=_HEX, default=None)
