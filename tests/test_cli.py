@@ -182,6 +182,9 @@ def test_a_farm_leaves_no_folder_of_pyjabber_in_the_temporary_folder(tmp_path: P
     assert done.returncode == 0, done.stderr
     assert (tmp_path / "demo.exr").is_file()
     assert not list(scratch.glob("pyjabber_xep0363_*"))
+    # The summary's seconds are the report's whole job, not its composition alone (they were labelled so)
+    totals = json.loads((tmp_path / "demo.json").read_text())["totals"]
+    assert f"{totals['units']} units, {totals['seconds']:.1f} s for the job (upload to image)" in done.stdout
 
 
 @pytest.mark.slow

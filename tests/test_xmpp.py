@@ -19,7 +19,7 @@ import pytest
 from prosody_support import needs_prosody
 
 from core.transport.xmpp import FarmAgent
-from core.transport.xmpp_server import EmbeddedXmppServer, ProsodyServer, XmppServerError, free_port
+from core.transport.xmpp_server import EmbeddedXmppServer, ProsodyServer, XmppServerError, free_port, port_accepts
 
 REPO = Path(__file__).resolve().parent.parent
 PEER = REPO / "tests" / "xmpp_peer.py"
@@ -317,6 +317,25 @@ def test_prosody_slows_a_client_that_floods_and_never_the_master(tmp_path, peers
         print(f"\nflood of 300 KB: the client's read over {friend_s:.1f} s, the master's over {master_s:.2f} s")
     finally:
         server.stop()
+
+
+@needs_prosody
+def test_prosody_whose_chosen_port_is_taken_before_it_binds_chooses_another(tmp_path) -> None:
+    """Prosody runs on, listening nowhere, when its port is taken: start() waited 30 s for a port that
+    never accepted, or, where the other process listens there, returned with clients talking to it."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))  # bound, not listening: only Prosody's own bind finds it taken
+        port = taken.getsockname()[1]
+        server = ProsodyServer(tmp_path / "chosen")
+        server.port = port  # as if another process bound the port it chose, before it started
+        server._prepare()
+        with server:
+            assert server.port != port and port_accepts("127.0.0.1", server.port)
+            assert port not in [int(a.rsplit(":", 1)[1]) for a in listening_sockets(server.pid)]
+        given = ProsodyServer(tmp_path / "given", port=port)  # a port the user gave is never changed
+        with pytest.raises(XmppServerError, match=f"127.0.0.1:{port} is taken by another process"):
+            given.start()
+        assert given.port == port and not given.running
 
 
 @needs_prosody

@@ -52,6 +52,10 @@ class XmppServerError(QuekaroError):
     """An XMPP server that could not be configured, started or stopped."""
 
 
+class PortTaken(XmppServerError):
+    """The server's port is held by another process (bound before the server could bind it)."""
+
+
 def free_port(host: str = "127.0.0.1") -> int:
     """A TCP port that nothing listens on at `host` right now (the OS picks it)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
@@ -183,7 +187,7 @@ class _ChildServer:
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self._prepare()
         if self.port and port_accepts(self.host, self.port, timeout=0.2):
-            raise XmppServerError(f"port {self.host}:{self.port} is already in use")
+            raise PortTaken(f"port {self.host}:{self.port} is already in use")
         cmd, env = self._command()
         self._log_file = open(self.log_path, "ab")  # noqa: SIM115 (kept open for the child's life)
         self._proc = subprocess.Popen(cmd, stdout=self._log_file, stderr=subprocess.STDOUT, env=env,
@@ -318,6 +322,8 @@ class ProsodyServer(_ChildServer):
         if not Path(config).is_file():
             raise XmppServerError(f"Prosody config not found: {config}")
         super().__init__(data_dir, domain, port)
+        self._choose_port = port is None  # until it first starts: a port taken meanwhile is chosen again
+        self._log_offset = 0
         self.config = Path(config)
         self.stanza_limit = stanza_limit
         self.c2s_rate, self.unlimited = c2s_rate, None if unlimited is None else ",".join(unlimited)
@@ -335,7 +341,7 @@ class ProsodyServer(_ChildServer):
             QUEKARO_XMPP_INTERFACE=self.host,
             QUEKARO_PROSODY_DATA=str(self.data_dir / "data"),
             QUEKARO_PROSODY_PIDFILE=str(self.data_dir / "prosody.pid"),
-            QUEKARO_PROSODY_LOG=str(self.data_dir / "prosody.log"),
+            QUEKARO_PROSODY_LOG=str(self.log_file),
             QUEKARO_XMPP_CERT=str(self.cert_dir / f"{self.domain}_cert.pem"),
             QUEKARO_XMPP_KEY=str(self.cert_dir / f"{self.domain}_key.pem"),
             QUEKARO_XMPP_STANZA_LIMIT=str(self.stanza_limit),
@@ -350,7 +356,52 @@ class ProsodyServer(_ChildServer):
         if not (self.cert_dir / f"{self.domain}_cert.pem").exists():
             make_self_signed_cert(self.cert_dir, self.domain)
 
+    @property
+    def log_file(self) -> Path:
+        return self.data_dir / "prosody.log"
+
+    def start(self, timeout: float = 30.0, attempts: int = 3) -> None:
+        """As `_ChildServer.start`; a port chosen here (none given) that another process takes before
+        Prosody binds it is chosen again, up to `attempts` times (Prosody itself runs on, on no port)."""
+        for attempt in range(attempts):
+            try:
+                super().start(timeout)
+                self._choose_port = False  # a restart must come back where its clients look for it
+                return
+            except PortTaken:
+                if not self._choose_port or attempt == attempts - 1:
+                    raise
+                log.warning("XMPP port %d was taken before Prosody bound it: choosing another", self.port)
+                self.port = free_port()
+
+    def _await_ready(self, timeout: float) -> None:
+        """Until Prosody's log says it listens on the port (another process's listener there accepts too)."""
+        deadline = time.monotonic() + timeout
+        listening = f"Activated service 'c2s' on [{self.host}]:{self.port}"
+        while time.monotonic() < deadline:
+            if self._proc.poll() is not None:
+                raise XmppServerError(f"Prosody exited with code {self._proc.returncode}; see {self.log_path}:\n"
+                                      + _tail(self.log_path))
+            started = self._log_since_start()
+            if f"Failed to open server port {self.port} " in started or "'c2s' on no ports" in started:
+                self.stop()
+                raise PortTaken(f"port {self.host}:{self.port} is taken by another process (see {self.log_file})")
+            if listening in started and port_accepts(self.host, self.port, timeout=0.2):
+                return
+            time.sleep(0.05)
+        raise XmppServerError(f"Prosody did not listen on {self.host}:{self.port} within {timeout:.0f} s; see "
+                              f"{self.log_file}:\n" + _tail(self.log_file))
+
+    def _log_since_start(self) -> str:
+        try:
+            with self.log_file.open("rb") as fh:
+                fh.seek(self._log_offset)
+                return fh.read().decode(errors="replace")
+        except OSError:
+            return ""
+
     def _command(self) -> tuple[list[str], dict[str, str]]:
+        self._log_offset = self.log_file.stat().st_size if self.log_file.exists() else 0
         return ["prosody", "--config", str(self.config), "-F"], self.env()
 
     def register(self, user: str, password: str | None = None) -> str:
