@@ -104,6 +104,9 @@ class MasterConfig:
         """How bundles and tiles travel: 'https', 'http (loopback)', or refused (QuekaroError) when plain
         HTTP would cross a network without `insecure_http`, which then reads 'http (insecure: ...)'."""
         public = urlsplit(self.url)
+        if self.public_url and not self.http_port:
+            raise QuekaroError(f"--public-url {self.public_url} with --http-port 0: the port is chosen at start, "
+                               "so the URL agents are given cannot name it; give the port the URL leads to")
         if bool(self.tls_cert) != bool(self.tls_key):
             raise QuekaroError("--tls-cert and --tls-key go together")
         if self.tls_cert:

@@ -114,6 +114,9 @@ def test_the_master_says_how_its_data_plane_travels(ca: Path, tmp_path: Path) ->
         MasterConfig(tmp_path, public_url="https://10.0.0.2:8765").data_plane()
     with pytest.raises(QuekaroError, match="go together"):
         MasterConfig(tmp_path, tls_cert=cert).data_plane()
+    with pytest.raises(QuekaroError, match="with --http-port 0: the port is chosen at start"):
+        MasterConfig(tmp_path, http_port=0, public_url="http://127.0.0.1:8765").data_plane()
+    assert MasterConfig(tmp_path, http_port=0).data_plane() == "http (loopback)"  # its URL names the bound port
     with pytest.raises(QuekaroError, match="use https"):
         MasterConfig(tmp_path, tls_cert=cert, tls_key=key, public_url="http://127.0.0.1:1").data_plane()
     with pytest.raises(QuekaroError, match=r"names master\.farm\.test, 127\.0\.0\.1, not master-host of --public-url"):
