@@ -37,8 +37,9 @@ class RestartPolicy:
     max_backoff_s: float = MAX_BACKOFF_S
     crash_loop: int = CRASH_LOOP
     window_s: float = CRASH_WINDOW_S
-    restarts: deque[float] = field(default_factory=deque)
+    restarts: deque[float] = field(default_factory=deque)  # those within the crash-loop window
     failed: bool = False
+    count: int = 0  # restarts since the farm started (what status reports)
 
     def on_exit(self, now: float) -> float | None:
         """The child exited at `now`: the time to restart it, or None when it has crash-looped (failed)."""
@@ -49,9 +50,5 @@ class RestartPolicy:
             return None
         delay = min(self.max_backoff_s, self.backoff_s * 2 ** len(self.restarts))
         self.restarts.append(now + delay)
+        self.count += 1
         return now + delay
-
-    @property
-    def count(self) -> int:
-        """Restarts within the current window."""
-        return len(self.restarts)

@@ -33,7 +33,7 @@ from core.errors import QuekaroError
 from core.home import AGENTS_ALLOW, FARM_FILE, PROCESSES_FILE, default_home
 from core.render.bundle import check_rules
 from core.supervision import RestartPolicy, die_with_parent
-from core.transport.xmpp_server import EmbeddedXmppServer
+from core.transport.xmpp_server import EmbeddedXmppServer, XmppServerError
 from farm.client import FarmClient
 
 DOMAIN = "localhost"
@@ -88,6 +88,7 @@ class LocalFarm:
         self.children: list[Child] = []
         self._server_policy = RestartPolicy()
         self._server_restart_at: float | None = None
+        self._server_error = ""  # why its latest restart failed (a port taken meanwhile)
         self._supervise = supervise
         self._lock = threading.Lock()
         self._stopping = threading.Event()
@@ -227,8 +228,9 @@ class LocalFarm:
             child.restart_at = child.policy.on_exit(now)
             if child.restart_at is None:
                 child.state = "failed"
+                goes_on = f"the farm {'cannot go' if child.name == 'master' else 'goes'} on without it"
                 _say(f"{child.name} exited with status {code}: {child.policy.crash_loop} restarts within "
-                     f"{child.policy.window_s:.0f} s, marked failed; the farm goes on without it")
+                     f"{child.policy.window_s:.0f} s, marked failed; {goes_on}")
             else:
                 child.state = "restarting"
                 _say(f"{child.name} exited with status {code}: restarting in {child.restart_at - now:.1f} s "
@@ -245,21 +247,31 @@ class LocalFarm:
         if self.server is None or self.server.running or self._server_policy.failed:
             return False
         if self._server_restart_at is None:
+            code = self.server.returncode
             self.server.stop()  # its workers too: they would hold the port
             self._server_restart_at = self._server_policy.on_exit(now)
             if self._server_restart_at is None:
-                _say("XMPP server crash-looped: marked failed")
+                _say(f"XMPP server exited with status {code}: crash-looped, marked failed; the farm cannot go on "
+                     f"without it (see {self.server.log_path})")
+            else:
+                _say(f"XMPP server exited with status {code}: restarting in {self._server_restart_at - now:.1f} s "
+                     f"(restart {self._server_policy.count})")
             return True
         if now < self._server_restart_at:
             return False
         self._server_restart_at = None
-        self.server.start()
+        try:
+            self.server.start()
+        except XmppServerError as exc:  # the supervisor says it; a later round counts it as an exit
+            self._server_error = str(exc)
+            raise
         _say(f"XMPP server restarted (pid {self.server.pid})")
         return True
 
     def _write_states(self) -> None:
+        down = self.server is None or not self.server.running
         server = {"name": "xmpp-server", "pid": self.server.pid if self.server else None,
-                  "state": "failed" if self._server_policy.failed else "running",
+                  "state": "failed" if self._server_policy.failed else "restarting" if down else "running",
                   "restarts": self._server_policy.count}
         states = {"processes": [server, *(c.to_dict() for c in self.children)]}
         tmp = self.home / ".processes.json.part"
@@ -272,9 +284,8 @@ class LocalFarm:
         while time.monotonic() < deadline:
             if master.poll() is not None:  # not restarted: what failed it (a port in use) fails it again
                 log = self.home / "logs" / "master.log"
-                last = log.read_text(errors="replace").strip().splitlines()[-1:] or ["(nothing)"]
-                raise QuekaroError(f"the master exited with status {master.returncode} as it started: {last[0]} "
-                                   f"(see {log})")
+                raise QuekaroError(f"the master exited with status {master.returncode} as it started: "
+                                   f"{_last_line(log)} (see {log})")
             if (self.home / FARM_FILE).exists():
                 self._read_url()
                 try:
@@ -294,12 +305,17 @@ class LocalFarm:
             self.http_port = urllib.parse.urlsplit(self.url).port or self.http_port
 
     def check_alive(self) -> None:
-        """Raise if a child is down for good (failed under supervision, or dead without it)."""
+        """Raise if a child is down for good (failed under supervision, or dead without it), or the XMPP
+        server has failed (nothing reaches anyone without it), naming what its log last said."""
+        if self._server_policy.failed and self.server is not None:
+            why = self._server_error or _last_line(self.server.log_path)
+            raise QuekaroError(f"the XMPP server could not be restarted: {why} (see {self.server.log_path})")
         for child in self.children:
             dead = child.proc is not None and child.proc.poll() is not None and not self._supervise
             if dead or (child.state == "failed" and child.name == "master"):
-                raise QuekaroError(f"{child.name} exited with status {child.proc.returncode} "
-                                   f"(see {self.home / 'logs' / (child.name + '.log')})")
+                log = self.home / "logs" / (child.name + ".log")
+                raise QuekaroError(f"{child.name} exited with status {child.proc.returncode}: {_last_line(log)} "
+                                   f"(see {log})")
 
     def client(self) -> FarmClient:
         return FarmClient.from_home(self.home)
@@ -337,6 +353,14 @@ class LocalFarm:
         if self._lock_fd is not None:
             os.close(self._lock_fd)  # releases the flock
             self._lock_fd = None
+
+
+def _last_line(log: Path) -> str:
+    """A log's last line: what a process that exited said last (a port in use, a traceback's error)."""
+    try:
+        return (log.read_text(errors="replace").strip().splitlines()[-1:] or ["(nothing)"])[0]
+    except OSError:
+        return "(no log)"
 
 
 def _say(line: str) -> None:

@@ -34,6 +34,7 @@ def _slots(args: argparse.Namespace) -> int:
 
 async def serve(config: MasterConfig) -> None:
     """Run the master until a stop signal arrives."""
+    config.data_plane()  # refuses what it cannot serve before anything is written to its home
     service = MasterService(config)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()

@@ -482,7 +482,7 @@ class JobStore:
         if not rows:
             return 0, None
         index, agent, outcome, reason = rows[0]
-        return len(rows), f"unit {index} on {agent}: {outcome}" + (f" ({reason})" if reason else "")
+        return len(rows), f"unit {index} {outcome}: {reason}" if reason else f"unit {index} {outcome} on {agent}"
 
     def _rendered_so_far(self, job_id: str, per_work: float, now: float | None) -> float:
         """Seconds the units of a job being rendered have rendered by `now`, each capped at its unit's work

@@ -133,7 +133,7 @@ def _register_client(sub: argparse._SubParsersAction) -> None:
 
 def run_up(args: argparse.Namespace) -> int:
     with LocalFarm(args.home, args.agents, args.threads, args.rules, args.http_port, supervise=True) as farm:
-        print(f"farm up: master {farm.url}, {args.agents} agents, home {farm.home} (Ctrl-C stops it)")
+        print(f"farm up: master {farm.url}, {_agents(farm.n_agents)}, home {farm.home} (Ctrl-C stops it)")
         _warn_if_short_of_space(farm.home)
         farm.wait()
     return 0
@@ -152,7 +152,7 @@ def run_demo(args: argparse.Namespace) -> int:
     """Start a farm, render the demo scene on it, fetch the image, and say where everything is."""
     (target,) = writable_outputs([DEMO_SCENE], args.out)  # before a farm starts, not after its render
     with LocalFarm(args.home, args.agents, args.threads, args.rules, args.http_port, supervise=True) as farm:
-        print(f"farm up: master {farm.url}, {farm.n_agents} agents, home {farm.home}")
+        print(f"farm up: master {farm.url}, {_agents(farm.n_agents)}, home {farm.home}")
         print(f"web page: {farm.url}/ui/ (log in with the admin token in {farm.home / ADMIN_TOKEN}; "
               "up while the demo runs)", flush=True)
         farm.wait_for_agents()
@@ -232,6 +232,8 @@ def run_status(args: argparse.Namespace) -> int:
     plane = client.farm()["data_plane"]
     if "insecure" in plane:
         print(f"WARNING: data plane {plane}")
+    if not jobs:
+        print("no jobs (quekaro submit SCENE adds one)")
     for job in jobs:
         running = job["status"] == "running" and job.get("eta_s") is not None
         eta = f"{job['eta_s']:.0f} s" if running else "-"  # an ended job has none (it read "0 s")
@@ -247,6 +249,10 @@ def run_status(args: argparse.Namespace) -> int:
             if job.get("adaptive"):
                 print(f"adaptive: {budgets.describe(job['adaptive'])}")
     return 0
+
+
+def _agents(n: int) -> str:
+    return f"{n} agent{'' if n == 1 else 's'}"
 
 
 def _processes(home: Path) -> list[dict]:

@@ -457,7 +457,8 @@ def test_requeued_and_cancelled_units_are_recorded(tmp_path: Path) -> None:
 
     assert outcomes() == ["requeued", "running"]
     progress = store.progress("job-1", late)  # what `quekaro status` tells of it
-    assert progress.retried == 1 and progress.last_retry.startswith(f"unit {index} on {lost}: requeued (")
+    assert progress.retried == 1 and progress.last_retry.startswith(f"unit {index} requeued: ")
+    assert progress.last_retry.count(lost) == 1, progress.last_retry  # the reason names the agent, once
     store.apply(auction.cancel_job("job-1"), late + 1)
     assert store.job("job-1").status == JobStatus.CANCELLED
     assert {u.status for u in store.units("job-1")} == {UnitStatus.FAILED}

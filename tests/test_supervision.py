@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -31,7 +32,48 @@ def test_restarts_spread_out_in_time_never_fail():
     policy = RestartPolicy(crash_loop=5, window_s=60.0)
     for i in range(20):
         assert policy.on_exit(i * 61.0) is not None
-    assert not policy.failed and policy.count == 1
+    assert not policy.failed and policy.count == 20  # every restart since the start, as status reports them
+
+
+def _bound_once_free(port: int, timeout: float = 10.0):
+    """A listener on 127.0.0.1:port once the killed server's processes have let it go (not at once)."""
+    import socket
+
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return socket.create_server(("127.0.0.1", port))
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+
+
+def test_an_xmpp_server_that_cannot_come_back_ends_the_farm_naming_why(tmp_path):
+    """Its port taken while it was down: it was restarted 5 times, marked failed, and the farm went on with
+    nothing able to reach anyone (jobs waited for ever); processes.json said it was running meanwhile."""
+    from core.errors import QuekaroError
+    from core.transport.xmpp_server import XmppServerError
+    from farm.local import LocalFarm
+
+    home = tmp_path / "farm"
+    with LocalFarm(home, agents=1, threads=1) as farm:  # unsupervised: the rounds are run here, in order
+        port, now = farm.server.port, time.monotonic()
+        farm.server.kill()
+        farm.supervise(now)
+        assert _states(home)["xmpp-server"] | {"pid": None} == {
+            "name": "xmpp-server", "pid": None, "state": "restarting", "restarts": 1}
+        with _bound_once_free(port):
+            for _ in range(200):
+                now += 1.0
+                with contextlib.suppress(XmppServerError):
+                    farm.supervise(now)
+                if _states(home)["xmpp-server"]["state"] == "failed":
+                    break
+            assert _states(home)["xmpp-server"]["state"] == "failed"
+            with pytest.raises(QuekaroError, match=f"XMPP server could not be restarted: port 127.0.0.1:{port} is "
+                                                   "already in use"):
+                farm.check_alive()
 
 
 def _states(home: Path) -> dict[str, dict]:
@@ -68,6 +110,7 @@ def test_a_killed_agent_is_restarted_and_a_killed_farm_leaves_no_orphans(tmp_pat
         status = subprocess.run([sys.executable, "-m", "quekaro", "status", "--home", str(home)], cwd=REPO,
                                 capture_output=True, text=True, timeout=60)
         assert "process agent-0: running (1 restarts)" in status.stdout, status
+        assert "no jobs" in status.stdout  # not an empty output
         defines = {"res": "48", "spp": "8"}
         job_id = client.submit(bundle_of(SCENE, defines), defines, {"level": "off", "units": 4})
         assert client.wait(job_id, 240, poll=0.3)["status"] == "done"

@@ -167,6 +167,11 @@ class _ChildServer:
         return self._proc.pid if self._proc and self._proc.poll() is None else None
 
     @property
+    def returncode(self) -> int | None:
+        """The child's exit status once it has exited (None while it runs, or before it started)."""
+        return self._proc.poll() if self._proc else None
+
+    @property
     def running(self) -> bool:
         return self.pid is not None
 
