@@ -12,12 +12,14 @@ master/auction.py expects it:
             -> Propose with an estimate per offered unit (cost x the spp its own rules pick / speed, + a
             kernel compilation for a new window size, times a per-job correction learnt from its
             finished units); the master adds the wait behind the unit it holds. Else Refuse.
-  award     fetch the job's scene bundle once (cached by sha256 under the work dir), plan the unit
+  award     (one, or several of a job in one Awards message, each handled as if sent alone)
+            fetch the job's scene bundle once (cached by sha256 under the work dir), plan the unit
             with its own rules, render it with the award's seed (with the waiting units of its job and
             depth in one call where the scene allows: core.render.together), write the tile EXR (meta: the unit,
             seconds, non-finite pixels, spp, depth, band, the rules' crisp outputs, the agent's JID),
-            upload it with the award's token, then Inform (tile sha256 and the parameters). Any error
-            of that unit -> Failure with the reason; the agent itself carries on.
+            upload it with the award's token (and its sha256): the master counts the unit done by that
+            upload, so nothing else is sent. Any error of that unit -> Failure with the reason; the agent
+            itself carries on.
   cancel    the unit (or every unit of the job) is dropped: a render in flight is ended once none of its
             units is wanted (its render process killed), queued ones (and one whose bundle is still being
             fetched) never start.
@@ -100,7 +102,8 @@ from fuzzy.errors import RuleFileError
 log = logging.getLogger(__name__)
 
 POLL_S = 0.25  # how often the beat loop ticks (to Register again at once after a reconnect)
-ACCEPTED = frozenset({"cfp", "accept-proposal", "reject-proposal", "cancel", "welcome", "introduce"})
+ACCEPTED = frozenset({"cfp", "accept-proposal", "accept-proposals", "reject-proposal", "cancel", "welcome",
+                      "introduce"})
 
 
 @dataclass
@@ -261,7 +264,10 @@ class RenderAgent:
             log.warning("%s from %s: conversation %r in the body, %r in the metadata: ignored",
                         env.performative, env.sender, msg.conversation, env.conversation_id)
             return
-        if isinstance(msg, m.CallForProposal | m.Award | m.Reject | m.Cancel | m.Welcome | m.Introduce):
+        if isinstance(msg, m.Awards):
+            for award in msg.each():  # as if sent one by one
+                await self._feed(award)
+        elif isinstance(msg, m.CallForProposal | m.Award | m.Reject | m.Cancel | m.Welcome | m.Introduce):
             await self._feed(msg)
 
     async def _feed(self, event: Event) -> None:
@@ -469,7 +475,7 @@ class RenderAgent:
                 raise UnitFailed(f"tile upload to {award.upload_url} failed: {describe(exc)}") from exc
         except Exception as exc:
             return UploadFailed(command.ticket, describe(exc))
-        return UploadDone(command.ticket, sha256)
+        return UploadDone(command.ticket)
 
     def _tile_path(self, job_id: str, index: int) -> Path:
         return self.workdir / "tiles" / f"{_safe(job_id)}-{index}.exr"

@@ -130,10 +130,9 @@ class RenderFailed:
 
 @dataclass(frozen=True)
 class UploadDone:
-    """The tile is uploaded; `sha256` its hash."""
+    """The tile is uploaded (the master took it: the unit is done)."""
 
     ticket: int
-    sha256: str
 
 
 @dataclass(frozen=True)
@@ -597,12 +596,13 @@ class AgentState:
         if isinstance(result, UploadFailed):
             out += self._fail(work, result.reason)
         elif not work.cancelled:
-            out += self._done(work, result.sha256, now)
+            out += self._done(work, now)
         self._forget(work)
         return out
 
-    def _done(self, work: Work, sha256: str, now: float) -> list[Command]:
-        """Learn from the unit (time taken), remember its award, and Inform."""
+    def _done(self, work: Work, now: float) -> list[Command]:
+        """Learn from the unit (time taken) and remember its award. Nothing is sent: the master counts a
+        unit done by its tile's upload alone (the tile's header holds what an inform would say)."""
         award, rendered, params, predicted = work.uploaded_as, work.rendered, work.params, work.predicted
         assert award is not None and rendered is not None and params is not None and predicted is not None
         key, wall = work.key, (now - work.started) * work.share
@@ -610,12 +610,9 @@ class AgentState:
         _remember(self.finished, (*key, award.token), None)
         self.calibration.learn(key[0], predicted, wall)
         spp = params.spp if rendered.spp is None else rendered.spp
-        text = (f"unit {key[0]}/{key[1]} done: {wall:.3f} s in all, render {rendered.seconds:.3f} s, spp "
-                f"{spp} depth {params.depth} band {params.band} (award estimate {award.estimate_s:.3f} s)")
-        return [Log(logging.INFO, text), Send(m.Inform(
-            conversation=award.conversation, job_id=key[0], index=key[1], token=award.token, tile_hash=sha256,
-            depth=params.depth, spp=spp, band=params.band, seconds=rendered.seconds,
-            nonfinite=rendered.nonfinite))]
+        return [Log(logging.INFO, f"unit {key[0]}/{key[1]} done: {wall:.3f} s in all, render {rendered.seconds:.3f} "
+                                  f"s, spp {spp} depth {params.depth} band {params.band} (award estimate "
+                                  f"{award.estimate_s:.3f} s)")]
 
     def _fail(self, work: Work, reason: str) -> list[Command]:
         """Failure under the latest award, unless the master cancelled the unit."""

@@ -169,10 +169,11 @@ class LocalFarm:
 
     def _master_command(self) -> list[str]:
         # Called again at each restart: the port is then the one the first start bound (uploads name it).
+        # The pre-pass takes the agents' threads together: a job's agents wait for its plan.
         return [sys.executable, "-m", "quekaro", "master", "--home", str(self.home), "--jid", MASTER_JID,
                 "--password-file", str(self.home / "secrets" / "master.pw"), "--server", "127.0.0.1",
                 "--port", str(self.server.port), "--register", "--http-port", str(self.http_port),
-                "--threads", str(self.threads), "--agents-allow", str(self.home / AGENTS_ALLOW)]
+                "--threads", str(self.threads * self.n_agents), "--agents-allow", str(self.home / AGENTS_ALLOW)]
 
     def _agent_command(self, i: int) -> list[str]:
         # A JID that reconnects may never receive again on the embedded server: unique per process. The

@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import itertools
 import json
 import logging
 import os
@@ -335,7 +336,10 @@ class MasterService:
         return job_id
 
     async def _plan(self, spec: SceneSpec, options: RenderOptions, seed: int) -> JobPlan:
-        """The job's plan, made in the planner's child process (one job at a time)."""
+        """The job's plan, made in the planner's child process (one job at a time), its pre-pass on the
+        master's `--threads` unless the job names its own."""
+        if options.threads is None and self.config.threads is not None:
+            options = dataclasses.replace(options, threads=self.config.threads)
         async with self._planning:
             return await asyncio.to_thread(self._planner.call, plan_job, spec, options, seed,
                                            self._units_for_agents(), self._floors(options),
@@ -482,18 +486,18 @@ class MasterService:
         awarded units back to auction when it starts, as after any crash."""
         self._record(commands)
         for cmd in commands:
-            if isinstance(cmd, au.Send):
-                try:
-                    performative, body = m.encode(cmd.message)
-                except MessageError as exc:  # a job whose messages cannot be sent fails alone
-                    await self._fail_job(getattr(cmd.message, "job_id", None) or cmd.message.job.job_id, exc)
-                    continue
-                await self.agent.send(cmd.to, performative, body, conversation_id=cmd.message.conversation,
-                                      protocol=m.PROTOCOL, ontology=m.ONTOLOGY)
-            else:
+            if not isinstance(cmd, au.Send):
                 log.info("%r", cmd)  # the event's kind and fields (its repr leaves tokens out)
                 if isinstance(cmd, au.JobDone):
                     self._assemble_later(cmd.job_id)
+        for to, message in outgoing(commands):
+            try:
+                performative, body = m.encode(message)
+            except MessageError as exc:  # a job whose messages cannot be sent fails alone
+                await self._fail_job(getattr(message, "job_id", None) or message.job.job_id, exc)
+                continue
+            await self.agent.send(to, performative, body, conversation_id=message.conversation,
+                                  protocol=m.PROTOCOL, ontology=m.ONTOLOGY)
 
     def _record(self, commands: list[au.Command]) -> None:
         """Write the auction's events to the store, after those it could not write before, in order. Where
@@ -660,3 +664,25 @@ def _admin_token(home: Path) -> str:
         path.touch(mode=0o600)
         path.write_text(secrets.token_hex(24))
     return path.read_text().strip()
+
+
+def outgoing(commands: list[au.Command]) -> list[tuple[str, m.Message]]:
+    """The messages the commands send, in order per agent, an agent's awards of one job that follow each
+    other (among its own messages) packed into Awards (`m.packed`): one message per round and job, not
+    one per unit."""
+    per_agent: dict[str, list[m.Message]] = {}
+    for cmd in commands:
+        if isinstance(cmd, au.Send):
+            per_agent.setdefault(cmd.to, []).append(cmd.message)
+    out: list[tuple[str, m.Message]] = []
+    for to, messages in per_agent.items():
+        for _, run in itertools.groupby(messages, key=_award_job):
+            run = list(run)
+            packed = m.packed(run) if isinstance(run[0], m.Award) else run
+            out += [(to, message) for message in packed]
+    return out
+
+
+def _award_job(message: m.Message) -> tuple[str, str] | tuple[str, int]:
+    """Groups an agent's messages: awards by their job, every other message alone."""
+    return ("award", message.job.job_id) if isinstance(message, m.Award) else ("other", id(message))

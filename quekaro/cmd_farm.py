@@ -77,7 +77,8 @@ def _register_master(sub: argparse._SubParsersAction) -> None:
     parser.add_argument("--tls-key", type=Path, help="its private key")
     parser.add_argument("--insecure-http", action="store_true",
                         help="serve plain HTTP although agents reach it over a network (logged and shown by status)")
-    parser.add_argument("--threads", type=int, help="Dr.Jit threads of the pre-pass")
+    parser.add_argument("--threads", type=int,
+                        help="Dr.Jit threads of the pre-pass (default: one per core; a job naming its own keeps them)")
     parser.add_argument("--slots", type=int,
                         help=f"units an agent may hold at once (default {SLOTS}: it wins up to half of them a round "
                              "and renders them in one call, the next half awarded while it renders; 2: one unit a "

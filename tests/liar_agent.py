@@ -77,7 +77,8 @@ async def put_lying_tile(award: m.Award, lie: int) -> tuple[str, int]:
 async def run(args: argparse.Namespace) -> int:
     agent = FarmAgent(args.jid, os.environ["QUEKARO_XMPP_PASSWORD"], port=args.port, server="127.0.0.1",
                       ontology=m.ONTOLOGY, peers=[args.master], validate=m.parse,
-                      performatives=frozenset({"cfp", "accept-proposal", "reject-proposal", "cancel"}))
+                      performatives=frozenset({"cfp", "accept-proposal", "accept-proposals", "reject-proposal",
+                                               "cancel"}))
     done = asyncio.Event()
     lies = 0
 
@@ -87,8 +88,12 @@ async def run(args: argparse.Namespace) -> int:
                          protocol=m.PROTOCOL, ontology=m.ONTOLOGY)
 
     async def on_message(env: Envelope) -> None:
-        nonlocal lies
         msg = m.parse(env.performative, env.body)
+        for one in msg.each() if isinstance(msg, m.Awards) else (msg,):
+            await on_one(one)
+
+    async def on_one(msg: m.Message) -> None:
+        nonlocal lies
         if isinstance(msg, m.CallForProposal) and lies < args.lies:
             estimates = tuple(m.Estimate(index=u.index, seconds=0.0) for u in msg.units)
             await send(m.Propose(conversation=msg.conversation, job_id=msg.job.job_id, estimates=estimates))

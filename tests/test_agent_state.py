@@ -151,11 +151,12 @@ def render(agent: Agent, fetch: FetchBundle, render_s: float = 1.0) -> Upload:
     return only(out, Upload)
 
 
-def deliver(agent: Agent, fetch: FetchBundle, wall: float = 1.0) -> m.Inform:
-    """A unit through render and upload, `wall` seconds in all: the Inform it sends."""
+def deliver(agent: Agent, fetch: FetchBundle, wall: float = 1.0) -> m.Award:
+    """A unit through render and upload, `wall` seconds in all: the award its tile was uploaded under. The
+    upload is the answer (the master counts a unit done by its tile): nothing is sent after it."""
     upload = render(agent, fetch, wall / 2)
-    (inform,) = sent(agent(UploadDone(upload.ticket, "cd" * 32), dt=wall / 2), m.Inform)
-    return inform
+    assert sent(agent(UploadDone(upload.ticket), dt=wall / 2)) == []
+    return upload.award
 
 
 # ---- bids and slots --------------------------------------------------------------------------------------
@@ -250,8 +251,8 @@ def test_a_duplicate_award_renders_once_also_after_the_unit_is_done() -> None:
     fetch = only(agent(the_award), FetchBundle)
     assert agent(the_award) == []
     assert agent.held() == [("job-1", 0)]
-    inform = deliver(agent, fetch)
-    assert inform.token == the_award.token and agent.state.units_done == 1
+    uploaded_as = deliver(agent, fetch)
+    assert uploaded_as.token == the_award.token and agent.state.units_done == 1
     out = agent(the_award)
     assert not [c for c in out if not isinstance(c, Log)]
     assert "duplicate award of finished unit job-1/0 ignored" in only(out, Log).text
@@ -259,15 +260,14 @@ def test_a_duplicate_award_renders_once_also_after_the_unit_is_done() -> None:
 
 
 def test_the_inform_gives_the_spp_mitsuba_rendered_not_the_rules_count() -> None:
-    """A stratified sampler rounds the rules' count to a square: the tile and the Inform say what was rendered."""
+    """A stratified sampler rounds the rules' count to a square: the agent says what was rendered."""
     agent = Agent()
     fetch = only(agent(award(job(), unit(0))), FetchBundle)
     start = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
     rendered = start.params.spp + 7  # any other count
     upload = only(agent(RenderFinished(start.ticket, Path("/t.exr"), 1.0, 0, rendered), dt=1.0), Upload)
-    out = agent(UploadDone(upload.ticket, "cd" * 32))
-    (inform,) = sent(out, m.Inform)
-    assert inform.spp == rendered != start.params.spp
+    out = agent(UploadDone(upload.ticket))
+    assert rendered != start.params.spp
     assert any(f"spp {rendered} " in c.text for c in out if isinstance(c, Log))
 
 
@@ -277,23 +277,27 @@ def test_a_re_award_with_a_new_token_is_answered_under_the_new_award() -> None:
     fetch = only(agent(award(info, unit(0), token="a1" * 16)), FetchBundle)
     out = agent(award(info, unit(0), token="b2" * 16, conversation="award-2"))
     assert not [c for c in out if not isinstance(c, Log)]  # no second render
-    inform = deliver(agent, fetch)
-    assert (inform.token, inform.conversation) == ("b2" * 16, "award-2")
+    uploaded_as = deliver(agent, fetch)
+    assert (uploaded_as.token, uploaded_as.conversation) == ("b2" * 16, "award-2")
 
 
 @pytest.mark.parametrize("upload_ok", [True, False])
 def test_a_re_award_during_the_upload(upload_ok: bool) -> None:
-    """The Inform goes under the award the tile was uploaded with; a Failure under the latest award."""
+    """The tile went under the award it was uploaded with (nothing more is sent); a Failure goes under the
+    latest award."""
     agent = Agent()
     info = job()
     fetch = only(agent(award(info, unit(0), token="a1" * 16)), FetchBundle)
     upload = render(agent, fetch)
     assert upload.award.token == "a1" * 16
     agent(award(info, unit(0), token="b2" * 16, conversation="award-2"))
-    result = UploadDone(upload.ticket, "cd" * 32) if upload_ok else UploadFailed(upload.ticket, "refused")
-    (answer,) = sent(agent(result))
-    assert type(answer) is (m.Inform if upload_ok else m.Failure)
-    assert answer.token == ("a1" * 16 if upload_ok else "b2" * 16)
+    result = UploadDone(upload.ticket) if upload_ok else UploadFailed(upload.ticket, "refused")
+    answers = sent(agent(result))
+    if upload_ok:
+        assert answers == []
+    else:
+        (answer,) = answers
+        assert type(answer) is m.Failure and answer.token == "b2" * 16
 
 
 def test_an_award_never_bid_on_is_planned_afresh_a_bid_on_one_is_not() -> None:
@@ -379,7 +383,7 @@ def test_describe_names_foreign_errors_by_type() -> None:
 def test_events_of_unknown_tickets_change_nothing() -> None:
     agent = Agent()
     agent(award(job(), unit(0)))
-    for event in (BundleReady(99, SCENE), RenderFinished(99, Path("/t.exr"), 1.0), UploadDone(99, "cd" * 32),
+    for event in (BundleReady(99, SCENE), RenderFinished(99, Path("/t.exr"), 1.0), UploadDone(99),
                   UploadFailed(99, "x"), RenderFailed(99, "x")):
         assert all(isinstance(c, Log) for c in agent(event))
     assert agent.held() == [("job-1", 0)] and agent.state.units_failed == 0
@@ -401,7 +405,7 @@ def test_cancel_of_a_queued_unit_drops_it() -> None:
     assert agent.held() == [("job-1", 0)]
     upload = render(agent, fetch)
     assert agent.state.rendering is None  # the cancelled unit never starts
-    assert sent(agent(UploadDone(upload.ticket, "cd" * 32)), m.Inform)
+    assert sent(agent(UploadDone(upload.ticket))) == []
     assert agent.held() == []
 
 
@@ -438,13 +442,13 @@ def test_a_unit_cancelled_while_its_bundle_is_fetched_is_not_rendered() -> None:
     assert not [c for c in out if isinstance(c, StartRender)] and agent.state.rendering is None
 
 
-def test_cancel_of_an_uploading_unit_sends_no_inform() -> None:
+def test_cancel_of_an_uploading_unit_is_not_counted_done() -> None:
     agent = Agent()
     fetch = only(agent(award(job(), unit(0))), FetchBundle)
     upload = render(agent, fetch)
     assert agent.held() == [("job-1", 0)]  # held while its tile uploads
     agent(m.Cancel(conversation="c-1", job_id="job-1", index=0, reason="x"))
-    out = agent(UploadDone(upload.ticket, "cd" * 32))
+    out = agent(UploadDone(upload.ticket))
     assert not sent(out) and agent.state.units_done == 0 and not agent.state.finished
 
 
@@ -664,7 +668,7 @@ def test_a_batch_is_timed_by_shares_of_its_estimate_for_the_calibration() -> Non
     assert shares == pytest.approx([0.2, 0.8])
     for ticket in start.tickets:
         agent(RenderFinished(ticket, Path(f"/tiles/{ticket}.exr"), 1.0))
-    assert sent(agent(UploadDone(start.tickets[0], "cd" * 32), dt=2.0), m.Inform)
+    assert sent(agent(UploadDone(start.tickets[0]), dt=2.0)) == []
     # unit 0 took its share of the 2 s since the batch began, against its estimate of 20 s and its share of
     # the batch's one compilation
     predicted = seconds(10.0, 4, SPEED) + 0.2 * COMPILE_S
@@ -712,8 +716,8 @@ def test_a_batched_unit_re_awarded_during_its_render_uploads_under_the_new_award
     out = agent(RenderFinished(start.more[0].ticket, Path("/tiles/1.exr"), 1.0))
     upload = only(out, Upload)
     assert upload.award.token == "b2" * 16
-    (inform,) = sent(agent(UploadDone(upload.ticket, "cd" * 32)), m.Inform)
-    assert (inform.conversation, inform.token) == ("again", "b2" * 16)
+    assert upload.award.conversation == "again"
+    assert sent(agent(UploadDone(upload.ticket))) == []
 
 
 def test_a_waiting_unit_that_cannot_be_planned_stays_out_of_the_batch_and_fails_alone() -> None:

@@ -558,6 +558,8 @@ def test_a_rule_level_job_renders_each_agents_units_in_batches_and_matches_a_loc
     # (MasterService._floors), every unit held at the user's depth for an agent with other rules.
     assert "depth_floor_depths" not in report["prepass"], report["prepass"]
     assert {(u["depth"], u["depth_floor"]) for u in report["units"]} == {(report["units"][0]["depth"],) * 2}
+    # The pre-pass ran on the master's --threads, the agents' two together (`quekaro master --threads`).
+    assert report["options"]["threads"] == 2
     image, reference = read_image(out), local_render(tmp_path, defines, "S")
     a, b = block_means(image), block_means(reference)
     assert np.abs(a - b).mean() / b.mean() < 0.08  # as test_job_on_three_agents_matches_local_render

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 
 import pytest
@@ -32,6 +33,9 @@ def unit(index: int = 0, rect: Rect | None = None, cost: float = 1.5) -> WorkUni
     return WorkUnit(index=index, rect=rect, C=0.7, S=rect.area, Nd=0.1, cost=cost)
 
 
+ONE_AWARD = m.Award(conversation="c2", job=job(), unit=unit(), token=TOKEN, upload_url="http://127.0.0.1:8765/t/0",
+                    seed=0, estimate_s=3.0)
+
 ONE_OF_EACH = [
     m.CallForProposal(
         conversation="c1", job=job(), units=(unit(0), unit(1, Rect(32, 0, 64, 64))), reply_within_s=2
@@ -47,6 +51,7 @@ ONE_OF_EACH = [
         seed=0,
         estimate_s=3.0,
     ),
+    m.packed([ONE_AWARD, dataclasses.replace(ONE_AWARD, conversation="c3", unit=unit(1), token="cd" * 16)])[0],
     m.Reject(conversation="c1", job_id="job-1", reason="awarded elsewhere"),
     m.Inform(
         conversation="c2",
@@ -82,6 +87,10 @@ def test_every_performative_has_a_kind() -> None:
     assert {msg.performative for msg in ONE_OF_EACH} == set(m.KINDS)
 
 
+def of_kind(kind: type[m.Message]) -> m.Message:
+    return next(msg for msg in ONE_OF_EACH if type(msg) is kind)
+
+
 def body_of(msg: m.Message) -> dict:
     return json.loads(m.encode(msg)[1])
 
@@ -112,7 +121,7 @@ def refused(performative: str, data: dict | str) -> MessageError:
     ],
 )
 def test_bad_inform_fields_are_refused_by_name(change, field: str) -> None:
-    data = body_of(ONE_OF_EACH[5])
+    data = body_of(of_kind(m.Inform))
     change(data)
     assert refused("inform", data).field == field
 
@@ -120,7 +129,7 @@ def test_bad_inform_fields_are_refused_by_name(change, field: str) -> None:
 def test_an_inform_carries_the_spp_a_sampler_rounds_a_jobs_most_up_to() -> None:
     """Mitsuba's orthogonal sampler renders 1031^2 samples where it is given 2^20, the most a job asks for:
     the agent reports what it rendered, so the master must read that count."""
-    data = body_of(ONE_OF_EACH[5])
+    data = body_of(of_kind(m.Inform))
     data["spp"] = 1031**2
     assert m.parse("inform", json.dumps(data)).spp == 1031**2
     data["spp"] = 2 * SPP_MAX + 1
@@ -147,7 +156,7 @@ def test_cfp_cross_field_checks() -> None:
 
 
 def test_non_finite_and_malformed_json_are_refused() -> None:
-    body = m.encode(ONE_OF_EACH[5])[1].replace('"seconds":2.9', '"seconds":NaN')
+    body = m.encode(of_kind(m.Inform))[1].replace('"seconds":2.9', '"seconds":NaN')
     assert refused("inform", body).field == "body"
     assert refused("inform", body.replace("NaN", "Infinity")).field == "body"
     assert refused("inform", "{").field == "body"
@@ -283,3 +292,37 @@ def test_a_scene_name_leaving_the_bundle_is_refused(name: str) -> None:
     assert info.value.field == "job.scene_name"
     with pytest.raises(MessageError):
         m.encode(m.CallForProposal(conversation="c1", job=job(scene_name=name), units=(unit(0),), reply_within_s=2))
+
+
+def test_a_rounds_awards_pack_into_one_message_that_gives_them_back() -> None:
+    """Awards of one job travel as one Awards message (the job's description once), which the agent reads
+    as the awards themselves, in order; a lone award travels as itself."""
+    awards = [dataclasses.replace(ONE_AWARD, conversation=f"a{i}", unit=unit(i, Rect(32 * i, 0, 32, 32)),
+                                  token=f"{i:032x}", seed=i, estimate_s=float(i)) for i in range(4)]
+    (packed,) = m.packed(awards)
+    assert isinstance(packed, m.Awards) and packed.conversation == "a0"
+    performative, body = m.encode(packed)
+    assert performative == "accept-proposals" and len(body) < 0.6 * sum(len(m.encode(a)[1]) for a in awards)
+    assert m.parse(performative, body).each() == tuple(awards)
+    assert m.packed(awards[:1]) == awards[:1]
+
+
+def test_awards_beyond_the_body_limit_pack_into_several_messages() -> None:
+    url = "http://127.0.0.1:8765/" + "u" * 2000  # the longest upload URL a message allows
+    awards = [dataclasses.replace(ONE_AWARD, conversation=f"a{i}", unit=unit(i), token=f"{i:032x}", upload_url=url)
+              for i in range(m.MAX_CFP_UNITS)]
+    packed = m.packed(awards)
+    assert len(packed) > 1 and all(len(m.encode(p)[1].encode()) <= m.MAX_BODY_BYTES for p in packed)
+    assert [a for p in packed for a in (p.each() if isinstance(p, m.Awards) else (p,))] == awards
+
+
+@pytest.mark.parametrize("change, field", [
+    (lambda d: d.update(conversation="other"), "conversation"),
+    (lambda d: d["awards"][1].update(unit=d["awards"][0]["unit"]), "awards"),
+    (lambda d: d.update(awards=d["awards"][:1]), "awards"),
+    (lambda d: d["awards"][0].update(token="xyz"), "awards[0].token"),
+])
+def test_bad_awards_are_refused_by_name(change, field: str) -> None:
+    data = body_of(m.packed([ONE_AWARD, dataclasses.replace(ONE_AWARD, conversation="c3", unit=unit(1))])[0])
+    change(data)
+    assert refused("accept-proposals", data).field == field

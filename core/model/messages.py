@@ -18,6 +18,7 @@ import math
 import re
 import types
 import typing
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Union
 
@@ -30,7 +31,9 @@ from fuzzy.engine import DEFUZZIFIERS
 from fuzzy.levels import LEVELS
 from fuzzy.render_params import SPP_MAX
 
-PROTOCOL_VERSION = 3  # 2: several awards a round, slots in Register; 3: the rules an agent plans with, in Register
+# 2: several awards a round, slots in Register; 3: the rules an agent plans with, in Register; 4: a round's
+# awards of one job to one agent in one message (Awards), and no inform from agents (the upload answers)
+PROTOCOL_VERSION = 4
 ONTOLOGY = "quekaro-render"
 PROTOCOL = "fipa-contract-net"
 # Prosody drops a sender whose stanza exceeds 256 KiB (design.md section 4): stay well below it.
@@ -187,6 +190,74 @@ class Award(Message):
 
 
 @dataclass(frozen=True, kw_only=True)
+class AwardedUnit:
+    """One award of an `Awards`: an `Award`'s fields but its job."""
+
+    conversation: str = constrained(pattern=_ID)
+    unit: WorkUnit
+    token: str = constrained(pattern=_HEX)
+    upload_url: str = constrained(max_len=2048, pattern=re.compile(r"https?://[\x21-\x7e]+"))
+    seed: int = constrained(lo=0, hi=2**31 - 1)
+    estimate_s: float = constrained(lo=0.0, hi=1e9)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Awards(Message):
+    """Master -> agent (accept-proposals): awards of one job sent together, each an `Award` (`each`).
+
+    Why: a round awards an agent several units of a job at once; one message carries the job's
+    description once and crosses the XMPP server once. Its conversation is its first award's."""
+
+    performative: ClassVar[str] = "accept-proposals"
+    job: JobInfo
+    awards: tuple[AwardedUnit, ...] = constrained(max_items=MAX_CFP_UNITS, min_items=2)
+
+    def check(self) -> None:
+        self.job.check()
+        if self.conversation != self.awards[0].conversation:
+            raise MessageError("the message's conversation is not its first award's", "conversation")
+        if len({a.unit.index for a in self.awards}) != len(self.awards):
+            raise MessageError("a unit awarded twice in one message", "awards")
+        for award in self.awards:
+            self.job.check_unit(award.unit, "awards.unit.spp")
+
+    def each(self) -> tuple[Award, ...]:
+        return tuple(Award(job=self.job, **{f.name: getattr(a, f.name) for f in dataclasses.fields(a)})
+                     for a in self.awards)
+
+
+def packed(awards: Sequence[Award]) -> list[Award | Awards]:
+    """Awards of one job to one agent as few messages as the body's limit allows, in their order: runs of
+    two or more as `Awards`, a lone one as itself."""
+    out: list[Award | Awards] = []
+    run: list[Award] = []
+    for award in awards:
+        if run and (len(run) == MAX_CFP_UNITS or not _fits(_together([*run, award]))):
+            out.append(_together(run))
+            run = []
+        run.append(award)
+    if run:
+        out.append(_together(run))
+    return out
+
+
+def _together(run: Sequence[Award]) -> Award | Awards:
+    if len(run) == 1:
+        return run[0]
+    items = tuple(AwardedUnit(conversation=a.conversation, unit=a.unit, token=a.token, upload_url=a.upload_url,
+                              seed=a.seed, estimate_s=a.estimate_s) for a in run)
+    return Awards(conversation=run[0].conversation, job=run[0].job, awards=items)
+
+
+def _fits(msg: Message) -> bool:
+    try:
+        encode(msg)
+    except MessageError:
+        return False
+    return True
+
+
+@dataclass(frozen=True, kw_only=True)
 class Reject(Message):
     """Master -> agent (reject-proposal): the units it bid on went elsewhere."""
 
@@ -197,7 +268,9 @@ class Reject(Message):
 
 @dataclass(frozen=True, kw_only=True)
 class Inform(Message):
-    """Agent -> master: unit rendered and its tile uploaded; the parameters the agent's rules chose."""
+    """A unit rendered and its tile uploaded, with the parameters it was rendered with. The master makes one
+    from each tile it takes (its header holds these); agents send none since protocol 4, and one from the
+    wire counts for nothing (a unit is done only by its tile's upload)."""
 
     performative: ClassVar[str] = "inform"
     job_id: str = constrained(pattern=_ID)
@@ -288,8 +361,8 @@ class Cancel(Message):
 
 KINDS: dict[str, type[Message]] = {
     cls.performative: cls
-    for cls in (CallForProposal, Propose, Refuse, Award, Reject, Inform, Failure, Register, Welcome, Introduce,
-                Heartbeat, Cancel)
+    for cls in (CallForProposal, Propose, Refuse, Award, Awards, Reject, Inform, Failure, Register, Welcome,
+                Introduce, Heartbeat, Cancel)
 }
 
 
