@@ -5,7 +5,7 @@ backoff, give up on one that keeps crashing, and make every child die with its p
 doubles with each recent restart (BACKOFF_S up to MAX_BACKOFF_S); one that has been restarted CRASH_LOOP
 times within CRASH_WINDOW_S is marked failed and left down. `die_with_parent` is the `preexec_fn` that
 asks Linux to send SIGTERM to a child when its parent dies, even by SIGKILL (PR_SET_PDEATHSIG), so that
-killing `quekaro up` leaves no orphans.
+killing `quekaro up` leaves no orphans. `log_tail` is what a child that exited said last.
 """
 
 from __future__ import annotations
@@ -15,12 +15,22 @@ import signal
 import sys
 from collections import deque
 from dataclasses import dataclass, field
+from pathlib import Path
 
 BACKOFF_S = 0.5
 MAX_BACKOFF_S = 30.0
 CRASH_LOOP = 5
 CRASH_WINDOW_S = 60.0
 _PR_SET_PDEATHSIG = 1
+
+
+def log_tail(path: Path, lines: int = 1) -> str:
+    """A child's log's last `lines` lines: what it said last (a port in use, a traceback's error)."""
+    try:
+        text = path.read_text(errors="replace").strip()
+    except OSError:
+        return "(no log)"
+    return "\n".join(text.splitlines()[-lines:]) or "(nothing)"
 
 
 def die_with_parent() -> None:

@@ -32,7 +32,7 @@ from pathlib import Path
 from core.errors import QuekaroError
 from core.home import AGENTS_ALLOW, FARM_FILE, PROCESSES_FILE, default_home
 from core.render.bundle import check_rules
-from core.supervision import RestartPolicy, die_with_parent
+from core.supervision import RestartPolicy, die_with_parent, log_tail
 from core.transport.xmpp_server import EmbeddedXmppServer, XmppServerError
 from farm.client import FarmClient
 
@@ -286,7 +286,7 @@ class LocalFarm:
             if master.poll() is not None:  # not restarted: what failed it (a port in use) fails it again
                 log = self.home / "logs" / "master.log"
                 raise QuekaroError(f"the master exited with status {master.returncode} as it started: "
-                                   f"{_last_line(log)} (see {log})")
+                                   f"{log_tail(log)} (see {log})")
             if (self.home / FARM_FILE).exists():
                 self._read_url()
                 try:
@@ -309,13 +309,13 @@ class LocalFarm:
         """Raise if a child is down for good (failed under supervision, or dead without it), or the XMPP
         server has failed (nothing reaches anyone without it), naming what its log last said."""
         if self._server_policy.failed and self.server is not None:
-            why = self._server_error or _last_line(self.server.log_path)
+            why = self._server_error or log_tail(self.server.log_path)
             raise QuekaroError(f"the XMPP server could not be restarted: {why} (see {self.server.log_path})")
         for child in self.children:
             dead = child.proc is not None and child.proc.poll() is not None and not self._supervise
             if dead or (child.state == "failed" and child.name == "master"):
                 log = self.home / "logs" / (child.name + ".log")
-                raise QuekaroError(f"{child.name} exited with status {child.proc.returncode}: {_last_line(log)} "
+                raise QuekaroError(f"{child.name} exited with status {child.proc.returncode}: {log_tail(log)} "
                                    f"(see {log})")
 
     def client(self) -> FarmClient:
@@ -354,14 +354,6 @@ class LocalFarm:
         if self._lock_fd is not None:
             os.close(self._lock_fd)  # releases the flock
             self._lock_fd = None
-
-
-def _last_line(log: Path) -> str:
-    """A log's last line: what a process that exited said last (a port in use, a traceback's error)."""
-    try:
-        return (log.read_text(errors="replace").strip().splitlines()[-1:] or ["(nothing)"])[0]
-    except OSError:
-        return "(no log)"
 
 
 def _say(line: str) -> None:

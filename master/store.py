@@ -476,13 +476,13 @@ class JobStore:
     def _retries(self, job_id: str) -> tuple[int, str | None]:
         """How many attempts of the job ended without a tile (an agent that failed, died or lied), and
         the latest: a user sees that a job went on after an agent was lost, and why."""
-        rows = self.db.execute(
-            "SELECT idx, agent, outcome, reason FROM attempts WHERE job_id = ? AND outcome IN ('failed', 'requeued')"
-            " ORDER BY id DESC", (job_id,)).fetchall()
-        if not rows:
+        retried = "FROM attempts WHERE job_id = ? AND outcome IN ('failed', 'requeued')"
+        (count,) = self.db.execute(f"SELECT COUNT(*) {retried}", (job_id,)).fetchone()
+        if not count:
             return 0, None
-        index, agent, outcome, reason = rows[0]
-        return len(rows), f"unit {index} {outcome}: {reason}" if reason else f"unit {index} {outcome} on {agent}"
+        index, agent, outcome, reason = self.db.execute(
+            f"SELECT idx, agent, outcome, reason {retried} ORDER BY id DESC LIMIT 1", (job_id,)).fetchone()
+        return count, f"unit {index} {outcome}: {reason}" if reason else f"unit {index} {outcome} on {agent}"
 
     def _rendered_so_far(self, job_id: str, per_work: float, now: float | None) -> float:
         """Seconds the units of a job being rendered have rendered by `now`, each capped at its unit's work

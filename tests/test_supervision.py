@@ -15,10 +15,21 @@ from pathlib import Path
 import pytest
 from test_farm import SCENE, _children, assert_all_gone, bundle_of
 
-from core.supervision import RestartPolicy
+from core.supervision import RestartPolicy, log_tail
 from farm.client import FarmClient
 
 REPO = Path(__file__).resolve().parent.parent
+
+
+def test_what_a_child_said_last_is_its_logs_last_lines(tmp_path: Path) -> None:
+    log = tmp_path / "child.log"
+    assert log_tail(log) == "(no log)"
+    log.write_text("")
+    assert log_tail(log) == "(nothing)"
+    log.write_bytes(b"starting\nbound 127.0.0.1:5222\nOSError: [Errno 98] address in use \xff\n\n")
+    assert log_tail(log) == "OSError: [Errno 98] address in use \ufffd"  # the last line said, not a blank one
+    assert log_tail(log, 2) == "bound 127.0.0.1:5222\nOSError: [Errno 98] address in use \ufffd"
+    assert log_tail(log, 9).startswith("starting\n")
 
 
 def test_backoff_doubles_and_a_crash_loop_is_given_up():

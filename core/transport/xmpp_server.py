@@ -32,13 +32,13 @@ import subprocess
 import sys
 import time
 import xml.etree.ElementTree as ET
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import IO
 
 from core.errors import QuekaroError
 from core.files import written_atomically
-from core.supervision import die_with_parent
+from core.supervision import die_with_parent, log_tail
 from core.transport.pyjabber_tmp import remove_upload_dir_at_exit
 
 log = logging.getLogger(__name__)
@@ -102,18 +102,18 @@ def make_self_signed_cert(directory: Path, domain: str, days: int = 30) -> tuple
     return cert, key
 
 
-def _wait_until_accepting(proc: subprocess.Popen, host: str, port: int, timeout: float,
-                          log_path: Path) -> None:
+def _poll_until(proc: subprocess.Popen, ready: Callable[[], bool], timeout: float, exited: Callable[[int], str],
+                late: Callable[[], str]) -> None:
+    """Poll `ready` every 50 ms until it holds; XmppServerError saying `exited(code)` if the child exits
+    first, or `late()` once `timeout` seconds have passed."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            raise XmppServerError(f"XMPP server exited with code {proc.returncode}; see {log_path}:\n"
-                                  + _tail(log_path))
-        if port_accepts(host, port, timeout=0.2):
+            raise XmppServerError(exited(proc.returncode))
+        if ready():
             return
         time.sleep(0.05)
-    raise XmppServerError(f"XMPP server did not accept connections on {host}:{port} within {timeout:.0f} s; "
-                          f"see {log_path}:\n" + _tail(log_path))
+    raise XmppServerError(late())
 
 
 def _first_error(path: Path) -> str:
@@ -122,15 +122,8 @@ def _first_error(path: Path) -> str:
         lines = path.read_text(errors="replace").splitlines()
     except OSError:
         return "(no log)"
-    errors = [line.split(" - ", 1)[-1] for line in lines if "| ERROR" in line]
-    return (errors or lines[-1:] or ["(empty log)"])[0].strip()
-
-
-def _tail(path: Path, lines: int = 15) -> str:
-    try:
-        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
-    except OSError:
-        return "(no log)"
+    errors = [line.split(" - ", 1)[-1].strip() for line in lines if "| ERROR" in line]
+    return errors[0] if errors else log_tail(path)
 
 
 def _stop_child(proc: subprocess.Popen | None, timeout: float) -> None:
@@ -157,7 +150,7 @@ class _ChildServer:
     def __init__(self, data_dir: Path | str, domain: str, port: int | None) -> None:
         self.data_dir = Path(data_dir).resolve()
         self.domain = domain
-        self.port = port or free_port()
+        self.port = port or 0  # 0: the subclass chooses (Prosody: a free port; pyjabber: its own bind)
         self.log_path = self.data_dir / "server.log"
         self._proc: subprocess.Popen | None = None
         self._log_file: IO[bytes] | None = None
@@ -183,7 +176,7 @@ class _ChildServer:
 
     def _await_ready(self, timeout: float) -> None:
         """Return once the child serves clients; raise XmppServerError (with its log) if it exits first."""
-        _wait_until_accepting(self._proc, self.host, self.port, timeout, self.log_path)
+        raise NotImplementedError
 
     def start(self, timeout: float = 30.0) -> None:
         """Start the server and return once it accepts TCP connections on 127.0.0.1:port."""
@@ -256,7 +249,7 @@ class EmbeddedXmppServer(_ChildServer):
         super().__init__(data_dir, domain, port)
         # Unless given, both ports are chosen by the server's own bind (0) and read back once it is ready:
         # a port picked here and bound later may be taken in between (a farm failed to start so).
-        self.port, self.s2s_port = port or 0, s2s_port or 0
+        self.s2s_port = s2s_port or 0
         self.message_persistence = message_persistence
         self.log_level = log_level
 
@@ -286,18 +279,19 @@ class EmbeddedXmppServer(_ChildServer):
     def _await_ready(self, timeout: float) -> None:
         """Wait for the ports the child writes once both its listeners are bound (the client port alone
         accepting does not say the server-to-server one was bound: pyjabber exits when it is not)."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self._proc.poll() is not None:
-                raise XmppServerError(f"XMPP server exited with code {self._proc.returncode}: "
-                                      f"{_first_error(self.log_path)} (see {self.log_path})")
-            with contextlib.suppress(FileNotFoundError):
-                ports = json.loads(self.ready_file.read_text())
-                self.port, self.s2s_port = int(ports["port"]), int(ports["s2s_port"])
-                return
-            time.sleep(0.05)
-        raise XmppServerError(f"XMPP server did not bind its ports within {timeout:.0f} s; see {self.log_path}:\n"
-                              + _tail(self.log_path))
+        _poll_until(self._proc, self._read_ports, timeout,
+                    lambda code: f"XMPP server exited with code {code}: {_first_error(self.log_path)} "
+                                 f"(see {self.log_path})",
+                    lambda: f"XMPP server did not bind its ports within {timeout:.0f} s; see {self.log_path}:\n"
+                            + log_tail(self.log_path, 15))
+
+    def _read_ports(self) -> bool:
+        try:
+            ports = json.loads(self.ready_file.read_text())
+        except FileNotFoundError:
+            return False
+        self.port, self.s2s_port = int(ports["port"]), int(ports["s2s_port"])
+        return True
 
     def _command(self) -> tuple[list[str], dict[str, str]]:
         self.ready_file.unlink(missing_ok=True)
@@ -327,6 +321,7 @@ class ProsodyServer(_ChildServer):
         if not Path(config).is_file():
             raise XmppServerError(f"Prosody config not found: {config}")
         super().__init__(data_dir, domain, port)
+        self.port = port or free_port()  # Prosody cannot be told port 0 and report what it bound
         self._choose_port = port is None  # until it first starts: a port taken meanwhile is chosen again
         self._log_offset = 0
         self.config = Path(config)
@@ -381,21 +376,20 @@ class ProsodyServer(_ChildServer):
 
     def _await_ready(self, timeout: float) -> None:
         """Until Prosody's log says it listens on the port (another process's listener there accepts too)."""
-        deadline = time.monotonic() + timeout
-        listening = f"Activated service 'c2s' on [{self.host}]:{self.port}"
-        while time.monotonic() < deadline:
-            if self._proc.poll() is not None:
-                raise XmppServerError(f"Prosody exited with code {self._proc.returncode}; see {self.log_path}:\n"
-                                      + _tail(self.log_path))
-            started = self._log_since_start()
-            if f"Failed to open server port {self.port} " in started or "'c2s' on no ports" in started:
-                self.stop()
-                raise PortTaken(f"port {self.host}:{self.port} is taken by another process (see {self.log_file})")
-            if listening in started and port_accepts(self.host, self.port, timeout=0.2):
-                return
-            time.sleep(0.05)
-        raise XmppServerError(f"Prosody did not listen on {self.host}:{self.port} within {timeout:.0f} s; see "
-                              f"{self.log_file}:\n" + _tail(self.log_file))
+        _poll_until(self._proc, self._listening, timeout,
+                    lambda code: f"Prosody exited with code {code}; see {self.log_path}:\n"
+                                 + log_tail(self.log_path, 15),
+                    lambda: f"Prosody did not listen on {self.host}:{self.port} within {timeout:.0f} s; see "
+                            f"{self.log_file}:\n" + log_tail(self.log_file, 15))
+
+    def _listening(self) -> bool:
+        """Whether Prosody listens on its port; PortTaken (Prosody stopped) where its log says it cannot."""
+        started = self._log_since_start()
+        if f"Failed to open server port {self.port} " in started or "'c2s' on no ports" in started:
+            self.stop()
+            raise PortTaken(f"port {self.host}:{self.port} is taken by another process (see {self.log_file})")
+        return (f"Activated service 'c2s' on [{self.host}]:{self.port}" in started
+                and port_accepts(self.host, self.port, timeout=0.2))
 
     def _log_since_start(self) -> str:
         try:
