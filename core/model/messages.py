@@ -228,17 +228,20 @@ class Awards(Message):
 
 def packed(awards: Sequence[Award]) -> list[Award | Awards]:
     """Awards of one job to one agent as few messages as the body's limit allows, in their order: runs of
-    two or more as `Awards`, a lone one as itself."""
+    two or more as `Awards`, a lone one as itself. A run is encoded once to check its size (split in halves
+    only where it does not fit), since the sender encodes each message again."""
     out: list[Award | Awards] = []
-    run: list[Award] = []
-    for award in awards:
-        if run and (len(run) == MAX_CFP_UNITS or not _fits(_together([*run, award]))):
-            out.append(_together(run))
-            run = []
-        run.append(award)
-    if run:
-        out.append(_together(run))
+    for start in range(0, len(awards), MAX_CFP_UNITS):
+        out += _fitting(awards[start:start + MAX_CFP_UNITS])
     return out
+
+
+def _fitting(run: Sequence[Award]) -> list[Award | Awards]:
+    pack = _together(run)
+    if len(run) == 1 or _fits(pack):
+        return [pack]
+    half = len(run) // 2
+    return _fitting(run[:half]) + _fitting(run[half:])
 
 
 def _together(run: Sequence[Award]) -> Award | Awards:
