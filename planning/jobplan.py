@@ -80,20 +80,29 @@ def farm_min_units(live_agents: int) -> int:
     return min(4 * n, 3 * n + 8)
 
 
-def default_unit_count(width: int, height: int, level: str, min_units: int = 1, spp: int | None = None) -> int:
-    """Units of about 256 px a side at level off and 56 px when the rules run, and at least `min_units`
-    (a farm asks for a few per agent). At level off nothing is gained by small units in one process:
-    each render call costs ~0.05 s and bands add pixels (16 units of 128 px ran 1.16x one plain render of
-    cbox 512x512, 256 spp); given the `spp`, a level-off unit also holds at least OFF_UNIT_SAMPLES samples,
-    so that a short render is one unit, as plain Mitsuba renders it, and a long one still shows progress
-    unit by unit. When the rules run, the rules move samples
+# A unit's side (px) when the rules run: in one process, and for a farm's job (not an adaptive one, whose
+# partition is the same wherever it runs). See default_unit_count.
+RULE_SIDE = 56
+FARM_RULE_SIDE = 90
+
+
+def default_unit_count(width: int, height: int, level: str, min_units: int = 1, spp: int | None = None,
+                       farm: bool = False) -> int:
+    """Units of about 256 px a side at level off and RULE_SIDE (FARM_RULE_SIDE for a `farm` job) when the
+    rules run, and at least `min_units` (a farm asks for a few per agent). At level off nothing is gained by
+    small units in one process: each render call costs ~0.05 s and bands add pixels (16 units of 128 px ran
+    1.16x one plain render of cbox 512x512, 256 spp); given the `spp`, a level-off unit also holds at least
+    OFF_UNIT_SAMPLES samples, so that a short render is one unit, as plain Mitsuba renders it, and a long
+    one still shows progress unit by unit. When the rules run, the rules move samples
     between units, so the noisy corner of a scene must fall in units of its own (the partition weighs
     cost by relative noise, so the costly corner is split and the cheap wall stays in big units), while
     every unit pays a fixed cost per render call (~0.05 s here, ~20 spp of a 40 px unit), a 2 px band
     ((40+4)^2/40^2 = 1.21x the pixels at 40 px, 1.15x at 56) and a kernel compilation per new crop size.
     On caustic-corner at 160x160 (model from measured per-pixel noise and per-call cost) level S reached
-    0.84x the uniform relMSE with 8 units, 0.91x with 7, 0.96x with 12 and 1.45x with 22 (40 px)."""
-    side = 256 if level == "off" else 56
+    0.84x the uniform relMSE with 8 units, 0.91x with 7, 0.96x with 12 and 1.45x with 22 (40 px). A farm's
+    unit also pays its award, its tile's upload and its bands in each agent's batch, so a farm's units are
+    larger (docs/benchmarks/unit-size/README.md: level S at 34 units against 85, side by side)."""
+    side = 256 if level == "off" else FARM_RULE_SIDE if farm else RULE_SIDE
     wanted = round(width * height / (side * side))
     if level == "off" and spp is not None:
         wanted = min(wanted, width * height * spp // OFF_UNIT_SAMPLES)
@@ -111,21 +120,22 @@ class Floors(StrEnum):
 
 
 def plan_job(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: int = 1,
-             floors: Floors = Floors.RULES) -> JobPlan:
+             floors: Floors = Floors.RULES, farm: bool = False) -> JobPlan:
     """Analyse the scene's effects, run the pre-pass (optimised levels only) on the scene as the analysis
     loaded it, and partition the image (into `options.units` units, else the default count and at least
-    `min_units`). `floors`: when the units' depth floors are measured (Floors)."""
-    return plan_job_loaded(spec, options, seed, min_units, floors)[0]
+    `min_units`). `floors`: when the units' depth floors are measured (Floors); `farm`: a farm's job, whose
+    units are larger where the rules run (default_unit_count)."""
+    return plan_job_loaded(spec, options, seed, min_units, floors, farm)[0]
 
 
 def plan_job_loaded(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_units: int = 1,
-                    floors: Floors = Floors.RULES) -> tuple[JobPlan, Any]:
+                    floors: Floors = Floors.RULES, farm: bool = False) -> tuple[JobPlan, Any]:
     """`plan_job`, and the scene as the analysis loaded it in the plan's variant (the pre-pass leaves it
     as loaded), for a process that renders the units next."""
     floors = Floors(floors)  # a stale boolean (the former floors_always) is refused, not read as RULES
     effects, loaded = analyse_loaded(spec, options.overrides())
     _check_renders(spec, options, loaded)
-    plan = _plan(spec, options, seed, min_units, effects, loaded, floors)
+    plan = _plan(spec, options, seed, min_units, effects, loaded, floors, farm)
     if options.units and len(plan.units) != options.units and plan.effects.splittable:
         plan.effects.reasons.append(
             f"--units {options.units} is a target: {len(plan.units)} made (units are at least {DEFAULT_SIZES[0]} "
@@ -143,7 +153,7 @@ def _check_renders(spec: SceneSpec, options: RenderOptions, loaded: Any) -> None
 
 
 def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, effects: Effects,
-          loaded: Any, floors: Floors = Floors.RULES) -> JobPlan:
+          loaded: Any, floors: Floors = Floors.RULES, farm: bool = False) -> JobPlan:
     """The plan for the analysed scene (`loaded`, its effects `effects`)."""
     info = film_info(spec, options.sensor)
     width, height = info.width, info.height
@@ -159,7 +169,8 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     # the same wherever it runs: a farm's minimum count (min_units) is its render units' (_adaptive), else
     # the level's budget fell with the farm's size (the rules weigh each unit's size).
     chosen = None if options.adaptive else options.units
-    target = chosen or default_unit_count(width, height, options.level, 1 if options.adaptive else min_units, spp)
+    target = chosen or (default_unit_count(width, height, options.level, 1, spp) if options.adaptive
+                        else default_unit_count(width, height, options.level, min_units, spp, farm))
     if not effects.splittable:
         return _one_unit(plan, "this integrator renders as one unit")
     sensor_type, sampler = _sensor_kind(sensors, loaded, options.sensor)

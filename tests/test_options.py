@@ -71,3 +71,12 @@ def test_a_short_level_off_render_is_one_unit_and_a_long_one_keeps_its_tiles():
     assert default_unit_count(1920, 1080, "off", spp=1) == 1
     assert default_unit_count(512, 512, "off", min_units=8, spp=64) == 8  # a farm's agents each get some
     assert default_unit_count(512, 512, "S", spp=1) == default_unit_count(512, 512, "S", spp=4096) == 84
+
+
+def test_a_farms_units_are_larger_where_the_rules_run_and_still_several_per_agent():
+    """A farm's unit pays an award and an upload besides its render call (default_unit_count): 90 px units
+    where the rules run, never fewer than the farm's minimum, and level off as in one process."""
+    assert default_unit_count(512, 512, "S", farm=True) == 32 < default_unit_count(512, 512, "S")
+    assert default_unit_count(512, 512, "VB", min_units=56, farm=True) == 56  # 16 agents: 3 each + 8
+    assert default_unit_count(512, 512, "off", spp=64, farm=True) == default_unit_count(512, 512, "off", spp=64)
+    assert default_unit_count(64, 64, "S", farm=True) == 1
