@@ -342,7 +342,7 @@ class MasterService:
             options = dataclasses.replace(options, threads=self.config.threads)
         async with self._planning:
             return await asyncio.to_thread(self._planner.call, plan_job, spec, options, seed,
-                                           self._units_for_agents(), self._floors(options), True,
+                                           self._units_for_agents(), self._floors(options), True,  # farm
                                            doing=f"planning {spec.path.name}")
 
     def _floors(self, options: RenderOptions) -> Floors:

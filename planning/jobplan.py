@@ -169,8 +169,8 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     # the same wherever it runs: a farm's minimum count (min_units) is its render units' (_adaptive), else
     # the level's budget fell with the farm's size (the rules weigh each unit's size).
     chosen = None if options.adaptive else options.units
-    target = chosen or (default_unit_count(width, height, options.level, 1, spp) if options.adaptive
-                        else default_unit_count(width, height, options.level, min_units, spp, farm))
+    target = chosen or default_unit_count(width, height, options.level, 1 if options.adaptive else min_units, spp,
+                                          farm and not options.adaptive)
     if not effects.splittable:
         return _one_unit(plan, "this integrator renders as one unit")
     sensor_type, sampler = _sensor_kind(sensors, loaded, options.sensor)

@@ -73,13 +73,17 @@ class Verdict:
     def only_fireflies(self) -> bool:
         """Whether the significant pixels are at most FIREFLY_CLUSTERS clumps a firefly can make: the means'
         verdict, without the variance's (images averaged over jobs have another variance)."""
-        return (self.failing >= 0 and len(self.clumps) <= FIREFLY_CLUSTERS
-                and all(side <= FIREFLY_EXTENT for side in self.clumps))
+        return self.failing >= 0 and _fireflies(self.clumps)
 
     def __str__(self) -> str:
         return (f"{'same' if self.passed else 'DIFFERENT'}: {self.failing} of {self.tested} pixel channels "
                 f"significant ({self.pixels} pixels in clumps of side {list(self.clumps)}), smallest p "
                 f"{self.worst_p:.3g}, variance ratio {self.variance_ratio:.3f}; {self.detail}")
+
+
+def _fireflies(sides: tuple[int, ...]) -> bool:
+    """Whether clumps of these sides are at most FIREFLY_CLUSTERS that a firefly can make."""
+    return len(sides) <= FIREFLY_CLUSTERS and all(side <= FIREFLY_EXTENT for side in sides)
 
 
 def clumps(significant: np.ndarray) -> tuple[int, ...]:
@@ -222,10 +226,9 @@ def compare(test: np.ndarray | list[np.ndarray], reference: np.ndarray, alpha: f
         idx = np.argwhere(noisy)[np.argmin(p)] if failing else np.argwhere(~noisy)[0]
         where += f"worst at (y, x, channel) {tuple(int(i) for i in idx)}; "
     detail = f"{where}{exact_bad} noiseless channels differ; Sidak alpha per channel {alpha_px:.2g}"
-    verdict = Verdict(False, failing + exact_bad, n, float(p.min()) if n else 1.0, ratio, detail, pixels,
-                      clumps(per_pixel))
-    verdict.passed = verdict.only_fireflies and var_ok
-    return verdict
+    sides = clumps(per_pixel)
+    return Verdict(_fireflies(sides) and var_ok, failing + exact_bad, n, float(p.min()) if n else 1.0, ratio,
+                   detail, pixels, sides)
 
 
 def moment_channels(image: np.ndarray, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -252,10 +255,9 @@ def compare_moment_renders(a: tuple[np.ndarray, np.ndarray, np.ndarray], b: tupl
     detail = f"Sidak alpha per channel {alpha_px:.2g}"
     if per_pixel.any():
         detail = f"worst at (y, x, channel) {tuple(int(i) for i in np.unravel_index(np.argmin(p), p.shape))}; " + detail
-    verdict = Verdict(False, int(significant.sum()), p.size, float(p.min()), 1.0, detail, int(per_pixel.sum()),
-                      clumps(per_pixel))
-    verdict.passed = verdict.only_fireflies
-    return verdict
+    sides = clumps(per_pixel)
+    return Verdict(_fireflies(sides), int(significant.sum()), p.size, float(p.min()), 1.0, detail,
+                   int(per_pixel.sum()), sides)
 
 
 def least_spp(report: dict) -> np.ndarray:
