@@ -13,6 +13,7 @@ from fuzzy_helpers import REPO, RULES
 # `engine`). Not imported: its rule count and the published rules' labels, which the retune changes at
 # N, B and VB on purpose.
 from test_fuzzy_rulebase import (  # noqa: F401
+    RANGES,
     test_centre_of_sums_agrees_in_direction,
     test_every_label_combination_fires_every_output,
     test_higher_complexity_raises_samples_and_never_depth,
@@ -26,8 +27,6 @@ from test_fuzzy_rulebase import (  # noqa: F401
 from fuzzy import Engine, load_rulebase
 
 RETUNE = REPO / "bench" / "rules" / "pathtracing-retune.xml"
-RANGES = {"C": (0.0, 1.0), "S": (0.0, 1.0), "Nd": (0.0, 1.0)}
-OP = {"VS": 0.0, "S": 1.0, "N": 2.0, "B": 3.0, "VB": 4.0}
 GRID = np.linspace(0.0, 1.0, 21)
 
 
@@ -41,15 +40,15 @@ def shipped() -> Engine:
     return Engine(load_rulebase(RULES))
 
 
-def _units(op: float, nd: np.ndarray = GRID) -> np.ndarray:
-    """Every (C, S, Nd) of the grid at level `op`."""
+def _units(engine: Engine, level: str, nd: np.ndarray = GRID) -> np.ndarray:
+    """Every (C, S, Nd) of the grid at `level`'s crisp Op, as the planner evaluates it."""
     units = np.array(list(itertools.product(GRID, GRID, nd)))
-    return np.column_stack([units, np.full(len(units), op)])
+    return np.column_stack([units, np.full(len(units), engine.rulebase.op_value(level))])
 
 
 @pytest.mark.parametrize("level", ["VS", "S", "N", "B", "VB"])
 def test_only_the_samples_of_n_b_and_vb_differ_from_the_shipped_file(engine, shipped, level):
-    x = _units(OP[level])
+    x = _units(engine, level)
     mine, theirs = engine.evaluate(x, RANGES), shipped.evaluate(x, RANGES)
     np.testing.assert_allclose(mine["Rl"], theirs["Rl"], atol=1e-12)  # depth: R1-R11 as shipped
     np.testing.assert_allclose(mine["Ibs"], theirs["Ibs"], atol=1e-12)
@@ -64,7 +63,7 @@ def test_samples_follow_c_alone_with_a_spread_of_a_few_times(engine, level):
     """Away from a strong neighbour difference (where the shipped R25 raises a complex unit's samples),
     a unit's samples do not depend on its size, rise with C, and the most complex units get 3-6x the
     samples of the simplest (the shipped file: about 13x at N)."""
-    x = _units(OP[level], nd=np.array([0.0]))
+    x = _units(engine, level, nd=np.array([0.0]))
     ls = engine.evaluate(x, RANGES)["Ls"].reshape(len(GRID), len(GRID))  # [C, S]
     assert np.ptp(ls, axis=1).max() < 1e-12, "the unit's size moves its samples"
     by_c = ls[:, 0]
@@ -79,8 +78,8 @@ def test_each_level_spends_no_more_than_the_one_below(engine):
     the user's spp (centroids of unions). On a strong boundary the shipped R25 gives a complex unit Ls B
     at every level from S to VB, and that boost moves a lower level's smaller centroid further: there a
     level may spend up to 0.06 of the user's spp more than the one below it (about 4 of 64 spp)."""
-    nd = _units(0.0)[:, 2]
-    ls = {level: engine.evaluate(_units(OP[level]), RANGES)["Ls"] for level in ("S", "N", "B", "VB")}
+    nd = _units(engine, "S")[:, 2]
+    ls = {level: engine.evaluate(_units(engine, level), RANGES)["Ls"] for level in ("S", "N", "B", "VB")}
     calm = nd <= 0.5
     for lighter, heavier in itertools.pairwise(("S", "N", "B", "VB")):
         gap = ls[lighter] - ls[heavier]
