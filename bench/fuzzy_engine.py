@@ -1,6 +1,6 @@
 """`quekaro bench fuzzy`: speed of the batched engine against pyfuzzylite, and centroid exactness.
 
-Evaluates the path-tracing rule base (33 rules) on random units (C, S, Nd uniform over an observed range
+Evaluates the path-tracing rule base (48 rules) on random units (C, S, Nd uniform over an observed range
 [0, 1], Op uniform over [0, 4]); reports evaluations per second (one evaluation = one unit, all three
 outputs) for this engine and for pyfuzzylite on the same rule base and the same units in the same run,
 and the largest relative difference between the exact centroid and a numerical integration (trapezoid

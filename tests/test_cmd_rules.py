@@ -17,7 +17,7 @@ def _quekaro(*args: str) -> subprocess.CompletedProcess:
 def test_check_valid_file():
     res = _quekaro("rules", "check", str(RULES))
     assert res.returncode == 0, res.stderr
-    assert "33 rules" in res.stdout and "inputs C*, S*, Nd*, Op" in res.stdout and "outputs Ls, Rl, Ibs" in res.stdout
+    assert "48 rules" in res.stdout and "inputs C*, S*, Nd*, Op" in res.stdout and "outputs Ls, Rl, Ibs" in res.stdout
     assert len(res.stdout.strip().splitlines()) == 1
 
 

@@ -24,7 +24,7 @@ def _refuse(text: str | bytes, tmp_path) -> RuleFileError:
 
 def test_paper_dialect_rule_base_loads():
     rb = load_rulebase(RULES)
-    assert len(rb.rules) == 33
+    assert len(rb.rules) == 48
     assert [v.name for v in rb.inputs] == ["C", "S", "Nd", "Op"]
     assert [v.name for v in rb.outputs] == ["Ls", "Rl", "Ibs"]
     assert [v.dynamic for v in rb.inputs] == [True, True, True, False]
