@@ -103,15 +103,20 @@ def test_higher_optimisation_lowers_samples_and_depth(engine):
     assert 0.7 < ls[0] < 1.3  # VS keeps about the user's budget (and moves it, see below)
 
 
+def _units(engine: Engine, level: str, nd: np.ndarray = GRID) -> np.ndarray:
+    """Every (C, S, Nd) of the grid at `level`'s crisp Op, as the planner evaluates it."""
+    units = np.array(list(itertools.product(GRID, GRID, nd)))
+    return np.column_stack([units, np.full(len(units), engine.rulebase.op_value(level))])
+
+
 def test_no_unit_gets_fewer_samples_at_vs_than_at_s(engine):
     """The lightest level spends at least what level S does on every unit, not only on average.
 
     Tolerance 0.02 of the user's spp: where R27's neighbour boost (Op S only) meets C's
     VS/S border, S's centroid lies about 0.013 above VS's.
     """
-    units = np.array(list(itertools.product(GRID, GRID, GRID)))
-    ls = {op: engine.evaluate(np.column_stack([units, np.full(len(units), op)]), RANGES)["Ls"] for op in (0.0, 1.0)}
-    assert float((ls[0.0] - ls[1.0]).min()) > -0.02
+    ls = {level: engine.evaluate(_units(engine, level), RANGES)["Ls"] for level in ("VS", "S")}
+    assert float((ls["VS"] - ls["S"]).min()) > -0.02
 
 
 def test_higher_complexity_raises_samples_and_never_depth(engine):
@@ -133,12 +138,6 @@ def test_neighbour_difference_widens_the_band_and_raises_samples(engine):
     bands = [m["Ibs"] for m in means]
     assert all(a < b for a, b in itertools.pairwise(bands)), bands
     assert means[4]["Ls"] > means[2]["Ls"]
-
-
-def _units(engine: Engine, level: str, nd: np.ndarray = GRID) -> np.ndarray:
-    """Every (C, S, Nd) of the grid at `level`'s crisp Op, as the planner evaluates it."""
-    units = np.array(list(itertools.product(GRID, GRID, nd)))
-    return np.column_stack([units, np.full(len(units), engine.rulebase.op_value(level))])
 
 
 @pytest.mark.parametrize("level", ["N", "B", "VB"])
