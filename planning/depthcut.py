@@ -16,7 +16,16 @@ MAX_FLOOR_SPP). A unit's floor is the shallowest of those depths (and every deep
 the unit, its mean plus Z_BOUND standard errors over the unit's low-resolution pixels, stays within
 LOSS_TOLERANCE of the unit's light, and whose loss relative to each lit pixel's own light does too, on
 average over those pixels (a seam shows against the pixels beside it, not against the unit's mean).
-The planner never renders a unit below its floor; the master refuses a tile that says it did."""
+The planner never renders a unit below its floor; the master refuses a tile that says it did.
+
+The passes are staged, since most cuts that fail, fail by far (a closed room loses several times the
+tolerance): a probe of PROBE_SPP samples refuses the cuts whose loss is over the tolerance even at its
+lower bound, and the units left are judged on all the samples. Deeper first, a depth is measured only
+for units that may still be cut to it and whose rules cut them that far (`needed`: a floor below a
+unit's chosen depth changes nothing the planner renders), and a stage is rendered only where it may pay:
+where the cut could save the units left more samples (at their spp, over their pixels, a path's cost
+taken as its depth) than the stage renders over the whole low-resolution film. A unit left undecided
+keeps its depth: that costs time, never accuracy."""
 
 from __future__ import annotations
 
@@ -42,22 +51,29 @@ DARK = 1e-6  # a unit or pixel with less light than this (mean over RGB) loses n
 # loses more than the tolerance pass too often (tests/test_depth_floors.py counts how often).
 MIN_UNIT_SAMPLES = 2048
 MAX_FLOOR_SPP = 64  # a unit of fewer than 32 low-resolution pixels takes fewer samples
+PROBE_SPP = 8  # the first stage's samples per pixel: a pass at 8 costs about an eighth of one at 57 (interior)
+Z_FAIL = 3.0  # a probe refuses a cut whose loss is over the tolerance at mean - 3 standard errors
+# A stage after the first renders with its own seed; this odd constant spreads a job's stage seeds apart, so
+# that stage 1 of one seed is not stage 0 of the next.
+STAGE_SEED_STEP = 0x9E3779B9
 
 
 @dataclass(frozen=True)
 class DepthFloors:
-    """Each unit's floor (in unit order), the depths measured, and what the passes took."""
+    """Each unit's floor (in unit order), the depths it is chosen from, what the passes took, and each
+    pass rendered: (depth, spp)."""
 
     floors: tuple[int, ...]
     depths: tuple[int, ...]
     seconds: float
     spp: int
+    renders: tuple[tuple[int, int], ...] = ()
 
     def to_info(self) -> dict[str, Any]:
         cut = sum(1 for f in self.floors if f < max(self.depths))
         return {"depth_floor_depths": list(self.depths), "depth_floor_seconds": self.seconds,
                 "depth_floor_spp": self.spp, "depth_floor_units_cuttable": cut,
-                "depth_floor_tolerance": LOSS_TOLERANCE}
+                "depth_floor_tolerance": LOSS_TOLERANCE, "depth_floor_renders": [list(r) for r in self.renders]}
 
 
 def cut_depths(depth: int) -> list[int]:
@@ -66,16 +82,60 @@ def cut_depths(depth: int) -> list[int]:
 
 
 def measure(scene: Any, integrator_at: Callable[[int], str], depth: int, rects: Sequence[Rect],
-            low_size: tuple[int, int], image_size: tuple[int, int], seed: int = 0, sensor: int = 0) -> DepthFloors:
+            low_size: tuple[int, int], image_size: tuple[int, int], seed: int = 0, sensor: int = 0,
+            needed: Sequence[int] | None = None, samples: Sequence[int] | None = None) -> DepthFloors:
     """Render `scene` at `low_size` with `integrator_at(d)` (standalone integrator XML) for the user's
-    `depth` and each cut depth, one seed, and return each rect's floor (rects in `image_size` pixels)."""
+    `depth` and the cut depths, in stages, and return each rect's floor (rects in `image_size` pixels).
+    `needed`: per rect, the shallowest depth its floor need be known to (its chosen depth; None: 1), so
+    its floor is never below it. `samples`: per rect, the most spp it renders, which bounds what a cut can
+    save (None: every stage is rendered)."""
     start = time.perf_counter()
     depths = [depth, *cut_depths(depth)]
     spp = floor_spp(rects, low_size, image_size)
     with film_size(scene, *low_size, sensor):
-        light = {d: _luminance(scene, integrator_at(d), spp, seed, sensor) for d in depths}
-    floors = floors_from_passes(light, rects, image_size)
-    return DepthFloors(tuple(floors), tuple(depths), time.perf_counter() - start, spp)
+        passes = StagedPasses(lambda d, n, s: _luminance(scene, integrator_at(d), n, s, sensor), stage_spp(spp), seed,
+                              low_size[0] * low_size[1])
+        floors = staged_floors(passes, depths, rects, image_size, needed, samples)
+    return DepthFloors(tuple(floors), tuple(depths), time.perf_counter() - start, spp, tuple(passes.renders))
+
+
+def stage_spp(spp: int) -> list[int]:
+    """The samples per pixel of each stage: a probe of PROBE_SPP and the rest, or one stage where the rest
+    would be smaller than the probe."""
+    return [spp] if spp < 2 * PROBE_SPP else [PROBE_SPP, spp - PROBE_SPP]
+
+
+class StagedPasses:
+    """Luminance per depth and stage over `pixels` low-resolution pixels, each rendered once when first
+    asked for (`render(depth, spp, seed)`); a depth's estimate over its first k stages is their samples'
+    mean. Stage k renders with its own seed, the same at every depth, so that two depths' passes follow
+    the same paths up to the shallower."""
+
+    def __init__(self, render: Callable[[int, int, int], np.ndarray], spp: Sequence[int], seed: int,
+                 pixels: int) -> None:
+        self._render, self.spp, self._seed, self.pixels = render, list(spp), seed, pixels
+        self._done: dict[tuple[int, int], np.ndarray] = {}
+        self.renders: list[tuple[int, int]] = []
+
+    @property
+    def stages(self) -> int:
+        return len(self.spp)
+
+    def done(self, depth: int, stage: int) -> bool:
+        return (depth, stage) in self._done
+
+    def light(self, depth: int, stages: int) -> np.ndarray:
+        """The mean over the first `stages` stages at `depth`."""
+        images = [self._stage(depth, k) for k in range(stages)]
+        weights = self.spp[:stages]
+        return sum(w * img for w, img in zip(weights, images, strict=True)) / sum(weights)
+
+    def _stage(self, depth: int, k: int) -> np.ndarray:
+        if (depth, k) not in self._done:
+            seed = (self._seed + k * STAGE_SEED_STEP) % 2**32
+            self._done[depth, k] = self._render(depth, self.spp[k], seed)
+            self.renders.append((depth, self.spp[k]))
+        return self._done[depth, k]
 
 
 def floor_spp(rects: Sequence[Rect], low_size: tuple[int, int], image_size: tuple[int, int]) -> int:
@@ -93,21 +153,61 @@ def _window_pixels(window: tuple[slice, slice]) -> int:
 
 def floors_from_passes(light: dict[int, np.ndarray], rects: Sequence[Rect],
                        image_size: tuple[int, int]) -> list[int]:
-    """Each rect's floor from low-resolution luminance images per depth (the deepest is the user's):
-    the shallowest depth that, with every deeper one, keeps the rect's loss within LOSS_TOLERANCE."""
-    full_depth = max(light)
-    full = light[full_depth]
-    width, height = image_size
-    floors = []
-    for rect in rects:
-        ys, xs = _low_window(rect, full.shape, width, height)
-        floor = full_depth
-        for d in sorted(light, reverse=True)[1:]:  # deeper first: stop at the first cut that loses too much
-            if not _within(full[ys, xs], light[d][ys, xs]):
-                break
-            floor = d
-        floors.append(floor)
+    """Each rect's floor from one stage of low-resolution luminance images per depth (the deepest is the
+    user's): the shallowest depth that, with every deeper one, keeps the rect's loss within LOSS_TOLERANCE."""
+    passes = StagedPasses(lambda d, _n, _s: light[d], [1], 0, light[max(light)].size)
+    return staged_floors(passes, sorted(light, reverse=True), rects, image_size)
+
+
+def staged_floors(passes: StagedPasses, depths: Sequence[int], rects: Sequence[Rect], image_size: tuple[int, int],
+                  needed: Sequence[int] | None = None, samples: Sequence[int] | None = None) -> list[int]:
+    """Each rect's floor from `passes` (`depths[0]` is the user's, the rest deeper first); `needed` and
+    `samples` as in measure. A rect refused a depth keeps the deeper one and is not tried shallower."""
+    full_depth, n = depths[0], len(rects)
+    floors = [full_depth] * n
+    reach = [1] * n if needed is None else [int(d) for d in needed]
+    still = [i for i in range(n) if reach[i] < full_depth]
+    for depth in depths[1:]:
+        still = [i for i in still if reach[i] <= depth]
+        cut = _cut(passes, full_depth, depth, {i: rects[i] for i in still}, image_size, samples)
+        still = [i for i in still if i in cut]
+        for i in still:
+            floors[i] = depth
     return floors
+
+
+def _cut(passes: StagedPasses, full_depth: int, depth: int, rects: dict[int, Rect], image_size: tuple[int, int],
+         samples: Sequence[int] | None) -> set[int]:
+    """The keys of `rects` that may be cut from `full_depth` to `depth`: before the last stage a rect is
+    refused where its loss is over the tolerance even at its lower bound (_beyond), at the last stage
+    where it is not within it at its upper bound (_within); a stage that cannot pay (_pays) is not
+    rendered, and the rects it would have judged are refused."""
+    undecided = list(rects)
+    for k in range(1, passes.stages + 1):
+        if not undecided or not _pays(passes, k - 1, full_depth, depth, [rects[i] for i in undecided],
+                                      None if samples is None else [samples[i] for i in undecided]):
+            return set()
+        full, cut = passes.light(full_depth, k), passes.light(depth, k)
+        last = k == passes.stages
+        judged = {i: (full[w], cut[w]) for i in undecided
+                  for w in [_low_window(rects[i], full.shape, *image_size)]}
+        if last:
+            return {i for i, (f, c) in judged.items() if _within(f, c)}
+        undecided = [i for i, (f, c) in judged.items() if not _beyond(f, c)]
+    return set()
+
+
+def _pays(passes: StagedPasses, stage: int, full_depth: int, depth: int, rects: list[Rect],
+          samples: list[int] | None) -> bool:
+    """Whether the stages from `stage` on may save more than they cost, in path vertices (a sample's cost
+    taken as its depth): they render the low-resolution film at `depth`, and at `full_depth` where not yet
+    rendered; the cut saves at most each rect's pixels times its samples times the depths' difference."""
+    if samples is None:
+        return True
+    saved = sum(r.area * s for r, s in zip(rects, samples, strict=True)) * (full_depth - depth)
+    cost = sum(spp * passes.pixels * (depth + (0 if passes.done(full_depth, k) else full_depth))
+               for k, spp in enumerate(passes.spp) if k >= stage)
+    return saved > cost
 
 
 def _within(full: np.ndarray, cut: np.ndarray) -> bool:
@@ -115,18 +215,35 @@ def _within(full: np.ndarray, cut: np.ndarray) -> bool:
     their light together and, on average, of each lit pixel's own light, at the upper bound of each
     estimate. The second keeps a cut from a unit whose mean is a bright light's (its own emitter, or the
     film filter's spill of a neighbour's at low resolution) while its other pixels lose more."""
-    light = float(full.mean())
+    light, loss, relative = _losses(full, cut)
     if light <= DARK:
         return True
-    loss, lit = full - cut, full > DARK
-    relative = loss[lit] / full[lit]  # in [0, 1] for paired passes: longer paths only add light
-    return _upper_bound(loss.ravel()) <= LOSS_TOLERANCE * light and _upper_bound(relative) <= LOSS_TOLERANCE
+    return _bound(loss, Z_BOUND) <= LOSS_TOLERANCE * light and _bound(relative, Z_BOUND) <= LOSS_TOLERANCE
 
 
-def _upper_bound(values: np.ndarray) -> float:
-    """The mean of `values` plus Z_BOUND standard errors; one value is its own spread."""
+def _beyond(full: np.ndarray, cut: np.ndarray) -> bool:
+    """Whether the cut loses more than LOSS_TOLERANCE for certain: either of _within's estimates is over it
+    at its lower bound, Z_FAIL standard errors below its mean."""
+    light, loss, relative = _losses(full, cut)
+    if light <= DARK:
+        return False
+    return _bound(loss, -Z_FAIL) > LOSS_TOLERANCE * light or _bound(relative, -Z_FAIL) > LOSS_TOLERANCE
+
+
+def _losses(full: np.ndarray, cut: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """These pixels' mean light, each pixel's loss, and each lit pixel's loss relative to its own light
+    (in [0, 1] for paired passes: longer paths only add light)."""
+    lit = full > DARK
+    loss = full - cut
+    return float(full.mean()), loss.ravel(), loss[lit] / full[lit]
+
+
+def _bound(values: np.ndarray, z: float) -> float:
+    """The mean of `values` plus `z` standard errors; one value is its own spread."""
+    if values.size == 0:
+        return 0.0
     spread = float(values.std(ddof=1)) if values.size > 1 else abs(float(values[0]))
-    return float(values.mean()) + Z_BOUND * spread / np.sqrt(values.size)
+    return float(values.mean()) + z * spread / np.sqrt(values.size)
 
 
 def _low_window(rect: Rect, low_shape: tuple[int, ...], width: int, height: int) -> tuple[slice, slice]:

@@ -9,6 +9,7 @@ units with their shares of the level's samples (planning.budgets). The in-proces
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable
 from enum import StrEnum
@@ -27,6 +28,7 @@ from core.render.planner import Planner, RenderParams, adaptive_params
 from core.render.scene import expand, film_info, sensor_elements, sensor_of
 from core.render.worker import build_integrator
 from fuzzy.levels import OFF
+from fuzzy.render_params import LS_MAX
 from planning import budgets, depthcut
 from planning.complexity import ComplexityMap, film_size, prepass
 from planning.partition import DEFAULT_SIZES, MERGE_TOLERANCE, equal_tiles, partition
@@ -251,13 +253,18 @@ def _with_depth_floors(plan: JobPlan, cmap: ComplexityMap, seed: int, scene: Any
                        radiance_at: Callable[[int], str], floors: Floors = Floors.RULES) -> JobPlan:
     """The plan with each unit's depth floor (planning.depthcut, measured with `radiance_at`) where its
     rules cut some unit's depth at this level, or at every level (Floors.ALWAYS). Where they cut none the
-    passes would be pure overhead: the plan is unchanged, or (Floors.HELD) holds every unit at its depth."""
+    passes would be pure overhead: the plan is unchanged, or (Floors.HELD) holds every unit at its depth.
+    Where the rules are known, each floor is measured only down to its unit's chosen depth: no lower than
+    the true floor, so still one that an agent with other rules may hold to."""
     if plan.depth < 2:
         return plan
+    # Floors.ALWAYS: the agents' rules may choose any depth, and at most LS_MAX times the user's spp
+    needed, samples = None, [math.ceil(plan.spp * LS_MAX)] * len(plan.units)
     if floors != Floors.ALWAYS:
         chosen = plan_params(plan, Planner(plan.options.rules, plan.options.defuzzifier))
         if all(p.depth >= plan.depth for p in chosen):
             return _held(plan) if floors == Floors.HELD else plan
+        needed, samples = [p.depth for p in chosen], [p.spp for p in chosen]
     if expand(plan.spec).root.find(".//medium") is not None:
         plan.effects.reasons.append(f"depth: no unit is cut below max_depth {plan.depth}: in a participating "
                                     "medium the pre-pass's few samples miss the rare long paths whose light a "
@@ -265,7 +272,8 @@ def _with_depth_floors(plan: JobPlan, cmap: ComplexityMap, seed: int, scene: Any
         return _held(plan)
     low = tuple(max(1, v // 2) for v in cmap.info["low_size"])  # a unit's mean needs no finer grid
     found = depthcut.measure(scene, radiance_at, plan.depth, [u.rect for u in plan.units], low,
-                             (plan.width, plan.height), seed=seed, sensor=plan.options.sensor)
+                             (plan.width, plan.height), seed=seed, sensor=plan.options.sensor, needed=needed,
+                             samples=samples)
     units = [dataclasses.replace(u, depth_floor=f) for u, f in zip(plan.units, found.floors, strict=True)]
     return dataclasses.replace(plan, units=units, prepass_seconds=plan.prepass_seconds + found.seconds,
                                prepass_info={**plan.prepass_info, **found.to_info()})

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from core.errors import MessageError, QuekaroError
 from core.model import messages as m
@@ -58,6 +60,85 @@ def _passes(losses: dict[int, float], noise: float = 0.0, light: float = 1.0, se
 def test_a_units_floor_is_the_shallowest_depth_within_the_tolerance(losses, noise, floor):
     light = _passes(losses, noise)
     assert depthcut.floors_from_passes(light, [Rect(0, 0, 20, 20)], (20, 20)) == [floor]
+
+
+def _fake_passes(losses: dict[int, float], noise: float = 0.0, spp: tuple[int, ...] = (8, 49)) -> depthcut.StagedPasses:
+    """Staged passes over a 10 x 10 low-resolution film (8 is the user's depth): each stage's image is
+    the full light less `losses[d]`, with noise of size `noise` / sqrt(its spp) from the stage's seed on
+    the loss (the same at every depth of a stage, as paired passes are)."""
+
+    def render(depth: int, n: int, seed: int) -> np.ndarray:
+        rng = np.random.default_rng(seed)
+        wobble = noise / np.sqrt(n) * rng.standard_normal((10, 10))
+        return np.ones((10, 10)) if depth == 8 else np.ones((10, 10)) * (1 - losses[depth]) - wobble
+
+    return depthcut.StagedPasses(render, spp, seed=3, pixels=100)
+
+
+UNIT = [Rect(0, 0, 20, 20)]
+
+
+def test_a_probe_refuses_a_cut_that_loses_far_more_than_the_tolerance_and_renders_no_more():
+    """Depth 6 loses 5 % (a closed room): the 8-sample probe's lower bound is over the 1 % tolerance, so
+    neither the rest of the samples nor depth 4 is rendered."""
+    passes = _fake_passes({6: 0.05, 4: 0.2}, noise=0.05)
+    assert depthcut.staged_floors(passes, [8, 6, 4], UNIT, (20, 20)) == [8]
+    assert passes.renders == [(8, 8), (6, 8)]
+
+
+def test_a_cut_is_allowed_only_on_all_the_samples_and_no_deeper_than_the_rules_cut():
+    """Depth 6 loses 0.3 %, within the tolerance but not surely so after the probe: both stages render at
+    both depths. The rules cut this unit to 6 (`needed`), so depth 4 is not rendered at all."""
+    passes = _fake_passes({6: 0.003, 4: 0.003}, noise=0.05)
+    assert depthcut.staged_floors(passes, [8, 6, 4], UNIT, (20, 20), needed=[6]) == [6]
+    assert passes.renders == [(8, 8), (6, 8), (8, 49), (6, 49)]
+    unneeded = _fake_passes({6: 0.0, 4: 0.0})
+    assert depthcut.staged_floors(unneeded, [8, 6, 4], UNIT, (20, 20), needed=[8]) == [8]
+    assert unneeded.renders == []  # the rules keep the user's depth: nothing to measure
+
+
+def test_a_stage_is_rendered_only_where_the_cut_could_save_more_than_it_costs():
+    """The stages render 57 spp over 100 low-resolution pixels at depths 8 and 6: 57 * 100 * 14 path
+    vertices. A 20 x 20 unit at 10 spp saves at most 400 * 10 * 2 by the cut: nothing is rendered and the
+    unit keeps its depth. At 100 spp (and over a larger unit) the cut may pay, and is measured."""
+    cheap = _fake_passes({6: 0.0, 4: 0.0})
+    assert depthcut.staged_floors(cheap, [8, 6, 4], UNIT, (20, 20), samples=[10]) == [8]
+    assert cheap.renders == []
+    big = [Rect(0, 0, 100, 100)]
+    worth = _fake_passes({6: 0.0, 4: 0.5})
+    assert depthcut.staged_floors(worth, [8, 6, 4], big, (100, 100), samples=[100]) == [6]
+    assert (8, 49) in worth.renders and (4, 8) in worth.renders  # depth 4 probed, and refused at the probe
+    assert (4, 49) not in worth.renders
+
+
+@settings(max_examples=200, deadline=None)
+@given(losses=st.lists(st.lists(st.sampled_from([0.0, 0.004, 0.009, 0.011, 0.03, 0.2]), min_size=2, max_size=2),
+                       min_size=1, max_size=6),
+       needed=st.lists(st.sampled_from([4, 6, 8]), min_size=6, max_size=6))
+def test_staging_and_the_rules_depths_change_no_depth_the_planner_renders(losses, needed):
+    """Noise-free passes: each unit (a 2 x 2 block of low-resolution pixels) loses its own fraction at
+    depths 6 and 4. Staged and limited to each unit's chosen depth, the depth the planner renders (the
+    chosen one, raised to the floor) equals the one-stage measurement's at every depth."""
+    n = len(losses)
+    full = np.ones((2, 2 * n))
+    cuts = {d: np.hstack([np.full((2, 2), 1 - loss[j]) for loss in losses]) for j, d in enumerate((6, 4))}
+    rects = [Rect(4 * i, 0, 4, 4) for i in range(n)]
+    one_stage = depthcut.floors_from_passes({8: full, **cuts}, rects, (4 * n, 4))
+    staged = depthcut.StagedPasses(lambda d, _n, _s: full if d == 8 else cuts[d], [8, 49], 0, full.size)
+    chosen = needed[:n]
+    floors = depthcut.staged_floors(staged, [8, 6, 4], rects, (4 * n, 4), needed=chosen)
+    rendered = [max(c, f) for c, f in zip(chosen, floors, strict=True)]
+    assert rendered == [max(c, f) for c, f in zip(chosen, one_stage, strict=True)]
+    assert all(f >= c for c, f in zip(chosen, floors, strict=True))  # never below the chosen depth: still a floor
+
+
+def test_the_cornell_box_refuses_its_cuts_after_the_probe():
+    """Mitsuba's cbox at the suite's 512 px, level B: cut from depth 6 to 4 most units lose 5-10 % of their
+    light, so the probe refuses them; the few it cannot (the light's own units) are too small for the rest
+    of the samples to pay. Two probe passes are all the floors render, and every unit keeps depth 6."""
+    plan = plan_job(SceneSpec(CBOX, {"res": "512"}), RenderOptions(level="B", spp=64, threads=2), seed=1)
+    assert plan.prepass_info["depth_floor_renders"] == [[6, depthcut.PROBE_SPP], [4, depthcut.PROBE_SPP]]
+    assert {u.depth_floor for u in plan.units} == {6}
 
 
 def test_each_unit_is_judged_on_its_own_pixels_and_a_dark_unit_loses_nothing():
@@ -235,10 +316,11 @@ def test_a_dark_corner_that_a_cut_darkens_by_more_than_the_tolerance_keeps_its_d
 
 @pytest.mark.slow
 def test_a_scene_whose_long_paths_carry_nothing_keeps_the_rules_cuts():
-    """The outdoor scene (open sky, 6 bounces): paths beyond 3 or 4 bounces carry almost nothing there,
-    so most units may still be cut and the level keeps its saving."""
-    spec = SceneSpec(BENCH_SCENES / "outdoor.xml", {"res": "128"})
-    plan = plan_job(spec, RenderOptions(level="VB", spp=32, threads=2), seed=1)
+    """The outdoor scene (open sky, 6 bounces) at the suite's size: paths beyond 3 or 4 bounces carry almost
+    nothing there, so most units may still be cut and the level keeps its saving. (At 128 px the floors'
+    passes would cost more than any cut could save: they are not rendered, and no unit is cut.)"""
+    spec = SceneSpec(BENCH_SCENES / "outdoor.xml", {"res": "512"})
+    plan = plan_job(spec, RenderOptions(level="VB", spp=64, threads=2), seed=1)
     assert sum(u.depth_floor < plan.depth for u in plan.units) >= 0.5 * len(plan.units)
     chosen = Planner().plan({k: np.array(v) for k, v in plan.features().items()}, "VB", user_depth=plan.depth,
                             user_spp=plan.spp, ranges=plan.ranges(), depth_floor=[u.depth_floor for u in plan.units])
