@@ -29,6 +29,7 @@ keeps its depth: that costs time, never accuracy."""
 
 from __future__ import annotations
 
+import itertools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -86,9 +87,9 @@ def measure(scene: Any, integrator_at: Callable[[int], str], depth: int, rects: 
             needed: Sequence[int] | None = None, samples: Sequence[int] | None = None) -> DepthFloors:
     """Render `scene` at `low_size` with `integrator_at(d)` (standalone integrator XML) for the user's
     `depth` and the cut depths, in stages, and return each rect's floor (rects in `image_size` pixels).
-    `needed`: per rect, the shallowest depth its floor need be known to (its chosen depth; None: 1), so
-    its floor is never below it. `samples`: per rect, the most spp it renders, which bounds what a cut can
-    save (None: every stage is rendered)."""
+    `needed`: per rect, the depth its rules chose (None: 1): its floor is measured only as far as decides
+    whether that depth is allowed. `samples`: per rect, the most spp it renders, which bounds what a cut
+    can save (None: every stage is rendered)."""
     start = time.perf_counter()
     depths = [depth, *cut_depths(depth)]
     spp = floor_spp(rects, low_size, image_size)
@@ -162,14 +163,17 @@ def floors_from_passes(light: dict[int, np.ndarray], rects: Sequence[Rect],
 def staged_floors(passes: StagedPasses, depths: Sequence[int], rects: Sequence[Rect], image_size: tuple[int, int],
                   needed: Sequence[int] | None = None, samples: Sequence[int] | None = None) -> list[int]:
     """Each rect's floor from `passes` (`depths[0]` is the user's, the rest deeper first); `needed` and
-    `samples` as in measure. A rect refused a depth keeps the deeper one and is not tried shallower."""
+    `samples` as in measure. A rect refused a depth keeps the deeper one and is not tried shallower; one
+    allowed a depth at or under its chosen one is not tried shallower either."""
     full_depth, n = depths[0], len(rects)
     floors = [full_depth] * n
     reach = [1] * n if needed is None else [int(d) for d in needed]
     still = [i for i in range(n) if reach[i] < full_depth]
-    for depth in depths[1:]:
-        still = [i for i in still if reach[i] <= depth]
-        cut = _cut(passes, full_depth, depth, {i: rects[i] for i in still}, image_size, samples)
+    for deeper, depth in itertools.pairwise(depths):
+        still = [i for i in still if reach[i] < deeper]  # else its chosen depth is allowed already
+        gains = None if samples is None else {
+            i: rects[i].area * samples[i] * (full_depth - max(depth, reach[i])) for i in still}
+        cut = _cut(passes, full_depth, depth, {i: rects[i] for i in still}, image_size, gains)
         still = [i for i in still if i in cut]
         for i in still:
             floors[i] = depth
@@ -177,37 +181,31 @@ def staged_floors(passes: StagedPasses, depths: Sequence[int], rects: Sequence[R
 
 
 def _cut(passes: StagedPasses, full_depth: int, depth: int, rects: dict[int, Rect], image_size: tuple[int, int],
-         samples: Sequence[int] | None) -> set[int]:
+         gains: dict[int, int] | None) -> set[int]:
     """The keys of `rects` that may be cut from `full_depth` to `depth`: before the last stage a rect is
     refused where its loss is over the tolerance even at its lower bound (_beyond), at the last stage
-    where it is not within it at its upper bound (_within); a stage that cannot pay (_pays) is not
-    rendered, and the rects it would have judged are refused."""
+    where it is not within it at its upper bound (_within). A stage is rendered only where the rects left
+    could gain (`gains`: path vertices each saves if allowed; None: always) more than it costs (_cost);
+    else they are all refused."""
     undecided = list(rects)
     for k in range(1, passes.stages + 1):
-        if not undecided or not _pays(passes, k - 1, full_depth, depth, [rects[i] for i in undecided],
-                                      None if samples is None else [samples[i] for i in undecided]):
+        if not undecided or (gains is not None and
+                             sum(gains[i] for i in undecided) <= _cost(passes, k - 1, full_depth, depth)):
             return set()
         full, cut = passes.light(full_depth, k), passes.light(depth, k)
-        last = k == passes.stages
         judged = {i: (full[w], cut[w]) for i in undecided
                   for w in [_low_window(rects[i], full.shape, *image_size)]}
-        if last:
+        if k == passes.stages:
             return {i for i, (f, c) in judged.items() if _within(f, c)}
         undecided = [i for i, (f, c) in judged.items() if not _beyond(f, c)]
     return set()
 
 
-def _pays(passes: StagedPasses, stage: int, full_depth: int, depth: int, rects: list[Rect],
-          samples: list[int] | None) -> bool:
-    """Whether the stages from `stage` on may save more than they cost, in path vertices (a sample's cost
-    taken as its depth): they render the low-resolution film at `depth`, and at `full_depth` where not yet
-    rendered; the cut saves at most each rect's pixels times its samples times the depths' difference."""
-    if samples is None:
-        return True
-    saved = sum(r.area * s for r, s in zip(rects, samples, strict=True)) * (full_depth - depth)
-    cost = sum(spp * passes.pixels * (depth + (0 if passes.done(full_depth, k) else full_depth))
+def _cost(passes: StagedPasses, stage: int, full_depth: int, depth: int) -> int:
+    """The path vertices (a sample's cost taken as its depth) of the stages from `stage` on: the
+    low-resolution film at `depth`, and at `full_depth` where not yet rendered."""
+    return sum(spp * passes.pixels * (depth + (0 if passes.done(full_depth, k) else full_depth))
                for k, spp in enumerate(passes.spp) if k >= stage)
-    return saved > cost
 
 
 def _within(full: np.ndarray, cut: np.ndarray) -> bool:

@@ -114,11 +114,12 @@ def test_a_stage_is_rendered_only_where_the_cut_could_save_more_than_it_costs():
 @settings(max_examples=200, deadline=None)
 @given(losses=st.lists(st.lists(st.sampled_from([0.0, 0.004, 0.009, 0.011, 0.03, 0.2]), min_size=2, max_size=2),
                        min_size=1, max_size=6),
-       needed=st.lists(st.sampled_from([4, 6, 8]), min_size=6, max_size=6))
+       needed=st.lists(st.sampled_from([3, 4, 5, 6, 7, 8]), min_size=6, max_size=6))
 def test_staging_and_the_rules_depths_change_no_depth_the_planner_renders(losses, needed):
     """Noise-free passes: each unit (a 2 x 2 block of low-resolution pixels) loses its own fraction at
-    depths 6 and 4. Staged and limited to each unit's chosen depth, the depth the planner renders (the
-    chosen one, raised to the floor) equals the one-stage measurement's at every depth."""
+    depths 6 and 4. Staged and limited to each unit's chosen depth (the planner's steps, or any depth, as
+    a MASYRO-dialect file chooses), the depth the planner renders (the chosen one, raised to the floor)
+    equals the one-stage measurement's at every depth, and no depth under every chosen one is rendered."""
     n = len(losses)
     full = np.ones((2, 2 * n))
     cuts = {d: np.hstack([np.full((2, 2), 1 - loss[j]) for loss in losses]) for j, d in enumerate((6, 4))}
@@ -129,7 +130,8 @@ def test_staging_and_the_rules_depths_change_no_depth_the_planner_renders(losses
     floors = depthcut.staged_floors(staged, [8, 6, 4], rects, (4 * n, 4), needed=chosen)
     rendered = [max(c, f) for c, f in zip(chosen, floors, strict=True)]
     assert rendered == [max(c, f) for c, f in zip(chosen, one_stage, strict=True)]
-    assert all(f >= c for c, f in zip(chosen, floors, strict=True))  # never below the chosen depth: still a floor
+    if min(chosen) >= 6:
+        assert all(d != 4 for d, _ in staged.renders), staged.renders
 
 
 def test_the_cornell_box_refuses_its_cuts_after_the_probe():
