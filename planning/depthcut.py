@@ -1,5 +1,5 @@
 """Depth floors: per unit, the shallowest depth the rules may cut it to without losing a measurable share
-of its light.
+of its light, as far as it was worth measuring (deeper where it was not: that costs time, never light).
 
 The rules cut a unit's depth (Rl) at strong optimisation levels. Paths longer than the cut carry light
 that the unit then lacks, so a cut unit reads darker than its uncut neighbour and the border shows as a
@@ -8,24 +8,26 @@ carry nothing (an open sky, a still life of few bounces) the cut only saves time
 is which, so that depth is cut only where the scene does not call for the deeper paths.
 
 At the noise pre-pass's low resolution the scene renders at the user's depth and at each shallower depth
-the planner can choose (core.render.planner.DEPTH_STEPS), with one seed: each sample follows the same
-path up to the cut, so the difference of two passes is the light of the longer paths alone. That light
-comes from rare long paths, so a few samples mostly miss it, and then their spread is small too: the
-passes take enough samples per pixel that the smallest unit has MIN_UNIT_SAMPLES (at most
-MAX_FLOOR_SPP). A unit's floor is the shallowest of those depths (and every deeper one) whose loss over
-the unit, its mean plus Z_BOUND standard errors over the unit's low-resolution pixels, stays within
-LOSS_TOLERANCE of the unit's light, and whose loss relative to each lit pixel's own light does too, on
-average over those pixels (a seam shows against the pixels beside it, not against the unit's mean).
-The planner never renders a unit below its floor; the master refuses a tile that says it did.
+the planner can choose (core.render.planner.DEPTH_STEPS), with one seed per stage at every depth: each
+sample follows the same path up to the cut, so the difference of two passes is the light of the longer
+paths alone. That light comes from rare long paths, so a few samples mostly miss it, and then their
+spread is small too: the passes take enough samples per pixel that the smallest unit has
+MIN_UNIT_SAMPLES (at most MAX_FLOOR_SPP). A unit's floor is the shallowest of those depths (and every
+deeper one) whose loss over the unit, its mean plus Z_BOUND standard errors over the unit's
+low-resolution pixels, stays within LOSS_TOLERANCE of the unit's light, and whose loss relative to each
+lit pixel's own light does too, on average over those pixels (a seam shows against the pixels beside it,
+not against the unit's mean). The planner never renders a unit below its floor; the master refuses a
+tile that says it did.
 
 The passes are staged, since most cuts that fail, fail by far (a closed room loses several times the
 tolerance): a probe of PROBE_SPP samples refuses the cuts whose loss is over the tolerance even at its
 lower bound, and the units left are judged on all the samples. Deeper first, a depth is measured only
 for units that may still be cut to it and whose rules cut them that far (`needed`: a floor below a
-unit's chosen depth changes nothing the planner renders), and a stage is rendered only where it may pay:
-where the cut could save the units left more samples (at their spp, over their pixels, a path's cost
-taken as its depth) than the stage renders over the whole low-resolution film. A unit left undecided
-keeps its depth: that costs time, never accuracy."""
+unit's chosen depth changes nothing the planner renders), and the stages are rendered only where they
+may pay: where the cut to this depth could save the units left more (at their spp, over their pixels,
+against the user's depth, a path's cost taken as its depth) than the stages still to render at this
+depth and the user's cost over the whole low-resolution film. A unit left undecided keeps the depth it
+has: that costs time, never accuracy."""
 
 from __future__ import annotations
 
@@ -52,7 +54,7 @@ DARK = 1e-6  # a unit or pixel with less light than this (mean over RGB) loses n
 # loses more than the tolerance pass too often (tests/test_depth_floors.py counts how often).
 MIN_UNIT_SAMPLES = 2048
 MAX_FLOOR_SPP = 64  # a unit of fewer than 32 low-resolution pixels takes fewer samples
-PROBE_SPP = 8  # the first stage's samples per pixel: a pass at 8 costs about an eighth of one at 57 (interior)
+PROBE_SPP = 8  # the first stage's samples per pixel: a pass at 8 costs about a seventh of one at 57 (interior)
 Z_FAIL = 3.0  # a probe refuses a cut whose loss is over the tolerance at mean - 3 standard errors
 # A stage after the first renders with its own seed; this odd constant spreads a job's stage seeds apart, so
 # that stage 1 of one seed is not stage 0 of the next.
@@ -71,7 +73,7 @@ class DepthFloors:
     renders: tuple[tuple[int, int], ...] = ()
 
     def to_info(self) -> dict[str, Any]:
-        cut = sum(1 for f in self.floors if f < max(self.depths))
+        cut = sum(1 for f in self.floors if f < max(self.depths))  # measured, and allowed some cut
         return {"depth_floor_depths": list(self.depths), "depth_floor_seconds": self.seconds,
                 "depth_floor_spp": self.spp, "depth_floor_units_cuttable": cut,
                 "depth_floor_tolerance": LOSS_TOLERANCE, "depth_floor_renders": [list(r) for r in self.renders]}
@@ -171,6 +173,8 @@ def staged_floors(passes: StagedPasses, depths: Sequence[int], rects: Sequence[R
     still = [i for i in range(n) if reach[i] < full_depth]
     for deeper, depth in itertools.pairwise(depths):
         still = [i for i in still if reach[i] < deeper]  # else its chosen depth is allowed already
+        # Counted against the user's depth: past the first step that overstates the step's own gain (a unit
+        # refused it keeps `deeper`), so a later step may render where it does not quite pay; time only.
         gains = None if samples is None else {
             i: rects[i].area * samples[i] * (full_depth - max(depth, reach[i])) for i in still}
         cut = _cut(passes, full_depth, depth, {i: rects[i] for i in still}, image_size, gains)

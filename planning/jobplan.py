@@ -254,8 +254,9 @@ def _with_depth_floors(plan: JobPlan, cmap: ComplexityMap, seed: int, scene: Any
     """The plan with each unit's depth floor (planning.depthcut, measured with `radiance_at`) where its
     rules cut some unit's depth at this level, or at every level (Floors.ALWAYS). Where they cut none the
     passes would be pure overhead: the plan is unchanged, or (Floors.HELD) holds every unit at its depth.
-    Where the rules are known, each floor is measured only down to its unit's chosen depth: no lower than
-    the true floor, so still one that an agent with other rules may hold to."""
+    Where the rules are known, each floor is measured only down to its unit's chosen depth, and a unit
+    whose cut cannot repay its passes keeps the user's depth: no floor is lower than the true one, so an
+    agent with other rules may still hold to it."""
     if plan.depth < 2:
         return plan
     # Floors.ALWAYS: the agents' rules may choose any depth, and at most LS_MAX times the user's spp

@@ -43,10 +43,10 @@ class WorkUnit:
     the units that share a border of positive length with it. `spp` is the mean samples per pixel the
     plan gives the unit (an adaptive job's share of the level's samples: planning.budgets), None where
     the agent's rules choose. `depth_floor` is the shallowest depth the rules may cut the unit to without
-    losing a measurable share of its light (planning.depthcut), or the user's depth where no unit may be
-    cut (a participating medium; a farm job whose rules cut none: planning.jobplan.Floors.HELD), None
-    where depth is not cut (level off, adaptive jobs, unbounded depth, a job in one process whose rules
-    cut none).
+    losing a measurable share of its light, as far as it was worth measuring (planning.depthcut: never
+    below the true one), or the user's depth where no unit may be cut (a participating medium; a farm
+    job whose rules cut none: planning.jobplan.Floors.HELD), None where depth is not cut (level off,
+    adaptive jobs, unbounded depth, a job in one process whose rules cut none).
     """
 
     index: int = constrained(lo=0, hi=10**7)
