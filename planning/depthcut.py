@@ -197,11 +197,10 @@ def _cut(passes: StagedPasses, full_depth: int, depth: int, rects: dict[int, Rec
                              sum(gains[i] for i in undecided) <= _cost(passes, k - 1, full_depth, depth)):
             return set()
         full, cut = passes.light(full_depth, k), passes.light(depth, k)
-        judged = {i: (full[w], cut[w]) for i in undecided
-                  for w in [_low_window(rects[i], full.shape, *image_size)]}
+        windows = {i: _low_window(rects[i], full.shape, *image_size) for i in undecided}
         if k == passes.stages:
-            return {i for i, (f, c) in judged.items() if _within(f, c)}
-        undecided = [i for i, (f, c) in judged.items() if not _beyond(f, c)]
+            return {i for i, w in windows.items() if _within(full[w], cut[w])}
+        undecided = [i for i, w in windows.items() if not _beyond(full[w], cut[w])]
     return set()
 
 
@@ -242,8 +241,6 @@ def _losses(full: np.ndarray, cut: np.ndarray) -> tuple[float, np.ndarray, np.nd
 
 def _bound(values: np.ndarray, z: float) -> float:
     """The mean of `values` plus `z` standard errors; one value is its own spread."""
-    if values.size == 0:
-        return 0.0
     spread = float(values.std(ddof=1)) if values.size > 1 else abs(float(values[0]))
     return float(values.mean()) + z * spread / np.sqrt(values.size)
 

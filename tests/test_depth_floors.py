@@ -63,16 +63,10 @@ def test_a_units_floor_is_the_shallowest_depth_within_the_tolerance(losses, nois
 
 
 def _fake_passes(losses: dict[int, float], noise: float = 0.0, spp: tuple[int, ...] = (8, 49)) -> depthcut.StagedPasses:
-    """Staged passes over a 10 x 10 low-resolution film (8 is the user's depth): each stage's image is
-    the full light less `losses[d]`, with noise of size `noise` / sqrt(its spp) from the stage's seed on
-    the loss (the same at every depth of a stage, as paired passes are)."""
-
-    def render(depth: int, n: int, seed: int) -> np.ndarray:
-        rng = np.random.default_rng(seed)
-        wobble = noise / np.sqrt(n) * rng.standard_normal((10, 10))
-        return np.ones((10, 10)) if depth == 8 else np.ones((10, 10)) * (1 - losses[depth]) - wobble
-
-    return depthcut.StagedPasses(render, spp, seed=3, pixels=100)
+    """Staged passes over _passes' 10 x 10 film: each stage's images are _passes' from the stage's seed,
+    their noise `noise` / sqrt(the stage's spp)."""
+    return depthcut.StagedPasses(lambda d, n, s: _passes(losses, noise / np.sqrt(n), seed=s)[d], spp, seed=3,
+                                 pixels=100)
 
 
 UNIT = [Rect(0, 0, 20, 20)]
