@@ -55,7 +55,9 @@ class ComplexityMap:
     `cost`: relative time per sample (rays per sample); `noise`: per-sample variance (mean over RGB);
     `seconds`: what the pre-pass took; `info`: how it was made (downscale, spp, sample counts);
     `mean`: the per-pixel mean radiance (mean over RGB), optional (None: brightness unknown, and
-    `relative_noise` falls back to the absolute noise).
+    `relative_noise` falls back to the absolute noise). `depth_rays`: the ray-count pass's own
+    low-resolution grid, (depths, h, w): mean rays per sample of paths cut at depth d (layer d - 1),
+    optional (None: not counted).
     """
 
     cost: np.ndarray
@@ -63,6 +65,7 @@ class ComplexityMap:
     seconds: float = 0.0
     info: dict[str, Any] = field(default_factory=dict)
     mean: np.ndarray | None = None
+    depth_rays: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.cost = np.asarray(self.cost, dtype=np.float64)
@@ -74,7 +77,11 @@ class ComplexityMap:
             self.mean = np.asarray(self.mean, dtype=np.float64)
             if self.mean.shape != self.cost.shape:
                 raise ComplexityError(f"mean {self.mean.shape} must have the shape of cost {self.cost.shape}")
-        for name in ("cost", "noise", "mean"):
+        if self.depth_rays is not None:
+            self.depth_rays = np.asarray(self.depth_rays, dtype=np.float64)
+            if self.depth_rays.ndim != 3 or 0 in self.depth_rays.shape:
+                raise ComplexityError(f"depth_rays {self.depth_rays.shape} must be a non-empty (depths, h, w) array")
+        for name in ("cost", "noise", "mean", "depth_rays"):
             arr = getattr(self, name)
             if arr is None:
                 continue
@@ -164,14 +171,15 @@ def prepass(
     with film_size(scene, lw, lh, sensor):
         noise_low, mean_low = _moment_pass(scene, integrator, max_depth, spp, seed, sensor)
     with film_size(scene, cw, ch, sensor):
-        cost_low = _ray_count_pass(scene, cw, ch, max_depth, cost_spp, seed + 1, sensor)
+        depth_rays = _ray_count_pass(scene, cw, ch, max_depth, cost_spp, seed + 1, sensor)
     cmap = ComplexityMap(
-        cost=_upsample(cost_low, width, height),
+        cost=_upsample(depth_rays[-1], width, height),
         noise=_upsample(noise_low, width, height),
         mean=_upsample(finite_mean(mean_low), width, height),
         info={"downscale": k, "low_size": [lw, lh], "spp": spp, "full_spp": full_spp,
               "cost_downscale": kc, "cost_low_size": [cw, ch], "cost_spp": cost_spp,
               "nonfinite_noise": int(np.count_nonzero(~np.isfinite(mean_low)))},
+        depth_rays=depth_rays,
     )
     cmap.seconds = time.perf_counter() - start
     return cmap
@@ -259,7 +267,9 @@ def finite_mean(mean_rgb: np.ndarray) -> np.ndarray:
 
 def _ray_count_pass(scene: Any, w: int, h: int, max_depth: int, spp: int, seed: int,
                     sensor: int = 0) -> np.ndarray:
-    """Mean rays per sample of each pixel: camera ray, one per bounce, one shadow ray per smooth hit."""
+    """Mean rays per sample of each pixel (camera ray, one per bounce, one shadow ray per smooth hit) of
+    paths cut at each depth: (depths, h, w), layer d - 1 for depth d. A cut changes no path before it, so
+    one trace gives every depth."""
     import drjit as dr
     import mitsuba as mi
 
@@ -273,6 +283,7 @@ def _ray_count_pass(scene: Any, w: int, h: int, max_depth: int, spp: int, seed: 
                                            sampler.next_2d())
     rays, active, beta = mi.Float(0.0), mi.Bool(True), mi.UnpolarizedSpectrum(1.0)
     depth = MAX_TRACE_DEPTH if max_depth < 0 else max(1, max_depth)
+    by_depth = []
     for bounce in range(depth):
         si = scene.ray_intersect(ray, active)
         rays += dr.select(active, 1.0, 0.0)
@@ -290,8 +301,9 @@ def _ray_count_pass(scene: Any, w: int, h: int, max_depth: int, spp: int, seed: 
             beta /= dr.maximum(q, 1e-8)
         ray = si.spawn_ray(si.to_world(bs.wo))
         dr.eval(rays, active, beta, ray)
-    per_sample = np.array(rays, dtype=np.float64).reshape(h, w, spp)
-    return per_sample.mean(axis=2)
+        by_depth.append(mi.Float(rays))  # a reference to this depth's count: `+=` rebinds `rays`
+    counts = np.stack([np.asarray(r) for r in by_depth]).reshape(-1, spp).astype(np.float64)
+    return (counts @ np.full(spp, 1.0 / spp)).reshape(depth, h, w)  # numpy's mean over a short axis is slow
 
 
 def _upsample(low: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -24,10 +24,12 @@ tolerance): a probe of PROBE_SPP samples refuses the cuts whose loss is over the
 lower bound, and the units left are judged on all the samples. Deeper first, a depth is measured only
 for units that may still be cut to it and whose rules cut them that far (`needed`: a floor below a
 unit's chosen depth changes nothing the planner renders), and the stages are rendered only where they
-may pay: where the cut to this depth could save the units left more (at their spp, over their pixels,
-against the user's depth, a path's cost taken as its depth) than the stages still to render at this
-depth and the user's cost over the whole low-resolution film. A unit left undecided keeps the depth it
-has: that costs time, never accuracy."""
+may pay: where the cut to this depth could save the units left more rays (at their spp, over their
+pixels, against the depth they would keep) than the stages still to render at this depth and the user's
+cost over the whole low-resolution film. Rays are counted by the pre-pass (RayCost): a path that
+escapes or ends by Russian roulette before the cut costs the same at either depth, so an open scene's
+cut saves little, where counting a sample's cost as its depth would say it halves the render. A unit
+left undecided keeps the depth it has: that costs time, never accuracy."""
 
 from __future__ import annotations
 
@@ -79,6 +81,43 @@ class DepthFloors:
                 "depth_floor_tolerance": LOSS_TOLERANCE, "depth_floor_renders": [list(r) for r in self.renders]}
 
 
+@dataclass(frozen=True)
+class RayCost:
+    """Rays traced by the depth paths are cut at (column d - 1): per pixel of each unit as the render
+    samples it (its spp times its rays per sample), and per sample of the floors' passes (over the whole
+    film). Depths past the last column cost what the last does (every path has ended by then)."""
+
+    unit_pixel: np.ndarray  # (units, depths)
+    pass_sample: np.ndarray  # (depths,)
+
+    @classmethod
+    def from_rays(cls, depth_rays: np.ndarray, rects: Sequence[Rect], image_size: tuple[int, int],
+                  samples: Sequence[int]) -> RayCost:
+        """From a ray count (ComplexityMap.depth_rays: (depths, h, w) rays per sample over a low-resolution
+        film) and each rect's spp."""
+        windows = [_low_window(r, depth_rays.shape[1:], *image_size) for r in rects]
+        per_sample = np.array([[float(layer[w].mean()) for layer in depth_rays] for w in windows])
+        return cls(per_sample * np.asarray(samples, dtype=np.float64)[:, None],
+                   depth_rays.reshape(len(depth_rays), -1).mean(axis=1))
+
+    @classmethod
+    def by_depth(cls, samples: Sequence[int], depth: int) -> RayCost:
+        """Every path traced to the cut: a sample's cost taken as its depth."""
+        rays = np.arange(1, depth + 1, dtype=np.float64)
+        return cls(np.asarray(samples, dtype=np.float64)[:, None] * rays, rays)
+
+    def saved(self, unit: int, deeper: int, depth: int) -> float:
+        """Rays per pixel that cutting `unit` from `deeper` to `depth` saves."""
+        return float(self.unit_pixel[unit, self._column(deeper)] - self.unit_pixel[unit, self._column(depth)])
+
+    def per_sample(self, depth: int) -> float:
+        """Rays per sample of a pass at `depth`."""
+        return float(self.pass_sample[self._column(depth)])
+
+    def _column(self, depth: int) -> int:
+        return min(depth, len(self.pass_sample)) - 1
+
+
 def cut_depths(depth: int) -> list[int]:
     """The depths below `depth` that the planner can choose (its DEPTH_STEPS, rounded as it rounds them)."""
     return sorted({max(1, round(depth * step)) for step in DEPTH_STEPS} - {depth}, reverse=True)
@@ -86,19 +125,19 @@ def cut_depths(depth: int) -> list[int]:
 
 def measure(scene: Any, integrator_at: Callable[[int], str], depth: int, rects: Sequence[Rect],
             low_size: tuple[int, int], image_size: tuple[int, int], seed: int = 0, sensor: int = 0,
-            needed: Sequence[int] | None = None, samples: Sequence[int] | None = None) -> DepthFloors:
+            needed: Sequence[int] | None = None, cost: RayCost | None = None) -> DepthFloors:
     """Render `scene` at `low_size` with `integrator_at(d)` (standalone integrator XML) for the user's
     `depth` and the cut depths, in stages, and return each rect's floor (rects in `image_size` pixels).
     `needed`: per rect, the depth its rules chose (None: 1): its floor is measured only as far as decides
-    whether that depth is allowed. `samples`: per rect, the most spp it renders, which bounds what a cut
-    can save (None: every stage is rendered)."""
+    whether that depth is allowed. `cost`: the rays each rect's render traces by depth, which bounds what
+    a cut can save (None: every stage is rendered)."""
     start = time.perf_counter()
     depths = [depth, *cut_depths(depth)]
     spp = floor_spp(rects, low_size, image_size)
     with film_size(scene, *low_size, sensor):
         passes = StagedPasses(lambda d, n, s: _luminance(scene, integrator_at(d), n, s, sensor), stage_spp(spp), seed,
                               low_size[0] * low_size[1])
-        floors = staged_floors(passes, depths, rects, image_size, needed, samples)
+        floors = staged_floors(passes, depths, rects, image_size, needed, cost)
     return DepthFloors(tuple(floors), tuple(depths), time.perf_counter() - start, spp, tuple(passes.renders))
 
 
@@ -163,9 +202,9 @@ def floors_from_passes(light: dict[int, np.ndarray], rects: Sequence[Rect],
 
 
 def staged_floors(passes: StagedPasses, depths: Sequence[int], rects: Sequence[Rect], image_size: tuple[int, int],
-                  needed: Sequence[int] | None = None, samples: Sequence[int] | None = None) -> list[int]:
+                  needed: Sequence[int] | None = None, cost: RayCost | None = None) -> list[int]:
     """Each rect's floor from `passes` (`depths[0]` is the user's, the rest deeper first); `needed` and
-    `samples` as in measure. A rect refused a depth keeps the deeper one and is not tried shallower; one
+    `cost` as in measure. A rect refused a depth keeps the deeper one and is not tried shallower; one
     allowed a depth at or under its chosen one is not tried shallower either."""
     full_depth, n = depths[0], len(rects)
     floors = [full_depth] * n
@@ -173,11 +212,10 @@ def staged_floors(passes: StagedPasses, depths: Sequence[int], rects: Sequence[R
     still = [i for i in range(n) if reach[i] < full_depth]
     for deeper, depth in itertools.pairwise(depths):
         still = [i for i in still if reach[i] < deeper]  # else its chosen depth is allowed already
-        # Counted against the user's depth: past the first step that overstates the step's own gain (a unit
-        # refused it keeps `deeper`), so a later step may render where it does not quite pay; time only.
-        gains = None if samples is None else {
-            i: rects[i].area * samples[i] * (full_depth - max(depth, reach[i])) for i in still}
-        cut = _cut(passes, full_depth, depth, {i: rects[i] for i in still}, image_size, gains)
+        # Against `deeper`: a unit refused this step keeps it
+        gains = None if cost is None else {
+            i: rects[i].area * cost.saved(i, deeper, max(depth, reach[i])) for i in still}
+        cut = _cut(passes, full_depth, depth, {i: rects[i] for i in still}, image_size, gains, cost)
         still = [i for i in still if i in cut]
         for i in still:
             floors[i] = depth
@@ -185,16 +223,16 @@ def staged_floors(passes: StagedPasses, depths: Sequence[int], rects: Sequence[R
 
 
 def _cut(passes: StagedPasses, full_depth: int, depth: int, rects: dict[int, Rect], image_size: tuple[int, int],
-         gains: dict[int, int] | None) -> set[int]:
+         gains: dict[int, float] | None, cost: RayCost | None) -> set[int]:
     """The keys of `rects` that may be cut from `full_depth` to `depth`: before the last stage a rect is
     refused where its loss is over the tolerance even at its lower bound (_beyond), at the last stage
     where it is not within it at its upper bound (_within). A stage is rendered only where the rects left
-    could gain (`gains`: path vertices each saves if allowed; None: always) more than it costs (_cost);
-    else they are all refused."""
+    could gain (`gains`: rays each saves if allowed; None: always) more than it costs (_cost); else they
+    are all refused."""
     undecided = list(rects)
     for k in range(1, passes.stages + 1):
-        if not undecided or (gains is not None and
-                             sum(gains[i] for i in undecided) <= _cost(passes, k - 1, full_depth, depth)):
+        if not undecided or (gains is not None and cost is not None and
+                             sum(gains[i] for i in undecided) <= _cost(passes, k - 1, full_depth, depth, cost)):
             return set()
         full, cut = passes.light(full_depth, k), passes.light(depth, k)
         windows = {i: _low_window(rects[i], full.shape, *image_size) for i in undecided}
@@ -204,10 +242,11 @@ def _cut(passes: StagedPasses, full_depth: int, depth: int, rects: dict[int, Rec
     return set()
 
 
-def _cost(passes: StagedPasses, stage: int, full_depth: int, depth: int) -> int:
-    """The path vertices (a sample's cost taken as its depth) of the stages from `stage` on: the
-    low-resolution film at `depth`, and at `full_depth` where not yet rendered."""
-    return sum(spp * passes.pixels * (depth + (0 if passes.done(full_depth, k) else full_depth))
+def _cost(passes: StagedPasses, stage: int, full_depth: int, depth: int, cost: RayCost) -> float:
+    """The rays of the stages from `stage` on: the low-resolution film at `depth`, and at `full_depth`
+    where not yet rendered."""
+    return sum(spp * passes.pixels * (cost.per_sample(depth) +
+                                      (0.0 if passes.done(full_depth, k) else cost.per_sample(full_depth)))
                for k, spp in enumerate(passes.spp) if k >= stage)
 
 

@@ -272,9 +272,10 @@ def _with_depth_floors(plan: JobPlan, cmap: ComplexityMap, seed: int, scene: Any
                                     "cut would lose, so the loss cannot be bounded")
         return _held(plan)
     low = tuple(max(1, v // 2) for v in cmap.info["low_size"])  # a unit's mean needs no finer grid
-    found = depthcut.measure(scene, radiance_at, plan.depth, [u.rect for u in plan.units], low,
-                             (plan.width, plan.height), seed=seed, sensor=plan.options.sensor, needed=needed,
-                             samples=samples)
+    rects, size = [u.rect for u in plan.units], (plan.width, plan.height)
+    cost = depthcut.RayCost.from_rays(cmap.depth_rays, rects, size, samples)
+    found = depthcut.measure(scene, radiance_at, plan.depth, rects, low, size, seed=seed,
+                             sensor=plan.options.sensor, needed=needed, cost=cost)
     units = [dataclasses.replace(u, depth_floor=f) for u, f in zip(plan.units, found.floors, strict=True)]
     return dataclasses.replace(plan, units=units, prepass_seconds=plan.prepass_seconds + found.seconds,
                                prepass_info={**plan.prepass_info, **found.to_info()})

@@ -53,6 +53,10 @@ def test_map_validation_names_the_field() -> None:
         ComplexityMap(-np.ones((2, 2)), np.ones((2, 2)))
     with pytest.raises(ComplexityError, match="shapes"):
         ComplexityMap(np.ones((2, 2)), np.ones((2, 3)))
+    with pytest.raises(ComplexityError, match="depth_rays"):
+        ComplexityMap(np.ones((2, 2)), np.ones((2, 2)), depth_rays=np.ones((2, 2)))
+    with pytest.raises(ComplexityError, match="'depth_rays'"):
+        ComplexityMap(np.ones((2, 2)), np.ones((2, 2)), depth_rays=np.full((3, 2, 2), np.inf))
 
 
 def test_upsample_covers_any_size() -> None:
@@ -101,6 +105,25 @@ def test_noise_pass_gets_its_share_of_the_samples_at_a_finer_grid(mi) -> None:
     assert info["downscale"] < info["cost_downscale"]  # the noise map is the finer one
     assert cmap.cost.shape == cmap.noise.shape == (64, 64)
     assert tuple(scene.sensors()[0].film().size()) == (64, 64)  # both passes restore the film
+
+
+@needs_shared
+def test_one_ray_count_gives_the_rays_of_every_cut_depth(mi) -> None:
+    """A cut changes no path before it, so the count at depth 8 holds each shallower depth's: layer d - 1
+    equals a count traced to depth d with the same seed. Rays only add up with depth; in a closed box most
+    paths go on (more rays at 8 than at 4), and the map's cost is the user's depth's layer."""
+    from planning.complexity import _ray_count_pass
+
+    scene = mi.load_file(str(SHARED / "cbox" / "cbox.xml"), res=32)
+    rays = _ray_count_pass(scene, 16, 16, 8, 4, seed=5)
+    assert rays.shape == (8, 16, 16)
+    for depth in (1, 3, 4, 8):
+        assert np.array_equal(rays[depth - 1], _ray_count_pass(scene, 16, 16, depth, 4, seed=5)[-1])
+    assert np.all(np.diff(rays, axis=0) >= 0)
+    assert rays[7].mean() > 1.1 * rays[3].mean()
+    cmap = prepass(scene, max_depth=8, full_spp=1024)
+    assert cmap.depth_rays is not None and len(cmap.depth_rays) == 8
+    assert np.array_equal(cmap.cost, _upsample(cmap.depth_rays[-1], 32, 32))
 
 
 def test_nothing_visible_gives_a_flat_cheap_map(mi) -> None:

@@ -92,17 +92,48 @@ def test_a_cut_is_allowed_only_on_all_the_samples_and_no_deeper_than_the_rules_c
 
 
 def test_a_stage_is_rendered_only_where_the_cut_could_save_more_than_it_costs():
-    """The stages render 57 spp over 100 low-resolution pixels at depths 8 and 6: 57 * 100 * 14 path
-    vertices. A 20 x 20 unit at 10 spp saves at most 400 * 10 * 2 by the cut: nothing is rendered and the
-    unit keeps its depth. At 100 spp (and over a larger unit) the cut may pay, and is measured."""
+    """Every path traced to its cut (RayCost.by_depth): the stages render 57 spp over 100 low-resolution
+    pixels at depths 8 and 6, 57 * 100 * 14 rays. A 20 x 20 unit at 10 spp saves at most 400 * 10 * 2 by
+    the cut: nothing is rendered and the unit keeps its depth. At 100 spp (and over a larger unit) the cut
+    may pay, and is measured."""
     cheap = _fake_passes({6: 0.0, 4: 0.0})
-    assert depthcut.staged_floors(cheap, [8, 6, 4], UNIT, (20, 20), samples=[10]) == [8]
+    assert depthcut.staged_floors(cheap, [8, 6, 4], UNIT, (20, 20), cost=depthcut.RayCost.by_depth([10], 8)) == [8]
     assert cheap.renders == []
     big = [Rect(0, 0, 100, 100)]
     worth = _fake_passes({6: 0.0, 4: 0.5})
-    assert depthcut.staged_floors(worth, [8, 6, 4], big, (100, 100), samples=[100]) == [6]
+    assert depthcut.staged_floors(worth, [8, 6, 4], big, (100, 100), cost=depthcut.RayCost.by_depth([100], 8)) == [6]
     assert (8, 49) in worth.renders and (4, 8) in worth.renders  # depth 4 probed, and refused at the probe
     assert (4, 49) not in worth.renders
+
+
+def test_a_cut_is_priced_by_the_rays_its_paths_would_trace_not_by_its_depth():
+    """An open scene: two rays per sample at any depth past 2 (paths escape). The same large unit whose
+    cut pays when a sample is taken to cost its depth saves nothing here, so no pass is rendered. Where
+    the paths do go on (a ray per bounce to depth 8) the cut is measured again."""
+    big = [Rect(0, 0, 100, 100)]
+    open_sky = np.minimum(np.arange(1.0, 9.0), 2.0)[:, None, None] * np.ones((8, 5, 5))
+    cost = depthcut.RayCost.from_rays(open_sky, big, (100, 100), [100])
+    assert cost.saved(0, 8, 6) == 0.0 and cost.per_sample(6) == 2.0
+    escaped = _fake_passes({6: 0.0, 4: 0.0})
+    assert depthcut.staged_floors(escaped, [8, 6, 4], big, (100, 100), cost=cost) == [8]
+    assert escaped.renders == []
+    bouncing = np.arange(1.0, 9.0)[:, None, None] * np.ones((8, 5, 5))
+    deep = _fake_passes({6: 0.0, 4: 0.0})
+    floors = depthcut.staged_floors(deep, [8, 6, 4], big, (100, 100),
+                                    cost=depthcut.RayCost.from_rays(bouncing, big, (100, 100), [100]))
+    assert floors == [4] and (4, 49) in deep.renders
+
+
+def test_a_units_rays_are_its_own_pixels_times_its_samples():
+    """Two units side by side, the left one's paths escaping after the camera ray, the right one's going
+    on to depth 4: each unit's saving is its own, at its own spp; the passes' cost is the film's mean."""
+    rays = np.ones((4, 2, 4))
+    rays[:, :, 2:] = np.arange(1.0, 5.0)[:, None, None]
+    rects = [Rect(0, 0, 10, 5), Rect(10, 0, 10, 5)]
+    cost = depthcut.RayCost.from_rays(rays, rects, (20, 5), [16, 64])
+    assert cost.saved(0, 4, 2) == 0.0
+    assert cost.saved(1, 4, 2) == 64 * 2
+    assert cost.per_sample(4) == 2.5 and cost.per_sample(9) == 2.5  # past the count: every path has ended
 
 
 @settings(max_examples=200, deadline=None)
@@ -128,13 +159,19 @@ def test_staging_and_the_rules_depths_change_no_depth_the_planner_renders(losses
         assert all(d != 4 for d, _ in staged.renders), staged.renders
 
 
-def test_the_cornell_box_refuses_its_cuts_after_the_probe():
-    """Mitsuba's cbox at the suite's 512 px, level B: cut from depth 6 to 4 most units lose 5-10 % of their
-    light, so the probe refuses them; the few it cannot (the light's own units) are too small for the rest
-    of the samples to pay. Two probe passes are all the floors render, and every unit keeps depth 6."""
-    plan = plan_job(SceneSpec(CBOX, {"res": "512"}), RenderOptions(level="B", spp=64, threads=2), seed=1)
-    assert plan.prepass_info["depth_floor_renders"] == [[6, depthcut.PROBE_SPP], [4, depthcut.PROBE_SPP]]
+def test_the_cornell_box_measures_its_cuts_only_where_they_could_pay_and_refuses_them():
+    """Mitsuba's cbox at the suite's 512 px, level B. At 64 spp the rays the cut from depth 6 to 4 saves
+    (under a third of each sample's, at the units' spp) do not repay the passes: none is rendered, and
+    every unit keeps depth 6. At 1024 spp they would: the passes render, and most units lose 5-10 % of
+    their light by the cut, so every unit keeps depth 6 again."""
+    spec = SceneSpec(CBOX, {"res": "512"})
+    plan = plan_job(spec, RenderOptions(level="B", spp=64, threads=2), seed=1)
+    assert plan.prepass_info["depth_floor_renders"] == []
     assert {u.depth_floor for u in plan.units} == {6}
+    long = plan_job(spec, RenderOptions(level="B", spp=1024, threads=2), seed=1)
+    assert [6, depthcut.PROBE_SPP] in long.prepass_info["depth_floor_renders"]
+    assert [4, depthcut.PROBE_SPP] in long.prepass_info["depth_floor_renders"]
+    assert {u.depth_floor for u in long.units} == {6}
 
 
 def test_each_unit_is_judged_on_its_own_pixels_and_a_dark_unit_loses_nothing():
@@ -311,12 +348,16 @@ def test_a_dark_corner_that_a_cut_darkens_by_more_than_the_tolerance_keeps_its_d
 
 
 @pytest.mark.slow
-def test_a_scene_whose_long_paths_carry_nothing_keeps_the_rules_cuts():
+def test_a_scene_whose_long_paths_carry_nothing_keeps_the_rules_cuts_where_they_pay():
     """The outdoor scene (open sky, 6 bounces) at the suite's size: paths beyond 3 or 4 bounces carry almost
-    nothing there, so most units may still be cut and the level keeps its saving. (At 128 px the floors'
-    passes would cost more than any cut could save: they are not rendered, and no unit is cut.)"""
+    nothing, and mostly end before them (they escape to the sky), so at 64 spp the cut saves too few rays
+    to repay any pass: none is rendered and no unit is cut. At 16384 spp it pays; measured, most units may
+    then still be cut, and the level keeps its saving."""
     spec = SceneSpec(BENCH_SCENES / "outdoor.xml", {"res": "512"})
-    plan = plan_job(spec, RenderOptions(level="VB", spp=64, threads=2), seed=1)
+    short = plan_job(spec, RenderOptions(level="VB", spp=64, threads=2), seed=1)
+    assert short.prepass_info["depth_floor_renders"] == []
+    assert {u.depth_floor for u in short.units} == {short.depth}
+    plan = plan_job(spec, RenderOptions(level="VB", spp=16384, threads=2), seed=1)
     assert sum(u.depth_floor < plan.depth for u in plan.units) >= 0.5 * len(plan.units)
     chosen = Planner().plan({k: np.array(v) for k, v in plan.features().items()}, "VB", user_depth=plan.depth,
                             user_spp=plan.spp, ranges=plan.ranges(), depth_floor=[u.depth_floor for u in plan.units])
@@ -356,6 +397,7 @@ def test_levels_whose_rules_cut_no_depth_measure_no_floors_unless_other_rules_ma
     assert "depth_floor_depths" not in held.prepass_info
     assert [u.depth_floor for u in held.units] == [held.depth] * len(held.units)
     assert [u.rect for u in held.units] == [u.rect for u in plan.units]
-    cut = plan_job(spec, dataclasses.replace(options, level="VB"), seed=1, floors=Floors.HELD)
-    assert cut.prepass_info["depth_floor_depths"] == [6, 4, 3]  # the master's rules cut there: measured
+    # The master's rules cut at VB: measured, where the cut saves enough rays to repay the passes
+    cut = plan_job(spec, dataclasses.replace(options, level="VB", spp=4096), seed=1, floors=Floors.HELD)
+    assert cut.prepass_info["depth_floor_depths"] == [6, 4, 3]
     assert min(u.depth_floor for u in cut.units) < cut.depth
