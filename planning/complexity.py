@@ -269,7 +269,8 @@ def _ray_count_pass(scene: Any, w: int, h: int, max_depth: int, spp: int, seed: 
                     sensor: int = 0) -> np.ndarray:
     """Mean rays per sample of each pixel (camera ray, one per bounce, one shadow ray per smooth hit) of
     paths cut at each depth: (depths, h, w), layer d - 1 for depth d. A cut changes no path before it, so
-    one trace gives every depth."""
+    one trace gives every depth. (Mitsuba casts no shadow ray at a path's last vertex: a depth's count is
+    at most one ray high, alike at every depth.)"""
     import drjit as dr
     import mitsuba as mi
 
@@ -301,9 +302,8 @@ def _ray_count_pass(scene: Any, w: int, h: int, max_depth: int, spp: int, seed: 
             beta /= dr.maximum(q, 1e-8)
         ray = si.spawn_ray(si.to_world(bs.wo))
         dr.eval(rays, active, beta, ray)
-        by_depth.append(mi.Float(rays))  # a reference to this depth's count: `+=` rebinds `rays`
-    counts = np.stack([np.asarray(r) for r in by_depth]).reshape(-1, spp).astype(np.float64)
-    return (counts @ np.full(spp, 1.0 / spp)).reshape(depth, h, w)  # numpy's mean over a short axis is slow
+        by_depth.append(dr.block_sum(rays, spp))  # each pixel's, on the device: a 1/spp share of the memory
+    return np.stack([np.asarray(layer, dtype=np.float64) for layer in by_depth]).reshape(depth, h, w) / spp
 
 
 def _upsample(low: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -83,9 +83,10 @@ class DepthFloors:
 
 @dataclass(frozen=True)
 class RayCost:
-    """Rays traced by the depth paths are cut at (column d - 1): per pixel of each unit as the render
-    samples it (its spp times its rays per sample), and per sample of the floors' passes (over the whole
-    film). Depths past the last column cost what the last does (every path has ended by then)."""
+    """The rays traced when paths are cut at each depth (column d - 1): per pixel of each unit as the
+    render samples it (its spp times its rays per sample), and per sample of the floors' passes (over the
+    whole film). A depth past the last column (the user's) costs what the last does: an underestimate of
+    a saving, which refuses a cut, never allows one."""
 
     unit_pixel: np.ndarray  # (units, depths)
     pass_sample: np.ndarray  # (depths,)
@@ -115,7 +116,7 @@ class RayCost:
         return float(self.pass_sample[self._column(depth)])
 
     def _column(self, depth: int) -> int:
-        return min(depth, len(self.pass_sample)) - 1
+        return max(1, min(depth, len(self.pass_sample))) - 1
 
 
 def cut_depths(depth: int) -> list[int]:
@@ -213,8 +214,8 @@ def staged_floors(passes: StagedPasses, depths: Sequence[int], rects: Sequence[R
     for deeper, depth in itertools.pairwise(depths):
         still = [i for i in still if reach[i] < deeper]  # else its chosen depth is allowed already
         # Against `deeper`: a unit refused this step keeps it
-        gains = None if cost is None else {
-            i: rects[i].area * cost.saved(i, deeper, max(depth, reach[i])) for i in still}
+        gains = {i: 0.0 if cost is None else rects[i].area * cost.saved(i, deeper, max(depth, reach[i]))
+                 for i in still}
         cut = _cut(passes, full_depth, depth, {i: rects[i] for i in still}, image_size, gains, cost)
         still = [i for i in still if i in cut]
         for i in still:
@@ -223,15 +224,15 @@ def staged_floors(passes: StagedPasses, depths: Sequence[int], rects: Sequence[R
 
 
 def _cut(passes: StagedPasses, full_depth: int, depth: int, rects: dict[int, Rect], image_size: tuple[int, int],
-         gains: dict[int, float] | None, cost: RayCost | None) -> set[int]:
+         gains: dict[int, float], cost: RayCost | None) -> set[int]:
     """The keys of `rects` that may be cut from `full_depth` to `depth`: before the last stage a rect is
     refused where its loss is over the tolerance even at its lower bound (_beyond), at the last stage
     where it is not within it at its upper bound (_within). A stage is rendered only where the rects left
-    could gain (`gains`: rays each saves if allowed; None: always) more than it costs (_cost); else they
-    are all refused."""
+    could gain (`gains`: rays each saves if allowed) more than it costs (_cost; no `cost`: always); else
+    they are all refused."""
     undecided = list(rects)
     for k in range(1, passes.stages + 1):
-        if not undecided or (gains is not None and cost is not None and
+        if not undecided or (cost is not None and
                              sum(gains[i] for i in undecided) <= _cost(passes, k - 1, full_depth, depth, cost)):
             return set()
         full, cut = passes.light(full_depth, k), passes.light(depth, k)

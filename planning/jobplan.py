@@ -255,8 +255,8 @@ def _with_depth_floors(plan: JobPlan, cmap: ComplexityMap, seed: int, scene: Any
     rules cut some unit's depth at this level, or at every level (Floors.ALWAYS). Where they cut none the
     passes would be pure overhead: the plan is unchanged, or (Floors.HELD) holds every unit at its depth.
     Where the rules are known, each floor is measured only down to its unit's chosen depth, and a unit
-    whose cut cannot repay its passes keeps the user's depth: no floor is lower than the true one, so an
-    agent with other rules may still hold to it."""
+    whose cut cannot repay its passes keeps the depth it was last allowed (the user's where none was
+    measured): no floor is lower than the true one, so an agent with other rules may still hold to it."""
     if plan.depth < 2:
         return plan
     # Floors.ALWAYS: the agents' rules may choose any depth, and at most LS_MAX times the user's spp
@@ -272,6 +272,8 @@ def _with_depth_floors(plan: JobPlan, cmap: ComplexityMap, seed: int, scene: Any
                                     "cut would lose, so the loss cannot be bounded")
         return _held(plan)
     low = tuple(max(1, v // 2) for v in cmap.info["low_size"])  # a unit's mean needs no finer grid
+    if cmap.depth_rays is None:  # a map not from the pre-pass: nothing prices the passes, nothing is cut
+        return _held(plan)
     rects, size = [u.rect for u in plan.units], (plan.width, plan.height)
     cost = depthcut.RayCost.from_rays(cmap.depth_rays, rects, size, samples)
     found = depthcut.measure(scene, radiance_at, plan.depth, rects, low, size, seed=seed,
