@@ -157,12 +157,14 @@ class _ChildServer:
 
     @property
     def pid(self) -> int | None:
-        return self._proc.pid if self._proc and self._proc.poll() is None else None
+        proc = self._proc  # once: a supervisor's restart may replace it meanwhile
+        return proc.pid if proc and proc.poll() is None else None
 
     @property
     def returncode(self) -> int | None:
         """The child's exit status once it has exited (None while it runs, or before it started)."""
-        return self._proc.poll() if self._proc else None
+        proc = self._proc
+        return proc.poll() if proc else None
 
     @property
     def running(self) -> bool:
@@ -206,10 +208,13 @@ class _ChildServer:
             self._log_file = None
 
     def kill(self) -> None:
-        """Kill the server's main process at once (SIGKILL), as a crash would; stop() ends its workers."""
-        if self._proc and self._proc.poll() is None:
-            self._proc.kill()
-            self._proc.wait()
+        """Kill the server's main process at once (SIGKILL), as a crash would; stop() ends its workers.
+        The process is read once: a supervisor that sees it die may restart the server (and replace it)
+        before this waits."""
+        proc = self._proc
+        if proc and proc.poll() is None:
+            proc.kill()
+            proc.wait()
 
     def restart(self, downtime: float = 0.0, timeout: float = 30.0) -> None:
         """Stop, stay down `downtime` seconds, start again on the same port with the same data."""
