@@ -97,15 +97,8 @@ class RayCost:
         """From a ray count (ComplexityMap.depth_rays: (depths, h, w) rays per sample over a low-resolution
         film) and each rect's spp."""
         windows = [_low_window(r, depth_rays.shape[1:], *image_size) for r in rects]
-        per_sample = np.array([[float(layer[w].mean()) for layer in depth_rays] for w in windows])
-        return cls(per_sample * np.asarray(samples, dtype=np.float64)[:, None],
-                   depth_rays.reshape(len(depth_rays), -1).mean(axis=1))
-
-    @classmethod
-    def by_depth(cls, samples: Sequence[int], depth: int) -> RayCost:
-        """Every path traced to the cut: a sample's cost taken as its depth."""
-        rays = np.arange(1, depth + 1, dtype=np.float64)
-        return cls(np.asarray(samples, dtype=np.float64)[:, None] * rays, rays)
+        per_sample = np.array([depth_rays[:, ys, xs].mean(axis=(1, 2)) for ys, xs in windows])
+        return cls(per_sample * np.asarray(samples, dtype=np.float64)[:, None], depth_rays.mean(axis=(1, 2)))
 
     def saved(self, unit: int, deeper: int, depth: int) -> float:
         """Rays per pixel that cutting `unit` from `deeper` to `depth` saves."""

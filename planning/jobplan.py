@@ -271,9 +271,9 @@ def _with_depth_floors(plan: JobPlan, cmap: ComplexityMap, seed: int, scene: Any
                                     "medium the pre-pass's few samples miss the rare long paths whose light a "
                                     "cut would lose, so the loss cannot be bounded")
         return _held(plan)
-    low = tuple(max(1, v // 2) for v in cmap.info["low_size"])  # a unit's mean needs no finer grid
     if cmap.depth_rays is None:  # a map not from the pre-pass: nothing prices the passes, nothing is cut
         return _held(plan)
+    low = tuple(max(1, v // 2) for v in cmap.info["low_size"])  # a unit's mean needs no finer grid
     rects, size = [u.rect for u in plan.units], (plan.width, plan.height)
     cost = depthcut.RayCost.from_rays(cmap.depth_rays, rects, size, samples)
     found = depthcut.measure(scene, radiance_at, plan.depth, rects, low, size, seed=seed,

@@ -70,6 +70,7 @@ def _fake_passes(losses: dict[int, float], noise: float = 0.0, spp: tuple[int, .
 
 
 UNIT = [Rect(0, 0, 20, 20)]
+BOUNCING = np.arange(1.0, 9.0)[:, None, None] * np.ones((8, 5, 5))  # every path traced to its cut: a ray a bounce
 
 
 def test_a_probe_refuses_a_cut_that_loses_far_more_than_the_tolerance_and_renders_no_more():
@@ -92,16 +93,18 @@ def test_a_cut_is_allowed_only_on_all_the_samples_and_no_deeper_than_the_rules_c
 
 
 def test_a_stage_is_rendered_only_where_the_cut_could_save_more_than_it_costs():
-    """Every path traced to its cut (RayCost.by_depth): the stages render 57 spp over 100 low-resolution
+    """Every path traced to its cut (BOUNCING): the stages render 57 spp over 100 low-resolution
     pixels at depths 8 and 6, 57 * 100 * 14 rays. A 20 x 20 unit at 10 spp saves at most 400 * 10 * 2 by
     the cut: nothing is rendered and the unit keeps its depth. At 100 spp (and over a larger unit) the cut
     may pay, and is measured."""
     cheap = _fake_passes({6: 0.0, 4: 0.0})
-    assert depthcut.staged_floors(cheap, [8, 6, 4], UNIT, (20, 20), cost=depthcut.RayCost.by_depth([10], 8)) == [8]
+    cost = depthcut.RayCost.from_rays(BOUNCING, UNIT, (20, 20), [10])
+    assert depthcut.staged_floors(cheap, [8, 6, 4], UNIT, (20, 20), cost=cost) == [8]
     assert cheap.renders == []
     big = [Rect(0, 0, 100, 100)]
     worth = _fake_passes({6: 0.0, 4: 0.5})
-    assert depthcut.staged_floors(worth, [8, 6, 4], big, (100, 100), cost=depthcut.RayCost.by_depth([100], 8)) == [6]
+    cost = depthcut.RayCost.from_rays(BOUNCING, big, (100, 100), [100])
+    assert depthcut.staged_floors(worth, [8, 6, 4], big, (100, 100), cost=cost) == [6]
     assert (8, 49) in worth.renders and (4, 8) in worth.renders  # depth 4 probed, and refused at the probe
     assert (4, 49) not in worth.renders
 
@@ -117,10 +120,9 @@ def test_a_cut_is_priced_by_the_rays_its_paths_would_trace_not_by_its_depth():
     escaped = _fake_passes({6: 0.0, 4: 0.0})
     assert depthcut.staged_floors(escaped, [8, 6, 4], big, (100, 100), cost=cost) == [8]
     assert escaped.renders == []
-    bouncing = np.arange(1.0, 9.0)[:, None, None] * np.ones((8, 5, 5))
     deep = _fake_passes({6: 0.0, 4: 0.0})
     floors = depthcut.staged_floors(deep, [8, 6, 4], big, (100, 100),
-                                    cost=depthcut.RayCost.from_rays(bouncing, big, (100, 100), [100]))
+                                    cost=depthcut.RayCost.from_rays(BOUNCING, big, (100, 100), [100]))
     assert floors == [4] and (4, 49) in deep.renders
 
 
