@@ -191,6 +191,19 @@ def test_a_released_child_exits_and_the_next_render_starts_another():
         assert tile.meta["pid"] != first.meta["pid"] and w.starts == 2 and w.alive()
 
 
+def test_a_released_child_skips_its_teardown_yet_leaves_its_compiled_kernels(tmp_path, monkeypatch):
+    # It ends with os._exit: what it compiled must already be in Dr.Jit's cache ($HOME/.drjit), or every
+    # job would compile its kernels again.
+    monkeypatch.setenv("HOME", str(tmp_path))
+    with RenderWorker() as w:
+        w.render(job(), timeout=120)
+        child = w._proc
+        w.release()
+        assert child.wait(30) == 0
+    kernels = list((tmp_path / ".drjit").glob("*.llvm.*.bin"))
+    assert kernels and all(k.stat().st_size > 0 for k in kernels)
+
+
 def test_a_call_runs_in_the_child_and_what_it_raises_comes_back():
     with RenderWorker() as w:
         assert w.call(os.getpid) == w.pid != os.getpid()
