@@ -13,6 +13,7 @@ import argparse
 import importlib
 import os
 import sys
+from importlib.metadata import entry_points
 
 from core.errors import QuekaroError
 from core.render import child
@@ -38,8 +39,6 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     for name in (owner,) if owner else COMMAND_MODULES:
         importlib.import_module(name).register(sub)
     if owner is None:
-        from importlib.metadata import entry_points  # ~0.03 s, before `render` could start its render process
-
         for entry in entry_points(group=PLUGIN_GROUP):
             entry.load()(sub)
     return parser
