@@ -203,7 +203,7 @@ def render_plan(plan: JobPlan, out: Path, worker: RenderWorker, started: float, 
     chosen = plan_params(plan, planner)
     run = UnitRun(plan, chosen, job_id, plan.options.threads, worker, planner.rules_path.name, progress)
     job = run.render()
-    worker.release()  # the child's shutdown (~0.07 s) overlaps the writing
+    worker.release()  # the render process ends (at once, without its teardown) while this one writes
     return write_outputs(plan, job, out, started, {"job_id": job_id, "render_calls": run.calls})
 
 

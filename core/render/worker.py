@@ -488,8 +488,8 @@ class RenderWorker:
         raise exc
 
     def release(self) -> None:
-        """Ask the child to exit without waiting for it (Dr.Jit's shutdown then overlaps the caller's own
-        work); `stop` waits. A later `render` starts a new child."""
+        """Ask the child to exit without waiting for it (it ends at once, `_exit_now`, while the caller goes
+        on); `stop` waits. A later `render` starts a new child."""
         if self._proc is not None and not self._released:
             with contextlib.suppress(OSError):
                 self._conn.send(None)
