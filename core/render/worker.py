@@ -357,13 +357,14 @@ def render_full(spec: SceneSpec, variant: str, integrator: str | None, depth: in
 # ---- the child process ------------------------------------------------------------------------------
 
 
-def _child_entry(fd: int) -> None:
+def _child_entry(fd: int) -> NoReturn:
     """Entry point of the render process: fd is its end of the socket pair to the parent."""
     _child_main(Connection(fd))
 
 
-def _child_main(conn: Any) -> None:
-    """Loop of the render process: receive a job dict, answer ("ok", pixels, rect, meta) or ("error", ...)."""
+def _child_main(conn: Any) -> NoReturn:
+    """Loop of the render process: receive a job dict, answer ("ok", pixels, rect, meta) or ("error", ...);
+    released (None) or left by the parent, it ends (`_exit_now`)."""
     start = time.perf_counter()
     import mitsuba  # noqa: F401  (imported once here, so each unit pays nothing for it)
 
@@ -391,8 +392,9 @@ def _exit_now() -> NoReturn:
     """End the render process without the interpreter's teardown. It has answered everything and writes
     no file (Dr.Jit stores each kernel on disk as it compiles it), and tearing Mitsuba and Dr.Jit down took
     0.1-0.2 s that a job waited for at its end (`RenderWorker.stop`)."""
-    sys.stdout.flush()
-    sys.stderr.flush()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):  # a parent gone away may have closed the pipe
+            stream.flush()
     os._exit(0)
 
 
