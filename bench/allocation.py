@@ -30,14 +30,17 @@ from bench.args import check_minimums
 from bench.provenance import rules_for
 from bench.report import command_of, publish_markdown
 from bench.scaling import measure_cached, measured_spec
+from core.errors import RenderError
 from core.model.geometry import Rect
 from core.model.hashing import sha256_file
 from core.model.job import RenderOptions
 from core.model.seeds import plan_seed
+from core.render.adaptive import BLUR_PX, blurred, exclusion_px, first_spp, neyman_scale
 from core.render.compose import blend_weights
+from core.render.counts import render_counts
 from core.render.metrics import RELMSE_EPSILON
 from core.render.planner import Planner
-from core.render.scene import film_info, parse_defines
+from core.render.scene import film_info, load, parse_defines
 from fuzzy.levels import RULE_LEVELS
 from planning.accuracy import content_key, job_variant, plain_render, reference
 from planning.jobplan import plan_job
@@ -147,6 +150,36 @@ def pixel_bound(weight: np.ndarray, tmap: Any) -> float:
     return float(np.sqrt(err * per).sum() ** 2 / total) if total > 0 else 1.0
 
 
+def first_pass_ratio(weight: np.ndarray, tmap: Any, estimate: np.ndarray, spp: int, first: int) -> float:
+    """relMSE over uniform's at equal render time of the allocation a two-pass render makes: `first` samples
+    in every pixel, then each pixel max(first, lam sqrt(estimate)) as core.render.adaptive places them (by
+    the noise alone), lam such that they take the render time of `spp` everywhere; scored on the true error
+    per sample (`weight`, H x W x C). `estimate` is the noise the render knows (its first pass's, blurred:
+    `first_pass_estimate`). With the true noise and time even across pixels this is `pixel_bound`; what it
+    leaves above that bound is the cost of not knowing the noise beforehand and of spending a first pass."""
+    err = np.asarray(weight, dtype=np.float64).mean(axis=-1)
+    per = np.asarray(tmap.per_sample, dtype=np.float64)
+    if not err.shape == per.shape == estimate.shape:
+        raise ValueError(f"error {err.shape}, time {per.shape} and estimate {estimate.shape} maps differ in shape")
+    base = np.sqrt(np.maximum(np.asarray(estimate, dtype=np.float64), 0.0))
+    if err.sum() <= 0 or spp <= first or not base.any():  # nothing to gain, no samples to move, or no guide
+        return 1.0
+    counts = np.maximum(first, neyman_scale(base, per, first, spp * float(per.sum())) * base)
+    kept = np.divide(err, counts, out=np.zeros(err.shape), where=err > 0)  # a noiseless pixel adds nothing
+    return float(kept.sum() / (err / spp).sum())
+
+
+def first_pass_estimate(spec: Any, variant: str, spp: int, threads: int, seed: int) -> tuple[np.ndarray, int]:
+    """(the noise a two-pass render's first pass estimates, blurred as core.render.adaptive blurs it; that
+    pass's spp) for a render of `spp`: the same pass, by the same code."""
+    loaded = load(spec, variant, threads=threads)
+    film = loaded.sensors()[0].film()
+    width, height = (int(v) for v in film.crop_size())
+    first = first_spp(spp)
+    one = render_counts(loaded, np.full((height, width), first, dtype=np.int64), seed)
+    return blurred(one.relative_variance(), BLUR_PX, exclusion_px(film.rfilter().radius())), first
+
+
 def rules_file(args: argparse.Namespace) -> Path | None:
     """The rule file every level planned with (bench.commands records its hash)."""
     return rules_for(args, LEVELS)
@@ -188,12 +221,27 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     result = {"scene": str(args.scene), "size": [size.width, size.height], "defines": spec.defines,
               "spp": args.spp, "renders": args.renders,
               "rules": str(planner.rules_path), "seeds": args.seeds, "off_render_seconds": off_seconds,
-              "rows": rows, "neyman_ratio_S": float(np.mean(bounds)), "pixel_bound": pixel_bound(weight, tmap)}
+              "rows": rows, "neyman_ratio_S": float(np.mean(bounds)), "pixel_bound": pixel_bound(weight, tmap),
+              "first_pass": first_pass_bound(spec, variant, weight, tmap, args)}
     report = format_report(result)
     result["report"] = str(publish_markdown(args.out, "allocation", "Each level's allocation against uniform spp",
                                             command_of(args, "quekaro bench allocation"), report,
                                             show=not args.json))
     return result
+
+
+def first_pass_bound(spec: Any, variant: str, weight: np.ndarray, tmap: Any,
+                     args: argparse.Namespace) -> dict[str, Any]:
+    """`first_pass_ratio` with the first pass's own estimate, one per seed (the pass is as noisy as a
+    render), and their mean."""
+    ratios, first = [], first_spp(args.spp)
+    for k in range(args.seeds):
+        try:
+            estimate, first = first_pass_estimate(spec, variant, args.spp, args.threads, seed=5000 + k)
+        except RenderError as exc:  # what `--adaptive` refuses too (core.render.counts.check_renderable)
+            return {"first_spp": first, "ratio": None, "ratio_runs": [], "refused": str(exc)}
+        ratios.append(first_pass_ratio(weight, tmap, estimate, args.spp, first))
+    return {"first_spp": first, "ratio": float(np.mean(ratios)), "ratio_runs": ratios}
 
 
 def _summary(level: str, runs: list[dict[str, Any]]) -> dict[str, Any]:
@@ -225,4 +273,12 @@ def format_report(result: dict[str, Any]) -> str:
                  f"noise known): ratio {result['neyman_ratio_S']:.3f}")
     lines.append(f"bound of any allocation (each pixel its own spp, no units, bands or fixed costs, true "
                  f"noise known): ratio {result['pixel_bound']:.3f}")
+    first = result["first_pass"]
+    said = f"the same with the noise a two-pass render knows (its first pass of {first['first_spp']} spp"
+    if first["ratio"] is None:
+        lines.append(f"{said}): none, the two-pass render refuses this scene: {first['refused']}")
+    else:
+        each = ", ".join(f"{x:.2f}" for x in first["ratio_runs"])
+        lines.append(f"{said}, blurred as it blurs it, the rest placed by that noise as it places them; that "
+                     f"pass uniform): ratio {first['ratio']:.3f} ({each})")
     return "\n".join(lines)

@@ -97,6 +97,35 @@ def test_no_allocation_over_units_beats_the_pixel_bound(seed: int) -> None:
     assert bound <= ba.neyman_ratio(_plan(HALVES), _params([16, 16]), weight, tmap) + 1e-12
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_a_first_pass_that_knew_the_true_noise_reaches_the_pixel_bound_where_time_is_even(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    weight = rng.lognormal(0.0, 1.5, size=(8, 8, 3))
+    truth = weight.mean(axis=-1)
+    even = TimeMap(np.full((8, 8), 2e-3), 0.0, {})
+    assert ba.first_pass_ratio(weight, even, truth, 16, 0) == pytest.approx(ba.pixel_bound(weight, even), rel=1e-9)
+    # the bound also prices time per pixel, and a first pass spent uniformly or a wrong estimate only lose
+    tmap = TimeMap(rng.uniform(1e-4, 5e-3, size=(8, 8)), 0.0, {})
+    guess = truth * rng.lognormal(0.0, 1.0, size=truth.shape)
+    assert ba.pixel_bound(weight, tmap) - 1e-12 <= ba.first_pass_ratio(weight, tmap, truth, 16, 0)
+    assert ba.first_pass_ratio(weight, even, truth, 16, 0) - 1e-12 <= ba.first_pass_ratio(weight, even, truth, 16, 8) \
+        <= ba.first_pass_ratio(weight, even, guess, 16, 8) + 1e-12
+
+
+def test_the_first_pass_ratio_by_hand() -> None:
+    tmap = TimeMap(np.full((8, 8), 1e-3), 0.0, {})
+    weight = np.ones((8, 8, 1))
+    weight[:, 4:] = 16.0  # Neyman wants 1:4, 6.4 and 25.6 spp of 16; the first pass holds the left at 8
+    truth = weight[..., 0]
+    assert ba.first_pass_ratio(weight, tmap, truth, 16, 8) == pytest.approx((1 / 8 + 16 / 24) / (17 / 16))
+    # the estimate swapped: the quiet half gets the samples, and the image is worse than uniform's
+    assert ba.first_pass_ratio(weight, tmap, truth[:, ::-1], 16, 8) == pytest.approx((1 / 24 + 16 / 8) / (17 / 16))
+    assert ba.first_pass_ratio(weight, tmap, np.ones((8, 8)), 16, 8) == pytest.approx(1.0)  # nothing known
+    assert ba.first_pass_ratio(weight, tmap, truth, 16, 16) == 1.0  # the first pass spent the budget
+    with pytest.raises(ValueError, match="differ in shape"):
+        ba.first_pass_ratio(weight, tmap, np.ones((4, 4)), 16, 8)
+
+
 def test_the_pixel_bound_refuses_maps_of_other_shapes() -> None:
     with pytest.raises(ValueError, match="differ in shape"):
         ba.pixel_bound(np.ones((4, 4, 3)), TimeMap(np.ones((8, 8)), 0.0, {}))
@@ -117,8 +146,13 @@ def test_small_real_run(tmp_path) -> None:
         assert 1 <= r["spp_min"] <= r["spp_max"] <= 3 * 16
     assert 0.0 < result["neyman_ratio_S"] <= 1.0 + 1e-6  # float sums of per-pixel seconds
     assert 0.0 < result["pixel_bound"] <= min(1.0, result["neyman_ratio_S"]) + 1e-9
+    first = result["first_pass"]
+    assert first["first_spp"] == 8 and len(first["ratio_runs"]) == 1
+    assert result["pixel_bound"] < first["ratio"] < 10  # not knowing the noise costs something
     assert list(tmp_path.glob("allocation-noise-*.npy"))  # the noise map is cached
-    assert "| S |" in (tmp_path / "allocation.md").read_text()
+    text = (tmp_path / "allocation.md").read_text()
+    assert "| S |" in text and "its first pass of 8 spp, blurred as it blurs it" in text
+    assert f"that pass uniform): ratio {first['ratio']:.3f}" in text
 
 
 @pytest.mark.slow  # small real renders, a reference and a time map of a 40x24 scene
