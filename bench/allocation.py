@@ -10,7 +10,9 @@ by tens of percent, so comparing two rule files there takes many runs. Here the 
 For each level the plan is the one the farm makes (pre-pass, partition, the rules); a unit at n spp
 costs fixed + n x (seconds per sample over the unit and its bands), and its pixels' expected relMSE is
 sigma^2 / n. Uniform spp at the same render time is the baseline; the Neyman allocation over level
-S's units, knowing the true noise, is the bound a unit-level allocation can reach.
+S's units, knowing the true noise, is the bound a unit-level allocation can reach; `pixel_bound` the bound
+of any allocation; `first_pass_ratio` what a render reaches of it by the noise it can know (the two-pass
+render's own first pass).
 
 Not modelled: depth cuts (levels B and VB render shorter paths: less time, some bias), the farm's
 protocol costs (render time only), and the per-render noise of relMSE itself.
@@ -169,10 +171,9 @@ def first_pass_ratio(weight: np.ndarray, tmap: Any, estimate: np.ndarray, spp: i
     return float(kept.sum() / (err / spp).sum())
 
 
-def first_pass_estimate(spec: Any, variant: str, spp: int, threads: int, seed: int) -> tuple[np.ndarray, int]:
+def first_pass_estimate(loaded: Any, spp: int, seed: int) -> tuple[np.ndarray, int]:
     """(the noise a two-pass render's first pass estimates, blurred as core.render.adaptive blurs it; that
-    pass's spp) for a render of `spp`: the same pass, by the same code."""
-    loaded = load(spec, variant, threads=threads)
+    pass's spp) for a render of `spp` of the loaded scene: the same pass, by the same code."""
     film = loaded.sensors()[0].film()
     width, height = (int(v) for v in film.crop_size())
     first = first_spp(spp)
@@ -235,9 +236,10 @@ def first_pass_bound(spec: Any, variant: str, weight: np.ndarray, tmap: Any,
     """`first_pass_ratio` with the first pass's own estimate, one per seed (the pass is as noisy as a
     render), and their mean."""
     ratios, first = [], first_spp(args.spp)
+    loaded = load(spec, variant, threads=args.threads)
     for k in range(args.seeds):
         try:
-            estimate, first = first_pass_estimate(spec, variant, args.spp, args.threads, seed=5000 + k)
+            estimate, first = first_pass_estimate(loaded, args.spp, seed=5000 + k)
         except RenderError as exc:  # what `--adaptive` refuses too (core.render.counts.check_renderable)
             return {"first_spp": first, "ratio": None, "ratio_runs": [], "refused": str(exc)}
         ratios.append(first_pass_ratio(weight, tmap, estimate, args.spp, first))

@@ -126,6 +126,21 @@ def test_the_first_pass_ratio_by_hand() -> None:
         ba.first_pass_ratio(weight, tmap, np.ones((4, 4)), 16, 8)
 
 
+def test_a_scene_the_two_pass_render_refuses_gets_its_reason_not_a_ratio() -> None:
+    """The first pass renders by per-pixel counts, which need the independent sampler: the line names that."""
+    spec = measured_spec(COMPAT / "sampler_stratified.xml", 16)
+    args = SimpleNamespace(spp=8, seeds=2, threads=1)
+    tmap = TimeMap(np.full((1, 1), 1e-3), 0.0, {})  # not reached: the pass is refused before any scoring
+    first = ba.first_pass_bound(spec, "llvm_ad_rgb", np.ones((1, 1, 3)), tmap, args)
+    assert first["ratio"] is None and first["ratio_runs"] == [] and first["first_spp"] == 4
+    assert first["refused"].startswith("sampler StratifiedSampler: per-pixel sample counts need the independent")
+    line = ba.format_report({"scene": "s.xml", "size": [1, 1], "spp": 8, "rules": "r.xml", "off_render_seconds": 1.0,
+                             "rows": [], "seeds": 2, "neyman_ratio_S": 1.0, "pixel_bound": 1.0,
+                             "first_pass": first}).splitlines()[-1]
+    assert line.startswith("the same with the noise a two-pass render knows (its first pass of 4 spp): none, "
+                           "the two-pass render refuses this scene: sampler StratifiedSampler")
+
+
 def test_the_pixel_bound_refuses_maps_of_other_shapes() -> None:
     with pytest.raises(ValueError, match="differ in shape"):
         ba.pixel_bound(np.ones((4, 4, 3)), TimeMap(np.ones((8, 8)), 0.0, {}))
