@@ -37,9 +37,8 @@ from core.model.geometry import Rect
 from core.model.hashing import sha256_file
 from core.model.job import RenderOptions
 from core.model.seeds import plan_seed
-from core.render.adaptive import BLUR_PX, blurred, exclusion_px, first_spp, neyman_scale
+from core.render.adaptive import first_pass, first_spp, neyman_scale
 from core.render.compose import blend_weights
-from core.render.counts import render_counts
 from core.render.metrics import RELMSE_EPSILON
 from core.render.planner import Planner
 from core.render.scene import film_info, load, parse_defines
@@ -157,7 +156,7 @@ def first_pass_ratio(weight: np.ndarray, tmap: Any, estimate: np.ndarray, spp: i
     in every pixel, then each pixel max(first, lam sqrt(estimate)) as core.render.adaptive places them (by
     the noise alone), lam such that they take the render time of `spp` everywhere; scored on the true error
     per sample (`weight`, H x W x C). `estimate` is the noise the render knows (its first pass's, blurred:
-    `first_pass_estimate`). With the true noise and time even across pixels this is `pixel_bound`; what it
+    core.render.adaptive.first_pass). With the true noise and time even across pixels this is `pixel_bound`; what it
     leaves above that bound is the cost of not knowing the noise beforehand and of spending a first pass."""
     err = np.asarray(weight, dtype=np.float64).mean(axis=-1)
     per = np.asarray(tmap.per_sample, dtype=np.float64)
@@ -169,16 +168,6 @@ def first_pass_ratio(weight: np.ndarray, tmap: Any, estimate: np.ndarray, spp: i
     counts = np.maximum(first, neyman_scale(base, per, first, spp * float(per.sum())) * base)
     kept = np.divide(err, counts, out=np.zeros(err.shape), where=err > 0)  # a noiseless pixel adds nothing
     return float(kept.sum() / (err / spp).sum())
-
-
-def first_pass_estimate(loaded: Any, spp: int, seed: int) -> tuple[np.ndarray, int]:
-    """(the noise a two-pass render's first pass estimates, blurred as core.render.adaptive blurs it; that
-    pass's spp) for a render of `spp` of the loaded scene: the same pass, by the same code."""
-    film = loaded.sensors()[0].film()
-    width, height = (int(v) for v in film.crop_size())
-    first = first_spp(spp)
-    one = render_counts(loaded, np.full((height, width), first, dtype=np.int64), seed)
-    return blurred(one.relative_variance(), BLUR_PX, exclusion_px(film.rfilter().radius())), first
 
 
 def rules_file(args: argparse.Namespace) -> Path | None:
@@ -239,7 +228,7 @@ def first_pass_bound(spec: Any, variant: str, weight: np.ndarray, tmap: Any,
     loaded = load(spec, variant, threads=args.threads)
     for k in range(args.seeds):
         try:
-            estimate, first = first_pass_estimate(loaded, args.spp, seed=5000 + k)
+            _, estimate = first_pass(loaded, first, seed=5000 + k)
         except RenderError as exc:  # what `--adaptive` refuses too (core.render.counts.check_renderable)
             return {"first_spp": first, "ratio": None, "ratio_runs": [], "refused": str(exc)}
         ratios.append(first_pass_ratio(weight, tmap, estimate, args.spp, first))

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from core.errors import RenderError
-from core.render.counts import render_counts
+from core.render.counts import WindowRender, render_counts
 from core.render.film import sanitize
 
 # The two-pass render. FIRST_SHARE of the samples go to a uniform first pass, whose per-pixel variance,
@@ -101,11 +101,8 @@ def render_adaptive(scene: Any, spp: int, seed: int, sensor: int = 0, integrator
     first = first_spp(spp) if first is None else first
     if first < 1:
         raise RenderError(f"first pass of {first} samples per pixel (must be >= 1)")
-    cam = scene.sensors()[sensor]
-    width, height = (int(v) for v in cam.film().crop_size())
     start = time.perf_counter()
-    one = render_counts(scene, np.full((height, width), first, dtype=np.int64), seed, sensor, integrator)
-    noise = blurred(one.relative_variance(), blur_px, exclusion_px(cam.film().rfilter().radius()))
+    one, noise = first_pass(scene, first, seed, sensor, integrator, blur_px)
     extra, predicted = second_pass(noise, first, spp, np.random.default_rng(seed))
     middle = time.perf_counter()
     a, bad_a = sanitize(one.pixels)
@@ -118,6 +115,17 @@ def render_adaptive(scene: Any, spp: int, seed: int, sensor: int = 0, integrator
     pixels = combine_passes(a, b, first, extra)
     return AdaptiveRender(pixels, one.channels, first + extra, (middle - start, end - middle), max(bad_a, bad_b),
                           predicted, predicted < PAYS_BELOW)
+
+
+def first_pass(scene: Any, first: int, seed: int, sensor: int = 0, integrator: Any = None,
+               blur_px: float = BLUR_PX) -> tuple[WindowRender, np.ndarray]:
+    """The uniform first pass over the film window, `first` samples per pixel, and the noise map the second
+    pass's samples follow: its per-pixel relative variance blurred over `blur_px`, each pixel's own
+    neighbourhood left out (`blurred`)."""
+    film = scene.sensors()[sensor].film()
+    width, height = (int(v) for v in film.crop_size())
+    one = render_counts(scene, np.full((height, width), first, dtype=np.int64), seed, sensor, integrator)
+    return one, blurred(one.relative_variance(), blur_px, exclusion_px(film.rfilter().radius()))
 
 
 def combine_passes(a: np.ndarray, b: np.ndarray, first: int, extra: np.ndarray, axis: int = -1) -> np.ndarray:
