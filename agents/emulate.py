@@ -45,9 +45,9 @@ import numpy as np
 
 from agents.speed import MIN_SPEED, RAYS_PER_SPEED_UNIT, REF_RAYS_PER_SAMPLE, REF_RES, REF_SPP, SpeedSample
 from core.errors import QuekaroError, RenderError
+from core.image.tiles import RGB, Tile
 from core.model.geometry import Rect
-from core.render.tiles import RGB, Tile
-from core.render.worker import RenderRequest
+from core.render.process import RenderRequest
 
 log = logging.getLogger(__name__)
 
@@ -136,7 +136,7 @@ def _decode(raw: Any) -> np.ndarray:
 
 
 class EmulatedWorker:
-    """Stands in for `core.render.worker.RenderWorker`: `render(request, timeout)` sleeps the unit's time from
+    """Stands in for `core.render.process.RenderProcess`: `render(request, timeout)` sleeps the unit's time from
     the cost map, then returns a real tile of the unit's window. Renders one unit at a time (an emulated agent
     renders no batches: agents.render_agent gives its state machine batches of one)."""
 
@@ -149,7 +149,7 @@ class EmulatedWorker:
         self.starts += 1
 
     def interrupt(self) -> None:
-        """Nothing to kill: a render sleeps on its `abort` event, whose setting ends it (RenderWorker's)."""
+        """Nothing to kill: a render sleeps on its `abort` event, whose setting ends it (RenderProcess's)."""
 
     def stop(self) -> None:
         self.emulation.finish()

@@ -1,7 +1,7 @@
 """The render agent: bids on the master's units, renders the ones it is awarded, uploads their tiles.
 
-One agent process = one `FarmAgent` (the XMPP transport, core.transport.xmpp) + one `RenderWorker` (a persistent
-child process that renders, core.render.worker) + its own rule base (core.render.planner). The protocol, as
+One agent process = one `FarmAgent` (the XMPP transport, core.transport.xmpp) + one `RenderProcess` (a persistent
+child process that renders, core.render.process) + its own rule base (core.rules.unit_params). The protocol, as
 master/auction.py expects it:
 
   start     measure speed (agents/speed.py) -> Register; Register again after every reconnect, when the
@@ -15,7 +15,7 @@ master/auction.py expects it:
   award     (one, or several of a job in one Awards message, each handled as if sent alone)
             fetch the job's scene bundle once (cached by sha256 under the work dir), plan the unit
             with its own rules, render it with the award's seed (with the waiting units of its job and
-            depth in one call where the scene allows: core.render.together), write the tile EXR (meta: the unit,
+            depth in one call where the scene allows: core.render.batch), write the tile EXR (meta: the unit,
             seconds, non-finite pixels, spp, depth, band, the rules' crisp outputs, the agent's JID),
             upload it with the award's token (and its sha256): the master counts the unit done by that
             upload, so nothing else is sent. Any error of that unit -> Failure with the reason; the agent
@@ -27,12 +27,14 @@ master/auction.py expects it:
 Duplicate awards (same unit, same token) are ignored; a re-award with a new token replaces the old one's
 token. Every decision (slots, awards, cancels, which unit renders next, heartbeats, estimates and their
 calibration) is agents.state.AgentState's, a pure state machine; `RenderAgent` is the I/O around it: each
-message, tick and end of an I/O step goes in as an event, and its commands are carried out. Messages are
-handled one at a time on the XMPP loop and never wait for a render: a bundle fetch, a render (in a worker
-thread that talks to the render process) and an upload each run as a task of their own, which feeds its
-end back as an event; one render step at a time, its tiles uploading while the next step renders.
+message, tick and end of an I/O step goes in as a stimulus (with a readable, unique `stimulus_id`), and its
+instructions are carried out. Messages are handled one at a time on the XMPP loop and never wait for a
+render: a bundle fetch, a render (in a worker thread that talks to the render process) and an upload each
+run as a task of their own, which feeds its end back as a stimulus; one render step at a time, its tiles
+uploading while the next step renders. A unit that fails has its story (its status changes) logged.
 
-Run it with `python -m agents.render_agent --server HOST --port P --jid J --password PW --master M`.
+Run it with `python -m agents.render_agent --server HOST --port P --jid J --password PW --master M`
+(`--log-format json` for one JSON object a line).
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import itertools
 import logging
 import os
 import re
@@ -65,18 +68,20 @@ from agents.state import (
     BundleFailed,
     BundleReady,
     Calibration,
-    Command,
     DiscardTile,
-    Event,
     FetchBundle,
+    Instruction,
     Log,
     Measured,
+    MessageReceived,
     Params,
     RenderFailed,
     RenderFinished,
-    Send,
+    SendToMaster,
     StartRender,
+    Stimulus,
     Tick,
+    Transition,
     Upload,
     UploadDone,
     UploadFailed,
@@ -84,15 +89,16 @@ from agents.state import (
 )
 from agents.transfer import fetch_bundle, upload_tile
 from core.errors import QuekaroError
+from core.image.tiles import Tile, write_tile
+from core.logs import FORMATS, configure, fields
 from core.model import messages as m
 from core.model.hashing import sha256_file
 from core.model.job import SceneSpec
 from core.model.units import WorkUnit
-from core.render.bundle import RULES_NAME, BundleLimits, check_unpacked, read_manifest
-from core.render.planner import Planner, RenderParams, adaptive_params
-from core.render.tiles import Tile, write_tile
-from core.render.together import batch_name, batches, render_batch, together_problem_here
-from core.render.worker import RenderRequest, RenderWorker
+from core.render.batch import batch_name, batches, render_batch, together_problem_here
+from core.render.process import RenderProcess, RenderRequest
+from core.rules.unit_params import Planner, RenderParams, adaptive_params
+from core.scene.bundle import RULES_NAME, BundleLimits, check_unpacked, read_manifest
 from core.transport.credentials import xmpp_password
 from core.transport.tls import client_context, is_loopback
 from core.transport.xmpp import Envelope, FarmAgent
@@ -131,8 +137,8 @@ class AgentConfig:
     emulate_speed: float = 1.0  # the emulated agent's speed, as a factor of the map's
 
 
-class UnitFailed(QuekaroError):
-    """A unit that could not be rendered or delivered; the message is the Failure's reason."""
+class UnitStepError(QuekaroError):
+    """A step of a unit (its bundle, render or upload) that failed; the message is the Failure's reason."""
 
 
 class _StepTime:
@@ -145,9 +151,9 @@ class _StepTime:
         return time.monotonic() >= self.deadline
 
     def left(self) -> float:
-        """The seconds left, raising UnitFailed once none are."""
+        """The seconds left, raising UnitStepError once none are."""
         if self.spent():
-            raise UnitFailed(f"not rendered: its render step's {self.timeout:.0f} s were spent before its call")
+            raise UnitStepError(f"not rendered: its render step's {self.timeout:.0f} s were spent before its call")
         return self.deadline - time.monotonic()
 
 
@@ -161,7 +167,7 @@ class RenderAgent:
         self.planner = Planner(config.rules, config.defuzzifier)
         # --emulate: the render process and the speed measurement are the emulation's (agents/emulate.py).
         self.emulation = Emulation.load(config.emulate, config.emulate_speed, self.workdir) if config.emulate else None
-        self.worker = self.emulation.worker if self.emulation else RenderWorker()
+        self.worker = self.emulation.worker if self.emulation else RenderProcess()
         self._aborts: dict[int, threading.Event] = {}  # per render ticket: set to end it (AbortRender)
         self._together: dict[str, str | None] = {}  # per job: why its units render one by one (None: they need not)
         self.farm = FarmAgent(
@@ -184,6 +190,7 @@ class RenderAgent:
         self._tasks: list[asyncio.Task] = []
         self._io: set[asyncio.Task] = set()  # bundle fetches, renders and uploads under way
         self._bundle_locks: dict[str, asyncio.Lock] = {}
+        self._stimuli = itertools.count(1)  # numbers the stimulus ids of messages and ticks
 
     @property
     def jid(self) -> str:
@@ -225,7 +232,7 @@ class RenderAgent:
         self.speed = await asyncio.to_thread(measure, self.worker, self.config.threads)
         log.info("%s: speed %.3f Mrays/s (reference render %.3f s, %s)", self.config.jid, self.speed.speed,
                  self.speed.seconds, self.speed.variant)
-        await self._feed(Measured(self.speed.speed, self.speed.compile_s))
+        await self._feed(Measured(self.speed.speed, self.speed.compile_s, stimulus_id="measured"))
         await self.farm.start(auto_register=self.config.auto_register)
         self._tasks = [asyncio.create_task(self._beat_forever(), name="agent heartbeat")]
         try:
@@ -244,7 +251,7 @@ class RenderAgent:
         for task in tasks:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
-        # A render in flight is abandoned: the child is asked to exit, then killed (RenderWorker.stop).
+        # A render in flight is abandoned: the child is asked to exit, then killed (RenderProcess.stop).
         await asyncio.to_thread(self.worker.stop)
         with contextlib.suppress(Exception):
             await self.farm.stop()
@@ -253,10 +260,11 @@ class RenderAgent:
         """Tick the state: it registers after every (re)connection and beats every `heartbeat_s` seconds."""
         while True:
             with _logged("tick"):
-                await self._feed(Tick(online=self.farm.online, connection=self.farm.reconnects))
+                await self._feed(Tick(online=self.farm.online, connection=self.farm.reconnects,
+                                      stimulus_id=f"tick-{next(self._stimuli)}"))
             await asyncio.sleep(POLL_S)
 
-    # ---- events in, commands out --------------------------------------------------------------------
+    # ---- stimuli in, instructions out ---------------------------------------------------------------
 
     async def _on_envelope(self, env: Envelope) -> None:
         msg = m.parse(env.performative, env.body)  # the gate validated it already: this cannot fail
@@ -264,20 +272,23 @@ class RenderAgent:
             log.warning("%s from %s: conversation %r in the body, %r in the metadata: ignored",
                         env.performative, env.sender, msg.conversation, env.conversation_id)
             return
+        sid = f"{env.performative}:{env.conversation_id}#{next(self._stimuli)}"  # e.g. cfp:cfp-ab12-3#41
         if isinstance(msg, m.Awards):
             for award in msg.each():  # as if sent one by one
-                await self._feed(award)
+                await self._feed(MessageReceived(award, stimulus_id=f"{sid}:{award.unit.index}"))
         elif isinstance(msg, m.CallForProposal | m.Award | m.Reject | m.Cancel | m.Welcome | m.Introduce):
-            await self._feed(msg)
+            await self._feed(MessageReceived(msg, stimulus_id=sid))
 
-    async def _feed(self, event: Event) -> None:
-        """One event into the state machine, and its commands carried out (long ones as tasks)."""
-        await self._execute(self.state.handle(event, time.monotonic()))
+    async def _feed(self, stimulus: Stimulus) -> None:
+        """One stimulus into the state machine, and its instructions carried out (long ones as tasks)."""
+        await self._execute(self.state.handle(stimulus, time.monotonic()))
 
-    async def _execute(self, commands: list[Command]) -> None:
-        for command in commands:
-            match command:
-                case Send(message=msg):
+    async def _execute(self, instructions: list[Instruction]) -> None:
+        for instruction in instructions:
+            match instruction:
+                case SendToMaster(message=msg):
+                    if isinstance(msg, m.Failure):
+                        self._log_story(msg.job_id, msg.index)
                     with _logged(f"sending {msg.performative}"):
                         await self._send(msg)
                 case Log(level=level, text=text):
@@ -291,9 +302,15 @@ class RenderAgent:
                         self.worker.interrupt()
                 case StartRender(ticket=ticket):
                     self._aborts[ticket] = threading.Event()  # now: a cancel may come before its task runs
-                    self._perform_later(command)
+                    self._perform_later(instruction)
                 case FetchBundle() | Upload():
-                    self._perform_later(command)
+                    self._perform_later(instruction)
+
+    def _log_story(self, job_id: str, index: int) -> None:
+        """A failed unit's status changes, on one line: what happened to it, and when."""
+        story = self.state.story(job_id, index)
+        log.warning("unit %d of job %s: story: %s", index, job_id, story_line(story),
+                    extra=fields(job_id=job_id, index=index, story=[vars(t) for t in story]))
 
     def _perform_later(self, command: FetchBundle | StartRender | Upload) -> None:
         task = asyncio.create_task(self._perform(command), name=f"{type(command).__name__} {command.ticket}")
@@ -302,22 +319,23 @@ class RenderAgent:
 
     async def _perform(self, command: FetchBundle | StartRender | Upload) -> None:
         """One I/O step of a unit (of a batch's units), as a task of its own; its end goes back to the state
-        as an event per unit."""
+        as a stimulus per unit."""
         match command:
             case FetchBundle():
-                events: list[Event] = [await self._fetch(command)]
+                stimuli: list[Stimulus] = [await self._fetch(command)]
             case StartRender():
                 try:
-                    events = list(await self._render(command))
+                    stimuli = list(await self._render(command))
                 except Exception as exc:  # every unit of the step is answered, or the agent would wait forever
-                    events = [RenderFailed(ticket, describe(exc)) for ticket in command.tickets]
+                    stimuli = [RenderFailed(ticket, describe(exc), stimulus_id=f"render-{ticket}")
+                               for ticket in command.tickets]
                 finally:  # however the render ended: its abort has no render left to end
                     self._aborts.pop(command.ticket, None)
             case Upload():
-                events = [await self._upload(command)]
-        for event in events:
-            with _logged(f"handling {event!r}"):
-                await self._feed(event)
+                stimuli = [await self._upload(command)]
+        for stimulus in stimuli:
+            with _logged(f"handling {stimulus!r}"):
+                await self._feed(stimulus)
 
     async def _send(self, msg: m.Message) -> bool:
         performative, body = m.encode(msg)
@@ -354,14 +372,15 @@ class RenderAgent:
     # ---- the I/O steps of a unit: bundle, render, upload --------------------------------------------
 
     async def _fetch(self, command: FetchBundle) -> BundleReady | BundleFailed:
+        sid = f"bundle-{command.ticket}"
         try:
-            return BundleReady(command.ticket, await self._scene_for(command.job, command.token))
+            return BundleReady(command.ticket, await self._scene_for(command.job, command.token), stimulus_id=sid)
         except Exception as exc:
-            return BundleFailed(command.ticket, describe(exc))
+            return BundleFailed(command.ticket, describe(exc), stimulus_id=sid)
 
     async def _render(self, command: StartRender) -> list[RenderFinished | RenderFailed]:
-        """Render the command's units in the render process, in one call where they can (core.render.together),
-        and write their tile EXRs (meta: the unit, the parameters): an event per unit, in the command's order."""
+        """Render the command's units in the render process, in one call where they can (core.render.batch),
+        and write their tile EXRs (meta: the unit, the parameters): a stimulus per unit, in the command's order."""
         items = [(command.ticket, command.award, command.params),
                  *((b.ticket, b.award, b.params) for b in command.more)]
         requests = [self._request(command.scene, award, params) for _, award, params in items]
@@ -417,15 +436,15 @@ class RenderAgent:
         try:
             try:
                 return list(render())
-            except UnitFailed:
+            except UnitStepError:
                 raise
             except QuekaroError as exc:
-                raise UnitFailed(f"render failed: {exc}") from exc
+                raise UnitStepError(f"render failed: {exc}") from exc
         except Exception as exc:
             return [exc] * units
 
     def _together_problem(self, request: RenderRequest, timeout: float) -> str | None:
-        """Why the job's units render one by one (core.render.together), asked of the render process once a job."""
+        """Why the job's units render one by one (core.render.batch), asked of the render process once a job."""
         if request.job_id not in self._together:
             try:
                 problem = self.worker.call(together_problem_here, request, doing="checking the scene", timeout=timeout)
@@ -442,7 +461,8 @@ class RenderAgent:
 
     async def _written(self, ticket: int, award: m.Award, params: Params,
                        result: Tile | Exception) -> RenderFinished | RenderFailed:
-        """The unit's tile written where its upload reads it (meta: the unit, the parameters), as an event."""
+        """The unit's tile written where its upload reads it (meta: the unit, the parameters), as a stimulus."""
+        sid = f"render-{ticket}"
         try:
             if isinstance(result, Exception):
                 raise result
@@ -452,9 +472,9 @@ class RenderAgent:
             # Not fsynced: the file lives until its upload; a crash loses the unit, which is rendered again.
             await asyncio.to_thread(write_tile, path, result, durable=False)
         except Exception as exc:
-            return RenderFailed(ticket, describe(exc))
+            return RenderFailed(ticket, describe(exc), stimulus_id=sid)
         return RenderFinished(ticket, path, float(result.meta["seconds"]), int(result.meta.get("nonfinite", 0)),
-                              int(result.meta["spp"]))
+                              int(result.meta["spp"]), stimulus_id=sid)
 
     def _tile_meta(self, job: m.JobInfo, params: Params) -> dict[str, Any]:
         """What the agent adds to the render's header. The render states what it did (job, unit, spp as
@@ -472,10 +492,10 @@ class RenderAgent:
                 await upload_tile(award.upload_url, award.token, command.path, sha256, agent=self.jid,
                                   ssl_context=self._tls)
             except Exception as exc:
-                raise UnitFailed(f"tile upload to {award.upload_url} failed: {describe(exc)}") from exc
+                raise UnitStepError(f"tile upload to {award.upload_url} failed: {describe(exc)}") from exc
         except Exception as exc:
-            return UploadFailed(command.ticket, describe(exc))
-        return UploadDone(command.ticket)
+            return UploadFailed(command.ticket, describe(exc), stimulus_id=f"upload-{command.ticket}")
+        return UploadDone(command.ticket, stimulus_id=f"upload-{command.ticket}")
 
     def _tile_path(self, job_id: str, index: int) -> Path:
         return self.workdir / "tiles" / f"{_safe(job_id)}-{index}.exr"
@@ -494,19 +514,19 @@ class RenderAgent:
                     await fetch_bundle(job.scene_url, digest, folder, self.config.bundle_limits, token=token,
                                        ssl_context=self._tls)
                 except Exception as exc:
-                    raise UnitFailed(f"scene bundle {job.scene_url} not fetched: {describe(exc)}") from exc
+                    raise UnitStepError(f"scene bundle {job.scene_url} not fetched: {describe(exc)}") from exc
         manifest = read_manifest(folder)
         name = getattr(job, "scene_name", None) or manifest["scene"]
         scene = (folder / name).resolve()
         if not scene.is_file() and name != manifest["scene"]:
             scene = (folder / manifest["scene"]).resolve()
         if not scene.is_relative_to(folder.resolve()) or not scene.is_file():
-            raise UnitFailed(f"scene {name!r} not found in the bundle of job {job.job_id}")
+            raise UnitStepError(f"scene {name!r} not found in the bundle of job {job.job_id}")
         defines = {**manifest.get("defines", {}), **(getattr(job, "defines", None) or {})}
         try:
             check_unpacked(scene, defines)
         except QuekaroError as exc:
-            raise UnitFailed(f"scene bundle of job {job.job_id} refused: {exc}") from exc
+            raise UnitStepError(f"scene bundle of job {job.job_id} refused: {exc}") from exc
         return SceneSpec(scene, defines)
 
 
@@ -518,13 +538,21 @@ def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]", "_", name)
 
 
+def story_line(story: list[Transition]) -> str:
+    """A unit's story on one line: each status change, the stimulus that made it, its time from the first."""
+    if not story:
+        return "forgotten"
+    return "; ".join(f"{t.start or 'new'} -> {t.finish} by {t.stimulus_id} at +{t.at - story[0].at:.3f} s"
+                     for t in story)
+
+
 def _stamp() -> str:
     return f"{time.time_ns():x}"
 
 
 @contextlib.contextmanager
 def _logged(what: str):
-    """Errors of one send, tick or event are logged, never fatal (the next beat tries again)."""
+    """Errors of one send, tick or stimulus are logged, never fatal (the next beat tries again)."""
     try:
         yield
     except Exception:
@@ -567,6 +595,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"units held at once (default {SLOTS}): half of them render in one call while the next "
                         "half is awarded; 2: one unit a call, the next awarded while it renders; 1: no overlap")
     p.add_argument("--log-level", default=os.environ.get("QUEKARO_LOG", "INFO"))
+    p.add_argument("--log-format", choices=FORMATS, default=os.environ.get("QUEKARO_LOG_FORMAT", "text"),
+                   help="text: a sentence a line (default); json: one object a line ($QUEKARO_LOG_FORMAT)")
     p.add_argument("--emulate", type=Path, metavar="COSTS.json",
                    help="emulate the renders: sleep each unit's time from this cost map (agents/emulate.py)")
     p.add_argument("--speed", type=float, default=None, help="with --emulate: this agent's speed factor (default 1)")
@@ -601,12 +631,12 @@ async def serve(config: AgentConfig) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO), stream=sys.stderr,
-                        format=(f"{MARK} " if args.emulate else "") + "%(asctime)s %(name)s %(levelname)s %(message)s")
+    mark = f"{MARK} " if args.emulate else ""  # every line of an emulated agent says so
     try:
+        configure(args.log_level, args.log_format, role=args.jid.split("@")[0], prefix=mark)
         asyncio.run(serve(config_from_args(args)))
     except (QuekaroError, RuleFileError, ValueError) as exc:  # a bad option, rule file or login
-        print(f"{MARK} " * bool(args.emulate) + f"render agent: {exc}", file=sys.stderr)
+        print(f"{mark}render agent: {exc}", file=sys.stderr)
         return 2
     return 0
 

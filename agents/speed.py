@@ -13,7 +13,7 @@ cost to the unit's pixel count, one "ray" per sample: such estimates come out sh
 per sample, which the agent's per-job correction (render_agent.Calibration) absorbs after one unit.
 
 The reference render: the repository's Cornell box (scenes/cbox.xml, only built-in shapes) at 32x32,
-path tracer depth 6, REF_SPP samples, in the agent's RenderWorker with the agent's thread count. One
+path tracer depth 6, REF_SPP samples, in the agent's RenderProcess with the agent's thread count. One
 render compiles the kernel (~0.6 s); the best of the timed ones gives the speed (~1.5 s in all).
 """
 
@@ -23,10 +23,10 @@ from dataclasses import dataclass
 
 from core.data import DEMO_SCENE
 from core.errors import QuekaroError
+from core.mitsuba_env import DEFAULT_VARIANT
 from core.model.geometry import Rect
 from core.model.job import SceneSpec
-from core.render.mitsuba_env import DEFAULT_VARIANT
-from core.render.worker import RenderRequest, RenderWorker
+from core.render.process import RenderProcess, RenderRequest
 
 REFERENCE_SCENE = DEMO_SCENE
 REF_RES = 32
@@ -60,7 +60,7 @@ def reference_job(threads: int | None, spp: int = REF_SPP) -> RenderRequest:
                    Rect(0, 0, REF_RES, REF_RES), threads=threads, job_id="speed-benchmark")
 
 
-def measure_speed(worker: RenderWorker, threads: int | None, repeats: int = 2,
+def measure_speed(worker: RenderProcess, threads: int | None, repeats: int = 2,
                   timeout: float = 120.0) -> SpeedSample:
     """Time the reference render in `worker` (blocking): one untimed warm-up, then the best of `repeats`."""
     job = reference_job(threads)

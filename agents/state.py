@@ -1,38 +1,14 @@
-"""The render agent's decisions as a pure state machine: typed events in, typed commands out, no I/O.
+"""The render agent's decisions as a pure state machine: typed stimuli in, typed instructions out, no I/O.
 
-`AgentState.handle(event, now)` is the agent's one entry point, beside the master's `master.auction.Auction`
-and after dask.distributed's worker state machine: no asyncio, no clock (every call takes `now`), no
-network, no Mitsuba. `agents.render_agent.RenderAgent` turns XMPP messages and the ends of its own I/O
-(bundle fetched, unit rendered, tile uploaded) into events and carries out the commands; the unit tests
-(tests/test_agent_state.py) drive it with a fake clock.
+`AgentState.handle(stimulus, now)` is its one entry, after dask.distributed's worker state machine (beside the
+master's `master.auction.Auction`): no asyncio, no clock, no network, no Mitsuba. `agents.render_agent` feeds it
+and carries out what it returns; tests/test_agent_state.py drives it with a fake clock.
 
-Events: the master's messages (`m.CallForProposal`, `m.Award`, `m.Reject`, `m.Cancel`, `m.Welcome`,
-`m.Introduce`, as parsed), `Measured` (the agent's speed), `Tick` (time passes; the connection's state),
-and the ends of the commands it gave: `BundleReady`/`BundleFailed`, `RenderFinished`/`RenderFailed`,
-`UploadDone`/`UploadFailed`.
-Commands: `Send` (a message to the master), `FetchBundle`, `StartRender`, `AbortRender`, `Upload`, `DiscardTile`,
-`Log`.
-
-What it decides (the protocol is in agents/render_agent.py's docstring):
-  slots      it holds at most `slots` units (awarded, not answered, not cancelled) and bids only below
-             that; with one slot, only when no render at all is in flight. One render step at a time, in
-             award order: the oldest waiting unit and, at a rule level, the waiting units of its job and
-             depth, up to `batch` (half the slots) in all, in one call; the next step starts as soon as
-             the last one's tiles are written, while they upload.
-  awards     a duplicate (same unit, same token) is ignored, also after the unit is done; a re-award with
-             a new token replaces the token it answers under. A unit it never bid on is planned afresh.
-  cancel     one unit or a whole job: queued units never start, a unit whose bundle is being fetched is
-             not rendered, a render in flight is ended once none of its units is wanted (its render
-             process killed: the compiled kernels go with it, but a long render left to run held the
-             agent, which looked free, and made the next unit awarded to it miss its deadline); nothing
-             is answered.
-  heartbeat  Register on every (re)connection, when the master's Introduce asks (it knows the agent from
-             heartbeats only), and again with each heartbeat until the master's Welcome answers one; a
-             Heartbeat every `heartbeat_s` listing the held units.
-  estimates  base seconds (cost x spp / speed) + a kernel compilation for a window it has not rendered,
-             times the job's `Calibration`: the ratio of measured to estimated seconds of its done units.
-
-Planning a unit (the fuzzy rules) and the base estimate are computations, injected as functions.
+Stimuli (each with a `stimulus_id`): `MessageReceived` (the master's message), `Measured`, `Tick`,
+`BundleReady`/`BundleFailed`, `RenderFinished`/`RenderFailed`, `UploadDone`/`UploadFailed`.
+Instructions: `SendToMaster`, `FetchBundle`, `StartRender` (with `Batched` units), `AbortRender`, `Upload`,
+`DiscardTile`, `Log`. Each held unit (`Work`) has a `WorkStatus`, changed only as `TRANSITIONS` allows;
+`validate()` checks the state's invariants and `story(job_id, index)` lists a unit's status changes.
 """
 
 from __future__ import annotations
@@ -43,16 +19,18 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 from core.errors import QuekaroError
 from core.model import messages as m
 from core.model.job import SceneSpec
+from core.model.status import TransitionError
 from core.model.units import SLOTS, WorkUnit, batch_size, batched
 
 HEARTBEAT_S = 2.0
 MAX_RENDER_S = 6 * 3600.0  # a render longer than this is killed whatever the estimate
 FINISHED_MEMORY = 4096  # (job, unit, token) of finished awards remembered to ignore their duplicates
+STORY_LENGTH = 32  # status changes remembered per unit (of at most FINISHED_MEMORY units)
 MAX_BUSY = 256  # units listed in one heartbeat (Heartbeat.busy's limit)
 MAX_REASON = 1024  # characters of a Refuse's or Failure's reason
 
@@ -60,7 +38,7 @@ Key = tuple[str, int]
 
 
 class Params(Protocol):
-    """What the rules chose for one unit (core.render.planner.RenderParams fits)."""
+    """What the rules chose for one unit (core.rules.unit_params.RenderParams fits)."""
 
     @property
     def depth(self) -> int: ...
@@ -76,11 +54,27 @@ PlanFn = Callable[[m.JobInfo, tuple[WorkUnit, ...]], Sequence[Params]]
 SecondsFn = Callable[[float, int, float], float]  # (unit cost, spp, speed) -> seconds: agents.speed.estimate_seconds
 
 
-# ---- events ----------------------------------------------------------------------------------------
+# ---- stimuli -----------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
-class Measured:
+class Stimulus:
+    """Something that happened, fed to `AgentState.handle`. `stimulus_id` names it in the units' stories
+    (agents.render_agent gives every one a readable, unique id)."""
+
+    stimulus_id: str = field(default="", kw_only=True)
+
+
+@dataclass(frozen=True)
+class MessageReceived(Stimulus):
+    """A message of the master's (`m.CallForProposal`, `m.Award`, `m.Reject`, `m.Cancel`, `m.Welcome`,
+    `m.Introduce`; an `m.Awards` goes in as one of these per award)."""
+
+    message: m.Message
+
+
+@dataclass(frozen=True)
+class Measured(Stimulus):
     """The agent's measured speed (mega-rays/s) and what compiling a new kernel costs on top (s)."""
 
     speed: float
@@ -88,7 +82,7 @@ class Measured:
 
 
 @dataclass(frozen=True)
-class Tick:
+class Tick(Stimulus):
     """Time passes. `online`: connected to the XMPP server now; `connection`: which connection (a number that
     changes on every reconnect, so that the agent registers again)."""
 
@@ -97,7 +91,7 @@ class Tick:
 
 
 @dataclass(frozen=True)
-class BundleReady:
+class BundleReady(Stimulus):
     """The scene of the unit under `ticket` is on disk."""
 
     ticket: int
@@ -105,13 +99,13 @@ class BundleReady:
 
 
 @dataclass(frozen=True)
-class BundleFailed:
+class BundleFailed(Stimulus):
     ticket: int
     reason: str
 
 
 @dataclass(frozen=True)
-class RenderFinished:
+class RenderFinished(Stimulus):
     """The unit is rendered and its tile written at `path`; `seconds` the render's own time, `spp` the samples
     per pixel Mitsuba took (a stratified sampler rounds the rules' count; None: the rules' count)."""
 
@@ -123,40 +117,41 @@ class RenderFinished:
 
 
 @dataclass(frozen=True)
-class RenderFailed:
+class RenderFailed(Stimulus):
     ticket: int
     reason: str
 
 
 @dataclass(frozen=True)
-class UploadDone:
+class UploadDone(Stimulus):
     """The tile is uploaded (the master took it: the unit is done)."""
 
     ticket: int
 
 
 @dataclass(frozen=True)
-class UploadFailed:
+class UploadFailed(Stimulus):
     ticket: int
     reason: str
 
 
-Event = (m.CallForProposal | m.Award | m.Reject | m.Cancel | m.Welcome | m.Introduce | Measured | Tick
-         | BundleReady | BundleFailed | RenderFinished | RenderFailed | UploadDone | UploadFailed)
-
-
-# ---- commands --------------------------------------------------------------------------------------
+# ---- instructions ------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
-class Send:
+class Instruction:
+    """What `AgentState.handle` asks its caller to do, in order."""
+
+
+@dataclass(frozen=True)
+class SendToMaster(Instruction):
     """Send `message` to the master."""
 
     message: m.Message
 
 
 @dataclass(frozen=True)
-class FetchBundle:
+class FetchBundle(Instruction):
     """Make the job's scene bundle available (fetch it with `token` unless cached); answer BundleReady or
     BundleFailed."""
 
@@ -175,7 +170,7 @@ class Batched:
 
 
 @dataclass(frozen=True)
-class StartRender:
+class StartRender(Instruction):
     """Render the award's unit with `params` in the render process, and the units in `more` (same job and
     depth) with it in one call where the scene allows, killed after `timeout_s`; write their tiles; answer
     RenderFinished or RenderFailed for each ticket."""
@@ -193,7 +188,7 @@ class StartRender:
 
 
 @dataclass(frozen=True)
-class AbortRender:
+class AbortRender(Instruction):
     """End the render under `ticket` now, if it still runs (its unit was cancelled); it then answers
     RenderFailed, and the next render starts a new render process."""
 
@@ -201,7 +196,7 @@ class AbortRender:
 
 
 @dataclass(frozen=True)
-class Upload:
+class Upload(Instruction):
     """Hash the tile at `path` and upload it with the award's token; answer UploadDone or UploadFailed."""
 
     ticket: int
@@ -210,7 +205,7 @@ class Upload:
 
 
 @dataclass(frozen=True)
-class DiscardTile:
+class DiscardTile(Instruction):
     """Delete the unit's tile file, if any (uploaded, failed or cancelled)."""
 
     job_id: str
@@ -218,12 +213,41 @@ class DiscardTile:
 
 
 @dataclass(frozen=True)
-class Log:
+class Log(Instruction):
     level: int
     text: str
 
 
-Command = Send | FetchBundle | StartRender | AbortRender | Upload | DiscardTile | Log
+# ---- a unit's status -----------------------------------------------------------------------------------
+
+# queued: awarded, waiting for the render process; fetching: its render step fetches the bundle; rendering;
+# uploading: its tile (held until the upload ends); done, failed: answered; cancelled: taken back by the master
+# (perhaps still in its render step or upload, whose end is then discarded).
+WorkStatus = Literal["queued", "fetching", "rendering", "uploading", "done", "failed", "cancelled"]
+HELD: frozenset[WorkStatus] = frozenset({"queued", "fetching", "rendering", "uploading"})
+
+TRANSITIONS: frozenset[tuple[WorkStatus, WorkStatus]] = frozenset({
+    ("queued", "fetching"),  # the render process is free: the oldest award's step begins with its bundle
+    ("queued", "rendering"),  # batched into an older unit's call (same job and depth)
+    ("fetching", "rendering"),  # its bundle is here and it is planned
+    ("fetching", "failed"),  # no bundle, or no plan
+    ("rendering", "uploading"),
+    ("rendering", "failed"),
+    ("uploading", "done"),
+    ("uploading", "failed"),
+    *((held, "cancelled") for held in ("queued", "fetching", "rendering", "uploading")),
+})
+
+
+@dataclass(frozen=True)
+class Transition:
+    """One status change of a unit, in its story: the stimulus that made it, from what (None: the award
+    that created its Work) to what, and when (`handle`'s `now`)."""
+
+    stimulus_id: str
+    start: WorkStatus | None
+    finish: WorkStatus
+    at: float
 
 
 # ---- state -----------------------------------------------------------------------------------------
@@ -231,12 +255,12 @@ Command = Send | FetchBundle | StartRender | AbortRender | Upload | DiscardTile 
 
 @dataclass(eq=False)
 class Work:
-    """One awarded unit on its way: the latest award, and whether the master took it back. `ticket` names it
-    in events and commands (a unit awarded again after a cancel is a new Work with a new ticket)."""
+    """One awarded unit on its way: the latest award and its status. `ticket` names it in stimuli and
+    instructions (a unit awarded again after a cancel is a new Work with a new ticket)."""
 
     ticket: int
     award: m.Award
-    cancelled: bool = False
+    status: WorkStatus = "queued"  # changed by AgentState._move only
     started: float = 0.0  # when its render step began (bundle, plan, render, tile)
     share: float = 1.0  # its part of its render step's seconds: its base estimate over its batch's
     predicted: float | None = None  # its uncorrected estimate when its step began (calibration's reference)
@@ -247,6 +271,14 @@ class Work:
     @property
     def key(self) -> Key:
         return self.award.job.job_id, self.award.unit.index
+
+    @property
+    def cancelled(self) -> bool:
+        """The master took it back."""
+        return self.status == "cancelled"
+
+    def __str__(self) -> str:
+        return f"unit {self.key[1]} of job {self.key[0]} (ticket {self.ticket}, {self.status})"
 
 
 class Calibration:
@@ -275,8 +307,11 @@ class Calibration:
 
 
 class AgentState:
-    """One render agent's state; `handle(event, now)` returns what to do. `plan(job, units)` gives each unit's
-    parameters (the agent's rules), `seconds(cost, spp, speed)` a render's base estimate."""
+    """One render agent's state; `handle(stimulus, now)` returns what to do. `plan(job, units)` gives each
+    unit's parameters (the agent's rules), `seconds(cost, spp, speed)` a render's base estimate.
+
+    It holds at most `slots` units (awarded, not answered, not cancelled) and bids only below that; it
+    renders one step at a time, in award order (the protocol is in agents/render_agent.py's docstring)."""
 
     def __init__(self, plan: PlanFn, seconds: SecondsFn, *, slots: int = SLOTS, threads: int = 1,
                  rules: str = "", heartbeat_s: float = HEARTBEAT_S, max_render_s: float = MAX_RENDER_S,
@@ -313,38 +348,47 @@ class AgentState:
         # Conversations of its Registers on that connection while no Welcome answered one (empty: answered).
         self._unwelcomed: set[str] = set()
         self._next_beat = 0.0
+        self._stories: dict[Key, deque[Transition]] = {}  # per unit, its last status changes; oldest unit first
+        self._stimulus: tuple[str, float] = ("", 0.0)  # the stimulus being handled: its id, its `now`
 
-    def handle(self, event: Event, now: float) -> list[Command]:
-        """Apply one event at time `now` (seconds, any epoch); the commands to carry out, in order."""
-        match event:
-            case m.CallForProposal():
-                return self._on_cfp(event)
-            case m.Award():
-                return self._on_award(event, now)
-            case m.Cancel():
-                return self._on_cancel(event)
-            case m.Reject():
-                return [Log(logging.DEBUG, f"rejected in {event.conversation}: {event.reason}")]
-            case m.Welcome():
-                return self._on_welcome(event)
-            case m.Introduce():
-                return self._on_introduce(event)
+    def handle(self, stimulus: Stimulus, now: float) -> list[Instruction]:
+        """Apply one stimulus at time `now` (seconds, any epoch); the instructions to carry out, in order."""
+        if not isinstance(stimulus, Stimulus):
+            raise TypeError(f"not an agent stimulus: {type(stimulus).__name__}")
+        self._stimulus = (stimulus.stimulus_id, now)
+        match stimulus:
+            case MessageReceived(message=message):
+                return self._on_message(message, now)
             case Tick():
-                return self._on_tick(event, now)
+                return self._on_tick(stimulus, now)
             case Measured():
-                self.speed = event
+                self.speed = stimulus
                 return []
             case BundleReady():
-                return self._on_bundle(event, now)
+                return self._on_bundle(stimulus, now)
             case BundleFailed() | RenderFailed():
-                return self._on_render_failed(event, now)
+                return self._on_render_failed(stimulus, now)
             case RenderFinished():
-                return self._on_rendered(event, now)
+                return self._on_rendered(stimulus, now)
             case UploadDone() | UploadFailed():
-                return self._on_uploaded(event, now)
-            case m.Message():
-                return [Log(logging.WARNING, f"{event.performative} in {event.conversation}: not for an agent")]
-        raise TypeError(f"not an agent event: {type(event).__name__}")
+                return self._on_uploaded(stimulus, now)
+        raise TypeError(f"not an agent stimulus: {type(stimulus).__name__}")
+
+    def _on_message(self, message: m.Message, now: float) -> list[Instruction]:
+        match message:
+            case m.CallForProposal():
+                return self._on_cfp(message)
+            case m.Award():
+                return self._on_award(message, now)
+            case m.Cancel():
+                return self._on_cancel(message)
+            case m.Reject():
+                return [Log(logging.DEBUG, f"rejected in {message.conversation}: {message.reason}")]
+            case m.Welcome():
+                return self._on_welcome(message)
+            case m.Introduce():
+                return self._on_introduce(message)
+        return [Log(logging.WARNING, f"{message.performative} in {message.conversation}: not for an agent")]
 
     # ---- what it holds --------------------------------------------------------------------------------
 
@@ -364,11 +408,70 @@ class AgentState:
             return not self.step and not self.works
         return len(self.works) < self.slots
 
+    # ---- status, story, invariants --------------------------------------------------------------------
+
+    def _move(self, work: Work, finish: WorkStatus) -> None:
+        """Every status change of a Work goes here: TransitionError unless TRANSITIONS allows it."""
+        if (work.status, finish) not in TRANSITIONS:
+            raise TransitionError(f"{work}: {work.status} -> {finish} is not an allowed status change")
+        self._record(work.key, work.status, finish)
+        work.status = finish
+
+    def _record(self, key: Key, start: WorkStatus | None, finish: WorkStatus) -> None:
+        story = self._stories.pop(key, None) or deque(maxlen=STORY_LENGTH)
+        story.append(Transition(self._stimulus[0], start, finish, self._stimulus[1]))
+        _remember(self._stories, key, story)
+
+    def story(self, job_id: str, index: int) -> list[Transition]:
+        """The unit's last status changes (at most STORY_LENGTH), oldest first; [] once forgotten (the
+        stories of the FINISHED_MEMORY units changed last are kept)."""
+        return list(self._stories.get((job_id, index), ()))
+
+    def validate(self) -> None:
+        """Check the invariants between the held units, the queue, the render step, the uploads and the
+        statuses; AssertionError naming the unit. Not one: holding at most `slots`, for it takes every
+        award (the master keeps to the slots it registered)."""
+        for work in self.queue:
+            _expect(work.status == "queued" and self.works.get(work.key) is work, work, "in the queue")
+        self._validate_step()
+        for ticket, work in self.delivering.items():
+            _expect(work.ticket == ticket and work.status in ("uploading", "cancelled"), work, "uploading")
+            _expect(work.rendered is not None and work.uploaded_as is not None, work, "uploading, not rendered")
+            _expect(work.cancelled or self.works.get(work.key) is work, work, "uploading, not held")
+        for key, work in self.works.items():
+            _expect(work.key == key and work.status in HELD, work, f"held under {key}")
+            where = {"queued": self.queue, "uploading": self.delivering.values()}.get(work.status, self.step)
+            _expect(sum(w is work for w in (*self.queue, *self.step, *self.delivering.values())) == 1
+                    and any(w is work for w in where), work, "not in exactly the collection its status says")
+            story = self._stories.get(key)
+            _expect(not story or story[-1].finish == work.status, work, "its story ends in another status")
+        bounded = {"finished": self.finished, "planned": self.planned, "stories": self._stories}
+        for name, memory in bounded.items():
+            if len(memory) > FINISHED_MEMORY:
+                raise AssertionError(f"{name}: {len(memory)} entries, more than {FINISHED_MEMORY}")
+        if self._unwelcomed and self._registered_on is None:
+            raise AssertionError(f"Registers {sorted(self._unwelcomed)} awaited, but never registered")
+
+    def _validate_step(self) -> None:
+        """The render step: its units fetching (the first, alone), rendering or cancelled, at most `batch`;
+        never idle while a unit waits."""
+        if not self.step and self.queue:
+            raise AssertionError(f"no render step, but {self.queue[0]} waits")
+        if len(self.step) > self.batch:
+            raise AssertionError(f"{len(self.step)} units in the render step, batches of {self.batch}")
+        for n, work in enumerate(self.step):
+            _expect(work.status in ("fetching", "rendering", "cancelled"), work, "in the render step")
+            _expect(work.status != "fetching" or len(self.step) == 1, work, "fetching, with others in its step")
+            _expect(work.status != "rendering" or work.params is not None, work, "rendering without a plan")
+            _expect(work.cancelled or self.works.get(work.key) is work, work, "in the render step, not held")
+            _expect(work not in self.step[n + 1:] and work not in self.delivering.values(), work, "twice")
+
     # ---- estimates ------------------------------------------------------------------------------------
 
     def estimate(self, job: m.JobInfo, unit: WorkUnit, params: Params) -> float:
-        """Seconds this agent expects to spend on the unit: the base estimate, plus a kernel compilation if
-        the window is new, times the job's learned correction."""
+        """Seconds this agent expects to spend on the unit: base seconds (cost x spp / speed), plus a kernel
+        compilation if it has not rendered its window (`_kernel`), times the job's `Calibration` (the ratio
+        of measured to estimated seconds of its done units)."""
         return self.uncorrected(job, unit, params) * self.calibration.factor(job.job_id)
 
     def uncorrected(self, job: m.JobInfo, unit: WorkUnit, params: Params) -> float:
@@ -382,7 +485,9 @@ class AgentState:
 
     # ---- messages in ----------------------------------------------------------------------------------
 
-    def _on_cfp(self, cfp: m.CallForProposal) -> list[Command]:
+    def _on_cfp(self, cfp: m.CallForProposal) -> list[Instruction]:
+        """Propose an estimate per offered unit while `is_free`, remembering the plans; else Refuse (also a
+        data plane URL it refuses, or units its rules cannot plan)."""
         job_id = cfp.job.job_id
         refused = self.check_url(cfp.job.scene_url)
         if refused:
@@ -400,36 +505,45 @@ class AgentState:
                           for u, p in zip(cfp.units, plans, strict=True))
         text = ", ".join(f"{e.index}: {e.seconds:.3f} s" for e in estimates)
         return [Log(logging.INFO, f"proposing for {job_id}: {text}"),
-                Send(m.Propose(conversation=cfp.conversation, job_id=job_id, estimates=estimates))]
+                SendToMaster(m.Propose(conversation=cfp.conversation, job_id=job_id, estimates=estimates))]
 
     @staticmethod
-    def _refuse(cfp: m.CallForProposal, reason: str) -> Send:
-        return Send(m.Refuse(conversation=cfp.conversation, job_id=cfp.job.job_id, reason=reason[:MAX_REASON]))
+    def _refuse(cfp: m.CallForProposal, reason: str) -> SendToMaster:
+        return SendToMaster(m.Refuse(conversation=cfp.conversation, job_id=cfp.job.job_id,
+                                     reason=reason[:MAX_REASON]))
 
-    def _on_award(self, award: m.Award, now: float) -> list[Command]:
+    def _on_award(self, award: m.Award, now: float) -> list[Instruction]:
+        """A new unit queues (and starts if the render process is free). A duplicate (same unit, same token)
+        is ignored, also after the unit is done; a re-award with a new token replaces the token it answers
+        under. A unit it never bid on is planned when its step begins."""
         key = (award.job.job_id, award.unit.index)
         if (*key, award.token) in self.finished:
-            return [Log(logging.INFO, f"duplicate award of finished unit {key[0]}/{key[1]} ignored")]
+            return [Log(logging.INFO, f"{_unit(key)}: duplicate award ignored, the unit is finished")]
         work = self.works.get(key)
         if work is not None:
             if work.award.token == award.token:
                 return []  # a duplicate of the award it holds
             work.award = award
-            return [Log(logging.INFO, f"unit {key[0]}/{key[1]} re-awarded: answering under the new award")]
+            return [Log(logging.INFO, f"{_unit(key)}: re-awarded, answering under the new award")]
         work = Work(next(self._tickets), award)
+        self._record(key, None, work.status)
         self.works[key] = work
         self.queue.append(work)
         return self._start_next(now)
 
-    def _on_cancel(self, cancel: m.Cancel) -> list[Command]:
-        out: list[Command] = []
+    def _on_cancel(self, cancel: m.Cancel) -> list[Instruction]:
+        """One unit or a whole job, answered with nothing: queued units never start, one whose bundle is being
+        fetched is not rendered, and a render in flight is ended once none of its units is wanted (its render
+        process killed: the compiled kernels go with it, but a long render left to run held the agent, which
+        looked free, and made the next unit awarded to it miss its deadline)."""
+        out: list[Instruction] = []
         cancelled: list[Work] = []
         for key, work in list(self.works.items()):
             if key[0] == cancel.job_id and cancel.index in (None, key[1]):
-                work.cancelled = True
+                self._move(work, "cancelled")
                 cancelled.append(work)
                 del self.works[key]
-                out.append(Log(logging.INFO, f"unit {key[0]}/{key[1]} cancelled by the master: {cancel.reason}"))
+                out.append(Log(logging.INFO, f"{_unit(key)}: cancelled by the master: {cancel.reason}"))
         self.queue = deque(w for w in self.queue if not w.cancelled)
         # A render in flight is ended once nothing in it is still wanted (a batch's other units go on).
         rendering = self.step and self.step[0].params is not None
@@ -437,11 +551,12 @@ class AgentState:
             out.append(AbortRender(self._step_ticket))
         return out
 
-    def _on_tick(self, tick: Tick, now: float) -> list[Command]:
-        """Register on a new connection (once the speed is known); a heartbeat when one is due."""
+    def _on_tick(self, tick: Tick, now: float) -> list[Instruction]:
+        """Register on every new connection (once the speed is known), and again with each heartbeat until
+        the master's Welcome answers one; a Heartbeat every `heartbeat_s` listing the held units."""
         if not tick.online:
             return []
-        out: list[Command] = []
+        out: list[Instruction] = []
         if tick.connection != self._registered_on and self.speed is not None:
             self._registered_on, self._next_beat = tick.connection, now
             self._unwelcomed = set()
@@ -450,25 +565,25 @@ class AgentState:
             out.append(self._register())  # unanswered: the master may have been offline when it came
         if self._registered_on is not None and now >= self._next_beat:
             busy = self.busy_units()[:MAX_BUSY]
-            out.append(Send(m.Heartbeat(conversation=self._conversation("hb"), busy=busy)))
+            out.append(SendToMaster(m.Heartbeat(conversation=self._conversation("hb"), busy=busy)))
             self._next_beat = now + self.heartbeat_s
         return out
 
-    def _register(self) -> Send:
+    def _register(self) -> SendToMaster:
         conversation = self._conversation("register")
         self._unwelcomed.add(conversation)
-        return Send(m.Register(conversation=conversation, speed=self.speed.speed, threads=self.threads,
-                               rules=self.rules, slots=self.slots, rules_sha256=self.rules_sha256,
-                               defuzzifier=self.defuzzifier))
+        return SendToMaster(m.Register(conversation=conversation, speed=self.speed.speed, threads=self.threads,
+                                       rules=self.rules, slots=self.slots, rules_sha256=self.rules_sha256,
+                                       defuzzifier=self.defuzzifier))
 
-    def _on_welcome(self, welcome: m.Welcome) -> list[Command]:
+    def _on_welcome(self, welcome: m.Welcome) -> list[Instruction]:
         """The master heard a Register of this connection: no more of them until the next connection."""
         if welcome.conversation not in self._unwelcomed:
             return [Log(logging.DEBUG, f"welcome in {welcome.conversation}: not a Register of this connection")]
         self._unwelcomed = set()
         return []
 
-    def _on_introduce(self, ask: m.Introduce) -> list[Command]:
+    def _on_introduce(self, ask: m.Introduce) -> list[Instruction]:
         """The master knows this agent from heartbeats only: Register again (and until a Welcome answers)."""
         if self._registered_on is None:
             return [Log(logging.DEBUG, f"introduce in {ask.conversation}: not registered yet, Register follows")]
@@ -479,29 +594,33 @@ class AgentState:
 
     # ---- a unit's way: bundle, plan, render, upload ---------------------------------------------------
 
-    def _start_next(self, now: float) -> list[Command]:
-        """The render process is free and a unit waits: the oldest award goes first."""
+    def _start_next(self, now: float) -> list[Instruction]:
+        """The render process is free and a unit waits: the oldest award's step begins (one at a time; the
+        next as soon as the last one's tiles are written, while they upload)."""
         if self.step or not self.queue:
             return []
         work = self.queue.popleft()
+        self._move(work, "fetching")
         self.step, self._step_ticket = [work], work.ticket
         work.started = now
         return [FetchBundle(work.ticket, work.award.job, work.award.token)]
 
-    def _on_bundle(self, ready: BundleReady, now: float) -> list[Command]:
+    def _on_bundle(self, ready: BundleReady, now: float) -> list[Instruction]:
+        """Plan the unit and render it, with the waiting units of its job and depth (`_batch_with`); not if
+        it was cancelled meanwhile."""
         work = self._in_step(ready.ticket)
         if work is None:
             return [Log(logging.DEBUG, f"bundle of ticket {ready.ticket}: no such render")]
-        key = work.key
         if work.cancelled:
             self.step = []
-            return [Log(logging.INFO, f"unit {key[0]}/{key[1]} cancelled before its render: not rendered"),
+            return [Log(logging.INFO, f"{_unit(work.key)}: cancelled before its render, not rendered"),
                     *self._start_next(now)]
         try:
             params = self._params_for(work, take=True)
         except Exception as exc:
             return self._on_render_failed(RenderFailed(work.ticket, describe(exc)), now)
         work.params = params
+        self._move(work, "rendering")
         more = self._batch_with(work, now)
         base = [self.base_estimate(w.award.unit, w.params) for w in self.step]
         # One kernel a call: a new one's compilation is shared by the batch, as its seconds are.
@@ -525,8 +644,8 @@ class AgentState:
 
     def _batch_with(self, first: Work, now: float) -> tuple[Batched, ...]:
         """Waiting units of `first`'s job and depth that render in its call, oldest first, up to `batch`
-        in all: not at level off (plain Mitsuba's render, one call a unit) nor in a two-pass (adaptive)
-        job. A unit that cannot be planned stays queued (and fails when its turn comes)."""
+        (half the slots) in all: not at level off (plain Mitsuba's render, one call a unit) nor in a two-pass
+        (adaptive) job. A unit that cannot be planned stays queued (and fails when its turn comes)."""
         job = first.award.job
         if not self.batches(job):
             return ()
@@ -544,6 +663,7 @@ class AgentState:
                 continue
             self.planned.pop(work.key, None)
             self.queue.remove(work)
+            self._move(work, "rendering")
             work.params, work.started = params, now
             self.step.append(work)
             more.append(Batched(work.ticket, work.award, params))
@@ -551,48 +671,52 @@ class AgentState:
 
     def batches(self, job: m.JobInfo) -> bool:
         """Whether the job's units render in batches here (`batched`, and a batch above 1): the render step
-        then renders them on the whole film (core.render.together), else each on its window."""
+        then renders them on the whole film (core.render.batch), else each on its window."""
         return self.batch > 1 and batched(job.level, job.first_spp)
 
     def _kernel(self, job: m.JobInfo, unit: WorkUnit, params: Params) -> tuple[Any, ...]:
         """What the render process compiles for the unit: a batch's kernel is the whole film's (one per
-        depth, core.render.together.bounds; an image above BATCH_PIXELS or a scene the batches cannot
+        depth, core.render.batch.bounds; an image above BATCH_PIXELS or a scene the batches cannot
         render compiles per window, which this does not foresee), a unit's own its window's (`kernel_key`)."""
         if self.batches(job):
             return job.scene_hash, "film", job.width, job.height, params.depth, job.integrator
         return kernel_key(job, unit, params)
 
-    def _on_render_failed(self, failed: BundleFailed | RenderFailed, now: float) -> list[Command]:
+    def _on_render_failed(self, failed: BundleFailed | RenderFailed, now: float) -> list[Instruction]:
         work = self._in_step(failed.ticket)
         if work is None:
             return [Log(logging.DEBUG, f"failure of ticket {failed.ticket}: no such render")]
         self.step.remove(work)
-        out: list[Command] = [DiscardTile(*work.key), *self._fail(work, failed.reason)]
+        out: list[Instruction] = [DiscardTile(*work.key), *self._fail(work, failed.reason)]
         self._forget(work)
         return out + self._start_next(now)
 
-    def _on_rendered(self, rendered: RenderFinished, now: float) -> list[Command]:
+    def _on_rendered(self, rendered: RenderFinished, now: float) -> list[Instruction]:
+        """Upload the tile (the unit stays held until the upload ends; the next step renders meanwhile), or
+        discard it if the unit was cancelled during its render."""
         work = self._in_step(rendered.ticket)
         if work is None:
             return [Log(logging.DEBUG, f"render of ticket {rendered.ticket}: no such render")]
+        if not work.cancelled:
+            self._move(work, "uploading")
         self.step.remove(work)
         key = work.key
         if work.params is not None:  # its kernel is compiled now, whatever becomes of its tile
             self.kernels.add(self._kernel(work.award.job, work.award.unit, work.params))
         if work.cancelled:
-            out: list[Command] = [Log(logging.INFO, f"unit {key[0]}/{key[1]} rendered after its cancellation: "
-                                                    "discarded"), DiscardTile(*key)]
-        else:  # held (heartbeats list it) until its upload ends; the next unit renders meanwhile
+            out: list[Instruction] = [Log(logging.INFO, f"{_unit(key)}: rendered after its cancellation, "
+                                                        "discarded"), DiscardTile(*key)]
+        else:
             work.rendered, work.uploaded_as = rendered, work.award
             self.delivering[work.ticket] = work
             out = [Upload(work.ticket, work.award, rendered.path)]
         return out + self._start_next(now)
 
-    def _on_uploaded(self, result: UploadDone | UploadFailed, now: float) -> list[Command]:
+    def _on_uploaded(self, result: UploadDone | UploadFailed, now: float) -> list[Instruction]:
         work = self.delivering.pop(result.ticket, None)
         if work is None:
             return [Log(logging.DEBUG, f"upload of ticket {result.ticket}: no such upload")]
-        out: list[Command] = [DiscardTile(*work.key)]
+        out: list[Instruction] = [DiscardTile(*work.key)]
         if isinstance(result, UploadFailed):
             out += self._fail(work, result.reason)
         elif not work.cancelled:
@@ -600,29 +724,31 @@ class AgentState:
         self._forget(work)
         return out
 
-    def _done(self, work: Work, now: float) -> list[Command]:
+    def _done(self, work: Work, now: float) -> list[Instruction]:
         """Learn from the unit (time taken) and remember its award. Nothing is sent: the master counts a
         unit done by its tile's upload alone (the tile's header holds what an inform would say)."""
         award, rendered, params, predicted = work.uploaded_as, work.rendered, work.params, work.predicted
         assert award is not None and rendered is not None and params is not None and predicted is not None
+        self._move(work, "done")
         key, wall = work.key, (now - work.started) * work.share
         self.units_done += 1
         _remember(self.finished, (*key, award.token), None)
         self.calibration.learn(key[0], predicted, wall)
         spp = params.spp if rendered.spp is None else rendered.spp
-        return [Log(logging.INFO, f"unit {key[0]}/{key[1]} done: {wall:.3f} s in all, render {rendered.seconds:.3f} "
-                                  f"s, spp {spp} depth {params.depth} band {params.band} (award estimate "
+        return [Log(logging.INFO, f"{_unit(key)}: done in {wall:.3f} s (render {rendered.seconds:.3f} s, spp {spp}, "
+                                  f"depth {params.depth}, band {params.band}; award estimate "
                                   f"{award.estimate_s:.3f} s)")]
 
-    def _fail(self, work: Work, reason: str) -> list[Command]:
+    def _fail(self, work: Work, reason: str) -> list[Instruction]:
         """Failure under the latest award, unless the master cancelled the unit."""
         if work.cancelled:
             return []
+        self._move(work, "failed")
         self.units_failed += 1
         award, key = work.award, work.key
-        return [Log(logging.WARNING, f"unit {key[0]}/{key[1]} failed: {reason}"),
-                Send(m.Failure(conversation=award.conversation, job_id=key[0], index=key[1], token=award.token,
-                               reason=reason[:MAX_REASON] or "failed"))]
+        return [Log(logging.WARNING, f"{_unit(key)}: failed: {reason}"),
+                SendToMaster(m.Failure(conversation=award.conversation, job_id=key[0], index=key[1],
+                                       token=award.token, reason=reason[:MAX_REASON] or "failed"))]
 
     def _in_step(self, ticket: int) -> Work | None:
         return next((w for w in self.step if w.ticket == ticket), None)
@@ -645,6 +771,15 @@ def describe(exc: BaseException) -> str:
     """An error as a Failure's reason: a QuekaroError's own words, else its type and message."""
     text = str(exc) if isinstance(exc, QuekaroError) else f"{type(exc).__name__}: {exc}"
     return text or type(exc).__name__
+
+
+def _unit(key: Key) -> str:
+    return f"unit {key[1]} of job {key[0]}"
+
+
+def _expect(holds: bool, work: Work, what: str) -> None:
+    if not holds:
+        raise AssertionError(f"{work}: {what}")
 
 
 def _remember(memory: dict[Any, Any], key: Any, value: Any) -> None:

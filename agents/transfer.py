@@ -2,7 +2,7 @@
 
 Both are aiohttp client coroutines. `fetch_bundle` streams the download to a temporary file (never
 more than the bundle limit), checks its sha256 against the one the job announced (and the server's
-`X-Content-SHA256`), then unpacks it with core.render.bundle.extract_bundle, which refuses hostile archives.
+`X-Content-SHA256`), then unpacks it with core.scene.bundle.extract_bundle, which refuses hostile archives.
 `dest` is the folder the bundle unpacks into; callers name it by the hash, so a folder that exists is a
 cache hit (extract_bundle creates it atomically, only once everything checked out).
 `upload_tile` sends the file with its sha256 and the award's token, retrying with exponential backoff
@@ -25,7 +25,7 @@ import aiohttp
 
 from core.errors import QuekaroError
 from core.model.hashing import sha256_file
-from core.render.bundle import MANIFEST_NAME, BundleLimits, extract_bundle, read_manifest
+from core.scene.bundle import MANIFEST_NAME, BundleLimits, extract_bundle, read_manifest
 
 log = logging.getLogger(__name__)
 

@@ -9,8 +9,8 @@ a real local farm (`farm.local.LocalFarm`, one farm per agent count, submit to d
 composition, writing). Each cell runs once unmeasured first (`--no-warmup` skips it: Dr.Jit compiles and
 caches a kernel per unit window size; its wall time is reported as the first run's), then `--runs`
 times, timed. Per cell: the median wall and CPU seconds; the errors against the reference
-(`core.render.metrics`, averaged over every run, the warm-up included: seeds follow the job id), the seam
-measure of the last image at the units' borders (`core.render.seams`), and how the rules spent samples.
+(`core.image.metrics`, averaged over every run, the warm-up included: seeds follow the job id), the seam
+measure of the last image at the units' borders (`core.image.seams`), and how the rules spent samples.
 
 The uniform baseline is plain Mitsuba as a user runs it (`python -m planning.plain`: import, load, render,
 write; the whole process timed) at the single spp whose time equals the cell's. Its time is linear in
@@ -46,15 +46,15 @@ from bench.provenance import rules_digest, rules_for
 from bench.suite import SUITE, SuiteScene, scene_from_argument
 from core.errors import QuekaroError
 from core.files import written_atomically
+from core.image.imageio import read_image
+from core.image.metrics import all_metrics, diff_image
+from core.image.seams import seam_measure
 from core.model.geometry import Rect
 from core.model.job import RenderOptions, SceneSpec
-from core.render.bundle import check_rules, make_bundle
-from core.render.imageio import read_image
-from core.render.metrics import all_metrics, diff_image
-from core.render.scene import parse_defines
-from core.render.seams import seam_measure
+from core.model.levels import LEVELS
+from core.scene.bundle import check_rules, make_bundle
+from core.scene.scene import parse_defines
 from farm.local import LocalFarm
-from fuzzy.levels import LEVELS
 from planning.accuracy import Asked, content_key, default_cache, job_variant, plain_render, reference, spp_timing
 from quekaro.cmd_render import add_asked_arguments, search_paths
 
@@ -118,7 +118,7 @@ def _csv_list(text: str, what: str) -> list[str]:
 
 
 def parse_levels(text: str) -> list[str]:
-    """--levels: a comma list of optimisation levels, each one fuzzy.levels knows."""
+    """--levels: a comma list of optimisation levels, each one core.model.levels knows."""
     levels = _csv_list(text, "levels")
     for level in levels:
         if level not in LEVELS:

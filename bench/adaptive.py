@@ -38,11 +38,11 @@ from bench.report import command_of, publish_markdown
 from bench.scaling import default_cache_dir, measured_spec
 from bench.suite import BY_NAME, SUITE, scene_from_argument
 from core.errors import QuekaroError
+from core.image.film import film_channels, sanitize
+from core.image.metrics import relmse
 from core.render.adaptive import BLUR_PX, FIRST_SHARE, PAYS_BELOW, neyman_scale, predicted_ratio, render_adaptive
-from core.render.counts import render_counts
-from core.render.film import film_channels, sanitize
-from core.render.metrics import relmse
-from core.render.scene import load
+from core.render.per_pixel import render_counts
+from core.scene.scene import load
 from planning.accuracy import content_key, job_variant, reference
 
 TARGET = 0.8  # the target for the optimised levels, here at equal render time

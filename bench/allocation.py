@@ -33,16 +33,16 @@ from bench.provenance import rules_for
 from bench.report import command_of, publish_markdown
 from bench.scaling import measure_cached, measured_spec
 from core.errors import RenderError
+from core.image.compose import blend_weights
+from core.image.metrics import RELMSE_EPSILON
 from core.model.geometry import Rect
 from core.model.hashing import sha256_file
 from core.model.job import RenderOptions
+from core.model.levels import RULE_LEVELS
 from core.model.seeds import plan_seed
 from core.render.adaptive import first_pass, first_spp, neyman_scale
-from core.render.compose import blend_weights
-from core.render.metrics import RELMSE_EPSILON
-from core.render.planner import Planner
-from core.render.scene import film_info, load, parse_defines
-from fuzzy.levels import RULE_LEVELS
+from core.rules.unit_params import Planner
+from core.scene.scene import film_info, load, parse_defines
 from planning.accuracy import content_key, job_variant, plain_render, reference
 from planning.jobplan import plan_job
 from planning.pipeline import plan_params
@@ -91,7 +91,7 @@ def noise_map(spec: Any, spp: int, renders: int, threads: int, cache: Path, vari
 
 def composed_inverse_spp(plan: Any, spps: Any, bands: Any) -> np.ndarray:
     """Per pixel, the composed image's variance in units of one sample's: sum over the tiles covering it
-    of w^2 / n, w its normalised blend weight (core.render.compose) and n the tile's spp. A pixel in one
+    of w^2 / n, w its normalised blend weight (core.image.compose) and n the tile's spp. A pixel in one
     tile's core only is 1 / n; where a neighbour's band overlaps, the two independent estimates average
     and the variance falls (a band's samples are not wasted)."""
     geometry = [(u.rect.window(int(b), plan.width, plan.height), u.rect)
@@ -229,7 +229,7 @@ def first_pass_bound(spec: Any, variant: str, weight: np.ndarray, tmap: Any,
     for k in range(args.seeds):
         try:
             _, estimate = first_pass(loaded, first, seed=5000 + k)
-        except RenderError as exc:  # what `--adaptive` refuses too (core.render.counts.check_renderable)
+        except RenderError as exc:  # what `--adaptive` refuses too (core.render.per_pixel.check_renderable)
             return {"first_spp": first, "ratio": None, "ratio_runs": [], "refused": str(exc)}
         ratios.append(first_pass_ratio(weight, tmap, estimate, args.spp, first))
     return {"first_spp": first, "ratio": float(np.mean(ratios)), "ratio_runs": ratios}

@@ -29,7 +29,7 @@ from typing import Any
 
 from bench.provenance import rules_for
 from bench.report import DEFAULT_OUT, command_of, write_report
-from core.render.bundle import make_bundle
+from core.scene.bundle import make_bundle
 from farm.local import LocalFarm
 
 REPO = Path(__file__).resolve().parent.parent

@@ -16,7 +16,7 @@ farm's capacity is N agents of speed 1). Once all have registered, one job is su
             spp that makes T1 at least `--t1` seconds (default 20 min). T1 is the whole image rendered as
             one unit by one agent of speed 1, from the cost map.
   the map   bench.scaling's measured time map of the wide scene at 500x300 (every 25 px cell rendered for
-            real in a RenderWorker, spread over its pixels by the pre-pass cost), written as COSTS.json
+            real in a RenderProcess, spread over its pixels by the pre-pass cost), written as COSTS.json
             (`--write-costs`, or on the first run); the 1000x600 job maps each pixel onto it.
 
 Measured per N: the makespan (first award to the job's end, as the store records them; submit to end
@@ -56,10 +56,10 @@ from bench.report import DEFAULT_OUT, command_of, write_report
 from bench.scaling import default_cache_dir, measure_cached
 from bench.simulate import UNBATCHED_AUCTION, simulate
 from core.errors import QuekaroError
+from core.image.tiles import tile_source
 from core.model.geometry import Rect
 from core.model.hashing import sha256_file
-from core.render.bundle import make_bundle
-from core.render.tiles import tile_source
+from core.scene.bundle import make_bundle
 from core.supervision import die_with_parent
 from core.transport.xmpp_server import EmbeddedXmppServer, ProsodyServer
 from farm.client import FarmClient

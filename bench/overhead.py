@@ -23,9 +23,9 @@ from bench.accuracy import inprocess_runner, parse_levels
 from bench.provenance import rules_for
 from bench.report import DEFAULT_OUT, command_of, publish_markdown
 from core.errors import QuekaroError
+from core.image.imageio import read_image
 from core.model.job import SceneSpec
-from core.render.imageio import read_image
-from core.render.scene import parse_defines
+from core.scene.scene import parse_defines
 from planning.accuracy import job_variant, plain_render
 
 REPO = Path(__file__).resolve().parent.parent

@@ -1,7 +1,7 @@
 """`quekaro bench scaling`: how the auction scales to 64 agents, by simulation from measured unit costs.
 
 What is measured (once, on this machine, at the job's image size): the complexity pre-pass of the
-scene, and the real render time of every cell of a fixed grid (`--cell` px) in a RenderWorker at a
+scene, and the real render time of every cell of a fixed grid (`--cell` px) in a RenderProcess at a
 modest spp (`--measure-spp`, the fastest of MEASURE_PASSES runs), plus the fixed cost of one unit render (a cell
 at 1 spp). From these, a per-pixel time map: each cell's time above the fixed cost, divided by its
 spp, spread over its pixels in proportion to the pre-pass cost (rays per sample). A unit of any rectangle then takes
@@ -46,9 +46,9 @@ from core.errors import QuekaroError
 from core.model import integrators
 from core.model.geometry import Rect
 from core.model.job import SceneSpec
-from core.render import scene as scene_mod
-from core.render.scene import expand, film_info
-from core.render.worker import RenderRequest, RenderWorker
+from core.render.process import RenderProcess, RenderRequest
+from core.scene import scene as scene_mod
+from core.scene.scene import expand, film_info
 from planning.accuracy import content_key, job_variant
 from planning.accuracy import default_cache as default_cache_dir
 from planning.complexity import COST_SPP, NOISE_SHARE, PREPASS_SPP, ComplexityMap, prepass
@@ -144,7 +144,7 @@ def measure(spec: SceneSpec, cell: int, spp: int, threads: int) -> tuple[TimeMap
                              threads=threads)
 
     started = time.perf_counter()
-    with RenderWorker() as worker:
+    with RenderProcess() as worker:
         for rect in cells[:2]:  # compile the kernels of both spp before timing anything
             worker.render(job(rect, 1, 0))
             worker.render(job(rect, spp, 0))

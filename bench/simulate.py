@@ -18,7 +18,7 @@ from core.model import messages as m
 from core.model.geometry import Rect
 from core.model.status import JobStatus
 from core.model.units import WorkUnit
-from master.auction import Auction, Command, Config, Job, Send
+from master.auction import Auction, Config, Instruction, JobSubmitted, MessageReceived, SendToAgent, Tick, TileStored
 
 
 @dataclass(frozen=True)
@@ -124,41 +124,44 @@ class _Sim:
         heapq.heappush(self.queue, (t, self.seq, kind, who, payload))
 
     def run(self) -> float:
-        job: Job | None = None
+        job: str | None = None
         while self.queue:
             now, _, kind, who, payload = heapq.heappop(self.queue)
             if kind == "submit":
-                self.auction.add_job(*payload)
-                job = self.auction.jobs[payload[0].job_id]
-                self.deliver(self.auction.tick(now), now)
+                self.auction.handle(JobSubmitted(*payload), now)
+                job = payload[0].job_id
+                self.deliver(self.auction.handle(Tick(), now), now)
             elif kind == "master":
                 self.messages += 1
-                # An inform here stands for the tile's upload, which the real master turns into on_inform.
-                handle = self.auction.on_inform if isinstance(payload, m.Inform) else self.auction.on_message
-                self.deliver(handle(who, payload, now) + self.auction.tick(now), now)
+                # A stored tile stands for its upload, which the real master reads and hands to the auction.
+                stimulus = payload if isinstance(payload, TileStored) else MessageReceived(who, payload)
+                self.deliver(self.auction.handle(stimulus, now) + self.auction.handle(Tick(), now), now)
             elif kind == "agent":
                 self.messages += 1
                 self.agent_receives(who, payload, now)
             elif kind == "beat":
                 busy = tuple(m.HeldUnit(job_id=j, index=i) for j, i in sorted(self.holding[who]))
                 self.push(now + self.latency, "master", who, m.Heartbeat(conversation="hb", busy=busy))
-                if job is None or job.status == JobStatus.RUNNING:
+                if job is None or self._status(job) == JobStatus.RUNNING:
                     self.push(now + payload, "beat", who, payload)
             elif kind == "release":
                 self.holding[who].discard(payload)
             elif kind == "timer" and now >= self.timer:
                 self.timer = math.inf
-                self.deliver(self.auction.tick(now), now)
-            if job is not None and job.status != JobStatus.RUNNING:
-                if job.status != JobStatus.DONE:
-                    raise RuntimeError(f"simulated job ended {job.status.value}: {job.error}")
+                self.deliver(self.auction.handle(Tick(), now), now)
+            if job is not None and self._status(job) != JobStatus.RUNNING:
+                if self._status(job) != JobStatus.DONE:
+                    raise RuntimeError(f"simulated job ended {self._status(job)}: {self.auction.job_view(job).error}")
                 return now
         raise RuntimeError("simulation ran out of events before the job finished")
 
-    def deliver(self, commands: list[Command], now: float) -> None:
-        for cmd in commands:
-            if isinstance(cmd, Send):
-                self.push(now + self.latency, "agent", cmd.to, cmd.message)
+    def _status(self, job_id: str) -> str:
+        return self.auction.job_status(job_id)
+
+    def deliver(self, instructions: list[Instruction], now: float) -> None:
+        for item in instructions:
+            if isinstance(item, SendToAgent):
+                self.push(now + self.latency, "agent", item.to, item.message)
         due = self.auction.next_deadline()
         if due is not None and due < self.timer:
             self.timer = max(due, now)
@@ -175,21 +178,11 @@ class _Sim:
             seconds = cost / speed * (1 + self.rng.uniform(-self.jitter, self.jitter))
             self.busy[name] += seconds
             self.holding[name].add((msg.job.job_id, msg.unit.index))
-            inform = m.Inform(
-                conversation=msg.conversation,
-                job_id=msg.job.job_id,
-                index=msg.unit.index,
-                token=msg.token,
-                tile_hash="0" * 64,
-                depth=1,
-                spp=1,
-                band=0,
-                seconds=seconds,
-                nonfinite=0,
-            )
+            figures = m.TileFigures(depth=1, spp=1, band=0, seconds=seconds, nonfinite=0)
+            tile = TileStored(msg.job.job_id, msg.unit.index, msg.token, "", "0" * 64, figures, ())
             # A unit awarded into a free slot starts when the one rendering ends; the tile's delivery
-            # (upload) overlaps the next render, and the inform leaves when it is done.
+            # (upload) overlaps the next render, and the master has it when that is done.
             end = max(now, self.render_end[name]) + seconds
             self.render_end[name] = end
             self.push(end + self.delivery, "release", name, (msg.job.job_id, msg.unit.index))
-            self.push(end + self.delivery + self.latency, "master", name, inform)
+            self.push(end + self.delivery + self.latency, "master", name, tile)

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import QuekaroError
-from core.render.imageio import write_exr
+from core.image.imageio import write_exr
 
 HERE = Path(__file__).resolve().parent
 SHARED = HERE.parent.parent / "shared" / "scenes" / "mitsuba-data"

@@ -16,8 +16,8 @@ from urllib.parse import urlsplit
 from core.errors import QuekaroError
 from core.files import staged_together
 from core.home import ADMIN_TOKEN, FARM_FILE, default_home
+from core.image.imageio import read_image, write_png
 from core.model.job import JobSpec, RenderOptions
-from core.render.imageio import read_image, write_png
 from core.transport.tls import client_context
 
 CONNECT_TIMEOUT_S = 15.0
@@ -131,6 +131,10 @@ class FarmClient:
                 while_waiting()
             time.sleep(poll)
         raise QuekaroError(f"job {job_id} still running after {timeout:.0f} s")
+
+    def unit(self, job_id: str, index: int) -> dict[str, Any]:
+        """One unit: status, agent, attempts and story (master.job_api.unit_summary)."""
+        return self._json("GET", f"/api/jobs/{job_id}/units/{index}")
 
     def agents(self) -> list[dict[str, Any]]:
         return list(self._json("GET", "/api/agents")["agents"])

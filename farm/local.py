@@ -31,7 +31,7 @@ from pathlib import Path
 
 from core.errors import QuekaroError
 from core.home import AGENTS_ALLOW, FARM_FILE, PROCESSES_FILE, default_home
-from core.render.bundle import check_rules
+from core.scene.bundle import check_rules
 from core.supervision import RestartPolicy, die_with_parent, log_tail
 from core.transport.xmpp_server import EmbeddedXmppServer, XmppServerError
 from farm.client import FarmClient

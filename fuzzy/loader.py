@@ -6,7 +6,7 @@ as the root or as a child of any outer element. Each keeps its own meaning. A fi
 is read as MASYRO's published code (TheProjecter/masyro06, trunk/src/Util_fuzzy.py and
 src/RenderAgent.py) reads it: inputs are not clamped (membership 0 outside every set) and an output with
 no `default` has no value where no rule fires, so the planner keeps the user's value. The sets are kept
-as written; rebuilding C, Nd and S for each job is the planner's part (core.render.planner), as it was the
+as written; rebuilding C, Nd and S for each job is the planner's part (core.rules.unit_params), as it was the
 agent's in MASYRO.
 
 Hostile files are refused before parsing: more than `MAX_BYTES`, or any DOCTYPE / ENTITY declaration

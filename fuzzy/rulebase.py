@@ -8,12 +8,13 @@ import json
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from fuzzy.levels import RULE_LEVELS
 from fuzzy.terms import Trapezoid
 from fuzzy.variables import InputVariable, OutputVariable, checked_range, masyro_sets, widen_degenerate
 
 # The inputs whose sets MASYRO's agent rebuilt for each job from the observed range (RuleBase.for_ranges).
 MASYRO_REBUILT = ("C", "S", "Nd")
+
+OP_LABELS = ("VS", "S", "N", "B", "VB")  # the paper's Op input, lowest level first
 
 
 @dataclass(frozen=True)
@@ -53,7 +54,7 @@ class RuleBase:
     source: str | None = None
     dialect: str = "paper"  # "paper" (QUEKARO's XML) or "masyro" (MASYRO 2006): each keeps its meaning
 
-    def op_value(self, level: str, levels: tuple[str, ...] = RULE_LEVELS) -> float:
+    def op_value(self, level: str, levels: tuple[str, ...] = OP_LABELS) -> float:
         """The crisp Op of a level name: the middle of that label's plateau in the file's own Op sets; for
         a file whose Op sets do not name the levels, the level's rank spread evenly over the Op universe."""
         op = self.input("Op")

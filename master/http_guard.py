@@ -157,7 +157,7 @@ def json_error(status: int, reason: str) -> web.Response:
 
 
 def disk_full(exc: BaseException | None) -> bool:
-    """ENOSPC, raised as is or as the cause of an error that names the file (core.render.imageio)."""
+    """ENOSPC, raised as is or as the cause of an error that names the file (core.image.imageio)."""
     for _ in range(8):  # a cause chain is short; a cycle must not hang the handler
         if exc is None:
             return False

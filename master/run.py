@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import logging
 import signal
 from pathlib import Path
 
 from core.errors import QuekaroError
 from core.home import default_home
+from core.logs import configure
 from core.transport.credentials import xmpp_password
 from master import auction as au
 from master.service import MasterConfig, MasterService
@@ -48,7 +48,6 @@ async def serve(config: MasterConfig) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO),
-                        format="%(asctime)s master %(levelname)s %(name)s: %(message)s", force=True)
+    configure(args.log_level, args.log_format, role="master")
     asyncio.run(serve(config_from(args)))
     return 0

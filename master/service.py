@@ -1,8 +1,8 @@
 """The master process: job store, auction, HTTP data plane and XMPP agent, wired together.
 
-Every protocol decision is the auction's (`master.auction`, a pure state machine); this module only
-feeds it messages, tile uploads and the clock, delivers its `Send`s over XMPP, records its `Event`s in
-the job store, and assembles the image when a job is done. It is deliberately thin.
+Every protocol decision is the auction's (`master.auction`); this module turns messages, stored tiles,
+submissions, the disk and the clock into its stimuli, and its instructions into I/O: messages over XMPP,
+records in the job store and the log, refusals of uploads. It also plans jobs and assembles their images.
 """
 
 from __future__ import annotations
@@ -29,13 +29,17 @@ from urllib.parse import urlsplit
 from core.data import default_rules_path
 from core.errors import MessageError, QuekaroError, TileError
 from core.home import ADMIN_TOKEN, FARM_FILE, MIN_FREE_BYTES
+from core.image.compose import TileSource
+from core.image.tiles import tile_source
+from core.logs import fields
 from core.model import messages as m
 from core.model.hashing import sha256_file
 from core.model.job import IMAGE_SUFFIXES, JobPlan, JobSpec, RenderOptions, SceneSpec
 from core.model.seeds import plan_seed
-from core.model.status import JobStatus, UnitStatus
-from core.model.units import WorkUnit
-from core.render.bundle import (
+from core.model.status import JobStatus
+from core.model.units import SPP_MAX
+from core.render.process import RenderProcess
+from core.scene.bundle import (
     BundleLimits,
     bundle_hash,
     check_rules,
@@ -45,18 +49,14 @@ from core.render.bundle import (
     submitted_scene,
     submitted_scene_sha256,
 )
-from core.render.compose import TileSource
-from core.render.tiles import tile_source
-from core.render.worker import RenderWorker
 from core.transport.rates import SenderRates
 from core.transport.tls import check_names, is_loopback, server_context
 from core.transport.xmpp import FarmAgent
 from fuzzy.loader import load_rulebase
-from fuzzy.render_params import SPP_MAX
 from master import auction as au
-from master.api_jobs import add_job_routes
-from master.http_api import create_app, serve
+from master.data_plane import create_app, serve
 from master.http_guard import bind_free_port
+from master.job_api import add_job_routes
 from master.sessions import SharedAccounts
 from master.store import JobRecord, JobStore
 from master.web import add_web_routes
@@ -148,9 +148,9 @@ class MasterService:
         self._http_socket: socket.socket | None = None  # --http-port 0: bound at start (_bind_free_http_port)
         self._ticker: asyncio.Task | None = None
         # Jobs are planned in a child process, one at a time: the pre-pass renders, and a scene that
-        # crashes Mitsuba must fail its own job, not the master nor the jobs after it (RenderWorker.call
+        # crashes Mitsuba must fail its own job, not the master nor the jobs after it (RenderProcess.call
         # names the crash and starts a new child for the next job).
-        self._planner = RenderWorker()
+        self._planner = RenderProcess()
         self._planning = asyncio.Lock()
         # What a job without rules is planned with, as agents tell theirs in Register: what the rules
         # compute (a copy with other comments or layout plans alike), not the file's bytes.
@@ -158,10 +158,8 @@ class MasterService:
         self._lock = asyncio.Lock()
         self._assembling: dict[str, asyncio.Task] = {}
         self._agent_re = re.compile(config.agent_pattern.format(domain=re.escape(config.domain)))
-        self._paused_s = 0.0  # the auction's clock stands still while the disk is full
-        self._paused_since: float | None = None
-        self._unrecorded: list[au.Event] = []  # events the store could not write yet (`_record`)
-        self._channels: dict[str, list[str] | None] = {}  # job -> the channels its tiles carry
+        self._unrecorded: list[au.Record] = []  # records the store could not write yet (`_record`)
+        self._ticks = itertools.count(1)
         self.shared_accounts = SharedAccounts()  # agent JIDs that several clients log in with
         self._allowed: set[str] = set()
         self._allow_stamp: tuple[int, int] | None = None
@@ -179,10 +177,10 @@ class MasterService:
         upload = f"{self.config.url}/jobs/{{job}}/units/{{index}}/tile"
         auction_config = dataclasses.replace(self.config.auction, upload_url=upload)
         self.store.resume(now)  # awarded units of running jobs back to pending: the old master's awards are void
-        self.auction, events = au.Auction.restore(
+        self.auction, records = au.Auction.restore(
             self.store.running_jobs(), lambda job_id: self.job_info(self.store.job(job_id)),
             self.store.credits(), auction_config)
-        self.store.apply(events, now)
+        self.store.apply(records, now)
         await self._start_http()
         await self._start_xmpp()
         self._ticker = asyncio.create_task(self._tick_forever(), name="master tick")
@@ -191,7 +189,7 @@ class MasterService:
             if not self.result_path(record.id).with_suffix(".json").exists():
                 self._assemble_later(record.id)
         log.info("master %s up: HTTP %s, %d running job(s)", self.config.jid, self.config.url,
-                 len(self.auction.jobs))
+                 len(self.store.list_jobs("running")))
 
     def _repair_store(self, now: float) -> None:
         """Units done in the store without their tile on disk go back to auction (jobs not yet assembled)."""
@@ -356,36 +354,33 @@ class MasterService:
 
     def _units_for_agents(self) -> int:
         """Units a job needs at least so that every live agent gets several (load balance)."""
-        live = sum(not a.lost for a in self.auction.agents.values()) if self.auction else 0
-        return farm_min_units(live)
+        return farm_min_units(self.auction.live_agents() if self.auction else 0)
 
     def _create_job(self, job_id: str, scene_name: str, spec: JobSpec, plan: JobPlan, received: float) -> None:
         now = time.time()
         self.store.create_job(job_id, scene_name, spec, plan, received)
-        events = self.auction.add_job(self.job_info(self.store.job(job_id)), plan.units)
-        self.store.apply(events, now)
+        channels = tuple(plan.channels) if plan.channels is not None else None
+        submitted = au.JobSubmitted(self.job_info(self.store.job(job_id)), plan.units, channels,
+                                    stimulus_id=f"submit-{job_id}")
+        self.store.apply(self.auction.handle(submitted, now), now)
 
     async def cancel(self, job_id: str) -> bool:
         async with self._lock:
-            if self.auction is None or job_id not in self.auction.jobs:
+            if self.auction is None or self.auction.job_view(job_id) is None:
                 return self.store.cancel(job_id, time.time())
-            commands = self.auction.cancel_job(job_id)
-            await self._execute(commands)
-            return any(isinstance(c, au.JobCancelled) for c in commands)  # False: it had already ended
+            out = await self._handle(au.JobCancelRequested(job_id, stimulus_id=f"cancel-{job_id}"))
+            return any(isinstance(i, au.JobCancelled) for i in out)  # False: it had already ended
 
     # ---- the data plane's callbacks -----------------------------------------------------------------
 
-    def _expected_upload(self, job_id: str, index: int) -> tuple[str, Any, tuple[int, int]] | None:
-        job = self.auction.jobs.get(job_id) if self.auction else None
-        unit = job.units.get(index) if job else None
-        if unit is None or unit.status != UnitStatus.AWARDED or unit.token is None:
-            return None
-        return unit.token, unit.spec.rect, (job.info.width, job.info.height)
+    def _expected_upload(self, job_id: str, index: int, token: str) -> tuple[Any, tuple[int, int]] | None:
+        """The unit's rectangle and the image's size, if `token` is its current award's."""
+        award = self.auction.award_for(job_id, index, token) if self.auction else None
+        return None if award is None else (award.rect, award.image)
 
     def _bundle_allowed(self, job_id: str, token: str) -> bool:
         """A scene goes only to an agent holding a current award of its job (the award's token)."""
-        job = self.auction.jobs.get(job_id) if self.auction else None
-        return job is not None and any(self.auction.upload_allowed(job_id, i, token) for i in job.units)
+        return self.auction is not None and self.auction.holds_award(job_id, token)
 
     def _bundle_for(self, job_id: str) -> tuple[Path, str] | None:
         path = self.job_dir(job_id) / "bundle.tar"
@@ -393,35 +388,18 @@ class MasterService:
             return None
         return path, self.store.job(job_id).plan["bundle_sha256"]
 
-    async def _on_tile(self, job_id: str, index: int, path: Path, sha256: str, agent: str | None = None) -> None:
-        """A tile is on disk (fsynced): record it, then let the auction count the unit as done."""
+    async def _on_tile(self, job_id: str, index: int, path: Path, sha256: str, token: str,
+                       agent: str | None = None) -> None:
+        """A tile is on disk (fsynced): the auction says what it means; a refusal is the upload's answer."""
+        header = _stored_header(path)
+        figures = m.TileFigures.from_header(header.meta)
+        stored = au.TileStored(job_id, index, token, str(path), sha256, figures, tuple(header.channels),
+                               _extra(header.meta), stimulus_id=f"tile-{job_id}-{index}-{sha256[:8]}")
         async with self._lock:
-            job = self.auction.jobs.get(job_id)
-            unit = job.units.get(index) if job else None
-            if unit is None or unit.status != UnitStatus.AWARDED:
-                return
-            tile = _stored_header(path)
-            _check_channels(tile.channels, self._planned_channels(job_id), job_id, index)
-            params = {**_params_from_meta(tile.meta), "agent": unit.agent}  # who holds the award
-            _check_planned(job.info, unit.spec, params)
-            inform = m.Inform(
-                conversation=unit.conversation, job_id=job_id, index=index, token=unit.token,
-                tile_hash=sha256, depth=params["depth"], spp=params["spp"], band=params["band"],
-                seconds=params["seconds"], nonfinite=params["nonfinite"])
-            try:
-                m.check(inform)  # its header's figures within the bounds an inform message holds them to
-            except MessageError as exc:
-                raise TileError(f"tile header's render parameters: {exc}") from exc
-            self.store.record_result(job_id, index, str(path), sha256, params, time.time())
-            now = self.auction_now()
-            # Tick at once: the agent that just finished is free, and waiting for the timer would idle it.
-            await self._execute(self.auction.on_inform(unit.agent, inform, now) + self._tick(now))
-
-    def _planned_channels(self, job_id: str) -> list[str] | None:
-        """The channels the job's tiles carry (its stored plan's, read once: a plan never changes)."""
-        if job_id not in self._channels:
-            self._channels[job_id] = self.store.job(job_id).plan.get("channels")
-        return self._channels[job_id]
+            out = await self._handle(stored)
+        refused = [i for i in out if isinstance(i, au.RefuseTile)]
+        if refused:
+            raise TileError(refused[0].reason)
 
     # ---- messages and time --------------------------------------------------------------------------
 
@@ -435,62 +413,53 @@ class MasterService:
             log.warning("refused %s from %s: %s", env.performative, env.sender, exc)
             return
         async with self._lock:
-            now = self.auction_now()
-            if isinstance(msg, m.Failure) and self.paused:
-                # A local farm's agents write their tiles on the master's disk: a failure while it is full
-                # may be the disk's, and is not held against the agent.
-                commands = self.auction.on_failure(env.sender, msg, now, blame=False)
-            else:
-                commands = self.auction.on_message(env.sender, msg, now)
-            await self._execute(commands + self._tick(now))
+            await self._handle(au.MessageReceived(env.sender, msg,
+                                                  stimulus_id=f"{env.performative}-{msg.conversation}"))
+
+    async def _handle(self, stimulus: au.Stimulus) -> list[au.Instruction]:
+        """The auction's answer to one stimulus, and to the tick that follows it at once (an agent that just
+        answered or finished may be free: waiting for the timer would idle it), carried out."""
+        now = time.time()
+        out = self.auction.handle(stimulus, now)
+        out += self.auction.handle(au.Tick(stimulus_id=f"tick-after-{out[0].stimulus_id if out else 'none'}"), now)
+        await self._execute(out)
+        return out
 
     async def _tick_forever(self) -> None:
         while True:
             await asyncio.sleep(TICK_S)
             try:
-                self.check_disk()
                 async with self._lock:
-                    await self._execute(self._tick(self.auction_now()))
+                    await self._execute(self.check_disk() + self.auction.handle(
+                        au.Tick(stimulus_id=f"tick-{next(self._ticks)}"), time.time()))
             except Exception:  # one bad tick must not stop the master
                 log.exception("master tick failed")
 
-    def _tick(self, now: float) -> list[au.Command]:
-        """The auction's tick, unless paused: no awards, deadlines or losses while the disk is full."""
-        return [] if self.paused else self.auction.tick(now)
+    def check_disk(self) -> list[au.Instruction]:
+        """Tell the auction when the master's home falls below `min_free_bytes` free, or rises above again."""
+        free = shutil.disk_usage(self.home).free
+        full = free < self.config.min_free_bytes
+        if full == bool(self.auction.paused):
+            return []
+        stimulus = au.DiskFull(free) if full else au.DiskFreed(free)
+        return self.auction.handle(stimulus, time.time())
 
     @property
     def paused(self) -> str | None:
         """Why every job is paused (the disk is full), or None."""
-        return "disk full on the master" if self._paused_since is not None else None
+        return self.auction.paused if self.auction else None
 
-    def auction_now(self) -> float:
-        """The auction's clock: wall time less the time spent paused (so no deadline runs out meanwhile)."""
-        now = time.time()
-        return now - self._paused_s - (now - self._paused_since if self._paused_since is not None else 0.0)
-
-    def check_disk(self) -> None:
-        """Pause every job while the master's home has less than `min_free_bytes` free; resume after."""
-        free = shutil.disk_usage(self.home).free
-        full = free < self.config.min_free_bytes
-        if full and self._paused_since is None:
-            self._paused_since = time.time()
-            log.error("disk full on the master (%d bytes free): every job paused until space returns", free)
-        elif not full and self._paused_since is not None:
-            self._paused_s += time.time() - self._paused_since
-            self._paused_since = None
-            log.warning("space on the master again (%d bytes free): jobs resume", free)
-
-    async def _execute(self, commands: list[au.Command]) -> None:
-        """Record events first (the store is the truth after a crash), then send messages. Where the store
-        cannot write them yet (`_record`) the messages still go: a master that crashes meanwhile sends its
-        awarded units back to auction when it starts, as after any crash."""
-        self._record(commands)
-        for cmd in commands:
-            if not isinstance(cmd, au.Send):
-                log.info("%r", cmd)  # the event's kind and fields (its repr leaves tokens out)
-                if isinstance(cmd, au.JobDone):
-                    self._assemble_later(cmd.job_id)
-        for to, message in outgoing(commands):
+    async def _execute(self, instructions: list[au.Instruction]) -> None:
+        """Record first (the store is the truth after a crash), then send messages. Where the store cannot
+        write them yet (`_record`) the messages still go: a master that crashes meanwhile sends its awarded
+        units back to auction when it starts, as after any crash."""
+        self._record(instructions)
+        for item in instructions:
+            if isinstance(item, au.Record):
+                log.log(item.level, "%s", item.sentence(), extra=fields(**item.fields()))
+                if isinstance(item, au.JobDone):
+                    self._assemble_later(item.job_id)
+        for to, message in outgoing(instructions):
             try:
                 performative, body = m.encode(message)
             except MessageError as exc:  # a job whose messages cannot be sent fails alone
@@ -499,11 +468,11 @@ class MasterService:
             await self.agent.send(to, performative, body, conversation_id=message.conversation,
                                   protocol=m.PROTOCOL, ontology=m.ONTOLOGY)
 
-    def _record(self, commands: list[au.Command]) -> None:
-        """Write the auction's events to the store, after those it could not write before, in order. Where
+    def _record(self, instructions: list[au.Instruction]) -> None:
+        """Write the auction's records to the store, after those it could not write before, in order. Where
         it cannot (its disk full), they are kept and written at a later tick: the auction has moved on,
         and a job it ended would otherwise stay running in the store until the master restarts."""
-        events = [*self._unrecorded, *(c for c in commands if isinstance(c, au.Event))]
+        events = [*self._unrecorded, *(i for i in instructions if isinstance(i, au.Record))]
         if not events:
             return
         try:
@@ -524,7 +493,8 @@ class MasterService:
         log.error("job %s: its messages cannot be encoded (%s): the job fails, the others go on", job_id, exc)
         reason = f"cannot send its messages: {exc}"
         self.store.set_status(job_id, JobStatus.FAILED, time.time(), reason)  # first: the cancel below keeps it failed
-        await self._execute(self.auction.cancel_job(job_id, reason))
+        cancel = au.JobCancelRequested(job_id, reason, stimulus_id=f"unsendable-{job_id}")
+        await self._execute(self.auction.handle(cancel, time.time()))
 
     # ---- the final image ----------------------------------------------------------------------------
 
@@ -600,60 +570,20 @@ def _job_rules(folder: Path, options: RenderOptions) -> tuple[RenderOptions, str
     return dataclasses.replace(options, rules=path), sha256_file(path)
 
 
-def _params_from_meta(meta: dict[str, Any]) -> dict[str, Any]:
-    """The parameters an agent chose, as its tile's header states them (validated: they enter the report);
-    TileError if they are not numbers. The agent it names is the header's word, to be replaced by the award's."""
-    try:
-        params = {"depth": int(meta.get("depth", -1) if meta.get("depth") is not None else -1),
-                  "spp": int(meta["spp"]), "band": int(meta.get("band", 0)),
-                  "seconds": float(meta.get("seconds", 0.0)), "nonfinite": int(meta.get("nonfinite", 0))}
-    except (KeyError, TypeError, ValueError) as exc:
-        raise TileError(f"tile header lacks valid render parameters: {exc}") from exc
-    params["outputs"] = meta.get("outputs") if isinstance(meta.get("outputs"), dict) else {}
-    params["agent"] = meta.get("agent")
-    params["rules"] = str(meta.get("rules", ""))[:256] or None
-    if meta.get("emulated") is True:  # an emulated agent's (agents/emulate.py): slept, not rendered
-        params["emulated"] = True
-    if meta.get("first_spp") is not None:  # an adaptive job's two-pass render (core.render.worker)
-        try:
-            params["first_spp"] = int(meta["first_spp"])
-        except (TypeError, ValueError) as exc:
-            raise TileError(f"tile header's first_spp {meta['first_spp']!r} is not a sample count") from exc
-    return params
+def _extra(meta: dict[str, Any]) -> dict[str, Any]:
+    """The rest of a tile's header that its job's report keeps: outputs, the rule file, an emulated render."""
+    return {"outputs": meta.get("outputs") if isinstance(meta.get("outputs"), dict) else {},
+            "rules": str(meta.get("rules", ""))[:256] or None, "emulated": meta.get("emulated") is True}
 
 
 def _stored_header(path: Path) -> TileSource:
-    """The header of a tile the data plane decoded in full before storing it (master.http_api._validate),
+    """The header of a tile the data plane decoded in full before storing it (master.data_plane._validate),
     so its pixels are not decoded again here. Failing to read it back is the master's fault (its disk), not
     the agent's: a QuekaroError, not a TileError."""
     try:
         return tile_source(path)
     except TileError as exc:
         raise QuekaroError(f"stored tile {path}: {exc}") from exc
-
-
-def _check_channels(channels: tuple[str, ...], planned: list[str] | None, job_id: str, index: int) -> None:
-    """A tile must carry the channels its job's film and integrator give every tile (JobPlan.channels): one
-    that differs could never be composed with the others."""
-    if planned is not None and list(channels) != list(planned):
-        raise TileError(f"unit {index} of job {job_id}: tile channels {list(channels)[:8]} differ from the "
-                        f"job's {list(planned)[:8]}")
-
-
-def _check_planned(job: m.JobInfo, unit: WorkUnit, params: dict[str, Any]) -> None:
-    """A tile must say it rendered what the plan allows: no shallower than its unit's depth floor (the
-    unit would lack the light of the paths cut), and in an adaptive job the unit's planned share in two
-    passes (its image is averaged with the others' as if it had). Else it is refused, naming what differs."""
-    floor = unit.depth_floor
-    if floor is not None and job.depth >= 1 and params["depth"] < floor:
-        raise TileError(f"unit {unit.index} of job {job.job_id}: tile header says depth {params['depth']}; the "
-                           f"plan allows no less than {floor} (shallower paths lose its light)")
-    if job.first_spp is None:
-        return
-    said = (params["spp"], params.get("first_spp"))
-    if said != (unit.spp, job.first_spp):
-        raise TileError(f"unit {unit.index} of adaptive job {job.job_id}: tile header says spp {said[0]}, first "
-                           f"pass {said[1]}; the plan gives spp {unit.spp}, first pass {job.first_spp}")
 
 
 def _admin_token(home: Path) -> str:
@@ -666,14 +596,14 @@ def _admin_token(home: Path) -> str:
     return path.read_text().strip()
 
 
-def outgoing(commands: list[au.Command]) -> list[tuple[str, m.Message]]:
-    """The messages the commands send, in order per agent, an agent's awards of one job that follow each
+def outgoing(instructions: list[au.Instruction]) -> list[tuple[str, m.Message]]:
+    """The messages the instructions send, in order per agent, an agent's awards of one job that follow each
     other (among its own messages) packed into Awards (`m.packed`): one message per round and job, not
     one per unit."""
     per_agent: dict[str, list[m.Message]] = {}
-    for cmd in commands:
-        if isinstance(cmd, au.Send):
-            per_agent.setdefault(cmd.to, []).append(cmd.message)
+    for item in instructions:
+        if isinstance(item, au.SendToAgent):
+            per_agent.setdefault(item.to, []).append(item.message)
     out: list[tuple[str, m.Message]] = []
     for to, messages in per_agent.items():
         for _, run in itertools.groupby(messages, key=_award_job):

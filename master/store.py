@@ -5,7 +5,7 @@ a busy timeout rather than "database is locked" errors; synchronous=FULL because
 only once its tile and the row saying so are both on disk. The schema version lives in `user_version`.
 
 The auction state machine (`master.auction`) never touches the store: the master records the auction's
-events with `JobStore.apply`. On restart `resume` sends awarded-but-unfinished units back to pending, and the
+records with `JobStore.apply`. On restart `resume` sends awarded-but-unfinished units back to pending, and the
 auction rebuilds itself (`Auction.restore`) from `running_jobs` and `credits`. Statuses, in the rows and in
 the schema's CHECK constraints, are those of `core.model.status`, and every change of one is checked
 against its transition table, as the auction's are.
@@ -162,6 +162,7 @@ class RunningJob:
     done: list[int]  # indices of the units done
     failures: list[tuple[int, str, str]]  # (unit index, agent, reason) of its failed attempts, oldest first
     delivered_by: dict[int, str] = field(default_factory=dict)  # done unit -> the agent whose tile it has
+    channels: list[str] | None = None  # what every tile of the job carries (its plan's)
 
 
 @dataclass(frozen=True)
@@ -395,12 +396,14 @@ class JobStore:
             unit = self._unit(db, job_id, index)
             if unit["status"] == UnitStatus.DONE:
                 return False
-            db.execute(
-                "INSERT OR REPLACE INTO results (job_id, idx, tile_path, hash, params, recorded)"
-                " VALUES (?, ?, ?, ?, ?, ?)",
-                (job_id, index, tile_path, tile_hash, json.dumps(params), now),
-            )
+            self._result(db, job_id, index, tile_path, tile_hash, params, now)
             return True
+
+    @staticmethod
+    def _result(db: sqlite3.Connection, job_id: str, index: int, tile_path: str, tile_hash: str,
+                params: dict[str, Any], now: float) -> None:
+        db.execute("INSERT OR REPLACE INTO results (job_id, idx, tile_path, hash, params, recorded)"
+                   " VALUES (?, ?, ?, ?, ?, ?)", (job_id, index, tile_path, tile_hash, json.dumps(params), now))
 
     def has_result(self, job_id: str, index: int, tile_hash: str) -> bool:
         row = self.db.execute(
@@ -525,7 +528,7 @@ class JobStore:
             units = self.units(record.id)
             done = [u.index for u in units if u.status == UnitStatus.DONE]
             out.append(RunningJob(record.id, [u.unit() for u in units], done, self.failures(record.id),
-                                  self._delivered_by(record.id)))
+                                  self._delivered_by(record.id), record.plan.get("channels")))
         return out
 
     def _delivered_by(self, job_id: str) -> dict[int, str]:
@@ -558,21 +561,22 @@ class JobStore:
         )
         return [(r["idx"], r["agent"], r["reason"]) for r in rows]
 
-    def apply(self, commands: Iterable[au.Command], now: float) -> None:
-        """Record the auction's events in one transaction (its Sends are the transport's business)."""
+    def apply(self, instructions: Iterable[au.Instruction], now: float) -> None:
+        """Record the auction's records in one transaction (its other instructions are the I/O's business)."""
         with self._tx() as db:
-            for cmd in commands:
-                if isinstance(cmd, au.Event):
-                    self._apply(db, cmd, now)
+            for item in instructions:
+                if isinstance(item, au.Record):
+                    self._apply(db, item, now)
 
-    def _apply(self, db: sqlite3.Connection, ev: au.Event, now: float) -> None:
-        """One event: its unit, attempt or job; and the agent it names is seen now (with its credits, if the
-        event carries them)."""
+    def _apply(self, db: sqlite3.Connection, ev: au.Record, now: float) -> None:
+        """One record: its unit, attempt or job; and the agent it names is seen now (with its credits, if the
+        record carries them). A unit done records its tile's result in the same transaction."""
         match ev:
             case au.UnitAwarded():
                 self._award(db, ev.job_id, ev.index, ev.agent, ev.token, now, ev.estimate)
                 self._agent(db, ev.agent, now, None)
             case au.UnitDone():
+                self._result(db, ev.job_id, ev.index, ev.tile_path, ev.tile_hash, ev.report, now)
                 self._finish(db, ev.token, "done", now, ev.seconds, ev.params, "")
                 if not self._done(db, ev.job_id, ev.index, now):
                     raise StoreError(f"job {ev.job_id!r} unit {ev.index}: done twice")
@@ -589,12 +593,12 @@ class JobStore:
                 self._end_job(db, ev.job_id, JobStatus.FAILED, now, ev.reason)
             case au.JobCancelled():
                 self._end_job(db, ev.job_id, JobStatus.CANCELLED, now, ev.reason)
-            case au.AgentRegistered() | au.AgentLost() | au.AgentBack() | au.AgentBlocklisted() | au.BidRefused():
+            case au.AgentJoined() | au.AgentLost() | au.AgentBack() | au.AgentBlocklisted() | au.BidRefused():
                 self._agent(db, ev.agent, now, None)
-            case au.MessageIgnored() | au.AgentForgotten() | au.AgentSilent():
+            case au.MessageIgnored() | au.AgentForgotten() | au.AgentSilent() | au.JobsPaused() | au.JobsResumed():
                 pass  # changes nothing here (an agent's row and credits stay)
             case _:
-                raise TypeError(f"the job store has no record for a {type(ev).__name__} event")
+                raise TypeError(f"the job store has no record for a {type(ev).__name__}")
 
     # --- statements shared by the public methods and `apply` -----------------------------------------
 

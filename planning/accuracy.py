@@ -29,20 +29,20 @@ from typing import Any
 import numpy as np
 
 from core.errors import QuekaroError
+from core.image.imageio import read_image, write_exr
+from core.image.metrics import all_metrics
+from core.image.seams import seam_measure
 from core.model.geometry import Rect
 from core.model.hashing import sha256_file
 from core.model.job import SceneSpec
-from core.render.bundle import scene_members
-from core.render.effects import analyse
-from core.render.imageio import read_image, write_exr
-from core.render.metrics import all_metrics
-from core.render.seams import seam_measure
+from core.scene.bundle import scene_members
+from core.scene.effects import analyse
 
 REF_SPP = 1024
 
 
 def job_variant(spec: SceneSpec) -> str:
-    """The variant a job of this scene renders in when the user names none (core.render.effects)."""
+    """The variant a job of this scene renders in when the user names none (core.scene.effects)."""
     return analyse(spec).variant
 
 

@@ -22,10 +22,9 @@ import numpy as np
 
 from core.errors import QuekaroError
 from core.model.geometry import Rect
-from core.model.units import WorkUnit
+from core.model.units import SPP_MAX, WorkUnit
 from core.render.adaptive import BLUR_PX, PAYS_BELOW, blurred, first_spp, second_pass
-from core.render.planner import RenderParams
-from fuzzy.render_params import SPP_MAX
+from core.rules.unit_params import RenderParams
 
 
 def level_spp(units: Sequence[WorkUnit], chosen: Sequence[RenderParams]) -> int:

@@ -30,18 +30,18 @@ from typing import Any
 
 import numpy as np
 
+from core import mitsuba_env
 from core.errors import QuekaroError
+from core.image.film import film_channels
 from core.model.job import SceneSpec
-from core.render import mitsuba_env
-from core.render import scene as scene_mod
-from core.render.film import film_channels
+from core.scene import scene as scene_mod
 
 # Mitsuba and Dr.Jit are imported where used: `import mitsuba` costs ~0.35 s and 85 MB, must follow the
-# variant choice (core.render.mitsuba_env), and processes that never render must not pay for it.
+# variant choice (core.mitsuba_env), and processes that never render must not pay for it.
 
 MAX_TRACE_DEPTH = 16  # cap for max_depth=-1 (unbounded) in the ray-count tracer
 RR_DEPTH = 5  # Mitsuba's path integrator default
-RELATIVE_EPSILON = 0.01  # as core.render.metrics.relmse: keeps black pixels from dividing by zero
+RELATIVE_EPSILON = 0.01  # as core.image.metrics.relmse: keeps black pixels from dividing by zero
 
 
 class ComplexityError(QuekaroError):
@@ -102,7 +102,7 @@ class ComplexityMap:
 
     def relative_noise(self, epsilon: float = RELATIVE_EPSILON) -> np.ndarray:
         """Per-pixel per-sample relative variance, noise / (mean^2 + epsilon): a pixel's relative MSE at 1
-        spp (core.render.metrics.relmse's epsilon). Without a mean, the absolute noise."""
+        spp (core.image.metrics.relmse's epsilon). Without a mean, the absolute noise."""
         if self.mean is None:
             return self.noise
         return self.noise / (self.mean * self.mean + epsilon)
@@ -151,7 +151,7 @@ def prepass(
     cost_spp: int = COST_SPP,
     sensor: int = 0,
 ) -> ComplexityMap:
-    """Estimate per-pixel cost and noise of `scene` (a loaded mi.Scene or a core.render.scene.SceneSpec).
+    """Estimate per-pixel cost and noise of `scene` (a loaded mi.Scene or a core.scene.scene.SceneSpec).
 
     `width`/`height` default to the scene film's size; `full_spp` is the spp of the render this
     pre-pass is for, and sets (with `budget`) how far each pass reduces the resolution; `spp` and

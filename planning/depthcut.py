@@ -8,7 +8,7 @@ carry nothing (an open sky, a still life of few bounces) the cut only saves time
 is which, so that depth is cut only where the scene does not call for the deeper paths.
 
 At the noise pre-pass's low resolution the scene renders at the user's depth and at each shallower depth
-the planner can choose (core.render.planner.DEPTH_STEPS), with one seed per stage at every depth: each
+the planner can choose (core.rules.unit_params.DEPTH_STEPS), with one seed per stage at every depth: each
 sample follows the same path up to the cut, so the difference of two passes is the light of the longer
 paths alone. That light comes from rare long paths, so a few samples mostly miss it, and then their
 spread is small too: the passes take enough samples per pixel that the smallest unit has
@@ -41,9 +41,9 @@ from typing import Any
 
 import numpy as np
 
+from core.image.film import film_channels
 from core.model.geometry import Rect
-from core.render.film import film_channels
-from core.render.planner import DEPTH_STEPS
+from core.rules.unit_params import DEPTH_STEPS
 from planning.complexity import PREPASS_SPP, film_size, finite_mean
 
 # At most 1 % of a unit's light (and, on average, of its lit pixels' own) may go with a cut: under the

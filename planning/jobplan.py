@@ -18,17 +18,17 @@ from typing import Any
 from lxml import etree
 
 from core.errors import QuekaroError, RenderError, SceneError
+from core.image.film import bitmap_names
 from core.model import integrators
 from core.model.job import RGB, Effects, ImageFile, JobPlan, RenderOptions, SceneSpec
+from core.model.levels import OFF
 from core.model.units import WorkUnit
-from core.render.counts import check_renderable
-from core.render.effects import analyse_loaded
-from core.render.film import bitmap_names
-from core.render.planner import Planner, RenderParams, adaptive_params
-from core.render.scene import expand, film_info, sensor_elements, sensor_of
-from core.render.worker import build_integrator
-from fuzzy.levels import OFF
-from fuzzy.render_params import LS_MAX
+from core.render.per_pixel import check_renderable
+from core.render.process import build_integrator
+from core.rules.outputs import LS_MAX
+from core.rules.unit_params import Planner, RenderParams, adaptive_params
+from core.scene.effects import analyse_loaded
+from core.scene.scene import expand, film_info, sensor_elements, sensor_of
 from planning import budgets, depthcut
 from planning.complexity import ComplexityMap, film_size, prepass
 from planning.partition import DEFAULT_SIZES, MERGE_TOLERANCE, equal_tiles, partition
@@ -47,7 +47,7 @@ def scene_spp(spec: SceneSpec, sensor_index: int = 0, loaded: Any = None) -> int
 
 def _stated_spp(sensors: list[etree._Element] | None, spec: SceneSpec, sensor_index: int,
                 loaded: Any) -> int | None:
-    """`scene_spp` from the scene's sensor elements (core.render.scene.sensor_elements)."""
+    """`scene_spp` from the scene's sensor elements (core.scene.scene.sensor_elements)."""
     if sensors is None:
         return int(loaded.sensors()[sensor_index].sampler().sample_count()) if loaded is not None else None
     sensor = sensors[sensor_index] if sensor_index < len(sensors) else None
@@ -322,7 +322,7 @@ def _added_channels(loaded: Any, override: str | None) -> list[str]:
 
 
 def _tile_channels(loaded: Any, sensor: int, colour: tuple[str, ...], added: list[str]) -> tuple[str, ...]:
-    """The channels each tile carries, as core.render.film.film_channels names a rendered film's: colour as
+    """The channels each tile carries, as core.image.film.film_channels names a rendered film's: colour as
     R, G, B, then what Mitsuba's film holds past its colour once prepared for the integrator's `added`
     channels (its alpha, which PFM and RGBE films drop, then those), read from the film itself at 1 x 1
     pixel, so that nothing of the image's size is allocated."""
@@ -335,7 +335,7 @@ def _tile_channels(loaded: Any, sensor: int, colour: tuple[str, ...], added: lis
 
 def _check_adaptive(spec: SceneSpec, loaded: Any, sensor: int) -> None:
     """Refuse an adaptive job before its pre-pass where per-pixel counts cannot render the scene as
-    Mitsuba does (core.render.counts.check_renderable: its sampler, film, integrator), naming the file."""
+    Mitsuba does (core.render.per_pixel.check_renderable: its sampler, film, integrator), naming the file."""
     try:
         check_renderable(loaded, sensor)
     except RenderError as exc:

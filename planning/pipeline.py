@@ -21,18 +21,18 @@ import numpy as np
 
 from core.errors import QuekaroError, RenderError, SceneError
 from core.files import staged_together, written_atomically
+from core.image.compose import TileSource, compose_planar
+from core.image.film import display_rgb, film_output
+from core.image.imageio import write_image, write_png_planar
+from core.image.tiles import Tile
 from core.model.hashing import sha256_file
 from core.model.job import JobPlan, RenderOptions, SceneSpec
+from core.model.levels import OFF
 from core.model.seeds import plan_seed, unit_seed
 from core.model.units import WorkUnit
-from core.render.compose import TileSource, compose_planar
-from core.render.film import display_rgb, film_output
-from core.render.imageio import write_image, write_png_planar
-from core.render.planner import Planner, RenderParams
-from core.render.tiles import Tile
-from core.render.together import batch_name, batches, render_batch, together_problem_here
-from core.render.worker import ADAPTIVE_META, RenderRequest, RenderWorker, adopt_scene
-from fuzzy.levels import OFF
+from core.render.batch import batch_name, batches, render_batch, together_problem_here
+from core.render.process import ADAPTIVE_META, RenderProcess, RenderRequest, adopt_scene
+from core.rules.unit_params import Planner, RenderParams
 from planning.jobplan import plan_job_loaded, plan_params
 
 log = logging.getLogger(__name__)
@@ -162,9 +162,9 @@ def render_job(spec: SceneSpec, options: RenderOptions, out: Path, job_id: str |
                progress: Callable[[Progress], None] | None = None) -> dict:
     """Render the scene as units in one process (each in two passes with `options.adaptive`); write
     OUT.exr/.png/.json and return the report. `progress` hears after the plan and after every unit, or
-    every batch of units rendered together (core.render.together)."""
+    every batch of units rendered together (core.render.batch)."""
     start = time.perf_counter()
-    worker = RenderWorker()
+    worker = RenderProcess()
     worker.launch()  # the child imports Mitsuba while this process hashes the scene
     try:
         seed = plan_seed(scene_digest(spec.path), spec.defines, options.to_dict())
@@ -194,7 +194,7 @@ def scene_digest(path: Path) -> str:
         raise SceneError(f"{path}: cannot read the scene file ({exc.strerror or exc})") from exc
 
 
-def render_plan(plan: JobPlan, out: Path, worker: RenderWorker, started: float, job_id: str | None = None,
+def render_plan(plan: JobPlan, out: Path, worker: RenderProcess, started: float, job_id: str | None = None,
                 progress: Callable[[Progress], None] | None = None) -> dict:
     """The rest of `render_job` for a plan already made: the rules' (or the shares') parameters, every
     unit rendered by `worker`, composed and written. `started`: the job's start (time.perf_counter)."""
@@ -215,7 +215,7 @@ class UnitRun:
     chosen: list[RenderParams]
     job_id: str
     threads: int | None
-    worker: RenderWorker
+    worker: RenderProcess
     rules: str
     progress: Callable[[Progress], None] | None = None
     samples_done: int = 0
@@ -224,7 +224,7 @@ class UnitRun:
 
     def render(self) -> Composed:
         """Every unit at the spp its plan or the rules chose for it: at a rule level in batches of one
-        render call each where the scene allows (core.render.together), else unit by unit."""
+        render call each where the scene allows (core.render.batch), else unit by unit."""
         jobs = [unit_job(self.plan, u, p, self.job_id, self.threads) for u, p in zip(self.plan.units, self.chosen,
                                                                                      strict=True)]
         total = sum(j.spp * j.unit.area for j in jobs)

@@ -7,8 +7,8 @@ given spp and writes an EXR. `planning.accuracy` times this whole process for it
 
 It computes what the job was asked to compute: the scene with its -D parameters and search folders, the
 sensor chosen (Mitsuba's -s), and the user's integrator type and max_depth where the job overrode them,
-built as each unit builds them (core.render.worker.integrator_for). The film's colour is written as
-R, G, B (core.render.film.film_channels: a luminance film's Y thrice), as a job's image is read back.
+built as each unit builds them (core.render.process.integrator_for). The film's colour is written as
+R, G, B (core.image.film.film_channels: a luminance film's Y thrice), as a job's image is read back.
 """
 
 from __future__ import annotations
@@ -20,11 +20,11 @@ import mitsuba as mi
 import numpy as np
 
 from core.errors import QuekaroError
+from core.image.film import film_channels
+from core.image.imageio import write_exr
 from core.model import integrators
 from core.model.job import SceneSpec
-from core.render.film import film_channels
-from core.render.imageio import write_exr
-from core.render.scene import expand, load, sensor_of
+from core.scene.scene import expand, load, sensor_of
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     integrator = None  # the scene's own, as a user's plain render takes it
     if args.integrator or args.depth is not None:
         # Imported only here (~60 ms): the timed process imports what a user's plain render needs.
-        from core.render.worker import integrator_for
+        from core.render.process import integrator_for
 
         elem = integrators.scene_element(expand(spec).root)
         integrator = integrator_for(args.integrator, args.depth, elem, integrators.depth_of(elem))

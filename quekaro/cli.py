@@ -16,7 +16,7 @@ import sys
 from importlib.metadata import entry_points
 
 from core.errors import QuekaroError
-from core.render import child
+from core.render import spawn
 
 # The module that registers each top-level command (tests/test_cli.py checks it against what they register),
 # in the order `quekaro --help` lists them.
@@ -53,11 +53,11 @@ def main(argv: list[str] | None = None) -> int:
 
         return int(agent_main(argv[1:]) or 0)
     if argv[:1] == ["render"]:
-        child.start_early()  # its Mitsuba import overlaps this process's imports (the job takes it)
+        spawn.start_early()  # its Mitsuba import overlaps this process's imports (the job takes it)
     try:
         return _run(argv)
     finally:
-        child.discard_early()
+        spawn.discard_early()
 
 
 def _run(argv: list[str]) -> int:

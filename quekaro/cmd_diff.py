@@ -1,5 +1,5 @@
 """`quekaro diff A.exr B.exr`: compare an image with a reference (paper metric, RMSE, relMSE, FLIP), and
-with `--units REPORT.json` measure seams at the units' borders (core.render.seams)."""
+with `--units REPORT.json` measure seams at the units' borders (core.image.seams)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ from typing import Any
 import numpy as np
 
 from core.errors import QuekaroError
+from core.image import imageio, metrics
+from core.image.seams import SEAM_WIDTH, seam_measure
 from core.model.geometry import Rect
-from core.render import imageio, metrics
-from core.render.seams import SEAM_WIDTH, seam_measure
 
 
 def register(subparsers: Any) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import sys
 import tempfile
@@ -17,9 +18,10 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from core.data import DEMO_SCENE
 from core.errors import QuekaroError
 from core.home import ADMIN_TOKEN, MIN_FREE_BYTES, PROCESSES_FILE, default_home
+from core.logs import FORMATS
 from core.model.units import SLOTS
-from core.render.bundle import make_bundle
-from core.render.scene import parse_defines
+from core.scene.bundle import make_bundle
+from core.scene.scene import parse_defines
 from farm.client import FarmClient
 from farm.local import LocalFarm
 from planning import budgets
@@ -52,6 +54,7 @@ def _register_up(sub: argparse._SubParsersAction) -> None:
         parser.add_argument("--threads", type=int, help="Dr.Jit threads per agent (default: cores / agents)")
         parser.add_argument("--rules", type=Path, action="append", default=[],
                             help="rule file for the agents; repeat to give agents different rules")
+        _add_log_format(parser)
         if name == "demo":
             parser.add_argument("-o", "--out", type=Path, default=Path("out/demo.exr"),
                                 help="output EXR file, or a folder (the PNG and the report go beside it)")
@@ -88,7 +91,14 @@ def _register_master(sub: argparse._SubParsersAction) -> None:
                         help="file of agent JIDs (one a line, read again when it changes): only these may bid; "
                              "default: any JID matching agent*@DOMAIN that the XMPP server authenticated")
     parser.add_argument("--log-level", default="INFO")
+    _add_log_format(parser)
     parser.set_defaults(func=run_master)
+
+
+def _add_log_format(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--log-format", choices=FORMATS, default=os.environ.get("QUEKARO_LOG_FORMAT", "text"),
+                        help="the farm's logs: text, a sentence a line (default), or json, one object a line "
+                             "($QUEKARO_LOG_FORMAT)")
 
 
 def _register_client(sub: argparse._SubParsersAction) -> None:
@@ -99,6 +109,8 @@ def _register_client(sub: argparse._SubParsersAction) -> None:
     submit.set_defaults(func=run_submit)
     status = sub.add_parser("status", help="jobs and their progress (one job if given)")
     status.add_argument("job", nargs="?")
+    status.add_argument("--unit", type=int, metavar="N",
+                        help="one unit of JOB: its attempts and its story (what moved it, and when)")
     status.add_argument("--json", action="store_true")
     _add_farm_location(status)
     status.set_defaults(func=run_status)
@@ -133,6 +145,7 @@ def _register_client(sub: argparse._SubParsersAction) -> None:
 
 
 def run_up(args: argparse.Namespace) -> int:
+    os.environ["QUEKARO_LOG_FORMAT"] = args.log_format  # the farm's processes inherit it
     with LocalFarm(args.home, args.agents, args.threads, args.rules, args.http_port, supervise=True) as farm:
         print(f"farm up: master {farm.url}, {_agents(farm.n_agents)}, home {farm.home} (Ctrl-C stops it)")
         _warn_if_short_of_space(farm.home)
@@ -152,6 +165,7 @@ def _warn_if_short_of_space(home: Path) -> None:
 def run_demo(args: argparse.Namespace) -> int:
     """Start a farm, render the demo scene on it, fetch the image, and say where everything is."""
     (target,) = writable_outputs([DEMO_SCENE], args.out)  # before a farm starts, not after its render
+    os.environ["QUEKARO_LOG_FORMAT"] = args.log_format  # the farm's processes inherit it
     with LocalFarm(args.home, args.agents, args.threads, args.rules, args.http_port, supervise=True) as farm:
         print(f"farm up: master {farm.url}, {_agents(farm.n_agents)}, home {farm.home}")
         print(f"web page: {farm.url}/ui/ (log in with the admin token in {farm.home / ADMIN_TOKEN}; "
@@ -225,6 +239,8 @@ def _bundle_bytes(scene: Path, defines: dict[str, str], args: argparse.Namespace
 
 def run_status(args: argparse.Namespace) -> int:
     client = _client(args)
+    if args.unit is not None:
+        return _print_unit(client, args)
     jobs = [client.status(args.job)] if args.job else client.jobs()
     if args.json:
         print(json.dumps(jobs, indent=2))
@@ -249,6 +265,27 @@ def run_status(args: argparse.Namespace) -> int:
             print_effects(job.get("effects") or {})
             if job.get("adaptive"):
                 print(f"adaptive: {budgets.describe(job['adaptive'])}")
+    return 0
+
+
+def _print_unit(client, args: argparse.Namespace) -> int:
+    """`quekaro status JOB --unit N`: the unit's attempts, then its story, a line each."""
+    if not args.job:
+        raise QuekaroError("--unit needs a JOB: quekaro status JOB --unit N")
+    unit = client.unit(args.job, args.unit)
+    if args.json:
+        print(json.dumps(unit, indent=2))
+        return 0
+    print(f"unit {unit['index']} of job {unit['job_id']}: {unit['status']}"
+          + (f", held by {unit['agent']}" if unit.get("agent") else ""))
+    for a in unit["attempts"]:
+        took = f" in {a['seconds']:.2f} s" if a.get("seconds") is not None else ""
+        print(f"  attempt by {a['agent']}: {a['outcome']}{took}" + (f" ({a['reason']})" if a.get("reason") else ""))
+    if not unit["story"]:
+        print("  no change of state since the master started")
+    for s in unit["story"]:
+        clock = time.strftime("%H:%M:%S", time.localtime(s["at"])) + f".{int(s['at'] % 1 * 1000):03d}"
+        print(f"  {clock}  {s['start']} -> {s['finish']}  ({s['stimulus_id']})")
     return 0
 
 

@@ -15,12 +15,12 @@ from pathlib import Path
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from core.errors import QuekaroError
+from core.image.imageio import read_image
 from core.model.integrators import CATALOGUE
 from core.model.job import IMAGE_SUFFIXES, RenderOptions, SceneSpec
-from core.render.imageio import read_image
-from core.render.scene import parse_defines
+from core.model.levels import LEVELS
+from core.scene.scene import parse_defines
 from fuzzy.engine import DEFUZZIFIERS
-from fuzzy.levels import LEVELS
 from planning import budgets
 from planning.accuracy import REF_SPP, Asked, accuracy_report, default_cache, reference_path
 from planning.pipeline import Progress as RenderProgress

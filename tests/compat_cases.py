@@ -21,7 +21,7 @@ from render_check import (
     reference_renders,
 )
 
-from core.render.imageio import read_image_channels
+from core.image.imageio import read_image_channels
 from farm.client import FarmClient
 
 SCENES = Path(__file__).resolve().parent / "compat" / "scenes"

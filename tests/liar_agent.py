@@ -25,9 +25,9 @@ from pathlib import Path
 import aiohttp
 import numpy as np
 
+from core.image.tiles import Tile, write_tile
 from core.model import messages as m
 from core.model.geometry import Rect
-from core.render.tiles import Tile, write_tile
 from core.transport.xmpp import Envelope, FarmAgent
 
 

@@ -106,9 +106,9 @@ def reference_renders(scene: Path, variant: str, spp: int, sensor: int = 0, defi
     import mitsuba as mi
 
     from core.model.job import SceneSpec
-    from core.render.scene import load
+    from core.scene.scene import load
 
-    # core.render.scene.load is mi.load_file with the -a folders appended to Mitsuba's resolver meanwhile.
+    # core.scene.scene.load is mi.load_file with the -a folders appended to Mitsuba's resolver meanwhile.
     loaded = load(SceneSpec(scene, defines or {}, search_paths), variant, threads=2)
     images = []
     names: tuple[str, ...] = ()
@@ -168,7 +168,7 @@ def mitsuba_file_kind(scene: Path, variant: str, sensor: int = 0, defines: dict[
     import mitsuba as mi
 
     from core.model.job import SceneSpec
-    from core.render.scene import load
+    from core.scene.scene import load
 
     loaded = load(SceneSpec(scene, defines or {}, search_paths), variant, threads=2)
     mi.render(loaded, sensor=sensor, spp=1)

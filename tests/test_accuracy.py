@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from core.errors import QuekaroError
+from core.image.imageio import read_image
 from core.model.job import SceneSpec
-from core.render.imageio import read_image
 from planning import accuracy
 
 REPO = Path(__file__).resolve().parent.parent

@@ -24,8 +24,8 @@ from core.render.adaptive import (
     second_pass,
     separable,
 )
-from core.render.counts import render_counts
-from core.render.scene import load
+from core.render.per_pixel import render_counts
+from core.scene.scene import load
 
 SCENES = Path(__file__).resolve().parent / "compat" / "scenes"
 RGB, SPECTRAL = "llvm_ad_rgb", "llvm_ad_spectral"
@@ -226,8 +226,8 @@ CBOX = Path(__file__).resolve().parents[1].parent / "shared" / "scenes" / "mitsu
 _FAULTING_TOTAL = f"""
 import numpy as np
 from core.model.job import SceneSpec
-from core.render.counts import render_counts
-from core.render.scene import load
+from core.render.per_pixel import render_counts
+from core.scene.scene import load
 counts = np.full(128 * 128, 32, dtype=np.int64)
 counts[100] = 0
 diff = 2**19 - 7 - int(counts.sum())
@@ -239,7 +239,7 @@ print("rendered", int(out.counts.sum()), float(out.pixels[..., :3].mean()))
 
 
 def test_a_sample_total_that_faulted_the_kernel_renders():
-    """The wavefront is padded (core.render.counts.LANE_MULTIPLE): a total that crashed the render process
+    """The wavefront is padded (core.render.per_pixel.LANE_MULTIPLE): a total that crashed the render process
     now renders, in a process of its own so that a fault fails this test, not the run."""
     done = subprocess.run([sys.executable, "-c", _FAULTING_TOTAL], capture_output=True, text=True, timeout=300,
                           cwd=Path(__file__).resolve().parents[1])

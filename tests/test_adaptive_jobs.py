@@ -12,22 +12,21 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from auction_support import refusal
 from compat_cases import CASES, adaptive_args, check_adaptive_report, compare_files, quekaro, reference
 from render_check import by_name
 
 from core.errors import MessageError, QuekaroError, RenderError
+from core.image.imageio import read_image_channels
 from core.model import messages as m
 from core.model.geometry import Rect
 from core.model.hashing import sha256_file
 from core.model.job import RenderOptions, SceneSpec
+from core.model.levels import RULE_LEVELS
 from core.model.seeds import plan_seed
-from core.model.units import WorkUnit
-from core.render.imageio import read_image_channels
-from core.render.planner import RenderParams, adaptive_params
-from core.render.worker import RenderRequest, render_job_here
-from fuzzy.levels import RULE_LEVELS
-from fuzzy.render_params import SPP_MAX
-from master.service import _check_planned, _params_from_meta
+from core.model.units import SPP_MAX, WorkUnit
+from core.render.process import RenderRequest, render_job_here
+from core.rules.unit_params import RenderParams, adaptive_params
 from planning.budgets import level_spp, shares
 from planning.jobplan import plan_job
 
@@ -48,7 +47,7 @@ def test_an_adaptive_job_keeps_mitsubas_means(name, tmp_path):
     """RUNS jobs (each its own job id, so its own seeds) against 32 of plain Mitsuba's renders: no pixel
     channel's mean differs beyond the fireflies render_check tolerates; the channels are the film's.
     Four units, so that bands meet at unit borders (composition cuts each band's filter reach:
-    core.render.compose) and the shares may differ."""
+    core.image.compose) and the shares may differ."""
     case = BY_CASE[name]
     ref_names = reference(case)[1]
     images = []
@@ -221,11 +220,11 @@ def test_the_master_refuses_a_tile_that_did_not_render_its_share():
     """A peer that renders fewer samples than the plan gave its unit, or one pass, is found out by its
     tile header: its image would be averaged with the others' as if it had rendered the share."""
     good = {"spp": 20, "first_spp": 8, "depth": 4, "band": 2}
-    _check_planned(_job(8), _unit(20), _params_from_meta(good))
-    _check_planned(_job(None), _unit(None), _params_from_meta({"spp": 5}))  # rules jobs: the agent's choice
+    figures = m.TileFigures.from_header
+    assert refusal(_job(8), _unit(20), figures(good)) == ""
+    assert refusal(_job(None), _unit(None), figures({"spp": 5})) == ""  # rules jobs: the agent's choice
     for meta, said in (({**good, "spp": 10}, "says spp 10, first pass 8; the plan gives spp 20, first pass 8"),
                        ({"spp": 20}, "says spp 20, first pass None")):
-        with pytest.raises(QuekaroError, match=said):
-            _check_planned(_job(8), _unit(20), _params_from_meta(meta))
+        assert said in refusal(_job(8), _unit(20), figures(meta))
     with pytest.raises(QuekaroError, match="first_spp 'x' is not a sample count"):
-        _params_from_meta({**good, "first_spp": "x"})
+        figures({**good, "first_spp": "x"})

@@ -1,11 +1,13 @@
-"""The render agent's state machine (agents.state.AgentState), driven with events and a fake clock: no network,
-no render process, no Mitsuba. What tests/test_auction.py is to the master's auction.
+"""The render agent's state machine (agents.state.AgentState), driven with stimuli and a fake clock: no network,
+no render process, no Mitsuba. What tests/test_auction.py is to the master's auction. Every stimulus goes
+through `CheckedState`, which validates the state's invariants after it.
 
 Covered: slots (a second award queues, one render step at a time, a full agent refuses), batches (waiting
 units of one job and depth in one StartRender, their shares of its time, a cancel within one, one kernel
 per depth), duplicate awards and
 re-awards, awards never bid on, cancel of a queued, a fetching, a rendering and an uploading unit and of a
-whole job, heartbeats and registration, estimates and their calibration, Failure on every kind of error.
+whole job, heartbeats and registration, estimates and their calibration, Failure on every kind of error;
+the units' statuses, their allowed changes, their stories, and what `validate` catches.
 """
 
 from __future__ import annotations
@@ -15,29 +17,35 @@ import subprocess
 import sys
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import get_args
 
 import pytest
 
+from agents import state as agent_state
 from agents.state import (
+    TRANSITIONS,
     AbortRender,
     AgentState,
     BundleFailed,
     BundleReady,
     Calibration,
-    Command,
     DiscardTile,
-    Event,
     FetchBundle,
+    Instruction,
     Log,
     Measured,
+    MessageReceived,
     RenderFailed,
     RenderFinished,
-    Send,
+    SendToMaster,
     StartRender,
+    Stimulus,
     Tick,
+    Transition,
     Upload,
     UploadDone,
     UploadFailed,
+    WorkStatus,
     describe,
     kernel_key,
 )
@@ -45,6 +53,7 @@ from core.errors import QuekaroError
 from core.model import messages as m
 from core.model.geometry import Rect
 from core.model.job import SceneSpec
+from core.model.status import TransitionError
 from core.model.units import WorkUnit
 
 REPO = Path(__file__).resolve().parent.parent
@@ -87,19 +96,36 @@ class Clock:
         return self.now
 
 
+class CheckedState(AgentState):
+    """An AgentState that validates its invariants after every stimulus it handles."""
+
+    def handle(self, stimulus: Stimulus, now: float) -> list[Instruction]:
+        out = super().handle(stimulus, now)
+        self.validate()
+        return out
+
+
 class Agent:
-    """An AgentState, its fake clock, and the renders it has in flight (asserted never more than one)."""
+    """A CheckedState, its fake clock, and the renders it has in flight (asserted never more than one). A
+    message goes in as MessageReceived; a stimulus without an id gets one (`sid`, else a running number)."""
 
     def __init__(self, slots: int = 2, rules: Rules | None = None, refuse_url: str | None = None) -> None:
         self.rules = rules or Rules()
-        self.state = AgentState(self.rules, seconds, slots=slots, threads=1, rules="test.xml", heartbeat_s=2.0,
+        self.steps = 0
+        self.state = CheckedState(self.rules, seconds, slots=slots, threads=1, rules="test.xml", heartbeat_s=2.0,
                                 session="s", check_url=lambda url: refuse_url and f"{refuse_url}: {url}",
                                 rules_sha256="ab" * 32, defuzzifier="centroid")
         self.clock = Clock()
         self.in_flight: set[int] = set()  # tickets between FetchBundle and the render's end
-        self.state.handle(Measured(SPEED, COMPILE_S), self.clock.now)
+        self.state.handle(Measured(SPEED, COMPILE_S, stimulus_id="measured"), self.clock.now)
 
-    def __call__(self, event: Event, dt: float = 0.0) -> list[Command]:
+    def __call__(self, event: Stimulus | m.Message, dt: float = 0.0, sid: str = "") -> list[Instruction]:
+        self.steps += 1
+        sid = sid or f"step-{self.steps}"
+        if isinstance(event, m.Message):
+            event = MessageReceived(event, stimulus_id=sid)
+        elif not event.stimulus_id:
+            event = replace(event, stimulus_id=sid)
         if isinstance(event, RenderFinished | RenderFailed | BundleFailed):
             self.in_flight.discard(event.ticket)
         out = self.state.handle(event, self.clock.advance(dt))
@@ -134,11 +160,11 @@ def cfp(info: m.JobInfo, *units: WorkUnit, conversation: str = "cfp-1") -> m.Cal
     return m.CallForProposal(conversation=conversation, job=info, units=units, reply_within_s=2.0)
 
 
-def sent(out: list[Command], kind: type[m.Message] = m.Message) -> list[m.Message]:
-    return [c.message for c in out if isinstance(c, Send) and isinstance(c.message, kind)]
+def sent(out: list[Instruction], kind: type[m.Message] = m.Message) -> list[m.Message]:
+    return [c.message for c in out if isinstance(c, SendToMaster) and isinstance(c.message, kind)]
 
 
-def only(out: list[Command], kind: type) -> object:
+def only(out: list[Instruction], kind: type) -> object:
     found = [c for c in out if isinstance(c, kind)]
     assert len(found) == 1, f"expected one {kind.__name__} in {out}"
     return found[0]
@@ -255,7 +281,7 @@ def test_a_duplicate_award_renders_once_also_after_the_unit_is_done() -> None:
     assert uploaded_as.token == the_award.token and agent.state.units_done == 1
     out = agent(the_award)
     assert not [c for c in out if not isinstance(c, Log)]
-    assert "duplicate award of finished unit job-1/0 ignored" in only(out, Log).text
+    assert "unit 0 of job job-1: duplicate award ignored" in only(out, Log).text
     assert agent.held() == []
 
 
@@ -268,7 +294,7 @@ def test_the_inform_gives_the_spp_mitsuba_rendered_not_the_rules_count() -> None
     upload = only(agent(RenderFinished(start.ticket, Path("/t.exr"), 1.0, 0, rendered), dt=1.0), Upload)
     out = agent(UploadDone(upload.ticket))
     assert rendered != start.params.spp
-    assert any(f"spp {rendered} " in c.text for c in out if isinstance(c, Log))
+    assert any(f"spp {rendered}," in c.text for c in out if isinstance(c, Log))
 
 
 def test_a_re_award_with_a_new_token_is_answered_under_the_new_award() -> None:
@@ -380,7 +406,7 @@ def test_describe_names_foreign_errors_by_type() -> None:
     assert describe(QuekaroError()) == "QuekaroError"
 
 
-def test_events_of_unknown_tickets_change_nothing() -> None:
+def test_stimuli_of_unknown_tickets_change_nothing() -> None:
     agent = Agent()
     agent(award(job(), unit(0)))
     for event in (BundleReady(99, SCENE), RenderFinished(99, Path("/t.exr"), 1.0), UploadDone(99),
@@ -388,7 +414,9 @@ def test_events_of_unknown_tickets_change_nothing() -> None:
         assert all(isinstance(c, Log) for c in agent(event))
     assert agent.held() == [("job-1", 0)] and agent.state.units_failed == 0
     with pytest.raises(TypeError):
-        agent.state.handle("not an event", 0.0)  # type: ignore[arg-type]
+        agent.state.handle("not a stimulus", 0.0)  # type: ignore[arg-type]
+    with pytest.raises(TypeError):  # a message goes in as MessageReceived
+        agent.state.handle(m.Reject(conversation="c", job_id="job-1", reason="x"), 0.0)  # type: ignore[arg-type]
 
 
 # ---- cancel ------------------------------------------------------------------------------------------
@@ -400,7 +428,7 @@ def test_cancel_of_a_queued_unit_drops_it() -> None:
     fetch = only(agent(award(info, unit(0))), FetchBundle)
     agent(award(info, unit(1)))
     out = agent(m.Cancel(conversation="c-1", job_id="job-1", index=1, reason="gone"))
-    assert "unit job-1/1 cancelled by the master: gone" in only(out, Log).text
+    assert "unit 1 of job job-1: cancelled by the master: gone" in only(out, Log).text
     assert not [c for c in out if isinstance(c, AbortRender)]  # unit 0 renders on
     assert agent.held() == [("job-1", 0)]
     upload = render(agent, fetch)
@@ -538,16 +566,17 @@ def test_an_introduce_asks_for_a_register_until_a_welcome_answers() -> None:
     assert [type(s) for s in sent(agent(Tick(), dt=2.0))] == [m.Register, m.Heartbeat]  # lost? again, with a beat
     agent(m.Welcome(conversation=again.conversation))
     assert [type(s) for s in sent(agent(Tick(), dt=2.0))] == [m.Heartbeat]
-    early = AgentState(Rules(), seconds)  # no speed yet, never registered: it registers when it can
-    said = early.handle(m.Introduce(conversation="c-1"), 0.0)
+    early = CheckedState(Rules(), seconds)  # no speed yet, never registered: it registers when it can
+    said = early.handle(MessageReceived(m.Introduce(conversation="c-1"), stimulus_id="introduce-1"), 0.0)
     assert said and all(isinstance(c, Log) for c in said)
 
 
 def test_no_registration_before_the_speed_is_known() -> None:
-    state = AgentState(Rules(), seconds)
-    assert state.handle(Tick(), 0.0) == []
-    state.handle(Measured(3.0), 0.1)
-    assert [type(c.message) for c in state.handle(Tick(), 0.2) if isinstance(c, Send)] == [m.Register, m.Heartbeat]
+    state = CheckedState(Rules(), seconds)
+    assert state.handle(Tick(stimulus_id="tick-1"), 0.0) == []
+    state.handle(Measured(3.0, stimulus_id="measured"), 0.1)
+    assert [type(c.message) for c in state.handle(Tick(stimulus_id="tick-2"), 0.2)
+            if isinstance(c, SendToMaster)] == [m.Register, m.Heartbeat]
 
 
 def test_a_heartbeat_lists_at_most_256_units() -> None:
@@ -613,7 +642,7 @@ def test_the_state_machine_imports_no_io() -> None:
     assert out.stdout.strip() == "[]"
 
 
-def test_logs_go_out_as_commands_with_levels() -> None:
+def test_logs_go_out_as_instructions_with_levels() -> None:
     agent = Agent()
     out = agent(m.Reject(conversation="cfp-1", job_id="job-1", reason="lost"))
     assert out == [Log(logging.DEBUG, "rejected in cfp-1: lost")]
@@ -763,3 +792,120 @@ def test_units_rendered_in_batches_compile_one_kernel_per_depth_whatever_their_s
     assert agent.state.uncorrected(info, big, p) == pytest.approx(seconds(big.cost, 4, SPEED))  # the film's
     assert agent.state.uncorrected(info, big, Params(3, 4, 2)) > seconds(big.cost, 4, SPEED)  # another depth
     assert agent.state.uncorrected(replace(info, level="off"), big, p) > seconds(big.cost, 4, SPEED)
+
+
+# ---- statuses, stories, invariants ----------------------------------------------------------------------
+
+
+def statuses(story: list[Transition]) -> list[tuple[str, str | None, str]]:
+    return [(t.stimulus_id, t.start, t.finish) for t in story]
+
+
+def test_the_story_of_a_unit_awarded_fetched_rendered_and_uploaded() -> None:
+    agent = Agent()
+    t0 = agent.clock.now
+    fetch = only(agent(award(job(), unit(0)), sid="award-0"), FetchBundle)
+    start = only(agent(BundleReady(fetch.ticket, SCENE), dt=0.5, sid="bundle-1"), StartRender)
+    upload = only(agent(RenderFinished(start.ticket, Path("/t.exr"), 1.0), dt=1.0, sid="render-1"), Upload)
+    agent(UploadDone(upload.ticket), dt=0.25, sid="upload-1")
+    assert agent.state.story("job-1", 0) == [
+        Transition("award-0", None, "queued", t0), Transition("award-0", "queued", "fetching", t0),
+        Transition("bundle-1", "fetching", "rendering", t0 + 0.5),
+        Transition("render-1", "rendering", "uploading", t0 + 1.5),
+        Transition("upload-1", "uploading", "done", t0 + 1.75)]
+    assert agent.state.story("job-1", 1) == []
+
+
+def test_the_stories_of_a_batched_a_failed_and_a_cancelled_unit() -> None:
+    agent = Agent(slots=6)
+    info = job()
+    fetch = only(agent(award(info, unit(0)), sid="award-0"), FetchBundle)
+    agent(award(info, unit(1)), sid="award-1")
+    agent(award(info, unit(2)), sid="award-2")
+    start = only(agent(BundleReady(fetch.ticket, SCENE), sid="bundle"), StartRender)
+    assert start.more and start.more[0].award.unit.index == 1
+    agent(RenderFailed(start.more[0].ticket, "broke"), sid="render-1")
+    agent(m.Cancel(conversation="c-1", job_id="job-1", index=2, reason="x"), sid="cancel-2")
+    assert statuses(agent.state.story("job-1", 1)) == [
+        ("award-1", None, "queued"), ("bundle", "queued", "rendering"), ("render-1", "rendering", "failed")]
+    assert statuses(agent.state.story("job-1", 2))[-1] == ("cancel-2", "rendering", "cancelled")
+    assert agent.state.step[-1].status == "cancelled"  # in its step until its render ends
+
+
+def test_stories_are_bounded_per_unit_and_in_units(monkeypatch: pytest.MonkeyPatch) -> None:
+    agent = Agent()
+    info = job()
+    for n in range(12):  # awarded again after each cancel: three changes a round
+        fetch = only(agent(award(info, unit(0), token=f"{n:02d}" * 16), sid=f"award-{n}"), FetchBundle)
+        agent(m.Cancel(conversation=f"c-{n}", job_id="job-1", index=0, reason="x"))
+        agent(BundleReady(fetch.ticket, SCENE))
+    story = agent.state.story("job-1", 0)
+    assert len(story) == agent_state.STORY_LENGTH and story[-1].finish == "cancelled"
+    monkeypatch.setattr(agent_state, "FINISHED_MEMORY", 2)
+    for index in (1, 2):
+        deliver(agent, only(agent(award(info, unit(index))), FetchBundle))
+    assert agent.state.story("job-1", 0) == [] and agent.state.story("job-1", 2)
+
+
+def test_the_transitions_table_knows_only_statuses_and_ends_in_done_failed_or_cancelled() -> None:
+    known = set(get_args(WorkStatus))
+    assert {s for pair in TRANSITIONS for s in pair} == known
+    assert not {start for start, _ in TRANSITIONS} & {"done", "failed", "cancelled"}
+
+
+def test_an_illegal_status_change_raises_naming_the_unit() -> None:
+    agent = Agent()
+    fetch = only(agent(award(job(), unit(0))), FetchBundle)
+    work = agent.state.rendering
+    with pytest.raises(TransitionError, match=r"unit 0 of job job-1 .*fetching -> done"):
+        agent.state._move(work, "done")
+    # A render that never started cannot finish: the stimulus raises before anything changes.
+    with pytest.raises(TransitionError, match="fetching -> uploading"):
+        agent(RenderFinished(fetch.ticket, Path("/t.exr"), 1.0))
+    assert work.status == "fetching" and agent.state.step == [work]
+    agent.state.validate()
+
+
+def test_validate_catches_a_held_unit_missing_from_the_queue() -> None:
+    agent = Agent()
+    info = job()
+    agent(award(info, unit(0)))
+    agent(award(info, unit(1)))
+    agent.state.queue.clear()
+    with pytest.raises(AssertionError, match=r"unit 1 of job job-1 .*not in exactly the collection"):
+        agent.state.validate()
+
+
+def test_validate_catches_a_cancelled_unit_still_held() -> None:
+    agent = Agent()
+    agent(award(job(), unit(0)))
+    agent(m.Cancel(conversation="c-1", job_id="job-1", index=0, reason="x"))
+    work = agent.state.step[0]
+    agent.state.works[work.key] = work
+    with pytest.raises(AssertionError, match=r"unit 0 of job job-1 \(ticket 1, cancelled\): held under"):
+        agent.state.validate()
+
+
+def test_validate_catches_a_step_out_of_step_with_its_statuses() -> None:
+    agent = Agent(slots=4)
+    start = two_in_one_call(agent, job())
+    agent.state.step[1].status = "fetching"
+    with pytest.raises(AssertionError, match=r"unit 1 of job job-1 .*fetching, with others in its step"):
+        agent.state.validate()
+    agent.state.step[1].status = "rendering"
+    agent.state.validate()
+    agent(RenderFinished(start.ticket, Path("/t.exr"), 1.0))
+    agent.state.delivering.clear()  # a tile uploading, forgotten
+    with pytest.raises(AssertionError, match=r"unit 0 of job job-1 .*not in exactly the collection"):
+        agent.state.validate()
+
+
+def test_validate_catches_an_idle_render_process_with_units_waiting() -> None:
+    agent = Agent()
+    info = job()
+    agent(award(info, unit(0)))
+    agent(award(info, unit(1)))
+    agent.state.step.clear()
+    agent.state.works.pop(("job-1", 0))
+    with pytest.raises(AssertionError, match="no render step, but unit 1 of job job-1"):
+        agent.state.validate()

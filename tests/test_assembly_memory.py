@@ -18,10 +18,10 @@ SCRIPT = r"""
 import json, sys
 from pathlib import Path
 import numpy as np
-from core.render.compose import compose_planar, compose_shrunk
+from core.image.compose import compose_planar, compose_shrunk
 from core.model.geometry import Rect
-from core.render.imageio import write_exr, write_png_planar
-from core.render.tiles import Tile, tile_source, write_tile
+from core.image.imageio import write_exr, write_png_planar
+from core.image.tiles import Tile, tile_source, write_tile
 
 size, side, band, out, shrunk = 4096, 512, 2, Path(sys.argv[1]), sys.argv[2] == "shrunk"
 paths = []

@@ -17,8 +17,8 @@ from PIL import Image
 
 from bench import accuracy as bench_accuracy
 from core.errors import QuekaroError
+from core.image.imageio import read_image
 from core.model.job import SceneSpec
-from core.render.imageio import read_image
 from fuzzy import load_rulebase
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.render.bundle import (
+from core.scene.bundle import (
     MANIFEST_NAME,
     VERSION,
     BundleError,
@@ -84,7 +84,7 @@ def _refused(data: bytes | Path, tmp_path: Path, match: str, limits: BundleLimit
 def _render(scene: Path, defines: dict[str, str]) -> np.ndarray:
     import mitsuba as mi
 
-    from core.render import mitsuba_env
+    from core import mitsuba_env
 
     # threads=1 deadlocks while loading matpreview (mitsuba 3.9: load_file never returns); 2 works.
     mitsuba_env.init("llvm_ad_rgb", threads=2)
@@ -175,8 +175,8 @@ def test_files_outside_the_scene_folder_are_packed_and_references_rewritten(tmp_
                         + _shape(str(tmp_path / "abs.obj")) + _shape("../abs.obj"))
     info = make_bundle(scene, None, tmp_path / "b.tar")
     out = extract_bundle(info.path, tmp_path / "x")
-    from core.render.bundle import check_unpacked
-    from core.render.resolver import read_scene
+    from core.scene.bundle import check_unpacked
+    from core.scene.resolver import read_scene
 
     check_unpacked(out, {})
     found = read_scene(out, {}, cwd=None)
@@ -230,7 +230,7 @@ def test_an_unpacked_scene_that_reads_outside_its_bundle_is_refused_telling_noth
         tmp_path, reference, element):
     """The same refusal whether the file outside exists, is a folder or is missing, and before it is parsed:
     a submitter learns nothing of the master's files (an include used to parse them first)."""
-    from core.render.bundle import check_unpacked
+    from core.scene.bundle import check_unpacked
 
     (tmp_path / "outside.obj").write_text("not XML")
     folder = tmp_path / "job" / "scene"
@@ -244,7 +244,7 @@ def test_an_unpacked_scene_that_reads_outside_its_bundle_is_refused_telling_noth
 
 def test_a_bundle_reached_through_a_linked_folder_reads_its_own_files(tmp_path):
     """A master's home behind a link (a linked ~/.quekaro; /tmp on macOS): the bundle's own files are inside."""
-    from core.render.bundle import check_unpacked
+    from core.scene.bundle import check_unpacked
 
     (tmp_path / "real").mkdir()
     scene = _scene_with(tmp_path / "real", _shape("inside.obj") + "<include filename='sub/inc.xml'/>")
@@ -256,7 +256,7 @@ def test_a_bundle_reached_through_a_linked_folder_reads_its_own_files(tmp_path):
 
 
 def test_a_link_inside_the_bundle_to_a_file_outside_is_refused(tmp_path):
-    from core.render.bundle import check_unpacked
+    from core.scene.bundle import check_unpacked
 
     (tmp_path / "outside.obj").write_text("secret")
     scene = _scene_with(tmp_path, _shape("inside.obj"))

@@ -22,8 +22,8 @@ import pytest
 from compat_cases import SCENES
 from render_check import compare_moment_renders, least_spp, moment_channels
 
-from core.render.bundle import make_bundle
-from core.render.imageio import read_image_channels
+from core.image.imageio import read_image_channels
+from core.scene.bundle import make_bundle
 from farm.client import FarmClient
 from farm.local import LocalFarm
 

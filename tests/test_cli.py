@@ -347,7 +347,7 @@ def test_a_film_file_that_cannot_hold_the_integrators_channels_is_refused_before
     import mitsuba as mi
 
     from core.model.job import SceneSpec
-    from core.render.scene import load
+    from core.scene.scene import load
 
     compat = REPO / "tests" / "compat" / "scenes"
     scene = tmp_path / "aov_pfm.xml"

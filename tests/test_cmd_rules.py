@@ -87,7 +87,7 @@ def _eval_csv(*args: str) -> list[list[float]]:
 def test_eval_of_a_masyro_file_gives_what_a_render_plans():
     """MASYRO's rules run with its centre of sums, on sets rebuilt for the job's ranges (the planner's
     evaluation engine): eval must show those numbers, not the file's sets under the paper's centroid."""
-    from core.render.planner import Planner
+    from core.rules.unit_params import Planner
 
     path = DATA / "masyro_fixed.xml"
     ranges = {"C": (0.0, 200.0), "Nd": (0.0, 100.0), "S": (0.0, 1e6)}

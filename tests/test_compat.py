@@ -23,8 +23,8 @@ from compat_cases import (
 from render_check import by_name
 
 from core.errors import QuekaroError
-from core.render.bundle import make_bundle
-from core.render.imageio import read_image_channels
+from core.image.imageio import read_image_channels
+from core.scene.bundle import make_bundle
 from farm.local import LocalFarm
 
 pytestmark = pytest.mark.slow

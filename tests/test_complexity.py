@@ -17,7 +17,7 @@ needs_shared = pytest.mark.skipif(not SHARED.is_dir(), reason="../shared scenes 
 
 @pytest.fixture(scope="module")
 def mi():
-    from core.render import mitsuba_env
+    from core import mitsuba_env
 
     mitsuba_env.init("llvm_ad_rgb", 1)
     import mitsuba
@@ -137,7 +137,7 @@ def test_nothing_visible_gives_a_flat_cheap_map(mi) -> None:
 @pytest.mark.slow
 def test_prepass_is_far_cheaper_than_the_render(mi, capsys) -> None:
     spec = SceneSpec(SHARED / "cbox" / "cbox.xml", {"res": "128"})
-    from core.render.scene import load
+    from core.scene.scene import load
 
     scene = load(spec)
     integrator = mi.load_dict({"type": "path", "max_depth": 6})
@@ -162,7 +162,7 @@ def test_prepass_is_far_cheaper_than_the_render(mi, capsys) -> None:
 @pytest.mark.slow
 def test_noise_map_predicts_where_the_error_is(mi) -> None:
     """Block-mean pre-pass noise against the real squared error of an 8 spp render (rank correlation)."""
-    from core.render.scene import load
+    from core.scene.scene import load
 
     scene = load(SceneSpec(SHARED / "cbox" / "cbox.xml", {"res": "64"}))
     integrator = mi.load_dict({"type": "path", "max_depth": 6})
@@ -182,8 +182,8 @@ def test_a_cropped_film_is_scaled_whole_so_the_low_res_image_covers_its_crop_win
     half size, the cropped scene's low-resolution image equals (within its noise) the uncropped film's
     at half size sliced at the halved crop offset, and differs from the slice one pixel over. The film is
     put back as loaded."""
-    from core.render.film import film_channels
-    from core.render.scene import load
+    from core.image.film import film_channels
+    from core.scene.scene import load
     from planning.complexity import film_size
 
     crop = Path(__file__).resolve().parent / "compat" / "scenes" / "crop.xml"  # 40x32 at (18, 10) of 64x56

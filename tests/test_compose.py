@@ -1,4 +1,4 @@
-"""core.render.compose: weights sum to one for any layout, NaN never spreads, and no seam shows (statistically)."""
+"""core.image.compose: weights sum to one for any layout, NaN never spreads, and no seam shows (statistically)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core.errors import TileError
+from core.image.compose import blend_weights, compose, compose_planar, compose_shrunk, tile_weight
+from core.image.tiles import Tile
 from core.model.geometry import Rect, filter_reach
-from core.render.compose import blend_weights, compose, compose_planar, compose_shrunk, tile_weight
-from core.render.tiles import Tile
 from planning.complexity import ComplexityMap
 from planning.partition import equal_tiles, partition
 
@@ -277,7 +277,7 @@ SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "scenes" / "mit
 def test_no_seam_with_real_mitsuba_tiles() -> None:
     """Cornell box 64x64 as 9 tiles (band 3) at 16 spp against a plain 16 spp render, both vs 1024 spp."""
     from core.model.job import SceneSpec
-    from core.render.worker import RenderRequest, render_full, render_job_here
+    from core.render.process import RenderRequest, render_full, render_job_here
 
     spec, size, spp, band = SceneSpec(SHARED / "cbox" / "cbox.xml", {"res": "64"}), 64, 16, 3
     ref = render_full(spec, "llvm_ad_rgb", "path", 6, 1024, seed=99, threads=1)

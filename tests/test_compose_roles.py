@@ -15,7 +15,7 @@ import pytest
 from farm_support import log_tails, wait_for_agents
 from prosody_support import needs_prosody
 
-from core.render.bundle import make_bundle
+from core.scene.bundle import make_bundle
 from core.transport.xmpp_server import free_port, port_accepts
 from farm.local import stop_processes
 

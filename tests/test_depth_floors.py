@@ -12,18 +12,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from auction_support import refusal
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from core.errors import MessageError, QuekaroError
+from core.errors import MessageError
+from core.image.imageio import read_image
 from core.model import messages as m
 from core.model.geometry import Rect
 from core.model.job import RenderOptions, SceneSpec
 from core.model.units import WorkUnit
-from core.render.imageio import read_image
-from core.render.planner import Planner
-from core.render.worker import RenderWorker
-from master.service import _check_planned, _params_from_meta
+from core.render.process import RenderProcess
+from core.rules.unit_params import Planner
 from planning import depthcut
 from planning.accuracy import reference
 from planning.jobplan import Floors, plan_job
@@ -252,7 +252,7 @@ def test_the_units_round_a_cornell_box_light_keep_the_depth_plain_mitsuba_says_t
     gaussian filter spreads the light over the ceiling's units, and the light fills its own units' mean,
     so the unit means alone let all four be cut in each of 10 pre-pass seeds. Every unit whose paired loss
     (over the unit, or on average per lit pixel) is over twice the tolerance must keep a deeper floor."""
-    from core.render.worker import render_full
+    from core.render.process import render_full
 
     spec = SceneSpec(CBOX, {"res": "256"})
     plan = plan_job(spec, RenderOptions(level="VB", spp=64, threads=2), seed=1, min_units=8, floors=Floors.ALWAYS)
@@ -314,15 +314,16 @@ def test_a_units_floor_travels_with_it_and_a_bad_one_is_refused():
 def test_the_master_refuses_a_tile_rendered_below_its_units_floor():
     """A peer that cuts deeper than the plan allows is found out by its tile header."""
     good = {"spp": 20, "depth": 6, "band": 2}
-    _check_planned(_job(), _unit(6), _params_from_meta(good))
-    _check_planned(_job(), _unit(6), _params_from_meta({**good, "depth": 8}))
-    _check_planned(_job(), _unit(None), _params_from_meta({**good, "depth": 4}))  # no floor: the rules' choice
-    with pytest.raises(QuekaroError, match="tile header says depth 4; the plan allows no less than 6"):
-        _check_planned(_job(), _unit(6), _params_from_meta({**good, "depth": 4}))
+    figures = m.TileFigures.from_header
+    assert refusal(_job(), _unit(6), figures(good)) == ""
+    assert refusal(_job(), _unit(6), figures({**good, "depth": 8})) == ""
+    assert refusal(_job(), _unit(None), figures({**good, "depth": 4})) == ""  # no floor: the rules' choice
+    assert "tile header says depth 4; the plan allows no less than 6" in refusal(_job(), _unit(6),
+                                                                                 figures({**good, "depth": 4}))
 
 
 def _render(plan, out: Path) -> tuple[np.ndarray, dict]:
-    worker = RenderWorker()
+    worker = RenderProcess()
     worker.launch()
     try:
         report = render_plan(plan, out, worker, time.perf_counter())
@@ -363,8 +364,8 @@ def test_a_dark_corner_that_a_cut_darkens_by_more_than_the_tolerance_keeps_its_d
     Which seeds do depends on what the process rendered before (Mitsuba's sample sequence for a seed does),
     so the test counts them rather than naming them."""
     from core.model import integrators
-    from core.render.scene import expand, load
-    from core.render.worker import render_full
+    from core.render.process import render_full
+    from core.scene.scene import expand, load
 
     compat = Path(__file__).resolve().parent / "compat" / "scenes"
     scene_file = tmp_path / "room.xml"

@@ -8,8 +8,8 @@ import pytest
 
 from core.errors import QuekaroError, SceneError
 from core.model.job import SceneSpec
-from core.render.effects import analyse, analyse_loaded
-from core.render.worker import render_full
+from core.render.process import render_full
+from core.scene.effects import analyse, analyse_loaded
 
 REPO = Path(__file__).resolve().parent.parent
 DATA = REPO / "tests" / "data" / "scenes"
@@ -132,8 +132,8 @@ def test_a_measured_metal_renders_another_colour_in_rgb():
     by more than the analysis's RGB_TOLERANCE of the brightest channel (measured: about 5 % per channel)."""
     import mitsuba as mi
 
-    from core.render import mitsuba_env
-    from core.render.spectral_data import RGB_TOLERANCE
+    from core import mitsuba_env
+    from core.scene.spectral_data import RGB_TOLERANCE
 
     colours = {}
     for variant in ("llvm_ad_rgb", "llvm_ad_spectral"):
@@ -222,7 +222,7 @@ def test_a_variant_that_cannot_load_here_is_refused_naming_it():
     what Mitsuba said, not an ImportError from inside Dr.Jit."""
     import drjit as dr
 
-    from core.render import mitsuba_env
+    from core import mitsuba_env
 
     if dr.has_backend(dr.JitBackend.CUDA):
         pytest.skip("this machine has a CUDA backend: cuda_ad_rgb loads")

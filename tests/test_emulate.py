@@ -20,10 +20,10 @@ from agents.emulate import MARK, CostMap, Emulation
 from agents.render_agent import build_parser, config_from_args
 from bench.hosts import EmulatedFarm, StoreView, make_job, speeds_for
 from core.errors import QuekaroError
+from core.image.tiles import tile_source
 from core.model.geometry import Rect
 from core.model.job import SceneSpec
-from core.render.tiles import tile_source
-from core.render.worker import RenderRequest
+from core.render.process import RenderRequest
 
 REPO = Path(__file__).resolve().parent.parent
 W, H = 80, 48  # the test job's image: not square, so a swapped axis shows
@@ -84,7 +84,7 @@ def _wait_for_done_logs(logs: Path, job_id: str, units: int, timeout: float = 30
     """Wait until the agents have logged `units` units of the job done. The master counts a unit done once
     its tile is on disk, a moment before the agent hears its upload ended and logs it: a SIGTERM sent at
     once could stop the agent in between."""
-    pattern = re.compile(rf"unit {re.escape(job_id)}/\d+ done:")
+    pattern = re.compile(rf"unit \d+ of job {re.escape(job_id)}: done in ")
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if sum(len(pattern.findall(log.read_text())) for log in logs.glob("agent-*.log")) >= units:

@@ -27,10 +27,10 @@ from farm_support import log_time
 from web_support import wait_until
 
 from core.errors import QuekaroError
+from core.image.imageio import read_image
+from core.image.tiles import read_tile
 from core.model import messages as m
-from core.render.bundle import make_bundle
-from core.render.imageio import read_image
-from core.render.tiles import read_tile
+from core.scene.bundle import make_bundle
 from core.transport.rates import SenderRates
 from farm.local import LocalFarm
 
@@ -348,12 +348,12 @@ def test_a_result_the_master_cannot_compose_for_a_full_disk_is_a_507_and_compose
 
 
 def _planner_child(master_pid: int) -> int | None:
-    """The master's planning process (a render process, core.render.worker), if it runs."""
+    """The master's planning process (a render process, core.render.process), if it runs."""
     return _render_child(master_pid)
 
 
 def _render_child(parent: int) -> int | None:
-    """A render process (core.render.worker) under `parent`, if one runs."""
+    """A render process (core.render.process) under `parent`, if one runs."""
     for pid in _children(parent):
         try:
             if b"_child_entry" in Path(f"/proc/{pid}/cmdline").read_bytes():
@@ -476,7 +476,7 @@ def test_agents_rendering_tiny_units_are_not_refused_as_a_flood(tmp_path):
 def _refused_by(rates: SenderRates, agent_log: str) -> int:
     """How many of the proposals and informs an agent's log shows (refusals are not logged) `rates` would
     have refused, replayed at the times they were logged."""
-    sent = sorted(log_time(line) for line in agent_log.splitlines() if "proposing for" in line or " done: " in line)
+    sent = sorted(log_time(line) for line in agent_log.splitlines() if "proposing for" in line or ": done in " in line)
     return sum(not rates.allow("agent", t) for t in sent)
 
 
@@ -543,7 +543,7 @@ def _level_s_job(farm: LocalFarm, defines: dict[str, str], out: Path) -> tuple[P
 
 
 def test_a_rule_level_job_renders_each_agents_units_in_batches_and_matches_a_local_render(tmp_path):
-    """Units of one job and depth an agent holds render in one call (core.render.together via
+    """Units of one job and depth an agent holds render in one call (core.render.batch via
     agents.state's batches): every tile says so, several share a call (its seed), and the image agrees
     with `quekaro render` of the same level up to noise."""
     defines = {"res": "96", "spp": "16"}

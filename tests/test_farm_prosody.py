@@ -15,8 +15,8 @@ import pytest
 from farm_support import log_tails, wait_for_agents
 from prosody_support import needs_prosody
 
-from core.render.bundle import make_bundle
-from core.render.imageio import read_image
+from core.image.imageio import read_image
+from core.scene.bundle import make_bundle
 from core.transport.xmpp_server import ProsodyServer
 from farm.local import stop_processes
 

@@ -273,7 +273,7 @@ def test_masyro_inputs_outside_their_sets_fire_nothing_and_outputs_have_no_value
 
 
 def test_masyros_file_plans_units_keeping_the_users_values_where_no_rule_fires():
-    from core.render.planner import Planner
+    from core.rules.unit_params import Planner
 
     planner = Planner(DATA / "masyro_fixed.xml")
     assert planner.engine.defuzzifier == "centre-of-sums"

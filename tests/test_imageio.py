@@ -9,8 +9,7 @@ from disk_support import small_tmpfs
 from render_check import file_kind
 
 from core.files import WriteError
-from core.model.job import ImageFile
-from core.render.imageio import (
+from core.image.imageio import (
     FLOAT16_MAX,
     ImageError,
     linear_to_srgb,
@@ -21,6 +20,7 @@ from core.render.imageio import (
     write_image,
     write_png,
 )
+from core.model.job import ImageFile
 
 
 def test_exr_round_trip(tmp_path):
@@ -56,12 +56,12 @@ def test_bad_inputs(tmp_path):
 
 
 def test_an_xyz_films_preview_is_converted_as_mitsuba_converts_xyz_to_srgb():
-    """core.render.film.display_rgb: an X, Y, Z film's colour planes become linear sRGB by the matrix of
+    """core.image.film.display_rgb: an X, Y, Z film's colour planes become linear sRGB by the matrix of
     Mitsuba's own mi.xyz_to_srgb; other films' first three planes pass as they are."""
     import mitsuba as mi
 
-    from core.render import mitsuba_env
-    from core.render.film import display_rgb
+    from core import mitsuba_env
+    from core.image.film import display_rgb
 
     mitsuba_env.init("llvm_ad_rgb", 1)
     planar = np.random.default_rng(4).uniform(0.0, 2.0, size=(4, 3, 5)).astype(np.float32)
@@ -95,7 +95,7 @@ def test_a_film_file_holds_what_mitsubas_own_file_holds(tmp_path, image_file, na
     """write_image against Mitsuba's Bitmap writing the same pixels in the same formats: the same values
     once read back (uint32 scaled back to [0, 1] by read_image_channels), the suffix Mitsuba gives."""
 
-    from core.render import mitsuba_env
+    from core import mitsuba_env
 
     mitsuba_env.init("llvm_ad_rgb", 2)  # Mitsuba's EXR writer hangs at a Dr.Jit thread count of 1 (3.9.1)
     rng = np.random.default_rng(3)
@@ -125,7 +125,7 @@ def test_a_uint32_file_keeps_every_channel_of_a_film(tmp_path):
 
 def test_what_a_film_file_cannot_hold_is_said():
     planar = np.array([[[FLOAT16_MAX, FLOAT16_MAX * 1.01, -2.0, 0.5]]], np.float32)
-    from core.render.imageio import lossy_values
+    from core.image.imageio import lossy_values
 
     assert lossy_values(planar, ImageFile("openexr", "float16"))[0].startswith("1 pixel channel values above")
     assert lossy_values(planar, ImageFile("openexr", "uint32"))[0].startswith("3 pixel channel values outside [0, 1]")

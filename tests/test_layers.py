@@ -16,11 +16,11 @@ PACKAGES = ("fuzzy", "core", "planning", "master", "agents", "farm", "quekaro", 
 LAZY_PROJECT = {
     ("quekaro.cli", "agents.render_agent"): "SPADE takes ~0.6 s to import; only `quekaro agent` needs it",
     ("quekaro.cli", "fuzzy.errors"): "`fuzzy` loads its engine and numpy (~0.1 s), after `quekaro render` has "
-                                     "started its render process (core.render.child), whose Mitsuba import overlaps",
+                                     "started its render process (core.render.spawn), whose Mitsuba import overlaps",
     ("quekaro.cmd_farm", "master.run"): "SPADE and aiohttp take ~0.4 s; only `quekaro master` needs them",
     ("bench.cli", "bench.commands"): "matplotlib and pyfuzzylite (~0.3 s; pyfuzzylite sets up the root logger "
                                      "at import, which silenced every farm log): only `quekaro bench` loads them",
-    ("planning.plain", "core.render.worker"): "the uniform baseline's process is timed as a user's plain render: "
+    ("planning.plain", "core.render.process"): "the uniform baseline's process is timed as a user's plain render: "
                                               "the worker's modules (~60 ms) load only for an integrator or depth "
                                               "override",
 }
@@ -127,7 +127,7 @@ def test_third_party_imports_inside_functions_are_the_heavy_ones_only() -> None:
 
 def test_the_checker_sees_an_upward_import_and_a_cycle() -> None:
     layers = [["fuzzy"], ["core"], ["master", "agents"]]
-    assert layer_of("core.render.scene", layers) == (1, "core")
+    assert layer_of("core.scene.scene", layers) == (1, "core")
     assert layer_of("agents.state", layers)[0] == layer_of("master.store", layers)[0] == 2
     assert [c for c in strongly_connected({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) if len(c) > 1] == \
         [["a", "b", "c"]]
@@ -165,3 +165,63 @@ def strongly_connected(edges: dict[str, set[str]]) -> list[list[str]]:
         if v not in index:
             visit(v)
     return out
+
+
+# ---- the auction's read API: nothing outside master/auction/ reads its internals ------------------------
+
+AUCTION = "master.auction"
+AUCTION_STATE = {"_jobs", "_agents", "_rounds"}  # its records, which only the machine touches
+
+
+def auction_api() -> tuple[set[str], set[str]]:
+    """(the package's exported names, the Auction's public members), read from their source."""
+    init = ast.parse((REPO / "master" / "auction" / "__init__.py").read_text())
+    exported = next(set(ast.literal_eval(node.value)) for node in init.body
+                    if isinstance(node, ast.Assign) and getattr(node.targets[0], "id", "") == "__all__")
+    machine = ast.parse((REPO / "master" / "auction" / "machine.py").read_text())
+    cls = next(n for n in machine.body if isinstance(n, ast.ClassDef) and n.name == "Auction")
+    members = {n.name for n in cls.body if isinstance(n, ast.FunctionDef) and not n.name.startswith("_")}
+    return exported, members | {"config"}
+
+
+def internal_reads(name: str, tree: ast.Module, exported: set[str], members: set[str]) -> list[str]:
+    """Where a module reads the auction other than through its exported names and the Auction's members."""
+    bad, aliases = [], set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module:
+            if node.module.startswith(AUCTION + "."):
+                bad.append(f"{name}:{node.lineno} imports {node.module}")
+            elif node.module == AUCTION:
+                bad += [f"{name}:{node.lineno} imports {a.name}" for a in node.names if a.name not in exported]
+            elif node.module == "master":
+                aliases |= {a.asname or a.name for a in node.names if a.name == "auction"}
+        elif isinstance(node, ast.Import):
+            bad += [f"{name}:{node.lineno} imports {a.name}" for a in node.names if a.name.startswith(AUCTION + ".")]
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Attribute):
+            continue
+        base = node.value
+        if node.attr in AUCTION_STATE:
+            bad.append(f"{name}:{node.lineno} reads .{node.attr}")
+        elif isinstance(base, ast.Name) and base.id in aliases and node.attr not in exported:
+            bad.append(f"{name}:{node.lineno} reads {base.id}.{node.attr}")
+        elif (getattr(base, "attr", None) == "auction" or getattr(base, "id", None) == "auction") \
+                and node.attr not in members:
+            bad.append(f"{name}:{node.lineno} reads auction.{node.attr}")
+    return bad
+
+
+def test_nothing_outside_the_auction_reads_its_internals() -> None:
+    exported, members = auction_api()
+    bad = [line for name, tree in modules().items() if not name.startswith(AUCTION)
+           for line in internal_reads(name, tree, exported, members)]
+    assert not bad, "reads of the auction past its read API (master/auction/__init__.py, Auction):\n" + "\n".join(bad)
+
+
+def test_the_auction_checker_sees_a_read_of_its_internals() -> None:
+    exported, members = auction_api()
+    snippet = ast.parse("from master import auction as au\nfrom master.auction.state import UnitState\n"
+                        "def f(service):\n    service.auction.jobs\n    au.Job\n    service.auction._agents\n"
+                        "    service.auction.award_for('j', 0, 't')\n    au.Tick()\n")
+    assert internal_reads("m", snippet, exported, members) == [
+        "m:2 imports master.auction.state", "m:4 reads auction.jobs", "m:5 reads au.Job", "m:6 reads ._agents"]

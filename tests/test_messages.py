@@ -13,8 +13,7 @@ from hypothesis import strategies as st
 from core.errors import MessageError
 from core.model import messages as m
 from core.model.geometry import Rect
-from core.model.units import WorkUnit
-from fuzzy.render_params import SPP_MAX
+from core.model.units import SPP_MAX, WorkUnit
 
 HASH = "ab" * 32
 TOKEN = "0123456789abcdef" * 2

@@ -6,8 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from core.render import imageio, metrics
-from core.render.imageio import ImageError
+from core.image import imageio, metrics
+from core.image.imageio import ImageError
 from quekaro import cmd_diff
 
 

@@ -32,8 +32,8 @@ from farm_support import log_tails, log_time
 from netns_support import Network, leftovers, require_netns
 from prosody_support import needs_prosody
 
-from core.render.bundle import make_bundle
-from core.render.imageio import read_image
+from core.image.imageio import read_image
+from core.scene.bundle import make_bundle
 from core.transport.xmpp_server import ProsodyServer
 from farm.client import FarmClient
 from farm.local import stop_processes

@@ -32,9 +32,9 @@ def test_a_rounds_awards_to_each_agent_go_in_one_message_per_job_in_order() -> N
     cancel = m.Cancel(conversation="c", job_id="j1", index=9, reason="x")
     sends = [("a", award("j1", 0)), ("b", award("j1", 1)), ("a", award("j1", 2)), ("b", award("j1", 3)),
              ("a", award("j2", 0)), ("a", cancel), ("a", award("j1", 3))]
-    commands: list[au.Command] = []
+    commands: list[au.Instruction] = []
     for to, msg in sends:  # the auction's events between its sends, as it emits them
-        commands += [au.Send(to, msg), au.UnitAwarded("j", 0, to, "t", 1.0, 1, 2.0)]
+        commands += [au.SendToAgent(to, msg), au.UnitAwarded("j", 0, to, "t", 1.0, 1, 2.0)]
     sent = outgoing(commands)
     kinds = [(to, type(msg).__name__, getattr(msg, "job", None) and msg.job.job_id) for to, msg in sent]
     assert kinds == [("a", "Awards", "j1"), ("a", "Award", "j2"), ("a", "Cancel", None), ("a", "Award", "j1"),
@@ -45,6 +45,7 @@ def test_a_rounds_awards_to_each_agent_go_in_one_message_per_job_in_order() -> N
 
 def test_a_lone_award_goes_as_itself() -> None:
     one = award("j1", 0)
-    assert outgoing([au.Send("a", one)]) == [("a", one)]
+    assert outgoing([au.SendToAgent("a", one)]) == [("a", one)]
     other = dataclasses.replace(one, conversation="x")
-    assert [type(msg) for _, msg in outgoing([au.Send("a", one), au.Send("b", other)])] == [m.Award, m.Award]
+    two = outgoing([au.SendToAgent("a", one), au.SendToAgent("b", other)])
+    assert [type(msg) for _, msg in two] == [m.Award, m.Award]

@@ -7,8 +7,8 @@ import pytest
 
 from core.model.geometry import Rect
 from core.model.job import SceneSpec
-from core.render.scene import image_size, referenced_files
-from core.render.worker import RenderRequest, RenderWorker
+from core.render.process import RenderProcess, RenderRequest
+from core.scene.scene import image_size, referenced_files
 
 REPO = Path(__file__).resolve().parent.parent
 SHARED = REPO.parent / "shared" / "scenes" / "mitsuba-data"
@@ -26,7 +26,7 @@ CASES = [
 def worker():
     # Rendered in a child, as the farm does: Mitsuba in the test process itself can deadlock after
     # many variant and thread-count changes (seen loading matpreview there).
-    with RenderWorker() as w:
+    with RenderProcess() as w:
         yield w
 
 

@@ -15,6 +15,7 @@ import asyncio
 import contextlib
 import hashlib
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -29,11 +30,11 @@ import numpy as np
 import pytest
 
 from core.data import default_rules_path
+from core.image.tiles import read_tile_bytes
 from core.model import messages as m
 from core.model.geometry import Rect
 from core.model.units import SLOTS, WorkUnit
-from core.render.bundle import make_bundle
-from core.render.tiles import read_tile_bytes
+from core.scene.bundle import make_bundle
 from core.transport.xmpp import Envelope, FarmAgent
 from core.transport.xmpp_server import EmbeddedXmppServer
 from fuzzy.loader import load_rulebase
@@ -82,7 +83,7 @@ class ScriptedMaster:
         self._runner: Any = None
 
     async def start(self) -> None:
-        from master.http_api import create_app, serve
+        from master.data_plane import create_app, serve
 
         # The master's real data plane, fed by this scripted master's tokens, rectangles and bundles.
         app = create_app(expected=self._expected, bundle=self._bundle, on_tile=self._on_tile,
@@ -96,9 +97,9 @@ class ScriptedMaster:
 
     # --- HTTP: the data plane's callbacks ---------------------------------------------------------
 
-    def _expected(self, job: str, index: int) -> tuple[str, Rect] | None:
+    def _expected(self, job: str, index: int, token: str) -> tuple[Rect, tuple[int, int]] | None:
         key = (job, index)
-        return (self.tokens[key], *self.rects[key]) if key in self.tokens else None
+        return self.rects[key] if key in self.tokens and self.tokens[key] == token else None
 
     def _bundle(self, job: str) -> tuple[Path, str] | None:
         sha = self.job_bundles.get(job)
@@ -112,7 +113,7 @@ class ScriptedMaster:
     def _bundle_ok(self, job: str, token: str) -> bool:
         return any(t == token for (j, _), t in self.tokens.items() if j == job)
 
-    def _on_tile(self, job: str, index: int, path: Path, sha256: str, agent: str | None) -> None:
+    def _on_tile(self, job: str, index: int, path: Path, sha256: str, token: str, agent: str | None) -> None:
         self.uploads.append((job, index, path.read_bytes()))
 
     def url(self, path: str) -> str:
@@ -415,7 +416,7 @@ def test_a_batch_that_fails_together_renders_its_units_alone(tmp_path: Path) -> 
     alone, so that one bad unit fails by itself and does not take its batch with it."""
     from agents.render_agent import AgentConfig, RenderAgent
     from core.model.job import SceneSpec
-    from core.render.worker import RenderRequest
+    from core.render.process import RenderRequest
 
     agent = RenderAgent(AgentConfig(jid=AGENT, password=PASSWORD, master=MASTER, workdir=tmp_path))
     try:
@@ -437,13 +438,13 @@ def test_a_batch_out_of_time_leaves_its_units_none_of_the_step(tmp_path: Path) -
     process)."""
     from agents.render_agent import AgentConfig, RenderAgent
     from core.model.job import SceneSpec
-    from core.render.together import batches
-    from core.render.worker import RenderRequest
+    from core.render.batch import batches
+    from core.render.process import RenderRequest
 
     agent = RenderAgent(AgentConfig(jid=AGENT, password=PASSWORD, master=MASTER, workdir=tmp_path))
     try:
         scene = SceneSpec(CBOX, {"res": "256"})
-        # Two 64 px units at 1800 spp: one batch (under core.render.together.BATCH_SAMPLES), about 9 s
+        # Two 64 px units at 1800 spp: one batch (under core.render.batch.BATCH_SAMPLES), about 9 s
         requests = [RenderRequest(scene, "llvm_ad_rgb", None, 4, 1800, i, 256, 256, Rect(64 * i, 0, 64, 64),
                                   band=2, threads=1, job_id="job-t", unit_index=i) for i in range(2)]
         assert len(batches(requests)) == 1
@@ -456,6 +457,40 @@ def test_a_batch_out_of_time_leaves_its_units_none_of_the_step(tmp_path: Path) -
         assert took < 1.5 * timeout, took  # rendered alone again, the two units would add 2 x 4 s
     finally:
         agent.worker.stop()
+
+
+def test_a_failed_unit_logs_its_story_on_one_line(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """The agent's Failure goes with a WARNING of the unit's status changes and the stimuli that made them."""
+    from agents.render_agent import AgentConfig, RenderAgent
+    from agents.state import BundleFailed, MessageReceived, SendToMaster
+
+    agent = RenderAgent(AgentConfig(jid=AGENT, password=PASSWORD, master=MASTER, workdir=tmp_path))
+    try:
+        info = m.JobInfo(job_id="job-s", scene_url="http://127.0.0.1:1/jobs/job-s/bundle", scene_hash="ab" * 32,
+                         width=32, height=32, spp=4, depth=6, level="N", ranges=RANGES)
+        award = m.Award(conversation="award-s", job=info, unit=unit(3, Rect(0, 0, 16, 16)), token="a1" * 16,
+                        upload_url="http://127.0.0.1:1/jobs/job-s/units/3/tile", seed=3, estimate_s=1.0)
+        agent.state.handle(MessageReceived(award, stimulus_id="accept-proposal:award-s#1"), 10.0)
+        out = agent.state.handle(BundleFailed(1, "no bundle", stimulus_id="bundle-1"), 10.25)
+        with caplog.at_level(logging.WARNING, logger="agents.render_agent"):
+            asyncio.run(agent._execute([c for c in out if isinstance(c, SendToMaster)]))  # offline: not sent
+    finally:
+        agent.worker.stop()
+    (line,) = [r.getMessage() for r in caplog.records if "story" in r.getMessage()]
+    assert line == ("unit 3 of job job-s: story: new -> queued by accept-proposal:award-s#1 at +0.000 s; "
+                    "queued -> fetching by accept-proposal:award-s#1 at +0.000 s; "
+                    "fetching -> failed by bundle-1 at +0.250 s")
+
+
+def test_the_log_format_is_an_option_defaulting_to_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    from agents.render_agent import build_parser
+
+    need = ["--jid", "a@localhost", "--password", "p", "--master", "m@localhost"]
+    monkeypatch.delenv("QUEKARO_LOG_FORMAT", raising=False)
+    assert build_parser().parse_args(need).log_format == "text"
+    assert build_parser().parse_args([*need, "--log-format", "json"]).log_format == "json"
+    monkeypatch.setenv("QUEKARO_LOG_FORMAT", "json")
+    assert build_parser().parse_args(need).log_format == "json"
 
 
 def test_stops_cleanly_on_sigterm(farm: Farm) -> None:

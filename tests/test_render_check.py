@@ -14,9 +14,9 @@ from compat_cases import CASES, SCENES, compare_files, job_args, problems, refer
 from render_check import by_name, compare, reference_renders
 
 import core.model.integrators as integrators
+from core.image.imageio import read_image_channels
 from core.model.job import RenderOptions, SceneSpec
-from core.render.imageio import read_image_channels
-from core.render.worker import RenderWorker
+from core.render.process import RenderProcess
 from planning.jobplan import plan_job
 from planning.pipeline import render_plan
 
@@ -45,7 +45,7 @@ def test_a_tiled_particle_tracer_is_refused_by_the_comparison(tmp_path, monkeypa
     monkeypatch.setitem(integrators.CATALOGUE, "ptracer", forced)
     case = _case("ptracer")
     plan = plan_job(SceneSpec(case.scene), RenderOptions(units=6, threads=2))  # here, where the patch is
-    with RenderWorker() as worker:
+    with RenderProcess() as worker:
         render_plan(plan, tmp_path / "tiled.exr", worker, time.perf_counter())
     found = problems(case, tmp_path / "tiled.exr")
     assert any("DIFFERENT" in p for p in found), found
@@ -57,7 +57,7 @@ def test_the_variant_criterion_on_both_sides_against_real_renders(name, rgb_is_t
     by plain Mitsuba in both variants. Flat data: an rgb render's means agree with spectral renders' (its
     variance is lower: no colour noise from sampling wavelengths). A narrow line lighting a narrow band:
     rgb's channel-wise product lights a sphere that spectral light leaves dark."""
-    from core.render.effects import analyse
+    from core.scene.effects import analyse
 
     spectral, _ = reference_renders(SCENES / name, "llvm_ad_spectral", 64)
     rgb, _ = reference_renders(SCENES / name, "llvm_ad_rgb", 64, renders=1, seed0=5)

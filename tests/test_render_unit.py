@@ -14,17 +14,17 @@ from core.errors import RenderError, SceneError
 from core.model.geometry import Rect
 from core.model.job import RenderOptions, SceneSpec
 from core.model.seeds import plan_seed, unit_seed
-from core.render import child
-from core.render.planner import Planner
-from core.render.worker import (
+from core.render import spawn
+from core.render.process import (
+    RenderProcess,
     RenderRequest,
-    RenderWorker,
     _local_cache,
     _SceneCache,
     render_full,
     render_job_here,
     set_window,
 )
+from core.rules.unit_params import Planner
 from planning.jobplan import plan_job, plan_params
 from planning.pipeline import plan_for_units_here, unit_job
 
@@ -43,7 +43,7 @@ def job(unit=UNIT, spp=16, seed=1, spec=CBOX, size=(48, 48), band=2, **kw):
 
 @pytest.fixture(scope="module")
 def worker():
-    with RenderWorker() as w:
+    with RenderProcess() as w:
         yield w
 
 
@@ -144,7 +144,7 @@ def test_broken_scene_is_a_scene_error_and_the_worker_survives(worker, tmp_path)
 
 
 def test_killed_child_is_a_render_error_and_the_worker_restarts():
-    with RenderWorker() as w:
+    with RenderProcess() as w:
         w.render(job(), timeout=60)
         pid = w.pid
         killer = threading.Timer(0.3, os.kill, (pid, signal.SIGKILL))
@@ -159,7 +159,7 @@ def test_killed_child_is_a_render_error_and_the_worker_restarts():
 def test_an_abort_ends_its_own_render_only_also_one_set_before_the_render_began():
     """A cancelled unit's render (the agent's AbortRender): set before the render began, the abort was lost
     and the render ran in full; `interrupt` with no render aborted, or another render's, kills nothing."""
-    with RenderWorker() as w:
+    with RenderProcess() as w:
         w.render(job(), timeout=60)
         pid = w.pid
         w.interrupt()  # idle: the child and its compiled kernels stay
@@ -181,7 +181,7 @@ def test_an_abort_ends_its_own_render_only_also_one_set_before_the_render_began(
 
 
 def test_a_released_child_exits_and_the_next_render_starts_another():
-    with RenderWorker() as w:
+    with RenderProcess() as w:
         first = w.render(job(), timeout=60)
         child = w._proc
         w.release()
@@ -195,7 +195,7 @@ def test_a_released_child_skips_its_teardown_yet_leaves_its_compiled_kernels(tmp
     # It ends with os._exit: what it compiled must already be in Dr.Jit's cache ($HOME/.drjit), or every
     # job would compile its kernels again.
     monkeypatch.setenv("HOME", str(tmp_path))
-    with RenderWorker() as w:
+    with RenderProcess() as w:
         w.render(job(), timeout=120)
         child = w._proc
         w.release()
@@ -205,7 +205,7 @@ def test_a_released_child_skips_its_teardown_yet_leaves_its_compiled_kernels(tmp
 
 
 def test_a_call_runs_in_the_child_and_what_it_raises_comes_back():
-    with RenderWorker() as w:
+    with RenderProcess() as w:
         assert w.call(os.getpid) == w.pid != os.getpid()
         with pytest.raises(ValueError, match="invalid literal") as raised:
             w.call(int, "x")
@@ -220,7 +220,7 @@ def test_a_call_runs_in_the_child_and_what_it_raises_comes_back():
 
 
 def test_a_child_dying_in_a_call_is_a_render_error_and_the_next_use_restarts():
-    with RenderWorker() as w:
+    with RenderProcess() as w:
         pid = w.call(os.getpid)
         with pytest.raises(RenderError, match=r"planning: render process killed by SIGKILL"):
             w.call(os.kill, pid, signal.SIGKILL, doing="planning")
@@ -231,24 +231,24 @@ def test_a_child_dying_in_a_call_is_a_render_error_and_the_next_use_restarts():
 
 
 def test_a_child_started_early_is_the_next_workers_and_one_left_over_is_ended():
-    child.start_early()
-    early = child._early[0]
-    with RenderWorker() as w:
+    spawn.start_early()
+    early = spawn._early[0]
+    with RenderProcess() as w:
         assert w.pid == early.pid and w.starts == 1 and w.call(os.getpid) == early.pid
-    child.start_early()
-    left = child._early[0]
-    child.discard_early()
-    assert left.wait(5) is not None and child._early is None
-    child.start_early()
-    dead = child._early[0]
+    spawn.start_early()
+    left = spawn._early[0]
+    spawn.discard_early()
+    assert left.wait(5) is not None and spawn._early is None
+    spawn.start_early()
+    dead = spawn._early[0]
     dead.kill()
     dead.wait()
-    with RenderWorker() as w:  # a dead early child is replaced
+    with RenderProcess() as w:  # a dead early child is replaced
         assert w.pid != dead.pid and w.render(job(), timeout=60).meta["pid"] == w.pid
 
 
 def test_timeout_kills_and_recovers():
-    with RenderWorker() as w:
+    with RenderProcess() as w:
         with pytest.raises(RenderError, match="timed out"):
             w.render(job(unit=Rect(0, 0, 48, 48), spp=50000, band=0), timeout=0.5)
         assert w.render(job(), timeout=60).pixels.shape == (20, 20, 3)

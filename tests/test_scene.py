@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 
 from core.errors import SceneError
-from core.render.scene import (
+from core.scene.scene import (
     SceneSpec,
     film_info,
     film_info_from_scene,

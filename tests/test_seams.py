@@ -16,9 +16,9 @@ from hypothesis import strategies as st
 from scipy.stats import chi2
 
 from core.errors import QuekaroError
+from core.image import imageio
+from core.image.seams import seam_measure, unit_map
 from core.model.geometry import Rect
-from core.render import imageio
-from core.render.seams import seam_measure, unit_map
 from quekaro import cmd_diff
 
 REPO = Path(__file__).resolve().parent.parent

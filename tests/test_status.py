@@ -10,10 +10,11 @@ from collections import defaultdict
 from pathlib import Path
 
 import pytest
+from auction_support import cancel, informed, message, register, tick
 from test_auction import failure, inform, make, round_trip
 from test_store import HASH, info_of, new_store
 
-import master.auction
+import master.auction.machine
 import master.store
 from core.model import messages as m
 from core.model import status as st
@@ -51,7 +52,7 @@ def test_the_tables_are_well_formed() -> None:
 def _record(monkeypatch: pytest.MonkeyPatch) -> Seen:
     """Every transition check the auction and the store make, by whom (they import the checks by name)."""
     seen: Seen = defaultdict(set)
-    for who, module in (("A", master.auction), ("S", master.store)):
+    for who, module in (("A", master.auction.machine), ("S", master.store)):
         for kind, real in (("unit", st.unit_transition), ("job", st.job_transition)):
             def check(what: str, old: str, new: str, who=who, kind=kind, real=real) -> str:
                 out = real(what, old, new)
@@ -63,24 +64,24 @@ def _record(monkeypatch: pytest.MonkeyPatch) -> Seen:
 
 def _drive_auction() -> None:
     a = make([1.0], ["A"])  # an unsold round, then awarded and done: the job is done
-    a.announce(0.0)
-    a.decide(a.config.cfp_timeout_s + 1)
+    tick(a, 0.0)
+    tick(a, a.config.cfp_timeout_s + 1)
     award = round_trip(a, 5.0)[0]
-    a.on_inform(award.to, inform(award, 1.0), 6.0)
+    informed(a, award.to, inform(award, 1.0), 6.0)
     a = make([1.0], ["A"], au.Config(max_unit_failures=2))  # requeued, then failed twice: the job fails
     round_trip(a, 0.0)
-    a.on_heartbeat("A", m.Heartbeat(conversation="h", busy=()), a.config.award_grace_s + 1)
-    a.register("B", 20.0)
+    message(a, "A", m.Heartbeat(conversation="h", busy=()), a.config.award_grace_s + 1)
+    register(a, "B", 20.0)
     for now in (20.0, 21.0):
         award = round_trip(a, now)[0]
-        a.on_failure(award.to, failure(award), now)
-    assert a.jobs["job-1"].status == JobStatus.FAILED
+        message(a, award.to, failure(award), now)
+    assert a._jobs["job-1"].status == JobStatus.FAILED
     a = make([1.0, 2.0, 3.0], ["A", "B"], au.Config(slots=1))  # cancelled: two units awarded, one announced
     round_trip(a, 0.0)
-    a.register("C", 0.1)
-    a.announce(0.1)
+    register(a, "C", 0.1)
+    tick(a, 0.1)
     assert a.counts("job-1") == {"awarded": 2, "announced": 1}
-    a.cancel_job("job-1")
+    cancel(a, "job-1")
 
 
 def _drive_store(tmp_path: Path) -> None:
@@ -128,7 +129,7 @@ def test_a_restored_auction_and_store_agree_without_a_change_outside_the_table(t
         store.resume(200.0)
         auction, out = au.Auction.restore(store.running_jobs(), lambda j: info_of(store.job(j)), store.credits())
     assert out == [] and seen["A"] == set()
-    assert {i: u.status for i, u in auction.jobs["job-1"].units.items()} == {0: UnitStatus.DONE,
+    assert {i: u.status for i, u in auction._jobs["job-1"].units.items()} == {0: UnitStatus.DONE,
                                                                                 1: UnitStatus.PENDING}
 
 
@@ -148,7 +149,7 @@ def _status_assignments(path: Path) -> list[str]:
 
 
 def test_statuses_change_only_through_the_table() -> None:
-    assert sorted(_status_assignments(REPO / "master" / "auction.py")) == ["_set_job", "_set_unit"]
+    assert sorted(_status_assignments(REPO / "master" / "auction" / "machine.py")) == ["_set_job", "_set_unit"]
     assert _status_assignments(REPO / "bench" / "simulate.py") == []
     sql = (REPO / "master" / "store.py").read_text()
     literal = re.compile(r"status\s*(=|!=|IN\s*\()\s*'")

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
+from auction_support import cancel, informed, message, register, submit, tick
 
 from core.errors import QuekaroError
 from core.model import messages as m
@@ -46,7 +47,7 @@ def info_of(record) -> m.JobInfo:
     )  # fmt: skip
 
 
-def restore(store: JobStore, now: float, rng: random.Random | None = None) -> tuple[au.Auction, list[au.Command]]:
+def restore(store: JobStore, now: float, rng: random.Random | None = None) -> tuple[au.Auction, list[au.Instruction]]:
     """What the master does on start: awarded units back to pending, then the auction rebuilds itself."""
     store.resume(now)
     return au.Auction.restore(store.running_jobs(), lambda job_id: info_of(store.job(job_id)), store.credits(),
@@ -60,19 +61,19 @@ def new_store(path: Path, n: int = 4, job_id: str = "job-1") -> JobStore:
     return store
 
 
-def play(auction: au.Auction, store: JobStore, now: float, finish: int | None = None) -> list[au.Send]:
+def play(auction: au.Auction, store: JobStore, now: float, finish: int | None = None) -> list[au.SendToAgent]:
     """One auction round where every agent bids; `finish` awards are completed the way the master does it:
     tile recorded (durably written by the data plane), then the inform applied."""
-    cmds = auction.tick(now)
+    cmds = tick(auction, now)
     store.apply(cmds, now)
-    for send in [c for c in cmds if isinstance(c, au.Send) and isinstance(c.message, m.CallForProposal)]:
+    for send in [c for c in cmds if isinstance(c, au.SendToAgent) and isinstance(c.message, m.CallForProposal)]:
         est = tuple(m.Estimate(index=u.index, seconds=u.cost) for u in send.message.units)
-        auction.on_propose(
+        message(auction,
             send.to, m.Propose(conversation=send.message.conversation, job_id="job-1", estimates=est), now
         )
-    cmds = auction.decide(now)
+    cmds = tick(auction, now)
     store.apply(cmds, now)
-    awarded = [c for c in cmds if isinstance(c, au.Send) and isinstance(c.message, m.Award)]
+    awarded = [c for c in cmds if isinstance(c, au.SendToAgent) and isinstance(c.message, m.Award)]
     for award in awarded[:finish]:
         msg = award.message
         store.record_result(
@@ -82,7 +83,7 @@ def play(auction: au.Auction, store: JobStore, now: float, finish: int | None = 
             conversation=msg.conversation, job_id=msg.job.job_id, index=msg.unit.index, token=msg.token,
             tile_hash=HASH, depth=4, spp=8, band=2, seconds=msg.estimate_s, nonfinite=0,
         )  # fmt: skip
-        store.apply(auction.on_inform(award.to, inform, now + 1), now + 1)
+        store.apply(informed(auction, award.to, inform, now + 1), now + 1)
     return awarded
 
 
@@ -168,9 +169,9 @@ def test_done_needs_a_durable_result_and_happens_once(tmp_path: Path) -> None:
 def test_auction_events_are_recorded(tmp_path: Path) -> None:
     store = new_store(tmp_path / "farm.db", n=3)
     auction = au.Auction(ONE_A_ROUND, rng=random.Random(5))
-    auction.add_job(info_of(store.job("job-1")), [u.unit() for u in store.units("job-1")])
+    submit(auction, info_of(store.job("job-1")), [u.unit() for u in store.units("job-1")])
     for name in ("A", "B"):
-        store.apply(auction.register(name, 100.0), 100.0)
+        store.apply(register(auction, name, 100.0), 100.0)
     awarded = play(auction, store, 101.0, finish=1)
     assert len(awarded) == 2
     progress = store.progress("job-1")
@@ -189,7 +190,7 @@ def test_auction_events_are_recorded(tmp_path: Path) -> None:
         conversation=other.conversation, job_id="job-1", index=other.unit.index, token=other.token,
         reason="child crashed",
     )  # fmt: skip
-    store.apply(auction.on_failure(awarded[1].to, fail, 103.0), 103.0)
+    store.apply(message(auction, awarded[1].to, fail, 103.0), 103.0)
     rows = store.db.execute("SELECT agent, outcome, reason, params FROM attempts ORDER BY id").fetchall()
     assert [tuple(r)[:3] for r in rows] == [
         (awarded[0].to, "done", ""), (awarded[1].to, "failed", f"failed on {awarded[1].to}: child crashed")
@@ -200,7 +201,7 @@ def test_auction_events_are_recorded(tmp_path: Path) -> None:
     assert store.credits() == {awarded[0].to: 1, awarded[1].to: -1}
     while store.job("job-1").status == "running":
         for name in ("A", "B"):
-            auction.on_heartbeat(name, m.Heartbeat(conversation="h", busy=()), 104.0)
+            message(auction, name, m.Heartbeat(conversation="h", busy=()), 104.0)
         play(auction, store, 104.0)
     assert store.job("job-1").status == "done"
     assert {u.status for u in store.units("job-1")} == {"done"}
@@ -246,9 +247,9 @@ def _crashing_master(path: str) -> None:
 
     store = new_store(Path(path), n=5)
     auction = au.Auction(ONE_A_ROUND, rng=random.Random(9))
-    auction.add_job(info_of(store.job("job-1")), [u.unit() for u in store.units("job-1")])
+    submit(auction, info_of(store.job("job-1")), [u.unit() for u in store.units("job-1")])
     for name in ("A", "B", "C", "D"):
-        store.apply(auction.register(name, 100.0), 100.0)
+        store.apply(register(auction, name, 100.0), 100.0)
     play(auction, store, 101.0, finish=2)
     store.db.execute("BEGIN IMMEDIATE")
     store.db.execute("UPDATE units SET status = 'done'")  # never committed
@@ -272,13 +273,13 @@ def test_master_killed_mid_job_resumes_with_done_units_kept(tmp_path: Path) -> N
         0
     ]
     assert interrupted == 2
-    state = {i: u.status.value for i, u in auction.jobs["job-1"].units.items()}
+    state = {i: u.status.value for i, u in auction._jobs["job-1"].units.items()}
     assert state == after
-    auction.register("A", 200.0)
-    assert auction.agents["A"].credits == store.credits()["A"]
+    register(auction, "A", 200.0)
+    assert auction._agents["A"].credits == store.credits()["A"]
     # The rebuilt auction finishes the job without rendering a done unit again.
     for name in ("B", "C"):
-        auction.register(name, 200.0)
+        register(auction, name, 200.0)
     awarded = []
     while store.job("job-1").status == "running":
         awarded += [s.message.unit.index for s in play(auction, store, 201.0)]
@@ -293,7 +294,7 @@ def test_a_restarted_master_still_knows_who_delivered_a_unit(tmp_path: Path) -> 
     store = new_store(tmp_path / "farm.db", n=2)
     auction, _ = restore(store, 100.0)
     for name in ("A", "B"):
-        auction.register(name, 100.0)
+        register(auction, name, 100.0)
     awarded = play(auction, store, 101.0, finish=1)
     deliverer, index = awarded[0].to, awarded[0].message.unit.index
     other = "B" if deliverer == "A" else "A"
@@ -302,8 +303,8 @@ def test_a_restarted_master_still_knows_who_delivered_a_unit(tmp_path: Path) -> 
     held = (m.HeldUnit(job_id="job-1", index=index),)
 
     def cancels(agent: str) -> list[int]:
-        out = auction.on_heartbeat(agent, m.Heartbeat(conversation="h", busy=held), 201.0)
-        return [c.message.index for c in out if isinstance(c, au.Send) and isinstance(c.message, m.Cancel)]
+        out = message(auction, agent, m.Heartbeat(conversation="h", busy=held), 201.0)
+        return [c.message.index for c in out if isinstance(c, au.SendToAgent) and isinstance(c.message, m.Cancel)]
 
     assert cancels(deliverer) == [] and cancels(other) == [index]
 
@@ -437,16 +438,16 @@ def test_status_changes_are_checked_against_the_transition_table(tmp_path: Path)
 def test_requeued_and_cancelled_units_are_recorded(tmp_path: Path) -> None:
     store = new_store(tmp_path / "farm.db", n=2)
     auction = au.Auction(ONE_A_ROUND, rng=random.Random(5))
-    auction.add_job(info_of(store.job("job-1")), [u.unit() for u in store.units("job-1")])
+    submit(auction, info_of(store.job("job-1")), [u.unit() for u in store.units("job-1")])
     for name in ("A", "B"):
-        store.apply(auction.register(name, 100.0), 100.0)
+        store.apply(register(auction, name, 100.0), 100.0)
     awarded = play(auction, store, 101.0, finish=0)
     lost = awarded[0].to
     survivor = next(a.to for a in awarded if a.to != lost)
     late = 101.0 + auction.config.heartbeat_timeout_s + 1
-    auction.on_heartbeat(survivor, m.Heartbeat(conversation="h", busy=()), late - 1)
-    out = auction.expire(late)
-    assert [type(e) for e in out if isinstance(e, au.Event)] == [au.AgentLost, au.UnitRequeued]
+    message(auction, survivor, m.Heartbeat(conversation="h", busy=()), late - 1)
+    out = tick(auction, late)
+    assert [type(e) for e in out if isinstance(e, au.Record)] == [au.AgentLost, au.UnitRequeued]
     store.apply(out, late)
     index = awarded[0].message.unit.index
     assert store.units("job-1")[index].status == UnitStatus.PENDING
@@ -459,7 +460,7 @@ def test_requeued_and_cancelled_units_are_recorded(tmp_path: Path) -> None:
     progress = store.progress("job-1", late)  # what `quekaro status` tells of it
     assert progress.retried == 1 and progress.last_retry.startswith(f"unit {index} requeued: ")
     assert progress.last_retry.count(lost) == 1, progress.last_retry  # the reason names the agent, once
-    store.apply(auction.cancel_job("job-1"), late + 1)
+    store.apply(cancel(auction, "job-1"), late + 1)
     assert store.job("job-1").status == JobStatus.CANCELLED
     assert {u.status for u in store.units("job-1")} == {UnitStatus.FAILED}
     assert outcomes() == ["requeued", "cancelled"]
@@ -477,7 +478,7 @@ def test_a_job_the_restarted_master_cannot_describe_fails_alone(tmp_path: Path) 
     store.resume(200.0)
     auction, out = au.Auction.restore(store.running_jobs(), describe, store.credits())
     assert out == [au.JobFailed("job-1", "cannot resume the job: FileNotFoundError: bundle gone")]
-    assert list(auction.jobs) == ["job-2"]
+    assert list(auction._jobs) == ["job-2"]
     store.apply(out, 200.0)
     assert store.job("job-1").status == JobStatus.FAILED and store.job("job-2").status == JobStatus.RUNNING
     assert {u.status for u in store.units("job-1")} == {UnitStatus.FAILED}
@@ -485,7 +486,7 @@ def test_a_job_the_restarted_master_cannot_describe_fails_alone(tmp_path: Path) 
 
 def test_an_event_the_store_cannot_record_is_refused(tmp_path: Path) -> None:
     @dataclasses.dataclass(frozen=True)
-    class Unheard(au.Event):
+    class Unheard(au.Record):
         job_id: str
 
     store = new_store(tmp_path / "farm.db", n=1)

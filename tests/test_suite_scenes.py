@@ -8,7 +8,7 @@ import pytest
 
 from bench.suite import SUITE
 from core.model.job import SceneSpec
-from core.render.scene import load
+from core.scene.scene import load
 from planning.accuracy import content_key
 
 

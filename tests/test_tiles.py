@@ -5,8 +5,8 @@ import OpenEXR
 import pytest
 
 from core.errors import TileError
+from core.image.tiles import Tile, read_tile, read_tile_bytes, write_tile
 from core.model.geometry import Rect
-from core.render.tiles import Tile, read_tile, read_tile_bytes, write_tile
 
 
 def _tile():

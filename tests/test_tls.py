@@ -17,7 +17,7 @@ from cryptography import x509
 from agents.render_agent import url_refusal
 from core.errors import QuekaroError
 from core.transport.tls import TlsError, check_names, client_context, is_loopback, issue, make_ca, server_context
-from master.http_api import serve
+from master.data_plane import serve
 from master.service import MasterConfig
 
 

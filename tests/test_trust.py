@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from core.render.bundle import make_bundle
+from core.scene.bundle import make_bundle
 from core.transport.xmpp_server import EmbeddedXmppServer
 from farm.local import LocalFarm
 from master.service import MasterConfig, MasterService
@@ -61,18 +61,22 @@ def test_a_full_disk_pauses_every_job_and_stops_the_auctions_clock(tmp_path):
     auction's clock stands still, so nothing has run out when space returns."""
     import time
 
+    from master import auction as au
+
     service = MasterService(MasterConfig(home=tmp_path / "home", min_free_bytes=1 << 62))  # always "full"
+    service.auction = au.Auction(config=service.config.auction)  # what `start` restores, without its servers
     try:
-        service.check_disk()
-        assert service.paused == "disk full on the master" and service._tick(0.0) == []
-        frozen = service.auction_now()
+        assert [type(i) for i in service.check_disk()] == [au.JobsPaused]
+        assert service.paused == "disk full on the master" and service.auction.handle(au.Tick(), 0.0) == []
+        assert service.check_disk() == []  # paused once
+        frozen = service.auction.clock(time.time())
         time.sleep(0.3)
-        assert service.auction_now() == pytest.approx(frozen, abs=0.02)
+        assert service.auction.clock(time.time()) == pytest.approx(frozen, abs=0.02)
         service.config.min_free_bytes = 0  # space is back
-        service.check_disk()
+        assert [type(i) for i in service.check_disk()] == [au.JobsResumed]
         assert service.paused is None
         time.sleep(0.2)
-        assert service.auction_now() - frozen == pytest.approx(0.2, abs=0.1)  # the pause is not counted
+        assert service.auction.clock(time.time()) - frozen == pytest.approx(0.2, abs=0.1)  # the pause is not counted
     finally:
         service.store.close()
         service._planner.stop()
@@ -90,13 +94,13 @@ def test_events_the_store_cannot_write_are_kept_and_written_in_order_once_it_can
     try:
         db = service.store.db
         db.execute(f"PRAGMA max_page_count = {db.execute('PRAGMA page_count').fetchone()[0]}")
-        first = [au.AgentRegistered(f"agent-{i}-abc@localhost", 1.0) for i in range(300)]
+        first = [au.AgentJoined(f"agent-{i}-abc@localhost", 1.0) for i in range(300)]
         asyncio.run(service._execute(first))
         assert service._unrecorded == first and service.store.credits() == {}
         asyncio.run(service._execute([]))  # a tick: still full
         assert service._unrecorded == first
         db.execute("PRAGMA max_page_count = 1000000")  # space again
-        asyncio.run(service._execute([au.AgentRegistered("agent-late-abc@localhost", 1.0)]))
+        asyncio.run(service._execute([au.AgentJoined("agent-late-abc@localhost", 1.0)]))
         assert service._unrecorded == [] and len(service.store.credits()) == 301
     finally:
         service.store.close()
@@ -107,6 +111,8 @@ def test_a_failure_while_the_disk_is_full_is_not_held_against_its_agent(tmp_path
     """A local farm's agents write their tiles on the master's disk: one that fails while it is full may
     fail for that, and three such failures blocklisted the farm's only agent and failed the job."""
     import asyncio
+
+    from auction_support import message, register, tick
 
     from core.model import messages as m
     from core.model.geometry import Rect
@@ -123,16 +129,16 @@ def test_a_failure_while_the_disk_is_full_is_not_held_against_its_agent(tmp_path
                        [WorkUnit(index=0, rect=Rect(0, 0, 16, 8), C=0.1, S=128, Nd=0.0, cost=1.0)],
                        bundle_sha256="ef" * 32)
         service._create_job("job0000001", "scene.xml", JobSpec({}, options), plan, time.time())
-        agent, auction, now = "agent-0-abc@localhost", service.auction, service.auction_now()
-        service._record(auction.register(agent, now))
-        [cfp] = [c.message for c in auction.announce(now) if isinstance(c, au.Send)]
-        service._record(auction.on_propose(agent, m.Propose(conversation=cfp.conversation, job_id=cfp.job.job_id,
+        agent, auction, now = "agent-0-abc@localhost", service.auction, time.time()
+        service._record(register(auction, agent, now))
+        [cfp] = [c.message for c in tick(auction, now) if isinstance(c, au.SendToAgent)]
+        service._record(message(auction, agent, m.Propose(conversation=cfp.conversation, job_id=cfp.job.job_id,
                                                             estimates=(m.Estimate(index=0, seconds=1.0),)), now))
-        decided = auction.decide(now + 5)
+        decided = tick(auction, now + 5)
         service._record(decided)
-        [award] = [c.message for c in decided if isinstance(c, au.Send) and isinstance(c.message, m.Award)]
+        [award] = [c.message for c in decided if isinstance(c, au.SendToAgent) and isinstance(c.message, m.Award)]
         service.config.min_free_bytes = 1 << 62  # the disk is full
-        service.check_disk()
+        service._record(service.check_disk())
         failure = m.Failure(conversation=award.conversation, job_id="job0000001", index=0, token=award.token,
                             reason="cannot write the tile: No space left on device")
         performative, body = m.encode(failure)
@@ -140,7 +146,7 @@ def test_a_failure_while_the_disk_is_full_is_not_held_against_its_agent(tmp_path
                             protocol=m.PROTOCOL, conversation_id=award.conversation, body=body,
                             received_at=time.monotonic(), resource="r1")
         asyncio.run(service._on_envelope(envelope))
-        assert auction.agents[agent].credits == 0 and auction.jobs["job0000001"].units[0].failures == 0
+        assert auction._agents[agent].credits == 0 and auction._jobs["job0000001"].units[0].failures == 0
         [attempt] = service.store.attempts("job0000001", 0)
         assert attempt.outcome == "requeued" and "not counted" in attempt.reason
     finally:
@@ -196,8 +202,8 @@ def test_the_master_reads_a_stored_tiles_header_back_and_blames_itself_when_it_c
     import numpy as np
 
     from core.errors import QuekaroError, TileError
+    from core.image.tiles import Tile, write_tile
     from core.model.geometry import Rect
-    from core.render.tiles import Tile, write_tile
     from master.service import _stored_header
 
     meta = {"job_id": "j1", "unit_index": 3, "spp": 16, "depth": 5, "band": 2}

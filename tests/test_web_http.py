@@ -25,16 +25,17 @@ import pytest
 from PIL import Image
 
 from core.data import default_rules_path
+from core.image.tiles import Tile, write_tile
+from core.model import messages as m
 from core.model.geometry import Rect
 from core.model.job import Effects, JobPlan, JobSpec, RenderOptions, SceneSpec
+from core.model.levels import RULE_LEVELS
 from core.model.status import JobStatus
 from core.model.units import WorkUnit
-from core.render.planner import Planner
-from core.render.tiles import Tile, write_tile
-from fuzzy.levels import RULE_LEVELS
+from core.rules.unit_params import Planner
 from master import auction as au
-from master.api_jobs import add_job_routes
-from master.http_api import close, create_app, serve
+from master.data_plane import close, create_app, serve
+from master.job_api import add_job_routes
 from master.sessions import SharedAccounts
 from master.store import JobStore
 from master.web import add_web_routes, events, preview
@@ -72,17 +73,15 @@ class FakeMaster:
         self.jobs_dir = self.home / "jobs"
         self.jobs_dir.mkdir(parents=True, exist_ok=True)
         self.store = JobStore(self.home / "jobs.sqlite")
-        agent = au.Agent(name=AGENT, last_seen=time.time())
-        self.auction = SimpleNamespace(agents={AGENT: agent}, jobs={})
+        self.auction = au.Auction()  # the real one: the page reads its read API
+        register = m.Register(conversation="register-1", speed=1.0, threads=1, rules="pathtracing.xml")
+        self.auction.handle(au.MessageReceived(AGENT, register), time.time())
 
     def job_dir(self, job_id: str) -> Path:
         return self.jobs_dir / job_id
 
     def result_path(self, job_id: str) -> Path:
         return self.job_dir(job_id) / "result.exr"
-
-    def auction_now(self) -> float:
-        return time.time()
 
     async def cancel(self, job_id: str) -> bool:
         return self.store.cancel(job_id, time.time())
@@ -146,7 +145,7 @@ class Page:
 async def running(tmp_path: Path) -> AsyncIterator[Page]:
     master = FakeMaster(tmp_path / "home")
     master.add_job()
-    app = create_app(expected=lambda job, unit: None, bundle=lambda job: None, on_tile=lambda *a: None,
+    app = create_app(expected=lambda job, unit, token: None, bundle=lambda job: None, on_tile=lambda *a: None,
                      tile_dir=master.jobs_dir)
     add_job_routes(app, master)
     add_web_routes(app, master)
@@ -332,7 +331,10 @@ def test_agents_view_names_restarting_and_blocklisted_agents(tmp_path):
         rows = (await (await page.http.get(f"{page.url}/ui/api/agents", headers={"Cookie": cookie})).json())["agents"]
         assert rows[0]["state"] == "restarting" and rows[0]["restarts"] == 2
         (page.master.home / "processes.json").unlink()
-        page.master.auction.jobs[JOB] = SimpleNamespace(blocklist={AGENT})
+        info = m.JobInfo(job_id=JOB, scene_url="http://127.0.0.1:8765/scene", scene_hash="ef" * 32, width=W, height=H,
+                         spp=16, depth=8, level="S", ranges={})
+        page.master.auction.handle(au.JobSubmitted(info, _units()), time.time())
+        page.master.auction._jobs[JOB].blocklist.add(AGENT)  # as three failures of its units would
         rows = (await (await page.http.get(f"{page.url}/ui/api/agents", headers={"Cookie": cookie})).json())["agents"]
         assert rows[0]["state"] == "blocklisted" and rows[0]["blocklisted_for"] == [JOB] and rows[0]["shared"] is None
         now = time.monotonic()
@@ -430,7 +432,7 @@ def test_the_agents_event_is_sent_when_a_row_changes_not_as_their_ages_tick(tmp_
         await read_events(stream, lambda name, _data: name == "agents", timeout=5)
         with pytest.raises(TimeoutError):  # last_seen_s grows by the second: the page ages it itself
             await read_events(stream, lambda name, _data: name == "agents", timeout=3.5)
-        agent = page.master.auction.agents[AGENT]
+        agent = page.master.auction._agents[AGENT]
         agent.last_seen -= 30  # what the page shows is now 30 s off (AGE_SLACK_S is 5)
         [(_, data)] = await read_events(stream, lambda name, _data: name == "agents", timeout=2 * events.TICK_S + 1)
         assert data["agents"][0]["last_seen_s"] >= 30 and "server_now" in data
@@ -511,7 +513,8 @@ def test_demo_prints_the_pages_url(tmp_path, monkeypatch, capsys):
             raise Stop  # the page's URL is printed before the farm is waited for
 
     monkeypatch.setattr(cmd_farm, "LocalFarm", StubFarm)
-    args = SimpleNamespace(home=tmp_path, agents=2, threads=1, rules=[], http_port=0, level="S", out=tmp_path / "x")
+    args = SimpleNamespace(home=tmp_path, agents=2, threads=1, rules=[], http_port=0, level="S", out=tmp_path / "x",
+                           log_format="text")
     with pytest.raises(Stop):
         cmd_farm.run_demo(args)
     out = capsys.readouterr().out

@@ -25,7 +25,7 @@ from selenium.webdriver.remote.webdriver import WebDriver
 from selenium.webdriver.support.ui import Select
 from web_support import click, http, no_downloads, require_browser, rows, screenshot, start_browser, wait_until
 
-from core.render.bundle import make_bundle
+from core.scene.bundle import make_bundle
 from farm.local import LocalFarm
 from master.web.auth import COOKIE, CSRF_HEADER
 

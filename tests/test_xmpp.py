@@ -434,7 +434,7 @@ def test_a_dead_link_is_noticed_by_the_keepalive_and_the_agent_reconnects(tmp_pa
 
 def test_empty_pyjabber_folders_of_killed_processes_are_swept_once_stale(tmp_path) -> None:
     """pyjabber makes a folder at import and never removes it; a killed process cannot at exit."""
-    from core.transport.pyjabber_tmp import PREFIX, STALE_S, sweep_stale
+    from core.transport.tmp_cleanup import PREFIX, STALE_S, sweep_stale
 
     now = time.time()
     old, fresh, full, other = (tmp_path / f"{PREFIX}{n}" for n in ("old", "fresh", "full", "x"))

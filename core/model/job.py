@@ -4,7 +4,7 @@
 `JobSpec` (what a user submits beside a scene bundle: parameters and options), `Effects` (what the render
 simulates, and why) and `JobPlan` (a planned job: size, effects, spp, depth, its work units). Each has
 `to_dict` / `from_dict`, used by the CLI, the job API, the job store and the in-process pipeline alike.
-The choices they validate against are each named once: the levels in `fuzzy.levels`, the defuzzifiers in
+The choices they validate against are each named once: the levels in `core.model.levels`, the defuzzifiers in
 `fuzzy.engine`, Mitsuba's integrators in `core.model.integrators`, the variant pattern here.
 """
 
@@ -19,10 +19,9 @@ from typing import Any
 from core.errors import QuekaroError, SceneError
 from core.model.geometry import DEFAULT_FILTER_RADIUS, filter_reach
 from core.model.integrators import CATALOGUE
-from core.model.units import WorkUnit
+from core.model.levels import LEVELS, OFF, RULE_LEVELS
+from core.model.units import SPP_MAX, WorkUnit
 from fuzzy.engine import DEFUZZIFIERS
-from fuzzy.levels import LEVELS, OFF, RULE_LEVELS
-from fuzzy.render_params import SPP_MAX
 
 VARIANT_PATTERN = re.compile(r"(scalar|llvm|cuda)(_ad)?_(rgb|spectral|mono)[a-z_]*")  # a Mitsuba variant name
 
@@ -275,11 +274,11 @@ class JobPlan:
     first_spp: int | None = None
     shares: dict[str, Any] = field(default_factory=dict)
     # The film's colour channels (its pixel format: R, G, B; X, Y, Z; or Y): tiles carry colour as R, G, B
-    # (core.render.film), and the job's image is written in the film's own.
+    # (core.image.film), and the job's image is written in the film's own.
     colour: tuple[str, ...] = RGB
     # The file the job's image is written to, as the film asks.
     image_file: ImageFile = ImageFile()
-    # The channels every tile carries (core.render.film.film_channels: R, G, B, the film's alpha, the AOVs
+    # The channels every tile carries (core.image.film.film_channels: R, G, B, the film's alpha, the AOVs
     # the integrator adds), which a master holds each uploaded tile to; None in plans stored before.
     channels: tuple[str, ...] | None = None
 

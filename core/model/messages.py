@@ -22,14 +22,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Union
 
-from core.errors import MessageError
+from core.errors import MessageError, TileError
 from core.model.fields import constrained
 from core.model.geometry import DEFAULT_FILTER_RADIUS, Rect, filter_reach
 from core.model.job import VARIANT_PATTERN
-from core.model.units import WorkUnit
+from core.model.levels import LEVELS
+from core.model.units import SPP_MAX, WorkUnit
 from fuzzy.engine import DEFUZZIFIERS
-from fuzzy.levels import LEVELS
-from fuzzy.render_params import SPP_MAX
 
 # 2: several awards a round, slots in Register; 3: the rules an agent plans with, in Register; 4: a round's
 # awards of one job to one agent in one message (Awards), and no inform from agents (the upload answers)
@@ -287,6 +286,40 @@ class Inform(Message):
     band: int = constrained(lo=0, hi=65536)
     seconds: float = constrained(lo=0.0, hi=1e9)
     nonfinite: int = constrained(lo=0, hi=1 << 32)  # pixels that were NaN/inf before clamping
+
+
+@dataclass(frozen=True, kw_only=True)
+class TileFigures:
+    """What a tile's header says its unit was rendered with (core.image.tiles writes it, the agent uploads it):
+    the master reads it back as the unit's result and holds it to an inform's bounds (`check`)."""
+
+    depth: int = constrained(lo=-1, hi=1024)
+    spp: int = constrained(lo=1, hi=2 * SPP_MAX)  # as rendered, like Inform.spp
+    band: int = constrained(lo=0, hi=65536)
+    seconds: float = constrained(lo=0.0, hi=1e9)
+    nonfinite: int = constrained(lo=0, hi=1 << 32)
+    first_spp: int | None = constrained(lo=1, hi=SPP_MAX, default=None)  # an adaptive job's first pass
+
+    @classmethod
+    def from_header(cls, meta: dict[str, Any]) -> TileFigures:
+        """The figures a tile's header states (core.image.tiles writes them); TileError naming the field
+        that is missing or not a number. Their bounds are `check`ed by the master's auction."""
+        if meta.get("spp") is None:
+            raise TileError("tile header lacks its spp")
+
+        def read(name: str, kind: type, default: Any) -> Any:
+            value = meta.get(name)
+            if value is None:
+                return default
+            try:
+                return kind(value)
+            except (TypeError, ValueError):
+                what = "sample count" if "spp" in name else "number"
+                raise TileError(f"tile header's {name} {value!r} is not a {what}") from None
+
+        return cls(depth=read("depth", int, -1), spp=read("spp", int, None), band=read("band", int, 0),
+                   seconds=read("seconds", float, 0.0), nonfinite=read("nonfinite", int, 0),
+                   first_spp=read("first_spp", int, None))
 
 
 @dataclass(frozen=True, kw_only=True)

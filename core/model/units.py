@@ -9,11 +9,12 @@ from typing import Any
 from core.errors import MessageError
 from core.model.fields import constrained
 from core.model.geometry import Rect
-from fuzzy.render_params import SPP_MAX
 
 # Units an agent holds at once (rendering, waiting, uploading), master and agent alike: its next batch is
 # awarded while one renders. 2 is one unit a call, as before units were batched on agents.
 SLOTS = 8
+
+SPP_MAX = 1 << 20  # most samples per pixel a job asks for and a unit renders (the job's and messages' limit)
 
 
 def batched(level: str, first_spp: int | None) -> bool:

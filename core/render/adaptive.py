@@ -1,6 +1,6 @@
 """Adaptive sampling at pixel scale: where a second pass's samples go, from a first pass's per-pixel
 noise (Neyman allocation, `neyman_counts`, `second_pass`), and the two-pass render of one film window
-built on `core.render.counts.render_counts` (`render_adaptive`).
+built on `core.render.per_pixel.render_counts` (`render_adaptive`).
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from core.errors import RenderError
-from core.render.counts import WindowRender, render_counts
-from core.render.film import sanitize
+from core.image.film import sanitize
+from core.render.per_pixel import WindowRender, render_counts
 
 # The two-pass render. FIRST_SHARE of the samples go to a uniform first pass, whose per-pixel variance,
 # blurred over BLUR_PX (a pixel's own estimate from a few dozen samples misses rare bright paths), sets

@@ -35,8 +35,8 @@ from spade.agent import Agent, AuthenticationFailure, DisconnectedException
 from spade.message import Message
 
 from core.errors import MessageError, QuekaroError
-from core.transport.pyjabber_tmp import remove_upload_dir_at_exit
 from core.transport.rates import SenderRates
+from core.transport.tmp_cleanup import remove_upload_dir_at_exit
 
 log = logging.getLogger(__name__)
 remove_upload_dir_at_exit()  # `spade` imports pyjabber

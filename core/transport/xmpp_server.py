@@ -39,7 +39,7 @@ from typing import IO
 from core.errors import QuekaroError
 from core.files import written_atomically
 from core.supervision import die_with_parent, log_tail
-from core.transport.pyjabber_tmp import remove_upload_dir_at_exit
+from core.transport.tmp_cleanup import remove_upload_dir_at_exit
 
 log = logging.getLogger(__name__)
 

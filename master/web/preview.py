@@ -1,7 +1,7 @@
 """The image of a job as far as its tiles have landed: a PNG the page reloads when a tile arrives.
 
-The tiles recorded so far are blended by `core.render.compose` (the final assembly's own weights, pixels
-no tile covers left black) and written as an 8-bit sRGB PNG by `core.render.imageio.write_png_planar`,
+The tiles recorded so far are blended by `core.image.compose` (the final assembly's own weights, pixels
+no tile covers left black) and written as an 8-bit sRGB PNG by `core.image.imageio.write_png_planar`,
 which encodes with Pillow (already a dependency of the master for the final PNG; no other image library
 is needed). An image wider or taller than `MAX_SIDE` is shrunk by a whole factor until it fits (each
 preview pixel the mean of a block), and composed a band at a time: a page never asks the master for a
@@ -20,11 +20,11 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from core.image.compose import compose_shrunk
+from core.image.film import display_rgb
+from core.image.imageio import write_png_planar
+from core.image.tiles import tile_source
 from core.model.job import RGB
-from core.render.compose import compose_shrunk
-from core.render.film import display_rgb
-from core.render.imageio import write_png_planar
-from core.render.tiles import tile_source
 from master.store import ResultRecord
 
 MIN_INTERVAL_S = 1.0
@@ -49,7 +49,7 @@ class Previews:
     async def png(self, job_id: str, folder: Path, width: int, height: int, results: list[ResultRecord],
                   reach: int = 0, colour: tuple[str, ...] = RGB) -> Path:
         """The PNG showing `results`' tiles (composed again if a tile was added since the last one), their
-        bands cut by `reach` as in the final image (core.render.compose), in the film's `colour`."""
+        bands cut by `reach` as in the final image (core.image.compose), in the film's `colour`."""
         state = self.jobs.setdefault(job_id, _JobPreview())
         path = folder / PREVIEW_NAME
         wanted = frozenset(r.index for r in results)
@@ -76,7 +76,7 @@ def shrink_factor(width: int, height: int) -> int:
 def write_preview(path: Path, width: int, height: int, results: list[ResultRecord], reach: int = 0,
                   colour: tuple[str, ...] = RGB) -> Path:
     """Blend the tiles of `results` into a PNG at `path`, of the image's size shrunk by `shrink_factor`;
-    pixels no tile covers are black. `colour` is the film's colour channels (core.render.film.display_rgb)."""
+    pixels no tile covers are black. `colour` is the film's colour channels (core.image.film.display_rgb)."""
     tiles = [tile_source(r.tile_path, unit_index=r.index) for r in results if Path(r.tile_path).is_file()]
     planar = compose_shrunk(tiles, width, height, shrink_factor(width, height), reach=reach)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -3,7 +3,7 @@
 The agents' tile headers carry the crisp outputs (Rl, Ls, Ibs) and the parameters they chose, not the rules
 behind them, so the master evaluates the same rule base itself: the job's rule file (from its bundle) or,
 when the job brought none, the default one, with the unit's C, S, Nd, the level's Op and the scene's observed
-ranges, as `core.render.planner.Planner` does. Each rule's strength is the min over its antecedents of the
+ranges, as `core.rules.unit_params.Planner` does. Each rule's strength is the min over its antecedents of the
 max membership of their labels (fuzzy.engine's AND and OR); tests/test_web_http.py holds these strengths
 against `fuzzy.Engine.activations` (an output label's activation is the max strength of the rules
 concluding it), so the two cannot drift apart unseen.
@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from core.render.planner import FEATURES, Planner
+from core.rules.unit_params import FEATURES, Planner
 from fuzzy.rulebase import Rule, RuleBase
 from fuzzy.terms import membership_t
 

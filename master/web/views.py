@@ -18,7 +18,7 @@ from typing import Any, Protocol
 
 from core.home import PROCESSES_FILE
 from core.model.status import JobStatus
-from master.api_jobs import MasterService, agent_rows, job_summary
+from master.job_api import JobService, agent_rows, job_summary, unit_story
 from master.store import JobRecord, UnitRecord
 
 ACCURACY_NOTE = ("The farm keeps no per-job accuracy report yet (no reference render is made for a job; "
@@ -26,7 +26,7 @@ ACCURACY_NOTE = ("The farm keeps no per-job accuracy report yet (no reference re
                  "report has.")
 
 
-class WebService(MasterService, Protocol):
+class WebService(JobService, Protocol):
     """What the page needs of the master beyond the job API: its home and each job's folder."""
 
     home: Path
@@ -92,7 +92,7 @@ def unit_view(service: WebService, job_id: str, index: int) -> dict[str, Any]:
     holding = next((a.agent for a in attempts if a.outcome == "running"), None)
     # C and Nd unrounded: the rules are evaluated on them (the job view rounds them for the partition)
     return {**_unit_row(units[0], params, holding), "C": units[0].C, "Nd": units[0].Nd, "job_id": job_id,
-            "agent_rules": (params or {}).get("rules"),
+            "agent_rules": (params or {}).get("rules"), "story": unit_story(service, job_id, index),
             "attempt_list": [{"agent": a.agent, "started": a.started, "finished": a.finished,
                               "outcome": a.outcome, "estimate_s": _round(a.estimate, 2),
                               "seconds": _round(a.seconds, 3), "reason": a.reason} for a in attempts]}
@@ -112,14 +112,12 @@ def agents_view(service: WebService, counts: dict[str, tuple[int, int]] | None =
     running job), rendering or idle; `heard_at` is the wall-clock time of the last message. `counts` are
     the store's units done and failed per agent (read if not given)."""
     processes = _process_states(service.home)
-    jobs = service.auction.jobs if service.auction else {}
     now = time.time()
     rows = agent_rows(service, counts)
     for row in rows:
         name = row["jid"].split("@", 1)[0].rsplit("-", 1)[0]  # agent-0-a1b2c3@host -> agent-0
         process = processes.get(name, {})
         row["restarts"] = int(process.get("restarts", 0) or 0)
-        row["blocklisted_for"] = sorted(j for j, job in jobs.items() if row["jid"] in job.blocklist)
         row["heard_at"] = round(now - row["last_seen_s"], 1)
         if process.get("state", "running") != "running":
             row["state"] = str(process["state"])  # restarting, or failed for good

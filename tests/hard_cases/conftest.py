@@ -2,10 +2,10 @@
 
 A scene case is rendered along one of two routes, and every scene test runs on both:
   - "units": the job's parts called in the pipeline's order (pre-pass and partition at optimised levels,
-    equal tiles at `off`; the planner; every unit in one shared `RenderWorker` child, one by one as an
+    equal tiles at `off`; the planner; every unit in one shared `RenderProcess` child, one by one as an
     agent renders them; `compose`). Cheap, since one child process serves the whole catalogue.
   - "pipeline": `planning.pipeline.render_job` with `RenderOptions`, exactly as `quekaro render` runs it
-    (at a rule level its units in batches where the scene allows, core.render.together).
+    (at a rule level its units in batches where the scene allows, core.render.batch).
     Skipped, with the import error as the reason, while `planning.pipeline` cannot be imported.
 Both return a `Run`: the composed image, the non-finite pixels counted, the units' parameters and windows.
 """
@@ -21,13 +21,13 @@ from typing import Any
 import numpy as np
 import pytest
 
+from core.image.compose import compose
 from core.model.geometry import filter_reach
 from core.model.job import SceneSpec
 from core.model.seeds import unit_seed
-from core.render.compose import compose
-from core.render.planner import Planner
-from core.render.scene import film_info
-from core.render.worker import RenderRequest, RenderWorker
+from core.render.process import RenderProcess, RenderRequest
+from core.rules.unit_params import Planner
+from core.scene.scene import film_info
 
 HERE = Path(__file__).resolve().parent
 SCENES = HERE / "scenes"
@@ -58,9 +58,9 @@ class Run:
 
 
 @pytest.fixture(scope="session")
-def worker() -> Iterator[RenderWorker]:
+def worker() -> Iterator[RenderProcess]:
     """One render child for the whole catalogue (Mitsuba imported once)."""
-    with RenderWorker() as w:
+    with RenderProcess() as w:
         yield w
 
 
@@ -72,7 +72,7 @@ def _plan_units(spec: SceneSpec, level: str, spp: int, depth: int, target: int) 
     if level == "off":
         rects = equal_tiles(info.width, info.height, target)
         return [WorkUnit(index=i, rect=r, C=0.0, S=r.area, Nd=0.0, cost=float(r.area)) for i, r in enumerate(rects)]
-    from core.render import scene as scene_mod
+    from core.scene import scene as scene_mod
     from planning.complexity import prepass
     from planning.partition import partition
 
@@ -82,7 +82,7 @@ def _plan_units(spec: SceneSpec, level: str, spp: int, depth: int, target: int) 
     return partition(cmap, target_units=target)
 
 
-def render_units(worker: RenderWorker, spec: SceneSpec, level: str, spp: int, depth: int, units: int,
+def render_units(worker: RenderProcess, spec: SceneSpec, level: str, spp: int, depth: int, units: int,
                  rules: Path | None = None) -> Run:
     """The "units" route: the pipeline's steps, every unit rendered in the shared worker."""
     info = film_info(spec)
@@ -107,8 +107,8 @@ def render_units(worker: RenderWorker, spec: SceneSpec, level: str, spp: int, de
 def render_pipeline(spec: SceneSpec, level: str, spp: int, depth: int, units: int, rules: Path | None,
                     out: Path) -> Run:
     """The "pipeline" route: `render_job` as `quekaro render` calls it; reads back what it wrote."""
+    from core.image.imageio import read_image
     from core.model.job import RenderOptions
-    from core.render.imageio import read_image
     from planning.pipeline import render_job
 
     options = RenderOptions(level=level, spp=spp, depth=depth, threads=THREADS, rules=rules, units=units)

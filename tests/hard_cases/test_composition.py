@@ -13,9 +13,9 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from core.image.compose import compose
+from core.image.tiles import Tile
 from core.model.geometry import Rect
-from core.render.compose import compose
-from core.render.tiles import Tile
 from planning.partition import equal_tiles
 
 F32_MAX = float(np.finfo(np.float32).max)

@@ -1,6 +1,6 @@
 """Faults the farm must survive without losing a unit, as far as they can be driven without a farm:
 an agent dying at each step of the contract net (master/auction.py is a pure state machine, driven
-here directly), and a disk that fills while a tile is written (core.render.tiles.write_tile on a tiny tmpfs).
+here directly), and a disk that fills while a tile is written (core.image.tiles.write_tile on a tiny tmpfs).
 The farm-level faults (SIGKILL, master and XMPP restarts) are in tests/test_farm.py."""
 
 from __future__ import annotations
@@ -15,12 +15,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from auction_support import informed, message, register, submit, tick, uploadable
 
 from core.errors import TileError
+from core.image.tiles import Tile, read_tile, write_tile
 from core.model import messages as m
 from core.model.geometry import Rect
 from core.model.units import WorkUnit
-from core.render.tiles import Tile, read_tile, write_tile
 from master import auction as au
 
 HASH = "ab" * 32
@@ -31,26 +32,27 @@ def _auction() -> au.Auction:
     a = au.Auction(rng=random.Random(3))
     info = m.JobInfo(job_id="job-1", scene_url="http://127.0.0.1:8765/scene", scene_hash=HASH, width=16,
                      height=16, spp=4, depth=4, level="S", ranges={"C": (0.0, 1.0)})
-    a.add_job(info, [WorkUnit(index=0, rect=Rect(0, 0, 16, 16), C=1.0, S=256, Nd=0.0, cost=1.0)])
+    submit(a, info, [WorkUnit(index=0, rect=Rect(0, 0, 16, 16), C=1.0, S=256, Nd=0.0, cost=1.0)])
     for name in ("doomed", "spare"):
-        a.register(name, 0.0)
-    a.agents["doomed"].credits = 5  # it wins the contest, so its death is what the test exercises
+        register(a, name, 0.0)
+    a._agents["doomed"].credits = 5  # it wins the contest, so its death is what the test exercises
     return a
 
 
-def _sends(cmds: list[au.Command], kind: type) -> list[au.Send]:
-    return [c for c in cmds if isinstance(c, au.Send) and isinstance(c.message, kind)]
+def _sends(cmds: list[au.Instruction], kind: type) -> list[au.SendToAgent]:
+    return [c for c in cmds if isinstance(c, au.SendToAgent) and isinstance(c.message, kind)]
 
 
-def _kinds(cmds: list[au.Command]) -> list[type[au.Event]]:
-    return [type(c) for c in cmds if isinstance(c, au.Event)]
+def _kinds(cmds: list[au.Instruction]) -> list[type[au.Record]]:
+    return [type(c) for c in cmds if isinstance(c, au.Record)]
 
 
-def _bid(a: au.Auction, now: float, who: set[str]) -> None:
-    for send in _sends(a.announce(now), m.CallForProposal):
+def _bid(a: au.Auction, now: float, who: set[str], calls: list[au.Instruction] | None = None) -> None:
+    """The agents in `who` bid on the calls for proposals in `calls` (default: a tick's)."""
+    for send in _sends(tick(a, now) if calls is None else calls, m.CallForProposal):
         if send.to in who:
             est = tuple(m.Estimate(index=u.index, seconds=1.0) for u in send.message.units)
-            a.on_propose(send.to, m.Propose(conversation=send.message.conversation, job_id="job-1",
+            message(a, send.to, m.Propose(conversation=send.message.conversation, job_id="job-1",
                                             estimates=est), now)
 
 
@@ -63,43 +65,44 @@ def _inform(award: m.Award) -> m.Inform:
 def test_agent_dying_at_each_protocol_step_loses_nothing(step):
     a = _auction()
     _bid(a, 0.0, {"doomed", "spare"})
-    award = _sends(a.decide(0.0), m.Award)[0]
+    award = _sends(tick(a, 0.0), m.Award)[0]
     assert award.to == "doomed"
     busy = (m.HeldUnit(job_id="job-1", index=0),)
     if step in ("rendering", "uploaded"):
-        a.on_heartbeat("doomed", m.Heartbeat(conversation="h", busy=busy), 1.0)
+        message(a, "doomed", m.Heartbeat(conversation="h", busy=busy), 1.0)
     if step == "uploaded":
-        assert a.upload_allowed("job-1", 0, award.message.token)  # the tile is on the master, no INFORM
+        assert uploadable(a, "job-1", 0, award.message.token)  # the tile is on the master, no INFORM
     if step == "proposed":
         award = None  # it died before it could read the award: the award is lost with it
     # "doomed" says no more; "spare" keeps beating until the heartbeat timeout has passed.
     late = a.config.heartbeat_timeout_s + 2.0
-    a.on_heartbeat("spare", m.Heartbeat(conversation="h", busy=()), late)
-    out = a.expire(late)
-    assert au.AgentLost in _kinds(out) and a.agents["doomed"].lost
-    assert a.counts("job-1") == Counter(pending=1)  # back in the auction, not failed, not lost
+    message(a, "spare", m.Heartbeat(conversation="h", busy=()), late)
+    out = tick(a, late)
+    assert au.AgentLost in _kinds(out) and a._agents["doomed"].lost
+    # Back in the auction (offered to the spare agent at once), not failed, not lost.
+    assert a.counts("job-1") == Counter(announced=1) and [s.to for s in _sends(out, m.CallForProposal)] == ["spare"]
     first_token = (award.message.token if award else None)
     if first_token:
-        assert not a.upload_allowed("job-1", 0, first_token)  # the dead agent's upload is void now
-    _bid(a, late, {"spare"})
-    again = _sends(a.decide(late), m.Award)
+        assert not uploadable(a, "job-1", 0, first_token)  # the dead agent's upload is void now
+    _bid(a, late, {"spare"}, out)
+    again = _sends(tick(a, late), m.Award)
     assert [s.to for s in again] == ["spare"] and again[0].message.token != first_token
-    done = a.on_inform("spare", _inform(again[0].message), late + 1)
+    done = informed(a, "spare", _inform(again[0].message), late + 1)
     assert _kinds(done)[-1] is au.JobDone and a.counts("job-1") == Counter(done=1)
     if award:  # a result from the dead agent arriving now changes nothing
-        ghost = a.on_inform("doomed", _inform(award.message), late + 2)
+        ghost = informed(a, "doomed", _inform(award.message), late + 2)
         assert _kinds(ghost) == [au.MessageIgnored] and a.counts("job-1") == Counter(done=1)
 
 
 def test_same_result_delivered_twice_by_the_same_agent_counts_once():
     a = _auction()
     _bid(a, 0.0, {"doomed", "spare"})
-    award = _sends(a.decide(0.0), m.Award)[0]
+    award = _sends(tick(a, 0.0), m.Award)[0]
     inform = _inform(award.message)
-    first = a.on_inform("doomed", inform, 1.0)
-    second = a.on_inform("doomed", dataclasses.replace(inform, seconds=9.0), 1.1)
+    first = informed(a, "doomed", inform, 1.0)
+    second = informed(a, "doomed", dataclasses.replace(inform, seconds=9.0), 1.1)
     assert _kinds(first).count(au.UnitDone) == 1 and au.UnitDone not in _kinds(second)
-    assert a.agents["doomed"].credits == 6  # one credit for one result, not two
+    assert a._agents["doomed"].credits == 6  # one credit for one result, not two
     assert a.counts("job-1") == Counter(done=1)
 
 

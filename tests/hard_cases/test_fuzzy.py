@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from core.data import default_rules_path
+from core.rules.outputs import LS_MAX, to_render_params
 from fuzzy import Engine, load_rulebase
-from fuzzy.render_params import LS_MAX, to_render_params
 from hard_cases.conftest import RULES
 
 # (x, y) -> z, worked out by hand from rules/degenerate.xml:

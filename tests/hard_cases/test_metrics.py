@@ -1,4 +1,4 @@
-"""Hard cases of the image metrics (core.render.metrics): identical images, black and near-black references,
+"""Hard cases of the image metrics (core.image.metrics): identical images, black and near-black references,
 single pixels, non-finite input. Every metric is finite and silent (no numpy warning) or refuses clearly."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import warnings
 import numpy as np
 import pytest
 
-from core.render import metrics
-from core.render.imageio import ImageError
+from core.image import metrics
+from core.image.imageio import ImageError
 
 METRICS = {
     "mean_pixel_diff_percent": metrics.mean_pixel_diff_percent,

@@ -457,9 +457,15 @@ function renderUnit(unit) {
     el("tr", {}, ["agent", "started", "finished", "outcome", "seconds", "reason"].map((h) => el("th", {}, h))),
     (unit.attempt_list || []).map((a) => el("tr", {}, el("td", {}, a.agent), el("td", {}, fmtTime(a.started)),
       el("td", {}, fmtTime(a.finished)), el("td", {}, a.outcome), el("td", {}, a.seconds ?? ""), el("td", {}, a.reason))));
+  const story = el("table", { id: "story-table" },
+    el("tr", {}, ["time", "from", "to", "stimulus"].map((h) => el("th", {}, h))),
+    (unit.story || []).map((s) => el("tr", {}, el("td", {}, fmtTime(s.at)), el("td", {}, s.start),
+      el("td", {}, s.finish), el("td", {}, s.stimulus_id))));
   fill(document.getElementById("unit-details"),
     el("h3", { id: "unit-title", "data-unit": unit.index }, `Unit ${unit.index}`), table,
-    el("h3", {}, "Rules that fired"), rulesPart, el("h3", {}, "Attempts"), attempts);
+    el("h3", {}, "Rules that fired"), rulesPart, el("h3", {}, "Attempts"), attempts,
+    el("h3", {}, "Story"), unit.story && unit.story.length ? story
+      : el("p", { class: "muted" }, "No change of state since the master started."));
 }
 
 function accuracyPart(report) {

@@ -3,7 +3,7 @@
 Used by the render agents (each with its own rule file) and by the in-process pipeline. Level `off`
 applies no rules at all: every unit renders at the user's depth and spp, with the minimum band.
 Otherwise the fuzzy rule base (rules/pathtracing.xml unless told) weights the user's values, as
-`fuzzy.render_params` documents; the band never drops below the job's `min_band`, the reach of its film's
+`core.rules.outputs` documents; the band never drops below the job's `min_band`, the reach of its film's
 reconstruction filter (2 px for Mitsuba's gaussian), so that every unit's core is rendered with all the
 samples its filter sees; composition blends only the band beyond that reach.
 
@@ -27,10 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from core.data import default_rules_path
+from core.model.levels import RULE_LEVELS
 from core.model.units import WorkUnit
+from core.rules.outputs import masyro_render_params, to_render_params
 from fuzzy import Engine, load_rulebase
-from fuzzy.levels import RULE_LEVELS
-from fuzzy.render_params import masyro_render_params, to_render_params
 
 FEATURES = ("C", "S", "Nd")
 DEPTH_STEPS = (1.0, 0.75, 0.5)  # the fractions of the user's depth a unit may render with

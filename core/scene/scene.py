@@ -1,7 +1,7 @@
 """Scene files: what a scene is (`SceneSpec`: a file plus `-D` parameters), loading it into Mitsuba,
 and reading facts from its XML without loading it (image size, film filter, files it references).
 
-The XML reader follows Mitsuba's own rules (core.render.resolver): `<default name value>` sets a parameter
+The XML reader follows Mitsuba's own rules (core.scene.resolver): `<default name value>` sets a parameter
 unless `-D` already did, `$name` is substituted in attribute values, `<include filename>` is expanded in
 place (at most 15 levels), and file names are looked up as Mitsuba's file resolver does (the scene's
 folder, `<path>` entries, the working directory, then the `-a` search paths of the SceneSpec).
@@ -19,14 +19,15 @@ from typing import Any
 
 from lxml import etree
 
+from core import mitsuba_env
 from core.errors import QuekaroError, SceneError
+from core.image import film as film_mod
 from core.model.job import FILM_COLOURS, RGB, ImageFile, SceneSpec
-from core.render import film as film_mod
-from core.render import mitsuba_env, resolver
-from core.render.resolver import SRC_ATTR, parse_xml
+from core.scene import resolver
+from core.scene.resolver import SRC_ATTR, parse_xml
 
 # Mitsuba and Dr.Jit are imported where used: `import mitsuba` costs ~0.35 s and 85 MB, must follow the
-# variant choice (core.render.mitsuba_env), and processes that never render must not pay for it.
+# variant choice (core.mitsuba_env), and processes that never render must not pay for it.
 
 __all__ = ["SRC_ATTR", "parse_xml"]
 
@@ -106,7 +107,7 @@ def load(spec: SceneSpec, variant: str | None = None, threads: int | None = None
 
 
 def read(spec: SceneSpec) -> resolver.SceneFiles:
-    """The scene's XML files and every file reference, resolved as Mitsuba does (core.render.resolver)."""
+    """The scene's XML files and every file reference, resolved as Mitsuba does (core.scene.resolver)."""
     return resolver.read_scene(spec.path, spec.defines, spec.search_paths, cwd=Path.cwd())
 
 

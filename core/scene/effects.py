@@ -28,11 +28,11 @@ from typing import Any
 from core.errors import SceneError
 from core.model import integrators
 from core.model.job import Effects, SceneSpec
-from core.render import scene as scene_mod
-from core.render import spectral_data
+from core.scene import scene as scene_mod
+from core.scene import spectral_data
 
 # Mitsuba and Dr.Jit are imported where used: `import mitsuba` costs ~0.35 s and 85 MB, must follow the
-# variant choice (core.render.mitsuba_env), and processes that never render must not pay for it.
+# variant choice (core.mitsuba_env), and processes that never render must not pay for it.
 
 RGB_VARIANT, SPECTRAL_VARIANT, POLARIZED_VARIANT = "llvm_ad_rgb", "llvm_ad_spectral", "llvm_ad_spectral_polarized"
 POLARIZING_BSDFS = ("polarizer", "retarder", "pplastic", "measured_polarized")

@@ -10,7 +10,7 @@ from __future__ import annotations
 import flip_evaluator
 import numpy as np
 
-from core.render.imageio import ImageError, as_rgb, linear_to_srgb
+from core.image.imageio import ImageError, as_rgb, linear_to_srgb
 
 RELMSE_EPSILON = 1e-2
 # HDR-FLIP derives its exposure range from the reference's peak luminance; below about 1e-7 the range

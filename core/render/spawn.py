@@ -1,4 +1,4 @@
-"""Starting the render process that core.render.worker runs units in: a plain subprocess joined to this
+"""Starting the render process that core.render.process runs units in: a plain subprocess joined to this
 one by a socket pair, and a way to start one early. Standard library only, so that a command can start
 it before its own imports: `quekaro render` does, and the child imports Mitsuba (~0.3 s) while the
 command imports the rest.
@@ -28,7 +28,7 @@ def spawn() -> Child:
     root = str(Path(__file__).resolve().parents[2])
     path = os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))
     env = {**os.environ, "PYTHONPATH": path}
-    code = f"import core.render.worker as r; r._child_entry({theirs.fileno()})"
+    code = f"import core.render.process as r; r._child_entry({theirs.fileno()})"
     proc = subprocess.Popen([sys.executable, "-c", code], pass_fds=(theirs.fileno(),), env=env,
                             stdin=subprocess.DEVNULL, preexec_fn=die_with_parent)
     theirs.close()

@@ -22,9 +22,9 @@ import numpy as np
 import OpenEXR
 
 from core.errors import TileError
+from core.image.compose import TileSource
 from core.model.geometry import Rect
 from core.model.job import RGB
-from core.render.compose import TileSource
 
 META_ATTR = "quekaro_meta"
 CORE_ATTR = "quekaro_core"

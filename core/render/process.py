@@ -1,5 +1,5 @@
 """Rendering one work unit: the job description (`RenderRequest`), the render itself, and the persistent child
-process (`RenderWorker`) that runs it so that an LLVM abort or a hang costs one unit, never the job.
+process (`RenderProcess`) that runs it so that an LLVM abort or a hang costs one unit, never the job.
 
 How a unit renders: the unit's window (its rectangle grown by its band, shifted inside at the image's
 edge: core.model.geometry.Rect.window) is rendered with the scene's own integrator (or, when the rules
@@ -10,7 +10,7 @@ the window's offset but a crop at (0, 0) of the window's size with the camera's 
 window *size* instead of one per window *position* (a crop offset is baked into the kernel and costs
 ~0.45 s to compile; design.md section 3). Other sensors use a crop. Windows are in the image's pixels: a
 film the scene crops itself renders its crop window, so a window lies at the crop's offset in it. The
-tile keeps every channel the film writes (its bitmap, the colour named R, G, B: core.render.film).
+tile keeps every channel the film writes (its bitmap, the colour named R, G, B: core.image.film).
 
 Non-finite pixels (an emitter with infinite or NaN radiance): every non-finite channel value is set to
 0, and the number of pixels that had any is reported as `meta["nonfinite"]`, so they never propagate.
@@ -34,18 +34,20 @@ from typing import Any, NoReturn
 
 import numpy as np
 
+from core import mitsuba_env
 from core.errors import QuekaroError, RenderError, SceneError
+from core.image.film import film_channels, sanitize
+from core.image.tiles import Tile
 from core.model import integrators
 from core.model.geometry import Rect
 from core.model.job import SceneSpec
-from core.render import child, mitsuba_env, scene
+from core.render import spawn as child
 from core.render.adaptive import render_adaptive
-from core.render.film import film_channels, sanitize
-from core.render.scene import sensor_of
-from core.render.tiles import Tile
+from core.scene import scene
+from core.scene.scene import sensor_of
 
 # Mitsuba and Dr.Jit are imported where used: `import mitsuba` costs ~0.35 s and 85 MB, must follow the
-# variant choice (core.render.mitsuba_env), and processes that never render must not pay for it.
+# variant choice (core.mitsuba_env), and processes that never render must not pay for it.
 
 STARTUP_TIMEOUT_S = 120.0
 # What a unit's two-pass render (RenderRequest.first) adds to its tile's header.
@@ -391,7 +393,7 @@ def _child_main(conn: Any) -> NoReturn:
 def _exit_now() -> NoReturn:
     """End the render process without the interpreter's teardown. It has answered everything and writes
     no file (Dr.Jit stores each kernel on disk as it compiles it), and tearing Mitsuba and Dr.Jit down took
-    0.1-0.2 s that a job waited for at its end (`RenderWorker.stop`)."""
+    0.1-0.2 s that a job waited for at its end (`RenderProcess.stop`)."""
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(OSError, ValueError):  # a parent gone away may have closed the pipe
             stream.flush()
@@ -422,7 +424,7 @@ def _death_reason(exitcode: int | None) -> str:
     return f"render process exited with status {exitcode}"
 
 
-class RenderWorker:
+class RenderProcess:
     """A persistent child process rendering units one at a time, restarted after a crash or timeout.
 
     It keeps Mitsuba imported and the last scene loaded, so a unit costs little more than its render.
@@ -455,7 +457,7 @@ class RenderWorker:
 
     def launch(self) -> None:
         """Start the child without waiting for it: it imports Mitsuba while the caller does other work; the
-        first `render` or `call` waits for it. A child started early (core.render.child) is taken."""
+        first `render` or `call` waits for it. A child started early (core.render.spawn) is taken."""
         if self.alive():
             return
         self._kill()  # a released child still shutting down, or a dead one: reaped
@@ -514,7 +516,7 @@ class RenderWorker:
         if abort is not None and abort.is_set() and proc is not None and proc.poll() is None:
             proc.kill()
 
-    def __enter__(self) -> RenderWorker:
+    def __enter__(self) -> RenderProcess:
         self.start()
         return self
 
@@ -591,12 +593,12 @@ class RenderWorker:
         self._proc, self._conn = None, None
 
 
-_default_worker: RenderWorker | None = None
+_default_worker: RenderProcess | None = None
 
 
 def render_unit(job: RenderRequest, timeout: float | None = None) -> Tile:
-    """Render a unit in this process's shared RenderWorker (started on first use)."""
+    """Render a unit in this process's shared RenderProcess (started on first use)."""
     global _default_worker
     if _default_worker is None:
-        _default_worker = RenderWorker()
+        _default_worker = RenderProcess()
     return _default_worker.render(job, timeout)

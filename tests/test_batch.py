@@ -1,4 +1,4 @@
-"""Units rendered together (core.render.together): how they are batched, the samples each pixel draws, and
+"""Units rendered together (core.render.batch): how they are batched, the samples each pixel draws, and
 that each unit's tile is plain Mitsuba's render at the unit's own depth and spp (render_check)."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from core.errors import RenderError
 from core.model.geometry import Rect, filter_reach
 from core.model.job import SceneSpec
 from core.model.seeds import unit_seed
-from core.render.together import (
+from core.render.batch import (
     BATCH_SAMPLES,
     batch_counts,
     batches,
@@ -23,7 +23,7 @@ from core.render.together import (
     render_batch_here,
     together_problem_here,
 )
-from core.render.worker import RenderRequest, RenderWorker
+from core.render.process import RenderProcess, RenderRequest
 
 SCENES = Path(__file__).resolve().parent / "compat" / "scenes"
 W, H = 48, 40
@@ -106,7 +106,7 @@ def test_scenes_render_counts_cannot_render_are_named(tmp_path, xml, reason):
         scene = tmp_path / "prb.xml"
         scene.write_text((SCENES / "rgba.xml").read_text().replace('integrator type="path"', 'integrator type="prb"'))
     variant = "llvm_ad_spectral_polarized" if xml == "stokes.xml" else "llvm_ad_rgb"
-    with RenderWorker() as worker:
+    with RenderProcess() as worker:
         problem = worker.call(together_problem_here, job(Rect(0, 0, 16, 16), scene=scene, variant=variant),
                               timeout=120)
     assert problem is not None and reason in problem
@@ -139,7 +139,7 @@ def test_units_rendered_together_are_mitsubas_render_at_each_units_depth_and_spp
     jobs = six_units(depths, spps, band=4, scene=SCENES / xml, variant=variant)
     groups = batches(jobs)
     assert len(groups) == 2
-    with RenderWorker() as worker:
+    with RenderProcess() as worker:
         tiles = {int(t.meta["unit_index"]): t for b in groups for t in worker.call(render_batch_here, b, timeout=300)}
     assert sorted(tiles) == list(range(6))
     refs = {}

@@ -3,6 +3,8 @@ run), and `off` (no rules: every unit renders at the user's depth and spp)."""
 
 from __future__ import annotations
 
+from fuzzy.rulebase import OP_LABELS
+
 OFF = "off"
-RULE_LEVELS = ("VS", "S", "N", "B", "VB")
+RULE_LEVELS = OP_LABELS
 LEVELS = (OFF, *RULE_LEVELS)

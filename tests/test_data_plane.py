@@ -18,10 +18,10 @@ from disk_support import small_tmpfs
 
 from agents.transfer import TransferError, fetch_bundle, upload_tile
 from core.errors import QuekaroError
+from core.image.tiles import Tile, write_tile
 from core.model.geometry import Rect
-from core.render.bundle import BundleError, make_bundle
-from core.render.tiles import Tile, write_tile
-from master.http_api import create_app, serve
+from core.scene.bundle import BundleError, make_bundle
+from master.data_plane import create_app, serve
 
 CORE = Rect(16, 8, 24, 16)
 IMAGE = (640, 480)
@@ -44,14 +44,16 @@ class Farm:
         self.loop = asyncio.new_event_loop()
         self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
 
-    def expected(self, job: str, unit: int):
-        return self.units.get((job, unit))
+    def expected(self, job: str, unit: int, token: str):
+        """The unit's rectangle and image, if `token` is its award's (the auction's check, as the master makes it)."""
+        slot = self.units.get((job, unit))
+        return None if slot is None or slot[0] != token else slot[1:]
 
     def bundle(self, job: str):
         self.bundle_calls += 1
         return self.bundles.get(job)
 
-    async def on_tile(self, job, unit, path, sha256, agent):
+    async def on_tile(self, job, unit, path, sha256, token, agent):
         if self.fail_on_tile:
             raise RuntimeError("store is read-only")
         self.tiles.append((job, unit, path, sha256, agent, path.read_bytes()))

@@ -20,7 +20,7 @@ from core.files import written_atomically
 from core.model.job import ImageFile
 
 # Mitsuba and Dr.Jit are imported where used: `import mitsuba` costs ~0.35 s and 85 MB, must follow the
-# variant choice (core.render.mitsuba_env), and processes that never render must not pay for it.
+# variant choice (core.mitsuba_env), and processes that never render must not pay for it.
 
 
 class ImageError(QuekaroError):

@@ -12,7 +12,7 @@ from typing import Any
 from core.errors import QuekaroError, RenderError
 
 # Mitsuba and Dr.Jit are imported where used: `import mitsuba` costs ~0.35 s and 85 MB, must follow the
-# variant choice (core.render.mitsuba_env), and processes that never render must not pay for it.
+# variant choice (core.mitsuba_env), and processes that never render must not pay for it.
 
 log = logging.getLogger(__name__)
 

@@ -11,7 +11,7 @@ least when its spp grows with its noise); the cap bounds what one unit can cost.
 SPP_MAX, the most a job may ask for, so that a job near that limit plans units the farm's messages carry.
 The outputs' default (no rule fired) is 1.0, i.e. "keep the user's value". Results are clamped to
 depth >= 1 and spp >= 1 so that a unit always renders something. A planner may impose a larger minimum
-band (core.render.planner does: the reconstruction filter's reach) and quantise depth.
+band (core.rules.unit_params does: the reconstruction filter's reach) and quantise depth.
 
 The optimisation level is an input: `RuleBase.op_value(level)` gives the crisp Op for a level name, the
 middle of that label's plateau in the rule file's own Op sets (VS=0 .. VB=4 in rules/pathtracing.xml,
@@ -29,8 +29,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from core.model.units import SPP_MAX
+
 LS_MAX = 3.0  # most a unit's spp may grow over the user's (see the module docstring)
-SPP_MAX = 1 << 20  # most samples per pixel a job asks for and a unit renders (core.model's limit)
 
 
 def to_render_params(

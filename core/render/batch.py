@@ -1,5 +1,5 @@
 """Several units of one job rendered in one wavefront (`render_batch_here`): every pixel at its unit's spp
-through core.render.counts.render_counts over the units' windows at once, and each unit's tile cut from
+through core.render.per_pixel.render_counts over the units' windows at once, and each unit's tile cut from
 that render.
 
 Why: besides its samples, a Mitsuba render call costs milliseconds (tracing the kernel, seeding the
@@ -28,12 +28,12 @@ from collections.abc import Sequence
 import numpy as np
 
 from core.errors import RenderError
+from core.image.film import sanitize
+from core.image.tiles import Tile
 from core.model.geometry import Rect
-from core.render.counts import check_renderable, render_counts
-from core.render.film import sanitize
-from core.render.scene import sensor_of
-from core.render.tiles import Tile
-from core.render.worker import RenderRequest, RenderWorker, aim, local_cache, unit_meta
+from core.render.per_pixel import check_renderable, render_counts
+from core.render.process import RenderProcess, RenderRequest, aim, local_cache, unit_meta
+from core.scene.scene import sensor_of
 
 BATCH_SAMPLES = 1 << 24
 # A batch renders the whole image's film where the image has at most this many pixels, else the least
@@ -137,7 +137,7 @@ def render_batch_here(batch: Sequence[RenderRequest]) -> list[Tile]:
     return tiles
 
 
-def render_batch(worker: RenderWorker, batch: Sequence[RenderRequest], timeout: float | None,
+def render_batch(worker: RenderProcess, batch: Sequence[RenderRequest], timeout: float | None,
                  abort: threading.Event | None = None) -> list[Tile]:
     """The batch's tiles, rendered by `render_batch_here` in `worker`'s render process."""
     return worker.call(render_batch_here, batch, doing=batch_name(batch), timeout=timeout, abort=abort)

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from core.model.levels import RULE_LEVELS as LEVELS
+from core.rules.outputs import LS_MAX, masyro_render_params, to_render_params
 from fuzzy import load_rulebase
-from fuzzy.levels import RULE_LEVELS as LEVELS
-from fuzzy.render_params import LS_MAX, masyro_render_params, to_render_params
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -24,12 +24,12 @@ from typing import Any
 
 import numpy as np
 
+from core import mitsuba_env
 from core.errors import RenderError
-from core.render import mitsuba_env
-from core.render.film import film_channels
-from core.render.metrics import RELMSE_EPSILON
+from core.image.film import film_channels
+from core.image.metrics import RELMSE_EPSILON
 
-# Mitsuba and Dr.Jit are imported where used (core.render.worker explains why).
+# Mitsuba and Dr.Jit are imported where used (core.render.process explains why).
 
 SAMPLERS = ("IndependentSampler",)  # samplers whose samples do not depend on a fixed spp per pixel
 # The wavefront is padded with masked lanes (no radiance, zero weight, left out of the moments) to a
@@ -52,7 +52,7 @@ class WindowRender:
 
     def relative_variance(self, epsilon: float = RELMSE_EPSILON) -> np.ndarray:
         """Per pixel, the per-sample variance (mean over RGB) over (mean^2 + epsilon), the mean also over
-        RGB: about the relMSE one sample adds there. core.render.metrics.relmse weighs each channel by
+        RGB: about the relMSE one sample adds there. core.image.metrics.relmse weighs each channel by
         its own mean; weighted so, a saturated colour's dim channels make the predicted gain of an
         allocation noisier, enough to cross the threshold that decides whether to adapt
         (core.render.adaptive.PAYS_BELOW). Pixels with < 2 samples: 0."""

@@ -8,6 +8,7 @@ must not be able to submit or cancel jobs. Routes:
     GET  /api/jobs/{job}           one job: status, progress, agents busy, ETA, error
     GET  /api/jobs/{job}/result    the composed EXR (409 until the job is done)
     GET  /api/jobs/{job}/report    the JSON report
+    GET  /api/jobs/{job}/units/{n} one unit: status, agent, attempts, and its story (the stimuli that moved it)
     POST /api/jobs/{job}/cancel
     GET  /api/agents               agents the auction knows, with their records
 """
@@ -27,19 +28,20 @@ from aiohttp import web
 from core.errors import QuekaroError
 from core.model.job import JobSpec, RenderOptions
 from master import sessions
+from master.auction import Auction
 from master.http_guard import Refusal, bearer_token, disk_full, json_error, read_body_chunks
 from master.store import JobStore, StoreError
 from planning import budgets
 
 
-class MasterService(Protocol):
+class JobService(Protocol):
     """What the job API needs of the master (`master.service.MasterService` is it; this module does not
-    import it, so that the service can mount these routes)."""
+    import it, so that the service can mount these routes). Of the auction it reads only its read API."""
 
     admin_token: str
     jobs_dir: Path
     store: JobStore
-    auction: Any
+    auction: Auction | None
     paused: str | None
     data_plane: str
     shared_accounts: sessions.SharedAccounts
@@ -47,7 +49,6 @@ class MasterService(Protocol):
     async def submit(self, bundle: Path, defines: dict[str, str], options: RenderOptions) -> str: ...
     async def cancel(self, job_id: str) -> bool: ...
     async def ensure_assembled(self, job_id: str) -> Path: ...
-    def auction_now(self) -> float: ...
     def result_path(self, job_id: str) -> Path: ...
     def result_image(self, job_id: str) -> Path: ...
 
@@ -55,7 +56,7 @@ MAX_BUNDLE_BYTES = 1 << 30
 SERVICE_KEY = web.AppKey("quekaro_master", object)
 
 
-def add_job_routes(app: web.Application, service: MasterService) -> None:
+def add_job_routes(app: web.Application, service: JobService) -> None:
     """Mount the job API on the master's aiohttp application."""
     app[SERVICE_KEY] = service
     app.router.add_post("/api/jobs", submit)
@@ -63,12 +64,13 @@ def add_job_routes(app: web.Application, service: MasterService) -> None:
     app.router.add_get("/api/jobs/{job}", job_status)
     app.router.add_get("/api/jobs/{job}/result", job_result)
     app.router.add_get("/api/jobs/{job}/report", job_report)
+    app.router.add_get("/api/jobs/{job}/units/{unit:[0-9]{1,7}}", job_unit)
     app.router.add_post("/api/jobs/{job}/cancel", job_cancel)
     app.router.add_get("/api/agents", agents)
     app.router.add_get("/api/farm", farm)
 
 
-def _service(request: web.Request) -> MasterService:
+def _service(request: web.Request) -> JobService:
     service = request.app[SERVICE_KEY]
     token = bearer_token(request)
     if not token or not hmac.compare_digest(token.encode(), service.admin_token.encode()):
@@ -114,7 +116,7 @@ async def submit(request: web.Request) -> web.Response:
     return web.json_response({"job_id": job_id}, status=201)
 
 
-def job_summary(service: MasterService, job_id: str) -> dict[str, Any]:
+def job_summary(service: JobService, job_id: str) -> dict[str, Any]:
     """Status and progress of one job, as the CLI shows it."""
     record = service.store.job(job_id)
     shares = record.plan.get("shares") or None
@@ -132,6 +134,35 @@ def job_summary(service: MasterService, job_id: str) -> dict[str, Any]:
     }
 
 
+def unit_story(service: JobService, job_id: str, index: int) -> list[dict[str, Any]]:
+    """The unit's changes of status since the master started, each with the stimulus that made it and its
+    auction time (wall time less any pause): empty for a unit of a job the running master did not auction."""
+    story = service.auction.story(job_id, index) if service.auction else []
+    return [{"stimulus_id": t.stimulus_id, "start": t.start, "finish": t.finish, "at": round(t.at, 3)}
+            for t in story]
+
+
+def unit_summary(service: JobService, job_id: str, index: int) -> dict[str, Any]:
+    """One unit as `quekaro status JOB --unit N` shows it; KeyError for a unit the job does not have."""
+    units = [u for u in service.store.units(job_id) if u.index == index]
+    if not units:
+        raise KeyError(f"job {job_id} has no unit {index}")
+    attempts = service.store.attempts(job_id, index)
+    return {"job_id": job_id, "index": index, "status": str(units[0].status),
+            "agent": next((a.agent for a in attempts if a.outcome == "running"), None),
+            "attempts": [{"agent": a.agent, "started": a.started, "finished": a.finished, "outcome": a.outcome,
+                          "seconds": a.seconds, "reason": a.reason} for a in attempts],
+            "story": unit_story(service, job_id, index)}
+
+
+async def job_unit(request: web.Request) -> web.Response:
+    service = _service(request)
+    try:
+        return web.json_response(unit_summary(service, request.match_info["job"], int(request.match_info["unit"])))
+    except (StoreError, KeyError) as exc:
+        return json_error(404, str(exc).strip("'\""))
+
+
 async def list_jobs(request: web.Request) -> web.Response:
     service = _service(request)
     return web.json_response({"jobs": [job_summary(service, r.id) for r in service.store.list_jobs()]})
@@ -145,7 +176,7 @@ async def job_status(request: web.Request) -> web.Response:
         return json_error(404, str(exc))
 
 
-async def _finished_result(request: web.Request) -> tuple[MasterService, str] | web.Response:
+async def _finished_result(request: web.Request) -> tuple[JobService, str] | web.Response:
     service = _service(request)
     job_id = request.match_info["job"]
     try:
@@ -201,24 +232,23 @@ async def agents(request: web.Request) -> web.Response:
     return web.json_response({"agents": agent_rows(_service(request))})
 
 
-def agent_rows(service: MasterService, counts: dict[str, tuple[int, int]] | None = None) -> list[dict[str, Any]]:
+def agent_rows(service: JobService, counts: dict[str, tuple[int, int]] | None = None) -> list[dict[str, Any]]:
     """Every agent the master knows: its state (lost, rendering, idle), speed, credits, the units it holds,
     units done and failed (`counts`: the store's `agent_counts`, read if not given), and seconds since it
     was last heard from, and `shared`, what the master says if several clients log in with its JID (the
     web page shows the same rows)."""
     counts = service.store.agent_counts() if counts is None else counts
-    now = service.auction_now()
     rows = []
-    for agent in (service.auction.agents.values() if service.auction else ()):
+    for agent in (service.auction.agent_views(time.time()) if service.auction else ()):
         done, failed = counts.get(agent.name, (0, 0))
         state = "lost" if agent.lost else "rendering" if agent.holding else "idle"
         rows.append({"jid": agent.name, "state": state, "lost": agent.lost, "credits": agent.credits,
-                     "speed": agent.speed, "holding": sorted(f"{j}/{i}" for j, i in agent.holding),
-                     "units_done": done, "units_failed": failed,
-                     "last_seen_s": round(max(0.0, now - agent.last_seen), 1), "shared": _shared(service, agent.name)})
+                     "speed": agent.speed, "holding": list(agent.holding), "units_done": done,
+                     "units_failed": failed, "last_seen_s": agent.heard_s_ago,
+                     "blocklisted_for": list(agent.blocklisted_for), "shared": _shared(service, agent.name)})
     return rows
 
 
-def _shared(service: MasterService, jid: str) -> str | None:
+def _shared(service: JobService, jid: str) -> str | None:
     clients = service.shared_accounts.sharing(jid, time.monotonic())
     return sessions.note(jid, clients) if clients else None

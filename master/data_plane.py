@@ -2,7 +2,7 @@
 
 Routes:
   GET /jobs/{job}/bundle
-      The job's scene bundle (core.render.bundle), its sha256 in `X-Content-SHA256`. Open by default: a bundle
+      The job's scene bundle (core.scene.bundle), its sha256 in `X-Content-SHA256`. Open by default: a bundle
       is content the agents need before they hold any token, and the default bind is 127.0.0.1. Pass
       `authorize_bundle(job, token) -> bool` to require `X-Quekaro-Token` (do so when binding beyond
       loopback); a refused token is 403.
@@ -13,10 +13,10 @@ Routes:
       limit: the app's `max_tile_bytes`, and what the unit's rectangle can need) and hash (422 on a
       mismatch) are checked. The EXR header is checked before any pixel is decoded (a small file can
       declare a huge image): its dataWindow must be the unit's rectangle grown by one band on every
-      side, clipped at the image's top/left edges (422 otherwise); then core.render.tiles.read_tile
+      side, clipped at the image's top/left edges (422 otherwise); then core.image.tiles.read_tile
       validates the whole tile (float32 R, G, B; its core rectangle equal to the unit's).
       Only then is it fsynced, renamed into `{tile_dir}/{job}/tiles/unit-{unit}.exr`, the folder
-      fsynced, and `on_tile(job, unit, path, sha256, agent)` awaited. If that callback raises, the
+      fsynced, and `on_tile(job, unit, path, sha256, token, agent)` awaited. If that callback raises, the
       file is removed again and the answer is 500, so the agent may retry.
       A duplicate of an accepted tile (same sha256, sent with the token that delivered it) is answered
       200 with status "duplicate" and changes nothing; any upload without the current award's token gets
@@ -24,8 +24,9 @@ Routes:
       the body), so that no one without the token learns a unit's state or whether a sha256 matches.
 
 Every refusal is JSON `{"error": reason, "status": code}` and leaves no file behind. The app depends on
-no store: the master supplies the provider callbacks `expected(job, unit) -> (token, rect) | None`
-(the rendered unit's rectangle, band excluded) and `bundle(job) -> (path, sha256) | None`.
+no store: the master supplies the provider callbacks `expected(job, unit, token) -> (rect, image) | None`
+(the unit's rectangle, band excluded, and the image's size, if `token` is its current award's: the
+auction compares tokens) and `bundle(job) -> (path, sha256) | None`.
 """
 
 from __future__ import annotations
@@ -50,8 +51,8 @@ import OpenEXR
 from aiohttp import web
 
 from core.errors import TileError
+from core.image.tiles import MAX_CHANNELS, durable_replace, read_tile
 from core.model.geometry import Rect
-from core.render.tiles import MAX_CHANNELS, durable_replace, read_tile
 from master.http_guard import JOB_PART, UNIT_PART, Refusal, bearer_token, disk_full, json_error, read_body_chunks
 from master.http_guard import serve as guarded_serve
 
@@ -68,9 +69,9 @@ _CHUNK = 1 << 20
 _EXR_SLACK = 1 << 20
 DISK_FULL = "disk full on the master: nothing was stored; send it again once space is freed"
 
-Expected = Callable[[str, int], Any]  # (job, unit) -> (token, unit Rect, image (width, height)) or None
+Expected = Callable[[str, int, str], Any]  # (job, unit, token) -> (unit Rect, image (width, height)) or None
 BundleProvider = Callable[[str], Any]
-OnTile = Callable[[str, int, Path, str, "str | None"], Any]
+OnTile = Callable[[str, int, Path, str, str, "str | None"], Any]
 
 
 @dataclass
@@ -182,13 +183,11 @@ def _not_yours(job: str, unit: int) -> Refusal:
     return Refusal(403, f"no current award of unit {unit} of job {job!r} matches the {TOKEN_HEADER} sent")
 
 
-def _expected_rect(value: Any, job: str, unit: int) -> tuple[str, Rect, tuple[int, int]]:
-    """(token, unit rectangle, image (width, height)) from the `expected` callback's answer."""
-    token, rect, (width, height) = value
+def _expected_rect(value: Any) -> tuple[Rect, tuple[int, int]]:
+    """(unit rectangle, image (width, height)) from the `expected` callback's answer."""
+    rect, (width, height) = value
     rect = rect if isinstance(rect, Rect) else Rect.from_list(rect)
-    if not token:
-        raise _not_yours(job, unit)
-    return str(token), rect, (int(width), int(height))
+    return rect, (int(width), int(height))
 
 
 def _size_cap(plane: DataPlane, rect: Rect) -> int:
@@ -203,12 +202,10 @@ async def put_tile(request: web.Request) -> web.Response:
     declared = request.headers.get(HASH_HEADER, "").strip().lower()
     if not _SHA_RE.match(declared):
         raise Refusal(400, f"header {HASH_HEADER} must be the body's sha256 as 64 hex digits")
-    slot = await _call(plane.expected, job, unit)
+    slot = await _call(plane.expected, job, unit, _token(request))
     if slot is None:
         return _late_upload(plane, job, unit, declared, _token(request))
-    token, rect, _ = _expected_rect(slot, job, unit)
-    if not hmac.compare_digest(_token(request).encode(), token.encode()):
-        raise _not_yours(job, unit)
+    rect, _ = _expected_rect(slot)
     cap = _size_cap(plane, rect)
     if request.content_length is not None and request.content_length > cap:
         raise Refusal(413, f"tile of {request.content_length} bytes exceeds the limit of {cap} bytes "
@@ -223,7 +220,7 @@ async def put_tile(request: web.Request) -> web.Response:
 
 
 def _late_upload(plane: DataPlane, job: str, unit: int, declared: str, token: str) -> web.Response:
-    # The unit is no longer awarded: the repeat of its accepted tile by the award that delivered it is
+    # No current award of the unit has this token: the repeat of its accepted tile by the award that delivered it is
     # harmless; anything else gets one answer, whatever it holds.
     accepted = plane.accepted.get((job, unit))
     if accepted is not None and accepted[0] == declared and hmac.compare_digest(accepted[1].encode(),
@@ -259,12 +256,11 @@ async def _accept(request: web.Request, plane: DataPlane, job: str, unit: int, t
     lock = plane.locks.setdefault((job, unit), asyncio.Lock())
     async with lock:
         # Asked again under the lock: a concurrent upload may have completed the unit meanwhile.
-        slot = await _call(plane.expected, job, unit)
-        if slot is None:
-            return _late_upload(plane, job, unit, sha256, _token(request))
-        token, rect, image = _expected_rect(slot, job, unit)
-        if not hmac.compare_digest(_token(request).encode(), token.encode()):
-            raise _not_yours(job, unit)  # awarded to another token meanwhile
+        token = _token(request)
+        slot = await _call(plane.expected, job, unit, token)
+        if slot is None:  # done, or awarded to another token meanwhile
+            return _late_upload(plane, job, unit, sha256, token)
+        rect, image = _expected_rect(slot)
         if plane.accepted.get((job, unit)) == (sha256, token):  # a repeat the master has not acted on yet
             return web.json_response({"status": "duplicate", "job": job, "unit": unit, "sha256": sha256})
         await asyncio.to_thread(_validate, tmp, rect, image, plane.max_band, f"unit {unit} of job {job!r}", job, unit)
@@ -272,7 +268,7 @@ async def _accept(request: web.Request, plane: DataPlane, job: str, unit: int, t
         await asyncio.to_thread(durable_replace, tmp, final)
         agent = request.headers.get(AGENT_HEADER, "")[:256] or None
         try:
-            await _call(plane.on_tile, job, unit, final, sha256, agent)
+            await _call(plane.on_tile, job, unit, final, sha256, token, agent)
         except TileError as exc:  # what the tile claims is not what its award allows
             final.unlink(missing_ok=True)
             raise Refusal(422, f"unit {unit} of job {job!r}: {exc}") from exc
@@ -288,7 +284,7 @@ async def _accept(request: web.Request, plane: DataPlane, job: str, unit: int, t
 
 def _validate(path: Path, core: Rect, image: tuple[int, int], max_band: int, what: str, job: str,
               unit: int) -> None:
-    """Header first (no pixel decoded for a wrong window), then the whole tile through core.render.tiles, and
+    """Header first (no pixel decoded for a wrong window), then the whole tile through core.image.tiles, and
     the unit and job its header names (assembly reads them)."""
 
     window = _data_window(path, what)

@@ -6,7 +6,7 @@ other member, the sha256 of the scene file as the submitter wrote it: `scene_sha
 the job's pre-pass as `quekaro render` of that file seeds it, where the bundle rewrote it, and where the
 submitter's scene and `-a` folders were: `submitted`, which the job's report names), followed by the
 files. The scene file lies at the top; every file it reads (found as
-Mitsuba finds it: core.render.resolver, through `<path>`, includes, `-a` search paths, absolute names, files
+Mitsuba finds it: core.scene.resolver, through `<path>`, includes, `-a` search paths, absolute names, files
 outside the scene's folder too: the submitter owns them) lies at `files/<16 hex>/<its name>`, and the
 XML files are rewritten to name those members and lose their `<path>`s, so the unpacked scene reads
 exactly the files the original read and nothing outside the bundle (check_unpacked verifies it where
@@ -42,8 +42,8 @@ from lxml import etree
 
 from core.errors import SceneError
 from core.model.hashing import sha256_file
-from core.render.planner import Planner
-from core.render.resolver import Reference, SceneFiles, parse_xml, read_scene
+from core.rules.unit_params import Planner
+from core.scene.resolver import Reference, SceneFiles, parse_xml, read_scene
 from fuzzy.errors import RuleFileError
 
 MANIFEST_NAME = "QUEKARO-MANIFEST.json"

@@ -1,4 +1,4 @@
-"""core.render.planner: unit features + level -> depth, spp, band per unit, with the real rule base."""
+"""core.rules.unit_params: unit features + level -> depth, spp, band per unit, with the real rule base."""
 
 from __future__ import annotations
 
@@ -10,10 +10,10 @@ from fuzzy_helpers import DATA, RULES
 
 from core.data import default_rules_path
 from core.model.geometry import Rect
-from core.model.units import WorkUnit
-from core.render.planner import DEPTH_STEPS, Planner, RenderParams, quantise_depth_factor
+from core.model.units import SPP_MAX, WorkUnit
+from core.rules.outputs import LS_MAX
+from core.rules.unit_params import DEPTH_STEPS, Planner, RenderParams, quantise_depth_factor
 from fuzzy import RuleFileError
-from fuzzy.render_params import LS_MAX, SPP_MAX
 
 FEATURES = {"C": np.array([1.0, 5.0, 9.0, 5.0]), "S": np.array([100, 400, 900, 400.0]),
             "Nd": np.array([0.0, 2.0, 8.0, 0.5])}

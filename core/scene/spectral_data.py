@@ -22,10 +22,10 @@ from typing import Any
 import numpy as np
 
 from core.errors import SceneError
-from core.render.resolver import RESOLVED_ATTR, SRC_ATTR
+from core.scene.resolver import RESOLVED_ATTR, SRC_ATTR
 
 # Mitsuba and Dr.Jit are imported where used: `import mitsuba` costs ~0.35 s and 85 MB, must follow the
-# variant choice (core.render.mitsuba_env), and processes that never render must not pay for it.
+# variant choice (core.mitsuba_env), and processes that never render must not pay for it.
 
 RGB_TOLERANCE = 0.02  # of the brightest channel, after up to three bounces (a flat 400-700 nm spectrum: 0.9 %)
 IOR_TOLERANCE = 1e-4  # relative spread of an index of refraction over wavelength
@@ -79,7 +79,7 @@ def _on_grid(wavelengths: np.ndarray, values: np.ndarray) -> np.ndarray:
 
 def read_spectrum(elem: Any, src: Path) -> tuple[np.ndarray, np.ndarray] | None:
     """(wavelengths, values) of a `<spectrum>` of the expanded XML given per wavelength or by file (the
-    file core.render.resolver found for it); None for a plain value."""
+    file core.scene.resolver found for it); None for a plain value."""
     where = f"{elem.get(SRC_ATTR, src)}: <spectrum name={elem.get('name')!r}>"
     if elem.get("filename"):
         return _from_file(Path(elem.get(RESOLVED_ATTR, elem.get("filename"))), where)

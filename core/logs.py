@@ -1,0 +1,55 @@
+"""How the farm's processes log: a sentence a line for people, or one JSON object a line for tools.
+
+`configure(level, fmt, role)` sets the root logger once per process. A log call passes its structured
+form as `extra=fields(...)`: the text format prints only the sentence, the JSON format adds the fields.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from typing import IO, Any
+
+FORMATS = ("text", "json")
+_FIELDS = "quekaro_fields"
+
+
+def fields(**values: Any) -> dict[str, Any]:
+    """The `extra=` of a log call: what the JSON format prints beside the sentence."""
+    return {_FIELDS: values}
+
+
+class JsonFormatter(logging.Formatter):
+    """One JSON object a line: time, level, process role, logger, the sentence, and the call's fields."""
+
+    def __init__(self, role: str) -> None:
+        super().__init__()
+        self.role = role
+
+    def format(self, record: logging.LogRecord) -> str:
+        out: dict[str, Any] = {"time": round(record.created, 3), "level": record.levelname.lower(),
+                               "role": self.role, "logger": record.name, "message": record.getMessage()}
+        out.update(getattr(record, _FIELDS, {}))
+        if record.exc_info:
+            out["exception"] = self.formatException(record.exc_info)
+        return json.dumps(out, default=str)
+
+
+def configure(level: str, fmt: str = "text", role: str = "", stream: IO[str] | None = None,
+              prefix: str = "") -> None:
+    """Log at `level` (a name: INFO, debug, ...) to `stream` (stderr) as `fmt` ('text' or 'json'). `role`
+    names the process (master, agent-0); `prefix` starts every text line (an emulated agent's mark)."""
+    if fmt not in FORMATS:
+        raise ValueError(f"--log-format {fmt!r}: expected one of {', '.join(FORMATS)}")
+    handler = logging.StreamHandler(stream or sys.stderr)
+    if fmt == "json":
+        handler.setFormatter(JsonFormatter(role))
+    else:
+        who = f" {role}" if role else ""
+        handler.setFormatter(logging.Formatter(f"{prefix}%(asctime)s{who} %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    for old in list(root.handlers):
+        root.removeHandler(old)
+    root.addHandler(handler)
+    root.setLevel(getattr(logging, str(level).upper(), logging.INFO))

@@ -1,0 +1,272 @@
+"""What the auction tells the master to do: send a message, answer a tile's upload, record a fact.
+
+Records are what the job store applies (`master.store.JobStore.apply`) and the log prints (`sentence()`,
+with `fields()` for --log-format json). Every instruction names the stimulus that caused it; tokens stay
+out of reprs, sentences and fields.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+from core.model import messages as m
+
+
+@dataclass(frozen=True)
+class Instruction:
+    """One thing for the master's I/O to do; `stimulus_id` names the stimulus it answers."""
+
+    stimulus_id: str = field(default="", kw_only=True, compare=False)
+
+
+@dataclass(frozen=True)
+class SendToAgent(Instruction):
+    """Deliver `message` to agent `to` (a JID)."""
+
+    to: str
+    message: m.Message
+
+
+@dataclass(frozen=True)
+class RefuseTile(Instruction):
+    """Answer the tile's upload with this refusal (the tile is removed): it claims what its award forbids."""
+
+    job_id: str
+    index: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class Record(Instruction):
+    """A fact for the job store and the log: one subclass per kind, with typed fields."""
+
+    level: ClassVar[int] = logging.INFO
+
+    def sentence(self) -> str:
+        raise NotImplementedError
+
+    def fields(self) -> dict[str, Any]:
+        """The record's fields for a structured log, its kind first, tokens left out."""
+        out = {"record": type(self).__name__}
+        out.update({f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.repr})
+        return out
+
+
+def _unit(job_id: str, index: int) -> str:
+    return f"unit {index} of job {job_id}"
+
+
+@dataclass(frozen=True)
+class UnitAwarded(Record):
+    job_id: str
+    index: int
+    agent: str
+    token: str = field(repr=False)
+    estimate: float  # seconds, the winning bid
+    attempt: int  # 1 for the unit's first award
+    deadline: float  # render deadline, auction time
+
+    def sentence(self) -> str:
+        return f"{_unit(self.job_id, self.index)}: awarded to {self.agent}, estimate {self.estimate:.2f} s " \
+               f"(try {self.attempt})"
+
+
+@dataclass(frozen=True)
+class UnitDone(Record):
+    """The unit's tile is durable and its award's holder is done: the tile, the parameters it was rendered
+    with (as the store keeps them), and the agent's record."""
+
+    job_id: str
+    index: int
+    agent: str
+    token: str = field(repr=False)
+    seconds: float
+    estimate: float
+    tile_path: str
+    tile_hash: str
+    report: dict[str, Any]  # the tile's header as the store records it (TileReport.stored)
+    credits: int  # the agent's credits after this unit
+    on_time: bool  # within `Config.credit_tolerance` of its estimate
+
+    @property
+    def params(self) -> dict[str, int]:
+        """The render parameters the agent chose, as the store records them with the attempt."""
+        return {k: self.report[k] for k in ("depth", "spp", "band", "nonfinite")}
+
+    def sentence(self) -> str:
+        return f"{_unit(self.job_id, self.index)}: done by {self.agent} in {self.seconds:.2f} s " \
+               f"(estimate {self.estimate:.2f} s; spp {self.report['spp']}, depth {self.report['depth']}, " \
+               f"band {self.report['band']})"
+
+
+@dataclass(frozen=True)
+class UnitFailed(Record):
+    """The unit failed on its agent (its report, or its render deadline passed): back to pending."""
+
+    level: ClassVar[int] = logging.WARNING
+    job_id: str
+    index: int
+    agent: str
+    token: str = field(repr=False)
+    reason: str
+    credits: int  # the agent's credits after this failure
+
+    def sentence(self) -> str:
+        return f"{_unit(self.job_id, self.index)}: {self.reason}; back to the auction"
+
+
+@dataclass(frozen=True)
+class UnitRequeued(Record):
+    """The unit went back to pending without blaming its agent (lost, or the award never arrived)."""
+
+    level: ClassVar[int] = logging.WARNING
+    job_id: str
+    index: int
+    agent: str
+    token: str = field(repr=False)
+    reason: str
+
+    def sentence(self) -> str:
+        return f"{_unit(self.job_id, self.index)}: back to the auction ({self.reason})"
+
+
+@dataclass(frozen=True)
+class JobDone(Record):
+    job_id: str
+
+    def sentence(self) -> str:
+        return f"job {self.job_id}: every unit done"
+
+
+@dataclass(frozen=True)
+class JobFailed(Record):
+    level: ClassVar[int] = logging.ERROR
+    job_id: str
+    reason: str
+
+    def sentence(self) -> str:
+        return f"job {self.job_id}: failed: {self.reason}"
+
+
+@dataclass(frozen=True)
+class JobCancelled(Record):
+    job_id: str
+    reason: str
+
+    def sentence(self) -> str:
+        return f"job {self.job_id}: cancelled ({self.reason})"
+
+
+@dataclass(frozen=True)
+class AgentJoined(Record):
+    """An agent the master did not know registered (or was first heard from by heartbeat)."""
+
+    agent: str
+    speed: float
+
+    def sentence(self) -> str:
+        return f"agent {self.agent}: joined, speed {self.speed:.3g}"
+
+
+@dataclass(frozen=True)
+class AgentLost(Record):
+    level: ClassVar[int] = logging.WARNING
+    agent: str
+    reason: str
+
+    def sentence(self) -> str:
+        return f"agent {self.agent}: lost ({self.reason})"
+
+
+@dataclass(frozen=True)
+class AgentBack(Record):
+    agent: str
+
+    def sentence(self) -> str:
+        return f"agent {self.agent}: back"
+
+
+@dataclass(frozen=True)
+class AgentSilent(Record):
+    """An agent let a call for proposals time out: it is left out of auctions for `seconds`."""
+
+    level: ClassVar[int] = logging.WARNING
+    agent: str
+    seconds: float
+
+    def sentence(self) -> str:
+        return f"agent {self.agent}: did not answer a call for proposals; left out for {self.seconds:.1f} s"
+
+
+@dataclass(frozen=True)
+class AgentForgotten(Record):
+    """An agent lost for `Config.forget_lost_s` is dropped from the agents the master lists."""
+
+    agent: str
+
+    def sentence(self) -> str:
+        return f"agent {self.agent}: lost too long, no longer listed"
+
+
+@dataclass(frozen=True)
+class AgentBlocklisted(Record):
+    level: ClassVar[int] = logging.WARNING
+    job_id: str
+    agent: str
+    reason: str
+
+    def sentence(self) -> str:
+        return f"agent {self.agent}: blocklisted for job {self.job_id} ({self.reason})"
+
+
+@dataclass(frozen=True)
+class BidRefused(Record):
+    """An agent answered a call for proposals with a refusal."""
+
+    job_id: str
+    agent: str
+    reason: str
+
+    def sentence(self) -> str:
+        return f"agent {self.agent}: will not bid on job {self.job_id}: {self.reason}"
+
+
+@dataclass(frozen=True)
+class MessageIgnored(Record):
+    """A message, tile or request that changes nothing (late, forged, duplicate, out of its auction)."""
+
+    agent: str | None
+    reason: str
+    job_id: str | None = None
+    index: int | None = None
+
+    def sentence(self) -> str:
+        about = _unit(self.job_id, self.index) if self.index is not None else \
+            f"job {self.job_id}" if self.job_id else None
+        who = f"from {self.agent}" if self.agent else "from the user"
+        return f"ignored {who}" + (f" about {about}" if about else "") + f": {self.reason}"
+
+
+@dataclass(frozen=True)
+class JobsPaused(Record):
+    """Every job stands still (no awards, deadlines or losses) until `JobsResumed`."""
+
+    level: ClassVar[int] = logging.ERROR
+    reason: str
+    free_bytes: int
+
+    def sentence(self) -> str:
+        return f"every job paused: {self.reason} ({self.free_bytes} bytes free)"
+
+
+@dataclass(frozen=True)
+class JobsResumed(Record):
+    level: ClassVar[int] = logging.WARNING
+    reason: str
+    free_bytes: int
+
+    def sentence(self) -> str:
+        return f"jobs resume: {self.reason} ({self.free_bytes} bytes free)"

@@ -1,0 +1,163 @@
+"""The auction's state: its settings, and what it knows of each job, unit, agent and open auction round.
+
+Plain records: only `master.auction.machine.Auction` changes them, each unit's status through the table of
+`core.model.status`, with the change kept in the unit's story.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter, deque
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import NamedTuple, Protocol
+
+from core.model import messages as m
+from core.model.status import JobStatus, UnitStatus
+from core.model.units import SLOTS, WorkUnit
+
+STORY_LENGTH = 32  # changes of status kept per unit (the oldest are forgotten)
+
+
+@dataclass(frozen=True)
+class Config:
+    """Timeouts and rules of the auction. Times in seconds."""
+
+    cfp_timeout_s: float = 2.0  # agents that have not answered a CFP by then are left out of that round
+    # An agent that lets a call for proposals time out unanswered is not called, nor counted on in the
+    # projection, for cfp_timeout_s doubling with each silence in a row, up to this: one that never bids
+    # (broken, or lying about its speed) would otherwise be projected the units and keep them from the rest.
+    silence_max_s: float = 30.0
+    heartbeat_timeout_s: float = 15.0  # Flamenco uses 60 s; agents here beat every few seconds
+    # A lost agent is forgotten after this (its credits kept, should it come back): a restarted agent
+    # comes back under a new name, and the old one would stay listed as lost for as long as the master runs.
+    forget_lost_s: float = 600.0
+    award_grace_s: float = 10.0  # an award not listed in the agent's heartbeats by then was lost in transit
+    render_factor: float = 3.0  # render deadline = estimate x factor + slack
+    render_slack_s: float = 30.0
+    blocklist_after: int = 3  # failures of one job's units on one agent
+    max_unit_failures: int = 5  # a unit failing this often fails its job, however many agents remain
+    credit_tolerance: float = 0.10  # finishing within 10 % of the estimate earns a credit
+    recent_window: int = 10  # successes counted in an agent's record
+    # Bidders finishing within this fraction of the fastest are equals, and the best record wins among
+    # them; a free agent is also called to units projected to another free agent that it would finish
+    # within this fraction of their projected time.
+    finish_tolerance: float = 0.10
+    min_estimate_s: float = 1e-3  # a lower (or zero) bid counts as this in the projection
+    rate_clamp: float = 100.0  # an agent's rate stays within this factor of the job's median rate
+    refine_moves: int = 64  # moves and swaps that shorten each projection (0: plain list schedule)
+    refine_below: float = 3.0  # refine only while open units are at most this many per agent (end game)
+    # Units an agent may hold at once, and (half of them, `batch_size`) win in one round and render in one
+    # call: its next batch is awarded while one renders, so its render process never waits for the upload,
+    # the inform and the next auction (~35 ms a unit on one machine). 2: one unit a round and a call.
+    slots: int = SLOTS
+    # Units are queued behind others only while the open units are at least this many per live agent (and
+    # at least two batches, `_queueing`): in the end game a queued unit is committed before anyone knows
+    # which agent frees up first, and the simulation's tail grew (64 agents, 2 slots: efficiency 0.77 ->
+    # 0.71 with 3 here instead of 4).
+    queue_above: float = 4.0
+    max_cfp_units: int = m.MAX_CFP_UNITS
+    upload_url: str = "http://127.0.0.1:8765/jobs/{job}/units/{index}/tile"
+
+
+@dataclass(frozen=True)
+class Transition:
+    """One change of a unit's status: the stimulus that made it, from what to what, at what auction time."""
+
+    stimulus_id: str
+    start: str
+    finish: str
+    at: float
+
+
+class ResumedJob(Protocol):
+    """A running job as a restarted master finds it (the job store's `RunningJob`): `Auction.restore`."""
+
+    @property
+    def job_id(self) -> str: ...
+    @property
+    def units(self) -> Sequence[WorkUnit]: ...
+    @property
+    def done(self) -> Sequence[int]: ...
+    @property
+    def failures(self) -> Sequence[tuple[int, str, str]]: ...  # (unit index, agent, reason), oldest first
+    @property
+    def delivered_by(self) -> Mapping[int, str]: ...  # done unit -> the agent whose tile made it done
+    @property
+    def channels(self) -> Sequence[str] | None: ...  # what every tile of the job carries
+
+
+@dataclass
+class UnitState:
+    spec: WorkUnit
+    status: UnitStatus = UnitStatus.PENDING
+    attempts: int = 0
+    failures: int = 0
+    failed_on: set[str] = field(default_factory=set)
+    last_reason: str = ""
+    agent: str | None = None
+    token: str | None = None
+    conversation: str | None = None
+    awarded_at: float = 0.0
+    estimate: float = 0.0
+    deadline: float = math.inf
+    delivered_by: str | None = None  # the agent whose tile made it done
+    story: deque[Transition] = field(default_factory=lambda: deque(maxlen=STORY_LENGTH))
+
+
+class PlansWith(NamedTuple):
+    """What an agent plans a job's units with, as its Register told (None: not told)."""
+
+    rules_sha256: str | None  # its rule file's, for a job without rules of its own
+    defuzzifier: str | None  # its --defuzzifier, for a job that names none (None: the file's dialect)
+
+
+NOT_TOLD = PlansWith(None, None)  # an agent known from heartbeats alone, or whose Register did not tell
+
+
+@dataclass
+class Agent:
+    name: str
+    last_seen: float
+    credits: int = 0
+    recent: deque[bool] = field(default_factory=lambda: deque(maxlen=10))
+    holding: set[tuple[str, int]] = field(default_factory=set)
+    invited: str | None = None  # conversation id of the open auction round it was called to
+    lost: bool = False
+    speed: float = 1.0
+    registered: bool = True  # False: known from heartbeats alone, its speed not yet told
+    silences: int = 0  # calls for proposals it let time out in a row
+    silent_until: float | None = None  # left out of auctions until then (Config.silence_max_s)
+    slots: int | None = None  # units it holds at once, as its Register told (None: Config.slots)
+    rules: PlansWith = NOT_TOLD  # what it plans with, as its Register told
+    # Seconds per unit of cost, per job: from its latest bids, and from its last unit that overran.
+    rates: dict[str, float] = field(default_factory=dict)
+    late_rates: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def score(self) -> int:
+        return self.credits + sum(self.recent)
+
+
+@dataclass
+class Job:
+    info: m.JobInfo
+    units: dict[int, UnitState]
+    order: int
+    status: JobStatus = JobStatus.RUNNING
+    error: str = ""
+    failures_by_agent: Counter[str] = field(default_factory=Counter)
+    blocklist: set[str] = field(default_factory=set)
+    channels: tuple[str, ...] | None = None  # what every tile of the job carries (None: not checked)
+
+
+@dataclass
+class Round:
+    conversation: str
+    job_id: str
+    offered: dict[str, tuple[int, ...]]  # agent -> unit indices it was called to bid on
+    units: frozenset[int]  # every unit this round holds as ANNOUNCED, even if its bidders are lost
+    deadline: float
+    room: dict[str, int] = field(default_factory=dict)  # agent -> units it may win in this round (default 1)
+    bids: dict[str, dict[int, float]] = field(default_factory=dict)
+    answered: set[str] = field(default_factory=set)

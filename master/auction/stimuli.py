@@ -1,0 +1,92 @@
+"""What the auction is told: a job submitted or cancelled, a message or a tile from an agent, the disk, the clock.
+
+Each stimulus carries a `stimulus_id` (the master names it from its source: a message's conversation, a
+tile's unit; the auction numbers one left empty), which every instruction it causes and every unit change
+it makes repeat (`Auction.story`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from core.model import messages as m
+from core.model.units import WorkUnit
+
+
+@dataclass(frozen=True)
+class Stimulus:
+    stimulus_id: str = field(default="", kw_only=True, compare=False)
+
+
+@dataclass(frozen=True)
+class JobSubmitted(Stimulus):
+    """Auction a job's units. `channels`: what every tile of it must carry (None: not checked). A job the
+    master resumes after a restart passes its units already `done` (`delivered_by`: whose tile made each one
+    done) and its past `failures` as (unit index, agent, reason), so that retries and blocklists survive."""
+
+    info: m.JobInfo
+    units: Sequence[WorkUnit]
+    channels: tuple[str, ...] | None = None
+    done: frozenset[int] = frozenset()
+    failures: tuple[tuple[int, str, str], ...] = ()
+    delivered_by: Mapping[int, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class JobCancelRequested(Stimulus):
+    job_id: str
+    reason: str = "cancelled by the user"
+
+
+@dataclass(frozen=True)
+class MessageReceived(Stimulus):
+    """A parsed message from `sender`, a JID the transport has authenticated and the master admits."""
+
+    sender: str
+    message: m.Message
+
+
+@dataclass(frozen=True)
+class TileStored(Stimulus):
+    """A tile is on the master's disk (fsynced), uploaded with `token`; `figures` and `channels` are what its
+    header says, `extra` the rest of the header the report keeps (outputs, rules, emulated)."""
+
+    job_id: str
+    index: int
+    token: str = field(repr=False)
+    tile_path: str
+    sha256: str
+    figures: m.TileFigures
+    channels: tuple[str, ...]
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    def stored(self, agent: str) -> dict[str, Any]:
+        """The tile's parameters as the job store records them, credited to the award's `agent`."""
+        f = self.figures
+        out: dict[str, Any] = {"depth": f.depth, "spp": f.spp, "band": f.band, "seconds": f.seconds,
+                               "nonfinite": f.nonfinite, "outputs": dict(self.extra.get("outputs") or {}),
+                               "agent": agent, "rules": self.extra.get("rules")}
+        if self.extra.get("emulated"):
+            out["emulated"] = True
+        if f.first_spp is not None:
+            out["first_spp"] = f.first_spp
+        return out
+
+
+@dataclass(frozen=True)
+class DiskFull(Stimulus):
+    """The master's home has less free space than it needs: every job stands still until `DiskFreed`."""
+
+    free_bytes: int
+
+
+@dataclass(frozen=True)
+class DiskFreed(Stimulus):
+    free_bytes: int
+
+
+@dataclass(frozen=True)
+class Tick(Stimulus):
+    """Time passes: timeouts, then auctions to resolve, then new calls for proposals."""
