@@ -1,30 +1,9 @@
-"""An emulated render agent (`quekaro agent --emulate COSTS.json`): the real agent, with its render slept.
-
-Why: to run the real protocol (XMPP, bids, awards, bundle downloads, tile uploads, the real master) at 64
-agents on one 2-core machine, where 64 Mitsuba processes would neither fit (~85 MB of Dr.Jit each, plus
-their kernels) nor render at their own speed. `agents.render_agent.RenderAgent` runs unchanged with every
-decision its `AgentState`'s; only two things are swapped (its `--emulate` hook):
-  - the render process: `EmulatedWorker.render` sleeps what the unit would take and writes a real tile of
-    the right size (the unit's window, the film's channel count, the same header fields as a real tile,
-    plus `"emulated": true`); its pixels are a grey with noise, so that the EXR compresses like a render;
-  - the speed measurement: `Emulation.measure_speed` returns the speed the cost map states (what a real
-    agent measured on the machine that made the map) times `--speed`.
-
-COSTS.json (format "quekaro-costs/1"): `seconds_per_sample`, a grid over the image (one entry per pixel, or
-per cell) of the seconds one sample of one image pixel takes on an agent of speed 1 at that place; either
-nested lists (rows) or {"encoding": "float32-base64", "shape": [rows, cols], "data": ...}. `fixed_s`: the
-seconds of one render call beyond its samples; `speed`: the mega-rays/s an agent of `--speed 1` registers
-(default: one "ray" per pixel sample, as the master's costs at level off); `channels`: the film's channels
-(default R, G, B); `width`/`height`: the image it was measured at (a job of another size maps its windows
-onto the grid; a pixel costs what the grid says at its place). A unit then sleeps
-
-    (fixed_s + spp x sum of seconds_per_sample over the unit's window) / speed factor
-
-where the window is the unit's window for the band its rules chose (`bench.scaling.TimeMap.unit_seconds`).
-
-Mitsuba and Dr.Jit are never imported on this path (tests/test_emulate.py checks `sys.modules`). Every log
-line of an emulated agent starts with EMULATED (render_agent's log format), and on stop it logs and writes
-(WORKDIR/emulation.json) the stanzas it sent and received, by performative and time.
+"""An emulated render agent (`quekaro agent --emulate COSTS.json`): the real agent, with its render slept,
+so that the real protocol runs at 64 agents on one 2-core machine, where 64 Mitsuba processes would neither
+fit nor render at their own speed. `Emulation` swaps two things into `agents.render_agent.RenderAgent`: the
+render process (`EmulatedWorker`: sleeps each unit's time from a `CostMap`, then writes a real tile) and the
+speed measurement (`Emulation.measure_speed`). Mitsuba and Dr.Jit are never imported on this path
+(tests/test_emulate.py checks `sys.modules`).
 """
 
 from __future__ import annotations
@@ -52,12 +31,22 @@ from core.render.process import RenderRequest
 log = logging.getLogger(__name__)
 
 COSTS_FORMAT = "quekaro-costs/1"
-MARK = "EMULATED"
+MARK = "EMULATED"  # starts every log line of an emulated agent (render_agent.main) and its tiles' rules
 MAX_STANZAS = 200_000  # (time, direction, performative) kept for the summary
 
 
 class CostMap:
-    """A measured per-pixel cost map: what one sample of each pixel takes on an agent of speed 1."""
+    """A measured per-pixel cost map: what one sample of each pixel takes on an agent of speed 1.
+
+    COSTS.json (format "quekaro-costs/1"; `from_file`, `write`):
+      seconds_per_sample  a grid over the image (an entry per pixel, or per cell): nested lists (rows), or
+                          {"encoding": "float32-base64", "shape": [rows, cols], "data": ...}
+      fixed_s             the seconds of one render call beyond its samples
+      speed               the mega-rays/s an agent of `--speed 1` registers (default: one "ray" per pixel
+                          sample, as the master's costs at level off)
+      channels            the film's channels (default R, G, B)
+      width, height       the image it was measured at: a job of another size maps its windows onto the grid
+    """
 
     def __init__(self, grid: np.ndarray, fixed_s: float = 0.0, speed: float | None = None,
                  channels: tuple[str, ...] = RGB, width: int | None = None, height: int | None = None,
@@ -113,7 +102,9 @@ class CostMap:
         return max(float(s), 0.0) / (sx * sy)  # each grid cell stands for 1 / (sx sy) image pixels
 
     def seconds(self, window: Rect, spp: int, width: int, height: int, speed: float = 1.0) -> float:
-        """What rendering `window` at `spp` takes on an agent of `speed` (1: the map's own)."""
+        """What rendering `window` at `spp` takes on an agent of `speed` (1: the map's own):
+        (fixed_s + spp x the seconds per sample summed over the window) / speed. The window is the unit's,
+        grown by the band its rules chose (as bench.scaling.TimeMap.unit_seconds)."""
         return (self.fixed_s + max(int(spp), 1) * self.sample_seconds(window, width, height)) / max(speed, 1e-9)
 
     def _sat_at(self, y: float, x: float) -> float:
@@ -137,8 +128,9 @@ def _decode(raw: Any) -> np.ndarray:
 
 class EmulatedWorker:
     """Stands in for `core.render.process.RenderProcess`: `render(request, timeout)` sleeps the unit's time from
-    the cost map, then returns a real tile of the unit's window. Renders one unit at a time (an emulated agent
-    renders no batches: agents.render_agent gives its state machine batches of one)."""
+    the cost map, then returns a real tile of the unit's window (the film's channel count, a real tile's
+    header fields plus `"emulated": true`). Renders one unit at a time (an emulated agent renders no batches:
+    agents.render_agent gives its state machine batches of one)."""
 
     def __init__(self, emulation: Emulation) -> None:
         self.emulation = emulation
@@ -202,7 +194,8 @@ class Emulation:
         return cls(CostMap.from_file(path), factor, workdir)
 
     def measure_speed(self, _worker: Any = None, _threads: int | None = None) -> SpeedSample:
-        """The speed a real agent measured where the map was made, times the factor (no reference render)."""
+        """The speed a real agent measured where the map was made, times the factor (`--speed`); no reference
+        render."""
         speed = max(self.costs.speed * self.factor, MIN_SPEED)
         samples = REF_RES * REF_RES * REF_SPP
         seconds = samples * REF_RAYS_PER_SAMPLE / (speed * RAYS_PER_SPEED_UNIT)

@@ -1,40 +1,9 @@
 """The render agent: bids on the master's units, renders the ones it is awarded, uploads their tiles.
 
-One agent process = one `FarmAgent` (the XMPP transport, core.transport.xmpp) + one `RenderProcess` (a persistent
-child process that renders, core.render.process) + its own rule base (core.rules.unit_params). The protocol, as
-master/auction.py expects it:
-
-  start     measure speed (agents/speed.py) -> Register; Register again after every reconnect, when the
-            master's Introduce asks, and with each heartbeat until the master's Welcome answers;
-            Heartbeat every 2 s listing the units it holds (awarded, not yet answered, not cancelled).
-  cfp       room for another unit (it holds fewer than `slots`: 8 by default, half of them rendering in
-            one call and half waiting, so the render process goes on while the last tiles upload)
-            -> Propose with an estimate per offered unit (cost x the spp its own rules pick / speed, + a
-            kernel compilation for a new window size, times a per-job correction learnt from its
-            finished units); the master adds the wait behind the unit it holds. Else Refuse.
-  award     (one, or several of a job in one Awards message, each handled as if sent alone)
-            fetch the job's scene bundle once (cached by sha256 under the work dir), plan the unit
-            with its own rules, render it with the award's seed (with the waiting units of its job and
-            depth in one call where the scene allows: core.render.batch), write the tile EXR (meta: the unit,
-            seconds, non-finite pixels, spp, depth, band, the rules' crisp outputs, the agent's JID),
-            upload it with the award's token (and its sha256): the master counts the unit done by that
-            upload, so nothing else is sent. Any error of that unit -> Failure with the reason; the agent
-            itself carries on.
-  cancel    the unit (or every unit of the job) is dropped: a render in flight is ended once none of its
-            units is wanted (its render process killed), queued ones (and one whose bundle is still being
-            fetched) never start.
-
-Duplicate awards (same unit, same token) are ignored; a re-award with a new token replaces the old one's
-token. Every decision (slots, awards, cancels, which unit renders next, heartbeats, estimates and their
-calibration) is agents.state.AgentState's, a pure state machine; `RenderAgent` is the I/O around it: each
-message, tick and end of an I/O step goes in as a stimulus (with a readable, unique `stimulus_id`), and its
-instructions are carried out. Messages are handled one at a time on the XMPP loop and never wait for a
-render: a bundle fetch, a render (in a worker thread that talks to the render process) and an upload each
-run as a task of their own, which feeds its end back as a stimulus; one render step at a time, its tiles
-uploading while the next step renders. A unit that fails has its story (its status changes) logged.
-
-Run it with `python -m agents.render_agent --server HOST --port P --jid J --password PW --master M`
-(`--log-format json` for one JSON object a line).
+`RenderAgent` carries out the I/O of `agents.state.AgentState`, which makes every decision: one `FarmAgent`
+(XMPP), one `RenderProcess` (the renders) and its own `Planner` (the rules). Its protocol: `RenderAgent`'s
+docstring, and docs/ARCHITECTURE.md ("Message flow of one unit"). Run it with
+`python -m agents.render_agent --server HOST --port P --jid J --password PW --master M` (`--log-format json`).
 """
 
 from __future__ import annotations
@@ -159,7 +128,19 @@ class _StepTime:
 
 class RenderAgent:
     """A render agent; `await run()` serves until `await stop()` (or a signal, in `main`). Its decisions are
-    `self.state`'s (agents.state.AgentState); this class carries out their I/O."""
+    `self.state`'s (agents.state.AgentState); this class carries out their I/O.
+
+    Its side of the protocol, as master.auction expects it:
+      start   measure speed -> Register; again after each reconnect, when the master's Introduce asks, and
+              with each heartbeat until a Welcome answers; then a Heartbeat every 2 s listing its units.
+      cfp     with room (fewer than `slots` held) a Propose with an estimate per unit (`estimate`); else Refuse.
+      award   (or an Awards message, each award handled as if sent alone) fetch the bundle, plan, render with
+              the award's seed, upload the tile with its token; a unit's error -> Failure, and the agent goes on.
+      cancel  drop the unit (or every unit of the job): a render none of whose units is wanted is killed,
+              queued ones (and one still fetching its bundle) never start.
+    Duplicate awards (same token) are ignored; a re-award's new token replaces the old one. Messages are
+    handled one at a time and never wait: a fetch, a render step or an upload runs as a task that feeds its
+    end back as a stimulus, and a step's tiles upload while the next step renders."""
 
     def __init__(self, config: AgentConfig) -> None:
         self.config = config
@@ -217,7 +198,9 @@ class RenderAgent:
         return self.state.is_free()
 
     def estimate(self, job: m.JobInfo, unit: WorkUnit, params: RenderParams) -> float:
-        """Seconds this agent expects to spend on the unit (AgentState.estimate)."""
+        """Seconds this agent expects to spend on the unit (AgentState.estimate): cost x the spp its own rules
+        pick / speed, plus a kernel compilation for a new window size, times the job's learnt correction.
+        The master adds the wait behind the units the agent holds."""
         return self.state.estimate(job, unit, params)
 
     # ---- life-cycle ---------------------------------------------------------------------------------
@@ -461,7 +444,8 @@ class RenderAgent:
 
     async def _written(self, ticket: int, award: m.Award, params: Params,
                        result: Tile | Exception) -> RenderFinished | RenderFailed:
-        """The unit's tile written where its upload reads it (meta: the unit, the parameters), as a stimulus."""
+        """The unit's tile written where its upload reads it, as a stimulus. Its header: the unit, seconds,
+        non-finite pixels, spp, depth, band, the rules' crisp outputs and the agent's JID."""
         sid = f"render-{ticket}"
         try:
             if isinstance(result, Exception):
@@ -484,7 +468,8 @@ class RenderAgent:
                 "rules": self._planner_for(job).rules_path.name}
 
     async def _upload(self, command: Upload) -> UploadDone | UploadFailed:
-        """Hash the tile and upload it with the award's token."""
+        """Hash the tile and upload it with the award's token. The master counts the unit done by that
+        upload, so nothing else is sent."""
         award = command.award
         try:
             sha256 = await asyncio.to_thread(sha256_file, command.path)

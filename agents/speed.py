@@ -1,20 +1,6 @@
-"""An agent's speed: a tiny reference render timed in its own render process, and the estimates it implies.
-
-Units. The master's unit cost (`WorkUnit.cost`, from `planning.complexity` through `planning.partition`) is
-the sum over the unit's pixels of the rays one sample traces (camera ray, bounces, shadow rays): rays at
-1 spp. A unit therefore needs about `cost x spp` rays. An agent's speed is measured in mega-rays per
-second of that same kind, on the reference render below, whose rays per sample were counted once with
-`planning.complexity.prepass` (REF_RAYS_PER_SAMPLE). So
-
-    estimate [s] = cost x spp / (speed x 1e6)
-
-where spp is the spp the agent's own rules chose for the unit. At level `off` the master (jobplan) sets
-cost to the unit's pixel count, one "ray" per sample: such estimates come out short by the scene's rays
-per sample, which the agent's per-job correction (render_agent.Calibration) absorbs after one unit.
-
-The reference render: the repository's Cornell box (scenes/cbox.xml, only built-in shapes) at 32x32,
-path tracer depth 6, REF_SPP samples, in the agent's RenderProcess with the agent's thread count. One
-render compiles the kernel (~0.6 s); the best of the timed ones gives the speed (~1.5 s in all).
+"""An agent's speed: a tiny reference render timed in its own render process (`measure_speed`), and the
+estimates it implies (`estimate_seconds`). Speed is in mega-rays per second, the same rays as the master's
+unit cost (`WorkUnit.cost`: rays at 1 spp), so a unit's estimate is cost x spp / (speed x 1e6) seconds.
 """
 
 from __future__ import annotations
@@ -52,7 +38,8 @@ class SpeedSample:
 
 
 def reference_job(threads: int | None, spp: int = REF_SPP) -> RenderRequest:
-    """The reference render as a unit job (the whole 32x32 image)."""
+    """The reference render as a unit job: the whole 32x32 image of the repository's Cornell box
+    (scenes/cbox.xml, only built-in shapes), path tracer at depth REF_DEPTH, `spp` samples."""
     if not REFERENCE_SCENE.is_file():
         raise QuekaroError(f"reference scene for the speed benchmark not found: {REFERENCE_SCENE}")
     spec = SceneSpec(REFERENCE_SCENE, {"res": str(REF_RES), "spp": str(spp), "max_depth": str(REF_DEPTH)})
@@ -62,7 +49,8 @@ def reference_job(threads: int | None, spp: int = REF_SPP) -> RenderRequest:
 
 def measure_speed(worker: RenderProcess, threads: int | None, repeats: int = 2,
                   timeout: float = 120.0) -> SpeedSample:
-    """Time the reference render in `worker` (blocking): one untimed warm-up, then the best of `repeats`."""
+    """Time the reference render in `worker` (blocking), with the agent's thread count: one untimed warm-up
+    that compiles the kernel (~0.6 s), then the best of `repeats` (~1.5 s in all)."""
     job = reference_job(threads)
     cold = worker.render(job, timeout)  # compiles the kernel; its time is not the agent's speed
     tiles = [worker.render(job, timeout) for _ in range(max(1, repeats))]
@@ -75,5 +63,9 @@ def measure_speed(worker: RenderProcess, threads: int | None, repeats: int = 2,
 
 
 def estimate_seconds(cost: float, spp: int, speed: float) -> float:
-    """Seconds to render a unit of master cost `cost` (rays at 1 spp) at `spp` on an agent of `speed`."""
+    """Seconds to render a unit of master cost `cost` at `spp` on an agent of `speed`; `spp` is what the
+    agent's own rules chose. The cost is the rays one sample of each pixel traces (camera ray, bounces,
+    shadow rays). At level off the master sets it to the pixel count, one "ray" a sample: those estimates
+    come out short by the scene's rays per sample, which the agent's per-job correction
+    (agents.state.Calibration) absorbs after one unit."""
     return float(cost) * max(int(spp), 1) / (max(speed, MIN_SPEED) * RAYS_PER_SPEED_UNIT)

@@ -1,24 +1,10 @@
 """`quekaro bench accuracy [SCENE ...]`: what accuracy costs in time on any scene, per (agents,
 optimisation level), against the obvious alternative of lowering spp everywhere.
 
-SCENE is a Mitsuba scene file (with `-D` parameters) or a name of the suite (bench/suite.py; `--suite`
-runs all six). Per scene: a reference (plain Mitsuba, `--ref-spp`) cached by the content of every file
-the scene reads, its -D parameters and spp; then the grid agents x levels, each cell a real job: through
-a real local farm (`farm.local.LocalFarm`, one farm per agent count, submit to done) or, with
-`--inprocess`, as the whole `quekaro render` process a user runs (load, kernels, pre-pass, render,
-composition, writing). Each cell runs once unmeasured first (`--no-warmup` skips it: Dr.Jit compiles and
-caches a kernel per unit window size; its wall time is reported as the first run's), then `--runs`
-times, timed. Per cell: the median wall and CPU seconds; the errors against the reference
-(`core.image.metrics`, averaged over every run, the warm-up included: seeds follow the job id), the seam
-measure of the last image at the units' borders (`core.image.seams`), and how the rules spent samples.
-
-The uniform baseline is plain Mitsuba as a user runs it (`python -m planning.plain`: import, load, render,
-write; the whole process timed) at the single spp whose time equals the cell's. Its time is linear in
-spp: two timings give t(spp) = t0 + k spp, and the spp for a time follows. Two matchings per level, both
-against the level's cell with the fewest agents: `uniform_spp` matches the job's wall time (what a user
-waits for), `render_uniform_spp` only its render seconds (the allocation alone, overheads excluded: by
-the slope k alone, `render_time_spp`).
-Each uniform image is averaged over as many seeds as the cell's errors.
+SCENE is a Mitsuba scene file (with `-D` parameters) or a name of the suite (bench/suite.py; `--suite` runs
+all six). `scene_cells` takes a cached plain-Mitsuba reference, runs one real job per cell (`run_cell`) on a
+local farm (`farm_runner`) or as the whole `quekaro render` process (`inprocess_runner`, `--inprocess`), and
+plain Mitsuba at the uniform spp that takes the same time (`uniform_baseline`).
 """
 
 from __future__ import annotations
@@ -239,9 +225,10 @@ def _self_cpu() -> float:
 @contextmanager
 def farm_runner(agents: int, threads: int, home: Path, units: int | None = None,
                 adaptive: bool = False, asked: Asked = AS_WRITTEN, rules: Path | None = None) -> Iterator[Any]:
-    """A function (spec, level, spp, out) -> (report, wall s, CPU s) running jobs on a real local farm
-    (`adaptive`: the optimised levels as adaptive jobs; `asked`: the sensor, integrator and depth; `rules`:
-    the rule levels' rule file, carried in each job's bundle as `quekaro submit --rules` does)."""
+    """A function (spec, level, spp, out) -> (report, wall s, CPU s) running jobs on a real local farm, timed
+    from submit to done (`adaptive`: the optimised levels as adaptive jobs; `asked`: the sensor, integrator
+    and depth; `rules`: the rule levels' rule file, carried in each job's bundle as `quekaro submit --rules`
+    does)."""
 
     with LocalFarm(home, agents=agents, threads=max(1, threads // agents)) as farm:
         farm.wait_for_agents()
@@ -345,7 +332,11 @@ def scene_cells(scene: SuiteScene, agents: list[int], levels: list[str], args: a
 
 def run_cell(run_job: Callable, spec: SceneSpec, level: str, args: argparse.Namespace, stem: Path,
              ref: np.ndarray) -> tuple[dict[str, Any], np.ndarray, list[Rect]]:
-    """One level's jobs (warm-up, then the timed runs): the cell's figures, its last image, its units."""
+    """One level's jobs (warm-up, then the timed runs): the cell's figures, its last image, its units.
+    The warm-up (skipped by `--no-warmup`) compiles the job's kernels and is reported as the first run's
+    time; then `--runs` timed runs. The figures: the median wall and CPU seconds, the errors against the
+    reference averaged over every run (the warm-up included: seeds follow the job id), the seam measure of
+    the last image at the units' borders, and how the rules spent samples."""
     images, first = [], {}
     if args.warmup:  # compiles this job's kernels (one per window or batch rectangle size) before timing it
         warm, wall, _ = run_job(spec, level, args.spp, stem.with_name(stem.name + "-warm.exr"))
@@ -379,7 +370,10 @@ def mean_metrics(images: list[np.ndarray], ref: np.ndarray) -> dict[str, float]:
 def uniform_baseline(spec: Any, cells: list[dict[str, Any]], n: int, args: argparse.Namespace,
                      line: tuple[float, float], ref: np.ndarray, variant: str,
                      units: dict[str, list[Rect]]) -> dict[str, dict[str, Any]]:
-    """Per level: plain renders at the spp taking the wall time and the render time of its n-agent cell.
+    """Per level: plain renders at the spp taking the wall time and the render time of its n-agent cell
+    (the fewest agents): `uniform_spp` matches the job's wall time (what a user waits for), and
+    `render_uniform_spp` its render seconds alone (the allocation without the overheads, by the slope k:
+    render_time_spp). Plain Mitsuba runs as a user runs it (`planning.plain`, the whole process timed).
     The seam measure of the first one at the level's unit borders is the measure's control: plain Mitsuba
     has no borders, so what it reads there is the measure's own false alarm on this scene."""
     t0, k = line

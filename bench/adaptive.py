@@ -1,22 +1,9 @@
 """`quekaro bench adaptive`: the two-pass per-pixel adaptive render (core.render.adaptive) against plain
 Mitsuba at uniform spp, measured in one process at equal render time.
 
-Per scene (the suite's, or files given) and seed, with the scene loaded once and its kernels warmed:
-plain Mitsuba at `--spp` (time T), the adaptive render at `--spp` (time A), and plain Mitsuba again at
-round(spp x A / T), the uniform spp that takes the adaptive render's time. Each image's relMSE is taken
-against the scene's cached reference (`quekaro bench accuracy`'s). The ratio relMSE(adaptive) /
-relMSE(uniform at equal time) is the figure; below 1 the adaptive render pays for itself.
-
-This is render time inside one process over the whole frame: no planning, units, bands or farm (an
-adaptive job renders the same two passes per unit, with the unit's share: planning.budgets). The
-accuracy benchmark measures whole jobs.
-
-Each scene's oracle is what moving samples could reach at best: the per-pixel noise of a long render
-(`--oracle-spp` samples a pixel, cached like the reference), each pixel given max(1, lam sqrt(noise))
-samples at the same mean spp (Neyman), its relMSE over uniform's by the same model the adaptive render
-predicts with. It is an equal-spp figure, free of any time a moved sample costs, and optimistic (the
-allocation is fitted to the noise it is scored on); where it is above the target, no allocation of
-samples meets the target on the scene.
+`measure_scene` gives, per scene (the suite's, or files given) and seed, relMSE(adaptive) / relMSE(uniform
+at equal time): below 1 the adaptive render pays for itself. `oracle_ratio` is the best that moving samples
+could reach on the scene. Whole jobs are `quekaro bench accuracy`'s.
 """
 
 from __future__ import annotations
@@ -80,8 +67,10 @@ def adaptive(loaded: Any, spp: int, seed: int) -> tuple[np.ndarray, float, Any]:
 
 def oracle_ratio(noise: np.ndarray, spp: int) -> float:
     """relMSE over uniform's at the same mean `spp` of the best allocation for this per-pixel noise map
-    (each pixel at least one sample, else in proportion to the square root of its noise); 1 where there is
-    no noise."""
+    (each pixel max(1, lam sqrt(noise)) samples: Neyman), by the model the adaptive render predicts with;
+    1 where there is no noise. The map is a long render's (`true_noise`). An equal-spp figure, free of any
+    time a moved sample costs, and optimistic (fitted to the noise it is scored on): where it is above the
+    target, no allocation of samples meets the target on the scene."""
     base = np.sqrt(np.maximum(np.asarray(noise, dtype=np.float64), 0.0))
     if not base.any() or spp <= 1:  # at one sample a pixel there is nothing to move
         return 1.0
@@ -104,7 +93,9 @@ def true_noise(loaded: Any, spec: Any, spp: int, variant: str, cache: Path) -> n
 
 
 def measure_scene(spec: Any, args: argparse.Namespace) -> dict[str, Any]:
-    """The rows of one scene: per seed, both renders' times and relMSE, and the ratio at equal time."""
+    """The rows of one scene: per seed, both renders' times and relMSE, and the ratio at equal time. With
+    the scene loaded once and its kernels warm: plain Mitsuba at `--spp` (time T), the adaptive render at
+    `--spp` (time A), and plain Mitsuba at round(spp x A / T); each against the cached reference."""
     variant = job_variant(spec)
     ref = reference(spec, args.ref_spp, args.threads, args.cache_dir, variant)
     loaded = load(spec, variant, threads=args.threads)
@@ -129,6 +120,9 @@ def measure_scene(spec: Any, args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    """Every scene's ratios and their medians. Render time inside one process over the whole frame: no
+    planning, units, bands or farm (an adaptive job renders the same two passes per unit, with the unit's
+    share: planning.budgets)."""
     check_minimums(args, res=1, spp=1, ref_spp=1, seeds=1, threads=1, oracle_spp=1)
     chosen = [scene_from_argument(s) for s in args.scenes] if args.scenes else list(SUITE)
     if len(chosen) == 1:

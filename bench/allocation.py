@@ -1,22 +1,9 @@
 """`quekaro bench allocation`: what each optimisation level's sample allocation costs in render time and
 buys in error, predicted from measured maps in about a minute, without a farm.
 
-`quekaro bench accuracy` measures the same thing end to end, but one render's relMSE on a caustic swings
-by tens of percent, so comparing two rule files there takes many runs. Here the noise is measured once:
-  - sigma^2: each pixel's per-sample variance, from `--renders` independent plain renders at `--spp`
-    (their sample variance times spp), weighted by 1 / (reference^2 + 0.01) as relMSE weighs it;
-  - time: the scaling benchmark's measured per-pixel seconds per sample and fixed cost per render call
-    (`bench.scaling.measure_cached`).
-For each level the plan is the one the farm makes (pre-pass, partition, the rules); a unit at n spp
-costs fixed + n x (seconds per sample over the unit and its bands), and its pixels' expected relMSE is
-sigma^2 / n. Uniform spp at the same render time is the baseline; the Neyman allocation over level
-S's units, knowing the true noise, is the bound a unit-level allocation can reach; `pixel_bound` the bound
-of any allocation; `first_pass_ratio` what a render reaches of it by the noise it can know (the two-pass
-render's own first pass).
-
-Not modelled: depth cuts (levels B and VB render shorter paths: less time, some bias), the farm's
-protocol costs (render time only), and the per-render noise of relMSE itself.
-All measurements are cached under `--cache-dir` (the reference is `quekaro bench accuracy`'s).
+`run` measures each pixel's noise (`noise_map`) and time (`bench.scaling.measure_cached`) once, plans every
+level as the farm does, and predicts each plan's render seconds and relMSE (`level_row`) against uniform spp
+at the same time (`uniform`), beside the bounds `neyman_ratio`, `pixel_bound` and `first_pass_ratio`.
 """
 
 from __future__ import annotations
@@ -75,8 +62,9 @@ def noise_path(spec: Any, spp: int, renders: int, cache: Path, variant: str) -> 
 
 
 def noise_map(spec: Any, spp: int, renders: int, threads: int, cache: Path, variant: str) -> np.ndarray:
-    """Per-pixel, per-channel variance of one sample in `variant` (cached by the content of every file the
-    scene reads, its defines, spp, renders and variant: planning.accuracy.content_key)."""
+    """Per-pixel, per-channel variance of one sample in `variant`: the sample variance of `renders`
+    independent plain renders at `spp`, times spp (cached by the content of every file the scene reads, its
+    defines, spp, renders and variant: planning.accuracy.content_key)."""
     path = noise_path(spec, spp, renders, cache, variant)
     if path.exists():
         return np.load(path)
@@ -104,7 +92,9 @@ def composed_inverse_spp(plan: Any, spps: Any, bands: Any) -> np.ndarray:
 
 
 def level_row(level: str, plan: Any, params: list[Any], weight: np.ndarray, tmap: Any) -> dict[str, Any]:
-    """Predicted render seconds, relMSE of the composed image and spp spread of one level's plan."""
+    """Predicted render seconds, relMSE of the composed image and spp spread of one level's plan. A unit at
+    n spp takes fixed + n x (seconds per sample over the unit and its bands); its pixels' expected relMSE
+    is their weighted variance / n."""
     seconds = sum(tmap.unit_seconds(u.rect, p.spp, band=p.band) for u, p in zip(plan.units, params, strict=True))
     spp = np.array([p.spp for p in params])
     area = np.array([u.rect.area for u in plan.units])
@@ -176,6 +166,11 @@ def rules_file(args: argparse.Namespace) -> Path | None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    """Every level's predicted ratio against uniform spp. `quekaro bench accuracy` measures the same end to
+    end, but one render's relMSE on a caustic swings so much that comparing two rule files there takes many
+    runs; here the noise is measured once. Not modelled: depth cuts (levels B and VB render shorter paths:
+    less time, some bias), the farm's protocol costs (render time only), and the per-render noise of
+    relMSE itself. Every measurement is cached under `--cache-dir` (the reference is bench accuracy's)."""
     # A variance needs two renders; the time map's cells a side; every count at least one.
     check_minimums(args, spp=1, ref_spp=1, renders=2, seeds=1, threads=1, cell=1, measure_spp=1, res=1)
     defines = parse_defines(args.defines) if args.defines else None
@@ -184,7 +179,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     variant = job_variant(spec)
     sigma2 = noise_map(spec, args.spp, args.renders, args.threads, args.cache_dir, variant)
     ref = reference(spec, args.ref_spp, args.threads, args.cache_dir, variant)
-    weight = sigma2 / (ref**2 + RELMSE_EPSILON)
+    weight = sigma2 / (ref**2 + RELMSE_EPSILON)  # each pixel's variance weighted as relMSE weighs its error
     tmap, _, _ = measure_cached(spec.path, args.res, args.cell, args.measure_spp, args.threads,
                                 args.cache_dir, defines=defines)
     off_seconds = tmap.unit_seconds(Rect(0, 0, size.width, size.height), args.spp, band=0)

@@ -1,14 +1,8 @@
 """`make docs-figures` (python -m bench.docs): README.md's figures, copied from the files the benchmarks
-wrote. A block
-
-    <!-- include docs/benchmarks/NAME.md -->
-    ...
-    <!-- /include -->
-
-holds the cited file without its title line, its other headings nested NEST levels deeper (a file's
-`## scene` sits under the README's `### section`, not beside its `## Benchmarks`); this rewrites every
-block from its file, and tests/test_docs_figures.py checks that each block equals its file, so no figure
-is typed by hand."""
+wrote. `refresh` rewrites every block `<!-- include docs/benchmarks/NAME.md -->` ... `<!-- /include -->`
+from its file (`included`); tests/test_docs_figures.py checks that each block equals its file, so no figure
+is typed by hand.
+"""
 
 from __future__ import annotations
 
@@ -24,7 +18,8 @@ NEST = 2  # the README's blocks sit under `###` sections
 
 def included(path: Path) -> str:
     """What a block holds of the file at `path`: everything after its `# title` line, trimmed, with
-    its headings NEST levels deeper (at most six)."""
+    its headings NEST levels deeper (at most six), so that a file's `## scene` sits under the README's
+    `### section`, not beside its `## Benchmarks`."""
     lines = path.read_text().splitlines()
     if lines and lines[0].startswith("# "):
         lines = lines[1:]

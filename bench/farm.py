@@ -1,17 +1,8 @@
 """`quekaro bench farm`: what the farm costs over one process, and what a second agent buys.
 
-In one run, on one job (scene, spp, level, units fixed), two comparisons, each measured side by side:
-  1. `quekaro render` of the job (a fresh process, --threads T, as a user runs it) against the same job
-     on a running local farm with 1 agent of T threads (time from submit to the downloaded image).
-     Ratio = farm / render. Target: <= 1.05 on a render of about 30 s.
-  2. A farm with 1 agent of 1 thread against a farm with 2 agents of 1 thread each, both up at once
-     (an idle farm costs a few heartbeats a second): speedup = T(1 agent) / T(2 agents).
-     Target: >= 1.8 on this 2-core machine.
-The two sides of a comparison alternate (A B A B ...), `--repeats` times each, so that a slow spell of
-this shared machine hits both; the headline ratios use each side's fastest run (noise only ever adds
-time), and every run is printed and returned. Farm start-up (XMPP server, master, the agents' speed
-benchmark) is not counted: a farm is started once and serves many jobs. Every side runs the job once
-unmeasured first, so that all start with Dr.Jit's kernel cache warm and the agents' bundle cached.
+`run` measures one job (scene, spp, level, units fixed) in two comparisons, each side by side (`alternate`):
+`quekaro render` against a local farm of one agent (ratio target OVERHEAD_TARGET), and a farm of one
+1-thread agent against one of two (speedup target SPEEDUP_TARGET). Farm start-up is not counted.
 """
 
 from __future__ import annotations
@@ -34,6 +25,7 @@ from farm.local import LocalFarm
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_SCENE = REPO / "scenes" / "cbox.xml"
+# farm / render on a render of about 30 s; T(1 agent) / T(2 agents) on this 2-core machine
 OVERHEAD_TARGET, SPEEDUP_TARGET = 1.05, 1.8
 JOB_TIMEOUT_S = 3600.0
 
@@ -60,6 +52,7 @@ class _Job:
         self.bundle = make_bundle(args.scene, self.defines, workdir / "bundle.tar").path.read_bytes()
 
     def render_seconds(self) -> float:
+        """A fresh `quekaro render` process of the job, with --threads T, as a user runs it."""
         a = self.args
         cmd = [sys.executable, "-m", "quekaro", "render", str(a.scene), "--opt", a.level, "--units",
                str(a.units), "--threads", str(a.threads), "-o", str(self.workdir / "render.exr")]
@@ -69,6 +62,7 @@ class _Job:
         return time.perf_counter() - start
 
     def farm_seconds(self, farm: Any) -> float:
+        """The job on a running farm, from submit to the downloaded image."""
         client = farm.client()
         start = time.perf_counter()
         job_id = client.submit(self.bundle, self.defines, self.options)
@@ -80,7 +74,9 @@ class _Job:
 
 
 def alternate(sides: dict[str, Callable[[], float]], repeats: int) -> dict[str, list[float]]:
-    """Run every side once unmeasured, then `repeats` rounds of each side in turn: seconds per side."""
+    """Run every side once unmeasured (Dr.Jit's kernel cache warm, the agents' bundle cached), then
+    `repeats` rounds of each side in turn (A B A B ..., so that a slow spell of a shared machine hits both):
+    seconds per side."""
     for measure in sides.values():
         measure()
     times: dict[str, list[float]] = {name: [] for name in sides}
@@ -91,7 +87,8 @@ def alternate(sides: dict[str, Callable[[], float]], repeats: int) -> dict[str, 
 
 
 def _up(stack: ExitStack, home: Path, agents: int, threads: int) -> Any:
-    """A local farm that `stack` stops, with all its agents registered."""
+    """A local farm that `stack` stops, with all its agents registered. Its start-up (XMPP server, master,
+    the agents' speed benchmark) is not timed: a farm is started once and serves many jobs."""
     farm = stack.enter_context(LocalFarm(home, agents=agents, threads=threads))
     farm.wait_for_agents()
     return farm
@@ -103,6 +100,9 @@ def rules_file(args: argparse.Namespace) -> Path | None:
 
 
 def run(args: argparse.Namespace) -> dict:
+    """1. `quekaro render` with T threads against a farm of 1 agent of T threads: ratio farm / render.
+    2. A farm of 1 agent of 1 thread against one of 2 such agents, both up at once (an idle farm costs a
+    few heartbeats a second): speedup T(1 agent) / T(2 agents)."""
     if args.repeats < 1:
         raise ValueError(f"--repeats {args.repeats}: must be at least 1")
     with tempfile.TemporaryDirectory() as tmp_name:
@@ -126,6 +126,8 @@ def run(args: argparse.Namespace) -> dict:
 
 
 def _result(args: argparse.Namespace, first: dict[str, list[float]], second: dict[str, list[float]]) -> dict:
+    """The headline ratios from each side's fastest run (noise only ever adds time), medians beside, and
+    every run."""
     render_s, farm1_s = min(first["render"]), min(first["farm"])
     one_s, two_s = min(second["one"]), min(second["two"])
     return {

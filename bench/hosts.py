@@ -1,32 +1,9 @@
 """`quekaro bench hosts`: the real protocol at 8, 16, 32 and 64 agents, with the renders emulated.
 
-Why: scaling was only ever simulated (`quekaro bench scaling`); this runs the real XMPP server, the real
-master and N real agent processes on one 2-core machine, where N Mitsuba renders could not run side by
-side. Each agent is `quekaro agent --emulate COSTS.json --speed F` (agents/emulate.py): it does everything
-an agent does (XMPP, bids, awards, bundle download, tile upload of the unit's window) but sleeps each
-render for the time a measured cost map gives, and never imports Mitsuba.
-
-Per N, everything starts afresh, each a process of its own: the XMPP server (Prosody with TLS required and
-accounts made by prosodyctl when it is installed, else the embedded pyjabber server, said in the output),
-the master (`python -m quekaro master`) and N agents of mixed speeds (MIXED_SPEEDS cycled: mean 1, so the
-farm's capacity is N agents of speed 1). Once all have registered, one job is submitted:
-
-  the job   the benchmark scene widened to the paper's 1000x600 (`wide_scene`), level off (plain Mitsuba:
-            every unit at the user's spp; the master cuts equal tiles, farm_min_units(N) of them), at the
-            spp that makes T1 at least `--t1` seconds (default 20 min). T1 is the whole image rendered as
-            one unit by one agent of speed 1, from the cost map.
-  the map   bench.scaling's measured time map of the wide scene at 500x300 (every 25 px cell rendered for
-            real in a RenderProcess, spread over its pixels by the pre-pass cost), written as COSTS.json
-            (`--write-costs`, or on the first run); the 1000x600 job maps each pixel onto it.
-
-Measured per N: the makespan (first award to the job's end, as the store records them; submit to end
-beside it), efficiency T1 / (N x makespan), the master's CPU seconds over the job (/proc: user + system)
-and its peak memory (VmHWM), the agents' memory, the XMPP stanzas per unit (counted by every agent, both
-directions, heartbeats included and not), the one-way latency of an award (master's store to the
-agent's receipt) and a tile's delivery (the emulated render's end to the master recording the tile).
-The simulator (`bench.simulate`, the master's real `Auction` under a simulated clock) predicts the same
-job: the same units (from the master's store), each unit's time from the same cost map, the same speeds,
-with the latency and delivery measured in that run; the two must agree within 10 %.
+Per agent count N, `run_count` starts afresh an XMPP server, the master and N `quekaro agent --emulate`
+processes (`EmulatedFarm`) on one 2-core machine, submits one job (`make_job`, sized by a measured cost
+map: `write_costs`) and measures it; `predict` runs the simulator (`bench.simulate`) on the same units,
+and the two must agree within AGREEMENT. Scaling was otherwise only simulated (`quekaro bench scaling`).
 """
 
 from __future__ import annotations
@@ -121,7 +98,9 @@ def wide_scene(folder: Path, scene: Path = DEFAULT_SCENE) -> Path:
 
 
 def write_costs(path: Path, scene: Path, threads: int, remeasure: bool = False) -> CostMap:
-    """Measure the wide scene at MEASURE_W x MEASURE_H (bench.scaling, cached) and write it as a cost map."""
+    """Measure the wide scene at MEASURE_W x MEASURE_H (bench.scaling, cached: every MEASURE_CELL px cell
+    rendered for real, spread over its pixels by the pre-pass cost) and write it as a cost map (COSTS.json),
+    onto which a job of any size maps its pixels."""
     wide = wide_scene(CACHE, scene)
     tmap, _cmap, cached = measure_cached(wide, MEASURE_W, MEASURE_CELL, MEASURE_SPP, threads,
                                          remeasure=remeasure, height=MEASURE_H)
@@ -135,14 +114,16 @@ def write_costs(path: Path, scene: Path, threads: int, remeasure: bool = False) 
 
 
 def job_spp(costs: CostMap, t1: float) -> int:
-    """The least spp (a multiple of 16) at which the whole 1000x600 image takes `t1` s on one agent."""
+    """The least spp (a multiple of 16) at which the whole 1000x600 image takes `t1` s (`--t1`, default
+    T1_S) on one agent."""
     per_spp = costs.sample_seconds(Rect(0, 0, JOB_W, JOB_H), JOB_W, JOB_H)
     return 16 * max(1, math.ceil(max(t1 - costs.fixed_s, 0.0) / per_spp / 16))
 
 
 @dataclass
 class BenchJob:
-    """The benchmark's job: its bundle and options, and T1 from the cost map."""
+    """The benchmark's job: its bundle and options, and T1 from the cost map: the whole image rendered as
+    one unit by one agent of speed 1."""
 
     spp: int
     t1: float
@@ -155,7 +136,8 @@ class BenchJob:
 
 def make_job(costs: CostMap, scene: Path, spp: int, width: int = JOB_W, height: int = JOB_H,
              units: int | None = None) -> BenchJob:
-    """The wide scene at width x height and `spp`, level off (plain Mitsuba), as a bundle."""
+    """The wide scene (`wide_scene`) at width x height and `spp`, level off, as a bundle. At level off every
+    unit renders at the user's spp and the master cuts farm_min_units(N) equal tiles."""
     defines = {"res": str(width), "height": str(height), "spp": str(spp)}
     with tempfile.TemporaryDirectory() as tmp:
         wide = wide_scene(Path(tmp), scene)
@@ -169,13 +151,16 @@ def make_job(costs: CostMap, scene: Path, spp: int, width: int = JOB_W, height: 
 
 
 def speeds_for(n: int) -> list[float]:
+    """N agents' speeds: MIXED_SPEEDS cycled (mean 1, so the farm's capacity is N agents of speed 1)."""
     return [MIXED_SPEEDS[i % len(MIXED_SPEEDS)] for i in range(n)]
 
 
 @dataclass
 class EmulatedFarm:
     """An XMPP server, the master and emulated agents (one process each) under `root`; a context manager.
-    `prosody`: a real Prosody (TLS verified against its certificate), else the embedded server."""
+    `prosody`: a real Prosody (TLS verified against its certificate), else the embedded server. Each agent
+    is `quekaro agent --emulate COSTS.json --speed F` (agents/emulate.py): a whole agent (XMPP, bids, bundle
+    download, tile upload) that sleeps each render for the cost map's time and never imports Mitsuba."""
 
     root: Path
     costs: Path
@@ -393,7 +378,8 @@ def delivery(results: list[dict[str, Any]]) -> float:
 
 
 def run_count(n: int, job: BenchJob, costs: CostMap, costs_path: Path, prosody: bool, root: Path) -> dict[str, Any]:
-    """One job on a fresh farm of n emulated agents; the figures, and the simulator's prediction beside."""
+    """One job on a fresh farm of n emulated agents, submitted once all have registered and the machine has
+    settled; the figures, and the simulator's prediction beside."""
     speeds = speeds_for(n)
     with EmulatedFarm(root / f"n{n}", costs_path, speeds, prosody) as farm:
         started = time.monotonic()
@@ -436,6 +422,10 @@ def _run_job(farm: EmulatedFarm, client: FarmClient, job: BenchJob) -> dict[str,
 
 def _row(n: int, speeds: list[float], job: BenchJob, store: StoreView, measured: dict[str, Any],
          counted: dict[str, Any]) -> dict[str, Any]:
+    """One agent count's figures: the makespan from the first award to the job's end as the store records
+    them (submit to end beside it), efficiency T1 / (capacity x makespan), the master's CPU (/proc: user +
+    system) and memory, and the XMPP stanzas per unit counted by every agent (both directions, with and
+    without heartbeats)."""
     makespan = store.finished - store.first_award
     units = len(store.results)
     total = sum(counted["counts"].values())

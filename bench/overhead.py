@@ -1,15 +1,8 @@
 """`quekaro bench overhead`: what a `quekaro render` job costs over plain Mitsuba rendering as many samples.
 
-Per level (`--levels`, default off; `--adaptive` for the optimised ones), fresh processes alternate in one
-run: the whole `quekaro render` process (analysis, pre-pass, units in a render process, composition,
-EXR + PNG + report; bench.accuracy's in-process runner) and plain Mitsuba as a user runs it
-(`python -m planning.plain`: import, load, one `mi.render` of the whole image, EXR) at the job's mean
-spp (its samples over its pixels), in the job's variant. Each side runs once to warm Dr.Jit's kernel
-cache, then `--repeats` times; the fastest of each counts. Where the job's time went comes from its
-report: outside the job (process start, imports, exit), the pre-pass, the units' render seconds, and the
-rest (analysis, planning, the render process's start and variant, composition, writing).
-
-Level off's target: quekaro / plain <= 1.05 (for a render of ~20 s).
+Per level (`--levels`, default off; `--adaptive` for the optimised ones), `_level_row` alternates fresh
+processes: the whole `quekaro render` process (bench.accuracy's in-process runner) and plain Mitsuba
+(`planning.plain`) at the job's mean spp, in the job's variant, and splits the job's time by its report.
 """
 
 from __future__ import annotations
@@ -31,7 +24,7 @@ from planning.accuracy import job_variant, plain_render
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_SCENE = REPO / "scenes" / "cbox.xml"
 DEFAULT_RES = 512
-OFF_TARGET = 1.05
+OFF_TARGET = 1.05  # level off: quekaro render / plain Mitsuba, for a render of ~20 s
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -74,7 +67,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 def _level_row(run_job: Any, spec: SceneSpec, variant: str, level: str, args: argparse.Namespace,
                tmp: Path) -> dict[str, Any]:
-    """One level: the job and plain Mitsuba at the job's mean spp, alternating; the fastest of each."""
+    """One level: the job and plain Mitsuba at the job's mean spp (its samples over its pixels), each run
+    once to warm Dr.Jit's kernel cache, then alternating `--repeats` times; the fastest of each counts.
+    The job's time splits into: outside the job (process start, imports, exit), the pre-pass, the units'
+    render seconds, and the rest (analysis, planning, the render process's start and variant, composition,
+    writing)."""
     out = tmp / f"{level}.exr"
     report, _, _ = run_job(spec, level, args.spp, out)  # warm-up; it also fixes the spp plain renders
     width, height = (int(v) for v in (report["image"]["width"], report["image"]["height"]))

@@ -1,29 +1,9 @@
 """`quekaro bench scaling`: how the auction scales to 64 agents, by simulation from measured unit costs.
 
-What is measured (once, on this machine, at the job's image size): the complexity pre-pass of the
-scene, and the real render time of every cell of a fixed grid (`--cell` px) in a RenderProcess at a
-modest spp (`--measure-spp`, the fastest of MEASURE_PASSES runs), plus the fixed cost of one unit render (a cell
-at 1 spp). From these, a per-pixel time map: each cell's time above the fixed cost, divided by its
-spp, spread over its pixels in proportion to the pre-pass cost (rays per sample). A unit of any rectangle then takes
-`fixed + job_spp * sum(time map over the unit's window)` on an agent of speed 1; render time
-is linear in spp (design.md section 3), so the job's spp need not be rendered here.
-
-The measurement takes ~60 s, so it is cached (an .npz under ~/.cache/quekaro, keyed by the scene file's
-sha256, the image side, the cell side, the measure spp, the thread count and the pre-pass's settings);
-`--remeasure` renders again.
-
-What is simulated: N = 1, 2, 4, ... agents through `bench.simulate.simulate`, the real `Auction` that
-the farm's master runs, with a message latency of `--latency` (default 2 ms one way: design.md section 4
-measured a 1.8 ms round trip through SPADE's server; taking it one way is pessimistic) and a tile
-delivery of `--delivery` (default 25 ms, measured: render end to inform). For each N:
-  - fuzzy: the partition of the pre-pass (`planning.partition.partition`), with
-    `max(--units, farm_min_units(N))` target units (as the master: 4 per agent, from 8 agents 3 each + 8)
-  - naive: `equal_tiles(N)`, one tile per agent (the obvious split);
-  - equal auctioned: equal tiles, as many as the fuzzy partition has units, through the same auction.
-Efficiency is T1 / (N TN) for agents of equal speed, and T1 / (sum of speeds x TN) for mixed speeds;
-T1 is the whole image rendered as one unit by one agent of speed 1 (the stricter baseline: no units,
-so no bands rendered twice). `auction_efficiency` divides instead the same units' time on one agent:
-the loss of the auction alone (latency, idle tails), without the cost of splitting the image.
+`measure_cached` times every cell of a grid for real once (cached) and spreads the times into a per-pixel
+`TimeMap`; `simulate_row` runs N = 1, 2, 4, ... agents through `bench.simulate.simulate` (the master's real
+`Auction` under a simulated clock) on the fuzzy partition, one tile per agent, and auctioned equal tiles.
+Efficiency is T1 / (sum of speeds x TN).
 """
 
 from __future__ import annotations
@@ -82,6 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeats", type=int, default=3, help="simulations (seeds) averaged per cell")
     parser.add_argument("--cell", type=int, default=32, help="side of the grid cells timed for real")
     parser.add_argument("--measure-spp", type=int, default=64, help="spp of the real cell renders")
+    # 2 ms one way: design.md section 4 measured a 1.8 ms round trip through SPADE's server (pessimistic).
     parser.add_argument("--latency", type=float, default=0.002, help="one-way message latency, seconds")
     parser.add_argument("--delivery", type=float, default=DELIVERY_S,
                         help="seconds from a unit's render end to its inform (tile written, hashed, uploaded)")
@@ -104,6 +85,8 @@ class TimeMap:
     info: dict[str, Any]
 
     def unit_seconds(self, rect: Rect, spp: int, band: int = BAND) -> float:
+        """fixed_s + spp x the time map summed over the unit's window, on an agent of speed 1. Render time
+        is linear in spp (design.md section 3), so the job's spp need not be rendered to measure it."""
         h, w = self.per_sample.shape
         window = rect.window(band, w, h)
         return self.fixed_s + spp * float(self.per_sample[window.slices()].sum())
@@ -121,7 +104,9 @@ def scene_integrator(node: Any) -> tuple[str, int]:
 
 
 def measure(spec: SceneSpec, cell: int, spp: int, threads: int) -> tuple[TimeMap, Any]:
-    """The pre-pass complexity map and the measured per-pixel time map of the scene at its film's size."""
+    """The pre-pass complexity map and the measured per-pixel time map of the scene at its film's size:
+    every `cell` px cell rendered at `spp` in a RenderProcess (the fastest of MEASURE_PASSES runs), and the
+    fixed cost of one render call (a cell at 1 spp)."""
     info = film_info(spec)
     width, height = info.width, info.height
     variant = job_variant(spec)  # a job of this scene renders in it (spectral data: the spectral variant)
@@ -218,7 +203,7 @@ def measure_cached(scene_path: Path, res: int, cell: int, spp: int, threads: int
                    height: int | None = None, defines: dict[str, str] | None = None) -> tuple[TimeMap, Any, bool]:
     """`measure` of the scene at `measured_spec(scene_path, res, height, defines)`, read from the cache when
     it holds these inputs (and `remeasure` is false); the third value says whether it came from the
-    cache. A cache file that cannot be read is measured again."""
+    cache. A cache file that cannot be read is measured again. A measurement takes ~60 s."""
     spec = measured_spec(scene_path, res, height, defines)
     variant = job_variant(spec)
     path = cache_file(cache_dir, spec, cell, spp, threads, variant)
@@ -268,7 +253,10 @@ def agent_counts(agents_max: int) -> list[int]:
 
 def simulate_row(tmap: TimeMap, cmap: Any, n: int, mixed: bool, args: argparse.Namespace,
                  t1: float) -> dict[str, Any]:
-    """Makespan and efficiency of the fuzzy partition, naive tiling and auctioned equal tiles on n agents."""
+    """Makespan and efficiency of three splits on n agents: the fuzzy partition of the pre-pass, with
+    max(--units, farm_min_units(n)) target units as the master gives; naive, one equal tile per agent; and
+    equal tiles, as many as the partition's units, through the same auction. `auction_efficiency` divides by
+    the same units' time on one agent: the auction's loss alone, without the cost of splitting the image."""
     res = tmap.per_sample.shape[0]
     speeds = speeds_for(n, mixed)
     per_agent = farm_min_units(n) if args.units_per_agent is None else args.units_per_agent * n
@@ -299,6 +287,8 @@ def simulate_row(tmap: TimeMap, cmap: Any, n: int, mixed: bool, args: argparse.N
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    """Measure, then simulate every agent count at equal and at mixed speeds. T1 is the whole image
+    rendered as one unit by one agent of speed 1: the stricter baseline (no units, so no bands twice)."""
     tmap, cmap, cached = measure_cached(args.scene, args.res, args.cell, args.measure_spp, args.threads,
                                         args.cache_dir, args.remeasure)
     whole = Rect(0, 0, args.res, args.res)

@@ -3,20 +3,7 @@
 Both take the activation of every output label per unit, `h` shaped (n, L) with values in [0, 1]
 (each label's trapezoid is clipped at its activation: Mamdani min implication), and return (n,) crisp
 values, NaN where the aggregate has no area *and* no label fired (the engine then uses the default).
-
-Exact centroid. The aggregate mu(x) = max_l min(h_l, T_l(x)) is piecewise linear. Its kinks lie at
-  (1) the vertices of the sets and the points where edges of different sets cross (fixed, found once
-      per output variable: `CentroidPlan`), and
-  (2) the points where an edge crosses a clip level h_t (they move with h).
-Between consecutive fixed points each set is one straight piece (zero, rising, plateau or falling),
-so only the few sets that are non-zero there ("active") matter; the moving points of (2) are found per
-interval from the active pieces only. Between all these points mu is linear, so its area and first
-moment follow exactly from its value and slope at each piece's midpoint. Vertical edges (a == b, c == d)
-are fixed points and never a midpoint, so jumps are integrated exactly as well. No sampling, and no
-division by a set's width.
-
-If the aggregate has zero area but some label fired (only singleton sets a == b == c == d fired), the
-result is the activation-weighted mean of the fired sets' plateau midpoints.
+Entry points: `plan_centroid` and `centroid` (exact, no sampling), `centre_of_sums`.
 """
 
 from __future__ import annotations
@@ -88,7 +75,11 @@ def _piece(params_row: np.ndarray, x0: float, x1: float) -> tuple[float, float] 
 
 
 def plan_centroid(params: np.ndarray) -> CentroidPlan:
-    """Fixed intervals and their active pieces for sets `params` (L, 4)."""
+    """Fixed intervals and their active pieces for sets `params` (L, 4), found once per output variable.
+
+    The aggregate mu(x) = max_l min(h_l, T_l(x)) is piecewise linear. Its fixed kinks are the sets'
+    vertices and the points where edges of different sets cross. Between two of them each set is one
+    straight piece (zero, rising, plateau or falling), so only the few non-zero ("active") sets matter."""
     params = np.asarray(params, dtype=np.float64)
     n_sets = len(params)
     points = np.unique(np.concatenate([params.ravel(), _edge_crossings(params)]))
@@ -133,7 +124,12 @@ def _normal_levels(h: np.ndarray) -> np.ndarray:
 
 
 def centroid_t(plan: CentroidPlan, h_t: np.ndarray) -> np.ndarray:
-    """`centroid` with activations laid out (L, n)."""
+    """`centroid` with activations laid out (L, n).
+
+    The moving kinks, where an edge crosses a clip level, are found per interval from its active pieces
+    only. Between all kinks mu is linear, so area and first moment follow exactly from its value and slope
+    at each piece's midpoint. Vertical edges (a == b, c == d) are fixed points, never a midpoint, so jumps
+    are integrated exactly too. No sampling, and no division by a set's width."""
     h_t = _normal_levels(h_t)
     n = h_t.shape[1]
     if plan.x0.size == 0 or n == 0:
@@ -230,7 +226,8 @@ def centre_of_sums_t(params: np.ndarray, h: np.ndarray) -> np.ndarray:
 
 
 def _fallback(midpoints: np.ndarray, h: np.ndarray, area: np.ndarray, moment: np.ndarray) -> np.ndarray:
-    """moment / area; the weighted plateau midpoints where the area is zero; NaN where nothing fired.
+    """moment / area; the weighted plateau midpoints where the area is zero (only singleton sets,
+    a == b == c == d, fired); NaN where nothing fired.
 
     `h` is laid out (L, n).
     """

@@ -1,16 +1,8 @@
 """Vectorised Mamdani inference: many work units evaluated in one call with numpy.
 
-Per unit: each input is clamped to its universe (or to the observed range of a dynamic variable),
-its memberships computed; an antecedent naming several labels takes their max (OR); a rule's strength
-is the min of its antecedents (AND); each output label's activation is the max of the strengths of the
-rules concluding it (aggregation); each label's set is clipped at its activation (implication) and the
-union is defuzzified (`centroid`, exact) or, for compatibility with MASYRO, each clipped set's centroid
-is averaged weighted by its area (`centre-of-sums`).
-
-Where no rule fires for an output, that output takes the default its variable declares (MASYRO's dialect
-declares none: NaN there, which the planner reads as 'keep the user's value'); otherwise never NaN and
-never a silent 0. NaN inputs are an error (`FuzzyInputError`, naming the variable and row); infinite
-inputs are clamped like any other out-of-range value. Crisp outputs are clamped into their universe.
+`Engine(rulebase, defuzzifier)` compiles a rule base once; `evaluate(inputs, ranges)` gives each output's
+crisp value per unit, and `activations` each output label's clip level. The union of the clipped sets is
+defuzzified by `centroid` (exact) or, for compatibility with MASYRO, `centre-of-sums` (`DEFUZZIFIERS`).
 """
 
 from __future__ import annotations
@@ -95,6 +87,14 @@ class Engine:
         `inputs` is (n, len(input_names)) in `input_names` order, one row of that length, or a mapping
         name -> (n,) array. `ranges` gives the observed (lo, hi) of dynamic input variables; one left out
         is taken from the inputs themselves (their min and max).
+
+        Per unit: each input is clamped to its universe (or observed range) and its memberships computed;
+        an antecedent naming several labels takes their max (OR); a rule's strength is the min of its
+        antecedents (AND); a label's activation is the max of the strengths of the rules concluding it.
+        An output no rule fires for takes its variable's default (MASYRO's dialect declares none: NaN,
+        which the planner reads as 'keep the user's value'); otherwise never NaN and never a silent 0.
+        NaN inputs raise `FuzzyInputError` (naming the variable and row); infinite ones are clamped like
+        any out-of-range value. Crisp outputs are clamped into their universe.
         """
         x = self._as_matrix(inputs)
         ranges = self._observed_ranges(x, ranges)

@@ -1,18 +1,8 @@
 """Read a rule base from XML: secure parsing, schema validation, then consistency checks.
 
-Both dialects are read (see rules/quekaro-rules.xsd): the paper's `<fset>`, `<antecedent name label>`
-and the original MASYRO files' `<fuzzyset>`, `<antecedent varname linguisticlabel>`, with `<system>`
-as the root or as a child of any outer element. Each keeps its own meaning. A file that uses `<fuzzyset>`
-is read as MASYRO's published code (TheProjecter/masyro06, trunk/src/Util_fuzzy.py and
-src/RenderAgent.py) reads it: inputs are not clamped (membership 0 outside every set) and an output with
-no `default` has no value where no rule fires, so the planner keeps the user's value. The sets are kept
-as written; rebuilding C, Nd and S for each job is the planner's part (core.rules.unit_params), as it was the
-agent's in MASYRO.
-
-Hostile files are refused before parsing: more than `MAX_BYTES`, or any DOCTYPE / ENTITY declaration
-(entity expansion such as "billion laughs", external entities). The parser itself resolves no entities,
-loads no DTD and never touches the network. Every refusal is a `RuleFileError` naming the file, line,
-variable and label at fault.
+`load_rulebase(path)`, or `parse_rulebase(data)`, returns a `RuleBase`; every refusal is a `RuleFileError`
+naming the file, line, variable and label at fault. Both dialects of the schema (`schema_path`) are read,
+each with its own meaning: the paper's (`<fset>`) and the original MASYRO files' (`<fuzzyset>`).
 """
 
 from __future__ import annotations
@@ -51,6 +41,7 @@ def _schema() -> etree.XMLSchema:
 
 
 def _secure_parser() -> etree.XMLParser:
+    """A parser that resolves no entities, loads no DTD and never touches the network."""
     return etree.XMLParser(
         resolve_entities=False, no_network=True, load_dtd=False, dtd_validation=False, huge_tree=False
     )
@@ -81,7 +72,9 @@ def _declaration_line(data: bytes) -> int | None:
 
 
 def parse_rulebase(data: bytes, file: str = "<rules>") -> RuleBase:
-    """Same as `load_rulebase` for bytes already in memory; `file` names them in errors."""
+    """Same as `load_rulebase` for bytes already in memory; `file` names them in errors. Hostile files are
+    refused before parsing: more than `MAX_BYTES`, or any DOCTYPE / ENTITY declaration (entity expansion
+    such as "billion laughs", external entities)."""
     if len(data) > MAX_BYTES:
         raise RuleFileError(f"file is larger than {MAX_BYTES} bytes", file=file)
     line = _declaration_line(data)
@@ -110,6 +103,7 @@ def _read_limited(file: str) -> bytes:
 
 
 def _find_system(root: etree._Element, file: str) -> etree._Element:
+    """`<system>`, as the root or as a child of any outer element (MASYRO's files wrap it)."""
     if root.tag == "system":
         return root
     found = [el for el in root if el.tag == "system"]
@@ -168,6 +162,11 @@ def _build(system: etree._Element, file: str) -> RuleBase:
 
 
 def _build_variable(el: etree._Element, file: str, masyro: bool = False) -> InputVariable | OutputVariable:
+    """One variable. A MASYRO file (`<fuzzyset>`) is read as MASYRO's published code reads it
+    (TheProjecter/masyro06, trunk/src/Util_fuzzy.py and src/RenderAgent.py): inputs are not clamped, and
+    an output with no `default` has no value where no rule fires, so the planner keeps the user's value.
+    Its sets are kept as written: rebuilding C, Nd and S per job is the planner's part, as it was the
+    agent's in MASYRO (core.rules.unit_params)."""
     name = el.get("name")
     is_input = el.get("type") == "in"
     dynamic = el.get("dynamic") in ("true", "1")
@@ -271,6 +270,8 @@ def _default(el: etree._Element, universe: tuple[float, float], file: str) -> fl
 
 
 def _clause(el: etree._Element, file: str) -> tuple[str, tuple[str, ...]]:
+    """(variable, labels) of an antecedent or consequent: `name label` (the paper's) or `varname
+    linguisticlabel` (MASYRO's)."""
     names = [v for v in (el.get("name"), el.get("varname")) if v is not None]
     raw_labels = [v for v in (el.get("label"), el.get("linguisticlabel")) if v is not None]
     if len(names) != 1 or len(raw_labels) != 1:

@@ -1,23 +1,8 @@
 """Input and output linguistic variables, including inputs whose sets are built at run time.
 
-A *static* variable has its trapezoids written in the rule file and a universe (the interval its
-crisp values live in). A *dynamic* input variable (the paper's C, S and Nd) only names its labels in
-the file; its sets are spread linearly over the range observed in the current scene:
-
-- with n labels over [lo, hi] the label centres are lo + i (hi - lo) / (n - 1); each label is a
-  triangle from the previous centre to the next, the first and last are shoulders. The sets form a
-  partition of unity, so every input in range has memberships summing to 1 and fires some label.
-- a degenerate range (hi == lo, every unit alike) is widened symmetrically around lo, so that the
-  common value sits in the middle label ("normal" relative to the scene) with membership 1 for an odd
-  number of labels, and 0.5 for each of the two middle labels for an even number.
-
-Inputs outside a variable's universe (or outside the observed range of a dynamic variable) are clamped
-to it: a unit just outside the observed range is treated like one at its edge rather than firing nothing.
-
-MASYRO's dialect keeps MASYRO's meaning (its published code, fuzzy/loader.py says which file): an input
-outside every set has membership 0 there (no clamping), and an output no rule fires has no value (NaN:
-the planner keeps the user's value). `masyro_sets` is MASYRO's scheme for the sets its agent rebuilt for
-each job from the observed range (the planner uses it for C, Nd and S).
+A static variable has its trapezoids and universe written in the rule file. A dynamic input (the paper's
+C, S and Nd) only names its labels: `InputVariable.resolve` spreads its sets over the range observed in
+the scene (`spread_sets`, `widen_degenerate`). `masyro_sets` builds MASYRO's per-job sets instead.
 """
 
 from __future__ import annotations
@@ -39,7 +24,9 @@ MAGNITUDE_MAX = 1e30
 
 
 def spread_sets(n_labels: int, lo: float, hi: float) -> np.ndarray:
-    """Vertices (n_labels, 4) of labels spread linearly over [lo, hi] (see the module docstring)."""
+    """Vertices (n_labels, 4) of labels spread linearly over [lo, hi]: centres lo + i (hi - lo) / (n - 1),
+    each label a triangle from the previous centre to the next, shoulders at both ends. The sets form a
+    partition of unity: every input in range has memberships summing to 1, so it fires some label."""
     if n_labels == 1:
         return np.array([[lo, lo, hi, hi]], dtype=np.float64)
     centres = np.linspace(lo, hi, n_labels)
@@ -52,7 +39,9 @@ def spread_sets(n_labels: int, lo: float, hi: float) -> np.ndarray:
 
 
 def widen_degenerate(lo: float, hi: float) -> tuple[float, float]:
-    """The range actually used for spreading: [lo, hi], or a symmetric widening when hi == lo."""
+    """The range actually used for spreading: [lo, hi], or a symmetric widening when hi == lo (every unit
+    alike), so that the common value sits in the middle ("normal" for the scene): membership 1 in the
+    middle label for an odd number of labels, 0.5 in each of the two middle ones for an even number."""
     scale = max(1.0, abs(lo), abs(hi))
     if hi - lo > _DEGENERATE_REL * scale:
         return lo, hi
@@ -73,7 +62,8 @@ def checked_range(name: str, observed: tuple[float, float]) -> tuple[float, floa
 def masyro_sets(n_labels: int, lo: float, hi: float) -> np.ndarray:
     """MASYRO's per-job sets over the observed [lo, hi]: I = (hi - lo) / (n + 1), padded by `pad` on both
     sides (MASYRO adds 1 on a complexity scale spanning ~48 in its file: 1/48 of the range here), with
-    shoulders at both ends and plateaus of one I in the middle label (its published file fits this)."""
+    shoulders at both ends and plateaus of one I in the middle label (its published file fits this). MASYRO's
+    agent rebuilt its sets so for each job; the planner does so for C, Nd and S."""
     pad = (hi - lo) / 48.0
     step = (hi - lo) / (n_labels + 1)
     m, big = lo - pad, hi + pad
@@ -91,8 +81,9 @@ def masyro_sets(n_labels: int, lo: float, hi: float) -> np.ndarray:
 
 @dataclass(frozen=True)
 class InputVariable:
-    """An input: static (sets and universe from the file) or dynamic (labels only); `clamp` False gives
-    membership 0 outside every set (MASYRO's meaning)."""
+    """An input: static (sets and universe from the file) or dynamic (labels only). Inputs are clamped to
+    the universe (or observed range), so a unit just outside it counts as one at its edge rather than
+    firing nothing; `clamp` False gives membership 0 outside every set (MASYRO's meaning)."""
 
     name: str
     labels: tuple[str, ...]
@@ -117,7 +108,8 @@ class InputVariable:
 
 @dataclass(frozen=True)
 class OutputVariable:
-    """An output: its sets, its universe and the value it takes when no rule fires (None: no value, NaN)."""
+    """An output: its sets, its universe and the value it takes when no rule fires (None, MASYRO's dialect:
+    no value, NaN, and the planner keeps the user's value)."""
 
     name: str
     sets: tuple[Trapezoid, ...]

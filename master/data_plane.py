@@ -1,32 +1,10 @@
 """The master's HTTP data plane (aiohttp): agents fetch scene bundles and upload rendered tiles here.
 
-Routes:
-  GET /jobs/{job}/bundle
-      The job's scene bundle (core.scene.bundle), its sha256 in `X-Content-SHA256`. Open by default: a bundle
-      is content the agents need before they hold any token, and the default bind is 127.0.0.1. Pass
-      `authorize_bundle(job, token) -> bool` to require `X-Quekaro-Token` (do so when binding beyond
-      loopback); a refused token is 403.
-  PUT /jobs/{job}/units/{unit}/tile
-      Headers `X-Quekaro-Token` (or `Authorization: Bearer ..`): the per-unit token of the award;
-      `X-Content-SHA256`: hex sha256 of the body; optional `X-Quekaro-Agent` (informational only).
-      The body streams to a temporary file beside its destination while its size (413 over the
-      limit: the app's `max_tile_bytes`, and what the unit's rectangle can need) and hash (422 on a
-      mismatch) are checked. The EXR header is checked before any pixel is decoded (a small file can
-      declare a huge image): its dataWindow must be the unit's rectangle grown by one band on every
-      side, clipped at the image's top/left edges (422 otherwise); then core.image.tiles.read_tile
-      validates the whole tile (float32 R, G, B; its core rectangle equal to the unit's).
-      Only then is it fsynced, renamed into `{tile_dir}/{job}/tiles/unit-{unit}.exr`, the folder
-      fsynced, and `on_tile(job, unit, path, sha256, token, agent)` awaited. If that callback raises, the
-      file is removed again and the answer is 500, so the agent may retry.
-      A duplicate of an accepted tile (same sha256, sent with the token that delivered it) is answered
-      200 with status "duplicate" and changes nothing; any upload without the current award's token gets
-      one answer (403, the same text whether the unit is pending, awarded to another or done, whatever
-      the body), so that no one without the token learns a unit's state or whether a sha256 matches.
-
-Every refusal is JSON `{"error": reason, "status": code}` and leaves no file behind. The app depends on
-no store: the master supplies the provider callbacks `expected(job, unit, token) -> (rect, image) | None`
-(the unit's rectangle, band excluded, and the image's size, if `token` is its current award's: the
-auction compares tokens) and `bundle(job) -> (path, sha256) | None`.
+  GET /jobs/{job}/bundle              the job's scene bundle, its sha256 in `X-Content-SHA256`
+  PUT /jobs/{job}/units/{unit}/tile   a rendered tile, with its award's token and the body's sha256
+  GET /healthz                        up and serving (no token)
+`create_app` builds it from the master's callbacks (it depends on no store); `get_bundle` and `put_tile`
+say the rules. Every refusal is JSON `{"error": reason, "status": code}` and leaves no file behind.
 """
 
 from __future__ import annotations
@@ -98,7 +76,12 @@ KEY: web.AppKey[DataPlane] = web.AppKey("quekaro_data_plane", DataPlane)
 def create_app(expected: Expected, bundle: BundleProvider, on_tile: OnTile, tile_dir: str | Path, *,
                max_tile_bytes: int = 256 << 20, max_band: int = 256,
                authorize_bundle: Callable[[str, str], Any] | None = None) -> web.Application:
-    """The data-plane application; the callbacks may be plain functions or coroutines."""
+    """The data-plane application; the callbacks may be plain functions or coroutines.
+
+    `expected(job, unit, token) -> (rect, image) | None`: the unit's rectangle (band excluded) and the
+    image's (width, height), if `token` is its current award's (the auction compares tokens).
+    `bundle(job) -> (path, sha256) | None`. `on_tile(job, unit, path, sha256, token, agent)` records a
+    stored tile. `authorize_bundle(job, token) -> bool`, if given, guards the bundles (`get_bundle`)."""
     plane = DataPlane(expected, bundle, on_tile, Path(tile_dir), max_tile_bytes, max_band, authorize_bundle)
     # client_max_size guards request.read()/post(); the tile route streams and enforces its own limit.
     app = web.Application(client_max_size=1 << 20, middlewares=[_json_errors])
@@ -164,6 +147,11 @@ def _token(request: web.Request) -> str:
 
 
 async def get_bundle(request: web.Request) -> web.StreamResponse:
+    """GET /jobs/{job}/bundle: the job's scene bundle (core.scene.bundle), its sha256 in `X-Content-SHA256`.
+
+    Open by default: agents need a bundle before they hold any token, and the default bind is 127.0.0.1.
+    With `authorize_bundle` it needs `X-Quekaro-Token` (set it when binding beyond loopback); a refused
+    token is 403."""
     plane = request.app[KEY]
     job, _ = _job_and_unit(request)
     if plane.authorize_bundle is not None and not await _call(plane.authorize_bundle, job, _token(request)):
@@ -197,6 +185,18 @@ def _size_cap(plane: DataPlane, rect: Rect) -> int:
 
 
 async def put_tile(request: web.Request) -> web.Response:
+    """PUT /jobs/{job}/units/{unit}/tile: headers `X-Quekaro-Token` (or `Authorization: Bearer ..`), the
+    award's per-unit token; `X-Content-SHA256`, the body's hex sha256; optional `X-Quekaro-Agent` (informational).
+
+    The body streams to a temporary file beside its destination while its size (413 over `max_tile_bytes`
+    or what the unit's rectangle can need) and hash (422 on a mismatch) are checked. The EXR header comes
+    before any pixel is decoded (a small file can declare a huge image): its dataWindow must be the unit's
+    window at one band (422 otherwise); then read_tile checks the whole tile. Only then is it fsynced,
+    renamed to `{tile_dir}/{job}/tiles/unit-{unit}.exr`, the folder fsynced, and `on_tile` awaited; if that
+    raises, the file is removed and the answer is 500 (422 for a TileError), so the agent may retry.
+    A repeat of an accepted tile (same sha256 and token) is 200 "duplicate" and changes nothing. Any upload
+    without the current award's token gets one answer, 403 whatever the unit's state or the body, so that
+    no one without the token learns a unit's state or whether a sha256 matches."""
     plane = request.app[KEY]
     job, unit = _job_and_unit(request)
     declared = request.headers.get(HASH_HEADER, "").strip().lower()

@@ -1,16 +1,15 @@
-"""The master's job API over HTTP (`quekaro submit/status/watch/result/cancel` talk to it).
+"""The master's job API over HTTP (`add_job_routes`); `quekaro submit/status/watch/result/cancel` use it.
 
-Every route needs the farm's admin token (`Authorization: Bearer ...`): anyone who can reach the port
-must not be able to submit or cancel jobs. Routes:
-
-    POST /api/jobs                 body: scene bundle (tar); header X-Quekaro-Job: {"defines", "options"}
+Every route needs the farm's admin token (`Authorization: Bearer ...`):
+    POST /api/jobs                 a scene bundle (tar); header X-Quekaro-Job: {"defines", "options"}
     GET  /api/jobs                 every job with its progress
     GET  /api/jobs/{job}           one job: status, progress, agents busy, ETA, error
-    GET  /api/jobs/{job}/result    the composed EXR (409 until the job is done)
+    GET  /api/jobs/{job}/result    the composed image, EXR unless the film asks otherwise (409 until done)
     GET  /api/jobs/{job}/report    the JSON report
-    GET  /api/jobs/{job}/units/{n} one unit: status, agent, attempts, and its story (the stimuli that moved it)
-    POST /api/jobs/{job}/cancel
+    GET  /api/jobs/{job}/units/{n} one unit: status, agent, attempts, and its story
+    POST /api/jobs/{job}/cancel    cancel the job
     GET  /api/agents               agents the auction knows, with their records
+    GET  /api/farm                 the data plane's address, and why jobs are paused if they are
 """
 
 from __future__ import annotations
@@ -71,6 +70,8 @@ def add_job_routes(app: web.Application, service: JobService) -> None:
 
 
 def _service(request: web.Request) -> JobService:
+    """The master, once the request's bearer token is the admin token (401 otherwise): anyone who can reach
+    the port must not be able to submit or cancel jobs."""
     service = request.app[SERVICE_KEY]
     token = bearer_token(request)
     if not token or not hmac.compare_digest(token.encode(), service.admin_token.encode()):
@@ -99,6 +100,8 @@ async def _receive_to_file(request: web.Request, folder: Path, limit: int) -> Pa
 
 
 async def submit(request: web.Request) -> web.Response:
+    """POST /api/jobs: the body is the scene bundle (tar), the header X-Quekaro-Job its `JobSpec`
+    ({"defines", "options"}); 201 with the new job's id."""
     service = _service(request)
     try:
         spec = JobSpec.from_dict(json.loads(request.headers.get("X-Quekaro-Job", "{}")))
@@ -156,6 +159,7 @@ def unit_summary(service: JobService, job_id: str, index: int) -> dict[str, Any]
 
 
 async def job_unit(request: web.Request) -> web.Response:
+    """One unit: status, agent, attempts, and its story (the stimuli that moved it: `unit_story`)."""
     service = _service(request)
     try:
         return web.json_response(unit_summary(service, request.match_info["job"], int(request.match_info["unit"])))
@@ -196,6 +200,7 @@ async def _finished_result(request: web.Request) -> tuple[JobService, str] | web
 
 
 async def job_result(request: web.Request) -> web.StreamResponse:
+    """The composed image (`result_image`), 409 until the job is done."""
     found = await _finished_result(request)
     if isinstance(found, web.Response):
         return found

@@ -421,7 +421,7 @@ class MasterService:
         answered or finished may be free: waiting for the timer would idle it), carried out."""
         now = time.time()
         out = self.auction.handle(stimulus, now)
-        out += self.auction.handle(au.Tick(stimulus_id=f"tick-after-{out[0].stimulus_id if out else 'none'}"), now)
+        out += self.auction.handle(au.Tick(stimulus_id=f"tick-after-{stimulus.stimulus_id}"), now)
         await self._execute(out)
         return out
 

@@ -1,14 +1,9 @@
 """The job store: jobs, units, awards and attempts, results and agents' credits in one SQLite file.
 
-SQLite (stdlib `sqlite3`) in WAL mode, so the CLI reads status while the master writes; foreign keys on;
-a busy timeout rather than "database is locked" errors; synchronous=FULL because a unit counts as done
-only once its tile and the row saying so are both on disk. The schema version lives in `user_version`.
-
-The auction state machine (`master.auction`) never touches the store: the master records the auction's
-records with `JobStore.apply`. On restart `resume` sends awarded-but-unfinished units back to pending, and the
-auction rebuilds itself (`Auction.restore`) from `running_jobs` and `credits`. Statuses, in the rows and in
-the schema's CHECK constraints, are those of `core.model.status`, and every change of one is checked
-against its transition table, as the auction's are.
+`JobStore(path)` holds it. The auction (`master.auction`) never touches the store: the master records
+the auction's records with `JobStore.apply`. After a restart `resume` sends awarded units back to pending
+and the auction rebuilds itself from `running_jobs` and `credits`. Statuses (rows and CHECK constraints)
+are `core.model.status`'s, and every change is checked against its transition table, as the auction's are.
 """
 
 from __future__ import annotations
@@ -177,7 +172,11 @@ class Progress:
 
 
 class JobStore:
-    """One SQLite file. Use one instance per thread; `readonly=True` for status readers such as the CLI."""
+    """One SQLite file. Use one instance per thread; `readonly=True` for status readers such as the CLI.
+
+    WAL mode, so the CLI reads status while the master writes; foreign keys on; a busy timeout rather
+    than "database is locked" errors; synchronous=FULL because a unit counts as done only once its tile
+    and the row saying so are both on disk. The schema version lives in `user_version`."""
 
     def __init__(self, path: str | Path, readonly: bool = False, busy_timeout_s: float = 10.0) -> None:
         self.path = Path(path)

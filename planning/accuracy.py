@@ -1,14 +1,6 @@
-"""What a job's accuracy cost: its image against a long plain-Mitsuba reference, and against plain
-Mitsuba at the uniform spp that takes the same wall time (`quekaro render --report-accuracy`, and the
-benchmark `quekaro bench accuracy` built on it). Plain Mitsuba renders in the variant the job rendered in
-(the effect analysis's, or the user's `-m`): a spectral scene against an rgb reference would count the
-variant's difference as the job's error. It also computes what the job was asked to (`Asked`: its sensor,
-the user's integrator and depth) and finds the scene's files where the job did (its search folders).
-
-Plain Mitsuba runs as a user runs it (`python -m planning.plain`: import, load, render, write) and the
-whole process is timed. Its time is linear in spp (design.md section 3): two timings give
-t(spp) = t0 + k spp, and the spp for a time follows. The reference is cached by the content of every
-file the scene reads, its -D parameters, spp and variant.
+"""What a job's accuracy cost: its image against a long plain-Mitsuba reference (`reference`), and against
+plain Mitsuba at the uniform spp that takes the same wall time (`uniform_at`, on `spp_timing`'s line).
+`accuracy_report` is `quekaro render --report-accuracy`; the benchmark `quekaro bench accuracy` builds on it.
 """
 
 from __future__ import annotations
@@ -80,8 +72,9 @@ class Asked:
 
 def plain_render(spec: Any, spp: int, threads: int, variant: str, seed: int = 0,
                  asked: Asked = Asked()) -> tuple[np.ndarray, float]:
-    """Plain Mitsuba on the whole image at `spp` in `variant`, computing what `asked` says, the whole
-    process timed (`python -m planning.plain`): (RGB pixels, wall seconds)."""
+    """Plain Mitsuba on the whole image at `spp` in `variant`, computing what `asked` says, with the scene's
+    -D parameters and search folders, as a user runs it: the whole process timed (`python -m planning.plain`:
+    import, load, render, write). Returns (RGB pixels, wall seconds)."""
     with tempfile.TemporaryDirectory(prefix="quekaro-plain-") as tmp:
         out = Path(tmp) / "plain.exr"
         cmd = [sys.executable, "-m", "planning.plain", str(spec.path), "--spp", str(spp), "--seed", str(seed),
@@ -132,7 +125,8 @@ MAX_TIMING_SPP = 1 << 14
 
 
 def spp_timing(spec: Any, spp: int, threads: int, variant: str, asked: Asked = Asked()) -> tuple[float, float]:
-    """(t0, k) of t(spp) = t0 + k spp for the plain Mitsuba process, from the faster of two runs at two spp."""
+    """(t0, k) of t(spp) = t0 + k spp for the plain Mitsuba process, from the faster of two runs at two spp.
+    Render time is linear in spp (design.md section 3), so the spp for a given time follows from the line."""
     size = ", ".join(f"{k}={v}" for k, v in spec.defines.items())
     return fit_spp_line(lambda n: min(plain_render(spec, n, threads, variant, seed=s, asked=asked)[1] for s in (1, 2)),
                         spp, what=f"{spec.path.name} ({size})")
@@ -177,8 +171,9 @@ def uniform_at(spec: SceneSpec, seconds: float, line: tuple[float, float], threa
 def accuracy_report(spec: SceneSpec, image: np.ndarray, wall_seconds: float, report: dict[str, Any],
                     threads: int, ref_spp: int = REF_SPP, cache: Path | None = None) -> dict[str, Any]:
     """The job's image (RGB first) against the reference, its seams at the units' borders, and the
-    uniform baseline at equal wall time, in the variant the job rendered in, computing what the job was
-    asked to (its sensor, the user's integrator and depth)."""
+    uniform baseline at equal wall time, computing what the job was asked to (its sensor, the user's
+    integrator and depth). Plain Mitsuba renders in the job's variant (the effect analysis's, or the
+    user's `-m`): a spectral scene against an rgb reference would count the variant's difference as error."""
     variant, asked = report["effects"]["variant"], Asked.of_report(report)
     ref = reference(spec, ref_spp, threads, cache or default_cache(), variant, asked)
     rgb = np.asarray(image[..., :3], dtype=np.float32)

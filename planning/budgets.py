@@ -1,15 +1,8 @@
-"""Adaptive jobs (`--adaptive`, in one process or on a farm): the rules say how many samples a level spends,
-the measured noise says where they go.
-
-All of it is planned before any unit renders, so a farm needs no second round of awards:
-- `level_spp`: the level's mean samples per pixel, the rules' spp over the level's own partition weighted
-  by unit area;
-- `shares`: that budget split over the render units (a plain grid) as the image-wide per-pixel allocation
-  on the complexity pre-pass's noise would split it (Neyman allocation above the first pass: each unit
-  gets the samples that allocation gives its pixels). Equal shares unless the pre-pass predicts that the
-  allocation pays (PAYS_BELOW);
-- each unit renders in two passes (core.render.adaptive.render_adaptive): `first_spp` per pixel, then the
-  rest of its share where that first pass's noise is.
+"""Adaptive jobs (`--adaptive`, in one process or on a farm): the rules say how many samples a level spends
+(`level_spp`), the pre-pass's noise says where they go (`shares`). All of it is planned before any unit
+renders, so a farm needs no second round of awards. Each unit then renders in two passes
+(core.render.adaptive.render_adaptive): `first_spp` per pixel, then the rest of its share where that pass
+is noisy.
 """
 
 from __future__ import annotations
@@ -28,7 +21,8 @@ from core.rules.unit_params import RenderParams
 
 
 def level_spp(units: Sequence[WorkUnit], chosen: Sequence[RenderParams]) -> int:
-    """The level's samples per pixel: the rules' spp of each unit weighted by its area."""
+    """The level's samples per pixel: the rules' spp of each unit of the level's own partition, weighted by
+    its area."""
     area = sum(u.rect.area for u in units)
     total = sum(p.spp * u.rect.area for u, p in zip(units, chosen, strict=True))
     return max(1, round(total / max(area, 1)))
@@ -52,9 +46,10 @@ class Shares:
 
 
 def shares(noise: np.ndarray, rects: Sequence[Rect], mean_spp: int) -> Shares:
-    """Split `mean_spp` x the image's pixels over `rects` by the pre-pass's per-pixel relative noise
-    (H x W): each rect's mean of the image-wide two-pass allocation on that noise, blurred
-    (core.render.adaptive.second_pass, never below the first pass), rounded to whole spp, at most SPP_MAX.
+    """Split `mean_spp` x the image's pixels over `rects` (the render units, a plain grid) by the pre-pass's
+    per-pixel relative noise (H x W): each rect's mean of the image-wide two-pass allocation on that noise,
+    blurred (core.render.adaptive.second_pass: Neyman above the first pass, never below it), rounded to whole
+    spp, at most SPP_MAX. Equal shares unless the pre-pass predicts that the allocation pays (PAYS_BELOW).
     The rects then place their own samples from their own first pass, so the image-wide split is what the
     pre-pass contributes; its samples are independent of the render's, so no pixel's neighbourhood is left out."""
     if noise.ndim != 2 or not np.isfinite(noise).all() or (noise < 0).any():

@@ -1,22 +1,8 @@
 """The complexity pre-pass: a cheap estimate of per-pixel render cost and noise, before any unit exists.
 
-Cost proxy: rays traced per sample (camera ray, bounces and shadow rays), averaged over a few samples of
-a reduced-resolution image, by a small wavefront tracer that follows the same BSDF sampling and Russian
-roulette as Mitsuba's `path` integrator but shades nothing. Ray count is what a path tracer's time is
-made of (rank correlation 0.90 with true time, design.md section 3); unlike per-tile timing it needs no
-crop (each new crop costs ~0.1 s of kernel compilation) and it is per pixel. Pixels that hit nothing
-cost one ray, so they come out nearly free, and glass costs only the bounces it adds.
-
-Noise: the per-sample variance of each pixel, from Mitsuba's `moment` integrator wrapping the render's
-own integrator at the same reduced resolution (0.99 correlation with the error at fixed spp). This is
-what makes caustic-lit diffuse surfaces complex while plain glass is not. The same pass keeps each
-pixel's mean, so that the noise can be taken relative to the brightness (`relative_noise`): the
-benchmark's error, relative MSE, weighs a pixel's squared error by 1 / (reference^2 + 0.01).
-
-Budget: together the passes take at most `budget` / 4 of the full render's samples (the rest of the 5 %
-goes to fixed overhead): the noise pass NOISE_SHARE of them, the ray-count pass the rest, each at 1/k of
-the resolution per axis with its own k (`choose_downscale`; the noise map gets the finer grid). Warm
-kernels make the passes themselves take milliseconds.
+`prepass(scene, ...) -> ComplexityMap`: `cost`, the rays traced per sample (`_ray_count_pass`), and `noise`,
+the per-sample variance (`_moment_pass`), each from a reduced-resolution render that takes a share of the
+full render's samples (`choose_downscale`).
 """
 
 from __future__ import annotations
@@ -157,6 +143,10 @@ def prepass(
     pre-pass is for, and sets (with `budget`) how far each pass reduces the resolution; `spp` and
     `cost_spp` are the noise and ray-count passes' samples per low-resolution pixel. `integrator` is a
     plugin type or a standalone integrator XML (core.model.integrators.radiance_xml: the scene's own).
+    Together the passes take at most `budget` / 4 of the full render's samples (the rest of the budget goes
+    to fixed overhead): the noise pass NOISE_SHARE of them, the ray-count pass the rest, each at 1/k of the
+    resolution per axis with its own k (the noise map gets the finer grid). Warm kernels make the passes
+    themselves take milliseconds.
     """
     start = time.perf_counter()
     scene = _as_scene(scene, threads)
@@ -235,7 +225,11 @@ def film_size(scene: Any, w: int, h: int, sensor: int = 0) -> Iterator[None]:
 
 def _moment_pass(scene: Any, integrator: str, max_depth: int, spp: int, seed: int,
                  sensor: int = 0) -> tuple[np.ndarray, ...]:
-    """Per-pixel per-sample variance (mean over RGB, non-finite -> the largest finite value) and mean."""
+    """Per-pixel per-sample variance (mean over RGB, non-finite -> the largest finite value) and mean, from
+    Mitsuba's `moment` integrator wrapping the render's own (0.99 correlation with the error at fixed spp,
+    design.md section 3).
+    It is what makes caustic-lit diffuse surfaces complex while plain glass is not; the mean lets the noise
+    be taken relative to the brightness (ComplexityMap.relative_noise), as relMSE weighs a pixel's error."""
     import mitsuba as mi
 
     if integrator.lstrip().startswith("<"):
@@ -270,7 +264,12 @@ def _ray_count_pass(scene: Any, w: int, h: int, max_depth: int, spp: int, seed: 
     """Mean rays per sample of each pixel (camera ray, one per bounce, one shadow ray per smooth hit) of
     paths cut at each depth: (depths, h, w), layer d - 1 for depth d. A cut changes no path before it, so
     one trace gives every depth. (Mitsuba casts no shadow ray at a path's last vertex: a depth's count is
-    at most one ray high, alike at every depth.)"""
+    at most one ray high, alike at every depth.)
+
+    The tracer follows the BSDF sampling and Russian roulette of Mitsuba's `path` integrator but shades
+    nothing. Ray count is what a path tracer's time is made of (rank correlation 0.90 with true time,
+    design.md section 3); unlike per-tile timing it needs no crop (each new crop compiles a kernel, ~0.1 s)
+    and it is per pixel. A pixel that hits nothing costs one ray; glass costs only the bounces it adds."""
     import drjit as dr
     import mitsuba as mi
 

@@ -1,35 +1,9 @@
-"""Depth floors: per unit, the shallowest depth the rules may cut it to without losing a measurable share
-of its light, as far as it was worth measuring (deeper where it was not: that costs time, never light).
-
-The rules cut a unit's depth (Rl) at strong optimisation levels. Paths longer than the cut carry light
-that the unit then lacks, so a cut unit reads darker than its uncut neighbour and the border shows as a
-seam (interior at level VB: depth 4 beside depth 8, 20 % of a pixel's light gone). Where longer paths
-carry nothing (an open sky, a still life of few bounces) the cut only saves time. This pass measures which
-is which, so that depth is cut only where the scene does not call for the deeper paths.
-
-At the noise pre-pass's low resolution the scene renders at the user's depth and at each shallower depth
-the planner can choose (core.rules.unit_params.DEPTH_STEPS), with one seed per stage at every depth: each
-sample follows the same path up to the cut, so the difference of two passes is the light of the longer
-paths alone. That light comes from rare long paths, so a few samples mostly miss it, and then their
-spread is small too: the passes take enough samples per pixel that the smallest unit has
-MIN_UNIT_SAMPLES (at most MAX_FLOOR_SPP). A unit's floor is the shallowest of those depths (and every
-deeper one) whose loss over the unit, its mean plus Z_BOUND standard errors over the unit's
-low-resolution pixels, stays within LOSS_TOLERANCE of the unit's light, and whose loss relative to each
-lit pixel's own light does too, on average over those pixels (a seam shows against the pixels beside it,
-not against the unit's mean). The planner never renders a unit below its floor; the master refuses a
-tile that says it did.
-
-The passes are staged, since most cuts that fail, fail by far (a closed room loses several times the
-tolerance): a probe of PROBE_SPP samples refuses the cuts whose loss is over the tolerance even at its
-lower bound, and the units left are judged on all the samples. Deeper first, a depth is measured only
-for units that may still be cut to it and whose rules cut them that far (`needed`: a floor below a
-unit's chosen depth changes nothing the planner renders), and the stages are rendered only where they
-may pay: where the cut to this depth could save the units left more rays (at their spp, over their
-pixels, against the depth they would keep) than the stages still to render at this depth and the user's
-cost over the whole low-resolution film. Rays are counted by the pre-pass (RayCost): a path that
-escapes or ends by Russian roulette before the cut costs the same at either depth, so an open scene's
-cut saves little, where counting a sample's cost as its depth would say it halves the render. A unit
-left undecided keeps the depth it has: that costs time, never accuracy."""
+"""Depth floors: per unit, the shallowest depth the rules may cut it to without losing more than
+LOSS_TOLERANCE of its light (a cut unit lacks the longer paths' light, and its border shows as a seam).
+`measure` finds them from low-resolution renders at the user's depth and each shallower one (`cut_depths`),
+in stages (`StagedPasses`, `staged_floors`), where a cut may save more rays than its passes cost (`RayCost`).
+The planner never renders a unit below its floor; the master refuses a tile that says it did.
+"""
 
 from __future__ import annotations
 
@@ -86,7 +60,9 @@ class RayCost:
     """The rays traced when paths are cut at each depth (column d - 1): per pixel of each unit as the
     render samples it (its spp times its rays per sample), and per sample of the floors' passes (over the
     whole film). A depth past the last column (the user's) costs what the last does: an underestimate of
-    a saving, which refuses a cut, never allows one."""
+    a saving, which refuses a cut, never allows one. Rays, not depth: a path that escapes or ends by
+    Russian roulette before the cut costs the same at either depth, so an open scene's cut saves little
+    where counting a sample's cost as its depth would say it halves the render."""
 
     unit_pixel: np.ndarray  # (units, depths)
     pass_sample: np.ndarray  # (depths,)
@@ -124,7 +100,9 @@ def measure(scene: Any, integrator_at: Callable[[int], str], depth: int, rects: 
     `depth` and the cut depths, in stages, and return each rect's floor (rects in `image_size` pixels).
     `needed`: per rect, the depth its rules chose (None: 1): its floor is measured only as far as decides
     whether that depth is allowed. `cost`: the rays each rect's render traces by depth, which bounds what
-    a cut can save (None: every stage is rendered)."""
+    a cut can save (None: every stage is rendered). Why: a cut unit beside an uncut one shows a seam
+    (interior at level VB: depth 4 beside depth 8, 20 % of a pixel's light gone), while where longer paths
+    carry nothing (an open sky, a still life of few bounces) the cut only saves time."""
     start = time.perf_counter()
     depths = [depth, *cut_depths(depth)]
     spp = floor_spp(rects, low_size, image_size)
@@ -137,7 +115,8 @@ def measure(scene: Any, integrator_at: Callable[[int], str], depth: int, rects: 
 
 def stage_spp(spp: int) -> list[int]:
     """The samples per pixel of each stage: a probe of PROBE_SPP and the rest, or one stage where the rest
-    would be smaller than the probe."""
+    would be smaller than the probe. Most cuts that fail, fail by far (a closed room loses several times
+    the tolerance), so the probe settles them."""
     return [spp] if spp < 2 * PROBE_SPP else [PROBE_SPP, spp - PROBE_SPP]
 
 
@@ -145,7 +124,7 @@ class StagedPasses:
     """Luminance per depth and stage over `pixels` low-resolution pixels, each rendered once when first
     asked for (`render(depth, spp, seed)`); a depth's estimate over its first k stages is their samples'
     mean. Stage k renders with its own seed, the same at every depth, so that two depths' passes follow
-    the same paths up to the shallower."""
+    the same paths up to the shallower: their difference is the light of the longer paths alone."""
 
     def __init__(self, render: Callable[[int, int, int], np.ndarray], spp: Sequence[int], seed: int,
                  pixels: int) -> None:
@@ -176,7 +155,8 @@ class StagedPasses:
 
 def floor_spp(rects: Sequence[Rect], low_size: tuple[int, int], image_size: tuple[int, int]) -> int:
     """Samples per low-resolution pixel that give the smallest rect MIN_UNIT_SAMPLES, within
-    [PREPASS_SPP, MAX_FLOOR_SPP]."""
+    [PREPASS_SPP, MAX_FLOOR_SPP]. The lost light comes from rare long paths: a few samples mostly miss it,
+    and then their spread looks small too."""
     low_shape = (low_size[1], low_size[0])
     pixels = min((_window_pixels(_low_window(r, low_shape, *image_size)) for r in rects), default=1)
     return int(np.clip(-(-MIN_UNIT_SAMPLES // pixels), PREPASS_SPP, MAX_FLOOR_SPP))
@@ -199,7 +179,8 @@ def staged_floors(passes: StagedPasses, depths: Sequence[int], rects: Sequence[R
                   needed: Sequence[int] | None = None, cost: RayCost | None = None) -> list[int]:
     """Each rect's floor from `passes` (`depths[0]` is the user's, the rest deeper first); `needed` and
     `cost` as in measure. A rect refused a depth keeps the deeper one and is not tried shallower; one
-    allowed a depth at or under its chosen one is not tried shallower either."""
+    allowed a depth at or under its chosen one is not tried shallower either (a floor below its chosen
+    depth changes nothing the planner renders)."""
     full_depth, n = depths[0], len(rects)
     floors = [full_depth] * n
     reach = [1] * n if needed is None else [int(d) for d in needed]
@@ -222,7 +203,7 @@ def _cut(passes: StagedPasses, full_depth: int, depth: int, rects: dict[int, Rec
     refused where its loss is over the tolerance even at its lower bound (_beyond), at the last stage
     where it is not within it at its upper bound (_within). A stage is rendered only where the rects left
     could gain (`gains`: rays each saves if allowed) more than it costs (_cost; no `cost`: always); else
-    they are all refused."""
+    they are all refused, and keep their depth: that costs time, never light."""
     undecided = list(rects)
     for k in range(1, passes.stages + 1):
         if not undecided or (cost is not None and
@@ -248,7 +229,8 @@ def _within(full: np.ndarray, cut: np.ndarray) -> bool:
     """Whether the light lost between these pixels' full and cut passes is within LOSS_TOLERANCE both of
     their light together and, on average, of each lit pixel's own light, at the upper bound of each
     estimate. The second keeps a cut from a unit whose mean is a bright light's (its own emitter, or the
-    film filter's spill of a neighbour's at low resolution) while its other pixels lose more."""
+    film filter's spill of a neighbour's at low resolution) while its other pixels lose more: a seam shows
+    against the pixels beside it, not against the unit's mean."""
     light, loss, relative = _losses(full, cut)
     if light <= DARK:
         return True

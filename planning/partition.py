@@ -1,17 +1,9 @@
 """Partition: split the image into work units of similar estimated cost, with a bounded set of sizes.
 
-The MAgArRO scheme on a fixed grid hierarchy. A unit's estimated cost, for splitting and merging, is its
-work: rays per sample times the pixel's relative noise over the image's mean (when the pre-pass kept the
-mean; rays alone otherwise), since at an optimised level the rules give noisy pixels more samples. So the
-noisy corner of a scene is split into small units of its own and the quiet wall stays in big ones.
-`sizes` (ascending, each a multiple of the one before) are the allowed unit sides; a unit of level i is a
-cell of the global `sizes[i]` grid, clipped to the image. Starting from the coarsest grid, a cell is
-split into the cells of the next finer grid while its cost is far above the target (this halves costly
-zones until they fit), or while its pixels' complexity varies strongly and it is not cheap. Siblings that
-all stayed whole are merged back into their parent when together they are cheap and alike. Because every
-unit is a clipped grid cell, there are at most 4 * len(sizes) distinct unit rectangles (whole cells,
-right-edge, bottom-edge and corner remainders), which keeps Dr.Jit's kernel cache warm. The target cost
-per unit is bisected so that the number of units comes as close to `target_units` as the grid allows.
+`partition(cmap, target_units, sizes)` is the MAgArRO scheme on a fixed grid hierarchy: a unit is a cell of
+the global grid of one of `sizes`, clipped to the image, so there are at most 4 * len(sizes) distinct unit
+rectangles (whole, right-edge, bottom-edge and corner cells) and Dr.Jit's kernel cache stays warm.
+`units_from_rects` gives units their C, S, Nd and neighbours; `equal_tiles` is the naive split.
 """
 
 from __future__ import annotations
@@ -174,7 +166,11 @@ def partition(
 ) -> list[WorkUnit]:
     """Units of similar estimated cost covering the image exactly once, with sides drawn from `sizes`.
 
-    The costliest unit is split first until there are `target_units` (fewer when the grid allows no
+    A unit's cost here is its work: rays per sample times each pixel's relative noise over the image's mean
+    (rays alone without the map's mean), since at an optimised level the rules give noisy pixels more
+    samples: a scene's noisy corner splits into small units, its quiet wall stays in big ones. Starting from
+    the coarsest grid, the costliest unit is split into the cells of the next finer grid first (one whose
+    complexity varies strongly counts double) until there are `target_units` (fewer when the grid allows no
     more); units still costing over HALVE_FACTOR times total / target_units are then halved (up to twice
     that count), and cheap alike siblings merged back, so the final count is near, not exactly,
     `target_units`. The coarsest grid's cells are never merged, so there are at least that many units.

@@ -1,14 +1,9 @@
 """Plain Mitsuba, as a user runs it: one process that imports Mitsuba, loads the scene, renders it at a
-given spp and writes an EXR. `planning.accuracy` times this whole process for its uniform baseline, as
-`quekaro bench accuracy` times the whole `quekaro render` process, so both pay the same start-up.
+given spp and writes an EXR. `planning.accuracy` times this whole process for its uniform baseline, so that
+it pays the same start-up as the `quekaro render` process it is compared with.
 
     python -m planning.plain SCENE.xml -D name=value ... -a FOLDER ... --spp N --seed S -t THREADS \\
         [-s SENSOR] [--integrator TYPE] [--depth N] -o OUT.exr
-
-It computes what the job was asked to compute: the scene with its -D parameters and search folders, the
-sensor chosen (Mitsuba's -s), and the user's integrator type and max_depth where the job overrode them,
-built as each unit builds them (core.render.process.integrator_for). The film's colour is written as
-R, G, B (core.image.film.film_channels: a luminance film's Y thrice), as a job's image is read back.
 """
 
 from __future__ import annotations
@@ -28,6 +23,9 @@ from core.scene.scene import expand, load, sensor_of
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Render what the job was asked to: the scene with its -D parameters and search folders, the sensor
+    (Mitsuba's -s), and the user's integrator type and max_depth where the job overrode them, built as each
+    unit builds them (core.render.process.integrator_for)."""
     parser = argparse.ArgumentParser(prog="python -m planning.plain", description=__doc__)
     parser.add_argument("scene")
     parser.add_argument("-D", dest="defines", action="append", default=[], metavar="NAME=VALUE")
@@ -56,6 +54,7 @@ def main(argv: list[str] | None = None) -> int:
         elem = integrators.scene_element(expand(spec).root)
         integrator = integrator_for(args.integrator, args.depth, elem, integrators.depth_of(elem))
     mi.render(scene, sensor=args.sensor, integrator=integrator, spp=args.spp, seed=args.seed)
+    # R, G, B as a job's image is read back (core.image.film.film_channels: a luminance film's Y thrice).
     image, _ = film_channels(scene.sensors()[args.sensor].film())
     write_exr(args.output, np.ascontiguousarray(image[..., :3]))
     return 0

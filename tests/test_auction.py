@@ -10,7 +10,7 @@ from collections import Counter
 from typing import TypeVar
 
 import pytest
-from auction_support import cancel, informed, message, register, submit, tick, uploadable
+from auction_support import cancel, informed, message, register, stored, submit, tick, uploadable
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -79,7 +79,8 @@ def bid_all(
         speed = (speeds or {}).get(send.to, 1.0)
         est = tuple(m.Estimate(index=u.index, seconds=u.cost / speed) for u in send.message.units)
         out = message(a,
-            send.to, m.Propose(conversation=send.message.conversation, job_id="job-1", estimates=est), now
+            send.to, m.Propose(conversation=send.message.conversation, job_id=send.message.job.job_id, estimates=est),
+            now
         )
         assert out == []
 
@@ -460,8 +461,12 @@ def test_duplicate_forged_and_late_results_are_ignored() -> None:
 
 
 def test_proposals_outside_the_auction_are_ignored() -> None:
-    a = make([1.0], ["A", "B"])
-    a._agents["B"].holding.add(("other", 0))  # busy: not called
+    a = au.Auction(ONE_A_ROUND, rng=random.Random(7))
+    submit(a, info("other"), specs([1.0]))
+    register(a, "B", 0.0)
+    assert [s.to for s in round_trip(a, 0.0).values()] == ["B"]  # busy with the other job's unit: not called
+    submit(a, info(), specs([1.0]))
+    register(a, "A", 0.0)
     cfp = sends(tick(a, 0.0), m.CallForProposal)[0].message
     est = (m.Estimate(index=0, seconds=1.0),)
     assert events(
@@ -617,8 +622,7 @@ def test_random_event_sequences_never_lose_a_unit(sequence, n_units: int, slots:
             award = outstanding.pop(0) if op != "dup" else outstanding[0]
             old_awards.append(award)
             msg = failure(award) if op == "fail" else inform(award, step)
-            handler = a.on_failure if op == "fail" else a.on_inform
-            feed(handler(award.to, msg, now))
+            feed((message if op == "fail" else informed)(a, award.to, msg, now))
         elif op == "inform-late" and old_awards:
             award = old_awards[who % len(old_awards)]
             feed(informed(a, award.to, inform(award, step), now))
@@ -760,7 +764,8 @@ def test_lost_fast_agent_releases_its_projected_units() -> None:
 def test_blocklisted_agent_gets_no_projected_units() -> None:
     a = make([5.0, 1.0], ["fast", "slow"])
     a._agents["fast"].speed = 10.0
-    a._jobs["job-1"].blocklist.add("fast")
+    a._jobs["job-1"].blocklist.add("fast")  # as its failures would have made it
+    a._jobs["job-1"].failures_by_agent["fast"] = a.config.blocklist_after
     assert {p.agent for p in a.projection("job-1", 0.0).values()} == {"slow"}
     assert {s.to for s in sends(tick(a, 0.0), m.CallForProposal)} == {"slow"}
 
@@ -997,3 +1002,49 @@ def test_in_the_end_game_an_agent_holding_units_is_not_called_and_an_idle_one_wi
 def test_two_slots_keep_one_unit_a_round() -> None:
     a = make([1.0] * 40, ["A", "B"], au.Config(slots=2))
     assert Counter(s.to for s in round_trip(a, 0.0).values()) == {"A": 1, "B": 1}
+
+
+def test_a_units_story_names_the_stimuli_that_moved_it_and_each_instruction_its_stimulus() -> None:
+    a = make([1.0], ["A"])
+    [call] = sends(a.handle(au.Tick(stimulus_id="tick-1"), 0.0), m.CallForProposal)
+    propose = m.Propose(conversation=call.message.conversation, job_id="job-1",
+                        estimates=(m.Estimate(index=0, seconds=1.0),))
+    assert a.handle(au.MessageReceived("A", propose, stimulus_id="propose-1"), 0.1) == []
+    decided = a.handle(au.Tick(stimulus_id="tick-2"), 0.2)
+    [award] = sends(decided, m.Award)
+    assert {i.stimulus_id for i in decided} == {"tick-2"}
+    done = a.handle(dataclasses.replace(stored(award.message, 1.0), stimulus_id="tile-1"), 1.5)
+    assert [(type(i), i.stimulus_id) for i in done] == [(au.UnitDone, "tile-1"), (au.JobDone, "tile-1")]
+    assert [(s.stimulus_id, s.start, s.finish, s.at) for s in a.story("job-1", 0)] == [
+        ("tick-1", "pending", "announced", 0.0), ("tick-2", "announced", "awarded", 0.2),
+        ("tile-1", "awarded", "done", 1.5)]
+    assert a.story("job-1", 7) == [] and a.story("nope", 0) == []
+    lost = tick(a, 50.0)  # an unnamed stimulus is numbered
+    assert lost and all(i.stimulus_id.startswith("tick-") for i in lost)
+
+
+def test_while_the_disk_is_full_nothing_times_out_and_the_clock_stands_still() -> None:
+    a = make([1.0], ["A"])
+    got = round_trip(a, 0.0)
+    assert [type(i) for i in a.handle(au.DiskFull(free_bytes=10), 1.0)] == [au.JobsPaused]
+    assert a.handle(au.DiskFull(free_bytes=9), 2.0) == [] and a.paused == "disk full on the master"
+    assert tick(a, 1000.0) == [] and a.clock(1000.0) == 1.0  # no deadline, no loss while paused
+    assert [type(i) for i in a.handle(au.DiskFreed(free_bytes=1 << 30), 1000.0)] == [au.JobsResumed]
+    assert a.clock(1001.0) == pytest.approx(2.0) and a.paused is None
+    assert a.award_for("job-1", 0, got[0].message.token) is not None  # still awarded: its deadline did not pass
+
+
+def test_validate_names_the_invariant_a_state_breaks() -> None:
+    a = make([1.0, 1.0], ["A", "B"])
+    got = round_trip(a, 0.0)
+    a.validate()
+    unit = a._jobs["job-1"].units[0]
+    a._agents[got[0].to].holding.clear()
+    with pytest.raises(AssertionError, match=f"unit 0 of job job-1: awarded to {got[0].to}, which does not hold it"):
+        a.validate()
+    a._agents[got[0].to].holding.add(("job-1", 0))
+    a._jobs["job-1"].units[1].token = "f" * 32  # a token left on a unit no longer awarded
+    a._jobs["job-1"].units[1].status = UnitStatus.PENDING
+    with pytest.raises(AssertionError, match="unit 1 of job job-1: pending with an award"):
+        a.validate()
+    assert unit.status == UnitStatus.AWARDED

@@ -292,6 +292,16 @@ def test_agents_lists_a_real_farms_agents(tmp_path: Path) -> None:
         done = quekaro("submit", str(SCENES / "cbox.xml"), "-D", "res=32", "--spp", "4", "--units", "4", "--wait",
                        "--home", str(farm.home))
         assert done.returncode == 0, done.stderr
+        job_id = done.stdout.split()[0]
+        unit = quekaro("status", job_id, "--unit", "0", "--home", str(farm.home))
+        assert unit.returncode == 0, unit.stderr
+        lines = unit.stdout.splitlines()
+        assert lines[0] == f"unit 0 of job {job_id}: done" and "attempt by agent-" in lines[1], lines
+        moves = [line.split("  ")[2] for line in lines if " -> " in line]  # its story, oldest first
+        assert moves[0] == "pending -> announced" and moves[-1] == "awarded -> done", lines
+        assert lines[-1].endswith(")") and f"(tile-{job_id}-0-" in lines[-1], lines
+        missing = quekaro("status", job_id, "--unit", "99", "--home", str(farm.home))
+        assert missing.returncode != 0 and f"job {job_id} has no unit 99" in missing.stderr, missing.stderr
         time.sleep(0.5)
         listed = quekaro("agents", "--json", "--home", str(farm.home))
         assert listed.returncode == 0, listed.stderr
@@ -301,7 +311,7 @@ def test_agents_lists_a_real_farms_agents(tmp_path: Path) -> None:
         table = quekaro("agents", "--home", str(farm.home))
         assert table.stdout.count("idle") == 2
         master = quekaro("logs", "master", "-n", "1000", "--home", str(farm.home))
-        assert master.returncode == 0 and "up: HTTP" in master.stdout and "JobDone" in master.stdout
+        assert master.returncode == 0 and "up: HTTP" in master.stdout and ": every unit done" in master.stdout
         assert quekaro("logs", "master", "-n", "0", "--home", str(farm.home)).stdout == ""
         assert "xmpp" in quekaro("logs", "--home", str(farm.home)).stdout  # the help offers it
         assert quekaro("logs", "xmpp", "--home", str(farm.home)).returncode == 0

@@ -322,8 +322,8 @@ def test_master_host_unreachable_for_30_s(tmp_path):
         for name in farm.agents:
             assert "dropping the connection" in farm.log(name) and "back online" in farm.log(name), farm.tails()
         for name in farm.agents:  # every agent went silent for the master, and came back
-            assert f"AgentLost(agent='{farm.jid(name)}'" in master_log, farm.tails()
-            assert f"AgentBack(agent='{farm.jid(name)}'" in master_log, farm.tails()
+            assert f"agent {farm.jid(name)}: lost" in master_log, farm.tails()
+            assert f"agent {farm.jid(name)}: back" in master_log, farm.tails()
         assert any(a["outcome"] == "requeued" for a in farm.attempts(job_id))
         assert len(farm.results(job_id)) == 12
         farm.check_image(job_id, 64)
@@ -353,6 +353,6 @@ def test_agents_with_clocks_10_minutes_off(tmp_path):
             assert any(a["agent"] == jid for a in done), (name, done)
             # Its clock really is off: its login, by its own log, against the master's record of it.
             own = next(line for line in farm.log(name).splitlines() if f"{jid} connected to" in line)
-            seen = next(line for line in master_log if f"AgentRegistered(agent='{jid}'" in line)
+            seen = next(line for line in master_log if f"agent {jid}: joined" in line)
             assert abs(log_time(own) - log_time(seen) - offset) < 30, (own, seen)
         print(f"\nunits done by agent: { {n: sum(a['agent'] == farm.jid(n) for a in done) for n in farm.agents} }")

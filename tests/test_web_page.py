@@ -208,6 +208,8 @@ def test_watch_a_job_render_until_its_image_is_complete_then_click_a_unit(farm, 
     assert fired and all(" IF " in li and " THEN " in li for li in fired), fired
     attempts = [row["cells"] for row in rows(browser, "#attempts-table tr")][1:]
     assert attempts and any(row[3] == "done" for row in attempts), attempts
+    story = [row["cells"] for row in rows(browser, "#story-table tr")][1:]  # time, from, to, stimulus
+    assert story and story[-1][1:3] == ["awarded", "done"] and story[-1][3].startswith("tile-"), story
     assert browser.execute_script("return document.getElementById('unit-title').textContent").startswith("Unit ")
     screenshot(browser, tmp_path, "unit-details")
 

@@ -1,31 +1,9 @@
 """Composition: blend the returned tiles (unit core plus interpolation band) into one image.
 
-Every tile gets a separable weight w(x) * w(y) over its rendered rectangle: 1 inside its core, falling
-linearly across the band's usable part to a small positive value, and 0 on the `reach` pixels at its
-outer edge (distance d outside the core on a side with band b and usable part u = b - reach gets
-1 - d / (u + 1) for d <= u, else 0). The reach (core.model.geometry.filter_reach) is where the film's
-reconstruction filter needs samples from beyond the rendered window: those pixels have a truncated
-filter, so their mean is not Mitsuba's, and they must not enter the image. At the image's own edge
-plain Mitsuba lacks those samples too, so nothing is cut there. The cut never enters a core: a tile's
-band must be at least the reach (the planners make it so) for its core to be exact. The composed pixel
-is the weighted mean of the tiles that cover it with weight > 0, so the normalised weights sum to one at
-every covered pixel, horizontally, vertically and at corners alike, and a pixel covered by a single tile
-takes that tile's value.
-
-Rules for the awkward cases (counted in `ComposeReport`):
-  - a non-finite pixel (any channel NaN or Inf) gets weight 0 in that tile, so it never spreads;
-  - a covered pixel with no finite contribution is filled with the mean of the finite composed pixels
-    in its 3x3 neighbourhood, or 0 when there are none (`filled`);
-  - a pixel no tile covers raises TileError, or with `allow_uncovered=True` is 0 and counted;
-  - duplicate tiles for the same core (a late second delivery) are ignored: the first in the list wins;
-  - every channel (alpha, AOVs, moments) is blended with the same weights; all tiles must carry the
-    same channels in the same order (TileError otherwise).
-
-Memory: `compose_planar` works in bands of rows and reads each tile only while a band needs it (a
-`TileSource` loads it from its file), so composing needs the output image (float32, planar: one
-contiguous plane per channel, as an EXR is written) plus a band's float64 sums and the tiles of one row
-of units: well under twice the output image for any size. `compose_shrunk`, for a preview, keeps only the
-shrunk image, a smaller band and the same tiles.
+A tile weighs 1 on its core, falls linearly across its band, and weighs 0 on the band's outer `reach`
+pixels, whose truncated filter is not Mitsuba's (`tile_weight`, `blend_weights`). A pixel is the weighted
+mean of the tiles that cover it. Entry points: `compose` and `compose_planar` (the image, a band of rows
+at a time), `compose_shrunk` (a preview); `ComposeReport` counts what was more than plain blending.
 """
 
 from __future__ import annotations
@@ -86,7 +64,12 @@ def tile_weight(rect: Rect, core: Rect, reach: int = 0, image: tuple[int, int] |
                 rows: slice = slice(None)) -> np.ndarray:
     """Un-normalised weight (h, w) of a tile over its rendered rectangle (only its `rows`, if given): 1 on
     its core, 0 on the `reach` outer pixels of each side that is not the edge of the `image` (width,
-    height), > 0 between."""
+    height), > 0 between.
+
+    At distance d outside the core, on a side with band b and usable part u = b - reach, the weight is
+    1 - d / (u + 1) for d <= u, else 0. The reach pixels lack the filter's samples beyond the window, so
+    their mean is not Mitsuba's; at the image's edge Mitsuba lacks them too, so nothing is cut there. The
+    cut never enters the core: the planners make every band at least the reach."""
     width, height = image if image is not None else (rect.x1, rect.y1)
     if reach and image is None:
         raise ValueError("tile_weight: a reach needs the image size, to know which sides are its edges")
@@ -97,7 +80,8 @@ def tile_weight(rect: Rect, core: Rect, reach: int = 0, image: tuple[int, int] |
 
 def blend_weights(geometry: Sequence[tuple[Rect, Rect]], width: int, height: int,
                   reach: int = 0) -> list[np.ndarray]:
-    """Normalised weights of each (rect, core) tile over its rect; they sum to one at every covered pixel."""
+    """Normalised weights of each (rect, core) tile over its rect; they sum to one at every covered pixel
+    (a pixel covered by a single tile takes that tile's value)."""
     total = np.zeros((height, width), dtype=np.float64)
     raw = [tile_weight(rect, core, reach, (width, height)) for rect, core in geometry]
     for (rect, _), w in zip(geometry, raw, strict=True):
@@ -126,7 +110,7 @@ def _as_source(tile: TileLike | TileSource) -> TileSource:
 def compose(
     tiles: Iterable[TileLike], width: int, height: int, allow_uncovered: bool = False, reach: int = 0
 ) -> tuple[np.ndarray, ComposeReport]:
-    """Blend tiles into a float32 (height, width, channels) image; see the module docstring for the rules."""
+    """Blend tiles into a float32 (height, width, channels) image; compose_planar states the rules."""
     planar, report = compose_planar(tiles, width, height, allow_uncovered, reach=reach)
     return np.ascontiguousarray(planar.transpose(1, 2, 0)), report
 
@@ -135,7 +119,15 @@ def compose_planar(tiles: Iterable[TileLike | TileSource], width: int, height: i
                    allow_uncovered: bool = False, band_rows: int = 128,
                    reach: int = 0) -> tuple[np.ndarray, ComposeReport]:
     """Blend tiles into a float32 (channels, height, width) image, a band of rows at a time; `reach` is
-    core.model.geometry.filter_reach of the film's filter (0: every band pixel blends, for tiles without a filter)."""
+    core.model.geometry.filter_reach of the film's filter (0: every band pixel blends, for tiles without a filter).
+
+    Every channel (alpha, AOVs, moments) blends with the same weights; all tiles must carry the same
+    channels in the same order (TileError otherwise). Awkward cases, counted in the report: a non-finite
+    pixel weighs 0 in its tile, so it never spreads; a covered pixel with no finite value takes the mean of
+    its finite 3x3 neighbours, or 0 (`filled`); a pixel no tile covers raises TileError, or is 0 with
+    `allow_uncovered`; a second tile for one core (a late delivery) is ignored: the first wins.
+    Memory: the planar output (one plane per channel, as an EXR is written), a band's float64 sums and the
+    tiles of one row of units: well under twice the output image for any size."""
     report = ComposeReport()
     chosen = _dedupe([_as_source(t) for t in tiles], width, height, report)
     depth = len(chosen[0].channels) if chosen else 3

@@ -1,33 +1,9 @@
 """A seam measure: whether an image's error against a reference steps across work-unit borders.
 
-The error e = mean over RGB of (test - reference) has expectation 0 everywhere when both images are
-unbiased renders of the same scene; noise alone makes it wander around 0. A compositor or band defect,
-or a unit rendered biased (e.g. too shallow a depth), makes it jump where one unit meets the next.
-
-Every border between two units is cut into pieces of PIECE pixels along it; each piece has a strip of
-`width` pixels on either side. The step, the difference of the two strips' mean errors, is tested against
-0 with Welch's t (noise differs with brightness and each unit's spp) and turned into a standard normal
-deviate (Wallace's approximation, within 0.02 for 10 or more pixels). The step, not each strip's mean
-against 0: at a few samples per pixel a glossy or caustic region's error is skewed (most pixels miss the
-rare bright paths and read low), so a strip's mean error is off 0 wherever a border crosses such a region,
-even in plain Mitsuba's own image (measured: still-life at 12 spp read as a seam on the 3 x 3 grid in 4 of
-4 seeds). Both sides of a border share that region, so their step keeps expectation 0. A bias over the
-whole image is no seam, and the other metrics of `quekaro diff` report it.
-
-Pixel filters (Mitsuba's default gaussian) correlate neighbouring pixels, which makes a strip's mean vary
-more than its pixels' variance says: the error's correlation at lags up to MAX_LAG pixels is measured
-inside the units (each unit's error less its own mean, over its own deviation, so a biased unit does not
-count; units under MIN_UNIT_PIXELS are left out, and with none left pixels count as independent), each
-side's variance is corrected by what that correlation adds to a mean of its shape, and the step's degrees
-of freedom are those of the effective pixel counts. Under noise alone each piece's z^2 is then chi-square with one
-degree of freedom, and:
-  - `ratio`: the pieces' mean z^2 (1: no seam);
-  - `z`: their sum as a normal deviate (Wilson-Hilferty), one degree of freedom per piece;
-  - `worst_unit`, `unit_z`: the same over the pieces of one unit's borders, for the unit where it is
-    largest, against the threshold SEAM_Z Bonferroni-corrected for the number of units.
-A seam is reported when z >= SEAM_Z or unit_z >= that threshold (about one false alarm in 30,000 images
-of pure noise either way). Pieces whose pixels do not vary (black background in both images) carry no
-information and are left out.
+Where both images are unbiased renders of one scene, the error (test - reference, mean over RGB) only
+wanders around 0; a compositor or band defect, or a unit rendered biased, makes it jump where one unit
+meets the next. `seam_measure` tests the step across each piece of every border and returns a
+`SeamMeasure`, whose `seam` says whether there is one (`quekaro diff --units`, `bench accuracy`).
 """
 
 from __future__ import annotations
@@ -53,6 +29,9 @@ _NORMAL = NormalDist()
 
 @dataclass(frozen=True)
 class SeamMeasure:
+    """The border pieces' steps summed up. Under noise alone each piece's z^2 is chi-square with one
+    degree of freedom, so `ratio` is near 1 and `z`, `unit_z` are standard normal deviates."""
+
     ratio: float  # the border pieces' mean calibrated z^2; 1 under noise alone
     z: float  # the border pieces' chi-square as a normal deviate
     worst_unit: int  # the unit whose border pieces are least like noise (-1: none)
@@ -63,6 +42,7 @@ class SeamMeasure:
 
     @property
     def seam(self) -> bool:
+        """About one false alarm in 30,000 images of pure noise, by either test."""
         return self.z >= SEAM_Z or self.unit_z >= self.unit_threshold
 
     def to_dict(self) -> dict[str, float | int | bool]:
@@ -84,7 +64,14 @@ def unit_map(rects: Iterable[Rect], width: int, height: int) -> np.ndarray:
 def seam_measure(test: np.ndarray, reference: np.ndarray, rects: Iterable[Rect],
                  width: int = SEAM_WIDTH) -> SeamMeasure:
     """The seam measure of `test` against `reference` (H x W x C, RGB first) over the units `rects`;
-    `width` is the strip's depth in pixels on each side of a border."""
+    `width` is the strip's depth in pixels on each side of a border.
+
+    Each border is cut into pieces of PIECE pixels, with a strip on either side. It tests the step between
+    the two strips, not each strip's mean against 0: at a few spp a glossy or caustic region's error is
+    skewed (most pixels miss the rare bright paths), so a strip's mean is off 0 even in Mitsuba's own image
+    (measured: still-life at 12 spp read as a seam on a 3 x 3 grid in 4 of 4 seeds). Both sides share that
+    region, so the step keeps expectation 0. A bias over the whole image is no seam: other metrics report it.
+    """
     if test.shape[:2] != reference.shape[:2]:
         raise QuekaroError(f"images differ in size: {test.shape[:2]} vs {reference.shape[:2]}")
     if width < 1:
@@ -115,7 +102,11 @@ def _judge(steps: list[tuple[int, int, float]], correlation: float, units: int) 
 
 def _step_z(side_a: np.ndarray, side_b: np.ndarray, rho: dict[tuple[int, int], float]) -> float | None:
     """The step between a border piece's two strips (2-D, a's and b's side) as a standard normal deviate;
-    None where a strip is too small or neither side's pixels vary."""
+    None where a strip is too small or neither side's pixels vary (e.g. black background in both images).
+
+    Welch's t (noise differs with brightness and each unit's spp), on effective pixel counts corrected for
+    the filter's correlation, turned into a normal deviate by Wallace's approximation (within 0.02 for 10
+    or more pixels)."""
     sides = [side_a, side_b]
     if min(side.size for side in sides) < MIN_PIXELS:
         return None
@@ -146,7 +137,10 @@ def _inflation(shape: tuple[int, ...], rho: dict[tuple[int, int], float], n: int
 
 def _correlation(error: np.ndarray, ids: np.ndarray) -> dict[tuple[int, int], float]:
     """The error's correlation at each lag (dy >= 0, half-plane) up to MAX_LAG, between pixels of one unit,
-    each unit's error standardised by its own mean and deviation."""
+    each unit's error standardised by its own mean and deviation, so a biased unit does not count.
+
+    Pixel filters correlate neighbours, so a strip's mean varies more than its pixels' variance says.
+    Units under MIN_UNIT_PIXELS are left out; with none left, pixels count as independent."""
     flat = ids.ravel()
     covered = flat >= 0
     count = np.bincount(flat[covered], minlength=int(ids.max()) + 1).astype(np.float64)

@@ -1,17 +1,9 @@
 """The scene's own integrator, kept as the scene wrote it: which Mitsuba 3.9 integrators can be split
 into tiles, which take a path depth, and the one change a unit may make (its `max_depth`).
 
-A unit never rebuilds an integrator from its type alone: that dropped every other parameter
-(`hide_emitters`, `rr_depth`, nested integrators, AOV lists). It either renders with the scene's own
-integrator object, or, when the rules set a depth, with the scene's integrator element (includes and
-`$parameters` already resolved) re-read with a new `max_depth` (`with_depth`): the deepest depth-bearing
-integrators take it, and a shallower nested one keeps its own unless the new depth is less.
-
-Which integrators can be cropped into tiles: a crop renders a window of the film with the same sample
-positions, so a tile equals that region of a full render only when each camera sample writes to the
-pixel it was taken for (and its filter footprint). Every sampling integrator does; the particle tracer
-(`ptracer`) traces from the lights and splats each path's contribution wherever it lands on the film,
-so a crop would lose (and misplace) the light paths landing outside it: it is rendered whole.
+`CATALOGUE` (and `kind`) says what each plugin allows, `splittable` whether a tree can be tiled, `depth_of`
+its depth, and `with_depth` the tree re-read at a new `max_depth`. A unit never rebuilds an integrator
+from its type alone: that dropped its other parameters (`hide_emitters`, `rr_depth`, nested integrators, AOVs).
 """
 
 from __future__ import annotations
@@ -102,7 +94,10 @@ def parameter_names(elem: etree._Element | None) -> list[str]:
 
 
 def splittable(elem: etree._Element | None) -> tuple[bool, str]:
-    """(can the integrator tree be rendered as tiles, why)."""
+    """(can the integrator tree be rendered as tiles, why). A crop renders a window of the film with the
+    same sample positions, so a tile equals that region of a full render only when each camera sample
+    writes to its own pixel (and its filter footprint): every sampling integrator does. The particle
+    tracer (`ptracer`) splats light paths wherever they land on the film, so it is rendered whole."""
     for name in types(elem):
         entry = kind(name)
         if not entry.splittable:
@@ -137,7 +132,8 @@ def _depth_value(elem: etree._Element) -> int:
 
 
 def with_depth(elem: etree._Element | None, depth: int) -> str:
-    """The integrator tree as a standalone XML string at `depth` (the rest exactly as written): the deepest
+    """The integrator tree as a standalone XML string at `depth` (the rest exactly as written, includes and
+    `$parameters` already resolved; a unit that keeps its depth renders the scene's own object): the deepest
     depth-bearing integrators in it (those at `depth_of`) get max_depth = depth, and a shallower nested one
     keeps its own unless `depth` is less (an aov's direct child at 2 stays at 2 when its path sibling is
     cut to 6, or set from -1 to 20 by --depth). Private attributes of the XML reader are dropped."""

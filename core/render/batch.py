@@ -1,22 +1,9 @@
-"""Several units of one job rendered in one wavefront (`render_batch_here`): every pixel at its unit's spp
-through core.render.per_pixel.render_counts over the units' windows at once, and each unit's tile cut from
-that render.
+"""Several units of one job rendered in one call (`render_batch_here`): every pixel at its unit's spp
+through core.render.per_pixel.render_counts over the units' windows at once, each unit's tile cut from it.
 
-Why: besides its samples, a Mitsuba render call costs milliseconds (tracing the kernel, seeding the
-sampler, preparing and developing the film), and a unit's window renders its band's pixels again; a
-rule-planned job of 85 units paid that 85 times. One call per batch pays it once, and a pixel near a
-unit's border draws on its neighbours' samples as in an image rendered whole.
-
-The tiles are statistically the per-unit ones: each pixel's expectation is Mitsuba's at its unit's depth
-(render_counts weights each sample by one over its pixel's count, tests/test_adaptive.py), so the units'
-bands blend as before. A batch holds units of one depth (the depth is part of the integrator, one per
-call), up to BATCH_SAMPLES samples (the least a level-off unit holds, planning.jobplan.OFF_UNIT_SAMPLES)
-and a bounding rectangle of BATCH_PIXELS pixels, and band pixels that belong to a unit of another batch
-render at the spp of the unit whose window holds them. Windows of one batch share their common pixels: a
-pixel there that comes out non-finite is zeroed, and counted, in every tile that holds it.
-Where render_counts cannot render the scene as Mitsuba does (a stratified sampler, a film that samples
-its border, a particle tracer, a scalar variant), `together_problem_here` says why and the units render
-one by one.
+A render call costs milliseconds besides its samples, and a unit's window renders its band again; one call
+per batch pays that once. `batches` groups the units, `together_problem_here` says why a job's units must
+render one by one instead, and `render_batch` runs a batch in a render process.
 """
 
 from __future__ import annotations
@@ -35,7 +22,7 @@ from core.render.per_pixel import check_renderable, render_counts
 from core.render.process import RenderProcess, RenderRequest, aim, local_cache, unit_meta
 from core.scene.scene import sensor_of
 
-BATCH_SAMPLES = 1 << 24
+BATCH_SAMPLES = 1 << 24  # the least a level-off unit holds (planning.jobplan.OFF_UNIT_SAMPLES)
 # A batch renders the whole image's film where the image has at most this many pixels, else the least
 # rectangle holding its units' windows, itself at most this many: the film's memory and its development
 # stay bounded whatever the image's size (a 2048 x 2048 film).
@@ -47,7 +34,8 @@ def batches(jobs: Sequence[RenderRequest], cap: int = BATCH_SAMPLES,
             pixels: int = BATCH_PIXELS) -> list[list[RenderRequest]]:
     """The units grouped into batches that each render in one call: one depth per batch, in the order
     given, each batch's windows at their spp (`cost`) adding up to at most `cap` samples and their bounding
-    rectangle at most `pixels`; a unit beyond either alone is a batch of its own."""
+    rectangle at most `pixels`; a unit beyond either alone is a batch of its own. One depth, since the
+    depth is part of the integrator, and a call has one."""
     open_batches: dict[int | None, list[RenderRequest]] = {}
     held: dict[int | None, tuple[int, Rect]] = {}  # per open batch: its samples and bounding rectangle
     done: list[list[RenderRequest]] = []
@@ -99,7 +87,9 @@ def batch_counts(batch: Sequence[RenderRequest]) -> np.ndarray:
 
 
 def together_problem_here(job: RenderRequest) -> str | None:
-    """Why the job's units cannot render together in this process (loading its scene if needed), or None."""
+    """Why the job's units cannot render together in this process (loading its scene if needed), or None:
+    where render_counts cannot render the scene as Mitsuba does (a stratified sampler, a film that samples
+    its border, a particle tracer, a scalar variant) or the unit is two-pass."""
     if job.first is not None:
         return "a two-pass (adaptive) unit places its own samples"
     cache = local_cache()
@@ -114,7 +104,14 @@ def together_problem_here(job: RenderRequest) -> str | None:
 def render_batch_here(batch: Sequence[RenderRequest]) -> list[Tile]:
     """The batch's tiles (one per unit, its window cut from one render of the batch's `bounds`), in this
     process. The call's seconds are shared among the tiles by the samples drawn on their units' rectangles;
-    every tile's header gives the batch's seed, the first unit's."""
+    every tile's header gives the batch's seed, the first unit's.
+
+    The tiles are statistically the per-unit ones: each pixel's expectation is Mitsuba's at its unit's
+    depth (render_counts weights each sample by one over its pixel's count: tests/test_adaptive.py), so
+    the bands blend as before, and a pixel near a border draws on its neighbours' samples as in an image
+    rendered whole. The call's fixed cost (tracing the kernel, seeding the sampler, preparing and
+    developing the film) is paid once: a rule-planned job of 85 units paid it 85 times. Windows share
+    their common pixels: one that comes out non-finite is zeroed, and counted, in every tile holding it."""
     first = batch[0]
     mixed = {(j.scene.key(), j.variant, j.integrator, j.max_depth, j.sensor, j.width, j.height) for j in batch}
     if len(mixed) > 1 or any(j.first is not None for j in batch):

@@ -1,20 +1,9 @@
 """The film's window rendered with its own sample count per pixel, as Mitsuba's own render loop would
 (`render_counts`): the primitive of adaptive sampling (core.render.adaptive).
 
-Mitsuba's `render` gives every pixel the same spp. This is Mitsuba's sampling loop (the steps of
-`SamplingIntegrator::render_sample`, as Mitsuba's own Python integrators spell them in
-`mitsuba.ad.integrators.common`) with one change: pixel p draws `counts[p]` samples, and each sample is
-splatted with the weight `mean / counts[p]`. A pixel's value is the film's ratio
-sum(w_filter s f) / sum(w_filter s) over the samples near it; with s proportional to one over its pixel's
-count, every pixel's expectation is the one Mitsuba's filter gives at uniform density, so the image is
-statistically Mitsuba's (tests/test_adaptive.py), only less noisy where counts are high.
-
-Beside the image it returns each pixel's sample moments (sums of the samples' RGB and squares, by the
-pixel the sample was drawn in), from which a next pass's counts are chosen.
-
-Refused, with the reason: samplers other than `independent` (stratified, multijitter, low-discrepancy
-samplers stratify over a pixel's fixed spp, which varying counts break), films that sample their border,
-and integrators that are not sampling integrators (a particle tracer splats anywhere).
+Mitsuba's `render` gives every pixel the same spp; `render_counts` draws `counts[p]` samples in pixel p
+and returns the image, statistically Mitsuba's, with each pixel's sample moments (a `WindowRender`).
+`check_renderable` refuses, with the reason, the scenes it cannot render as Mitsuba does.
 """
 
 from __future__ import annotations
@@ -64,7 +53,10 @@ class WindowRender:
 
 
 def check_renderable(scene: Any, sensor: int = 0, integrator: Any = None) -> None:
-    """Raise RenderError naming what makes per-pixel counts not Mitsuba's render for this scene."""
+    """Raise RenderError naming what makes per-pixel counts not Mitsuba's render for this scene: samplers
+    other than `independent` (the others stratify over a pixel's fixed spp, which varying counts break),
+    films that sample their border, and integrators that are not sampling integrators (a particle tracer
+    splats anywhere)."""
     import mitsuba as mi
 
     mitsuba_env.require_vectorised("adaptive sampling (per-pixel sample counts in one wavefront)")
@@ -94,6 +86,13 @@ def render_counts(scene: Any, counts: np.ndarray, seed: int, sensor: int = 0, in
 
     `counts` has the window's shape (crop height x width); 0 leaves a pixel to its neighbours' filter
     footprints (or empty). `integrator` None is the scene's own; `moments` False skips the per-pixel sums.
+
+    This is Mitsuba's sampling loop (the steps of `SamplingIntegrator::render_sample`, as Mitsuba's Python
+    integrators spell them in `mitsuba.ad.integrators.common`) with one change: each sample is splatted
+    with the weight `mean / counts[p]`. The film's value is sum(w_filter s f) / sum(w_filter s), so every
+    pixel's expectation is the one Mitsuba's filter gives at uniform density (tests/test_adaptive.py),
+    only less noisy where counts are high. The moments (the samples' RGB sums and squares, by the pixel
+    drawn in) choose a next pass's counts.
     """
     import drjit as dr
     import mitsuba as mi

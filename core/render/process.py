@@ -1,19 +1,10 @@
-"""Rendering one work unit: the job description (`RenderRequest`), the render itself, and the persistent child
-process (`RenderProcess`) that runs it so that an LLVM abort or a hang costs one unit, never the job.
+"""Rendering one work unit: the job description (`RenderRequest`), the render itself (`render_job_here`),
+and the persistent child process (`RenderProcess`) that runs it, so that an LLVM abort or a hang costs
+one unit, never the job.
 
-How a unit renders: the unit's window (its rectangle grown by its band, shifted inside at the image's
-edge: core.model.geometry.Rect.window) is rendered with the scene's own integrator (or, when the rules
-chose a depth, the scene's integrator with that `max_depth`: core.model.integrators), the unit's spp and
-seed, through the job's sensor. For perspective and thin-lens sensors the window is not a Mitsuba crop at
-the window's offset but a crop at (0, 0) of the window's size with the camera's principal point shifted by
-(x / W, y / H): the rays are the same (tested to float precision) while Dr.Jit compiles one kernel per
-window *size* instead of one per window *position* (a crop offset is baked into the kernel and costs
-~0.45 s to compile; design.md section 3). Other sensors use a crop. Windows are in the image's pixels: a
-film the scene crops itself renders its crop window, so a window lies at the crop's offset in it. The
-tile keeps every channel the film writes (its bitmap, the colour named R, G, B: core.image.film).
-
-Non-finite pixels (an emitter with infinite or NaN radiance): every non-finite channel value is set to
-0, and the number of pixels that had any is reported as `meta["nonfinite"]`, so they never propagate.
+A unit renders its window (its rectangle grown by its band) with the scene's own integrator, or that
+integrator at the rules' `max_depth` (core.model.integrators), at the unit's spp and seed, through the
+job's sensor. Its tile keeps every channel the film writes (the colour named R, G, B: core.image.film).
 """
 
 from __future__ import annotations
@@ -262,7 +253,11 @@ def set_window(scene: Any, window: Rect, base: tuple[float, float] | None, senso
     """Make the scene's sensor render `window` of its film (film pixels); return the method ("shift" or
     "crop").
 
-    `base` is the sensor's principal point as loaded (from `principal_point`), None for a crop.
+    `base` is the sensor's principal point as loaded (from `principal_point`), None for a crop. A shift
+    (perspective and thin-lens sensors) crops at (0, 0) with the window's size and moves the principal
+    point by (x / W, y / H): the same rays (tested to float precision), but Dr.Jit compiles one kernel per
+    window size, not per position (a crop offset is baked into the kernel and costs ~0.45 s to compile;
+    design.md section 3). Other sensors use a crop.
     """
     import mitsuba as mi
 
@@ -282,7 +277,10 @@ def set_window(scene: Any, window: Rect, base: tuple[float, float] | None, senso
 
 
 def render_job_here(job: RenderRequest, cache: _SceneCache | None = None) -> Tile:
-    """Render the unit in this process (the child calls this; so can a test or a benchmark)."""
+    """Render the unit in this process (the child calls this; so can a test or a benchmark).
+
+    Non-finite values (an emitter with infinite or NaN radiance) are set to 0, so they never propagate,
+    and the number of pixels that had any is the tile's `meta["nonfinite"]`."""
     cache = cache or _local_cache
     window = job.window
     scene, load_s, method = aim(job, window, cache)
@@ -314,7 +312,8 @@ def unit_meta(job: RenderRequest, sensor: Any, seconds: float, load_s: float, no
 
 def aim(job: RenderRequest, window: Rect, cache: _SceneCache) -> tuple[Any, float, str]:
     """(scene, seconds spent loading it, window method): the job's scene loaded (or cached) with its sensor
-    aimed at `window`, in the image's pixels."""
+    aimed at `window`, in the image's pixels. A film the scene crops itself renders its crop window, so a
+    window lies at the crop's offset in the film."""
     scene, load_s = cache.scene_for(job.scene, job.variant, job.threads)
     image = cache.image(job.sensor)
     if (image.w, image.h) != (job.width, job.height):

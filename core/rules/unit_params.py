@@ -1,20 +1,9 @@
 """The unit planner: unit features (C, S, Nd) and the user's level -> per unit depth, spp and band.
 
-Used by the render agents (each with its own rule file) and by the in-process pipeline. Level `off`
-applies no rules at all: every unit renders at the user's depth and spp, with the minimum band.
-Otherwise the fuzzy rule base (rules/pathtracing.xml unless told) weights the user's values, as
-`core.rules.outputs` documents; the band never drops below the job's `min_band`, the reach of its film's
-reconstruction filter (2 px for Mitsuba's gaussian), so that every unit's core is rendered with all the
-samples its filter sees; composition blends only the band beyond that reach.
-
-A user depth of -1 (unbounded, or an integrator that takes no depth) is kept as it is: there is no
-depth to weight. Depth is quantised: the crisp Rl is rounded to the nearest of DEPTH_STEPS (1, 3/4, 1/2 of the user's
-depth) before it weights the user's depth. Dr.Jit bakes max_depth into the kernel, so every distinct
-depth costs a compilation per window size (~0.1-0.5 s); three steps keep that bounded.
-
-No budget normalisation across units: a render agent plans the units it is offered one job-context at a
-time (the unit's features and the scene's ranges), so a unit's parameters depend only on those, the
-same in the farm as in `quekaro render`. How many samples a level spends overall is the rules' doing.
+`Planner(rules_path, defuzzifier).plan(...)` gives one `RenderParams` per unit: at level `off` the user's
+depth and spp, else the user's values weighted by the fuzzy rule base (rules/pathtracing.xml unless told),
+as `core.rules.outputs` says. `adaptive_params` plans an adaptive job's units. Used by the render agents
+(each with its own rule file) and by the in-process pipeline.
 """
 
 from __future__ import annotations
@@ -37,7 +26,9 @@ DEPTH_STEPS = (1.0, 0.75, 0.5)  # the fractions of the user's depth a unit may r
 
 
 def quantise_depth_factor(rl: np.ndarray) -> np.ndarray:
-    """Each Rl rounded to the nearest of DEPTH_STEPS (ties go to the deeper step)."""
+    """Each Rl rounded to the nearest of DEPTH_STEPS (ties go to the deeper step). Dr.Jit bakes max_depth
+    into the kernel, so each distinct depth costs a compilation per window size (~0.1-0.5 s): three steps
+    keep that bounded."""
     steps = np.asarray(DEPTH_STEPS)
     rl = np.asarray(rl, dtype=np.float64)
     return steps[np.argmin(np.abs(rl[:, None] - steps[None, :]), axis=1)]
@@ -66,7 +57,11 @@ def adaptive_params(units: Sequence[WorkUnit], depth: int, band: int) -> list[Re
 
 
 class Planner:
-    """Compiles one rule file once; `plan` then maps many units at a time."""
+    """Compiles one rule file once; `plan` then maps many units at a time.
+
+    No budget is normalised across units: a unit's parameters depend only on its features and the scene's
+    ranges, the same in the farm (an agent plans the units it is offered) as in `quekaro render`. How many
+    samples a level spends overall is the rules' doing."""
 
     def __init__(
         self,
@@ -98,9 +93,10 @@ class Planner:
         depth_floor: Sequence[int | None] | None = None,
     ) -> list[RenderParams]:
         """One `RenderParams` per unit; `ranges` defaults to the min/max of the given features. No band is
-        below `min_band` (the job's: its film filter's reach, core.model.geometry.filter_reach) nor the
-        planner's own. No unit's depth is below its `depth_floor` (planning.depthcut; None: no floor), nor
-        is a floor above the user's depth."""
+        below `min_band` (the job's: its film filter's reach, core.model.geometry.filter_reach, 2 px for
+        Mitsuba's gaussian, so every core has all the samples its filter sees) nor the planner's own. No
+        unit's depth is below its `depth_floor` (planning.depthcut; None: no floor), nor is a floor above
+        the user's depth. A user depth of -1 (unbounded, or no depth) is kept: there is nothing to weight."""
         cols = _feature_columns(features)
         n = len(cols["C"])
         floor = max(self.min_band, int(min_band))

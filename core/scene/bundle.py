@@ -1,27 +1,10 @@
 """Scene bundles: one archive holding a scene file and every file it references, and its safe unpacking.
 
-Format: an uncompressed POSIX tar whose first member is `QUEKARO-MANIFEST.json` (format, version, the
-scene's name, its `-D` parameters, the job's rule file if it has one, the size and sha256 of every
-other member, the sha256 of the scene file as the submitter wrote it: `scene_sha256`, which seeds
-the job's pre-pass as `quekaro render` of that file seeds it, where the bundle rewrote it, and where the
-submitter's scene and `-a` folders were: `submitted`, which the job's report names), followed by the
-files. The scene file lies at the top; every file it reads (found as
-Mitsuba finds it: core.scene.resolver, through `<path>`, includes, `-a` search paths, absolute names, files
-outside the scene's folder too: the submitter owns them) lies at `files/<16 hex>/<its name>`, and the
-XML files are rewritten to name those members and lose their `<path>`s, so the unpacked scene reads
-exactly the files the original read and nothing outside the bundle (check_unpacked verifies it where
-the bundle is used). Missing files and files over the size limit are refused, naming the XML file, the
-line and every folder searched. Bundles are byte-for-byte deterministic (sorted names, zeroed times and
-owners), so their sha256 names them.
-
-Unpacking assumes a hostile archive. It uses `tarfile` (not zip) because an uncompressed tar cannot be a
-decompression bomb: everything unpacked is bounded by the archive's own size, which is checked first.
-Each member goes through `tarfile.data_filter` (the standard library's vetted check against absolute
-names, escapes, links and devices) and through stricter checks of ours: regular files and directories
-only, no `..`, `.` or empty path parts, no duplicates, per-file, total and count limits, and exact
-agreement with the manifest. Data is copied by us (not `extractall`) so that its hash and length are
-checked while it is written; files are opened with O_EXCL|O_NOFOLLOW into a fresh folder that is
-renamed into place only once everything checked out, so a refused bundle leaves nothing behind.
+A bundle is an uncompressed POSIX tar: `QUEKARO-MANIFEST.json` first (each member's size and sha256), then
+the scene at the top and each file it reads (beside it, or at `files/<16 hex>/<its name>`), the XML
+rewritten to name those members. Bundles are byte-for-byte deterministic, so their sha256 names them.
+Entry points: `make_bundle`, `extract_bundle` (which assumes a hostile archive), `check_unpacked`,
+`check_rules`.
 """
 
 from __future__ import annotations
@@ -95,7 +78,12 @@ def _member_name(target: Path, root: Path) -> str:
 def scene_members(scene_path: Path, defines: dict[str, str] | None = None,
                   search_paths: tuple[Path, ...] = ()) -> dict[str, bytes | Path]:
     """Member name -> content (rewritten XML as bytes, other files by path) for the scene and every file
-    it reads."""
+    it reads.
+
+    Files are found as Mitsuba finds them (core.scene.resolver: `<path>`, includes, `-a`, absolute names,
+    files outside the scene's folder too: the submitter owns them). A missing file is refused, naming the
+    XML file, the line and every folder searched. The XML loses its `<path>`s and names the members, so the
+    unpacked scene reads exactly the files the original read, and nothing outside the bundle."""
     scene = Path(os.path.abspath(scene_path))
     if not scene.is_file():
         raise BundleError(f"{scene_path}: scene file not found")
@@ -154,6 +142,7 @@ def _keep_parameters(elem: Any, root: Any, written: str) -> None:
 
 
 def _tarinfo(name: str, size: int) -> tarfile.TarInfo:
+    """A member's header with zeroed times and owners, so that a bundle is deterministic."""
     info = tarfile.TarInfo(name)
     info.size, info.mode, info.mtime = size, 0o644, 0
     info.uid = info.gid = 0
@@ -174,7 +163,13 @@ def make_bundle(scene_path: str | Path, defines: dict[str, str] | None, out: str
                 limits: BundleLimits | None = None, search_paths: tuple[Path, ...] = (),
                 rules: Path | None = None) -> BundleInfo:
     """Write the bundle of `scene_path` (with its `-D` parameters, `-a` search paths and, if given, the
-    job's rule file) to `out`; return what was written."""
+    job's rule file) to `out`; return what was written.
+
+    The manifest holds: format, version, the scene's name, its `-D` parameters, the rule file if any, the
+    size and sha256 of every other member (sorted by name), `scene_sha256` (the scene as the submitter
+    wrote it, which seeds the job's pre-pass as `quekaro render` of that file would) and `submitted`
+    (where the scene and `-a` folders were, which the job's report names). Files over the limits are
+    refused."""
     limits = limits or BundleLimits()
     members = scene_members(Path(scene_path), defines, tuple(search_paths))
     if rules is not None:
@@ -246,6 +241,9 @@ def _check_name(name: str) -> PurePosixPath:
 
 
 def _check_member(member: tarfile.TarInfo, dest: Path) -> None:
+    """Refuse a member unless it passes both `tarfile.data_filter` (the standard library's vetted check
+    against absolute names, escapes, links and devices) and our stricter checks: regular files and
+    directories only, no `..`, `.` or empty path parts."""
     if not (member.isreg() or member.isdir()):
         kind = "link" if member.issym() or member.islnk() else "device or special file"
         raise BundleError(f"bundle member {member.name!r}: is a {kind}; bundles hold regular files only")
@@ -293,6 +291,8 @@ def _read_manifest(tar: tarfile.TarFile, member: tarfile.TarInfo | None, dest: P
 
 
 def _copy_member(src: IO[bytes], target: Path, size: int, sha256: str, name: str) -> None:
+    """Copy a member ourselves (not `extractall`), checking its length and hash as it is written, into a
+    file opened with O_EXCL|O_NOFOLLOW."""
     target.parent.mkdir(parents=True, exist_ok=True)
     try:
         fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644)
@@ -343,7 +343,10 @@ def _unpack(tar: tarfile.TarFile, work: Path, limits: BundleLimits) -> str:
 def extract_bundle(data: bytes | str | Path, dest: str | Path, limits: BundleLimits | None = None) -> Path:
     """Unpack a bundle (bytes or a file) into the new folder `dest`; return the scene file's path.
 
-    Raises BundleError naming the member at fault; on any error `dest` is not created.
+    Raises BundleError naming the member at fault; on any error `dest` is not created. A tar, not a zip:
+    an uncompressed tar cannot be a decompression bomb, since what it unpacks is bounded by its own size,
+    checked first. Members are checked against the manifest (no duplicates; per-file, total and count
+    limits) and written to a fresh folder that is renamed into place only once everything checked out.
     """
     limits = limits or BundleLimits()
     dest = Path(dest)

@@ -1,24 +1,9 @@
 """Effect analysis: what a render may save without changing the image, with a reason for every decision.
 
-The scene says what to compute: its integrator (type, parameters, nested integrators), its sensor and
-its film are kept as written. The analysis may only make the render cheaper where the image stays
-statistically the same, and says why:
-- variant: rgb unless the XML's spectral data would render differently in rgb (spectral_data.py's test:
-  paths of up to three bounces off each spectrum, and between any two, keep their colour in rgb within
-  RGB_TOLERANCE; a wavelength-dependent index of refraction always needs spectral; blackbody spectra are
-  spectral-only in Mitsuba; a conductor of one of Mitsuba's measured metals, `material`, whose spectra are
-  Mitsuba's own data, too). A flat reflectance passes; narrow lines and structured spectra do not.
-  Polarized spectral where the scene computes polarization: a `stokes` integrator (Mitsuba refuses it
-  in any other variant) or a polarizing BSDF (POLARIZING_BSDFS: unpolarized variants render them
-  without the effect they exist for, e.g. crossed polarizers let light through).
-- depth: the scene's own max_depth, never lowered a priori. A bound from the reflectances (a path of
-  depth d carries at most a^(d-1) of the brightest emitter's radiance) is not a bound on a pixel's share:
-  where the camera sees light that arrives over many bounces (a baffled room) the tail is a larger part
-  of the pixel, and Russian roulette already ends the long paths such a cap would cut. A rule level's
-  per-unit cut is measured instead (planning.depthcut).
-- tiles: an integrator whose samples stay in their pixel can be split into units; one that splats
-  light paths anywhere on the film (ptracer) is rendered whole, as one unit (core.model.integrators).
-User overrides (variant, integrator, max_depth) always win, and the reasons say so.
+The scene's integrator, sensor and film are kept as written. The analysis picks the variant (rgb unless
+the scene's spectral data or polarization need more), keeps the scene's own depth, and says whether the
+integrator can be split into tiles. User overrides (variant, integrator, max_depth) always win, and the
+reasons say so. Entry points: `analyse`, `analyse_loaded`, `polarization_need`.
 """
 
 from __future__ import annotations
@@ -50,7 +35,16 @@ def _scene_depth(elem: Any, depth: int | None) -> int:
 
 
 def analyse(spec: SceneSpec, overrides: dict[str, Any] | None = None) -> Effects:
-    """Decide variant, depth and tiling for the scene; `overrides` (variant/integrator/max_depth) win."""
+    """Decide variant, depth and tiling for the scene; `overrides` (variant/integrator/max_depth) win.
+
+    Variant: rgb unless rgb would render the scene's spectral data differently (spectral_data.spectral_need)
+    or the scene computes polarization (`polarization_need`). Depth: the scene's own max_depth, never
+    lowered a priori. A bound from the reflectances (a path of depth d carries at most a^(d-1) of the
+    brightest emitter's radiance) does not bound a pixel's share: where light arrives over many bounces
+    (a baffled room) the tail is a larger part of the pixel, and Russian roulette already ends the long
+    paths such a cap would cut; a rule level's per-unit cut is measured instead (planning.depthcut).
+    Tiles: an integrator that splats light paths anywhere on the film (ptracer) renders whole, as one
+    unit (core.model.integrators)."""
     return analyse_loaded(spec, overrides)[0]
 
 
@@ -91,7 +85,10 @@ def analyse_loaded(spec: SceneSpec, overrides: dict[str, Any] | None = None) -> 
 
 
 def polarization_need(root: Any, scene_path: Any) -> str | None:
-    """Why the scene needs a polarized variant (its first element that computes polarization), or None."""
+    """Why the scene needs a polarized variant (its first element that computes polarization), or None.
+
+    A `stokes` integrator (Mitsuba refuses it in any other variant) or a polarizing BSDF (an unpolarized
+    variant renders it without the effect it exists for: crossed polarizers let light through)."""
     for elem in root.iter("integrator", "bsdf"):
         kind = elem.get("type")
         if (elem.tag, kind) == ("integrator", "stokes") or (elem.tag == "bsdf" and kind in POLARIZING_BSDFS):

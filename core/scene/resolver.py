@@ -1,17 +1,9 @@
 """Finding every file a scene reads, exactly as Mitsuba 3.9's parser and file resolver find them.
 
-Mitsuba keeps a list of search folders. Loading a scene file puts the file's folder first, then the
-folders that were there already (the working directory at start, and `-a` paths at the end). Then:
-- `<path value>` (a child of the root only): tried beside the XML file that holds it, else through the
-  search folders; the folder is put first in the list of the file being read.
-- `<include filename>`: looked up with the including file's folder put first; the included file is read
-  with that list (copied: its own `<path>`s end with it).
-- `<spectrum filename>`: looked up while reading, with the list of the file being read.
-- every other `filename` (meshes, textures, envmaps, volume grids, measured BSDFs): looked up when the
-  plugin is built, after all the XML was read, with the main file's final list, whichever file named it.
-A lookup tries each folder in order and takes the first that has the file; absolute names are kept.
-`$name` is substituted in every attribute and `<default>` sets a parameter from its place on, shared
-with includes, as Mitsuba does.
+`read_scene(main, defines, search_paths, cwd)` reads the scene file and its includes and returns
+`SceneFiles`: each XML tree, parameters substituted, and every `Reference` resolved. Like Mitsuba it keeps
+a list of search folders, and `lookup` takes the first that has the file; `_visit` says which list each
+kind of reference is looked up in.
 """
 
 from __future__ import annotations
@@ -91,7 +83,11 @@ def read_scene(main: Path, defines: dict[str, str], search_paths: Sequence[Path]
     """Read the scene file and everything it includes; resolve every reference (SceneError if one fails,
     naming the file, the line and every folder searched). With `within`, a reference that could lead
     outside that folder is refused before any file or folder it names is looked at: what lies outside
-    (whether a file exists, whether it parses) is never told."""
+    (whether a file exists, whether it parses) is never told.
+
+    The first list is the scene's folder, the working directory, then the `-a` paths. Plain `filename`s
+    (meshes, textures, envmaps, volume grids, measured BSDFs) are looked up last, as Mitsuba does when it
+    builds the plugins after reading all the XML: with the main file's final list, whichever file named it."""
     main = Path(main).absolute()
     if not main.is_file():
         raise SceneError(f"{main}: scene file not found")
@@ -115,6 +111,8 @@ def check_defines(defines: dict[str, str]) -> None:
 
 def _read_file(path: Path, folders: list[Path], found: SceneFiles,
                deferred: list[tuple[Path, etree._Element, str]], stack: list[Path]) -> None:
+    """Read one XML file: `$name` is substituted in every attribute, and a `<default>` sets a parameter
+    from its place on, shared with includes, as Mitsuba does."""
     if len(stack) > MAX_INCLUDE_DEPTH:
         raise SceneError(f"{path}: includes nested deeper than {MAX_INCLUDE_DEPTH} levels")
     if path in stack:
@@ -132,6 +130,11 @@ def _read_file(path: Path, folders: list[Path], found: SceneFiles,
 
 def _visit(elem: etree._Element, path: Path, root: etree._Element, folders: list[Path], found: SceneFiles,
            deferred: list[tuple[Path, etree._Element, str]], stack: list[Path]) -> None:
+    """One element, as Mitsuba reads it. `<path value>` (a child of the root only): beside the XML file,
+    else through the folders; it then goes first in the list of the file being read. `<include filename>`:
+    looked up with the including file's folder first, and read with that list (a copy: its own `<path>`s
+    end with it). `<spectrum filename>`: looked up now, in the list of the file being read. Any other
+    `filename` waits until all the XML is read (read_scene)."""
     if elem.tag == "default":
         found.params.setdefault(elem.get("name", ""), elem.get("value", ""))
     elif elem.tag == "path":

@@ -1,15 +1,9 @@
 """Spectral data in a scene's XML, and whether rgb would render it differently (then: a spectral variant).
 
 An rgb render multiplies colours channel by channel; a spectral one multiplies spectra wavelength by
-wavelength and converts to colour at the end. The two agree for one reflection off a material (Mitsuba
-converts each spectrum to its colour), and differ once light meets spectra twice: the colour of s*t is not
-the colour of s times the colour of t unless the spectra are flat or close to it. The test, per spectrum
-given per wavelength (or read from a file): light that bounces two and three times off the same spectrum,
-and once off each of any two of them, must keep its linear-sRGB colour within RGB_TOLERANCE of the
-brightest channel when computed channel by channel. A flat spectrum passes exactly; narrow emission lines
-and spectra with structure fail. An index of refraction that varies with wavelength (dispersion) always
-needs spectral, and so does a conductor made of one of Mitsuba's measured metals (`material`, whose
-spectra Mitsuba reads from its own data); blackbody spectra exist only in spectral variants.
+wavelength. They agree for one reflection, and differ once light meets spectra twice, unless the spectra
+are flat or close to it. `spectral_need` says why a scene needs a spectral variant (or None);
+`colour_error` is its test and `read_spectrum` reads a spectrum given per wavelength or by file.
 """
 
 from __future__ import annotations
@@ -54,8 +48,9 @@ def _rgb(values: np.ndarray) -> np.ndarray:
 
 
 def colour_error(spectra: list[np.ndarray]) -> float:
-    """Largest disagreement between channel-wise and per-wavelength products (see the module docstring),
-    relative to the brightest channel of the per-wavelength result."""
+    """Largest disagreement between channel-wise and per-wavelength products, relative to the brightest
+    channel of the per-wavelength result, in linear sRGB: light that bounces two and three times off the
+    same spectrum, and once off each of any two of them."""
     worst = 0.0
     scaled = [s / max(float(np.abs(s).mean()), 1e-12) for s in spectra]
     products = [(s, s, None) for s in scaled] + [(s, t, None) for s, t in itertools.combinations(scaled, 2)]
@@ -105,7 +100,12 @@ def _from_file(path: Path, where: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def spectral_need(root: Any, scene_path: Path) -> str | None:
-    """Why the scene needs a spectral variant, or None when rgb renders its spectral data the same."""
+    """Why the scene needs a spectral variant, or None when rgb renders its spectral data the same.
+
+    Its colours after bounces must agree within RGB_TOLERANCE (`colour_error`): a flat spectrum passes
+    exactly; narrow emission lines and spectra with structure fail. Always spectral: an index of refraction
+    that varies with wavelength (dispersion), a conductor of one of Mitsuba's measured metals (`material`),
+    and blackbody spectra, which exist only in spectral variants."""
     named = _named_conductor(root, scene_path)
     if named:
         return named

@@ -1,20 +1,10 @@
 """The XMPP transport both farm agents stand on: a SPADE agent that moves validated strings, nothing more.
 
-`FarmAgent` (a `spade.agent.Agent`) connects with its own JID and password, comes back by itself when
-the connection drops or the server restarts, sends messages whose metadata carries performative,
-ontology, protocol and conversation id with a non-empty body, and lets a message reach the code above
-only after checking its sender, its size and its metadata (refusals are logged with a reason, counted,
-and never raise). What a body means is not decided here: a `validate(performative, body)` callback,
-typically `core.model.messages.parse`, may refuse it.
-
-Pitfalls it exists to avoid (design.md section 4): empty bodies vanish over XMPP; two agents in one
-process bypass XMPP (here `send` always goes through the socket); SPADE reconnects only at its 55 s
-keepalive (here the `disconnected` event starts a reconnect loop); a dead link (a pulled cable, a host
-cut off: no FIN, no RST) leaves the TCP session open while the kernel retransmits with backoff, so that
-a host back after 30 s was heard again only ~25 s later (measured, tests/test_multihost.py): here the
-server is pinged every `keepalive_s` and a ping unanswered for `keepalive_timeout_s` drops the connection,
-so the reconnect loop, which polls the server's port, is back within a second or two of the link; SPADE's
-web interface can stop an agent with one unauthenticated GET (here it is never started).
+`FarmAgent` connects with its own JID and password, comes back by itself after a drop, `send`s messages
+with their metadata, and hands a message (an `Envelope`) to the code above only once its sender, size
+and metadata pass; a refusal is logged and counted (`Refusal`), never raised. What a body means is
+decided above: a `validate` callback, typically `core.model.messages.parse`, may refuse it. SPADE's
+pitfalls it avoids are at the code that avoids them (design.md section 4).
 """
 
 from __future__ import annotations
@@ -50,7 +40,7 @@ INBOX_SIZE = 1000
 TLS_SETTLE_S = 0.05
 SESSION_TIMEOUT_S = 8.0
 # A ping to the server every KEEPALIVE_S; no answer within KEEPALIVE_TIMEOUT_S: the link is dead, reconnect.
-# Within the master's heartbeat timeout (15 s, master/auction.py), so a silent agent is reconnecting by the
+# Within the master's heartbeat timeout (15 s, master.auction.state.Config), so a silent agent is reconnecting by the
 # time the master gives its units back. (SPADE's own keepalive, every 55 s, is replaced.)
 KEEPALIVE_S = 5.0
 KEEPALIVE_TIMEOUT_S = 10.0
@@ -113,7 +103,8 @@ class FarmAgent(Agent):
         await agent.stop()
 
     Messages that pass the gate go to the handler (one at a time, in arrival order) and to any SPADE
-    behaviour whose template matches them; refused ones reach neither.
+    behaviour whose template matches them; refused ones reach neither. SPADE's web interface, which can
+    stop an agent with one unauthenticated GET, is never started.
     """
 
     def __init__(
@@ -225,7 +216,8 @@ class FarmAgent(Agent):
 
     async def send(self, to: str, performative: str, body: str, *, conversation_id: str,
                    protocol: str, ontology: str | None = None, thread: str | None = None) -> bool:
-        """Send one message over the XMPP socket (never in-process). False when offline (not queued).
+        """Send one message over the XMPP socket (never in-process, as SPADE delivers between two agents
+        of one process). False when offline (not queued).
 
         Raises MessageError when the message itself is unsendable (empty body or metadata, too large).
         """
@@ -346,6 +338,7 @@ class FarmAgent(Agent):
         self._online.set()
 
     def _on_disconnected(self, reason: object) -> None:
+        """Start the reconnect loop at once (SPADE alone reconnects only at its 55 s keepalive)."""
         was_online = self._online.is_set()
         self._online.clear()
         if self._stopping or not self.reconnect or not self.is_alive():
@@ -376,7 +369,11 @@ class FarmAgent(Agent):
 
     async def _keepalive(self) -> None:
         """Ping the server every `keepalive_s` while online; a ping unanswered for `keepalive_timeout_s` in the
-        same session means a dead link: the connection is dropped, and `_on_disconnected` reconnects."""
+        same session means a dead link: the connection is dropped, and `_on_disconnected` reconnects.
+
+        A dead link (a pulled cable: no FIN, no RST) leaves TCP open while the kernel retransmits with
+        backoff: without this, a host back after 30 s was heard again only ~25 s later (measured,
+        tests/test_multihost.py); with it, within a second or two of the link."""
         while not self._stopping:
             await asyncio.sleep(self.keepalive_s)
             client, session = self.client, self._sessions

@@ -1,17 +1,9 @@
 """Run the XMPP server a farm stands on, as a child process: SPADE's embedded one (pyjabber) or Prosody.
 
-`EmbeddedXmppServer` is for one machine only. It binds 127.0.0.1 alone, keeps its accounts in a file
-database under the given directory, and uses the JID domain as its host (pyjabber's default host
-`0.0.0.0` accepts logins but delivers nothing). Its in-band registration (XEP-0077) is open to anyone
-who can reach the port, and the CA key behind its default certificate ships in the wheel: that is
-acceptable on loopback and nowhere else. Use Prosody (`deploy/prosody/`) when agents run on other hosts.
-
-`ProsodyServer` runs a real Prosody 0.12 with the repository's `deploy/prosody/prosody.cfg.lua`, its
-own data directory, pid file, free port on 127.0.0.1 and a fresh self-signed certificate. The tests use
-it; `quekaro` never needs the system's Prosody service.
-
-Run as `python -m core.transport.xmpp_server embedded --domain D --port P --s2s-port Q --data-dir DIR` to host
-pyjabber in this process (that is what `EmbeddedXmppServer` spawns).
+`EmbeddedXmppServer` is for one machine only: it binds 127.0.0.1 and is safe on loopback alone. Use
+Prosody (`deploy/prosody/`) when agents run on other hosts; `ProsodyServer` runs one for the tests.
+`python -m core.transport.xmpp_server embedded ...` (`main`) hosts pyjabber in this process: that is
+what `EmbeddedXmppServer` spawns.
 """
 
 from __future__ import annotations
@@ -237,6 +229,11 @@ READY_FILE = "ready.json"  # in the data dir: the ports the server bound, writte
 class EmbeddedXmppServer(_ChildServer):
     """SPADE's pyjabber server in a child process: loopback only, file database, domain as host.
 
+    It binds 127.0.0.1 alone and keeps its accounts in a file database under `data_dir`. The JID domain
+    is its host: pyjabber's default host `0.0.0.0` accepts logins but delivers nothing. Loopback only,
+    since its in-band registration (XEP-0077) is open to anyone who can reach the port, and the CA key
+    behind its default certificate ships in the wheel.
+
     Registration is closed once `allow` has been called: only the user names listed in
     DATA_DIR/allowed-accounts may register (the local farm lists its master and each agent it starts),
     any other in-band registration is refused with `forbidden`. Without that file pyjabber's open
@@ -313,8 +310,10 @@ class EmbeddedXmppServer(_ChildServer):
 class ProsodyServer(_ChildServer):
     """A real Prosody 0.12 on 127.0.0.1 with the repository's config, TLS required, registration closed.
 
-    Runs in the foreground as a child (no system service, no daemon); everything it writes stays in
-    `data_dir`. Accounts are created with `prosodyctl register` before (or while) it runs.
+    Runs in the foreground as a child (no system service, no daemon) with `deploy/prosody/prosody.cfg.lua`,
+    its own pid file, a free port and a fresh self-signed certificate; everything it writes stays in
+    `data_dir`. Accounts are created with `prosodyctl register` before (or while) it runs. The tests use
+    it; `quekaro` never needs the system's Prosody service.
     """
 
     def __init__(self, data_dir: Path | str, domain: str = "localhost", port: int | None = None,
@@ -517,6 +516,7 @@ def _forget_unavailable_resources() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`embedded --domain D --port P --s2s-port Q --data-dir DIR`: host pyjabber in this process."""
     parser = argparse.ArgumentParser(prog="python -m core.transport.xmpp_server", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="cmd", required=True)
     emb = sub.add_parser("embedded", help="run SPADE's pyjabber server on 127.0.0.1 in the foreground")

@@ -138,7 +138,7 @@ class Auction:
         """The auction after a master restart: every running job with its done units and past failures, and
         the agents' records (`credits`, applied as each registers again). `describe` gives a job's CFP
         description (its scene URL depends on where the master serves now); a job it cannot describe fails
-        alone. Returns the auction and the events of resuming (a job that was in fact complete, or failed),
+        alone. Returns the auction and the records of resuming (a job that was in fact complete, or failed),
         for the job store to apply."""
         auction = cls(config, rng, credits=credits)
         out: list[Instruction] = []
@@ -242,6 +242,32 @@ class Auction:
         job = self._jobs.get(job_id)
         unit = job.units.get(index) if job else None
         return list(unit.story) if unit else []
+
+    def validate(self) -> None:
+        """AssertionError naming the first broken invariant between units, agents and rounds (tests run
+        it after every stimulus)."""
+        in_rounds = Counter((r.job_id, i) for r in self._rounds.values() for i in r.units)
+        for job in self._jobs.values():
+            for unit in job.units.values():
+                _check_unit(self, job, unit, in_rounds[job.info.job_id, unit.spec.index])
+            statuses = {u.status for u in job.units.values()}
+            if job.status == JobStatus.DONE or (job.status == JobStatus.RUNNING and statuses == {UnitStatus.DONE}):
+                assert statuses == {UnitStatus.DONE} and job.status == JobStatus.DONE, f"job {job.info.job_id}: " \
+                    f"{job.status.value} with units {sorted(statuses)}"
+            if job.status in (JobStatus.FAILED, JobStatus.CANCELLED):
+                assert statuses <= {UnitStatus.DONE, UnitStatus.FAILED}, f"job {job.info.job_id} ended with " \
+                    f"units {sorted(statuses)}"
+            blocked = {a for a, n in job.failures_by_agent.items() if n >= self.config.blocklist_after}
+            assert job.blocklist <= blocked, f"job {job.info.job_id}: blocklist {job.blocklist} beyond {blocked}"
+        for agent in self._agents.values():
+            for job_id, index in agent.holding:
+                unit = self._jobs[job_id].units[index]
+                assert unit.status == UnitStatus.AWARDED and unit.agent == agent.name, \
+                    f"agent {agent.name} holds unit {index} of job {job_id}, {unit.status.value} to {unit.agent}"
+            if agent.invited is not None:
+                round_ = self._rounds.get(agent.invited)
+                assert round_ is not None and agent.name in round_.offered, \
+                    f"agent {agent.name} invited to round {agent.invited}, which does not call it"
 
     # --- set-up --------------------------------------------------------------------------------------
 
@@ -833,9 +859,9 @@ class Auction:
             seed=unit_seed(job.info.job_id, unit.spec.index, 0),
             estimate_s=estimate,
         )
-        event = UnitAwarded(job.info.job_id, unit.spec.index, agent, unit.token, estimate, unit.attempts,
+        record = UnitAwarded(job.info.job_id, unit.spec.index, agent, unit.token, estimate, unit.attempts,
                             unit.deadline)
-        return [SendToAgent(agent, award), event]
+        return [SendToAgent(agent, award), record]
 
     def _set_unit(self, job: Job, unit: UnitState, status: UnitStatus) -> None:
         """The one place a unit's status changes: checked against `core.model.status.UNIT_TRANSITIONS`."""
@@ -859,9 +885,9 @@ class Auction:
         unit = job.units[key[1]]
         if unit.agent in self._agents:
             self._agents[unit.agent].holding.discard(key)
-        event = UnitRequeued(key[0], key[1], unit.agent, unit.token, reason)
+        record = UnitRequeued(key[0], key[1], unit.agent, unit.token, reason)
         self._clear_award(job, unit, UnitStatus.PENDING)
-        return [event]
+        return [record]
 
     def _fail_unit(self, key: tuple[str, int], reason: str) -> list[Instruction]:
         """The unit failed on its agent: retry elsewhere; blocklist the agent after repeated failures."""
@@ -966,4 +992,19 @@ def _tile_refusal(job: Job, unit: WorkUnit, tile: TileStored) -> str:
         return f"{where} (adaptive): tile header says spp {said.spp}, first pass {said.first_spp}; the plan " \
                f"gives spp {unit.spp}, first pass {first}"
     return ""
+
+
+def _check_unit(auction: Auction, job: Job, unit: UnitState, rounds: int) -> None:
+    """The invariants of one unit: an award's holder holds it, and an announced unit is in one open round
+    (`rounds`: the open rounds that hold it)."""
+    where = f"unit {unit.spec.index} of job {job.info.job_id}"
+    if unit.status == UnitStatus.AWARDED:
+        assert None not in (unit.agent, unit.token, unit.conversation), f"{where}: awarded without its award"
+        holder = auction._agents.get(unit.agent)
+        assert holder is not None and (job.info.job_id, unit.spec.index) in holder.holding, \
+            f"{where}: awarded to {unit.agent}, which does not hold it"
+    else:
+        assert unit.token is None and unit.agent is None, f"{where}: {unit.status.value} with an award"
+    if unit.status == UnitStatus.ANNOUNCED:
+        assert rounds == 1, f"{where}: announced in {rounds} open rounds"
 

@@ -1,15 +1,9 @@
 """Who may see the web page: a session opened by POSTing the farm's admin token to the login form.
 
-- The token travels once, in a form body (never in a URL, so never in a log, a history or a Referer); the
-  answer sets a random session id in a cookie that is HttpOnly (no script reads it), SameSite=Strict (no
-  other site's page sends it) and Secure when the master serves HTTPS.
-- Every action (cancel, re-submit, log out) is a POST that must carry the session's CSRF token in the
-  `X-CSRF-Token` header (or a `csrf` form field); the page reads it from a meta tag of the HTML it was
-  served. A forged cross-site POST has neither the cookie (SameSite) nor the token.
-- Only the admin token opens a session: an agent's award token (`X-Quekaro-Token`, or as a bearer token)
-  is never looked at here, so it gets the login form and no page.
-- Sessions live in the master's memory (a restarted master asks again), end after `IDLE_S` without a
-  request, and at most `MAX_SESSIONS` are kept (the oldest ends first).
+The token travels once, in a form body (never in a URL, so never in a log, a history or a Referer), and
+opens a session cookie (`set_cookie`). Every action is a POST with the session's CSRF token
+(`require_action`). Only the admin token opens a session: an agent's award token is never looked at here.
+Sessions (`Sessions`) live in the master's memory: a restarted master asks again.
 """
 
 from __future__ import annotations
@@ -39,7 +33,8 @@ class Session:
 
 @dataclass
 class Sessions:
-    """The open sessions of the page, in memory."""
+    """The open sessions of the page, in memory: each ends after `idle_s` without a request, and at most
+    `limit` are kept (the oldest ends first)."""
 
     idle_s: float = IDLE_S
     limit: int = MAX_SESSIONS
@@ -86,7 +81,8 @@ def token_matches(given: str, admin_token: str) -> bool:
 
 
 def set_cookie(response: web.StreamResponse, request: web.Request, session: Session) -> None:
-    """The session cookie: HttpOnly, SameSite=Strict, on /ui only, Secure over HTTPS."""
+    """The session cookie: HttpOnly (no script reads it), SameSite=Strict (no other site's page sends it),
+    on /ui only, Secure over HTTPS."""
     response.set_cookie(COOKIE, session.id, path=COOKIE_PATH, httponly=True, samesite="Strict",
                         secure=request.secure)
 
@@ -96,7 +92,8 @@ def clear_cookie(response: web.StreamResponse) -> None:
 
 
 def session_of(request: web.Request, sessions: Sessions) -> Session | None:
-    """The request's session, from its cookie alone (no header or query token opens the page)."""
+    """The request's session, from its cookie alone (no header or query token opens the page: an award
+    token, `X-Quekaro-Token` or bearer, gets the login form and no page)."""
     return sessions.find(request.cookies.get(COOKIE))
 
 
@@ -114,7 +111,9 @@ def require(request: web.Request, sessions: Sessions) -> Session:
 
 
 async def require_action(request: web.Request, sessions: Sessions) -> Session:
-    """The session of a POST that carries its CSRF token (header or form field), or 401/403."""
+    """The session of a POST that carries its CSRF token (header `X-CSRF-Token` or form field `csrf`), or
+    401/403. The page reads the token from a meta tag of its HTML; a forged cross-site POST has neither
+    the cookie (SameSite) nor the token."""
     session = require(request, sessions)
     given = request.headers.get(CSRF_HEADER, "")
     if not given and request.content_type == "application/x-www-form-urlencoded":

@@ -1,20 +1,8 @@
 """Live updates of the page by server-sent events (`GET /ui/events[?job=ID]`).
 
-One stream per open page. Once a second (`TICK_S`; the page itself never polls) the stream looks whether
-anything changed and sends only what did, each as a named event whose data is one JSON object:
-
-- `jobs`: the jobs table (`views.jobs_view`);
-- `job`: the job the page shows, with its units (`views.job_view`), when `?job=` names one;
-- `agents`: the agents table (`views.agents_view`) with `server_now`. The page ages "last heard" itself,
-  so the table is sent again when a row changes otherwise, or when an agent's age drifts more than
-  `AGE_SLACK_S` from what the page shows: an idle farm's heartbeats (every 2 s) make its stream talk
-  every few seconds, not every second, and "last heard" is shown up to AGE_SLACK_S late.
-
-Whether jobs changed is read from the job store's own change counter (`sqlite3.Connection.total_changes`
-of the master's connection: every award, tile, status change and submission is a row written through it)
-and from the reports still being assembled, so an idle farm costs a counter read a second, not queries.
-A stream ends when its session ends (log out, expiry) or the master stops (`closing`), and a comment every
-`KEEPALIVE_S` shows a dead connection to both sides.
+One stream per open page (`stream`). Once a second (`TICK_S`; the page itself never polls) its `Watcher`
+sends only what changed, each as a named event whose data is one JSON object: `jobs` (the jobs table),
+`job` (the job `?job=` names, with its units) and `agents` (the agents table, with `server_now`).
 """
 
 from __future__ import annotations
@@ -57,6 +45,9 @@ class Watcher:
     ages: dict[str, float] = field(default_factory=dict)  # each agent's last_seen_s as last sent
 
     def _change_key(self) -> tuple[Any, ...]:
+        """What says jobs changed: the job store's change counter (`total_changes` of the master's
+        connection, through which every award, tile, status change and submission is written) and the
+        reports still being assembled. An idle farm costs a counter read a second, not queries."""
         ready = sum(self.service.result_path(j).with_suffix(".json").exists() for j in self.waiting)
         return self.service.store.db.total_changes, ready
 
@@ -83,7 +74,8 @@ class Watcher:
 
     def _ages_drifted(self, agents: list[dict[str, Any]]) -> bool:
         """Whether an agent's last_seen_s is off by more than AGE_SLACK_S from what the page has aged
-        it to since the last agents event."""
+        it to since the last agents event. The page ages "last heard" itself, so an idle farm's
+        heartbeats (every 2 s) make the stream talk every few seconds, not every second."""
         gone = time.monotonic() - self.agents_at
         return any(abs(self.ages.get(row["jid"], 0.0) + gone - row["last_seen_s"]) > AGE_SLACK_S for row in agents)
 
@@ -104,7 +96,8 @@ class Watcher:
 
 async def stream(request: web.Request, watcher: Watcher, alive: Callable[[], bool],
                  closing: asyncio.Event) -> web.StreamResponse:
-    """Send `watcher`'s changes every TICK_S until the client goes, `alive()` turns false or `closing` is set."""
+    """Send `watcher`'s changes every TICK_S until the client goes, `alive()` turns false (log out, expiry)
+    or `closing` is set (the master stops). A comment every KEEPALIVE_S shows a dead connection to both sides."""
     response = web.StreamResponse(headers={"Content-Type": "text/event-stream", "Cache-Control": "no-store",
                                            "X-Accel-Buffering": "no"})
     await response.prepare(request)

@@ -1,16 +1,9 @@
 """The image of a job as far as its tiles have landed: a PNG the page reloads when a tile arrives.
 
-The tiles recorded so far are blended by `core.image.compose` (the final assembly's own weights, pixels
-no tile covers left black) and written as an 8-bit sRGB PNG by `core.image.imageio.write_png_planar`,
-which encodes with Pillow (already a dependency of the master for the final PNG; no other image library
-is needed). An image wider or taller than `MAX_SIDE` is shrunk by a whole factor until it fits (each
-preview pixel the mean of a block), and composed a band at a time: a page never asks the master for a
-16k image's gigabytes, nor the browser to decode them. A finished job's own result.png is served as it
-is when it fits; a larger one's preview is composed from its tiles, once.
-
-Composing costs time on large images, so it runs in a thread, once at a time per job, and a job's
-preview is composed again only after `MIN_INTERVAL_S` or twice the last composition's time, whichever
-is longer; the PNG is kept beside the job (`preview.png`) with the set of tiles it shows.
+`Previews.png` blends the tiles recorded so far by `core.image.compose` (the final image's own weights;
+pixels no tile covers left black) into `preview.png` beside the job (`write_preview`). An image wider or
+taller than `MAX_SIDE` is shrunk by a whole factor (`shrink_factor`): a page never asks the master for a
+16k image's gigabytes, nor the browser to decode them.
 """
 
 from __future__ import annotations
@@ -49,7 +42,10 @@ class Previews:
     async def png(self, job_id: str, folder: Path, width: int, height: int, results: list[ResultRecord],
                   reach: int = 0, colour: tuple[str, ...] = RGB) -> Path:
         """The PNG showing `results`' tiles (composed again if a tile was added since the last one), their
-        bands cut by `reach` as in the final image (core.image.compose), in the film's `colour`."""
+        bands cut by `reach` as in the final image (core.image.compose), in the film's `colour`.
+
+        Composing costs time on large images, so it runs in a thread, once at a time per job, and again
+        only after MIN_INTERVAL_S or twice the last composition's time, whichever is longer."""
         state = self.jobs.setdefault(job_id, _JobPreview())
         path = folder / PREVIEW_NAME
         wanted = frozenset(r.index for r in results)
@@ -69,14 +65,16 @@ class Previews:
 
 
 def shrink_factor(width: int, height: int) -> int:
-    """The smallest whole factor that brings a width x height image within MAX_SIDE on both sides."""
+    """The smallest whole factor that brings a width x height image within MAX_SIDE on both sides (each
+    preview pixel is then the mean of a block, composed a band at a time)."""
     return max(1, -(-max(width, height) // MAX_SIDE))
 
 
 def write_preview(path: Path, width: int, height: int, results: list[ResultRecord], reach: int = 0,
                   colour: tuple[str, ...] = RGB) -> Path:
     """Blend the tiles of `results` into a PNG at `path`, of the image's size shrunk by `shrink_factor`;
-    pixels no tile covers are black. `colour` is the film's colour channels (core.image.film.display_rgb)."""
+    pixels no tile covers are black. `colour` is the film's colour channels (core.image.film.display_rgb).
+    8-bit sRGB, encoded by Pillow (already the master's for the final PNG; no other image library)."""
     tiles = [tile_source(r.tile_path, unit_index=r.index) for r in results if Path(r.tile_path).is_file()]
     planar = compose_shrunk(tiles, width, height, shrink_factor(width, height), reach=reach)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -1,21 +1,18 @@
-"""The web page's routes on the master's aiohttp application (the job API's bind address and port).
+"""The web page's routes on the master's aiohttp application (`add_web_routes`; the job API's address and port).
 
-    GET  /                                  -> /ui/
+    GET  /, /ui                             -> /ui/
     GET  /ui/                               the page (a session), else -> /ui/login
-    GET  /ui/login, POST /ui/login          the login form; POST its `token` field (the admin token)
+    GET  /ui/login, POST /ui/login          the login form; POST the admin token to open a session
     POST /ui/logout                         ends the session (CSRF)
-    GET  /ui/static/...                     the page's CSS and JavaScript (no data in them: no session)
+    GET  /ui/static/...                     the page's CSS and JavaScript (no session)
     GET  /ui/api/jobs[/{job}]               jobs table; one job with its units
-    GET  /ui/api/jobs/{job}/units/{unit}    one unit: attempts, and the rules that fired with their strengths
+    GET  /ui/api/jobs/{job}/units/{unit}    one unit: attempts, the rules that fired
     GET  /ui/api/jobs/{job}/preview.png     the image so far
     GET  /ui/api/jobs/{job}/report          a finished job's report
     POST /ui/api/jobs/{job}/cancel          (CSRF)
-    POST /ui/api/jobs/{job}/resubmit        the job again: same bundle, -D parameters and options (CSRF)
+    POST /ui/api/jobs/{job}/resubmit        the job again (CSRF)
     GET  /ui/api/agents                     agents table
     GET  /ui/events[?job=ID]                server-sent events (master.web.events)
-
-Every /ui response but the static files is `no-store`, framed by nobody, and under a Content-Security-Policy
-that allows this origin's own scripts, styles, images and connections only (no inline script).
 """
 
 from __future__ import annotations
@@ -82,7 +79,7 @@ def add_web_routes(app: web.Application, service: WebService) -> WebState:
     r.add_get("/ui/login", login_form)
     r.add_post("/ui/login", login)
     r.add_post("/ui/logout", logout)
-    r.add_static("/ui/static", STATIC, follow_symlinks=False)
+    r.add_static("/ui/static", STATIC, follow_symlinks=False)  # no data in them: no session needed
     r.add_get("/ui/api/jobs", api_jobs)
     r.add_get("/ui/api/jobs/{job}", api_job)
     r.add_get("/ui/api/jobs/{job}/units/{unit}", api_unit)
@@ -102,6 +99,9 @@ async def _closing(app: web.Application) -> None:
 
 
 async def _secure_headers(request: web.Request, response: web.StreamResponse) -> None:
+    """Every page response is framed by nobody, under a Content-Security-Policy that allows this origin's
+    own scripts, styles, images and connections only (no inline script); all but the static files are
+    `no-store`."""
     if request.path == "/" or request.path.startswith("/ui"):
         response.headers.update(SECURITY_HEADERS)
         if not request.path.startswith("/ui/static/"):
@@ -138,7 +138,8 @@ async def login_form(request: web.Request, message: str = "", status: int = 200)
 
 
 async def login(request: web.Request) -> web.Response:
-    """The admin token from the form's body opens a session (cookie); anything else gets the form again."""
+    """The admin token from the form's `token` field opens a session (cookie); anything else gets the form
+    again."""
     state = _state(request)
     form = await request.post()
     if not auth.token_matches(str(form.get("token", "")), state.service.admin_token):
@@ -198,7 +199,8 @@ async def api_job(request: web.Request) -> web.Response:
 
 
 async def api_unit(request: web.Request) -> web.Response:
-    """One unit, with the rules that fired for it (evaluated in a thread: a rule file may need parsing)."""
+    """One unit: its attempts, and the rules that fired for it with their strengths (evaluated in a
+    thread: a rule file may need parsing)."""
     service = _authorized(request)
     job_id, unit = _job_id(request), request.match_info["unit"]
     if not UNIT_PART.fullmatch(unit):
@@ -231,7 +233,8 @@ def _rules_of(record: JobRecord, unit: dict[str, Any]) -> dict[str, Any]:
 
 
 async def api_preview(request: web.Request) -> web.StreamResponse:
-    """The finished job's PNG, or the tiles landed so far composed (`master.web.preview`)."""
+    """The finished job's PNG, or the tiles landed so far composed (`master.web.preview`). A finished
+    job's own result.png is served only when it fits MAX_SIDE; a larger one's preview is composed, once."""
     state = _state(request)
     service = _authorized(request)
     job_id = _job_id(request)
@@ -279,7 +282,7 @@ async def api_cancel(request: web.Request) -> web.Response:
 
 
 async def api_resubmit(request: web.Request) -> web.Response:
-    """Submit the job's bundle again with its -D parameters and options (its rule file is in the bundle)."""
+    """Submit the job again: the same bundle, -D parameters and options (its rule file is in the bundle)."""
     state = _state(request)
     await auth.require_action(request, state.sessions)
     service, job_id = state.service, _job_id(request)

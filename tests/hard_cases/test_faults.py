@@ -1,5 +1,5 @@
 """Faults the farm must survive without losing a unit, as far as they can be driven without a farm:
-an agent dying at each step of the contract net (master/auction.py is a pure state machine, driven
+an agent dying at each step of the contract net (master/auction/ is a pure state machine, driven
 here directly), and a disk that fills while a tile is written (core.image.tiles.write_tile on a tiny tmpfs).
 The farm-level faults (SIGKILL, master and XMPP restarts) are in tests/test_farm.py."""
 
