@@ -44,9 +44,10 @@ class Record(Instruction):
     """A fact for the job store and the log: one subclass per kind, with typed fields."""
 
     level: ClassVar[int] = logging.INFO
+    template: ClassVar[str] = ""  # the sentence, with the record's fields by name
 
     def sentence(self) -> str:
-        raise NotImplementedError
+        return self.template.format(**{f.name: getattr(self, f.name) for f in dataclasses.fields(self)})
 
     def fields(self) -> dict[str, Any]:
         """The record's fields for a structured log, its kind first, tokens left out."""
@@ -55,12 +56,10 @@ class Record(Instruction):
         return out
 
 
-def _unit(job_id: str, index: int) -> str:
-    return f"unit {index} of job {job_id}"
-
-
 @dataclass(frozen=True)
 class UnitAwarded(Record):
+    template: ClassVar[str] = "unit {index} of job {job_id}: awarded to {agent}, estimate {estimate:.2f} s " \
+                              "(try {attempt})"
     job_id: str
     index: int
     agent: str
@@ -69,16 +68,14 @@ class UnitAwarded(Record):
     attempt: int  # 1 for the unit's first award
     deadline: float  # render deadline, auction time
 
-    def sentence(self) -> str:
-        return f"{_unit(self.job_id, self.index)}: awarded to {self.agent}, estimate {self.estimate:.2f} s " \
-               f"(try {self.attempt})"
-
 
 @dataclass(frozen=True)
 class UnitDone(Record):
     """The unit's tile is durable and its award's holder is done: the tile, the parameters it was rendered
     with (as the store keeps them), and the agent's record."""
 
+    template: ClassVar[str] = ("unit {index} of job {job_id}: done by {agent} in {seconds:.2f} s (estimate "
+                               "{estimate:.2f} s; spp {report[spp]}, depth {report[depth]}, band {report[band]})")
     job_id: str
     index: int
     agent: str
@@ -96,16 +93,12 @@ class UnitDone(Record):
         """The render parameters the agent chose, as the store records them with the attempt."""
         return {k: self.report[k] for k in ("depth", "spp", "band", "nonfinite")}
 
-    def sentence(self) -> str:
-        return f"{_unit(self.job_id, self.index)}: done by {self.agent} in {self.seconds:.2f} s " \
-               f"(estimate {self.estimate:.2f} s; spp {self.report['spp']}, depth {self.report['depth']}, " \
-               f"band {self.report['band']})"
-
 
 @dataclass(frozen=True)
 class UnitFailed(Record):
     """The unit failed on its agent (its report, or its render deadline passed): back to pending."""
 
+    template: ClassVar[str] = "unit {index} of job {job_id}: {reason}; back to the auction"
     level: ClassVar[int] = logging.WARNING
     job_id: str
     index: int
@@ -114,14 +107,12 @@ class UnitFailed(Record):
     reason: str
     credits: int  # the agent's credits after this failure
 
-    def sentence(self) -> str:
-        return f"{_unit(self.job_id, self.index)}: {self.reason}; back to the auction"
-
 
 @dataclass(frozen=True)
 class UnitRequeued(Record):
     """The unit went back to pending without blaming its agent (lost, or the award never arrived)."""
 
+    template: ClassVar[str] = "unit {index} of job {job_id}: back to the auction ({reason})"
     level: ClassVar[int] = logging.WARNING
     job_id: str
     index: int
@@ -129,109 +120,86 @@ class UnitRequeued(Record):
     token: str = field(repr=False)
     reason: str
 
-    def sentence(self) -> str:
-        return f"{_unit(self.job_id, self.index)}: back to the auction ({self.reason})"
-
 
 @dataclass(frozen=True)
 class JobDone(Record):
+    template: ClassVar[str] = "job {job_id}: every unit done"
     job_id: str
-
-    def sentence(self) -> str:
-        return f"job {self.job_id}: every unit done"
 
 
 @dataclass(frozen=True)
 class JobFailed(Record):
+    template: ClassVar[str] = "job {job_id}: failed: {reason}"
     level: ClassVar[int] = logging.ERROR
     job_id: str
     reason: str
 
-    def sentence(self) -> str:
-        return f"job {self.job_id}: failed: {self.reason}"
-
 
 @dataclass(frozen=True)
 class JobCancelled(Record):
+    template: ClassVar[str] = "job {job_id}: cancelled ({reason})"
     job_id: str
     reason: str
-
-    def sentence(self) -> str:
-        return f"job {self.job_id}: cancelled ({self.reason})"
 
 
 @dataclass(frozen=True)
 class AgentJoined(Record):
     """An agent the master did not know registered (or was first heard from by heartbeat)."""
 
+    template: ClassVar[str] = "agent {agent}: joined, speed {speed:.3g}"
     agent: str
     speed: float
-
-    def sentence(self) -> str:
-        return f"agent {self.agent}: joined, speed {self.speed:.3g}"
 
 
 @dataclass(frozen=True)
 class AgentLost(Record):
+    template: ClassVar[str] = "agent {agent}: lost ({reason})"
     level: ClassVar[int] = logging.WARNING
     agent: str
     reason: str
 
-    def sentence(self) -> str:
-        return f"agent {self.agent}: lost ({self.reason})"
-
 
 @dataclass(frozen=True)
 class AgentBack(Record):
+    template: ClassVar[str] = "agent {agent}: back"
     agent: str
-
-    def sentence(self) -> str:
-        return f"agent {self.agent}: back"
 
 
 @dataclass(frozen=True)
 class AgentSilent(Record):
     """An agent let a call for proposals time out: it is left out of auctions for `seconds`."""
 
+    template: ClassVar[str] = "agent {agent}: did not answer a call for proposals; left out for {seconds:.1f} s"
     level: ClassVar[int] = logging.WARNING
     agent: str
     seconds: float
-
-    def sentence(self) -> str:
-        return f"agent {self.agent}: did not answer a call for proposals; left out for {self.seconds:.1f} s"
 
 
 @dataclass(frozen=True)
 class AgentForgotten(Record):
     """An agent lost for `Config.forget_lost_s` is dropped from the agents the master lists."""
 
+    template: ClassVar[str] = "agent {agent}: lost too long, no longer listed"
     agent: str
-
-    def sentence(self) -> str:
-        return f"agent {self.agent}: lost too long, no longer listed"
 
 
 @dataclass(frozen=True)
 class AgentBlocklisted(Record):
+    template: ClassVar[str] = "agent {agent}: blocklisted for job {job_id} ({reason})"
     level: ClassVar[int] = logging.WARNING
     job_id: str
     agent: str
     reason: str
-
-    def sentence(self) -> str:
-        return f"agent {self.agent}: blocklisted for job {self.job_id} ({self.reason})"
 
 
 @dataclass(frozen=True)
 class BidRefused(Record):
     """An agent answered a call for proposals with a refusal."""
 
+    template: ClassVar[str] = "agent {agent}: will not bid on job {job_id}: {reason}"
     job_id: str
     agent: str
     reason: str
-
-    def sentence(self) -> str:
-        return f"agent {self.agent}: will not bid on job {self.job_id}: {self.reason}"
 
 
 @dataclass(frozen=True)
@@ -244,7 +212,7 @@ class MessageIgnored(Record):
     index: int | None = None
 
     def sentence(self) -> str:
-        about = _unit(self.job_id, self.index) if self.index is not None else \
+        about = f"unit {self.index} of job {self.job_id}" if self.index is not None else \
             f"job {self.job_id}" if self.job_id else None
         who = f"from {self.agent}" if self.agent else "from the user"
         return f"ignored {who}" + (f" about {about}" if about else "") + f": {self.reason}"
@@ -254,19 +222,15 @@ class MessageIgnored(Record):
 class JobsPaused(Record):
     """Every job stands still (no awards, deadlines or losses) until `JobsResumed`."""
 
+    template: ClassVar[str] = "every job paused: {reason} ({free_bytes} bytes free)"
     level: ClassVar[int] = logging.ERROR
     reason: str
     free_bytes: int
 
-    def sentence(self) -> str:
-        return f"every job paused: {self.reason} ({self.free_bytes} bytes free)"
-
 
 @dataclass(frozen=True)
 class JobsResumed(Record):
+    template: ClassVar[str] = "jobs resume: {reason} ({free_bytes} bytes free)"
     level: ClassVar[int] = logging.WARNING
     reason: str
     free_bytes: int
-
-    def sentence(self) -> str:
-        return f"jobs resume: {self.reason} ({self.free_bytes} bytes free)"
