@@ -316,6 +316,7 @@ class MasterService:
             check_unpacked(scene, defines)
             options, rules_sha256 = _job_rules(job_dir / "scene", options)
             options.check_used()
+            options.check_farm()
             digest = bundle_hash(bundle)
             _check_stated_spp(SceneSpec(scene, defines), scene_name, options)  # before the pre-pass
             # Seeded from the scene file as submitted, as `quekaro render` seeds it: a job reads the same

@@ -18,6 +18,7 @@ from typing import Any
 from lxml import etree
 
 from core.errors import QuekaroError, RenderError, SceneError
+from core.image.denoise import AOV_SPP, DENOISER_FILTER
 from core.image.film import bitmap_names
 from core.model import integrators
 from core.model.job import RGB, Effects, ImageFile, JobPlan, RenderOptions, SceneSpec
@@ -135,14 +136,42 @@ def plan_job_loaded(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_
     """`plan_job`, and the scene as the analysis loaded it in the plan's variant (the pre-pass leaves it
     as loaded), for a process that renders the units next."""
     floors = Floors(floors)  # a stale boolean (the former floors_always) is refused, not read as RULES
+    own_filter = film_info(spec, options.sensor).filter_type if options.denoise else ""
+    if options.denoise:
+        spec = dataclasses.replace(spec, rfilter=DENOISER_FILTER)
     effects, loaded = analyse_loaded(spec, options.overrides())
     _check_renders(spec, options, loaded)
+    if options.denoise:
+        _check_denoisable(spec, effects, loaded, options.sensor)
+        effects.reasons.extend(denoise_reasons(own_filter))
     plan = _plan(spec, options, seed, min_units, effects, loaded, floors, farm)
     if options.units and len(plan.units) != options.units and plan.effects.splittable:
         plan.effects.reasons.append(
             f"--units {options.units} is a target: {len(plan.units)} made (units are at least {DEFAULT_SIZES[0]} "
             f"px, and neighbours whose complexity differs by under {MERGE_TOLERANCE:.0%} merge)")
     return plan, loaded
+
+
+def denoise_reasons(own_filter: str) -> list[str]:
+    """What a denoised job changes, and why (its effects' reasons)."""
+    return [f"denoise: box reconstruction filter in place of the scene's {own_filter}: the denoiser expects each "
+            "pixel's own noise, and a wider filter spreads every sample over its neighbours, where it gains little "
+            "(quekaro bench denoise measures both: docs/benchmarks/denoise)",
+            f"denoise: albedo and shading normal rendered for the denoiser in one pass of {AOV_SPP} spp over the "
+            "image (Mitsuba's aov integrator); the raw image, with them, is kept as OUT.raw.exr"]
+
+
+def _check_denoisable(spec: SceneSpec, effects: Effects, loaded: Any, sensor: int) -> None:
+    """Refuse --denoise where the denoiser cannot take the image: a film whose colour is not R, G, B (XYZ,
+    luminance, spectral films) or a polarized render (its Stokes vectors)."""
+    film = sensor_of(loaded, sensor).film()
+    with film_size(loaded, 1, 1, sensor):
+        film.prepare([])
+        names = tuple(bitmap_names(film.bitmap())[:3])
+    if names != RGB or "polarized" in effects.variant:
+        what = f"variant {effects.variant} (Stokes vectors)" if "polarized" in effects.variant else \
+            f"film {film.class_name()} writes {list(names)}"
+        raise QuekaroError(f"{spec.path}: --denoise: the denoiser takes R, G, B colour; {what}")
 
 
 def _check_renders(spec: SceneSpec, options: RenderOptions, loaded: Any) -> None:

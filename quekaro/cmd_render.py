@@ -49,6 +49,9 @@ def add_job_arguments(parser: argparse.ArgumentParser) -> None:
                         help="at a rule level: the rules set the level's samples, the pre-pass's noise shares them "
                              "among the units, and each unit renders half its share uniformly and the rest "
                              "per pixel where that first pass measured noise")
+    parser.add_argument("--denoise", action="store_true",
+                        help="denoise the image with Intel Open Image Denoise: the render reconstructs with a box "
+                             "filter and adds the denoiser's albedo and normal; the raw image is kept as SCENE.raw.exr")
 
 
 def add_asked_arguments(parser: argparse.ArgumentParser) -> None:
@@ -67,7 +70,7 @@ def options_from_args(args: argparse.Namespace):
                             threads=getattr(args, "threads", None), rules=args.rules,
                             defuzzifier=args.defuzzifier, variant=args.variant,
                             integrator=args.integrator, units=args.units, sensor=args.sensor,
-                            adaptive=args.adaptive)
+                            adaptive=args.adaptive, denoise=args.denoise)
     options.check_used()
     return options
 

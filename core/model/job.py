@@ -28,12 +28,14 @@ VARIANT_PATTERN = re.compile(r"(scalar|llvm|cuda)(_ad)?_(rgb|spectral|mono)[a-z_
 
 @dataclass(frozen=True)
 class SceneSpec:
-    """A scene to render: its XML file, the `-D name=value` parameters it is loaded with, and extra
-    folders to look for its files in (Mitsuba's `-a`, searched after everything else)."""
+    """A scene to render: its XML file, the `-D name=value` parameters it is loaded with, extra folders to
+    look for its files in (Mitsuba's `-a`, searched after everything else), and a reconstruction filter
+    that replaces its films' own (`rfilter`: a denoised job's box; None keeps the scene's)."""
 
     path: Path
     defines: dict[str, str] = field(default_factory=dict)
     search_paths: tuple[Path, ...] = ()
+    rfilter: str | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "path", Path(self.path))
@@ -44,16 +46,19 @@ class SceneSpec:
         return hash(self.key())
 
     def key(self) -> tuple[Any, ...]:
-        """A hashable identity: the resolved path, the sorted parameters and the search paths."""
-        return str(self.path.resolve()), tuple(sorted(self.defines.items())), tuple(map(str, self.search_paths))
+        """A hashable identity: the resolved path, the sorted parameters, the search paths, the filter."""
+        return (str(self.path.resolve()), tuple(sorted(self.defines.items())), tuple(map(str, self.search_paths)),
+                self.rfilter)
 
     def with_defines(self, **extra: Any) -> SceneSpec:
         """The same scene with some parameters added or replaced."""
-        return SceneSpec(self.path, {**self.defines, **{k: str(v) for k, v in extra.items()}}, self.search_paths)
+        return SceneSpec(self.path, {**self.defines, **{k: str(v) for k, v in extra.items()}}, self.search_paths,
+                         self.rfilter)
 
     def to_dict(self) -> dict[str, Any]:
+        replaced = {"rfilter": self.rfilter} if self.rfilter else {}  # a spec without one reads as before
         return {"path": str(self.path), "defines": dict(self.defines),
-                "search_paths": [str(p) for p in self.search_paths]}
+                "search_paths": [str(p) for p in self.search_paths], **replaced}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> SceneSpec:
@@ -62,7 +67,13 @@ class SceneSpec:
         defines = data.get("defines") or {}
         if not isinstance(defines, dict):
             raise SceneError(f"scene spec field 'defines' must be an object, got {defines!r}")
-        return cls(Path(data["path"]), defines, tuple(data.get("search_paths") or ()))
+        rfilter = data.get("rfilter")
+        if rfilter is not None and rfilter not in RFILTERS:
+            raise SceneError(f"scene spec field 'rfilter': {str(rfilter)[:40]!r} is not one of {', '.join(RFILTERS)}")
+        return cls(Path(data["path"]), defines, tuple(data.get("search_paths") or ()), rfilter)
+
+
+RFILTERS = ("box", "tent", "gaussian", "mitchell", "catmullrom", "lanczos")  # Mitsuba's reconstruction filters
 
 
 # Integer options and their ranges (the message schema's limits, core.model.messages.JobInfo).
@@ -86,12 +97,15 @@ class RenderOptions:
     sensor: int = 0  # which of the scene's sensors renders (Mitsuba's -s)
     # Adaptive (planning.budgets): the rules set the level's samples, measured noise places them.
     adaptive: bool = False
+    # Denoised (core.image.denoise): a box filter and the denoiser's AOVs; the raw image kept beside.
+    denoise: bool = False
 
     def __post_init__(self) -> None:
         if self.level not in LEVELS:
             raise QuekaroError(f"--opt {self.level!r}: expected one of {', '.join(LEVELS)}")
-        if type(self.adaptive) is not bool:
-            raise QuekaroError(f"option adaptive: {self.adaptive!r} is not true or false")
+        for name in ("adaptive", "denoise"):
+            if type(getattr(self, name)) is not bool:
+                raise QuekaroError(f"option {name}: {getattr(self, name)!r} is not true or false")
         if self.adaptive and self.level == OFF:
             raise QuekaroError("--adaptive: level off renders the user's spp everywhere; adaptive sampling "
                                f"places a rule level's samples (--opt {'/'.join(RULE_LEVELS)})")
@@ -121,6 +135,12 @@ class RenderOptions:
                                f"user's spp and depth); give a rule level (--opt {'/'.join(RULE_LEVELS)}) or "
                                f"leave {' and '.join(ruled)} out")
 
+    def check_farm(self) -> None:
+        """Refuse options a farm does not carry out yet (checked by `quekaro submit` and by the master)."""
+        if self.denoise:
+            raise QuekaroError("--denoise: a farm does not denoise yet (its agents do not render the denoiser's "
+                               "albedo and normal); render the scene with quekaro render --denoise")
+
     def overrides(self) -> dict[str, Any]:
         """The effect decisions the user forced (they win over the analysis)."""
         forced = {"variant": self.variant, "integrator": self.integrator, "max_depth": self.depth}
@@ -130,7 +150,8 @@ class RenderOptions:
         return {"level": self.level, "spp": self.spp, "depth": self.depth, "threads": self.threads,
                 "rules": str(self.rules) if self.rules else None, "defuzzifier": self.defuzzifier,
                 "variant": self.variant, "integrator": self.integrator, "units": self.units,
-                "sensor": self.sensor, "adaptive": self.adaptive}
+                "sensor": self.sensor, "adaptive": self.adaptive,
+                **({"denoise": True} if self.denoise else {})}  # a job without it reads (and seeds) as before
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> RenderOptions:
@@ -148,7 +169,7 @@ class RenderOptions:
                    threads=data.get("threads"), rules=Path(rules) if rules else None,
                    defuzzifier=data.get("defuzzifier"), variant=data.get("variant"),
                    integrator=data.get("integrator"), units=data.get("units"), sensor=data.get("sensor", 0),
-                   adaptive=data.get("adaptive", False))
+                   adaptive=data.get("adaptive", False), denoise=data.get("denoise", False))
 
 
 @dataclass

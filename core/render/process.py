@@ -56,6 +56,8 @@ class RenderRequest:
     integrator of the tree. `sensor` indexes the scene's sensors (Mitsuba's `-s`). `first` (adaptive
     jobs) renders the window in two passes, `first` samples per pixel and then the rest of a mean of `spp`
     where the first pass's noise is (core.render.adaptive.render_adaptive, statistically Mitsuba's image).
+    `aovs` renders those AOVs alone (Mitsuba's aov integrator, no colour): a denoised job's pass for its
+    denoiser (core.image.denoise.AOVS).
     """
 
     scene: SceneSpec
@@ -74,6 +76,7 @@ class RenderRequest:
     extra: dict[str, Any] = field(default_factory=dict)
     sensor: int = 0
     first: int | None = None
+    aovs: str | None = None
 
     def __post_init__(self) -> None:
         _check_job(self)
@@ -89,7 +92,7 @@ class RenderRequest:
             "max_depth": self.max_depth, "spp": self.spp, "seed": self.seed, "width": self.width,
             "height": self.height, "unit": self.unit.as_list(), "band": self.band,
             "threads": self.threads, "job_id": self.job_id, "unit_index": self.unit_index,
-            "extra": dict(self.extra), "sensor": self.sensor, "first": self.first,
+            "extra": dict(self.extra), "sensor": self.sensor, "first": self.first, "aovs": self.aovs,
         }
 
     @classmethod
@@ -103,7 +106,7 @@ class RenderRequest:
                 band=int(data.get("band", 0)), threads=_opt_int(data.get("threads")),
                 job_id=str(data.get("job_id", "")), unit_index=int(data.get("unit_index", -1)),
                 extra=dict(data.get("extra") or {}), sensor=int(data.get("sensor", 0)),
-                first=_opt_int(data.get("first")),
+                first=_opt_int(data.get("first")), aovs=data.get("aovs"),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise RenderError(f"malformed unit job ({type(exc).__name__}: {exc})") from exc
@@ -188,11 +191,12 @@ class _SceneCache:
             self.images[sensor] = Rect(x, y, w, h)
         return self.images[sensor]
 
-    def integrator(self, override: str | None, depth: int | None) -> Any:
-        """None (the scene's own) unless the user overrode the type or a depth must change."""
-        key = (override, depth)
+    def integrator(self, override: str | None, depth: int | None, aovs: str | None = None) -> Any:
+        """None (the scene's own) unless the user overrode the type or a depth must change; `aovs` alone."""
+        key = (override, depth, aovs)
         if key not in self.integrators:
-            self.integrators[key] = integrator_for(override, depth, self.integrator_xml, self.own_depth)
+            self.integrators[key] = integrator_for(override, depth, self.integrator_xml, self.own_depth) \
+                if aovs is None else aovs_alone(aovs)
         return self.integrators[key]
 
 
@@ -202,6 +206,16 @@ def integrator_for(override: str | None, depth: int | None, scene_xml: Any, own_
     if override is None and (depth is None or own_depth in (None, depth)):
         return None
     return build_integrator(override, depth, scene_xml)
+
+
+def aovs_alone(aovs: str) -> Any:
+    """Mitsuba's aov integrator rendering `aovs` and no colour."""
+    import mitsuba as mi
+
+    try:
+        return mi.load_dict({"type": "aov", "aovs": aovs})
+    except RuntimeError as exc:
+        raise RenderError(f"cannot render the AOVs {aovs}: {exc}") from exc
 
 
 def build_integrator(override: str | None, depth: int | None, scene_xml: Any) -> Any:
@@ -286,7 +300,7 @@ def render_job_here(job: RenderRequest, cache: _SceneCache | None = None) -> Til
     scene, load_s, method = aim(job, window, cache)
     sensor = sensor_of(scene, job.sensor, str(job.scene.path))
     film = sensor.film()
-    integrator = cache.integrator(job.integrator, job.max_depth)
+    integrator = cache.integrator(job.integrator, job.max_depth, job.aovs)
     start = time.perf_counter()
     raw, channels, passes = _render_window(scene, film, job, integrator)
     pixels, nonfinite = sanitize(raw)

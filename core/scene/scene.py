@@ -70,7 +70,8 @@ def parse_defines(items: Iterable[str] | None) -> dict[str, str]:
 
 
 def load(spec: SceneSpec, variant: str | None = None, threads: int | None = None) -> Any:
-    """Load the scene into Mitsuba (variant set first if given, else the current one or the default)."""
+    """Load the scene into Mitsuba (variant set first if given, else the current one or the default); with
+    the spec's `rfilter`, its films reconstruct with that filter instead of their own (`with_filter`)."""
     import mitsuba as mi
 
     if variant is not None or mi.variant() is None:
@@ -80,6 +81,7 @@ def load(spec: SceneSpec, variant: str | None = None, threads: int | None = None
     path = spec.path
     if not path.is_file():
         raise SceneError(f"{path}: scene file not found")
+    text = with_filter(path, spec.rfilter) if spec.rfilter else None
     import drjit as dr
 
     # Loading deadlocks when Dr.Jit's pool has one thread (seen with matpreview's envmap, serial or
@@ -89,10 +91,12 @@ def load(spec: SceneSpec, variant: str | None = None, threads: int | None = None
         dr.set_thread_count(2)
     resolver = mi.file_resolver()
     before = [str(resolver[i]) for i in range(len(resolver))]
+    if text is not None:  # a string names its files as its file would: from the file's folder first
+        resolver.prepend(str(path.parent.resolve()))
     for folder in spec.search_paths:  # as Mitsuba's `-a`: searched after everything else
         resolver.append(str(folder))
     try:
-        return mi.load_file(str(path), **spec.defines)
+        return mi.load_file(str(path), **spec.defines) if text is None else mi.load_string(text, **spec.defines)
     except RuntimeError as exc:
         raise SceneError(f"{path}: {exc}") from exc
     finally:
@@ -101,6 +105,21 @@ def load(spec: SceneSpec, variant: str | None = None, threads: int | None = None
             resolver.append(folder)
         if threads_before < 2:
             dr.set_thread_count(threads_before)
+
+
+def with_filter(path: Path, rfilter: str) -> str:
+    """The scene file's text with each film's reconstruction filter replaced by a plain `rfilter` (its
+    defaults). SceneError where the file holds no film (an included file's cannot be changed here)."""
+    root = parse_xml(path)
+    films = [f for sensor in root.iter("sensor") for f in sensor.findall("film")]
+    if not films:
+        raise SceneError(f"{path}: no <film> in the scene file itself (an included one's reconstruction filter "
+                         f"cannot be replaced by {rfilter})")
+    for film in films:
+        for old in film.findall("rfilter"):
+            film.remove(old)
+        etree.SubElement(film, "rfilter", type=rfilter)
+    return etree.tostring(root, encoding="unicode")
 
 
 # ---- reading the XML -------------------------------------------------------------------------
@@ -184,6 +203,11 @@ def _filter_from_xml(film: etree._Element | None) -> tuple[str, float] | None:
     return None
 
 
+def _replaced_filter(rfilter: str) -> tuple[str, float] | None:
+    """A replacing filter's type and radius at its defaults (None where only the loaded film can say)."""
+    return (rfilter, _FILTER_RADIUS[rfilter]) if rfilter in _FILTER_RADIUS else None
+
+
 def sensor_of(scene: Any, index: int, where: str = "scene") -> Any:
     """The loaded scene's sensor `index` (Mitsuba's `-s`), or a SceneError saying how many there are (a
     scene file may have none: Mitsuba then loads it but has nothing to render)."""
@@ -233,7 +257,7 @@ def film_info(spec: SceneSpec, sensor: int = 0) -> FilmInfo:
     film = element.find("film") if element is not None else None
     width = _int_property(film, "width", DEFAULT_SIZE[0]) if film is not None else DEFAULT_SIZE[0]
     height = _int_property(film, "height", DEFAULT_SIZE[1]) if film is not None else DEFAULT_SIZE[1]
-    filt = _filter_from_xml(film)
+    filt = _filter_from_xml(film) if spec.rfilter is None else _replaced_filter(spec.rfilter)
     image_file = _image_file_from_xml(film, spec.path)
     crop, colour = None, _colour_from_xml(film, image_file)
     if film is None:

@@ -1,0 +1,44 @@
+"""Denoising a composed image with Intel Open Image Denoise (`mitsuba-oidn`, Mitsuba's own binding).
+
+The denoiser reads the colour and two AOVs of one pass of their own over the image (`AOVS`: albedo and
+shading normal, `DENOISER_CHANNELS`, at `AOV_SPP`); `denoise_planar` returns the image with its colour
+denoised, every other channel (alpha, the scene's own AOVs) as rendered.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from core.errors import RenderError
+
+AOVS = "albedo:albedo,nn:sh_normal"  # the aov integrator's list: the denoiser's pass
+AOV_SPP = 16  # samples a pixel of that pass (the AOVs are far less noisy than the colour)
+DENOISER_FILTER = "box"  # what a denoised job reconstructs with: each pixel its own samples
+ALBEDO = ("albedo.R", "albedo.G", "albedo.B")
+NORMAL = ("nn.X", "nn.Y", "nn.Z")
+DENOISER_CHANNELS = ALBEDO + NORMAL
+
+
+def denoise_planar(planar: np.ndarray, channels: tuple[str, ...], aux: np.ndarray) -> np.ndarray:
+    """The planar C x H x W image with R, G, B denoised, every other channel as it is; `aux` is the
+    denoiser's pass, planar in `DENOISER_CHANNELS` order. RenderError where the image lacks R, G, B."""
+    if tuple(channels[:3]) != ("R", "G", "B") or aux.shape != (len(DENOISER_CHANNELS), *planar.shape[1:]):
+        raise RenderError(f"cannot denoise channels {list(channels)[:8]} of shape {planar.shape[1:]} with an AOV "
+                          f"pass of shape {aux.shape}: expected R, G, B first and {len(DENOISER_CHANNELS)} AOV planes")
+
+    def hwc(images: np.ndarray) -> np.ndarray:
+        return np.ascontiguousarray(np.moveaxis(images, 0, -1), dtype=np.float32)
+
+    out = planar.copy()
+    out[:3] = np.moveaxis(denoise(hwc(planar[:3]), hwc(aux[:3]), hwc(aux[3:])), -1, 0)
+    return out
+
+
+def denoise(colour: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """The HDR colour (H x W x 3, linear) denoised with its albedo and shading normal, on OIDN's default
+    device (its CPU one on Dr.Jit's thread pool, its CUDA one where a driver is present)."""
+    import mitsuba_oidn  # Lazy: OIDN's libraries (~40 MB) load only for a job that denoises
+
+    finite = np.nan_to_num(colour, nan=0.0, posinf=0.0, neginf=0.0).clip(min=0.0)
+    images = (np.ascontiguousarray(a, dtype=np.float32) for a in (finite, albedo, normal))
+    return np.asarray(mitsuba_oidn.denoise(*images, hdr=True), dtype=np.float32)
