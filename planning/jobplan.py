@@ -165,9 +165,7 @@ def _check_denoisable(spec: SceneSpec, effects: Effects, loaded: Any, sensor: in
     """Refuse --denoise where the denoiser cannot take the image: a film whose colour is not R, G, B (XYZ,
     luminance, spectral films) or a polarized render (its Stokes vectors)."""
     film = sensor_of(loaded, sensor).film()
-    with film_size(loaded, 1, 1, sensor):
-        film.prepare([])
-        names = tuple(bitmap_names(film.bitmap())[:3])
+    names = _film_names(loaded, sensor, [])[:3]
     if names != RGB or "polarized" in effects.variant:
         what = f"variant {effects.variant} (Stokes vectors)" if "polarized" in effects.variant else \
             f"film {film.class_name()} writes {list(names)}"
@@ -353,13 +351,17 @@ def _added_channels(loaded: Any, override: str | None) -> list[str]:
 def _tile_channels(loaded: Any, sensor: int, colour: tuple[str, ...], added: list[str]) -> tuple[str, ...]:
     """The channels each tile carries, as core.image.film.film_channels names a rendered film's: colour as
     R, G, B, then what Mitsuba's film holds past its colour once prepared for the integrator's `added`
-    channels (its alpha, which PFM and RGBE films drop, then those), read from the film itself at 1 x 1
-    pixel, so that nothing of the image's size is allocated."""
+    channels (its alpha, which PFM and RGBE films drop, then those)."""
+    return (*RGB, *_film_names(loaded, sensor, added)[len(colour):])
+
+
+def _film_names(loaded: Any, sensor: int, added: list[str]) -> tuple[str, ...]:
+    """The channels of the sensor's film prepared for `added`, read from the film itself at 1 x 1 pixel, so
+    that nothing of the image's size is allocated."""
     film = sensor_of(loaded, sensor).film()
     with film_size(loaded, 1, 1, sensor):
         film.prepare(added)
-        names = bitmap_names(film.bitmap())
-    return (*RGB, *names[len(colour):])
+        return tuple(bitmap_names(film.bitmap()))
 
 
 def _check_adaptive(spec: SceneSpec, loaded: Any, sensor: int) -> None:

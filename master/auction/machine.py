@@ -204,15 +204,14 @@ class Auction:
     def holds_award(self, job_id: str, token: str) -> bool:
         """Whether `token` is the token of a current award of one of the job's units (a bundle's fetch)."""
         job = self._jobs.get(job_id)
-        return job is not None and any(self.award_for(job_id, i, token) for i in job.units)
+        return job is not None and any(self._check_award(job_id, i, token)[0] is not None for i in job.units)
 
     def job_view(self, job_id: str) -> JobView | None:
         """A job the auction knows (running or ended since the master started), or None."""
         job = self._jobs.get(job_id)
         if job is None:
             return None
-        counts = Counter(u.status.value for u in job.units.values())
-        return JobView(job_id, job.status.value, job.error, dict(counts), tuple(sorted(job.blocklist)))
+        return JobView(job_id, job.status.value, job.error, dict(self.counts(job_id)), tuple(sorted(job.blocklist)))
 
     def job_status(self, job_id: str) -> str | None:
         """The job's status ('running', 'done', ...), or None for a job the auction does not know."""
@@ -226,7 +225,7 @@ class Auction:
     def agent_views(self, now: float) -> list[AgentView]:
         """Every agent the master knows, in the order it first heard from them."""
         clock = self.clock(now)
-        running = [j for j in self._running()]
+        running = self._running()
         return [AgentView(a.name, a.lost, a.credits, a.speed, tuple(sorted(f"{j}/{i}" for j, i in a.holding)),
                           round(max(0.0, clock - a.last_seen), 1),
                           tuple(j.info.job_id for j in running if a.name in j.blocklist))
