@@ -17,7 +17,7 @@ from core.errors import QuekaroError, RenderError, SceneError
 from core.image.denoise import denoise_planar
 from core.image.metrics import relmse
 from core.model.job import RenderOptions, SceneSpec
-from core.scene.scene import parse_xml, with_filter
+from core.scene.scene import filtered_copy, parse_xml
 
 REPO = Path(__file__).resolve().parent.parent
 CBOX = REPO / "scenes" / "cbox.xml"
@@ -38,17 +38,22 @@ def _scene(tmp_path: Path, extra: str = "") -> Path:
     return path
 
 
-def test_with_filter_replaces_the_films_filter_and_keeps_the_rest(tmp_path: Path) -> None:
-    text = with_filter(_scene(tmp_path), "box")
-    path = tmp_path / "replaced.xml"
-    path.write_text(text)
-    film = parse_xml(path).find("sensor/film")
+def test_filtered_copy_replaces_the_films_filter_wherever_it_is_and_keeps_the_rest(tmp_path: Path) -> None:
+    _scene(tmp_path)
+    main = tmp_path / "main.xml"
+    main.write_text('<scene version="3.0.0"><include filename="scene.xml"/></scene>')  # the film in an include
+    (tmp_path / "copy").mkdir()
+    copied = filtered_copy(SceneSpec(main, rfilter="box"), tmp_path / "copy")
+    film = parse_xml(copied.parent / "scene.xml").find("sensor/film")
+    assert copied == tmp_path / "copy" / "main.xml" and parse_xml(copied).find("include") is not None
     assert [(f.get("type"), len(f)) for f in film.findall("rfilter")] == [("box", 0)]
     assert [i.get("value") for i in film.findall("integer")] == ["16", "16"]
+    assert parse_xml(tmp_path / "scene.xml").find("sensor/film/rfilter").get("type") == "gaussian"  # untouched
     bare = tmp_path / "bare.xml"
-    bare.write_text('<scene version="3.0.0"><include filename="scene.xml"/></scene>')
-    with pytest.raises(SceneError, match=r"bare\.xml: no <film> in the scene file itself"):
-        with_filter(bare, "box")
+    bare.write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
+    (tmp_path / "copy2").mkdir()
+    with pytest.raises(SceneError, match=r"bare\.xml: no <film> in the scene's files"):
+        filtered_copy(SceneSpec(bare, rfilter="box"), tmp_path / "copy2")
 
 
 def test_a_spec_with_a_filter_reads_and_keys_apart_and_one_without_reads_as_before(tmp_path: Path) -> None:
@@ -116,8 +121,9 @@ def test_a_denoised_render_beats_its_raw_image_and_keeps_it(tmp_path: Path) -> N
     assert any(r.startswith("denoise: box reconstruction filter in place of the scene's") for r in
                report["effects"]["reasons"])
     image, raw = _exr(tmp_path / "cbox.exr"), _exr(tmp_path / "cbox.raw.exr")
-    assert set(image) == {"RGB"} and set(raw) == {"RGB", "albedo", "nn.X", "nn.Y", "nn.Z"}
-    assert 0.0 < raw["albedo"].mean() < 1.0 and np.abs(raw["nn.Z"]).max() <= 1.0 + 1e-5
+    normal = {"denoise_normal.X", "denoise_normal.Y", "denoise_normal.Z"}
+    assert set(image) == {"RGB"} and set(raw) == {"RGB", "denoise_albedo"} | normal
+    assert 0.0 < raw["denoise_albedo"].mean() < 1.0 and np.abs(raw["denoise_normal.Z"]).max() <= 1.0 + 1e-5
     assert report["render_calls"]["aov_pass_seconds"] > 0
     reference = _reference(4096)
     ratio = relmse(image["RGB"], reference) / relmse(raw["RGB"], reference)
@@ -148,3 +154,20 @@ def test_bench_denoise_reports_both_filters_at_each_spp(tmp_path: Path) -> None:
     assert [(r["filter"], r["spp"]) for r in rows] == [("own", 4), ("box", 4)]
     assert all(np.isfinite(r["relmse_raw"]) and r["relmse_denoised"] > 0 for r in rows)
     assert result["summary"]["4"]["box_ratio"] < 0.5 and "| cbox | box | 4 |" in Path(result["report"]).read_text()
+
+
+def test_a_scene_with_its_camera_included_and_its_own_aovs_denoises_and_passes_them_through(tmp_path: Path) -> None:
+    """tests/compat's aov scene: its sensor sits in an included file, and its own AOVs include an `nn`
+    normal: the film takes the box filter there, and the scene's AOVs pass through beside the denoiser's
+    (compared at the main image's float16: 2^-10 relative)."""
+    scene = REPO / "tests" / "compat" / "scenes" / "aov.xml"
+    done = subprocess.run([sys.executable, "-m", "quekaro", "render", str(scene), "--spp", "8", "--denoise", "-o",
+                           str(tmp_path / "aov.exr"), "-t", "2", "--no-progress"], capture_output=True, text=True,
+                          cwd=REPO, timeout=300)
+    assert done.returncode == 0, done.stderr
+    image, raw = _exr(tmp_path / "aov.exr"), _exr(tmp_path / "aov.raw.exr")
+    own = set(image) - {"RGB"}
+    assert {"nn.X", "nn.Y", "nn.Z"} <= own and own | {"RGB", "denoise_albedo", "denoise_normal.X", "denoise_normal.Y",
+                                                      "denoise_normal.Z"} == set(raw)
+    for name in own:
+        assert np.allclose(image[name], raw[name], rtol=2**-10, atol=1e-4), name

@@ -11,11 +11,11 @@ import numpy as np
 
 from core.errors import RenderError
 
-AOVS = "albedo:albedo,nn:sh_normal"  # the aov integrator's list: the denoiser's pass
+AOVS = "denoise_albedo:albedo,denoise_normal:sh_normal"  # the denoiser's pass: names no scene's own AOV takes
 AOV_SPP = 16  # samples a pixel of that pass (the AOVs are far less noisy than the colour)
 DENOISER_FILTER = "box"  # what a denoised job reconstructs with: each pixel its own samples
-ALBEDO = ("albedo.R", "albedo.G", "albedo.B")
-NORMAL = ("nn.X", "nn.Y", "nn.Z")
+ALBEDO = ("denoise_albedo.R", "denoise_albedo.G", "denoise_albedo.B")
+NORMAL = ("denoise_normal.X", "denoise_normal.Y", "denoise_normal.Z")
 DENOISER_CHANNELS = ALBEDO + NORMAL
 
 

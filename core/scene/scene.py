@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import re
+import tempfile
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,6 +25,7 @@ from core.errors import QuekaroError, SceneError
 from core.image import film as film_mod
 from core.model.job import FILM_COLOURS, RGB, ImageFile, SceneSpec
 from core.scene import resolver
+from core.scene.bundle import scene_members
 from core.scene.resolver import SRC_ATTR, parse_xml
 
 # Mitsuba and Dr.Jit are imported where used: `import mitsuba` costs ~0.35 s and 85 MB, must follow the
@@ -71,18 +73,25 @@ def parse_defines(items: Iterable[str] | None) -> dict[str, str]:
 
 def load(spec: SceneSpec, variant: str | None = None, threads: int | None = None) -> Any:
     """Load the scene into Mitsuba (variant set first if given, else the current one or the default); with
-    the spec's `rfilter`, its films reconstruct with that filter instead of their own (`with_filter`)."""
+    the spec's `rfilter`, its films reconstruct with that filter instead of their own (`filtered_copy`)."""
     import mitsuba as mi
 
     if variant is not None or mi.variant() is None:
         mitsuba_env.init(variant or mitsuba_env.DEFAULT_VARIANT, threads)
     elif threads is not None:
         mitsuba_env.init(mi.variant(), threads)
-    path = spec.path
-    if not path.is_file():
-        raise SceneError(f"{path}: scene file not found")
-    text = with_filter(path, spec.rfilter) if spec.rfilter else None
+    if not spec.path.is_file():
+        raise SceneError(f"{spec.path}: scene file not found")
+    if spec.rfilter is None:
+        return _load_file(spec.path, spec)
+    with tempfile.TemporaryDirectory(prefix="quekaro-filter-") as folder:  # Mitsuba reads every file at load
+        return _load_file(filtered_copy(spec, Path(folder)), spec)
+
+
+def _load_file(path: Path, spec: SceneSpec) -> Any:
+    """`mi.load_file` of `path` with the spec's parameters and search folders."""
     import drjit as dr
+    import mitsuba as mi
 
     # Loading deadlocks when Dr.Jit's pool has one thread (seen with matpreview's envmap, serial or
     # parallel loader alike): load with two threads, then give the caller back its thread count.
@@ -91,14 +100,12 @@ def load(spec: SceneSpec, variant: str | None = None, threads: int | None = None
         dr.set_thread_count(2)
     resolver = mi.file_resolver()
     before = [str(resolver[i]) for i in range(len(resolver))]
-    if text is not None:  # a string names its files as its file would: from the file's folder first
-        resolver.prepend(str(path.parent.resolve()))
     for folder in spec.search_paths:  # as Mitsuba's `-a`: searched after everything else
         resolver.append(str(folder))
     try:
-        return mi.load_file(str(path), **spec.defines) if text is None else mi.load_string(text, **spec.defines)
+        return mi.load_file(str(path), **spec.defines)
     except RuntimeError as exc:
-        raise SceneError(f"{path}: {exc}") from exc
+        raise SceneError(f"{spec.path}: {exc}") from exc
     finally:
         resolver.clear()
         for folder in before:
@@ -107,19 +114,35 @@ def load(spec: SceneSpec, variant: str | None = None, threads: int | None = None
             dr.set_thread_count(threads_before)
 
 
-def with_filter(path: Path, rfilter: str) -> str:
-    """The scene file's text with each film's reconstruction filter replaced by a plain `rfilter` (its
-    defaults). SceneError where the file holds no film (an included file's cannot be changed here)."""
-    root = parse_xml(path)
-    films = [f for sensor in root.iter("sensor") for f in sensor.findall("film")]
+def filtered_copy(spec: SceneSpec, folder: Path) -> Path:
+    """The scene laid out in `folder` as its bundle would hold it (core.scene.bundle.scene_members: every
+    file it reads, the XML naming them), each film's reconstruction filter replaced by a plain
+    `spec.rfilter`, wherever the film is (an included file's too); the main file's path. SceneError where
+    no file of the scene holds a film."""
+    films = 0
+    for name, content in scene_members(spec.path, spec.defines, spec.search_paths).items():
+        target = folder / name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        if not name.endswith(".xml"):
+            target.symlink_to(Path(content).resolve())
+            continue
+        root = etree.fromstring(content) if isinstance(content, bytes) else parse_xml(content)
+        films += _replace_filters(root, spec.rfilter)
+        target.write_bytes(etree.tostring(root, xml_declaration=True, encoding="utf-8"))
     if not films:
-        raise SceneError(f"{path}: no <film> in the scene file itself (an included one's reconstruction filter "
-                         f"cannot be replaced by {rfilter})")
+        raise SceneError(f"{spec.path}: no <film> in the scene's files (Mitsuba's default one cannot take another "
+                         f"reconstruction filter): give the sensor a film to use {spec.rfilter}")
+    return folder / spec.path.name
+
+
+def _replace_filters(root: etree._Element, rfilter: str) -> int:
+    """Replace each sensor's film's <rfilter> in `root` by a plain `rfilter`; how many films it changed."""
+    films = [film for sensor in root.iter("sensor") for film in sensor.findall("film")]
     for film in films:
         for old in film.findall("rfilter"):
             film.remove(old)
         etree.SubElement(film, "rfilter", type=rfilter)
-    return etree.tostring(root, encoding="unicode")
+    return len(films)
 
 
 # ---- reading the XML -------------------------------------------------------------------------
