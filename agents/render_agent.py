@@ -512,7 +512,7 @@ class RenderAgent:
             check_unpacked(scene, defines)
         except QuekaroError as exc:
             raise UnitStepError(f"scene bundle of job {job.job_id} refused: {exc}") from exc
-        return SceneSpec(scene, defines)
+        return SceneSpec(scene, defines, rfilter=job.rfilter)
 
 
 # ---- small helpers ---------------------------------------------------------------------------------

@@ -17,7 +17,7 @@ from core.errors import QuekaroError
 from core.files import staged_together
 from core.home import ADMIN_TOKEN, FARM_FILE, default_home
 from core.image.imageio import read_image, write_png
-from core.model.job import JobSpec, RenderOptions
+from core.model.job import RAW_SUFFIX, JobSpec, RenderOptions
 from core.transport.tls import client_context
 
 CONNECT_TIMEOUT_S = 15.0
@@ -151,10 +151,17 @@ class FarmClient:
         if isinstance(report.get("image"), dict):  # the files written here, not the master's own
             report["image"]["file"] = str(out.resolve())
             report["image"]["png"] = str(out.with_suffix(".png").resolve())
+        raw = self._request("GET", f"/api/jobs/{job_id}/raw") if isinstance(report.get("denoise"), dict) else None
+        if raw is not None:
+            report["denoise"]["raw"] = str(out.with_suffix(RAW_SUFFIX).resolve())
+        paths = [out, out.with_suffix(".png"), *([out.with_suffix(RAW_SUFFIX)] if raw is not None else []),
+                 out.with_suffix(".json")]
         try:
             out.parent.mkdir(parents=True, exist_ok=True)
-            with staged_together([out, out.with_suffix(".png"), out.with_suffix(".json")]) as (image, png, text):
+            with staged_together(paths) as (image, png, *raw_file, text):
                 image.write_bytes(body)
+                if raw is not None:
+                    raw_file[0].write_bytes(raw)
                 text.write_text(json.dumps(report, indent=2))
                 write_png(png, read_image(image))
         except (OSError, QuekaroError) as exc:  # a full disk: what was there before stays as it was

@@ -25,7 +25,7 @@ from typing import Any, Protocol
 from aiohttp import web
 
 from core.errors import QuekaroError
-from core.model.job import JobSpec, RenderOptions
+from core.model.job import RAW_SUFFIX, JobSpec, RenderOptions
 from master import sessions
 from master.auction import Auction
 from master.http_guard import Refusal, bearer_token, disk_full, json_error, read_body_chunks
@@ -63,6 +63,7 @@ def add_job_routes(app: web.Application, service: JobService) -> None:
     app.router.add_get("/api/jobs/{job}", job_status)
     app.router.add_get("/api/jobs/{job}/result", job_result)
     app.router.add_get("/api/jobs/{job}/report", job_report)
+    app.router.add_get("/api/jobs/{job}/raw", job_raw)
     app.router.add_get("/api/jobs/{job}/units/{unit:[0-9]{1,7}}", job_unit)
     app.router.add_post("/api/jobs/{job}/cancel", job_cancel)
     app.router.add_get("/api/agents", agents)
@@ -215,6 +216,18 @@ async def job_report(request: web.Request) -> web.StreamResponse:
         return found
     service, job_id = found
     return web.FileResponse(service.result_path(job_id).with_suffix(".json"))
+
+
+async def job_raw(request: web.Request) -> web.StreamResponse:
+    """A denoised job's raw image with the denoiser's AOVs (result.raw.exr); 404 for a job not denoised."""
+    found = await _finished_result(request)
+    if isinstance(found, web.Response):
+        return found
+    service, job_id = found
+    raw = service.result_path(job_id).with_suffix(RAW_SUFFIX)
+    if not raw.exists():
+        return json_error(404, f"job {job_id} was not denoised: its image is the raw one")
+    return web.FileResponse(raw, headers={"Content-Disposition": f'attachment; filename="{job_id}{RAW_SUFFIX}"'})
 
 
 async def job_cancel(request: web.Request) -> web.Response:

@@ -26,6 +26,8 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
+import numpy as np
+
 from core.data import default_rules_path
 from core.errors import MessageError, QuekaroError, TileError
 from core.home import ADMIN_TOKEN, FARM_FILE, MIN_FREE_BYTES
@@ -61,7 +63,7 @@ from master.sessions import SharedAccounts
 from master.store import JobRecord, JobStore
 from master.web import add_web_routes
 from planning.jobplan import Floors, farm_min_units, plan_job, scene_spp
-from planning.pipeline import assemble
+from planning.pipeline import AOV_PASS_FILE, assemble, kept_aov_pass
 
 log = logging.getLogger(__name__)
 
@@ -157,6 +159,7 @@ class MasterService:
         self._rules_digest = load_rulebase(default_rules_path()).digest()
         self._lock = asyncio.Lock()
         self._assembling: dict[str, asyncio.Task] = {}
+        self._aov_passes: set[asyncio.Task] = set()  # denoised jobs' AOV passes under way (`_aov_pass`)
         self._agent_re = re.compile(config.agent_pattern.format(domain=re.escape(config.domain)))
         self._unrecorded: list[au.Record] = []  # records the store could not write yet (`_record`)
         self._ticks = itertools.count(1)
@@ -293,7 +296,7 @@ class MasterService:
             depth=plan.depth, level=plan.options.level, ranges=plan.ranges(), scene_name=scene_name,
             defines=dict(defines), variant=plan.effects.variant, integrator=plan.effects.override,
             sensor=plan.options.sensor, rules_sha256=plan.rules_sha256, defuzzifier=plan.options.defuzzifier,
-            min_band=plan.reach, first_spp=plan.first_spp,
+            min_band=plan.reach, first_spp=plan.first_spp, rfilter=plan.spec.rfilter,
         )
 
     async def submit(self, bundle: bytes | Path, defines: dict[str, str], options: RenderOptions) -> str:
@@ -316,7 +319,6 @@ class MasterService:
             check_unpacked(scene, defines)
             options, rules_sha256 = _job_rules(job_dir / "scene", options)
             options.check_used()
-            options.check_farm()
             digest = bundle_hash(bundle)
             _check_stated_spp(SceneSpec(scene, defines), scene_name, options)  # before the pre-pass
             # Seeded from the scene file as submitted, as `quekaro render` seeds it: a job reads the same
@@ -332,17 +334,26 @@ class MasterService:
                 raise _as_submitted(exc, job_dir / "scene") from exc
             raise
         self._create_job(job_id, scene_name, JobSpec(defines, options), plan, received)
+        if options.denoise:  # rendered while the agents render the units; assembly waits for it
+            task = asyncio.get_running_loop().create_task(self._aov_pass(job_id), name=f"AOV pass {job_id}")
+            self._aov_passes.add(task)
+            task.add_done_callback(self._aov_pass_done)
         return job_id
 
     async def _plan(self, spec: SceneSpec, options: RenderOptions, seed: int) -> JobPlan:
         """The job's plan, made in the planner's child process (one job at a time), its pre-pass on the
         master's `--threads` unless the job names its own."""
-        if options.threads is None and self.config.threads is not None:
-            options = dataclasses.replace(options, threads=self.config.threads)
+        options = self._on_my_threads(options)
         async with self._planning:
             return await asyncio.to_thread(self._planner.call, plan_job, spec, options, seed,
                                            self._units_for_agents(), self._floors(options), True,  # farm
                                            doing=f"planning {spec.path.name}")
+
+    def _on_my_threads(self, options: RenderOptions) -> RenderOptions:
+        """A job's options as the master's planner renders them: on its `--threads` unless the job names its own."""
+        if options.threads is None and self.config.threads is not None:
+            return dataclasses.replace(options, threads=self.config.threads)
+        return options
 
     def _floors(self, options: RenderOptions) -> Floors:
         """Where the live agents plan the job's units as the master's plan does, its depth floors are measured
@@ -499,12 +510,32 @@ class MasterService:
 
     # ---- the final image ----------------------------------------------------------------------------
 
+    async def _aov_pass(self, job_id: str) -> np.ndarray:
+        """A denoised job's AOV pass (planning.pipeline.aov_job), rendered once by the planner process and
+        kept in the job's folder (so a master that restarts renders it only if it had not)."""
+        plan = self.job_plan(self.store.job(job_id))
+        plan = dataclasses.replace(plan, options=self._on_my_threads(plan.options))
+        async with self._planning:
+            return await asyncio.to_thread(kept_aov_pass, self._planner, plan, job_id,
+                                           self.job_dir(job_id) / AOV_PASS_FILE)
+
+    def _aov_pass_done(self, task: asyncio.Task) -> None:
+        """Log an AOV pass that failed (assembly tries it again, and fails the result with the reason)."""
+        self._aov_passes.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            log.error("%s failed: %s", task.get_name(), task.exception())
+
+    async def _assemble(self, job_id: str) -> dict[str, Any]:
+        """The job's image, after its AOV pass where it is denoised, composed in a thread."""
+        denoised = self.store.job(job_id).spec.options.denoise
+        aov_pass = await self._aov_pass(job_id) if denoised else None
+        return await asyncio.to_thread(self.assemble, job_id, aov_pass)
+
     def _assemble_later(self, job_id: str) -> asyncio.Task:
-        """Assemble the job's image in a thread, once at a time per job."""
+        """Assemble the job's image, once at a time per job."""
         task = self._assembling.get(job_id)
         if task is None or task.done():
-            task = asyncio.get_running_loop().create_task(asyncio.to_thread(self.assemble, job_id),
-                                                          name=f"assemble {job_id}")
+            task = asyncio.get_running_loop().create_task(self._assemble(job_id), name=f"assemble {job_id}")
             task.add_done_callback(lambda t: t.cancelled() or t.exception() is None
                                    or log.error("job %s: assembling the image failed: %s", job_id, t.exception()))
             self._assembling[job_id] = task
@@ -520,8 +551,9 @@ class MasterService:
             await self._assemble_later(job_id)
         return report
 
-    def assemble(self, job_id: str) -> dict[str, Any]:
-        """Compose the job's tiles into result.exr/.png/.json (again, if asked: it is deterministic)."""
+    def assemble(self, job_id: str, aov_pass: np.ndarray | None = None) -> dict[str, Any]:
+        """Compose the job's tiles into result.exr/.png/.json (again, if asked: it is deterministic);
+        `aov_pass`: a denoised job's, which the image is denoised with."""
         with JobStore(self.store.path) as store:  # a connection of this thread's own
             record = store.job(job_id)
             results = store.results(job_id)
@@ -538,7 +570,7 @@ class MasterService:
         ran = (record.finished or time.time()) - record.created
         report = assemble(plan, tiles, params, self.result_path(job_id), started=time.perf_counter() - ran,
                           extra={"job_id": job_id, "scene": scene, "created": record.created,
-                                 "finished": record.finished})
+                                 "finished": record.finished}, aov_pass=aov_pass)
         return report
 
 

@@ -28,7 +28,7 @@ from core.image.imageio import write_image, write_png_planar
 from core.image.tiles import Tile
 from core.model.geometry import Rect
 from core.model.hashing import sha256_file
-from core.model.job import ImageFile, JobPlan, RenderOptions, SceneSpec
+from core.model.job import RAW_SUFFIX, ImageFile, JobPlan, RenderOptions, SceneSpec
 from core.model.levels import OFF
 from core.model.seeds import plan_seed, unit_seed
 from core.model.units import WorkUnit
@@ -68,6 +68,40 @@ def denoiser_planes(tile: Tile) -> np.ndarray:
     return np.stack([pixels[..., index[name]] for name in DENOISER_CHANNELS])
 
 
+AOV_PASS_FILE = "aov-pass.npy"  # a farm job's AOV pass, in its folder on the master
+
+
+def save_aov_pass(path: Path, planes: np.ndarray) -> None:
+    """Keep a job's AOV pass (`denoiser_planes`) as a .npy file, written whole or not at all."""
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as handle:
+            np.save(handle, np.asarray(planes, dtype=np.float32), allow_pickle=False)
+
+    written_atomically(path, write, "the denoiser's AOV pass")
+
+
+def load_aov_pass(path: Path) -> np.ndarray | None:
+    """The AOV pass `save_aov_pass` kept, or None where there is none (not yet rendered)."""
+    try:
+        return np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        return None
+
+
+def render_aov_pass(worker: RenderProcess, plan: JobPlan, job_id: str) -> np.ndarray:
+    """A denoised job's AOV pass (`aov_job`), rendered by `worker`, as the denoiser reads it."""
+    return denoiser_planes(worker.render(aov_job(plan, job_id, plan.options.threads), UNIT_TIMEOUT_S))
+
+
+def kept_aov_pass(worker: RenderProcess, plan: JobPlan, job_id: str, path: Path) -> np.ndarray:
+    """The AOV pass kept at `path`, rendered and kept there first where it is not (a farm job's)."""
+    planes = load_aov_pass(path)
+    if planes is None:
+        planes = render_aov_pass(worker, plan, job_id)
+        save_aov_pass(path, planes)
+    return planes
+
+
 def unit_record(unit: WorkUnit, tile: Tile | TileSource, params: dict[str, Any]) -> dict[str, Any]:
     """One unit's line in the report: where it is, what the rules saw and chose, what it cost."""
     return {
@@ -83,12 +117,15 @@ def unit_record(unit: WorkUnit, tile: Tile | TileSource, params: dict[str, Any])
 
 
 def assemble(plan: JobPlan, tiles: Iterable[Tile | TileSource], params: dict[int, dict[str, Any]], out: Path,
-             started: float, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+             started: float, extra: dict[str, Any] | None = None, aov_pass: np.ndarray | None = None
+             ) -> dict[str, Any]:
     """Compose the tiles (in memory, or sources read from their files as needed) and write OUT.exr,
-    OUT.png and OUT.json; return the report.
+    OUT.png and OUT.json; return the report. `aov_pass`: a denoised job's (`denoiser_planes`).
 
     `started` is the job's start on the `time.perf_counter` clock (for the total seconds)."""
-    return write_outputs(plan, composed(plan, plan.units, tiles, params), out, started, extra)
+    job = composed(plan, plan.units, tiles, params)
+    job.denoiser = aov_pass
+    return write_outputs(plan, job, out, started, extra)
 
 
 @dataclass
@@ -142,7 +179,6 @@ def write_outputs(plan: JobPlan, job: Composed, out: Path, started: float,
     return report
 
 
-RAW_SUFFIX = ".raw.exr"  # a denoised job's raw image, beside its image
 
 
 def _denoised(plan: JobPlan, job: Composed, out: Path) -> tuple[Composed, dict[str, Any]]:
@@ -247,7 +283,7 @@ def render_plan(plan: JobPlan, out: Path, worker: RenderProcess, started: float,
     job = run.render()
     if plan.options.denoise:
         start = time.perf_counter()
-        job.denoiser = denoiser_planes(worker.render(aov_job(plan, job_id, plan.options.threads), UNIT_TIMEOUT_S))
+        job.denoiser = render_aov_pass(worker, plan, job_id)
         run.calls["aov_pass_seconds"] = time.perf_counter() - start
     worker.release()  # the render process ends (at once, without its teardown) while this one writes
     return write_outputs(plan, job, out, started, {"job_id": job_id, "render_calls": run.calls})

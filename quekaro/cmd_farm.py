@@ -209,7 +209,6 @@ def run_submit(args: argparse.Namespace) -> int:
     """One job per scene (its bundle carries the files it reads and the rule file); with --wait, watch each."""
     defines = parse_defines(args.defines)
     asked = options_from_args(args)
-    asked.check_farm()
     options = asked.to_dict()
     options["rules"] = None  # the rule file travels inside the bundle, to every agent
     bundles = [_bundle_bytes(scene, defines, args) for scene in args.scenes]  # every input checked first

@@ -1,6 +1,6 @@
 """`quekaro render --denoise`: the box filter put in place of the scene's, the denoiser's AOV pass, OIDN on
-the composed image (core.image.denoise), the raw image kept beside with the AOVs, and the refusals (a farm,
-a film whose colour is not R, G, B)."""
+the composed image (core.image.denoise), the raw image kept beside with the AOVs, and the refusal of a film
+whose colour is not R, G, B. A farm's: tests/test_denoise_farm.py."""
 
 from __future__ import annotations
 
@@ -71,8 +71,6 @@ def test_a_denoised_jobs_options_say_so_and_the_others_read_and_seed_as_before()
     assert RenderOptions.from_dict(asked.to_dict()) == asked
     with pytest.raises(QuekaroError, match="option denoise: 'yes' is not true or false"):
         RenderOptions(denoise="yes")
-    with pytest.raises(QuekaroError, match="--denoise: a farm does not denoise yet"):
-        asked.check_farm()
 
 
 def test_denoising_lowers_the_noise_of_the_colour_alone() -> None:
@@ -130,16 +128,13 @@ def test_a_denoised_render_beats_its_raw_image_and_keeps_it(tmp_path: Path) -> N
     assert ratio < 0.5, ratio
 
 
-def test_denoise_is_refused_for_a_film_whose_colour_is_not_rgb_and_by_submit(tmp_path: Path) -> None:
+def test_denoise_is_refused_for_a_film_whose_colour_is_not_rgb(tmp_path: Path) -> None:
     xyz = _scene(tmp_path, '<string name="pixel_format" value="xyz"/>')
     done = subprocess.run([sys.executable, "-m", "quekaro", "render", str(xyz), "--spp", "1", "--denoise",
                            "-o", str(tmp_path / "x.exr"), "--no-progress"], capture_output=True, text=True, cwd=REPO,
                           timeout=300)
     assert done.returncode == 2 and "--denoise: the denoiser takes R, G, B colour" in done.stderr, done.stderr
     assert "Traceback" not in done.stderr and not (tmp_path / "x.exr").exists()
-    sent = subprocess.run([sys.executable, "-m", "quekaro", "submit", str(CBOX), "--denoise", "--home",
-                           str(tmp_path / "nofarm")], capture_output=True, text=True, cwd=REPO, timeout=120)
-    assert sent.returncode == 2 and "--denoise: a farm does not denoise yet" in sent.stderr, sent.stderr
 
 
 def test_bench_denoise_reports_both_filters_at_each_spp(tmp_path: Path) -> None:

@@ -135,12 +135,6 @@ class RenderOptions:
                                f"user's spp and depth); give a rule level (--opt {'/'.join(RULE_LEVELS)}) or "
                                f"leave {' and '.join(ruled)} out")
 
-    def check_farm(self) -> None:
-        """Refuse options a farm does not carry out yet (checked by `quekaro submit` and by the master)."""
-        if self.denoise:
-            raise QuekaroError("--denoise: a farm does not denoise yet (its agents do not render the denoiser's "
-                               "albedo and normal); render the scene with quekaro render --denoise")
-
     def overrides(self) -> dict[str, Any]:
         """The effect decisions the user forced (they win over the analysis)."""
         forced = {"variant": self.variant, "integrator": self.integrator, "max_depth": self.depth}
@@ -234,6 +228,7 @@ FILM_COLOURS = {"rgb": RGB, "rgba": RGB, "xyz": ("X", "Y", "Z"), "xyza": ("X", "
 FILE_SUFFIXES = {"openexr": ".exr", "exr": ".exr", "pfm": ".pfm", "rgbe": ".rgbe"}
 COMPONENT_FORMATS = ("float16", "float32", "uint32")
 IMAGE_SUFFIXES = tuple(dict.fromkeys(FILE_SUFFIXES.values()))  # .exr, .pfm, .rgbe
+RAW_SUFFIX = ".raw.exr"  # a denoised job's raw image, with the denoiser's AOVs, beside its image
 
 
 @dataclass(frozen=True)
@@ -328,7 +323,8 @@ class JobPlan:
                 "bundle_sha256": self.bundle_sha256, "rules_sha256": self.rules_sha256,
                 "filter_radius": self.filter_radius, "first_spp": self.first_spp, "shares": dict(self.shares),
                 "colour": list(self.colour), "image_file": self.image_file.to_dict(),
-                "channels": None if self.channels is None else list(self.channels)}
+                "channels": None if self.channels is None else list(self.channels),
+                **({"rfilter": self.spec.rfilter} if self.spec.rfilter else {})}  # the store keeps the path apart
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], spec: SceneSpec, units: list[WorkUnit]) -> JobPlan:
@@ -336,6 +332,7 @@ class JobPlan:
         try:
             near = {int(k): tuple(v) for k, v in data.get("neighbours", {}).items()}
             units = [dataclasses.replace(u, neighbours=near.get(u.index, u.neighbours)) for u in units]
+            spec = SceneSpec.from_dict({**spec.to_dict(), "rfilter": data.get("rfilter")})
             return cls(spec, RenderOptions.from_dict(data["options"]), int(data["width"]), int(data["height"]),
                        Effects.from_dict(data["effects"]), int(data["spp"]), int(data["depth"]), units,
                        float(data.get("prepass_seconds", 0.0)), dict(data.get("prepass_info", {})),

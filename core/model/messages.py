@@ -25,7 +25,7 @@ from typing import Any, ClassVar, Union
 from core.errors import MessageError, TileError
 from core.model.fields import constrained
 from core.model.geometry import DEFAULT_FILTER_RADIUS, Rect, filter_reach
-from core.model.job import VARIANT_PATTERN
+from core.model.job import RFILTERS, VARIANT_PATTERN
 from core.model.levels import LEVELS
 from core.model.units import SPP_MAX, WorkUnit
 from fuzzy.engine import DEFUZZIFIERS
@@ -89,6 +89,8 @@ class JobInfo:
     # Adaptive jobs: the first pass's samples per pixel in every unit, whose own mean spp the plan set
     # (WorkUnit.spp); the agent renders each unit in two passes (core.render.adaptive), not by its rules.
     first_spp: int | None = constrained(lo=1, hi=SPP_MAX, default=None)
+    # The reconstruction filter that replaces the scene's (a denoised job's box); None: the scene's own.
+    rfilter: str | None = constrained(choices=RFILTERS, default=None)
 
     def check(self) -> None:
         for name, (lo, hi) in self.ranges.items():
