@@ -17,7 +17,6 @@ import os
 import re
 import signal
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -58,6 +57,7 @@ from agents.state import (
 )
 from agents.transfer import fetch_bundle, upload_tile
 from core.errors import QuekaroError
+from core.home import default_home, make_private
 from core.image.tiles import Tile, write_tile
 from core.logs import FORMATS, configure, fields
 from core.model import messages as m
@@ -93,7 +93,7 @@ class AgentConfig:
     threads: int = 1  # Dr.Jit threads of the render process
     rules: Path | None = None  # default: core.data.default_rules_path()
     defuzzifier: str | None = None  # None: the rule file's dialect decides (centroid, or MASYRO's centre of sums)
-    workdir: Path = field(default_factory=lambda: Path(tempfile.gettempdir()) / "quekaro-agent")
+    workdir: Path = field(default_factory=lambda: default_home().parent / "agents" / "agent")
     auto_register: bool = False  # in-band registration: the embedded server only
     ca_file: str | None = None  # the farm's CA: verifies the XMPP server and the master's HTTPS
     verify_security: bool = False
@@ -207,7 +207,8 @@ class RenderAgent:
 
     async def run(self) -> None:
         """Measure speed, connect, register, then serve until stopped."""
-        self.workdir.mkdir(parents=True, exist_ok=True)
+        if make_private(self.workdir, "--workdir"):
+            log.warning("--workdir %s: others could read it; now only this user can", self.workdir)
         (self.workdir / "tiles").mkdir(exist_ok=True)
         (self.workdir / "bundles").mkdir(exist_ok=True)
         await asyncio.to_thread(self.worker.start)
@@ -569,7 +570,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rules", type=Path, default=None, help="rule file (default rules/pathtracing.xml)")
     p.add_argument("--defuzzifier", default=None, choices=DEFUZZIFIERS,
                    help="default for jobs that name none (default: centroid; centre of sums for MASYRO's dialect)")
-    p.add_argument("--workdir", type=Path, default=None, help="bundle cache and tiles (default: a temp dir)")
+    p.add_argument("--workdir", type=Path, default=None,
+                   help="bundle cache and tiles, made private (default: ~/.quekaro/agents/JID)")
     p.add_argument("--register", action="store_true", help="create the XMPP account in-band (embedded server)")
     p.add_argument("--ca-file", default=None,
                    help="the farm's CA certificate: verifies the XMPP server's TLS and the master's HTTPS")
@@ -596,7 +598,7 @@ def config_from_args(args: argparse.Namespace) -> AgentConfig:
         raise QuekaroError(f"--slots {args.slots}: must be from 1 to {m.MAX_CFP_UNITS} (what a Register holds)")
     if args.speed is not None and (args.emulate is None or not args.speed > 0):
         raise QuekaroError(f"--speed {args.speed}: a factor above 0, and only with --emulate")
-    workdir = args.workdir or Path(tempfile.gettempdir()) / "quekaro-agent" / _safe(args.jid)
+    workdir = args.workdir or default_home().parent / "agents" / _safe(args.jid)
     return AgentConfig(jid=args.jid, password=password, master=args.master, server=args.server,
                        port=args.port, threads=args.threads, rules=args.rules, defuzzifier=args.defuzzifier,
                        workdir=workdir, auto_register=args.register, ca_file=args.ca_file,

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from core.errors import QuekaroError
-from core.home import AGENTS_ALLOW, FARM_FILE, PROCESSES_FILE, default_home
+from core.home import AGENTS_ALLOW, FARM_FILE, PROCESSES_FILE, default_home, make_private
 from core.scene.bundle import check_rules
 from core.supervision import RestartPolicy, die_with_parent, log_tail
 from core.transport.xmpp_server import EmbeddedXmppServer, XmppServerError
@@ -119,6 +119,8 @@ class LocalFarm:
                 self._previous_sigterm = None
 
     def start(self) -> None:
+        if make_private(self.home):  # the XMPP server's files, the logs and every child's inherit umask 077
+            print(f"quekaro: --home {self.home}: others could read it; now only this user can", file=sys.stderr)
         try:
             (self.home / "logs").mkdir(parents=True, exist_ok=True)
         except OSError as exc:

@@ -30,7 +30,7 @@ import numpy as np
 
 from core.data import default_rules_path
 from core.errors import MessageError, QuekaroError, TileError
-from core.home import ADMIN_TOKEN, FARM_FILE, MIN_FREE_BYTES
+from core.home import ADMIN_TOKEN, FARM_FILE, MIN_FREE_BYTES, make_private
 from core.image.compose import TileSource
 from core.image.tiles import tile_source
 from core.logs import fields
@@ -140,7 +140,8 @@ class MasterService:
         self.config = config
         self.home = Path(config.home)
         self.jobs_dir = self.home / "jobs"
-        self.home.mkdir(parents=True, exist_ok=True)
+        if make_private(self.home):
+            log.warning("--home %s: others could read it; now only this user can", self.home)
         self.store = JobStore(self.home / "jobs.sqlite")
         self.admin_token = _admin_token(self.home)
         self.auction: au.Auction | None = None

@@ -8,6 +8,7 @@ are `core.model.status`'s, and every change is checked against its transition ta
 
 from __future__ import annotations
 
+import hashlib
 import json
 import sqlite3
 from collections.abc import Iterable, Iterator, Sequence
@@ -23,7 +24,7 @@ from core.model.status import STORED_UNIT_STATUSES, JobStatus, UnitStatus, job_t
 from core.model.units import WorkUnit
 from master import auction as au
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 # A unit row's WorkUnit.work in SQL ({t}: the table's alias and a dot, or nothing).
 _WORK = "{t}cost * COALESCE({t}spp, 1)"
 
@@ -60,7 +61,7 @@ CREATE TABLE attempts (
     job_id   TEXT NOT NULL,
     idx      INTEGER NOT NULL,
     agent    TEXT NOT NULL,
-    token    TEXT NOT NULL UNIQUE,
+    token_sha256 TEXT NOT NULL UNIQUE,      -- the award token's sha256: the token itself is never stored
     started  REAL NOT NULL,
     finished REAL,
     outcome  TEXT NOT NULL
@@ -88,6 +89,11 @@ CREATE TABLE agents (
     last_seen REAL
 );
 """
+
+
+def token_sha256(token: str) -> str:
+    """What the store keeps of an award token: its sha256 (the token is 128 random bits, so no salt)."""
+    return hashlib.sha256(token.encode()).hexdigest()
 
 
 class StoreError(QuekaroError):
@@ -222,6 +228,8 @@ class JobStore:
             version = self._migrate_from_2()
         if version == 3 and not readonly:
             version = self._migrate_from_3()
+        if version == 4 and not readonly:
+            version = self._migrate_from_4()
         if version != SCHEMA_VERSION:
             raise StoreError(f"{self.path}: schema version {version}, this program reads {SCHEMA_VERSION}")
 
@@ -268,6 +276,18 @@ class JobStore:
                            " CHECK (depth_floor IS NULL OR depth_floor >= 1)")
                 db.execute("PRAGMA user_version = 4")
         return 4
+
+    def _migrate_from_4(self) -> int:
+        """Schema 5 keeps each award token's sha256 in place of the token (another reader of the file must
+        not be able to present it)."""
+        with self._tx() as db:
+            if db.execute("PRAGMA user_version").fetchone()[0] == 4:
+                db.execute("ALTER TABLE attempts RENAME COLUMN token TO token_sha256")
+                rows = db.execute("SELECT id, token_sha256 FROM attempts").fetchall()
+                db.executemany("UPDATE attempts SET token_sha256 = ? WHERE id = ?",
+                               [(token_sha256(r["token_sha256"]), r["id"]) for r in rows])
+                db.execute("PRAGMA user_version = 5")
+        return 5
 
     @contextmanager
     def _tx(self) -> Iterator[sqlite3.Connection]:
@@ -431,7 +451,7 @@ class JobStore:
         return {r["name"]: r["credits"] for r in self.db.execute("SELECT name, credits FROM agents")}
 
     def attempts(self, job_id: str, index: int | None = None) -> list[AttemptRecord]:
-        """A job's attempts (one unit's with `index`), oldest first; tokens stay in the store."""
+        """A job's attempts (one unit's with `index`), oldest first (without their tokens' hashes)."""
         sql = ("SELECT idx, agent, started, finished, outcome, estimate, seconds, reason FROM attempts"
                " WHERE job_id = ?")
         args: tuple[Any, ...] = (job_id,)
@@ -617,19 +637,20 @@ class JobStore:
             (to, job_id, index),
         )
         db.execute(
-            "INSERT INTO attempts (job_id, idx, agent, token, started, outcome, estimate)"
+            "INSERT INTO attempts (job_id, idx, agent, token_sha256, started, outcome, estimate)"
             " VALUES (?, ?, ?, ?, ?, 'running', ?)",
-            (job_id, index, agent, token, started, estimate),
+            (job_id, index, agent, token_sha256(token), started, estimate),
         )
 
     def _finish(self, db, token, outcome, finished, seconds, params, reason) -> None:
-        row = db.execute("SELECT job_id, idx FROM attempts WHERE token = ?", (token,)).fetchone()
+        digest = token_sha256(token)
+        row = db.execute("SELECT job_id, idx FROM attempts WHERE token_sha256 = ?", (digest,)).fetchone()
         if row is None:
-            raise StoreError(f"no attempt with token {token[:8]}...")
+            raise StoreError(f"no attempt with the token of sha256 {digest[:12]}...")
         db.execute(
             "UPDATE attempts SET outcome = ?, finished = ?, seconds = ?, params = ?, reason = ?"
-            " WHERE token = ?",
-            (outcome, finished, seconds, None if params is None else json.dumps(params), reason, token),
+            " WHERE token_sha256 = ?",
+            (outcome, finished, seconds, None if params is None else json.dumps(params), reason, digest),
         )
         if outcome in ("failed", "requeued"):
             self._move_units(db, UnitStatus.PENDING, [UnitStatus.AWARDED], "job_id = ? AND idx = ?",

@@ -21,7 +21,7 @@ from core.model.job import Effects, ImageFile, JobPlan, JobSpec, RenderOptions, 
 from core.model.status import JobStatus, TransitionError, UnitStatus
 from core.model.units import WorkUnit
 from master import auction as au
-from master.store import _SCHEMA, JobStore, RunningJob, StoreError
+from master.store import _SCHEMA, SCHEMA_VERSION, JobStore, RunningJob, StoreError, token_sha256
 
 HASH = "ef" * 32
 
@@ -91,7 +91,7 @@ def test_schema_pragmas_and_records(tmp_path: Path) -> None:
     with new_store(tmp_path / "farm.db") as store:
         assert store.db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
         assert store.db.execute("PRAGMA foreign_keys").fetchone()[0] == 1
-        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 4
+        assert store.db.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
         job = store.job("job-1")
         assert (job.scene, job.spec, job.status) == ("scene.xml", JobSpec({"k": "v"}, RenderOptions("S", 16)),
                                                      "running")
@@ -350,12 +350,15 @@ def test_readers_see_progress_while_the_master_writes(tmp_path: Path) -> None:
         reader.db.execute("UPDATE jobs SET status = 'failed'")
 
 
-# Schema 3's tables: schema 4 added the units' depth_floor column; schema 2's: schema 3 added their spp.
+# Schema 4's tables: schema 5 keeps the award token's sha256 in place of the token; schema 3's: schema 4
+# added the units' depth_floor column; schema 2's: schema 3 added their spp.
+HASH_COLUMN = "    token_sha256 TEXT NOT NULL UNIQUE,      -- the award token's sha256: the token itself is never stored\n"
+SCHEMA_4 = [s.replace(HASH_COLUMN, "    token    TEXT NOT NULL UNIQUE,\n") for s in _SCHEMA.split(";")]
 FLOOR_COLUMN = ("    depth_floor INTEGER CHECK (depth_floor IS NULL OR depth_floor >= 1),"
                 "  -- WorkUnit.depth_floor, NULL: none\n")
 SPP_COLUMN = ("    spp      INTEGER CHECK (spp IS NULL OR spp >= 1),"
               "  -- WorkUnit.spp (adaptive jobs), NULL where rules choose\n")
-SCHEMA_3 = [s.replace(FLOOR_COLUMN, "") for s in _SCHEMA.split(";")]
+SCHEMA_3 = [s.replace(FLOOR_COLUMN, "") for s in SCHEMA_4]
 SCHEMA_2 = [s.replace(SPP_COLUMN, "") for s in SCHEMA_3]
 SCHEMA_1_JOBS = """CREATE TABLE jobs (id TEXT PRIMARY KEY, scene TEXT NOT NULL, defines TEXT NOT NULL,
     options TEXT NOT NULL, status TEXT NOT NULL, created REAL NOT NULL, finished REAL,
@@ -364,7 +367,7 @@ SCHEMA_1_JOBS = """CREATE TABLE jobs (id TEXT PRIMARY KEY, scene TEXT NOT NULL, 
 
 def write_old_store(path: Path, version: int, schema: list[str], job_columns: tuple[str, str]) -> None:
     """A job store as an older version wrote it: its tables, job-1 (its two JSON columns) and 4 units."""
-    assert all("depth_floor INTEGER" not in statement for statement in schema)
+    assert all("token_sha256" not in statement for statement in schema)
     db = sqlite3.connect(path, isolation_level=None)
     for statement in schema:
         db.execute(statement)
@@ -385,7 +388,7 @@ def test_a_schema_1_store_is_migrated_with_its_jobs(tmp_path: Path) -> None:
     path.unlink()
     write_old_store(path, 1, [SCHEMA_1_JOBS, *SCHEMA_2[1:]], (json.dumps({"k": "v"}), json.dumps(old)))
     with JobStore(path) as store:
-        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 4
+        assert store.db.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
         record = store.job("job-1")
         assert record.spec == JobSpec({"k": "v"}, RenderOptions("S", 16)) and record.plan == plan
         assert [u.unit() for u in store.units("job-1")] == specs(4)
@@ -394,7 +397,7 @@ def test_a_schema_1_store_is_migrated_with_its_jobs(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(("version", "schema", "column"), [(2, SCHEMA_2, "spp"), (3, SCHEMA_3, "depth_floor")])
 def test_an_older_store_gains_the_units_newer_columns(tmp_path: Path, version, schema, column) -> None:
-    """A schema 2 or 3 home opens as schema 4: its units keep everything and have no planned spp (schema 3
+    """A schema 2 or 3 home opens as the latest: its units keep everything and have no planned spp (schema 3
     added it, adaptive jobs) or depth floor (schema 4, planning.depthcut); a new job's units then keep
     theirs through the store (what the auction is rebuilt from after a restart), and 0 is refused."""
     path = tmp_path / "farm.db"
@@ -403,7 +406,7 @@ def test_an_older_store_gains_the_units_newer_columns(tmp_path: Path, version, s
     path.unlink()
     write_old_store(path, version, schema, (json.dumps(spec.to_dict()), json.dumps(plan)))
     with JobStore(path) as store:
-        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 4
+        assert store.db.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
         assert [u.unit() for u in store.units("job-1")] == specs(4)
         given = [dataclasses.replace(u, **{column: 10 + u.index}) for u in specs(3)]
         store.create_job("job-2", "scene.xml", spec, plan_of(given), 101.0)
@@ -453,8 +456,8 @@ def test_requeued_and_cancelled_units_are_recorded(tmp_path: Path) -> None:
     assert store.units("job-1")[index].status == UnitStatus.PENDING
 
     def outcomes() -> list[str]:
-        return [dict(store.db.execute("SELECT token, outcome FROM attempts").fetchall())[a.message.token]
-                for a in awarded]
+        return [dict(store.db.execute("SELECT token_sha256, outcome FROM attempts").fetchall())[
+            token_sha256(a.message.token)] for a in awarded]
 
     assert outcomes() == ["requeued", "running"]
     progress = store.progress("job-1", late)  # what `quekaro status` tells of it
@@ -493,3 +496,25 @@ def test_an_event_the_store_cannot_record_is_refused(tmp_path: Path) -> None:
     with pytest.raises(TypeError, match="Unheard"):
         store.apply([au.JobDone("job-1"), Unheard("job-1")], 101.0)
     assert store.job("job-1").status == JobStatus.RUNNING  # one transaction: nothing of it recorded
+
+
+def test_a_schema_4_store_keeps_the_hash_of_each_award_token_and_finds_its_attempt_by_it(tmp_path: Path) -> None:
+    """Schema 5 stores no award token in clear: a schema 4 home's tokens become their sha256, and the
+    running attempt they held is still ended by presenting the token."""
+    path = tmp_path / "farm.db"
+    with new_store(path) as store:
+        plan, spec = store.job("job-1").plan, store.job("job-1").spec
+    path.unlink()
+    write_old_store(path, 4, SCHEMA_4, (json.dumps(spec.to_dict()), json.dumps(plan)))
+    db = sqlite3.connect(path, isolation_level=None)
+    db.execute("UPDATE units SET status = 'awarded', attempts = 1 WHERE idx = 0")
+    db.execute("INSERT INTO attempts (job_id, idx, agent, token, started, outcome) VALUES ('job-1', 0, 'A', ?, 100.0,"
+               " 'running')", ("ab" * 16,))
+    db.close()
+    with JobStore(path) as store:
+        assert store.db.execute("SELECT token_sha256 FROM attempts").fetchall()[0][0] == token_sha256("ab" * 16)
+        store.record_award("job-1", 1, "B", "cd" * 16, 101.0, 1.0)
+        stored = {r[0] for r in store.db.execute("SELECT token_sha256 FROM attempts")}
+        assert stored == {token_sha256("ab" * 16), token_sha256("cd" * 16)} and "cd" * 16 not in stored
+        store.finish_attempt("ab" * 16, "requeued", 102.0, reason="lost")
+        assert store.units("job-1")[0].status == UnitStatus.PENDING
