@@ -2,7 +2,8 @@
 whose job store is a real SQLite file: login and the session cookie's attributes, refusals without the
 cookie (an agent's award token and the API's bearer token open nothing), CSRF on every action, the
 server-sent events stream emitting on a status change and ending when the master stops, the unit view's
-fired rules (held against fuzzy.Engine's activations), the preview PNG, re-submission, the package data."""
+fired rules (held against fuzzy.Engine's activations), the preview PNG (a denoised job's denoised by the real
+denoiser once its AOV pass exists), re-submission (with denoising turned on or off), the package data."""
 
 from __future__ import annotations
 
@@ -25,7 +26,9 @@ import pytest
 from PIL import Image
 
 from core.data import default_rules_path
-from core.image.tiles import Tile, write_tile
+from core.image.compose import compose_shrunk
+from core.image.imageio import write_png_planar
+from core.image.tiles import Tile, tile_source, write_tile
 from core.model import messages as m
 from core.model.geometry import Rect
 from core.model.job import Effects, JobPlan, JobSpec, RenderOptions, SceneSpec
@@ -41,6 +44,7 @@ from master.store import JobStore
 from master.web import add_web_routes, events, preview
 from master.web.auth import COOKIE, CSRF_HEADER
 from master.web.rules import evaluation_rulebase, rule_strengths
+from planning.pipeline import AOV_PASS_FILE, save_aov_pass
 from quekaro import cmd_farm
 
 REPO = Path(__file__).resolve().parent.parent
@@ -94,25 +98,26 @@ class FakeMaster:
         bundle.unlink()  # the real master moves it into the new job's folder
         return "job0000002"
 
-    def add_job(self, job_id: str = JOB, level: str = "S") -> None:
+    def add_job(self, job_id: str = JOB, level: str = "S", denoise: bool = False) -> None:
         effects = Effects("llvm_ad_rgb", "path", 8, ["the scene's integrator is path"])
-        plan = JobPlan(SceneSpec(Path("scene.xml")), RenderOptions(level=level, spp=16), W, H, effects, 16, 8,
-                       _units(), bundle_sha256="ef" * 32)
-        self.store.create_job(job_id, "scene.xml", JobSpec({"res": "32"}, RenderOptions(level=level, spp=16)),
-                              plan, time.time())
+        options = RenderOptions(level=level, spp=16, denoise=denoise)
+        plan = JobPlan(SceneSpec(Path("scene.xml")), options, W, H, effects, 16, 8, _units(), bundle_sha256="ef" * 32)
+        self.store.create_job(job_id, "scene.xml", JobSpec({"res": "32"}, options), plan, time.time())
         self.job_dir(job_id).mkdir(parents=True, exist_ok=True)
         (self.job_dir(job_id) / "bundle.tar").write_bytes(b"the job's bundle")
 
     def award(self, index: int, token: str = AWARD) -> None:
         self.store.record_award(JOB, index, AGENT, token, time.time(), 2.0)
 
-    def finish(self, index: int, token: str = AWARD, value: float = 0.5) -> None:
-        """The unit's tile lands (a flat tile of `value`), as the master records one."""
+    def finish(self, index: int, token: str = AWARD, value: float = 0.5, noise: float = 0.0) -> None:
+        """The unit's tile lands (a flat tile of `value`, with Gaussian `noise` if asked), as the master
+        records one."""
         rect = _units()[index].rect
         meta = {"job_id": JOB, "unit_index": index, "spp": 12, "depth": 6, "band": 0, "agent": AGENT}
         (self.job_dir(JOB) / "tiles").mkdir(exist_ok=True)
+        pixels = value + noise * np.random.default_rng(index).standard_normal((rect.h, rect.w, 3))
         path = write_tile(self.job_dir(JOB) / "tiles" / f"unit-{index}.exr",
-                          Tile(np.full((rect.h, rect.w, 3), value, np.float32), rect, rect, meta))
+                          Tile(pixels.clip(0).astype(np.float32), rect, rect, meta))
         params = {"spp": 12, "depth": 6, "band": 0, "seconds": 1.5, "nonfinite": 0, "agent": AGENT,
                   "outputs": {"Rl": 0.75, "Ls": 0.8, "Ibs": 0.1}, "rules": "pathtracing.xml"}
         self.store.record_result(JOB, index, str(path), "00" * 32, params, time.time())
@@ -142,9 +147,9 @@ class Page:
 
 
 @asynccontextmanager
-async def running(tmp_path: Path) -> AsyncIterator[Page]:
+async def running(tmp_path: Path, denoise: bool = False) -> AsyncIterator[Page]:
     master = FakeMaster(tmp_path / "home")
-    master.add_job()
+    master.add_job(denoise=denoise)
     app = create_app(expected=lambda job, unit, token: None, bundle=lambda job: None, on_tile=lambda *a: None,
                      tile_dir=master.jobs_dir)
     add_job_routes(app, master)
@@ -159,9 +164,9 @@ async def running(tmp_path: Path) -> AsyncIterator[Page]:
             await close(runner)
 
 
-def run(tmp_path: Path, scenario: Callable[[Page], Awaitable[None]]) -> None:
+def run(tmp_path: Path, scenario: Callable[[Page], Awaitable[None]], denoise: bool = False) -> None:
     async def main() -> None:
-        async with running(tmp_path) as page:
+        async with running(tmp_path, denoise) as page:
             await scenario(page)
 
     asyncio.run(main())
@@ -274,11 +279,46 @@ def test_resubmit_sends_the_same_bundle_defines_and_options(tmp_path):
         cookie, csrf = await page.session()
         response = await page.http.post(f"{page.url}/ui/api/jobs/{JOB}/resubmit",
                                          headers={"Cookie": cookie, CSRF_HEADER: csrf})
-        assert response.status == 201 and (await response.json()) == {"job_id": "job0000002", "from": JOB}
+        assert response.status == 201
+        assert (await response.json()) == {"job_id": "job0000002", "from": JOB, "denoise": False}
         [(bundle, defines, options)] = page.master.submitted
         assert bundle == b"the job's bundle" and defines == {"res": "32"}
-        assert options.level == "S" and options.spp == 16 and options.rules is None
+        assert options.level == "S" and options.spp == 16 and options.rules is None and not options.denoise
         assert not list(page.master.jobs_dir.glob(".resubmit-*"))
+
+    run(tmp_path, scenario)
+
+
+@pytest.mark.parametrize("denoise", [False, True])
+def test_resubmit_turns_denoising_on_or_off_and_keeps_the_rest(tmp_path, denoise):
+    async def scenario(page: Page) -> None:
+        cookie, csrf = await page.session()
+        response = await page.http.post(f"{page.url}/ui/api/jobs/{JOB}/resubmit", json={"denoise": not denoise},
+                                         headers={"Cookie": cookie, CSRF_HEADER: csrf})
+        assert response.status == 201 and (await response.json())["denoise"] is (not denoise)
+        [(_, defines, options)] = page.master.submitted
+        assert options.denoise is (not denoise) and options.level == "S" and options.spp == 16
+        assert defines == {"res": "32"}
+
+    run(tmp_path, scenario, denoise=denoise)
+
+
+@pytest.mark.parametrize(("body", "named"), [
+    (b'{"denoise": "yes"}', "denoise: 'yes' is not true or false"),
+    (b'{"denoise": 1}', "denoise: '1' is not true or false"),
+    (b'{"denoise": null}', "denoise: 'None' is not true or false"),
+    (b'{"spp": 4}', "unknown field 'spp'"),
+    (b'[true]', "must be a JSON object"),
+    (b'{"denoise": tru', "not JSON"),
+])
+def test_resubmit_refuses_a_denoise_that_is_not_true_or_false(tmp_path, body, named):
+    async def scenario(page: Page) -> None:
+        cookie, csrf = await page.session()
+        response = await page.http.post(f"{page.url}/ui/api/jobs/{JOB}/resubmit", data=body,
+                                         headers={"Cookie": cookie, CSRF_HEADER: csrf,
+                                                  "Content-Type": "application/json"})
+        assert response.status == 400 and named in (await response.json())["error"]
+        assert not page.master.submitted and not list(page.master.jobs_dir.glob(".resubmit-*"))
 
     run(tmp_path, scenario)
 
@@ -388,6 +428,53 @@ def test_a_preview_larger_than_its_limit_is_shrunk_and_so_is_a_finished_jobs(tmp
         assert (await shown()).shape == (6, 11, 3) and ((await shown()) == 255).all()
 
     run(tmp_path, scenario)
+
+
+def _keep_aov_pass(folder: Path) -> None:
+    """A flat grey scene's AOV pass, as master.service keeps it: albedo 0.5, normals facing the camera."""
+    planes = np.concatenate([np.full((3, H, W), 0.5), np.zeros((2, H, W)), np.ones((1, H, W))]).astype(np.float32)
+    save_aov_pass(folder / AOV_PASS_FILE, planes)
+
+
+def test_a_denoised_jobs_preview_is_denoised_once_its_aov_pass_exists(tmp_path):
+    """Noisy tiles of a flat grey: the raw composition until the AOV pass is kept, then (the same tiles,
+    remade) the real denoiser's far smoother image of the same grey."""
+    async def scenario(page: Page) -> None:
+        cookie, _ = await page.session()
+
+        async def shown() -> np.ndarray:
+            response = await page.http.get(f"{page.url}/ui/api/jobs/{JOB}/preview.png", headers={"Cookie": cookie})
+            return np.asarray(Image.open(io.BytesIO(await response.read()))).astype(np.float64)
+
+        async def job() -> dict[str, Any]:
+            return await (await page.http.get(f"{page.url}/ui/api/jobs/{JOB}", headers={"Cookie": cookie})).json()
+
+        for index in range(4):
+            page.master.award(index, token=f"award-{index}")
+            page.master.finish(index, token=f"award-{index}", value=0.3, noise=0.15)
+        assert (await job())["options"]["denoise"] is True and (await job())["aov_pass"] is False
+        raw = await shown()
+        tiles = [tile_source(r.tile_path) for r in page.master.store.results(JOB)]  # composed here too
+        composed = compose_shrunk(tiles, W, H, 1)
+        assert np.array_equal(raw, np.asarray(Image.open(write_png_planar(tmp_path / "mine.png", composed))))
+        grey = np.asarray(Image.open(write_png_planar(tmp_path / "grey.png", np.full((3, 1, 1), composed.mean()))))
+        _keep_aov_pass(page.master.job_dir(JOB))
+        assert (await job())["aov_pass"] is True
+        denoised = await shown()  # no tile was added: remade for the AOV pass
+        assert denoised.std() < 0.3 * raw.std(), (denoised.std(), raw.std())
+        assert abs(denoised.mean() - grey.mean()) < 3, (denoised.mean(), grey.mean())  # the tiles' mean grey
+
+    run(tmp_path, scenario, denoise=True)
+
+
+def test_aov_planes_are_shrunk_by_the_blocks_the_composition_is():
+    """A shrunk preview is denoised with its AOVs shrunk as its colour is (compose_shrunk's blocks)."""
+    planar = np.random.default_rng(3).random((6, 17, 23)).astype(np.float32)
+    rect = Rect(0, 0, 23, 17)
+    tile = Tile(np.moveaxis(planar, 0, -1), rect, rect, {"unit_index": 0}, channels=("R", "G", "B", *"XYZ"))
+    for factor in (1, 2, 3, 5):
+        expected = compose_shrunk([tile], 23, 17, factor, planes=6)
+        assert np.allclose(preview.block_means(planar, factor), expected, atol=1e-6), factor
 
 
 def test_report_of_an_unfinished_job_says_there_is_none_and_why(tmp_path):

@@ -3,13 +3,15 @@ farm: the embedded XMPP server, the master and two render agents as processes (1
 scenes. The tests log in through the form, watch a job render until its image is complete (the page
 updated by server-sent events, never reloaded), click a unit and read its features, fired rules, agent and
 attempts, colour the partition by the rules' outputs and inputs, read the report and the agents, cancel and
-re-submit jobs from the page, and check the refusals: no cookie, an agent's award token, no CSRF token.
+re-submit jobs from the page (denoised too: its preview denoised as its result is), and check the refusals:
+no cookie, an agent's award token, no CSRF token, a denoise that is not true or false.
 Screenshots go to each test's temporary folder."""
 
 from __future__ import annotations
 
 import io
 import json
+import secrets
 import sqlite3
 import tempfile
 import time
@@ -25,9 +27,13 @@ from selenium.webdriver.remote.webdriver import WebDriver
 from selenium.webdriver.support.ui import Select
 from web_support import click, http, no_downloads, require_browser, rows, screenshot, start_browser, wait_until
 
+from core.model.geometry import filter_reach
 from core.scene.bundle import make_bundle
 from farm.local import LocalFarm
+from master.store import JobStore
 from master.web.auth import COOKIE, CSRF_HEADER
+from master.web.preview import write_preview
+from planning.pipeline import AOV_PASS_FILE
 
 pytestmark = pytest.mark.slow
 
@@ -307,10 +313,58 @@ def test_cancel_and_resubmit_from_the_page(farm, browser, tmp_path):
     assert client.cancel(new_id) is False
 
 
+def _previews(farm: LocalFarm, job_id: str, folder: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The finished job's tiles as the page's preview composes them: (raw, denoised with its AOV pass)."""
+    with JobStore(farm.home / "jobs.sqlite", readonly=True) as store:
+        plan, results = store.job(job_id).plan, store.results(job_id)
+    size, reach = (plan["width"], plan["height"]), filter_reach(plan["filter_radius"])
+    aov = farm.home / "jobs" / job_id / AOV_PASS_FILE
+    return tuple(np.asarray(Image.open(write_preview(folder / f"{name}.png", *size, results, reach, aov=a)), float)
+                 for name, a in (("raw", None), ("denoised", aov)))
+
+
+def test_resubmit_a_job_denoised_from_the_page(farm, browser, tmp_path):
+    """The new job's options say denoise, it finishes with a raw image beside its own, its page says so,
+    and its preview (the tiles composed and denoised) is its denoised result, not the raw composition."""
+    logged_in(browser, farm)
+    client = farm.client()
+    defines = {"res": "64", "spp": "16"}
+    job_id = client.submit(bundle_of(defines), defines, {"level": "off", "units": 4})
+    assert client.wait(job_id, JOB_TIMEOUT_S)["status"] == "done"
+    before = {j["job_id"] for j in client.jobs()}
+    button = f'#jobs-table tr[data-job="{job_id}"] button[data-action="resubmit-denoise"]'
+    assert wait_until(lambda: browser.find_element(By.CSS_SELECTOR, button).text, 20, "the button") \
+        == "Re-submit denoised"
+    click(browser, button)
+    [new_id] = wait_until(lambda: {j["job_id"] for j in client.jobs()} - before, 120, "the job submitted denoised")
+    cookie = {"Cookie": session_cookie(browser)}
+    assert json.loads(http("GET", f"{farm.url}/ui/api/jobs/{new_id}", headers=cookie)[2])["options"]["denoise"]
+    assert client.wait(new_id, JOB_TIMEOUT_S)["status"] == "done"
+    status, _, raw = http("GET", f"{farm.url}/api/jobs/{new_id}/raw",
+                          headers={"Authorization": f"Bearer {admin_token(farm)}"})
+    assert status == 200 and raw[:4] == b"\x76\x2f\x31\x01"  # an OpenEXR file
+
+    browser.get(f"{farm.url}/ui/#/job/{new_id}")
+    shown = wait_until(lambda: "the image is denoised" in (t := browser.find_element(By.ID, "job-denoise").text)
+                       and t, 30, "the job's page saying it is denoised")
+    assert shown.startswith("denoised") and "raw one is kept" in shown
+    again = '#job-summary button[data-action="resubmit-denoise"]'
+    assert browser.find_element(By.CSS_SELECTOR, again).text == "Re-submit without denoising"
+    screenshot(browser, tmp_path, "denoised-job")
+
+    raw_preview, denoised = _previews(farm, new_id, tmp_path)
+    result = np.asarray(Image.open(farm.home / "jobs" / new_id / "result.png"), float)
+    assert np.abs(denoised - result).max() <= 1, np.abs(denoised - result).max()
+    assert np.abs(raw_preview - result).mean() > 3 * np.abs(denoised - result).mean() + 1
+
+
 def test_no_cookie_no_page_and_an_award_token_or_a_missing_csrf_token_gets_nothing(farm, browser):
     logged_in(browser, farm)
+    # The store keeps an award token's sha256 only (schema 5): a token of an award's shape stands in here;
+    # a live award token's refusal is tests/test_web_http.py's (its store records one).
     with sqlite3.connect(f"file:{farm.home / 'jobs.sqlite'}?mode=ro", uri=True) as db:
-        award, job_id = db.execute("SELECT token, job_id FROM attempts ORDER BY id LIMIT 1").fetchone()
+        [job_id] = db.execute("SELECT job_id FROM attempts ORDER BY id LIMIT 1").fetchone()
+    award = secrets.token_hex(16)
     status, headers, _ = http("GET", farm.url + "/ui/")
     assert status == 303 and headers["Location"] == "/ui/login"
     for path in ("/ui/api/jobs", "/ui/api/agents", f"/ui/api/jobs/{job_id}", "/ui/events"):
@@ -328,3 +382,6 @@ def test_no_cookie_no_page_and_an_award_token_or_a_missing_csrf_token_gets_nothi
     csrf = browser.find_element(By.CSS_SELECTOR, 'meta[name="csrf-token"]').get_attribute("content")
     status, _, _ = http("POST", cancel, headers={CSRF_HEADER: csrf})  # the token without the cookie
     assert status == 401
+    status, _, body = http("POST", f"{farm.url}/ui/api/jobs/{job_id}/resubmit", data=b'{"denoise": "yes"}',
+                           headers={"Cookie": cookie, CSRF_HEADER: csrf, "Content-Type": "application/json"})
+    assert status == 400 and b"denoise: 'yes' is not true or false" in body

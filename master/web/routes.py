@@ -10,7 +10,8 @@
     GET  /ui/api/jobs/{job}/preview.png     the image so far
     GET  /ui/api/jobs/{job}/report          a finished job's report
     POST /ui/api/jobs/{job}/cancel          (CSRF)
-    POST /ui/api/jobs/{job}/resubmit        the job again (CSRF)
+    POST /ui/api/jobs/{job}/resubmit        the job again (CSRF); a JSON body {"denoise": bool} may turn
+                                            its denoising on or off
     GET  /ui/api/agents                     agents table
     GET  /ui/events[?job=ID]                server-sent events (master.web.events)
 """
@@ -20,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import html
+import json
 import logging
 import secrets
 import shutil
@@ -40,7 +42,7 @@ from master.web import auth
 from master.web.events import Watcher, stream
 from master.web.preview import Previews, shrink_factor
 from master.web.rules import fired_rules, planner_for
-from master.web.views import WebService, agents_view, job_view, jobs_view, report_view, unit_view
+from master.web.views import WebService, agents_view, aov_pass_path, job_view, jobs_view, report_view, unit_view
 
 log = logging.getLogger(__name__)
 
@@ -248,8 +250,9 @@ async def api_preview(request: web.Request) -> web.StreamResponse:
         state.previews.forget(job_id)
         return web.FileResponse(final, headers={"Content-Type": "image/png"})
     reach = filter_reach(float(record.plan.get("filter_radius", DEFAULT_FILTER_RADIUS)))  # as JobPlan.from_dict
+    aov = aov_pass_path(service, record)
     path = await state.previews.png(job_id, service.job_dir(job_id), width, height, service.store.results(job_id),
-                                    reach, tuple(record.plan.get("colour", RGB)))  # as JobPlan.from_dict
+                                    reach, tuple(record.plan.get("colour", RGB)), aov)  # as JobPlan.from_dict
     return web.FileResponse(path, headers={"Content-Type": "image/png"})
 
 
@@ -281,11 +284,37 @@ async def api_cancel(request: web.Request) -> web.Response:
     return web.json_response({"job_id": job_id, "cancelled": cancelled})
 
 
+RESUBMIT_FIELDS = ("denoise",)  # what a re-submission may change of the job's options
+
+
+async def _resubmit_changes(request: web.Request) -> dict[str, Any]:
+    """The options a re-submission changes: its JSON body's fields (none without a body). 400 for a body
+    that is not a JSON object, an unknown field, or a denoise that is not true or false."""
+    body = await request.read()
+    if not body.strip():
+        return {}
+    try:
+        changes = json.loads(body)
+    except (ValueError, RecursionError):
+        raise web.HTTPBadRequest(reason="the body is not JSON") from None
+    if not isinstance(changes, dict):
+        raise web.HTTPBadRequest(reason="the body must be a JSON object, e.g. {\"denoise\": true}")
+    unknown = sorted(set(changes) - set(RESUBMIT_FIELDS))
+    if unknown:
+        raise web.HTTPBadRequest(reason=f"unknown field {unknown[0][:40]!r}: a re-submission may change "
+                                        f"only {', '.join(RESUBMIT_FIELDS)}")
+    if "denoise" in changes and not isinstance(changes["denoise"], bool):
+        raise web.HTTPBadRequest(reason=f"denoise: {str(changes['denoise'])[:40]!r} is not true or false")
+    return changes
+
+
 async def api_resubmit(request: web.Request) -> web.Response:
-    """Submit the job again: the same bundle, -D parameters and options (its rule file is in the bundle)."""
+    """Submit the job again: the same bundle, -D parameters and options (its rule file is in the bundle),
+    with denoise set as the body asks, if it does."""
     state = _state(request)
     await auth.require_action(request, state.sessions)
     service, job_id = state.service, _job_id(request)
+    changes = await _resubmit_changes(request)
     try:
         record = service.store.job(job_id)
     except StoreError as exc:
@@ -296,14 +325,14 @@ async def api_resubmit(request: web.Request) -> web.Response:
     copy = service.jobs_dir / f".resubmit-{secrets.token_hex(6)}.tar"
     await asyncio.to_thread(shutil.copyfile, bundle, copy)
     try:
-        options = dataclasses.replace(record.spec.options, rules=None)
+        options = dataclasses.replace(record.spec.options, rules=None, **changes)
         new_id = await service.submit(copy, dict(record.spec.defines), options)
     except QuekaroError as exc:
         raise web.HTTPUnprocessableEntity(reason=str(exc).replace("\n", " ")[:500]) from None
     finally:
         copy.unlink(missing_ok=True)
-    log.info("web page: job %s submitted again as %s", job_id, new_id)
-    return web.json_response({"job_id": new_id, "from": job_id}, status=201)
+    log.info("web page: job %s submitted again as %s%s", job_id, new_id, ", denoised" if options.denoise else "")
+    return web.json_response({"job_id": new_id, "from": job_id, "denoise": options.denoise}, status=201)
 
 
 # ---- live updates ---------------------------------------------------------------------------------------

@@ -1,7 +1,8 @@
 """What the web page shows, as plain dicts read from the job store and the auction (no HTTP here).
 
 - `jobs_view`: every job with its state, level, progress, ETA, times and effect decisions (the job API's
-  `job_summary`, plus the options and image size the page shows);
+  `job_summary`, plus the options and image size the page shows, and whether a denoised job's AOV pass
+  is rendered yet: `aov_pass`);
 - `job_view`: one job and its units, each with its rectangle, features (C, S, Nd), state, the agent
   holding or having rendered it, and the parameters the rules chose (spp, depth, band, Rl/Ls/Ibs);
 - `unit_view`: one unit's attempts (agent, times, outcome) beside the same;
@@ -20,6 +21,7 @@ from core.home import PROCESSES_FILE
 from core.model.status import JobStatus
 from master.job_api import JobService, agent_rows, job_summary, unit_story
 from master.store import JobRecord, UnitRecord
+from planning.pipeline import AOV_PASS_FILE
 
 ACCURACY_NOTE = ("The farm keeps no per-job accuracy report yet (no reference render is made for a job; "
                  "`quekaro bench accuracy` measures levels against references): shown is what the job's "
@@ -38,6 +40,11 @@ def _round(value: float | None, digits: int = 4) -> float | None:
     return None if value is None else round(float(value), digits)
 
 
+def aov_pass_path(service: WebService, record: JobRecord) -> Path | None:
+    """Where a denoised job's AOV pass is kept (master.service renders it once); None for a job not denoised."""
+    return service.job_dir(record.id) / AOV_PASS_FILE if record.spec.options.denoise else None
+
+
 def job_row(service: WebService, record: JobRecord, now: float) -> dict[str, Any]:
     """One job as the jobs table shows it."""
     row = job_summary(service, record.id)
@@ -49,7 +56,8 @@ def job_row(service: WebService, record: JobRecord, now: float) -> dict[str, Any
         "options": {"spp": options.spp, "depth": options.depth, "units": options.units,
                     "integrator": options.integrator, "variant": options.variant,
                     "defuzzifier": options.defuzzifier, "sensor": options.sensor,
-                    "rules": options.rules.name if options.rules else None},
+                    "rules": options.rules.name if options.rules else None, "denoise": options.denoise},
+        "aov_pass": None if (aov := aov_pass_path(service, record)) is None else aov.is_file(),
         "elapsed_s": round(max(0.0, end - record.created), 1),
     })
     return row

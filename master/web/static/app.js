@@ -94,12 +94,16 @@ function say(text, isError = false) {
 // To the login form, keeping the view (#/job/ID) to come back to after it (login.js).
 function toLogin() { window.location.assign("/ui/login" + window.location.hash); }
 
-async function post(url) {
-  const response = await fetch(url, { method: "POST", headers: { "X-CSRF-Token": CSRF }, credentials: "same-origin" });
-  const body = await response.json().catch(() => ({}));
+async function post(url, body) {
+  const headers = { "X-CSRF-Token": CSRF };
+  if (body !== undefined) headers["Content-Type"] = "application/json";
+  const response = await fetch(url, {
+    method: "POST", headers, credentials: "same-origin", body: body === undefined ? undefined : JSON.stringify(body),
+  });
+  const answer = await response.json().catch(() => ({}));
   if (response.status === 401) toLogin();
-  if (!response.ok) throw new Error(body.error || `HTTP ${response.status}`);
-  return body;
+  if (!response.ok) throw new Error(answer.error || `HTTP ${response.status}`);
+  return answer;
 }
 
 async function getJSON(url) {
@@ -211,6 +215,12 @@ function actionButtons(job) {
   buttons.push(el("button", {
     type: "button", "data-action": "resubmit", "data-job": job.job_id, onclick: () => resubmitJob(job.job_id),
   }, "Re-submit"));
+  const denoised = Boolean(job.options && job.options.denoise);
+  buttons.push(el("button", {
+    type: "button", "data-action": "resubmit-denoise", "data-job": job.job_id, "data-denoise": String(!denoised),
+    title: denoised ? "The same job, its raw image only." : "The same job, denoised (the raw image is kept too).",
+    onclick: () => resubmitJob(job.job_id, !denoised),
+  }, denoised ? "Re-submit without denoising" : "Re-submit denoised"));
   return buttons;
 }
 
@@ -229,11 +239,18 @@ function cancelJob(jobId) {
     .catch((e) => say(`Cancel failed: ${e.message}`, true));
 }
 
-function resubmitJob(jobId) {
+// `denoise` true or false turns the new job's denoising on or off; left out, the job's own options stay.
+function resubmitJob(jobId, denoise) {
   say(`Submitting job ${jobId} again (planning its pre-pass)...`);
-  post(`/ui/api/jobs/${encodeURIComponent(jobId)}/resubmit`)
-    .then((r) => say(`Job ${jobId} submitted again as ${r.job_id}.`))
+  post(`/ui/api/jobs/${encodeURIComponent(jobId)}/resubmit`, denoise === undefined ? undefined : { denoise })
+    .then((r) => say(`Job ${jobId} submitted again as ${r.job_id}` + (r.denoise ? ", denoised." : ".")))
     .catch((e) => say(`Re-submit failed: ${e.message}`, true));
+}
+
+function denoiseText(job) {
+  if (!job.options || !job.options.denoise) return "no";
+  if (job.result_ready) return "yes: the image is denoised, the raw one is kept beside it";
+  return job.aov_pass ? "yes: the preview is denoised" : "yes: the preview is raw until the AOV pass is rendered";
 }
 
 function renderJobs() {
@@ -242,7 +259,7 @@ function renderJobs() {
     el("td", {}, el("a", { href: `#/job/${job.job_id}`, class: "job-link" }, job.job_id)),
     el("td", {}, job.scene),
     el("td", {}, badge(job.paused ? `${job.status} (paused)` : job.status), job.error ? el("div", { class: "muted" }, job.error) : null),
-    el("td", {}, job.level),
+    el("td", {}, job.level, job.options && job.options.denoise ? el("div", { class: "muted" }, "denoised") : null),
     el("td", {}, progressBar(job)),
     el("td", {}, eta(job)),
     el("td", {}, fmtTime(job.created)),
@@ -281,6 +298,8 @@ function renderJob() {
     item("image", `${job.width} x ${job.height}, spp ${job.spp}, depth ${job.depth} (the job's: each unit's own are on the partition)`),
     item("submitted", fmtTime(job.created)), item("time", elapsed(job)),
     item("effects", effectsCell(job.effects)),
+    el("div", { id: "job-denoise", "data-denoise": String(Boolean(job.options && job.options.denoise)) },
+      el("b", {}, "denoised"), denoiseText(job)),
     job.adaptive_text ? el("div", { id: "job-adaptive" }, el("b", {}, "adaptive"), " " + job.adaptive_text) : null,
     el("div", {}, actionButtons(job)),
     job.error ? item("error", job.error) : null);
@@ -292,7 +311,7 @@ function renderJob() {
 }
 
 function refreshPreview(job) {
-  const version = `${job.tiles}-${job.result_ready ? 1 : 0}`;
+  const version = `${job.tiles}-${job.aov_pass ? 1 : 0}-${job.result_ready ? 1 : 0}`;
   if (state.shownPreview === version) return;
   state.shownPreview = version;
   const img = document.getElementById("preview");
@@ -301,6 +320,7 @@ function refreshPreview(job) {
     img.src = next.src;
     img.dataset.tiles = String(job.tiles);
     img.dataset.final = job.result_ready ? "1" : "0";
+    img.dataset.denoised = job.aov_pass ? "1" : "0";
     layoutStage(job);
   };
   next.src = `/ui/api/jobs/${encodeURIComponent(job.job_id)}/preview.png?v=${version}`;
