@@ -88,6 +88,7 @@ class AgentConfig:
     jid: str
     password: str
     master: str
+    master_url: str = ""  # where bundles and tiles travel (`--master-url`); none: nowhere
     server: str | None = None  # host of the XMPP server; default: the JID's domain
     port: int = 5222
     threads: int = 1  # Dr.Jit threads of the render process
@@ -329,6 +330,11 @@ class RenderAgent:
     # ---- planning (a computation the state machine calls) -------------------------------------------
 
     def _url_refusal(self, url: str) -> str | None:
+        """Why the agent will not fetch or upload at `url` (a message names it): not at the master's own
+        URL, or plain HTTP across a network."""
+        if not at_master(url, self.config.master_url):
+            return (f"{url} is not at the master's URL {self.config.master_url or '(none given)'} (--master-url): "
+                    "bundles and tiles travel there alone")
         refused = url_refusal(url, self.config.insecure_http)
         if refused is None and not url.startswith("https:") and not is_loopback(urlsplit(url).hostname):
             log.warning("job data at %s travels in plain HTTP (--insecure-http)", url)
@@ -548,6 +554,12 @@ def _logged(what: str):
 # ---- command line ----------------------------------------------------------------------------------
 
 
+def at_master(url: str, master_url: str) -> bool:
+    """Whether `url` lies under the master's URL: its scheme, host and port, and a path below its own."""
+    base = master_url.rstrip("/")
+    return bool(base) and url.startswith(base + "/") and "/../" not in url[len(base):]
+
+
 def url_refusal(url: str, insecure_http: bool) -> str | None:
     """Why a job's data plane is refused: plain HTTP to another host, unless `insecure_http`."""
     parts = urlsplit(url)
@@ -566,6 +578,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--password", help="XMPP password (better: --password-file or $QUEKARO_XMPP_PASSWORD)")
     p.add_argument("--password-file", help="file holding the XMPP password")
     p.add_argument("--master", required=True, help="the master's JID (only its messages are accepted)")
+    p.add_argument("--master-url", required=True,
+                   help="the master's URL, e.g. https://master-host:8765: bundles are fetched and tiles uploaded "
+                        "there alone, whatever URL a message names")
     p.add_argument("--threads", type=int, default=1, help="Dr.Jit threads of the render process (default 1)")
     p.add_argument("--rules", type=Path, default=None, help="rule file (default rules/pathtracing.xml)")
     p.add_argument("--defuzzifier", default=None, choices=DEFUZZIFIERS,
@@ -599,7 +614,8 @@ def config_from_args(args: argparse.Namespace) -> AgentConfig:
     if args.speed is not None and (args.emulate is None or not args.speed > 0):
         raise QuekaroError(f"--speed {args.speed}: a factor above 0, and only with --emulate")
     workdir = args.workdir or default_home().parent / "agents" / _safe(args.jid)
-    return AgentConfig(jid=args.jid, password=password, master=args.master, server=args.server,
+    return AgentConfig(jid=args.jid, password=password, master=args.master, master_url=args.master_url,
+                       server=args.server,
                        port=args.port, threads=args.threads, rules=args.rules, defuzzifier=args.defuzzifier,
                        workdir=workdir, auto_register=args.register, ca_file=args.ca_file,
                        verify_security=bool(args.ca_file), heartbeat_s=args.heartbeat, slots=args.slots,

@@ -229,6 +229,7 @@ HELD: frozenset[WorkStatus] = frozenset({"queued", "fetching", "rendering", "upl
 TRANSITIONS: frozenset[tuple[WorkStatus, WorkStatus]] = frozenset({
     ("queued", "fetching"),  # the render process is free: the oldest award's step begins with its bundle
     ("queued", "rendering"),  # batched into an older unit's call (same job and depth)
+    ("queued", "failed"),  # an award naming URLs other than the master's: never started
     ("fetching", "rendering"),  # its bundle is here and it is planned
     ("fetching", "failed"),  # no bundle, or no plan
     ("rendering", "uploading"),
@@ -324,7 +325,7 @@ class AgentState:
         if not 1 <= self.batch <= slots:
             raise ValueError(f"batch must be from 1 to slots ({slots}), got {batch}")
         self.plan, self.seconds = plan, seconds
-        self.check_url = check_url  # why a job's data plane URL is refused (plain HTTP across a network), or None
+        self.check_url = check_url  # why a data plane URL is refused (not the master's, plain HTTP across a network)
         self.slots, self.threads, self.rules = slots, threads, rules[:256]
         self.rules_sha256, self.defuzzifier = rules_sha256, defuzzifier  # told in Register
         self.heartbeat_s, self.max_render_s, self.session = heartbeat_s, max_render_s, session
@@ -527,6 +528,9 @@ class AgentState:
             return [Log(logging.INFO, f"{_unit(key)}: re-awarded, answering under the new award")]
         work = Work(next(self._tickets), award)
         self._record(key, None, work.status)
+        refused = self.check_url(award.job.scene_url) or self.check_url(award.upload_url)
+        if refused:  # never fetched from nor uploaded to: an award naming other URLs is not the master's
+            return self._fail(work, f"award refused: {refused}")
         self.works[key] = work
         self.queue.append(work)
         return self._start_next(now)

@@ -9,6 +9,7 @@ and the two must agree within AGREEMENT. Scaling was otherwise only simulated (`
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -33,6 +34,7 @@ from bench.report import DEFAULT_OUT, command_of, write_report
 from bench.scaling import default_cache_dir, measure_cached
 from bench.simulate import UNBATCHED_AUCTION, simulate
 from core.errors import QuekaroError
+from core.home import FARM_FILE
 from core.image.tiles import tile_source
 from core.model.geometry import Rect
 from core.model.hashing import sha256_file
@@ -198,9 +200,20 @@ class EmulatedFarm:
         users = [f"agent-{i}" for i in range(len(self.speeds))]
         passwords = self._start_server(["master", *users])
         self.master = self._spawn(self._master_command(), "master", passwords["master"])
+        url = self._master_url()
         for i, (user, speed) in enumerate(zip(users, self.speeds, strict=True)):
             self.jids.append(f"{user}@{DOMAIN}")
-            self.agents.append(self._spawn(self._agent_command(i, speed), f"agent-{i}", passwords[user]))
+            self.agents.append(self._spawn(self._agent_command(i, speed, url), f"agent-{i}", passwords[user]))
+
+    def _master_url(self, timeout: float = START_TIMEOUT_S) -> str:
+        """The master's URL once it has written farm.json (it binds a free port), for its agents to pin."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            self.check_alive()
+            with contextlib.suppress(FileNotFoundError, ValueError, KeyError):
+                return str(json.loads((self.home / FARM_FILE).read_text())["url"])
+            time.sleep(0.2)
+        raise QuekaroError(f"the master did not come up within {timeout:.0f} s (see {self.logs})")
 
     def _start_server(self, users: list[str]) -> dict[str, str]:
         if self.prosody:
@@ -224,8 +237,9 @@ class EmulatedFarm:
                 "--http-port", "0", "--threads", "1", "--slots", str(UNBATCHED_AUCTION.slots),
                 *self._xmpp_options()]
 
-    def _agent_command(self, i: int, speed: float) -> list[str]:
+    def _agent_command(self, i: int, speed: float, master_url: str) -> list[str]:
         return [sys.executable, "-m", "quekaro", "agent", "--jid", f"agent-{i}@{DOMAIN}", "--master", MASTER_JID,
+                "--master-url", master_url,
                 "--workdir", str(self.workdir(i)), "--emulate", str(self.costs), "--speed", repr(speed),
                 "--slots", str(UNBATCHED_AUCTION.slots), *self._xmpp_options()]
 

@@ -44,7 +44,7 @@ agent)
     # allows that only from the compose network (QUEKARO_REGISTRATION_ALLOWLIST on the xmpp service).
     [ -n "${QUEKARO_CA_FILE:-}" ] && set -- --ca-file "$QUEKARO_CA_FILE" "$@"
     exec quekaro agent --server "$server" --port "$port" --jid "agent-${QUEKARO_AGENT_NAME:-$(hostname)}@$domain" \
-        --master "master@$domain" \
+        --master "master@$domain" --master-url "${QUEKARO_PUBLIC_URL:-http://master:8765}" \
         --register --threads "${QUEKARO_THREADS:-2}" --workdir "$HOME/agent" "$@"
     ;;
 health)

@@ -186,7 +186,7 @@ class LocalFarm:
         with (self.home / AGENTS_ALLOW).open("a") as allow:
             allow.write(jid + "\n")
         cmd = [sys.executable, "-m", "agents.render_agent", "--server", "127.0.0.1",
-               "--port", str(self.server.port), "--jid", jid, "--master", MASTER_JID,
+               "--port", str(self.server.port), "--jid", jid, "--master", MASTER_JID, "--master-url", self.url,
                "--threads", str(self.threads), "--workdir", str(self.home / "agents" / f"agent-{i}"),
                "--register"]
         if self.rules:

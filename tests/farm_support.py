@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
+import json
 import re
 import subprocess
 import time
 from pathlib import Path
 
+from core.home import FARM_FILE
 from farm.client import FarmClient
 
 
@@ -21,6 +24,17 @@ def log_time(line: str) -> float:
     stamp = re.match(r"(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3})", line)
     assert stamp, line
     return time.mktime(time.strptime(stamp.group(1), "%Y-%m-%d %H:%M:%S")) + int(stamp.group(2)) / 1000
+
+
+def wait_for_master_url(home: Path, procs: list[subprocess.Popen], logs: Path, timeout: float = 60.0) -> str:
+    """The URL the master in `home` names in its farm.json once it is up (for its agents' --master-url)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        assert all(p.poll() is None for p in procs), f"a farm process exited early:\n{log_tails(logs)}"
+        with contextlib.suppress(FileNotFoundError, ValueError, KeyError):
+            return str(json.loads((home / FARM_FILE).read_text())["url"])
+        time.sleep(0.2)
+    raise AssertionError(f"the master did not come up:\n{log_tails(logs)}")
 
 
 def wait_for_agents(home: Path, procs: list[subprocess.Popen], agents: int, logs: Path,

@@ -66,7 +66,8 @@ def test_a_bad_cost_map_is_refused_naming_the_file(tmp_path, content, says):
     if content is not None:
         path.write_text(content)
     done = subprocess.run([sys.executable, "-m", "quekaro", "agent", "--jid", "agent-1@localhost",
-                           "--password", "pw", "--master", "master@localhost", "--workdir", str(tmp_path / "w"),
+                           "--password", "pw", "--master", "master@localhost", "--master-url", "http://127.0.0.1:1",
+                           "--workdir", str(tmp_path / "w"),
                            "--emulate", str(path)], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert done.returncode == 2, done.stderr
     assert str(path) in done.stderr and says in done.stderr, done.stderr
@@ -75,7 +76,7 @@ def test_a_bad_cost_map_is_refused_naming_the_file(tmp_path, content, says):
 
 def test_speed_needs_emulate():
     args = build_parser().parse_args(["--jid", "a@localhost", "--password", "p", "--master", "m@localhost",
-                                      "--speed", "2"])
+                                      "--master-url", "http://127.0.0.1:1", "--speed", "2"])
     with pytest.raises(QuekaroError, match="--speed"):
         config_from_args(args)
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from farm_support import log_tails, wait_for_agents
+from farm_support import log_tails, wait_for_agents, wait_for_master_url
 from prosody_support import needs_prosody
 
 from core.image.imageio import read_image
@@ -48,10 +48,12 @@ def test_master_and_two_agents_render_through_prosody(tmp_path):
                                  "master@localhost", "--password-file", str(tmp_path / "master.pw"),
                                  "--server", "127.0.0.1", "--port", str(server.port), "--ca-file", str(ca),
                                  "--http-port", "0", "--threads", "1"], logs / "master.log"))
+            url = wait_for_master_url(home, procs, logs)
             for name in ("agent-1", "agent-2"):
                 procs.append(_spawn([sys.executable, "-m", "quekaro", "agent", "--server", "127.0.0.1",
                                      "--port", str(server.port), "--jid", f"{name}@localhost",
                                      f"--password={passwords[name]}", "--master", "master@localhost",
+                                     "--master-url", url,
                                      "--ca-file", str(ca), "--threads", "1",
                                      "--workdir", str(tmp_path / name)], logs / f"{name}.log"))
             client = wait_for_agents(home, procs, 2, logs)
@@ -84,7 +86,8 @@ def test_an_agent_given_the_wrong_ca_file_says_so_at_once(tmp_path):
         started = time.monotonic()
         done = subprocess.run([sys.executable, "-m", "quekaro", "agent", "--server", "127.0.0.1", "--port",
                                str(server.port), "--jid", "agent-1@localhost", f"--password={passwords['agent-1']}",
-                               "--master", "master@localhost", "--ca-file", str(wrong), "--threads", "1",
+                               "--master", "master@localhost", "--master-url", "https://127.0.0.1:1",
+                               "--ca-file", str(wrong), "--threads", "1",
                                "--workdir", str(tmp_path / "agent")], cwd=REPO, capture_output=True, text=True,
                               timeout=120)
     said = done.stdout + done.stderr

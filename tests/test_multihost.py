@@ -193,7 +193,8 @@ def farm_on_hosts(root: Path, agents: int = 3,
             procs[name] = net.spawn(name, [
                 sys.executable, "-m", "quekaro", "agent", "--server", master.address, "--port", str(XMPP_PORT),
                 "--jid", f"agent-{name[1:]}@{DOMAIN}", "--password-file", str(root / f"agent-{name[1:]}.pw"),
-                "--master", f"master@{DOMAIN}", "--ca-file", str(ca / "ca.pem"), "--threads", "1",
+                "--master", f"master@{DOMAIN}", "--master-url", f"https://{master.address}:{HTTP_PORT}",
+                "--ca-file", str(ca / "ca.pem"), "--threads", "1",
                 "--workdir", str(root / name)], logs / f"{name}.log", env=env, cwd=REPO)
         stack.callback(stop_processes, list(procs.values()))  # before Prosody stops and the network goes
         client = _wait_for_master(home, procs, logs)

@@ -16,9 +16,9 @@ from tests.test_farm import SCENE, bundle_of, wait_job
 
 
 @pytest.fixture(autouse=True)
-def _restore_umask():
+def _umask_022():
+    """Files made as most users' umask makes them (a farm started in this process set 077), restored after."""
     before = os.umask(0o022)
-    os.umask(before)
     yield
     os.umask(before)
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import hashlib
 import json
 import logging
@@ -231,7 +232,8 @@ def farm(tmp_path_factory: pytest.TempPathFactory, bundles: dict[str, tuple[str,
         for _, data in bundles.values():
             master.bundles[hashlib.sha256(data).hexdigest()] = data
         cmd = [sys.executable, "-m", "agents.render_agent", "--port", str(server.port), "--jid", AGENT,
-               "--password", PASSWORD, "--master", MASTER, "--threads", "1", "--workdir", str(tmp / "agent"),
+               "--password", PASSWORD, "--master", MASTER, "--master-url", master.url(""), "--threads", "1",
+               "--workdir", str(tmp / "agent"),
                "--register", "--heartbeat", "0.5"]
         with log.open("w") as sink:
             agent = subprocess.Popen(cmd, cwd=REPO, stdout=sink, stderr=subprocess.STDOUT,
@@ -355,16 +357,25 @@ def test_cancelled_units_are_dropped_and_a_full_agent_refuses(farm: Farm, bundle
     assert not [x for x in farm.master.received(m.Failure, since) if x.job_id == "job-b"]
 
 
-@pytest.mark.parametrize("case", ["broken-scene", "wrong-hash", "upload-refused"])
+ELSEWHERE = ("bundle-elsewhere", "upload-elsewhere")  # another loopback port than the master's (a spoofed award)
+
+
+@pytest.mark.parametrize("case", ["broken-scene", "wrong-hash", "upload-refused", *ELSEWHERE])
 def test_failures_are_reported_and_survived(farm: Farm, bundles: dict, case: str) -> None:
+    """Each fails its unit with the reason, and the agent serves on. A URL not under --master-url is never
+    tried (the reason is the pin's, not a refused connection)."""
     name = "broken" if case == "broken-scene" else "cbox"
     scene, _ = bundles[name]
     job_id = f"job-{case}"
     wrong = "0" * 64 if case == "wrong-hash" else None
     job = farm.job(job_id, sha_of(bundles, name), scene, level="off", scene_hash=wrong,
                    defines={} if name == "broken" else None)
+    elsewhere = f"http://127.0.0.1:{farm.master.http_port + 1}/"  # same host, another port
+    named = dataclasses.replace(job, scene_url=elsewhere + f"jobs/{job_id}/bundle") if case == ELSEWHERE[0] else job
     u = unit(2, Rect(16, 0, 16, 16))
-    award = farm.award(job, u, f"award-{case}")
+    award = farm.award(named, u, f"award-{case}")
+    if case == "upload-elsewhere":
+        award = dataclasses.replace(award, upload_url=elsewhere + f"jobs/{job_id}/units/2/tile")
     if case == "upload-refused":
         farm.master.tokens[(job_id, 2)] = "f" * 32  # the data plane expects another token
     since = time.monotonic()
@@ -372,7 +383,8 @@ def test_failures_are_reported_and_survived(farm: Farm, bundles: dict, case: str
     failure = farm.run(farm.master.expect(m.Failure, since=since), 30)
     assert (failure.conversation, failure.job_id, failure.index, failure.token) == \
         (award.conversation, job_id, 2, award.token)
-    expected = {"broken-scene": "no_such_plugin_here", "wrong-hash": "sha256", "upload-refused": "403"}[case]
+    expected = {"broken-scene": "no_such_plugin_here", "wrong-hash": "sha256", "upload-refused": "403",
+                **dict.fromkeys(ELSEWHERE, "is not at the master's URL")}[case]
     assert expected in failure.reason, failure.reason
     assert not [u for u in farm.master.uploads if u[0] == job_id]
     # Still serving: the next call for proposals gets a proposal.
@@ -464,7 +476,8 @@ def test_a_failed_unit_logs_its_story_on_one_line(tmp_path: Path, caplog: pytest
     from agents.render_agent import AgentConfig, RenderAgent
     from agents.state import BundleFailed, MessageReceived, SendToMaster
 
-    agent = RenderAgent(AgentConfig(jid=AGENT, password=PASSWORD, master=MASTER, workdir=tmp_path))
+    agent = RenderAgent(AgentConfig(jid=AGENT, password=PASSWORD, master=MASTER, master_url="http://127.0.0.1:1",
+                                    workdir=tmp_path))
     try:
         info = m.JobInfo(job_id="job-s", scene_url="http://127.0.0.1:1/jobs/job-s/bundle", scene_hash="ab" * 32,
                          width=32, height=32, spp=4, depth=6, level="N", ranges=RANGES)
@@ -485,7 +498,7 @@ def test_a_failed_unit_logs_its_story_on_one_line(tmp_path: Path, caplog: pytest
 def test_the_log_format_is_an_option_defaulting_to_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
     from agents.render_agent import build_parser
 
-    need = ["--jid", "a@localhost", "--password", "p", "--master", "m@localhost"]
+    need = ["--jid", "a@localhost", "--password", "p", "--master", "m@localhost", "--master-url", "http://127.0.0.1:1"]
     monkeypatch.delenv("QUEKARO_LOG_FORMAT", raising=False)
     assert build_parser().parse_args(need).log_format == "text"
     assert build_parser().parse_args([*need, "--log-format", "json"]).log_format == "json"

@@ -352,7 +352,8 @@ def test_readers_see_progress_while_the_master_writes(tmp_path: Path) -> None:
 
 # Schema 4's tables: schema 5 keeps the award token's sha256 in place of the token; schema 3's: schema 4
 # added the units' depth_floor column; schema 2's: schema 3 added their spp.
-HASH_COLUMN = "    token_sha256 TEXT NOT NULL UNIQUE,      -- the award token's sha256: the token itself is never stored\n"
+HASH_COLUMN = ("    token_sha256 TEXT NOT NULL UNIQUE,"
+               "      -- the award token's sha256: the token itself is never stored\n")
 SCHEMA_4 = [s.replace(HASH_COLUMN, "    token    TEXT NOT NULL UNIQUE,\n") for s in _SCHEMA.split(";")]
 FLOOR_COLUMN = ("    depth_floor INTEGER CHECK (depth_floor IS NULL OR depth_floor >= 1),"
                 "  -- WorkUnit.depth_floor, NULL: none\n")
