@@ -512,6 +512,20 @@ def test_event_stream_emits_on_a_status_change_and_only_then(tmp_path):
     run(tmp_path, scenario)
 
 
+def test_a_denoised_jobs_aov_pass_landing_is_an_event_though_no_row_changed(tmp_path):
+    """The master keeps the AOV pass as a file, not a row: the stream sends the job again when it lands."""
+    async def scenario(page: Page) -> None:
+        cookie, _ = await page.session()
+        stream = await page.http.get(f"{page.url}/ui/events?job={JOB}", headers={"Cookie": cookie})
+        first = await read_events(stream, lambda name, _data: name == "agents", timeout=5)
+        assert dict(first)["job"]["aov_pass"] is False
+        _keep_aov_pass(page.master.job_dir(JOB))
+        changed = await read_events(stream, lambda name, _data: name == "job", timeout=5)
+        assert changed[-1][1]["aov_pass"] is True
+
+    run(tmp_path, scenario, denoise=True)
+
+
 def test_the_agents_event_is_sent_when_a_row_changes_not_as_their_ages_tick(tmp_path):
     async def scenario(page: Page) -> None:
         cookie, _ = await page.session()

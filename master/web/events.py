@@ -19,6 +19,7 @@ from aiohttp import web
 
 from master.store import StoreError
 from master.web.views import WebService, agents_view, job_view, jobs_view
+from planning.pipeline import AOV_PASS_FILE
 
 TICK_S = 1.0
 KEEPALIVE_S = 15.0
@@ -41,15 +42,18 @@ class Watcher:
     counts: dict[str, tuple[int, int]] = field(default_factory=dict)  # units done/failed per agent, at `key`
     sent: dict[str, str] = field(default_factory=dict)
     waiting: set[str] = field(default_factory=set)  # jobs done whose report is not written yet
+    aov_waiting: set[str] = field(default_factory=set)  # denoised jobs whose AOV pass is not kept yet
     agents_at: float = 0.0  # time.monotonic() when the agents table was last sent
     ages: dict[str, float] = field(default_factory=dict)  # each agent's last_seen_s as last sent
 
     def _change_key(self) -> tuple[Any, ...]:
         """What says jobs changed: the job store's change counter (`total_changes` of the master's
         connection, through which every award, tile, status change and submission is written) and the
-        reports still being assembled. An idle farm costs a counter read a second, not queries."""
+        reports still being assembled, and the denoised jobs' AOV passes still being rendered (which no row
+        records). An idle farm costs a counter read a second, not queries."""
         ready = sum(self.service.result_path(j).with_suffix(".json").exists() for j in self.waiting)
-        return self.service.store.db.total_changes, ready
+        passes = sum((self.service.job_dir(j) / AOV_PASS_FILE).exists() for j in self.aov_waiting)
+        return self.service.store.db.total_changes, ready, passes
 
     def changes(self) -> list[bytes]:
         """The events whose data differ from what this stream sent last."""
@@ -60,6 +64,7 @@ class Watcher:
             self.counts = self.service.store.agent_counts()  # a scan of every attempt: only when rows changed
             jobs = jobs_view(self.service)
             self.waiting = {j["job_id"] for j in jobs if j["status"] == "done" and not j["result_ready"]}
+            self.aov_waiting = {j["job_id"] for j in jobs if j.get("aov_pass") is False}
             out += self._if_new("jobs", {"jobs": jobs})
             if self.job_id is not None:
                 out += self._if_new("job", self._job())
