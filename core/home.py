@@ -3,6 +3,7 @@ supervisor all read or write (each names them through this module, never by a st
 
 from __future__ import annotations
 
+import json
 import os
 import stat
 from pathlib import Path
@@ -34,7 +35,7 @@ def make_private(folder: Path, what: str = "--home") -> int:
         folder.mkdir(parents=True, exist_ok=True, mode=0o700)
         mode = folder.stat()
     except OSError as exc:
-        raise QuekaroError(f"{what} {folder}: cannot make the folder ({exc.strerror})") from None
+        raise QuekaroError(f"{what} {folder}: cannot make the farm's folder there ({exc.strerror})") from None
     if mode.st_uid != os.getuid():
         raise QuekaroError(f"{what} {folder}: the folder belongs to user id {mode.st_uid}, not to this user "
                            f"({os.getuid()}); a farm keeps its tokens and tiles in a folder of its own user")
@@ -50,3 +51,28 @@ def _closed(path: Path) -> bool:
         return False
     path.chmod(stat.S_IMODE(mode) & ~PRIVATE)
     return True
+
+
+def read_processes(home: Path) -> list[dict]:
+    """A local farm's processes as its supervisor last wrote them (none for a farm of separate hosts). One
+    listed as running whose process is gone reads "dead": the supervisor has not written since (its
+    next round restarts it; a full disk may stop the writing, never the restart)."""
+    try:
+        processes = [dict(p) for p in json.loads((Path(home) / PROCESSES_FILE).read_text())["processes"]]
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+    for process in processes:
+        if process.get("state") == "running" and not _alive(process.get("pid")):
+            process["state"] = "dead"
+    return processes
+
+
+def _alive(pid: object) -> bool:
+    """Whether `pid` is a live process (not a zombie its parent has yet to reap)."""
+    if type(pid) is not int or pid <= 0:
+        return False
+    try:
+        stat_line = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat_line.rsplit(")", 1)[-1].split()[0] not in ("Z", "X")

@@ -106,7 +106,7 @@ class FarmClient:
         return dict(self._json("GET", "/api/farm"))
 
     def submit(self, bundle: bytes, defines: dict[str, str], options: dict[str, Any]) -> str:
-        header = json.dumps(JobSpec(defines, RenderOptions.from_dict(options)).to_dict())
+        header = JobSpec(defines, RenderOptions.from_dict(options)).header()
         answer = self._json("POST", "/api/jobs", body=bundle,
                             headers={"X-Quekaro-Job": header, "Content-Type": "application/x-tar"})
         return str(answer["job_id"])

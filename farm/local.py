@@ -1,10 +1,11 @@
-"""A whole farm on one machine (`quekaro up`, `quekaro demo`): SPADE's embedded XMPP server, the master
-and N render agents, each in its own process with its own Dr.Jit thread count and a unique JID.
+"""A whole farm on one machine (`quekaro up`, `quekaro demo`): Prosody on loopback, the master and N render
+agents, each in its own process with its own Dr.Jit thread count and its own account, made before any
+file names it.
 
 Supervised (`supervise=True`, as `quekaro up` and `quekaro demo` run it): a child that dies is restarted
 with backoff, and one that crash-loops is marked failed and left down while the rest goes on
-(core.supervision); an agent comes back under a new JID (the embedded server may never deliver to a JID
-that reconnects). The state of every process is in HOME/processes.json. Every child dies with the farm,
+(core.supervision); an agent comes back under its own JID. The state of every process is in
+HOME/processes.json. Every child dies with the farm,
 even when it is killed with SIGKILL (PR_SET_PDEATHSIG); stopping (Ctrl-C, SIGTERM, or leaving the
 context) terminates the children in reverse order and waits for them. One farm at a time holds a home
 (HOME/farm.lock, an flock the kernel releases when the farm's process dies, even by SIGKILL).
@@ -17,7 +18,7 @@ import fcntl
 import functools
 import json
 import os
-import secrets
+import shutil
 import signal
 import subprocess
 import sys
@@ -33,7 +34,7 @@ from core.errors import QuekaroError
 from core.home import AGENTS_ALLOW, FARM_FILE, PROCESSES_FILE, default_home, make_private
 from core.scene.bundle import check_rules
 from core.supervision import RestartPolicy, die_with_parent, log_tail
-from core.transport.xmpp_server import EmbeddedXmppServer, XmppServerError
+from core.transport.xmpp_server import ProsodyServer, XmppServerError
 from farm.client import FarmClient
 
 DOMAIN = "localhost"
@@ -84,7 +85,7 @@ class LocalFarm:
                                f"(give --agents {len(self.rules)} or more)")
         self.http_port = http_port  # 0: the master binds a free one and names it in farm.json (self.url)
         self.url = f"http://127.0.0.1:{http_port}" if http_port else ""
-        self.server: EmbeddedXmppServer | None = None
+        self.server: ProsodyServer | None = None
         self.children: list[Child] = []
         self._server_policy = RestartPolicy()
         self._server_restart_at: float | None = None
@@ -127,21 +128,13 @@ class LocalFarm:
             raise QuekaroError(f"--home {self.home}: cannot make the farm's folder there ({exc.strerror})") from None
         self._lock_home()
         (self.home / FARM_FILE).unlink(missing_ok=True)
-        self.server = EmbeddedXmppServer(self.home / "xmpp", domain=DOMAIN)
-        # Accounts are made afresh at every start (new passwords, new agent JIDs): the database of a
-        # previous start would refuse the master's new password, and a second `quekaro demo` would fail.
-        self.server.database.unlink(missing_ok=True)
-        (self.home / AGENTS_ALLOW).write_text("")
-        self.server.allow(["master"])  # registration closed to every account this farm does not make
-        self.server.start()
-        self._secret_file("master.pw")
-        self._add(Child("master", self._master_command, {}))
+        passwords = self._start_server()
+        self._add(Child("master", self._master_command, {"QUEKARO_XMPP_PASSWORD": passwords["master"]}))
         self._wait_for_master()
         for i in range(self.n_agents):
             # The password travels in the environment: not in `ps`, and never parsed as an option.
-            password = self._secret_file(f"agent-{i}.pw").read_text()
             self._add(Child(f"agent-{i}", functools.partial(self._agent_command, i),
-                            {"QUEKARO_XMPP_PASSWORD": password}))
+                            {"QUEKARO_XMPP_PASSWORD": passwords[f"agent-{i}"]}))
         self._write_states()
         if self._supervise:
             self._supervisor = threading.Thread(target=self._supervise_forever, name="supervisor", daemon=True)
@@ -162,33 +155,43 @@ class LocalFarm:
         os.write(fd, f"{os.getpid()}\n".encode())
         self._lock_fd = fd
 
-    def _secret_file(self, name: str) -> Path:
-        path = self.home / "secrets" / name
-        path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
-        path.touch(mode=0o600)
-        path.write_text(secrets.token_hex(16))
-        return path
+    def _start_server(self) -> dict[str, str]:
+        """Prosody on loopback with every account made first, each with a fresh random password (a
+        previous start's accounts go), registration closed; then the agents' JIDs are listed for the
+        master. Nothing is written at a restart, so a full disk blocks none. Returns user -> password."""
+        self.server = ProsodyServer(self.home / "xmpp", domain=DOMAIN)
+        shutil.rmtree(self.server.data_dir / "data", ignore_errors=True)
+        users = ["master", *(f"agent-{i}" for i in range(self.n_agents))]
+        passwords = self.server.register_all(users)
+        (self.home / AGENTS_ALLOW).write_text("".join(f"{u}@{DOMAIN}\n" for u in users[1:]))
+        self.server.start()
+        return passwords
+
+    def add_account(self, user: str) -> str:
+        """Make one more agent account on the farm's server and let the master take its bids (an agent
+        started by hand beside the farm's own); returns its password."""
+        password = self.server.register(user)
+        with (self.home / AGENTS_ALLOW).open("a") as allow:
+            allow.write(f"{user}@{DOMAIN}\n")
+        return password
+
+    def _xmpp_options(self) -> list[str]:
+        """How the master and the agents reach Prosody: loopback, TLS verified against its certificate."""
+        cert = self.server.cert_dir / f"{DOMAIN}_cert.pem"
+        return ["--server", "127.0.0.1", "--port", str(self.server.port), "--ca-file", str(cert)]
 
     def _master_command(self) -> list[str]:
         # Called again at each restart: the port is then the one the first start bound (uploads name it).
         # The pre-pass takes the agents' threads together: a job's agents wait for its plan.
         return [sys.executable, "-m", "quekaro", "master", "--home", str(self.home), "--jid", MASTER_JID,
-                "--password-file", str(self.home / "secrets" / "master.pw"), "--server", "127.0.0.1",
-                "--port", str(self.server.port), "--register", "--http-port", str(self.http_port),
+                *self._xmpp_options(), "--http-port", str(self.http_port),
                 "--threads", str(self.threads * self.n_agents), "--agents-allow", str(self.home / AGENTS_ALLOW)]
 
     def _agent_command(self, i: int) -> list[str]:
-        # A JID that reconnects may never receive again on the embedded server: unique per process. The
-        # account is let in: the server may register it, the master may take its bids.
-        user = f"agent-{i}-{secrets.token_hex(3)}"
-        jid = f"{user}@{DOMAIN}"
-        self.server.allow([user])
-        with (self.home / AGENTS_ALLOW).open("a") as allow:
-            allow.write(jid + "\n")
-        cmd = [sys.executable, "-m", "agents.render_agent", "--server", "127.0.0.1",
-               "--port", str(self.server.port), "--jid", jid, "--master", MASTER_JID, "--master-url", self.url,
-               "--threads", str(self.threads), "--workdir", str(self.home / "agents" / f"agent-{i}"),
-               "--register"]
+        # One account per agent, made before the farm named it; a restarted agent logs in again as it.
+        cmd = [sys.executable, "-m", "agents.render_agent", "--jid", f"agent-{i}@{DOMAIN}", *self._xmpp_options(),
+               "--master", MASTER_JID, "--master-url", self.url,
+               "--threads", str(self.threads), "--workdir", str(self.home / "agents" / f"agent-{i}")]
         if self.rules:
             cmd += ["--rules", str(self.rules[i % len(self.rules)])]
         return cmd

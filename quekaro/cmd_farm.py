@@ -17,8 +17,9 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from core.data import DEMO_SCENE
 from core.errors import QuekaroError
-from core.home import ADMIN_TOKEN, MIN_FREE_BYTES, PROCESSES_FILE, default_home
+from core.home import ADMIN_TOKEN, MIN_FREE_BYTES, default_home, read_processes
 from core.logs import FORMATS
+from core.model.job import JobSpec
 from core.model.units import SLOTS
 from core.scene.bundle import make_bundle
 from core.scene.scene import parse_defines
@@ -209,6 +210,7 @@ def run_submit(args: argparse.Namespace) -> int:
     """One job per scene (its bundle carries the files it reads and the rule file); with --wait, watch each."""
     defines = parse_defines(args.defines)
     asked = options_from_args(args)
+    JobSpec(defines, asked).header()  # a -D list too long to carry: refused before anything is packed
     options = asked.to_dict()
     options["rules"] = None  # the rule file travels inside the bundle, to every agent
     bundles = [_bundle_bytes(scene, defines, args) for scene in args.scenes]  # every input checked first
@@ -294,23 +296,15 @@ def _agents(n: int) -> str:
     return f"{n} agent{'' if n == 1 else 's'}"
 
 
-def _processes(home: Path) -> list[dict]:
-    """A local farm's processes as its supervisor last wrote them (none for a farm of separate hosts)."""
-    try:
-        return list(json.loads((home / PROCESSES_FILE).read_text())["processes"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return []
-
-
 def _not_running(home: Path) -> dict[str, str]:
     """A local farm's processes that are not running: name -> state (restarting, or failed)."""
-    return {p["name"]: f"{p['state']} ({p.get('restarts', 0)} restarts)" for p in _processes(home)
+    return {p["name"]: f"{p['state']} ({p.get('restarts', 0)} restarts)" for p in read_processes(home)
             if p.get("state") != "running"}
 
 
 def _print_processes(home: Path) -> None:
     """Processes down, and those restarted since the farm started (a job went on without them a while)."""
-    for p in _processes(home):
+    for p in read_processes(home):
         if p.get("state") != "running" or p.get("restarts"):
             print(f"process {p['name']}: {p['state']} ({p.get('restarts', 0)} restarts)")
 
@@ -366,7 +360,7 @@ def run_agents(args: argparse.Namespace) -> int:
     rows = _client(args).agents()
     restarting = _not_running(Path(args.home or default_home()))
     for row in rows:
-        name = row["jid"].split("@", 1)[0].rsplit("-", 1)[0]  # agent-0-a1b2c3@host -> agent-0
+        name = row["jid"].split("@", 1)[0]  # a local farm's agent-0@localhost is its process agent-0
         if name in restarting:
             row["state"] = restarting[name]
     if args.json:
@@ -392,7 +386,7 @@ def _lines(text: str) -> int:
 def farm_logs(home: Path) -> dict[str, Path]:
     """A local farm's logs by process name: HOME/logs/NAME.log, and the XMPP server's as `xmpp`."""
     logs = {p.stem: p for p in sorted((home / "logs").glob("*.log"))}
-    server = home / "xmpp" / "server.log"  # core.transport.xmpp_server writes it beside its database
+    server = home / "xmpp" / "prosody.log"  # core.transport.xmpp_server.ProsodyServer's log file
     return logs | ({"xmpp": server} if server.is_file() else {})
 
 

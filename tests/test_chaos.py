@@ -84,10 +84,7 @@ def _results(home: Path, jobs: list[str], out: Path) -> dict[str, tuple]:
 
 
 def _start_liar(farm: LocalFarm, home: Path) -> subprocess.Popen:
-    farm.server.allow(["agent-liar"])
-    with (home / "agents.allow").open("a") as allow:
-        allow.write("agent-liar@localhost\n")
-    env = dict(os.environ, QUEKARO_XMPP_PASSWORD="liar-pw-1234", PYTHONPATH=str(REPO))
+    env = dict(os.environ, QUEKARO_XMPP_PASSWORD=farm.add_account("agent-liar"), PYTHONPATH=str(REPO))
     return subprocess.Popen([sys.executable, str(REPO / "tests" / "liar_agent.py"), "--jid", "agent-liar@localhost",
                              "--port", str(farm.server.port), "--master", "master@localhost", "--lies", "4"],
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env, cwd=REPO)

@@ -3,6 +3,8 @@ the CLI, at the master's API and when a stored job is resumed."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from core.errors import QuekaroError
@@ -80,3 +82,24 @@ def test_a_farms_units_are_larger_where_the_rules_run_and_still_several_per_agen
     assert default_unit_count(512, 512, "VB", min_units=56, farm=True) == 56  # 16 agents: 3 each + 8
     assert default_unit_count(512, 512, "off", spp=64, farm=True) == default_unit_count(512, 512, "off", spp=64)
     assert default_unit_count(64, 64, "S", farm=True) == 1
+
+
+def test_a_job_whose_defines_an_http_header_cannot_carry_is_refused_naming_the_longest(tmp_path) -> None:
+    """The job travels in a header (aiohttp reads 8190 bytes of one): past JOB_HEADER_MAX it is refused by
+    `quekaro submit` before anything is packed or sent, naming -D and its longest value."""
+    import subprocess
+    import sys
+
+    from core.model.job import JOB_HEADER_MAX, JobSpec
+
+    fits = JobSpec({"a": "x" * (JOB_HEADER_MAX - 200)})
+    assert len(fits.header()) <= JOB_HEADER_MAX
+    with pytest.raises(QuekaroError, match=r"-D: the job's parameters and options take \d+ bytes, over the 8000 .*"
+                                           r"-D long=\.\.\., 9000 characters"):
+        JobSpec({"a": "1", "long": "y" * 9000}).header()
+    repo = Path(__file__).resolve().parent.parent
+    done = subprocess.run([sys.executable, "-m", "quekaro", "submit", str(repo / "scenes" / "cbox.xml"), "-D",
+                           "res=" + "9" * 9000, "--home", str(tmp_path / "nofarm")], capture_output=True, text=True,
+                          cwd=repo, timeout=120)
+    assert done.returncode == 2 and "-D: the job's parameters and options take" in done.stderr, done.stderr
+    assert "not running" not in done.stderr and "Traceback" not in done.stderr

@@ -165,3 +165,58 @@ def test_a_master_restarted_three_times_on_the_same_server_hears_its_agents(tmp_
         defines = {"res": "32", "spp": "4"}
         job_id = client.submit(bundle_of(SCENE, defines), defines, {"level": "off", "units": 2})
         assert client.wait(job_id, 120, poll=0.3)["status"] == "done"
+
+
+def test_a_process_listed_running_whose_pid_is_gone_or_a_zombie_reads_dead(tmp_path):
+    """processes.json is the supervisor's last word; a full disk may stop its writing, so a reader checks
+    each running pid: gone or a zombie (exited, not yet reaped) reads "dead", and the rest as written."""
+    from core.home import PROCESSES_FILE, read_processes
+
+    gone = subprocess.Popen(["true"])
+    gone.wait()
+    zombie = subprocess.Popen(["true"])
+    deadline = time.monotonic() + 10
+    while Path(f"/proc/{zombie.pid}/stat").read_text().rsplit(")", 1)[-1].split()[0] != "Z":
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    listed = [{"name": "master", "state": "running", "pid": os.getpid()},
+              {"name": "agent-0", "state": "running", "pid": gone.pid},
+              {"name": "agent-1", "state": "running", "pid": zombie.pid},
+              {"name": "agent-2", "state": "restarting", "pid": None}]
+    (tmp_path / PROCESSES_FILE).write_text(json.dumps({"processes": listed}))
+    try:
+        states = {p["name"]: p["state"] for p in read_processes(tmp_path)}
+    finally:
+        zombie.wait()
+    assert states == {"master": "running", "agent-0": "dead", "agent-1": "dead", "agent-2": "restarting"}
+    assert read_processes(tmp_path / "none") == []
+
+
+@pytest.mark.slow
+def test_a_dead_agent_is_restarted_with_the_disk_full_and_never_read_as_running_meanwhile(tmp_path):
+    """A restart writes nothing (the agent's account was made at the farm's start): with its home's disk
+    full, a killed agent comes back, and processes.json, which cannot be written, never reads as running
+    the process that died."""
+    from disk_support import fill, small_tmpfs
+
+    from core.home import read_processes
+    from farm.local import LocalFarm
+
+    with small_tmpfs(tmp_path / "small", "300m") as disk, LocalFarm(disk / "home", agents=1, threads=1) as farm:
+        farm.wait_for_agents()
+        (agent,) = [c for c in farm.children if c.name == "agent-0"]
+        dead = agent.proc.pid
+        fill(disk, 0)
+        agent.proc.kill()
+        agent.proc.wait()
+        now = time.monotonic()
+        for step in range(40):  # the supervisor's rounds; each fails to write processes.json
+            with contextlib.suppress(OSError):
+                farm.supervise(now + step)
+            if agent.proc.pid != dead:
+                break
+        assert agent.proc.pid != dead and agent.state == "running"
+        time.sleep(3)
+        assert agent.proc.poll() is None, log_tail(disk / "home" / "logs" / "agent-0.log")
+        states = {p["name"]: (p["state"], p["pid"]) for p in read_processes(disk / "home")}
+        assert states["agent-0"] in {("dead", dead), ("restarting", None)}, states

@@ -164,10 +164,7 @@ def test_a_peer_whose_tiles_lie_is_refused_or_named_and_the_job_completes(tmp_pa
     home = tmp_path / "home"
     with LocalFarm(home, agents=1, threads=1) as farm:
         farm.wait_for_agents()
-        farm.server.allow(["agent-liar"])
-        with (home / "agents.allow").open("a") as allow:
-            allow.write("agent-liar@localhost\n")
-        env = dict(os.environ, QUEKARO_XMPP_PASSWORD="liar-pw-1234", PYTHONPATH=str(REPO))
+        env = dict(os.environ, QUEKARO_XMPP_PASSWORD=farm.add_account("agent-liar"), PYTHONPATH=str(REPO))
         liar = subprocess.Popen([sys.executable, str(REPO / "tests" / "liar_agent.py"), "--mode", "tiles",
                                  "--jid", "agent-liar@localhost", "--port", str(farm.server.port), "--master",
                                  "master@localhost", "--lies", "4"],
@@ -191,7 +188,7 @@ def test_a_peer_whose_tiles_lie_is_refused_or_named_and_the_job_completes(tmp_pa
     report = json.loads(out.with_suffix(".json").read_text())
     by_unit = {u["index"]: u for u in report["units"]}
     assert by_unit[lies["forged-agent"]["unit"]]["agent"] == "agent-liar@localhost"  # not whom it named
-    assert all(u["agent"] != "agent-0-honest@localhost" for u in report["units"])
+    assert all(u["agent"] != "agent-0-honest@localhost" for u in report["units"])  # the name the liar gave
     assert all(u["spp"] == 4 and 0 <= u["seconds"] < 300 for u in report["units"]), report["units"]
     assert report["totals"]["samples"] == 4 * 64 * 64
 

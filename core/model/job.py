@@ -11,6 +11,7 @@ The choices they validate against are each named once: the levels in `core.model
 from __future__ import annotations
 
 import dataclasses
+import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -193,6 +194,9 @@ class Effects:
                    bool(data.get("splittable", True)))
 
 
+JOB_HEADER_MAX = 8000  # bytes of a submitted job's -D parameters and options (aiohttp reads headers to 8190)
+
+
 @dataclass(frozen=True)
 class JobSpec:
     """What a user submits beside a scene bundle: the scene's -D parameters and the options."""
@@ -202,6 +206,19 @@ class JobSpec:
 
     def to_dict(self) -> dict[str, Any]:
         return {"defines": dict(self.defines), "options": self.options.to_dict()}
+
+    def header(self) -> str:
+        """The job as its submission's header carries it (JSON); a QuekaroError naming -D where it is longer
+        than an HTTP header may be."""
+        text = json.dumps(self.to_dict(), separators=(",", ":"))
+        size = len(text.encode())
+        if size > JOB_HEADER_MAX:
+            longest = max(self.defines, key=lambda k: len(k) + len(self.defines[k]), default="")
+            raise QuekaroError(f"-D: the job's parameters and options take {size} bytes, over the {JOB_HEADER_MAX} "
+                               f"a job carries (the longest: -D {longest[:40]}=..., "
+                               f"{len(self.defines.get(longest, ''))} characters); put long values in the scene "
+                               "file or a file it includes")
+        return text
 
     @classmethod
     def from_dict(cls, data: Any) -> JobSpec:

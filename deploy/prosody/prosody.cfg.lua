@@ -58,6 +58,7 @@ http_ports = {}
 https_ports = {}
 
 data_path = env("QUEKARO_PROSODY_DATA") or "/var/lib/prosody"
+umask = "077"  -- its accounts, pid and log for its user alone (mod_posix; Prosody's own default is 027)
 pidfile = env("QUEKARO_PROSODY_PIDFILE") or "/run/prosody/prosody.pid"
 -- (options set here cannot be read back in this file: keep values needed twice in locals)
 local user = env("QUEKARO_PROSODY_USER") or "prosody"

@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Any, Protocol
 
-from core.home import PROCESSES_FILE
+from core.home import read_processes
 from core.model.status import JobStatus
 from master.job_api import JobService, agent_rows, job_summary, unit_story
 from master.store import JobRecord, UnitRecord
@@ -107,12 +107,8 @@ def unit_view(service: WebService, job_id: str, index: int) -> dict[str, Any]:
 
 
 def _process_states(home: Path) -> dict[str, dict[str, Any]]:
-    """A local farm's processes as its supervisor last wrote them (none for a farm run by hand)."""
-    try:
-        processes = json.loads((home / PROCESSES_FILE).read_text())["processes"]
-        return {str(p["name"]): p for p in processes}
-    except (OSError, ValueError, KeyError, TypeError):
-        return {}
+    """A local farm's processes by name (core.home.read_processes; none for a farm run by hand)."""
+    return {str(p.get("name")): p for p in read_processes(home)}
 
 
 def agents_view(service: WebService, counts: dict[str, tuple[int, int]] | None = None) -> list[dict[str, Any]]:
