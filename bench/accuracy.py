@@ -4,7 +4,10 @@ optimisation level), against the obvious alternative of lowering spp everywhere.
 SCENE is a Mitsuba scene file (with `-D` parameters) or a name of the suite (bench/suite.py; `--suite` runs
 all six). `scene_cells` takes a cached plain-Mitsuba reference, runs one real job per cell (`run_cell`) on a
 local farm (`farm_runner`) or as the whole `quekaro render` process (`inprocess_runner`, `--inprocess`), and
-plain Mitsuba at the uniform spp that takes the same time (`uniform_baseline`).
+plain Mitsuba at the uniform spp that takes the same time (`uniform_baseline`). With `--denoise` each scene
+also gets denoised cells (`quekaro render --denoise`: uniform+denoise, which is level off denoised, and each
+level denoised), each scored against raw plain Mitsuba at its own wall time (`denoised_baseline`), and the
+denoiser's bias: the scene denoised at a high spp against the reference (`denoiser_bias`).
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from bench.suite import SUITE, SuiteScene, scene_from_argument
 from core.errors import QuekaroError
 from core.files import written_atomically
 from core.image.imageio import read_image
-from core.image.metrics import all_metrics, diff_image
+from core.image.metrics import all_metrics, diff_image, flip, relmse
 from core.image.seams import seam_measure
 from core.model.geometry import Rect
 from core.model.job import RenderOptions, SceneSpec
@@ -41,7 +44,16 @@ from core.model.levels import LEVELS
 from core.scene.bundle import check_rules, make_bundle
 from core.scene.scene import parse_defines
 from farm.local import LocalFarm
-from planning.accuracy import Asked, content_key, default_cache, job_variant, plain_render, reference, spp_timing
+from planning.accuracy import (
+    Asked,
+    content_key,
+    default_cache,
+    job_variant,
+    plain_render,
+    reference,
+    reference_warning,
+    spp_timing,
+)
 from quekaro.cmd_render import add_asked_arguments, search_paths
 
 REPO = Path(__file__).resolve().parent.parent
@@ -53,6 +65,8 @@ DEFAULT_AGENTS = "1,2"  # a farm of one agent and of two, side by side
 S_TIME_RATIO, S_DIFF_PERCENT, RELMSE_RATIO = 0.75, 1.21, 0.8  # the targets (issue 15)
 AS_WRITTEN = Asked()  # jobs compute what the scene file says
 DIFF_WHITE = 0.10  # a display difference of 10 % is white in the grey difference images
+READER_SIDE = 256  # the difference images' longest side at most, in pixels: a reader's size, not the render's
+RELMSE_DENOISED, FLIP_DENOISED = 0.2, 0.5  # the denoised targets over raw uniform, equal wall time (issue 64)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -91,6 +105,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rules", type=Path, default=None,
                         help="rule file for the rule levels (default: rules/pathtracing.xml): a retune tried on "
                              "the suite; the output names it and its rules' digest")
+    parser.add_argument("--denoise", action="store_true",
+                        help="also denoised jobs (`quekaro render --denoise`): uniform+denoise (level off) and each "
+                             "level, each against raw plain Mitsuba at equal wall time, and the denoiser's bias")
+    parser.add_argument("--bias-spp", type=int, default=None,
+                        help="spp of the denoiser's bias render, a denoised job against the reference (with "
+                             "--denoise; default: the reference's spp / 4)")
     parser.add_argument("--resume", action="store_true",
                         help="keep the scenes already finished in OUT/accuracy.partial.jsonl by a run with the "
                              "same settings, and measure only the others")
@@ -136,12 +156,28 @@ def parse_grid(args: argparse.Namespace) -> tuple[list[SuiteScene], list[int], l
                            "refuses it); add a rule level to --levels")
     if args.runs < 1:
         raise QuekaroError(f"--runs {args.runs}: at least one timed run per cell")
+    check_denoise(args)
     search_paths(args)
     RenderOptions(depth=args.depth, integrator=args.integrator, sensor=args.sensor)  # refuses what a job would
     if args.inprocess and agents != [1]:
         raise QuekaroError(f"--agents {text}: --inprocess times one `quekaro render` process, which is no farm of "
                            "agents; leave --agents out (or give 1)")
     return scenes, agents, levels
+
+
+def check_denoise(args: argparse.Namespace) -> None:
+    """--bias-spp only with --denoise (no option is accepted and ignored), and at least 1."""
+    if args.bias_spp is None:
+        return
+    if not args.denoise:
+        raise QuekaroError(f"--bias-spp {args.bias_spp}: the denoiser's bias is measured with --denoise only")
+    if args.bias_spp < 1:
+        raise QuekaroError(f"--bias-spp {args.bias_spp}: at least one sample per pixel")
+
+
+def bias_spp(args: argparse.Namespace) -> int:
+    """The spp of the denoiser's bias render: --bias-spp, else a quarter of the reference's."""
+    return args.bias_spp or max(1, args.ref_spp // 4)
 
 
 def distinct(scenes: list[SuiteScene]) -> list[SuiteScene]:
@@ -225,16 +261,16 @@ def _self_cpu() -> float:
 @contextmanager
 def farm_runner(agents: int, threads: int, home: Path, units: int | None = None,
                 adaptive: bool = False, asked: Asked = AS_WRITTEN, rules: Path | None = None) -> Iterator[Any]:
-    """A function (spec, level, spp, out) -> (report, wall s, CPU s) running jobs on a real local farm, timed
-    from submit to done (`adaptive`: the optimised levels as adaptive jobs; `asked`: the sensor, integrator
-    and depth; `rules`: the rule levels' rule file, carried in each job's bundle as `quekaro submit --rules`
-    does)."""
+    """A function (spec, level, spp, out, denoise=False) -> (report, wall s, CPU s) running jobs on a real
+    local farm, timed from submit to done (`adaptive`: the optimised levels as adaptive jobs; `asked`: the
+    sensor, integrator and depth; `rules`: the rule levels' rule file, carried in each job's bundle as
+    `quekaro submit --rules` does; `denoise`: a denoised job)."""
 
     with LocalFarm(home, agents=agents, threads=max(1, threads // agents)) as farm:
         farm.wait_for_agents()
         client = farm.client()
 
-        def run_job(spec: Any, level: str, spp: int, out: Path) -> tuple[dict, float, float]:
+        def run_job(spec: Any, level: str, spp: int, out: Path, denoise: bool = False) -> tuple[dict, float, float]:
             bundle = make_bundle(spec.path, spec.defines, out.with_suffix(".tar"), search_paths=spec.search_paths,
                                  rules=rules if level != "off" else None).path.read_bytes()
             roots = [p.pid for _, p in farm.procs]  # this process (and the XMPP server in it): _self_cpu
@@ -242,6 +278,7 @@ def farm_runner(agents: int, threads: int, home: Path, units: int | None = None,
             options = {"level": level, "spp": spp, **asked.options()}
             options |= {"units": units} if units and level != "off" else {}
             options |= {"adaptive": True} if adaptive and level != "off" else {}
+            options |= {"denoise": True} if denoise else {}
             job_id = client.submit(bundle, spec.defines, options)
             status = client.wait(job_id, JOB_TIMEOUT_S, while_waiting=farm.check_alive)
             wall = time.perf_counter() - start
@@ -259,10 +296,11 @@ def inprocess_runner(threads: int, units: int | None = None, adaptive: bool = Fa
                      asked: Asked = AS_WRITTEN, rules: Path | None = None) -> Iterator[Any]:
     """The same function as `farm_runner`, timing the whole `quekaro render` process a user runs."""
 
-    def run_job(spec: Any, level: str, spp: int, out: Path) -> tuple[dict, float, float]:
+    def run_job(spec: Any, level: str, spp: int, out: Path, denoise: bool = False) -> tuple[dict, float, float]:
         chosen = ["--units", str(units)] if units and level != "off" else []
         chosen += ["--adaptive"] if adaptive and level != "off" else []
         chosen += ["--rules", str(rules)] if rules is not None and level != "off" else []
+        chosen += ["--denoise"] if denoise else []
         chosen += [*asked.args(), *(arg for folder in spec.search_paths for arg in ("-a", str(folder)))]
         cmd = [sys.executable, "-m", "quekaro", "render", str(spec.path), "--opt", level, "--spp", str(spp),
                "-t", str(threads), "-o", str(out), *chosen, *(f"-D{k}={v}" for k, v in spec.defines.items())]
@@ -304,59 +342,117 @@ def asked(args: argparse.Namespace) -> Asked:
 
 def scene_cells(scene: SuiteScene, agents: list[int], levels: list[str], args: argparse.Namespace,
                 work: Path) -> list[dict[str, Any]]:
-    """Every (agents, level) cell of one scene, with errors, seams and the uniform baseline."""
+    """Every (agents, level) cell of one scene, raw and (--denoise) denoised, with errors, seams and the
+    uniform baseline; with --denoise, the denoiser's bias on each denoised cell."""
     spec = scene_spec(scene, args)
     variant = job_variant(spec)  # the jobs' own: plain Mitsuba renders in it too
     ref = reference(spec, args.ref_spp, args.threads, Path(args.cache), variant, asked(args))
-    t0, k = spp_timing(spec, args.spp, args.threads, variant, asked(args))
+    line = spp_timing(spec, args.spp, args.threads, variant, asked(args))
     cells, diffs, units = [], {}, {}
     for n in agents:
-        runner = (inprocess_runner(args.threads, args.units, args.adaptive, asked(args), args.rules)
-                  if args.inprocess else farm_runner(n, args.threads, work / f"farm-{scene.name}-{n}", args.units,
-                                                     args.adaptive, asked(args), args.rules))
-        with runner as run_job:
-            for level in levels:
-                cell, image, rects = run_cell(run_job, spec, level, args, work / f"{scene.name}-{n}-{level}", ref)
+        with runner(n, args, work / f"farm-{scene.name}-{n}") as run_job:
+            for level, denoise in grid(levels, args.denoise):
+                stem = work / f"{scene.name}-{n}-{level}{'-denoised' if denoise else ''}"
+                cell, image, rects = run_cell(run_job, spec, level, args, stem, ref, denoise)
                 if cell["variant"] != variant:
                     raise QuekaroError(f"{scene.name} level {level}: the job rendered in {cell['variant']}, "
                                        f"the reference in {variant}")
                 cells.append({"scene": scene.name, "role": scene.role, "agents": n, **cell})
                 if n == agents[0]:
-                    diffs[level], units[level] = diff_image(image, ref), rects
-    uniform = uniform_baseline(spec, cells, agents[0], args, (t0, k), ref, variant, units)
-    for cell in cells:
+                    diffs[label(cell)], units[label(cell)] = diff_image(image, ref), rects
+    renders: dict[int, Any] = {}  # plain renders by spp, shared by the raw and the denoised baselines
+    raw = [c for c in cells if not denoised(c)]
+    uniform = uniform_baseline(spec, raw, agents[0], args, line, ref, variant, units, renders)
+    for cell in raw:
         cell.update(uniform[cell["level"]])
+    if args.denoise:
+        bias, diffs["denoise-bias"] = denoiser_bias(spec, args, ref, work / f"{scene.name}-bias.exr")
+        for cell in (c for c in cells if denoised(c)):
+            cell.update(denoised_baseline(spec, cell, args, line, ref, variant, renders), **bias)
     write_diff_images(scene.name, diffs, Path(args.out))
     return cells
 
 
+def grid(levels: list[str], denoise: bool) -> list[tuple[str, bool]]:
+    """(level, denoised) of a scene's cells: each level raw; with `denoise`, level off (uniform+denoise)
+    and each level again, denoised."""
+    return [(level, False) for level in levels] + [(level, True) for level in dict.fromkeys(["off", *levels])
+                                                   if denoise]
+
+
+def denoised(cell: dict[str, Any]) -> bool:
+    """Whether a cell's jobs were denoised (a cell without the key is raw)."""
+    return bool(cell.get("denoise", False))
+
+
+def label(cell: dict[str, Any]) -> str:
+    """A cell's name in tables, plot and files: its level; denoised, uniform+denoise (level off) or
+    LEVEL+denoise."""
+    if not denoised(cell):
+        return cell["level"]
+    return ("uniform" if cell["level"] == "off" else cell["level"]) + "+denoise"
+
+
+def runner(n: int, args: argparse.Namespace, home: Path) -> Any:
+    """The job runner of this run: one process (--inprocess) or a farm of n agents at `home`."""
+    if args.inprocess:
+        return inprocess_runner(args.threads, args.units, args.adaptive, asked(args), args.rules)
+    return farm_runner(n, args.threads, home, args.units, args.adaptive, asked(args), args.rules)
+
+
 def run_cell(run_job: Callable, spec: SceneSpec, level: str, args: argparse.Namespace, stem: Path,
-             ref: np.ndarray) -> tuple[dict[str, Any], np.ndarray, list[Rect]]:
-    """One level's jobs (warm-up, then the timed runs): the cell's figures, its last image, its units.
-    The warm-up (skipped by `--no-warmup`) compiles the job's kernels and is reported as the first run's
-    time; then `--runs` timed runs. The figures: the median wall and CPU seconds, the errors against the
-    reference averaged over every run (the warm-up included: seeds follow the job id), the seam measure of
-    the last image at the units' borders, and how the rules spent samples."""
-    images, first = [], {}
+             ref: np.ndarray, denoise: bool = False) -> tuple[dict[str, Any], np.ndarray, list[Rect]]:
+    """One level's jobs (warm-up, then the timed runs), denoised with `denoise`: the cell's figures, its
+    last image, its units. The warm-up (skipped by `--no-warmup`) compiles the job's kernels and is reported
+    as the first run's time; then `--runs` timed runs. The figures: the median wall and CPU seconds, the
+    errors against the reference averaged over every run (the warm-up included: seeds follow the job id),
+    the seam measure of the last image at the units' borders, how the rules spent samples, and a denoised
+    cell's `denoise_account`."""
+    images, raws, first = [], [], {}
     if args.warmup:  # compiles this job's kernels (one per window or batch rectangle size) before timing it
-        warm, wall, _ = run_job(spec, level, args.spp, stem.with_name(stem.name + "-warm.exr"))
+        warm, wall, _ = run_job(spec, level, args.spp, stem.with_name(stem.name + "-warm.exr"), denoise=denoise)
         images.append(read_image(warm["image"]["file"])[..., :3])  # the film's file: .pfm, .rgbe or .exr
+        raws.append(raw_image(warm))
         first = {"first_seconds": wall}
     timed = []
     for r in range(args.runs):
         out = stem.with_name(f"{stem.name}-{r}.exr")
-        timed.append(run_job(spec, level, args.spp, out))
+        timed.append(run_job(spec, level, args.spp, out, denoise=denoise))
         images.append(read_image(timed[-1][0]["image"]["file"])[..., :3])
+        raws.append(raw_image(timed[-1][0]))
     report = timed[-1][0]
     used = [spent(rep) for rep, _, _ in timed]
     rects = [Rect.from_list(u["rect"]) for u in report["units"]]
     seams = seam_measure(images[-1], ref, rects)
-    return {"level": level, "variant": report["effects"]["variant"],
+    account = denoise_account([rep for rep, _, _ in timed], raws, ref) if denoise else {}
+    return {"level": level, "denoise": denoise, "variant": report["effects"]["variant"],
             "seconds": float(np.median([wall for _, wall, _ in timed])),
             "cpu_seconds": float(np.median([cpu for _, _, cpu in timed])),
             "seconds_runs": [wall for _, wall, _ in timed], **first, **mean_metrics(images, ref), **used[-1],
             "render_seconds": float(np.median([u["render_seconds"] for u in used])),
-            **{f"seam_{k}": v for k, v in seams.to_dict().items()}}, images[-1], rects
+            **{f"seam_{k}": v for k, v in seams.to_dict().items()}, **account}, images[-1], rects
+
+
+def raw_image(report: dict[str, Any]) -> np.ndarray | None:
+    """A denoised job's raw colour (its OUT.raw.exr, as the report names it), or None: a raw job, or a
+    farm's raw file not where its report says."""
+    named = (report.get("denoise") or {}).get("raw")
+    return read_image(named)[..., :3] if named and Path(named).is_file() else None
+
+
+def denoise_account(reports: list[dict[str, Any]], raws: list[np.ndarray | None],
+                    ref: np.ndarray) -> dict[str, Any]:
+    """A denoised cell's own figures: the medians of the AOV pass's and the denoising's seconds over the
+    timed runs (where the reports say them), and the raw images' (box filter) relMSE and FLIP against the
+    same reference, averaged over every run (where every raw file was found)."""
+    aov = [r["render_calls"]["aov_pass_seconds"] for r in reports
+           if "aov_pass_seconds" in (r.get("render_calls") or {})]
+    out = {"denoise_seconds": float(np.median([r["denoise"]["seconds"] for r in reports]))}
+    out |= {"aov_pass_seconds": float(np.median(aov))} if aov else {}
+    if raws and all(r is not None for r in raws):
+        out |= {"raw_relmse": float(np.mean([relmse(r, ref) for r in raws])),
+                "raw_flip": float(np.mean([flip(r, ref) for r in raws]))}
+    return out
 
 
 def mean_metrics(images: list[np.ndarray], ref: np.ndarray) -> dict[str, float]:
@@ -367,31 +463,49 @@ def mean_metrics(images: list[np.ndarray], ref: np.ndarray) -> dict[str, float]:
     return {**mean, "relmse_runs": [r["relmse"] for r in runs]}
 
 
+def wall_spp(seconds: float, line: tuple[float, float]) -> tuple[int, bool]:
+    """The uniform spp whose plain-Mitsuba process takes `seconds` by the line (t0, k), at least 1, and
+    whether it fits: below half a sample's time beyond plain Mitsuba's start-up, no uniform spp is as fast
+    (1 spp, the least, takes longer, and a ratio against it would flatter the cell)."""
+    t0, k = line
+    return max(1, round((seconds - t0) / k)), (seconds - t0) / k >= 0.5
+
+
 def uniform_baseline(spec: Any, cells: list[dict[str, Any]], n: int, args: argparse.Namespace,
                      line: tuple[float, float], ref: np.ndarray, variant: str,
-                     units: dict[str, list[Rect]]) -> dict[str, dict[str, Any]]:
+                     units: dict[str, list[Rect]], renders: dict[int, Any] | None = None) -> dict[str, dict[str, Any]]:
     """Per level: plain renders at the spp taking the wall time and the render time of its n-agent cell
     (the fewest agents): `uniform_spp` matches the job's wall time (what a user waits for), and
     `render_uniform_spp` its render seconds alone (the allocation without the overheads, by the slope k:
     render_time_spp). Plain Mitsuba runs as a user runs it (`planning.plain`, the whole process timed).
     The seam measure of the first one at the level's unit borders is the measure's control: plain Mitsuba
-    has no borders, so what it reads there is the measure's own false alarm on this scene."""
+    has no borders, so what it reads there is the measure's own false alarm on this scene. `renders`:
+    plain renders by spp, reused (`plain_at`)."""
     t0, k = line
     out = {}
     for cell in (c for c in cells if c["agents"] == n):
-        # Below half a sample's time beyond plain Mitsuba's start-up, no uniform spp is as fast as the cell:
-        # 1 spp (the least) takes longer, and a ratio against it would flatter the cell.
-        entry = {"uniform_t0_s": t0, "uniform_s_per_spp": k, "uniform_fits": (cell["seconds"] - t0) / k >= 0.5}
-        wall_spp = max(1, round((cell["seconds"] - t0) / k))
-        for prefix, spp in (("uniform", wall_spp), ("render_uniform", render_time_spp(cell["render_seconds"], k, n,
-                                                                                        args.threads))):
-            figures, first = plain_at(spec, spp, args, variant, ref)
+        wall, fits = wall_spp(cell["seconds"], line)
+        entry = {"uniform_t0_s": t0, "uniform_s_per_spp": k, "uniform_fits": fits}
+        for prefix, spp in (("uniform", wall), ("render_uniform", render_time_spp(cell["render_seconds"], k, n,
+                                                                                  args.threads))):
+            figures, first = plain_at(spec, spp, args, variant, ref, renders)
             entry.update({f"{prefix}_{m}": v for m, v in figures.items()})
             if prefix == "uniform" and units.get(cell["level"]):
                 seams = seam_measure(first, ref, units[cell["level"]]).to_dict()
                 entry.update({f"uniform_seam_{m}": v for m, v in seams.items()})
         out[cell["level"]] = entry
     return out
+
+
+def denoised_baseline(spec: Any, cell: dict[str, Any], args: argparse.Namespace, line: tuple[float, float],
+                      ref: np.ndarray, variant: str, renders: dict[int, Any]) -> dict[str, Any]:
+    """A denoised cell's baseline: raw plain Mitsuba (the scene's own filter, as the raw cells' baseline) at
+    the uniform spp taking the cell's own wall time, whatever its agent count. No render-time baseline: a
+    denoised job's AOV pass and denoising are part of what it costs."""
+    spp, fits = wall_spp(cell["seconds"], line)
+    figures, _ = plain_at(spec, spp, args, variant, ref, renders)
+    return {"uniform_t0_s": line[0], "uniform_s_per_spp": line[1], "uniform_fits": fits,
+            **{f"uniform_{m}": v for m, v in figures.items()}}
 
 
 def render_time_spp(render_seconds: float, k: float, agents: int, threads: int) -> int:
@@ -403,28 +517,59 @@ def render_time_spp(render_seconds: float, k: float, agents: int, threads: int) 
     return max(1, round(render_seconds * per_renderer / threads / k))
 
 
-def plain_at(spec: Any, spp: int, args: argparse.Namespace, variant: str,
-             ref: np.ndarray) -> tuple[dict[str, Any], np.ndarray]:
+def plain_at(spec: Any, spp: int, args: argparse.Namespace, variant: str, ref: np.ndarray,
+             renders: dict[int, Any] | None = None) -> tuple[dict[str, Any], np.ndarray]:
     """Plain renders at `spp`, as many seeds as a cell's errors average: spp, the fastest one's seconds and
-    the mean errors; and the first image."""
+    the mean errors; and the first image. `renders` keeps them by spp: the seeds follow the spp, so a
+    second call at one spp would render the same images again."""
+    if renders is not None and spp in renders:
+        return renders[spp]
     runs = args.runs + int(args.warmup)
-    renders = [plain_render(spec, spp, args.threads, variant, seed=4242 + spp + 7919 * i, asked=asked(args))
-               for i in range(runs)]
-    figures = {"spp": spp, "seconds": min(t for _, t in renders),
-               **mean_metrics([pixels for pixels, _ in renders], ref)}
-    return figures, renders[0][0]
+    plain = [plain_render(spec, spp, args.threads, variant, seed=4242 + spp + 7919 * i, asked=asked(args))
+             for i in range(runs)]
+    figures = {"spp": spp, "seconds": min(t for _, t in plain),
+               **mean_metrics([pixels for pixels, _ in plain], ref)}
+    if renders is not None:
+        renders[spp] = (figures, plain[0][0])
+    return figures, plain[0][0]
+
+
+def denoiser_bias(spec: SceneSpec, args: argparse.Namespace, ref: np.ndarray,
+                  out: Path) -> tuple[dict[str, Any], np.ndarray]:
+    """The denoiser's bias: the scene denoised at `bias_spp` (one `quekaro render --denoise` process, at
+    level off) against the reference, where little noise is left for it to remove: its relMSE and FLIP,
+    its raw image's (box filter), the reference's warning if too noisy for it, and its difference image."""
+    spp = bias_spp(args)
+    with inprocess_runner(args.threads, asked=asked(args)) as run_job:
+        report, wall, _ = run_job(spec, "off", spp, out, denoise=True)
+    image, raw = read_image(report["image"]["file"])[..., :3], raw_image(report)
+    return {"bias_spp": spp, "bias_seconds": wall, "bias_relmse": relmse(image, ref), "bias_flip": flip(image, ref),
+            "bias_raw_relmse": relmse(raw, ref), "bias_raw_flip": flip(raw, ref),
+            "bias_warning": reference_warning(args.ref_spp, spp)}, diff_image(image, ref)
 
 
 # ---- outputs ---------------------------------------------------------------------------------------
 
 
 def write_diff_images(name: str, diffs: dict[str, np.ndarray], out: Path) -> None:
-    """Grey difference images against the reference, one per level (white = DIFF_WHITE or more), as 8-bit
-    greyscale PNGs (Pillow): a quarter of the size of matplotlib's RGBA ones."""
+    """Grey difference images against the reference, one per cell label (white = DIFF_WHITE or more), as
+    8-bit greyscale PNGs (Pillow, a quarter of the size of matplotlib's RGBA ones) at a reader's size
+    (`reader_sized`); a label's "+" is "-" in the file name (cbox-S-denoise.png)."""
     folder = out / "accuracy-diff"
     folder.mkdir(parents=True, exist_ok=True)
-    for level, diff in diffs.items():
-        Image.fromarray(grey_levels(diff / DIFF_WHITE), mode="L").save(folder / f"{name}-{level}.png", optimize=True)
+    for key, diff in diffs.items():
+        grey = grey_levels(reader_sized(diff) / DIFF_WHITE)
+        Image.fromarray(grey, mode="L").save(folder / f"{name}-{key.replace('+', '-')}.png", optimize=True)
+
+
+def reader_sized(diff: np.ndarray) -> np.ndarray:
+    """The (H, W) difference image with its longest side at most READER_SIDE, each pixel the mean of the
+    ones it covers (Pillow's box resampling: the mean difference is kept)."""
+    scale = READER_SIDE / max(diff.shape)
+    if scale >= 1:
+        return diff
+    size = (max(1, round(diff.shape[1] * scale)), max(1, round(diff.shape[0] * scale)))
+    return np.asarray(Image.fromarray(diff.astype(np.float32)).resize(size, Image.Resampling.BOX))
 
 
 def grey_levels(value: np.ndarray) -> np.ndarray:
@@ -465,7 +610,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                    for s in scenes}, "spp": args.spp, "ref_spp": args.ref_spp, "threads": args.threads,
         "mode": mode(args, settings.get("rules_digest")), "agents": agents, "levels": levels,
         "asked": asked(args).options(),
-        "cells": cells, "targets": targets(cells, agents[0]), "seconds": time.perf_counter() - started,
+        "cells": cells, "targets": targets(cells, agents[0]),
+        "denoise_targets": denoise_targets(cells, args.inprocess) if args.denoise else [],
+        "seconds": time.perf_counter() - started,
         "load": [load_before, os.getloadavg()[0]], "resumed": resumed, "changed": changed,
     }
     result["outputs"] = [str(p) for p in write_outputs(result, Path(args.out))]
@@ -487,14 +634,17 @@ def run_settings(args: argparse.Namespace, agents: list[int], levels: list[str])
             "warmup": args.warmup, "inprocess": args.inprocess, "units": args.units, "adaptive": args.adaptive,
             **asked(args).options(),  # only what differs from the scene as written: older partial runs still match
             **({"rules_digest": rules_digest(args.rules)} if args.rules is not None else {}),
-            **({"search_paths": [str(p) for p in args.search_paths]} if args.search_paths else {})}
+            **({"search_paths": [str(p) for p in args.search_paths]} if args.search_paths else {}),
+            **({"denoise": True, "bias_spp": bias_spp(args)} if args.denoise else {})}  # raw runs match as before
 
 
 def mode(args: argparse.Namespace, digest: str | None = None) -> str:
-    """How the jobs ran: through a farm or in one process, whether the optimised levels were adaptive, and with
-    which rule file (`digest`, what its rules compute: bench.provenance.rules_digest) when not the default."""
+    """How the jobs ran: through a farm or in one process, whether the optimised levels were adaptive, with
+    which rule file (`digest`, what its rules compute: bench.provenance.rules_digest) when not the default,
+    and whether denoised cells were added (--denoise)."""
     rules = f", rules {_shown(args.rules)} (digest {digest[:12]})" if digest else ""
-    return ("inprocess" if args.inprocess else "farm") + (", adaptive" if args.adaptive else "") + rules
+    return (("inprocess" if args.inprocess else "farm") + (", adaptive" if args.adaptive else "") + rules
+            + (", denoise" if args.denoise else ""))
 
 
 def write_partial(settings: dict[str, Any], cells: list[dict[str, Any]], out: Path) -> None:
@@ -539,8 +689,9 @@ def _shown(path: Path) -> str:
 
 def targets(cells: list[dict[str, Any]], n: int) -> list[dict[str, Any]]:
     """The targets over the scenes run, n-agent cells: per level, the median over scenes of relMSE over
-    uniform's at equal wall time; per scene, level S's time over off's and its mean pixel difference."""
-    mine = [c for c in cells if c["agents"] == n]
+    uniform's at equal wall time; per scene, level S's time over off's and its mean pixel difference. Raw
+    cells only: the denoised ones have targets of their own (`denoise_targets`)."""
+    mine = [c for c in cells if c["agents"] == n and not denoised(c)]
     out = []
     for level in dict.fromkeys(c["level"] for c in mine if c["level"] != "off"):
         at_level = [c for c in mine if c["level"] == level]
@@ -583,12 +734,79 @@ def paper_table(cells: list[dict[str, Any]], scene: str, levels: list[str]) -> l
         lines.append(f"| {n} | " + " | ".join(parts) + " |")
     first = min(c["agents"] for c in cells if c["scene"] == scene)
     row = {c["level"]: c for c in cells if c["scene"] == scene and c["agents"] == first}
-    for prefix, label in (("uniform", "uniform, equal wall time"), ("render_uniform", "uniform, equal render time")):
+    for prefix, title in (("uniform", "uniform, equal wall time"), ("render_uniform", "uniform, equal render time")):
         parts = [f"{row[lv][prefix + '_spp']} spp{_longer(row[lv], prefix)}, "
                  f"{row[lv][prefix + '_mean_pixel_diff_percent']:.2f} %, "
                  f"relMSE {row[lv][prefix + '_relmse']:.4f}" if lv in row else "" for lv in levels]
-        lines.append(f"| {label} | " + " | ".join(parts) + " |")
+        lines.append(f"| {title} | " + " | ".join(parts) + " |")
     return lines
+
+
+DENOISE_ABOUT = ("Denoised cells (`--denoise`): each job renders with a box filter, adds the denoiser's AOV pass and "
+                 "denoises (its seconds hold both); raw uniform plain Mitsuba renders with the scene's own filter at "
+                 "the spp taking the cell's wall time. Both are scored against one reference, the scene as written "
+                 "(its own filter) at {ref_spp} spp, so a denoised image's error holds the filter's difference too. "
+                 "\"its raw\" is the same job's raw image (OUT.raw.exr, box filter).")
+
+
+def denoise_table(cells: list[dict[str, Any]], scene: str) -> list[str]:
+    """A scene's denoised cells: time, errors, its raw image's, and raw uniform's at equal wall time."""
+    lines = ["| agents | setting | s | AOV pass s | denoise s | relMSE | FLIP | its raw: relMSE, FLIP "
+             "| raw uniform, equal wall time | relMSE / uniform | FLIP / uniform |", "|" + "---|" * 11]
+    for c in (c for c in cells if c["scene"] == scene and denoised(c)):
+        aov = f"{c['aov_pass_seconds']:.2f}" if "aov_pass_seconds" in c else "-"
+        raw = f"{c['raw_relmse']:.4f}, {c['raw_flip']:.4f}" if "raw_relmse" in c else "-"
+        lines.append(f"| {c['agents']} | {label(c)} | {c['seconds']:.1f} | {aov} | {c['denoise_seconds']:.2f} "
+                     f"| {c['relmse']:.4f} | {c['flip']:.4f} | {raw} | {c['uniform_spp']} spp{_longer(c, 'uniform')}, "
+                     f"relMSE {c['uniform_relmse']:.4f}, FLIP {c['uniform_flip']:.4f} "
+                     f"| {c['relmse'] / max(c['uniform_relmse'], 1e-30):.3f} "
+                     f"| {c['flip'] / max(c['uniform_flip'], 1e-30):.3f} |")
+    return lines
+
+
+def bias_line(cells: list[dict[str, Any]], scene: str) -> str:
+    """The denoiser's bias on a scene, as its denoised cells carry it (`denoiser_bias`)."""
+    c = next(c for c in cells if c["scene"] == scene and denoised(c))
+    warning = f"; {c['bias_warning']}" if c.get("bias_warning") else ""
+    return (f"denoiser's bias: {scene} denoised at {c['bias_spp']} spp (level off, one process, "
+            f"{c['bias_seconds']:.1f} s) against the reference: relMSE {c['bias_relmse']:.4f}, FLIP "
+            f"{c['bias_flip']:.4f}; its raw image (box filter) relMSE {c['bias_raw_relmse']:.4f}, FLIP "
+            f"{c['bias_raw_flip']:.4f}; difference image accuracy-diff/{scene}-denoise-bias.png{warning}")
+
+
+def denoise_targets(cells: list[dict[str, Any]], inprocess: bool) -> list[dict[str, Any]]:
+    """The denoised targets (issue 64), per agent count and denoised setting: the medians over the scenes of
+    the cells' relMSE and FLIP over raw uniform's at each cell's wall time (RELMSE_DENOISED, FLIP_DENOISED)."""
+    mine = [c for c in cells if denoised(c)]
+    out = []
+    for n in sorted({c["agents"] for c in mine}):
+        where = "one process" if inprocess else f"{n}-agent farm"
+        for name in dict.fromkeys(label(c) for c in mine if c["agents"] == n):
+            at = [c for c in mine if c["agents"] == n and label(c) == name]
+            out += [ratio_target(at, metric, limit, f"{where}, {name}")
+                    for metric, limit in (("relmse", RELMSE_DENOISED), ("flip", FLIP_DENOISED))]
+    return out
+
+
+def ratio_target(at: list[dict[str, Any]], metric: str, limit: float, what: str) -> dict[str, Any]:
+    """One denoised target: the median over these cells of `metric` over raw uniform's, and each scene's."""
+    name = (f"{what}: median {'relMSE' if metric == 'relmse' else 'FLIP'} over {len(at)} scene(s) <= {limit} x "
+            "raw uniform (equal wall time)")
+    unfit = [c["scene"] for c in at if not c.get("uniform_fits", True)]
+    if unfit:  # not measured, so neither met nor missed
+        return {"name": f"{name}; on {', '.join(unfit)} the cell took less than plain Mitsuba's 1 spp",
+                "value": None, "limit": limit, "pass": False, "scenes": {}}
+    ratios = {c["scene"]: c[metric] / max(c[f"uniform_{metric}"], 1e-30) for c in at}
+    value = float(np.median(list(ratios.values())))
+    return {"name": name, "value": value, "limit": limit, "pass": value <= limit, "scenes": ratios}
+
+
+def denoise_target_line(t: dict[str, Any]) -> str:
+    """A denoised target as printed: its figure, met or missed, and each scene's ratio."""
+    if t["value"] is None:
+        return f"target: {t['name']}: not measured"
+    each = ", ".join(f"{scene} {ratio:.3f}" for scene, ratio in t["scenes"].items())
+    return f"target: {t['name']}: {t['value']:.3f} {'met' if t['pass'] else 'missed'} ({each})"
 
 
 def _longer(cell: dict[str, Any], prefix: str) -> str:
@@ -607,7 +825,7 @@ def spending_lines(cells: list[dict[str, Any]]) -> list[str]:
         plain = _seam_text(c, "uniform_seam_") if "uniform_seam_z" in c else "-"
         first = f"{c['first_seconds']:.1f}" if "first_seconds" in c else "-"
         lines.append(
-            f"| {c['scene']} | {c['agents']} | {c['level']} | {c['seconds']:.1f} | {first} | {c['cpu_seconds']:.1f} "
+            f"| {c['scene']} | {c['agents']} | {label(c)} | {c['seconds']:.1f} | {first} | {c['cpu_seconds']:.1f} "
             f"| {c['render_seconds']:.1f} | {c['prepass_seconds']:.2f} | {c['units']} "
             f"| {c['spp_mean']:.0f} ({c['spp_min']}-{c['spp_max']}) | {_depths(c)} "
             f"| {c['mean_pixel_diff_percent']:.2f} | {c['rmse']:.4f} | {c['relmse']:.4f} | {c['flip']:.4f} "
@@ -635,14 +853,20 @@ def format_report(result: dict[str, Any]) -> str:
                 else "")
              + (f"; measured again, their files changed since the partial run: {', '.join(result['changed'])}"
                 if result.get("changed") else ""), ""]
-    for scene in dict.fromkeys(c["scene"] for c in result["cells"]):
+    cells = result["cells"]
+    if any(denoised(c) for c in cells):
+        lines += [DENOISE_ABOUT.format(ref_spp=result["ref_spp"]), ""]
+    for scene in dict.fromkeys(c["scene"] for c in cells):
         about = result["scenes"][scene]
         lines += [f"## {scene} ({about['role']}: {about['path']} {about['defines']})", "",
-                  *paper_table(result["cells"], scene, result["levels"]), ""]
-    lines += [*spending_lines(result["cells"]), ""]
+                  *paper_table([c for c in cells if not denoised(c)], scene, result["levels"]), ""]
+        if any(denoised(c) for c in cells if c["scene"] == scene):
+            lines += [*denoise_table(cells, scene), "", bias_line(cells, scene), ""]
+    lines += [*spending_lines(cells), ""]
     for t in result["targets"]:
         verdict = "not measured" if t["value"] is None else f"{t['value']:.3f} {'PASS' if t['pass'] else 'MISS'}"
         lines.append(f"target: {t['name']}: {verdict}")
+    lines += [denoise_target_line(t) for t in result.get("denoise_targets") or []]
     return "\n".join(lines)
 
 
@@ -660,9 +884,11 @@ def write_outputs(result: dict[str, Any], out: Path) -> list[Path]:
     return [md, csv_path, png]
 
 
-def plot(cells: list[dict[str, Any]], path: Path) -> None:
+def plot(every: list[dict[str, Any]], path: Path) -> None:
     """One panel per scene: relMSE against seconds, the fuzzy levels (filled, per agent count, at wall
-    time; hollow, fewest agents, at render time) against the line of uniform-spp plain renders."""
+    time; hollow, fewest agents, at render time) against the line of uniform-spp plain renders; with
+    denoised cells, those too (diamonds, at wall time) and the denoiser's bias (`plot_denoised`)."""
+    cells = [c for c in every if not denoised(c)]
     scenes = list(dict.fromkeys(c["scene"] for c in cells))
     cols = min(3, len(scenes))
     rows = (len(scenes) + cols - 1) // cols
@@ -680,8 +906,11 @@ def plot(cells: list[dict[str, Any]], path: Path) -> None:
             if n == first:
                 ax.plot([c["render_seconds"] for c in sel], [c["relmse"] for c in sel], "o", mfc="none",
                         color=f"C{i}", label="fuzzy, render time")
-        uniform = sorted((c[f"{p}_seconds"], c[f"{p}_relmse"]) for c in mine if c["agents"] == first
-                         for p in ("uniform", "render_uniform"))
+        others = [c for c in every if c["scene"] == scene and denoised(c)]
+        plot_denoised(ax, others)
+        uniform = sorted([(c[f"{p}_seconds"], c[f"{p}_relmse"]) for c in mine if c["agents"] == first
+                          for p in ("uniform", "render_uniform")]
+                         + [(c["uniform_seconds"], c["uniform_relmse"]) for c in others])
         ax.plot(*zip(*uniform, strict=True), "s--", color="grey", alpha=0.7, label="uniform spp (plain)")
         ax.set_title(scene, fontsize=9)
         ax.set_xlabel("seconds", fontsize=8)
@@ -693,3 +922,20 @@ def plot(cells: list[dict[str, Any]], path: Path) -> None:
             ax.legend(fontsize=6)
     fig.tight_layout()
     fig.savefig(path)
+
+
+def plot_denoised(ax: Any, cells: list[dict[str, Any]]) -> None:
+    """A scene's denoised cells on its panel (diamonds, per agent count, at wall time; colours after the raw
+    cells') and the denoiser's bias as a dotted line: the error a denoised job keeps however long it runs."""
+    counts = sorted({c["agents"] for c in cells})
+    for i, n in enumerate(counts):
+        sel = sorted((c for c in cells if c["agents"] == n), key=lambda c: c["seconds"])
+        colour = f"C{i + 3}"
+        ax.plot([c["seconds"] for c in sel], [c["relmse"] for c in sel], "D-", color=colour, ms=4,
+                label=f"denoised, {n} agent(s), wall")
+        for c in sel:
+            ax.annotate(label(c).replace("uniform+denoise", "off+dn").replace("+denoise", "+dn"),
+                        (c["seconds"], c["relmse"]), fontsize=7, color=colour)
+    if cells:
+        c = cells[0]
+        ax.axhline(c["bias_relmse"], ls=":", color="C3", label=f"denoiser's bias ({c['bias_spp']} spp)")

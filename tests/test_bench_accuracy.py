@@ -348,3 +348,94 @@ def test_a_cell_faster_than_plain_mitsubas_least_render_is_not_scored_against_it
     assert n_target["value"] is not None
     table = "\n".join(bench_accuracy.paper_table(cells, "a", ["S", "N"]))
     assert "1 spp (the least; takes longer than the cell)" in table and "63 spp," in table
+
+
+@pytest.mark.slow
+def test_denoised_cells_are_scored_against_raw_uniform_at_their_own_wall_time(tmp_path):
+    """--denoise: uniform+denoise (level off) and level S denoised beside the raw S cell; each denoised cell
+    read from the denoised image (far below its own raw image's error at 4 spp), scored with raw plain
+    Mitsuba at the spp its own wall time buys, the targets and the bias printed with figures; a resumed
+    run keeps the denoised cells as they were."""
+    args = args_for(tmp_path, "--inprocess", "--denoise", "--levels", "S", "--runs", "1", "--bias-spp", "16")
+    result = bench_accuracy.run(args)
+    cells = result["cells"]
+    assert [(c["level"], c["denoise"]) for c in cells] == [("S", False), ("off", True), ("S", True)]
+    assert result["mode"] == "inprocess, denoise"
+    for c in cells[1:]:
+        assert c["aov_pass_seconds"] > 0 and c["denoise_seconds"] > 0 and c["bias_spp"] == 16
+        t0, k = c["uniform_t0_s"], c["uniform_s_per_spp"]
+        assert c["uniform_spp"] == max(1, round((c["seconds"] - t0) / k))  # the cell's own wall time
+        assert "render_uniform_spp" not in c  # no render-time baseline for a denoised job
+    off = cells[1]
+    assert off["spp_min"] == off["spp_max"] == 4 and off["relmse"] < 0.5 * off["raw_relmse"]
+    assert 0 < off["bias_relmse"] < off["bias_raw_relmse"] and 0 < off["bias_flip"] < 1
+    table = (tmp_path / "out" / "accuracy.md").read_text()
+    ratio = off["relmse"] / off["uniform_relmse"]
+    assert f"| 1 | uniform+denoise | {off['seconds']:.1f} |" in table and f"| {ratio:.3f} |" in table
+    assert "the scene as written (its own filter) at 32 spp" in table
+    assert re.search(r"denoiser's bias: caustic-corner denoised at 16 spp \(level off, one process, [\d.]+ s\) "
+                     r"against the reference: relMSE 0\.\d{4}, FLIP 0\.\d{4}", table)
+    for name in ("uniform+denoise", "S+denoise"):
+        for metric, limit in (("relMSE", 0.2), ("FLIP", 0.5)):
+            assert re.search(rf"target: one process, {re.escape(name)}: median {metric} over 1 scene\(s\) <= "
+                             rf"{limit} x raw uniform \(equal wall time\): \d+\.\d{{3}} (met|missed) "
+                             rf"\(caustic-corner \d+\.\d{{3}}\)", table), (name, metric)
+    [relmse_target] = [t for t in result["denoise_targets"] if t["name"].startswith("one process, uniform+denoise: "
+                                                                                   "median relMSE")]
+    assert relmse_target["value"] == pytest.approx(ratio)
+    bias = Image.open(tmp_path / "out" / "accuracy-diff" / "caustic-corner-denoise-bias.png")
+    assert bias.mode == "L" and bias.size == (32, 32)
+    assert (tmp_path / "out" / "accuracy-diff" / "caustic-corner-uniform-denoise.png").exists()
+    again = bench_accuracy.run(args_for(tmp_path, "--inprocess", "--denoise", "--levels", "S", "--runs", "1",
+                                        "--bias-spp", "16", "--resume"))
+    assert again["cells"] == cells and again["resumed"] == ["caustic-corner"]
+
+
+def test_a_raw_run_does_not_resume_a_denoised_one(tmp_path):
+    """Denoised cells are never taken for raw ones: the settings differ by denoise (and its bias spp)."""
+    raw = bench_accuracy.run_settings(args_for(tmp_path), [1], ["off", "S"])
+    assert "denoise" not in raw and "bias_spp" not in raw  # partial runs of older versions still match
+    args = args_for(tmp_path, "--denoise")
+    denoised = bench_accuracy.run_settings(args, [1], ["off", "S"])
+    assert denoised["denoise"] is True and denoised["bias_spp"] == 8  # a quarter of --ref-spp 32
+    bench_accuracy.write_partial(denoised, [{"scene": "cbox", "level": "off", "denoise": True}], args.out)
+    with pytest.raises(QuekaroError, match="denoise=True, this run asks for None"):
+        bench_accuracy.resumed_cells(args.out, raw)
+    with pytest.raises(QuekaroError, match="bias_spp=8, this run asks for 4"):
+        bench_accuracy.resumed_cells(args.out, bench_accuracy.run_settings(
+            args_for(tmp_path, "--denoise", "--bias-spp", "4"), [1], ["off", "S"]))
+
+
+def test_bias_spp_is_refused_without_denoise_or_below_one(tmp_path):
+    with pytest.raises(QuekaroError, match="--bias-spp 64: the denoiser's bias is measured with --denoise only"):
+        bench_accuracy.parse_grid(args_for(tmp_path, "--bias-spp", "64"))
+    with pytest.raises(QuekaroError, match="--bias-spp 0: at least one"):
+        bench_accuracy.parse_grid(args_for(tmp_path, "--denoise", "--bias-spp", "0"))
+    assert bench_accuracy.grid(["S", "off"], True) == [("S", False), ("off", False), ("off", True), ("S", True)]
+    assert bench_accuracy.grid(["S"], False) == [("S", False)]
+
+
+def test_denoise_targets_are_medians_over_scenes_of_ratios_to_raw_uniform():
+    """Per agent count and denoised setting; a cell faster than plain Mitsuba's 1 spp leaves it unmeasured."""
+    def cell(scene, level, relmse, flip, agents=2, fits=True):
+        return {"scene": scene, "level": level, "denoise": True, "agents": agents, "relmse": relmse, "flip": flip,
+                "uniform_relmse": 0.01, "uniform_flip": 0.2, "uniform_fits": fits}
+
+    cells = [cell("a", "off", 0.001, 0.05), cell("b", "off", 0.003, 0.2), cell("c", "off", 0.002, 0.12),
+             cell("a", "S", 0.004, 0.1, fits=False), {"scene": "a", "level": "off", "agents": 2, "relmse": 9.0}]
+    relmse, flip, s_relmse, _ = bench_accuracy.denoise_targets(cells, inprocess=False)
+    assert relmse["name"].startswith("2-agent farm, uniform+denoise: median relMSE over 3 scene(s) <= 0.2 x")
+    assert relmse["value"] == pytest.approx(0.2) and relmse["pass"]
+    assert flip["value"] == pytest.approx(0.6) and not flip["pass"]
+    assert bench_accuracy.denoise_target_line(flip).endswith(": 0.600 missed (a 0.250, b 1.000, c 0.600)")
+    assert s_relmse["value"] is None and bench_accuracy.denoise_target_line(s_relmse).endswith("not measured")
+
+
+def test_difference_images_are_written_at_a_readers_size():
+    diff = np.zeros((384, 512), dtype=np.float32)
+    diff[:, 256:] = 0.2
+    small = bench_accuracy.reader_sized(diff)
+    assert small.shape == (192, 256) and small.mean() == pytest.approx(diff.mean())
+    assert bench_accuracy.reader_sized(diff[:32]).shape == (16, 256)  # the longest side, the aspect kept
+    tiny = diff[:32, :40]
+    assert bench_accuracy.reader_sized(tiny) is tiny  # never enlarged
