@@ -22,7 +22,7 @@ import numpy as np
 from core.errors import QuekaroError, RenderError, SceneError
 from core.files import staged_together, written_atomically
 from core.image.compose import TileSource, compose_planar
-from core.image.denoise import AOV_SPP, AOVS, DENOISER_CHANNELS, denoise_planar
+from core.image.denoise import AOV_SPP, AOVS, DENOISER_CHANNELS, QUALITY, denoise_planar
 from core.image.film import display_rgb, film_output
 from core.image.imageio import write_image, write_png_planar
 from core.image.tiles import Tile
@@ -190,7 +190,7 @@ def _denoised(plan: JobPlan, job: Composed, out: Path) -> tuple[Composed, dict[s
     start = time.perf_counter()
     image = denoise_planar(job.image, job.channels, job.denoiser)
     account = {"raw": str(out.with_suffix(RAW_SUFFIX)), "filter": plan.spec.rfilter, "aovs": list(DENOISER_CHANNELS),
-               "aov_spp": AOV_SPP, "seconds": time.perf_counter() - start}
+               "aov_spp": AOV_SPP, "quality": QUALITY, "seconds": time.perf_counter() - start}
     return Composed(image, job.channels, job.compose, job.units), {"denoise": account}
 
 

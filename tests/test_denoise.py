@@ -141,7 +141,8 @@ def test_bench_denoise_reports_both_filters_at_each_spp(tmp_path: Path) -> None:
     """`quekaro bench denoise` on a small cbox: a row per filter and spp with finite errors, the medians, and
     its report; the denoiser gains under the box filter (measured: about 0.16x at 4 spp)."""
     done = subprocess.run([sys.executable, "-m", "quekaro", "bench", "denoise", str(CBOX), "--res", "48", "--spp", "4",
-                           "--ref-spp", "256", "--out", str(tmp_path), "--cache-dir", str(tmp_path / "cache"),
+                           "--ref-spp", "256", "--parts", "filters", "--out", str(tmp_path),
+                           "--cache-dir", str(tmp_path / "cache"),
                            "--json"], capture_output=True, text=True, cwd=REPO, timeout=300)
     assert done.returncode == 0, done.stderr
     result = json.loads(done.stdout)
