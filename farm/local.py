@@ -96,6 +96,7 @@ class LocalFarm:
         self._supervisor: threading.Thread | None = None
         self._previous_sigterm: object = None
         self._lock_fd: int | None = None
+        self._caller_umask: int | None = None
 
     @property
     def procs(self) -> list[tuple[str, subprocess.Popen]]:
@@ -120,6 +121,7 @@ class LocalFarm:
                 self._previous_sigterm = None
 
     def start(self) -> None:
+        self._caller_umask = os.umask(0o077)  # make_private sets it for the farm; stop() gives it back
         if make_private(self.home):  # the XMPP server's files, the logs and every child's inherit umask 077
             print(f"quekaro: --home {self.home}: others could read it; now only this user can", file=sys.stderr)
         try:
@@ -359,6 +361,9 @@ class LocalFarm:
         if self._lock_fd is not None:
             os.close(self._lock_fd)  # releases the flock
             self._lock_fd = None
+        if self._caller_umask is not None:  # a farm run inside a program (a test, a benchmark) leaves it as it was
+            os.umask(self._caller_umask)
+            self._caller_umask = None
 
 
 def _say(line: str) -> None:

@@ -71,3 +71,14 @@ def test_every_file_a_farm_writes_while_it_renders_a_job_is_its_users_alone(tmp_
         written = {p.name for p in home.rglob("*")}
         assert {"jobs.sqlite", "admin.token", "master.log", "result.exr"} <= written, written
         assert _open_to_others(home) == []
+
+
+@pytest.mark.slow
+def test_a_farm_run_inside_a_program_gives_its_umask_back(tmp_path: Path) -> None:
+    """A test or a benchmark that runs a LocalFarm in its own process keeps its umask once the farm stops."""
+    with LocalFarm(tmp_path / "farm", agents=1, threads=1) as farm:
+        farm.wait_for_agents()
+        during = os.umask(0o077)
+        os.umask(during)
+    after = os.umask(0o022)
+    assert (during, after) == (0o077, 0o022)
