@@ -53,7 +53,8 @@ def test_entrypoint_roles_render_a_job(tmp_path):
              QUEKARO_HTTP_PORT=str(http_port), QUEKARO_PUBLIC_URL=f"http://127.0.0.1:{http_port}",
              QUEKARO_HOME=str(tmp_path / "farm"))
         for i in (1, 2):
-            role(f"agent-{i}", QUEKARO_XMPP_PASSWORD="a-pw", QUEKARO_AGENT_NAME=f"box{i}")
+            role(f"agent-{i}", QUEKARO_XMPP_PASSWORD="a-pw", QUEKARO_AGENT_NAME=f"box{i}",
+                 QUEKARO_PUBLIC_URL=f"http://127.0.0.1:{http_port}")  # the master's URL, as the compose file gives
         client = wait_for_agents(tmp_path / "farm", procs, 2, tmp_path)
         defines = {"res": "32", "spp": "8"}
         with tempfile.TemporaryDirectory() as tmp:
