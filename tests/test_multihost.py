@@ -269,7 +269,8 @@ def test_agent_link_down_mid_unit_and_back(tmp_path):
         farm.net.link_down("a1")
         down = time.time()
         requeued = _wait_for("agent-1's unit back to auction", lambda: next(
-            (a for a in farm.attempts(job_id) if a["token"] == first["token"] and a["outcome"] == "requeued"),
+            (a for a in farm.attempts(job_id)
+             if a["token_sha256"] == first["token_sha256"] and a["outcome"] == "requeued"),
             None), 40, farm)
         lost_after = requeued["finished"] - down
         reawarded = _wait_for("agent-1's unit awarded again", lambda: next(
