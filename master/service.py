@@ -320,6 +320,7 @@ class MasterService:
             check_unpacked(scene, defines)
             options, rules_sha256 = _job_rules(job_dir / "scene", options)
             options.check_used()
+            _check_farm_options(options)
             digest = bundle_hash(bundle)
             _check_stated_spp(SceneSpec(scene, defines), scene_name, options)  # before the pre-pass
             # Seeded from the scene file as submitted, as `quekaro render` seeds it: a job reads the same
@@ -573,6 +574,13 @@ class MasterService:
                           extra={"job_id": job_id, "scene": scene, "created": record.created,
                                  "finished": record.finished}, aov_pass=aov_pass)
         return report
+
+
+def _check_farm_options(options: RenderOptions) -> None:
+    """Refuse what a farm does not render yet: progressive passes run in one process only."""
+    if options.progressive:
+        raise QuekaroError("--noise and --time: a farm does not render progressive passes yet; "
+                           "render the scene with `quekaro render --noise/--time` in one process")
 
 
 def _check_stated_spp(spec: SceneSpec, scene_name: str, options: RenderOptions) -> None:

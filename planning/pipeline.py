@@ -7,6 +7,7 @@ EXR, PNG and report) is shared with the master agent.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -25,6 +26,7 @@ from core.image.compose import TileSource, compose_planar
 from core.image.denoise import AOV_SPP, AOVS, DENOISER_CHANNELS, QUALITY, denoise_planar
 from core.image.film import display_rgb, film_output
 from core.image.imageio import write_image, write_png_planar
+from core.image.passes import UnitPasses
 from core.image.tiles import Tile
 from core.model.geometry import Rect
 from core.model.hashing import sha256_file
@@ -36,10 +38,13 @@ from core.render.batch import batch_name, batches, render_batch, together_proble
 from core.render.process import ADAPTIVE_META, RenderProcess, RenderRequest, adopt_scene
 from core.rules.unit_params import Planner, RenderParams
 from planning.jobplan import plan_job_loaded, plan_params
+from planning.progressive import NOISE, TIME, Goal, PassDone, PassOrder, Progressive, RenderRound, RoundDone
 
 log = logging.getLogger(__name__)
 
 UNIT_TIMEOUT_S = 3600.0
+# What a progressive unit's report line adds (ProgressiveRun._record).
+PASS_RECORD = ("passes", "relmse_estimate", "relative_error_estimate", "verdict")
 
 
 def unit_job(plan: JobPlan, unit: WorkUnit, params: RenderParams, job_id: str, threads: int | None) -> RenderRequest:
@@ -113,6 +118,7 @@ def unit_record(unit: WorkUnit, tile: Tile | TileSource, params: dict[str, Any])
         **({"depth_floor": unit.depth_floor} if unit.depth_floor is not None else {}),
         **{k: tile.meta[k] for k in ADAPTIVE_META if k in tile.meta},  # a two-pass render's own account
         **({"emulated": True} if params.get("emulated") else {}),  # slept by an emulated agent, not rendered
+        **{k: params[k] for k in PASS_RECORD if k in params},  # a progressive unit's passes and noise
     }
 
 
@@ -279,7 +285,8 @@ def render_plan(plan: JobPlan, out: Path, worker: RenderProcess, started: float,
     job_id = job_id or uuid.uuid4().hex[:12]
     planner = Planner(plan.options.rules, plan.options.defuzzifier)
     chosen = plan_params(plan, planner)
-    run = UnitRun(plan, chosen, job_id, plan.options.threads, worker, planner.rules_path.name, progress)
+    kind = ProgressiveRun if plan.options.progressive else UnitRun
+    run = kind(plan, chosen, job_id, plan.options.threads, worker, planner.rules_path.name, progress)
     job = run.render()
     if plan.options.denoise:
         start = time.perf_counter()
@@ -329,7 +336,7 @@ class UnitRun:
         """Whether the units render in batches: not at level off, whose units are plain Mitsuba's render
         call, nor in a two-pass (adaptive) job or a scene render_counts cannot render as Mitsuba does
         (the reason goes in the report)."""
-        if self.plan.options.level == OFF:
+        if self.plan.options.level == OFF and not self.plan.options.progressive:
             problem = "level off renders each unit with Mitsuba's own render call"
         elif self.plan.first_spp is not None:
             problem = "an adaptive job's units each place their own samples in two passes"
@@ -360,3 +367,74 @@ class UnitRun:
         if self.progress is not None:
             self.progress(Progress(done, len(self.plan.units), self.samples_done, samples_total,
                                    self.plan.width * self.plan.height))
+
+
+@dataclass
+class ProgressiveRun(UnitRun):
+    """The units rendered in passes to the job's noise or time goal (planning.progressive decides, this
+    renders): each round's passes batched where the scene allows, merged per unit (core.image.passes).
+    The rules (at a rule level) set each unit's depth and band; the samples go where the noise is."""
+
+    def render(self) -> Composed:
+        options = self.plan.options
+        goal = Goal(NOISE if options.noise is not None else TIME, self.plan.spp, options.noise, options.time)
+        machine = Progressive(goal, [u.rect.area for u in self.plan.units])
+        merged: dict[int, UnitPasses] = {}
+        start, rounds, passes = time.perf_counter(), 0, 0
+        instructions = machine.start()
+        together = self._together([self._pass_job(PassOrder(u.index, 0, 1)) for u in self.plan.units])
+        self.calls["calls"] = 0
+        while isinstance(instructions[0], RenderRound):
+            orders = instructions[0].orders
+            for tile in self._render_round(orders, together):
+                unit = int(tile.meta["unit_index"])
+                if unit in merged:
+                    merged[unit].add(tile)
+                else:
+                    merged[unit] = UnitPasses.first(tile)
+                done = merged[unit]
+                machine.handle(PassDone(unit, done.spp, done.seconds, done.relmse()))
+            rounds, passes = rounds + 1, passes + len(orders)
+            self.samples_done = sum(m.spp * self.plan.units[u].rect.area for u, m in merged.items())
+            settled = len(self.plan.units) - len({o.unit for o in orders})
+            self._tell(settled, goal.spp_cap * self.plan.width * self.plan.height)
+            instructions = machine.handle(RoundDone(time.perf_counter() - start))
+        finish = instructions[0]
+        self.calls["progressive"] = {"goal": goal.kind, "noise": goal.noise, "time": goal.seconds,
+                                     "spp_cap": goal.spp_cap, "reason": finish.reason, "rounds": rounds,
+                                     "passes": passes, "seconds": time.perf_counter() - start}
+        tiles = [merged[u.index].tile({"unit_index": u.index, "seconds": merged[u.index].seconds,
+                                       "window_method": "passes"}) for u in self.plan.units]
+        params = {u: self._record(u, merged[u], finish.units[u]) for u in merged}
+        return composed(self.plan, self.plan.units, tiles, params)
+
+    def _pass_job(self, order: PassOrder) -> RenderRequest:
+        unit = self.plan.units[order.unit]
+        base = unit_job(self.plan, unit, self.chosen[order.unit], self.job_id, self.threads)
+        return dataclasses.replace(base, spp=order.spp, seed=unit_seed(self.job_id, unit.index, order.pass_index),
+                                   first=None, pass_index=order.pass_index)
+
+    def _render_round(self, orders: Sequence[PassOrder], together: bool) -> list[Tile]:
+        """The round's passes: in layers holding one pass per unit (a batch draws each pixel once), each
+        layer in batches where the scene allows."""
+        layers: list[dict[int, RenderRequest]] = []
+        for order in orders:
+            layer = next((each for each in layers if order.unit not in each), None)
+            if layer is None:
+                layer = {}
+                layers.append(layer)
+            layer[order.unit] = self._pass_job(order)
+        tiles = []
+        for layer in layers:
+            jobs = list(layer.values())
+            groups = batches(jobs) if together else [[j] for j in jobs]
+            self.calls["calls"] += len(groups)
+            for batch in groups:
+                tiles.extend(self._render(batch, together))
+        return tiles
+
+    def _record(self, unit: int, passes: UnitPasses, verdict: str) -> dict[str, Any]:
+        relmse = passes.relmse()
+        return {**self.chosen[unit].to_dict(), "spp": passes.spp, "rules": self.rules, "passes": passes.passes,
+                "relmse_estimate": relmse, "relative_error_estimate": None if relmse is None else relmse ** 0.5,
+                "verdict": verdict}

@@ -49,6 +49,12 @@ def add_job_arguments(parser: argparse.ArgumentParser) -> None:
                         help="at a rule level: the rules set the level's samples, the pre-pass's noise shares them "
                              "among the units, and each unit renders half its share uniformly and the rest "
                              "per pixel where that first pass measured noise")
+    parser.add_argument("--noise", type=float, metavar="TAU",
+                        help="render in passes until every unit's estimated relative error (RMS, as relMSE's "
+                             "square root) is under TAU, or it reaches --spp (the cap; default the scene's)")
+    parser.add_argument("--time", type=float, metavar="SECONDS",
+                        help="render in passes for SECONDS of rendering, each next pass where the measured noise "
+                             "falls most per second; --spp caps every unit")
     parser.add_argument("--denoise", action="store_true",
                         help="denoise the image with Intel Open Image Denoise: the render reconstructs with a box "
                              "filter and adds the denoiser's albedo and normal; the raw image is kept as SCENE.raw.exr")
@@ -70,7 +76,7 @@ def options_from_args(args: argparse.Namespace):
                             threads=getattr(args, "threads", None), rules=args.rules,
                             defuzzifier=args.defuzzifier, variant=args.variant,
                             integrator=args.integrator, units=args.units, sensor=args.sensor,
-                            adaptive=args.adaptive, denoise=args.denoise)
+                            adaptive=args.adaptive, denoise=args.denoise, noise=args.noise, time=args.time)
     options.check_used()
     return options
 

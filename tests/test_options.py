@@ -24,6 +24,12 @@ from planning.jobplan import default_unit_count, scene_spp
     ({"defuzzifier": "mean"}, "option defuzzifier"),
     ({"variant": "cuda; rm -rf"}, "not a Mitsuba variant name"),
     ({"level": "XL"}, "--opt 'XL'"),
+    ({"noise": 0}, r"option noise \(--noise 0\): not a positive number"),
+    ({"noise": float("nan")}, r"option noise \(--noise nan\): not a positive number"),
+    ({"time": "10"}, r"option time \(--time '10'\): not a positive number"),
+    ({"time": True}, r"option time \(--time True\): not a positive number"),
+    ({"noise": 0.1, "time": 10}, "--noise and --time: give one goal"),
+    ({"noise": 0.1, "level": "S", "adaptive": True}, "--adaptive with --noise or --time"),
 ])
 def test_bad_options_are_refused_naming_the_field(options, match):
     with pytest.raises(QuekaroError, match=match):
@@ -49,6 +55,10 @@ def test_a_new_job_at_level_off_refuses_what_it_would_ignore(options, match):
 def test_good_options_round_trip():
     options = RenderOptions.from_dict({"level": "S", "spp": 16, "depth": -1, "units": 6, "sensor": 1})
     assert RenderOptions.from_dict(options.to_dict()) == options
+    for goal in ({"noise": 0.05}, {"time": 12.5}):
+        progressive = RenderOptions.from_dict(goal)
+        assert progressive.progressive and RenderOptions.from_dict(progressive.to_dict()) == progressive
+    assert "noise" not in options.to_dict() and not options.progressive  # a job without a goal reads as before
 
 
 def test_a_zero_sample_count_from_a_define_is_refused(tmp_path):

@@ -39,6 +39,18 @@ def film_channels(film: Any) -> tuple[np.ndarray, tuple[str, ...]]:
     return np.ascontiguousarray(array), RGB + names[len(colour):]
 
 
+def film_weight(film: Any, share: np.ndarray | None = None) -> np.ndarray:
+    """The film's per-pixel filter weight sum after a render (H x W, float32): Mitsuba's raw `W` channel,
+    divided by `share` where samples were splatted with that weight (core.render.per_pixel)."""
+    raw = film.bitmap(raw=True)
+    names = bitmap_names(raw)
+    if "W" not in names:
+        raise RenderError(f"film {film.class_name()} keeps no weight channel (raw channels {list(names)[:8]}): "
+                          "its renders cannot be merged in passes")
+    weight = np.array(raw, dtype=np.float32).reshape(raw.height(), raw.width(), -1)[..., names.index("W")]
+    return weight if share is None else (weight / share).astype(np.float32)
+
+
 def bitmap_names(bitmap: Any) -> tuple[str, ...]:
     """The channel names of a Mitsuba bitmap, in its order."""
     return tuple(bitmap.struct_()[i].name for i in range(bitmap.channel_count()))

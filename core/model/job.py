@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -100,6 +101,10 @@ class RenderOptions:
     adaptive: bool = False
     # Denoised (core.image.denoise): a box filter and the denoiser's AOVs; the raw image kept beside.
     denoise: bool = False
+    # Progressive (planning.progressive): passes until each unit's relative error is under `noise`, or for
+    # `time` seconds of rendering; `spp` is then the cap.
+    noise: float | None = None
+    time: float | None = None
 
     def __post_init__(self) -> None:
         if self.level not in LEVELS:
@@ -119,12 +124,29 @@ class RenderOptions:
             if not lo <= value <= hi and not (name == "depth" and value == -1):
                 raise QuekaroError(f"option {name} (--{name} {value}): outside {lo}..{hi}"
                                    + (" (or -1 for unbounded)" if name == "depth" else ""))
+        self._check_goal()
         if self.defuzzifier is not None and self.defuzzifier not in DEFUZZIFIERS:
             raise QuekaroError(f"option defuzzifier: {self.defuzzifier!r} is not one of {', '.join(DEFUZZIFIERS)}")
         if self.integrator is not None and self.integrator not in CATALOGUE:
             raise QuekaroError(f"option integrator: {self.integrator!r} is not one of Mitsuba's integrators")
         if self.variant is not None and not (isinstance(self.variant, str) and VARIANT_PATTERN.fullmatch(self.variant)):
             raise QuekaroError(f"option variant: {str(self.variant)[:40]!r} is not a Mitsuba variant name")
+
+    def _check_goal(self) -> None:
+        for name in ("noise", "time"):
+            value = getattr(self, name)
+            if value is not None and (type(value) not in (int, float) or not 0 < value < math.inf):
+                raise QuekaroError(f"option {name} (--{name} {value!r}): not a positive number")
+        if self.noise is not None and self.time is not None:
+            raise QuekaroError("--noise and --time: give one goal (a relative error, or seconds of rendering)")
+        if self.progressive and self.adaptive:
+            raise QuekaroError("--adaptive with --noise or --time: progressive passes place samples by their "
+                               "own measured noise; leave --adaptive out")
+
+    @property
+    def progressive(self) -> bool:
+        """Whether the job renders in passes to a noise or time goal (planning.progressive)."""
+        return self.noise is not None or self.time is not None
 
     def check_used(self) -> None:
         """Refuse a new job's options that it would ignore: a rule file or defuzzifier at level off. Checked
@@ -146,7 +168,8 @@ class RenderOptions:
                 "rules": str(self.rules) if self.rules else None, "defuzzifier": self.defuzzifier,
                 "variant": self.variant, "integrator": self.integrator, "units": self.units,
                 "sensor": self.sensor, "adaptive": self.adaptive,
-                **({"denoise": True} if self.denoise else {})}  # a job without it reads (and seeds) as before
+                **({"denoise": True} if self.denoise else {}),  # a job without it reads (and seeds) as before
+                **({name: getattr(self, name) for name in ("noise", "time") if getattr(self, name) is not None})}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> RenderOptions:
@@ -164,7 +187,8 @@ class RenderOptions:
                    threads=data.get("threads"), rules=Path(rules) if rules else None,
                    defuzzifier=data.get("defuzzifier"), variant=data.get("variant"),
                    integrator=data.get("integrator"), units=data.get("units"), sensor=data.get("sensor", 0),
-                   adaptive=data.get("adaptive", False), denoise=data.get("denoise", False))
+                   adaptive=data.get("adaptive", False), denoise=data.get("denoise", False),
+                   noise=data.get("noise"), time=data.get("time"))
 
 
 @dataclass

@@ -16,6 +16,7 @@ import numpy as np
 
 from core.errors import RenderError
 from core.image.film import sanitize
+from core.image.passes import WEIGHT
 from core.image.tiles import Tile
 from core.model.geometry import Rect
 from core.render.per_pixel import check_renderable, render_counts
@@ -114,23 +115,28 @@ def render_batch_here(batch: Sequence[RenderRequest]) -> list[Tile]:
     their common pixels: one that comes out non-finite is zeroed, and counted, in every tile holding it."""
     first = batch[0]
     mixed = {(j.scene.key(), j.variant, j.integrator, j.max_depth, j.sensor, j.width, j.height) for j in batch}
-    if len(mixed) > 1 or any(j.first is not None for j in batch):
-        raise RenderError("a batch holds units of one job, depth and sensor, none of them two-pass")
+    if len(mixed) > 1 or any(j.first is not None for j in batch) or len({j.pass_index is None for j in batch}) > 1:
+        raise RenderError("a batch holds units of one job, depth and sensor, none of them two-pass, all "
+                          "passes or none")
     cache, area = local_cache(), bounds(batch)
     scene, load_s, method = aim(first, area, cache)
     sensor = sensor_of(scene, first.sensor, str(first.scene.path))
     integrator = cache.integrator(first.integrator, first.max_depth)
     counts = batch_counts(batch)
     start = time.perf_counter()
-    made = render_counts(scene, counts, first.seed, first.sensor, integrator, moments=False)
+    in_passes = first.pass_index is not None
+    made = render_counts(scene, counts, first.seed, first.sensor, integrator, moments=False, weights=in_passes)
     seconds = time.perf_counter() - start
     own = [int(counts[_within(j.unit, area)].sum()) for j in batch]
     tiles = []
+    channels = (*made.channels, WEIGHT) if in_passes else made.channels
     for job, samples in zip(batch, own, strict=True):
         pixels, nonfinite = sanitize(made.pixels[_within(job.window, area)])
+        if in_passes:
+            pixels = np.concatenate([pixels, made.weight[_within(job.window, area)][..., None]], axis=-1)
         meta = unit_meta(job, sensor, seconds * samples / max(sum(own), 1), load_s if job is first else 0.0,
                          nonfinite, job.spp, f"{METHOD} ({method})") | {"seed": first.seed}
-        tiles.append(Tile(pixels, job.window, job.unit, meta, made.channels))
+        tiles.append(Tile(pixels, job.window, job.unit, meta, channels))
     return tiles
 
 

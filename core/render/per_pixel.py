@@ -15,7 +15,7 @@ import numpy as np
 
 from core import mitsuba_env
 from core.errors import RenderError
-from core.image.film import film_channels
+from core.image.film import film_channels, film_weight
 from core.image.metrics import RELMSE_EPSILON
 
 # Mitsuba and Dr.Jit are imported where used (core.render.process explains why).
@@ -38,6 +38,7 @@ class WindowRender:
     counts: np.ndarray
     sum: np.ndarray
     sum_sq: np.ndarray
+    weight: np.ndarray | None = None  # with weights=True: the film's weight sum over each sample's share
 
     def relative_variance(self, epsilon: float = RELMSE_EPSILON) -> np.ndarray:
         """Per pixel, the per-sample variance (mean over RGB) over (mean^2 + epsilon), the mean also over
@@ -81,11 +82,13 @@ def check_renderable(scene: Any, sensor: int = 0, integrator: Any = None) -> Non
 
 
 def render_counts(scene: Any, counts: np.ndarray, seed: int, sensor: int = 0, integrator: Any = None,
-                  moments: bool = True) -> WindowRender:
+                  moments: bool = True, weights: bool = False) -> WindowRender:
     """Render the sensor's current film window (crop) with `counts[y, x]` samples in its pixel (y, x).
 
     `counts` has the window's shape (crop height x width); 0 leaves a pixel to its neighbours' filter
-    footprints (or empty). `integrator` None is the scene's own; `moments` False skips the per-pixel sums.
+    footprints (or empty). `integrator` None is the scene's own; `moments` False skips the per-pixel sums;
+    `weights` True reads back each pixel's filter weight sum in units of one sample (the film's weight over
+    its pixel's share), which merges this render with others of the window (core.image.passes).
 
     This is Mitsuba's sampling loop (the steps of `SamplingIntegrator::render_sample`, as Mitsuba's Python
     integrators spell them in `mitsuba.ad.integrators.common`) with one change: each sample is splatted
@@ -108,7 +111,7 @@ def render_counts(scene: Any, counts: np.ndarray, seed: int, sensor: int = 0, in
     block = film.create_block()
     if total == 0:
         film.put_block(block)
-        return _result(film, counts)
+        return _result(film, counts, weights=weights)
     uniform = int(counts.flat[0]) if (counts == counts.flat[0]).all() else 0
     lanes = padded(total)
     sampler = cam.sampler().clone()
@@ -135,7 +138,7 @@ def render_counts(scene: Any, counts: np.ndarray, seed: int, sensor: int = 0, in
                live)
     sums = _moments(rgb, pixel, width * height, live) if moments else (None, None)
     film.put_block(block)
-    return _result(film, counts, *sums)
+    return _result(film, counts, *sums, weights=weights)
 
 
 def counts_problem(counts: np.ndarray, width: int, height: int, window: str = "the film window") -> str | None:
@@ -229,10 +232,14 @@ def _moments(rgb: Any, pixel: Any, size: int, live: Any) -> tuple[np.ndarray, np
 
 
 def _result(film: Any, counts: np.ndarray, sums: np.ndarray | None = None,
-            squares: np.ndarray | None = None) -> WindowRender:
+            squares: np.ndarray | None = None, weights: bool = False) -> WindowRender:
     pixels, names = film_channels(film)
     h, w = counts.shape
     zero = np.zeros((h * w, 3))
     sums = zero if sums is None else sums
     squares = zero if squares is None else squares
-    return WindowRender(pixels, names, counts, sums.reshape(h, w, 3), squares.reshape(h, w, 3))
+    weight = None
+    if weights:  # a sample drawn in pixel p was splatted with weight mean / counts[p] (render_counts)
+        share = np.where(counts > 0, counts.sum() / counts.size / np.maximum(counts, 1), 1.0)
+        weight = film_weight(film, share)
+    return WindowRender(pixels, names, counts, sums.reshape(h, w, 3), squares.reshape(h, w, 3), weight)

@@ -27,7 +27,8 @@ import numpy as np
 
 from core import mitsuba_env
 from core.errors import QuekaroError, RenderError, SceneError
-from core.image.film import film_channels, sanitize
+from core.image.film import film_channels, film_weight, sanitize
+from core.image.passes import WEIGHT
 from core.image.tiles import Tile
 from core.model import integrators
 from core.model.geometry import Rect
@@ -77,6 +78,7 @@ class RenderRequest:
     sensor: int = 0
     first: int | None = None
     aovs: str | None = None
+    pass_index: int | None = None
 
     def __post_init__(self) -> None:
         _check_job(self)
@@ -93,6 +95,7 @@ class RenderRequest:
             "height": self.height, "unit": self.unit.as_list(), "band": self.band,
             "threads": self.threads, "job_id": self.job_id, "unit_index": self.unit_index,
             "extra": dict(self.extra), "sensor": self.sensor, "first": self.first, "aovs": self.aovs,
+            "pass_index": self.pass_index,
         }
 
     @classmethod
@@ -107,6 +110,7 @@ class RenderRequest:
                 job_id=str(data.get("job_id", "")), unit_index=int(data.get("unit_index", -1)),
                 extra=dict(data.get("extra") or {}), sensor=int(data.get("sensor", 0)),
                 first=_opt_int(data.get("first")), aovs=data.get("aovs"),
+                pass_index=_opt_int(data.get("pass_index")),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise RenderError(f"malformed unit job ({type(exc).__name__}: {exc})") from exc
@@ -122,6 +126,8 @@ def _check_job(job: RenderRequest) -> None:
         problems.append(f"spp={job.spp} (must be >= 1; Mitsuba reads 0 as 'sampler default')")
     if job.first is not None and not 1 <= job.first <= job.spp:
         problems.append(f"first={job.first} (the first pass's spp: must be in 1..spp={job.spp})")
+    if job.pass_index is not None and (job.pass_index < 0 or job.first is not None or job.aovs is not None):
+        problems.append(f"pass_index={job.pass_index} (a pass is >= 0, and neither two-pass nor an AOV pass)")
     if job.max_depth is not None and job.max_depth < -1:
         problems.append(f"max_depth={job.max_depth} (must be >= -1)")
     if job.sensor < 0:
@@ -305,6 +311,9 @@ def render_job_here(job: RenderRequest, cache: _SceneCache | None = None) -> Til
     raw, channels, passes = _render_window(scene, film, job, integrator)
     pixels, nonfinite = sanitize(raw)
     nonfinite = max(nonfinite, passes.pop("nonfinite", 0))
+    if job.pass_index is not None:  # a pass of a progressive unit: its weights merge it (core.image.passes)
+        pixels = np.concatenate([pixels, film_weight(film)[..., None]], axis=-1)
+        channels = (*channels, WEIGHT)
     seconds = time.perf_counter() - start
     spp = job.spp if job.first is not None else rendered_spp(sensor, job.spp)
     meta = unit_meta(job, sensor, seconds, load_s, nonfinite, spp, method) | passes
@@ -321,6 +330,7 @@ def unit_meta(job: RenderRequest, sensor: Any, seconds: float, load_s: float, no
         "nonfinite": nonfinite, "spp": spp, "depth": job.max_depth, "integrator": job.integrator,
         "variant": mi.variant(), "seed": job.seed, "band": job.band, "window_method": method,
         "pid": os.getpid(), "sensor": job.sensor, "filter_radius": float(sensor.film().rfilter().radius()),
+        **({} if job.pass_index is None else {"pass": job.pass_index}),
     }
 
 

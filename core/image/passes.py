@@ -1,0 +1,118 @@
+"""A unit rendered in passes: the passes merged exactly, and each pixel's noise estimated between them.
+
+A pass tile carries the film's developed channels and, last, its per-pixel filter weight sum
+(`WEIGHT`, Mitsuba's raw `W` channel). Mitsuba develops a pixel as sum(w f) / sum(w), linearly, so the
+weight-averaged passes are the image one render with all their samples gives, for any reconstruction
+filter (`UnitPasses.tile`). The passes are independent estimates of each pixel, so their spread gives
+its variance (batch means, `UnitPasses.variance`), an estimate that improves with every pass.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.errors import TileError
+from core.image.metrics import RELMSE_EPSILON
+from core.image.tiles import Tile
+from core.model.geometry import Rect
+
+WEIGHT = "quekaro.weight"  # a pass tile's last channel: the film's filter weight sum per pixel
+MIN_PASSES = 2  # a variance from fewer passes is unknown
+
+
+def split_weight(tile: Tile) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
+    """(the film's channels, float64, H x W x C; the weight plane, H x W; their names) of a pass tile."""
+    if not tile.channels or tile.channels[-1] != WEIGHT:
+        raise TileError(f"unit {tile.meta.get('unit_index', '?')}: a pass tile ends with channel {WEIGHT!r}, "
+                        f"this one with {tile.channels[-1]!r}")
+    weight = tile.pixels[..., -1].astype(np.float64)
+    if not np.isfinite(weight).all() or (weight < 0).any():
+        raise TileError(f"unit {tile.meta.get('unit_index', '?')}: a pass tile's weights are negative or not finite")
+    return tile.pixels[..., :-1].astype(np.float64), weight, tile.channels[:-1]
+
+
+@dataclass
+class UnitPasses:
+    """The running sums of one unit's passes over its window (H x W pixels, film channels C).
+
+    Per pixel: `sum` = sum_k W_k L_k (C channels), `weight` = sum_k W_k, and over the colour (R, G, B)
+    `sq` = sum_k W_k^2 L_k^2, `cross` = sum_k W_k^2 L_k, `wsq` = sum_k W_k^2; `passes` k and `spp` the
+    samples per pixel of all passes. float64, so the variance's expanded form loses ~1e-16 relative."""
+
+    window: tuple[int, int, int, int]
+    core: tuple[int, int, int, int]
+    channels: tuple[str, ...]
+    sum: np.ndarray
+    weight: np.ndarray
+    sq: np.ndarray
+    cross: np.ndarray
+    wsq: np.ndarray
+    passes: int = 0
+    spp: int = 0
+    seconds: float = 0.0
+
+    @classmethod
+    def first(cls, tile: Tile) -> UnitPasses:
+        """The sums of a unit's first pass."""
+        values, weight, channels = split_weight(tile)
+        h, w = weight.shape
+        made = cls(tuple(tile.rect.as_list()), tuple(tile.core.as_list()), channels,
+                   np.zeros_like(values), np.zeros((h, w)), np.zeros((h, w, 3)), np.zeros((h, w, 3)),
+                   np.zeros((h, w)))
+        made.add(tile)
+        return made
+
+    def add(self, tile: Tile) -> None:
+        """Merge one more pass of this unit (same window, same channels)."""
+        values, weight, channels = split_weight(tile)
+        shape = (tuple(tile.rect.as_list()), tuple(tile.core.as_list()), channels)
+        if shape != (self.window, self.core, self.channels):
+            raise TileError(f"unit {tile.meta.get('unit_index', '?')}: a pass of window {tile.rect} and "
+                            f"{len(channels)} channels does not match the unit's others ({self.window}, "
+                            f"{len(self.channels)} channels)")
+        w = weight[..., None]
+        colour = values[..., :3]
+        self.sum += w * values
+        self.weight += weight
+        self.sq += w * w * colour * colour
+        self.cross += w * w * colour
+        self.wsq += weight * weight
+        self.passes += 1
+        self.spp += int(tile.meta.get("spp", 0))
+        self.seconds += float(tile.meta.get("seconds", 0.0))
+
+    def pixels(self) -> np.ndarray:
+        """The merged image of the window (float32, H x W x C): sum / weight; 0 where no pass had weight."""
+        w = self.weight[..., None]
+        return np.where(w > 0, self.sum / np.where(w > 0, w, 1.0), 0.0).astype(np.float32)
+
+    def variance(self) -> np.ndarray | None:
+        """Per pixel and colour channel, the estimated variance of the merged value (H x W x 3), or None
+        before MIN_PASSES passes: k / (k - 1) sum_k W_k^2 (L_k - L)^2 / (sum_k W_k)^2, the batch-means
+        variance of a weighted mean (for equal weights s^2 / k). Pixels without weight: 0."""
+        if self.passes < MIN_PASSES:
+            return None
+        merged = self.pixels()[..., :3].astype(np.float64)
+        spread = self.sq - 2.0 * merged * self.cross + merged * merged * self.wsq[..., None]
+        w = np.where(self.weight > 0, self.weight, 1.0)[..., None]
+        k = self.passes
+        return np.maximum(spread, 0.0) * (k / (k - 1)) / (w * w) * (self.weight > 0)[..., None]
+
+    def relmse(self, epsilon: float = RELMSE_EPSILON) -> float | None:
+        """The estimated relMSE of the unit's own pixels (its core, band cut away), as
+        core.image.metrics.relmse defines it with the merged value for the reference: the mean over
+        pixels and colour channels of variance / (value^2 + epsilon). None before MIN_PASSES passes."""
+        variance = self.variance()
+        if variance is None:
+            return None
+        x, y, w, h = self.core
+        wx, wy = self.window[:2]
+        cut = (slice(y - wy, y - wy + h), slice(x - wx, x - wx + w))
+        value = self.pixels()[cut][..., :3].astype(np.float64)
+        return float(np.mean(variance[cut] / (value * value + epsilon)))
+
+    def tile(self, meta: dict) -> Tile:
+        """The merged unit as an ordinary tile (the film's channels, no weight)."""
+        return Tile(self.pixels(), Rect(*self.window), Rect(*self.core), meta, self.channels)

@@ -1,0 +1,139 @@
+"""planning.progressive: the progressive job's decisions, stimulus by stimulus (no rendering)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from planning.progressive import (
+    FIRST_PASSES,
+    NOISE,
+    TIME,
+    Finish,
+    Goal,
+    PassDone,
+    PassOrder,
+    Progressive,
+    RenderRound,
+    RoundDone,
+)
+
+
+def run_round(machine: Progressive, orders, relmse_per_sample, seconds_per_spp, elapsed):
+    """Report every order as done: each unit's relMSE is its per-sample variance over its spp."""
+    spp = {u: s.spp for u, s in enumerate(machine.units)}
+    for order in orders:
+        spp[order.unit] += order.spp
+        unit = order.unit
+        machine.handle(PassDone(unit, spp[unit], spp[unit] * seconds_per_spp[unit], relmse_per_sample[unit] / spp[unit]))
+    return machine.handle(RoundDone(elapsed))
+
+
+def test_first_round_is_the_first_passes_of_every_unit():
+    machine = Progressive(Goal(NOISE, 256, noise=0.05), [100, 200])
+    [first] = machine.start()
+    assert first.orders == tuple(PassOrder(u, k, 4) for k in range(FIRST_PASSES) for u in (0, 1))
+    # a cap below the first passes' samples: as many passes of one sample as it allows
+    [small] = Progressive(Goal(NOISE, 2, noise=0.05), [10]).start()
+    assert small.orders == (PassOrder(0, 0, 1), PassOrder(0, 1, 1))
+
+
+def test_noise_goal_gives_each_unit_what_it_lacks_at_most_doubling_and_stops_when_all_are_under():
+    machine = Progressive(Goal(NOISE, 1024, noise=0.1), [100, 100, 100])
+    [first] = machine.start()
+    # per-sample relative variance: 1 (needs 100 spp), 4 (400 spp), 0 (a black unit: met at once); the
+    # first passes gave each 4 x 8 spp
+    v, cost = [1.0, 4.0, 0.0], [0.01] * 3
+    [second] = run_round(machine, first.orders, v, cost, 1.0)
+    assert isinstance(second, RenderRound)
+    assert {o.unit: o.spp for o in second.orders} == {0: 32, 1: 32}  # they lack 68 and 368: at most doubling
+    assert {o.pass_index for o in second.orders} == {FIRST_PASSES}
+    [third] = run_round(machine, second.orders, v, cost, 2.0)
+    assert {o.unit: o.spp for o in third.orders} == {0: 36, 1: 64}  # unit 0: exactly what it lacks
+    instructions = third
+    elapsed = 3.0
+    while isinstance(instructions, RenderRound):
+        [instructions] = run_round(machine, instructions.orders, v, cost, elapsed)
+        elapsed += 1
+    assert isinstance(instructions, Finish)
+    assert instructions.units == {0: "met", 1: "met", 2: "met"}
+    assert all(math.sqrt(u.relmse) <= 0.1 for u in machine.units)
+    assert instructions.reason == "3 of 3 units under relative error 0.1, 0 at the cap of 1024 spp"
+    assert machine.handle(RoundDone(9.0)) == []  # finished: nothing more
+
+
+def test_noise_goal_stops_at_the_cap_and_says_which_units():
+    machine = Progressive(Goal(NOISE, 64, noise=0.01), [10, 10])
+    instructions = machine.start()[0]
+    for step in range(20):
+        [instructions] = run_round(machine, instructions.orders, [1.0, 0.001], [0.01, 0.01], step)
+        if isinstance(instructions, Finish):
+            break
+    assert instructions.units == {0: "cap", 1: "met"}
+    assert machine.units[0].spp == 64
+    assert "1 of 2 units under relative error 0.01, 1 at the cap of 64 spp" == instructions.reason
+
+
+def test_time_goal_places_samples_by_neyman_and_never_below_what_a_unit_has():
+    machine = Progressive(Goal(TIME, 4096, seconds=10.0), [100, 100, 400])
+    first = machine.start()[0]
+    # unit 1 is 4x as noisy as unit 0; unit 2 has 4x the area and costs 4x per spp (seconds per spp)
+    v, cost = [1.0, 4.0, 1.0], [0.001, 0.001, 0.004]
+    [second] = run_round(machine, first.orders, v, cost, 1.0)
+    spent = sum(o.spp * cost[o.unit] for o in second.orders)
+    assert spent == pytest.approx(1.0, rel=0.05)  # a round as long as the time spent so far
+    totals = {u: machine.units[u].spp + sum(o.spp for o in second.orders if o.unit == u) for u in range(3)}
+    # n_u proportional to sqrt(a_u v_u / k_u): units 1 and 0 as 2 : 1, unit 2 as unit 0
+    assert totals[1] / totals[0] == pytest.approx(2.0, rel=0.05)
+    assert totals[2] / totals[0] == pytest.approx(1.0, rel=0.05)
+
+
+def test_time_goal_ends_when_the_time_is_spent_or_every_unit_is_capped():
+    machine = Progressive(Goal(TIME, 4096, seconds=2.0), [10])
+    first = machine.start()[0]
+    [done] = run_round(machine, first.orders, [1.0], [0.001], 2.5)
+    assert isinstance(done, Finish) and done.reason == "the 2 s of rendering are spent (2.5 s)"
+    capped = Progressive(Goal(TIME, 8, seconds=100.0), [10])
+    orders = capped.start()[0].orders
+    [done] = run_round(capped, orders, [1.0], [0.001], 0.1)
+    assert isinstance(done, RenderRound) and done.orders == (PassOrder(0, 4, 4),)
+    [done] = run_round(capped, done.orders, [1.0], [0.001], 0.2)
+    assert isinstance(done, Finish) and done.units == {0: "cap"}
+    assert done.reason == "no unit has noise left to lower under the cap of 8 spp (0.2 s)"
+    noiseless = Progressive(Goal(TIME, 64, seconds=100.0), [10])
+    [done] = run_round(noiseless, noiseless.start()[0].orders, [0.0], [0.001], 0.1)
+    assert isinstance(done, Finish)
+
+
+@pytest.mark.parametrize(("goal", "message"), [
+    (dict(kind=NOISE, spp_cap=8), "positive relative error"),
+    (dict(kind=NOISE, spp_cap=8, noise=math.inf), "positive relative error"),
+    (dict(kind=TIME, spp_cap=8, seconds=0.0), "positive number of seconds"),
+    (dict(kind="quality", spp_cap=8), "goal 'quality'"),
+    (dict(kind=TIME, spp_cap=0, seconds=1.0), "spp cap 0"),
+])
+def test_a_goal_out_of_range_is_refused(goal, message):
+    with pytest.raises(ValueError, match=message):
+        Goal(**goal)
+
+
+@settings(max_examples=60, deadline=None)
+@given(areas=st.lists(st.integers(1, 10_000), min_size=1, max_size=12),
+       variance=st.lists(st.floats(0.0, 100.0), min_size=12, max_size=12),
+       cost=st.lists(st.floats(1e-6, 1.0), min_size=12, max_size=12),
+       cap=st.integers(1, 2048), seconds=st.floats(0.1, 50.0))
+def test_time_rounds_never_pass_the_cap_and_each_pass_is_new(areas, variance, cost, cap, seconds):
+    machine = Progressive(Goal(TIME, cap, seconds=seconds), areas)
+    instructions, elapsed, seen = machine.start()[0], 0.0, set()
+    for _ in range(40):
+        assert all(o.spp >= 1 and (o.unit, o.pass_index) not in seen for o in instructions.orders)
+        seen |= {(o.unit, o.pass_index) for o in instructions.orders}
+        elapsed += sum(o.spp * cost[o.unit] for o in instructions.orders)
+        [instructions] = run_round(machine, instructions.orders, variance, cost, elapsed)
+        assert all(u.spp <= cap for u in machine.units)
+        if isinstance(instructions, Finish):
+            break
+    assert isinstance(instructions, Finish)

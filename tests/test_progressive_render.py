@@ -1,0 +1,69 @@
+"""`quekaro render --noise / --time`: a job in passes to a goal, its report, and its estimate honest
+against plain Mitsuba's converged image of the same file."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_cli import quekaro
+
+from core.image.imageio import read_image
+from core.image.metrics import RELMSE_EPSILON
+
+REPO = Path(__file__).resolve().parent.parent
+SCENE = REPO / "scenes" / "cbox.xml"
+RES = 96
+
+
+def _reference() -> np.ndarray:
+    """Plain Mitsuba at 8 x 1024 spp: its own relative error is ~1/6 of the test's at 0.05."""
+    import mitsuba as mi
+
+    from core import mitsuba_env
+
+    mitsuba_env.init("llvm_ad_rgb", 2)
+    scene = mi.load_file(str(SCENE), res=RES)
+    return np.mean([np.array(mi.render(scene, spp=1024, seed=900 + k))[..., :3] for k in range(8)], axis=0)
+
+
+@pytest.mark.slow
+def test_noise_goal_renders_each_unit_to_the_threshold_and_its_estimate_is_honest(tmp_path):
+    tau = 0.05
+    done = quekaro("render", str(SCENE), "-D", f"res={RES}", "--opt", "S", "--units", "9", "--noise", str(tau),
+                   "--spp", "1024", "-o", str(tmp_path / "n.exr"), "--no-progress", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    report = json.loads((tmp_path / "n.json").read_text())
+    progressive = report["render_calls"]["progressive"]
+    assert progressive["goal"] == "noise" and progressive["noise"] == tau and progressive["spp_cap"] == 1024
+    units = report["units"]
+    assert progressive["reason"] == f"{len(units)} of {len(units)} units under relative error 0.05, 0 at the cap " \
+                                    "of 1024 spp"
+    assert {u["verdict"] for u in units} == {"met"} and all(u["relative_error_estimate"] <= tau for u in units)
+    assert all(u["passes"] >= 4 and u["method"] == "passes" for u in units)
+    assert len({u["spp"] for u in units}) > 1  # the samples went where the noise is, not uniformly
+    image = read_image(tmp_path / "n.exr")[..., :3].astype(np.float64)
+    reference = _reference()
+    true = []
+    for u in units:
+        x, y, w, h = u["rect"]
+        t, r = image[y:y + h, x:x + w], reference[y:y + h, x:x + w]
+        true.append(float(np.sqrt(np.mean((t - r) ** 2 / (r * r + RELMSE_EPSILON)))) / tau)
+    # honest: the true relative error of a unit said to be under tau is within 1.3 tau (the issue's bound
+    # is 1.2 tau in 95 % of units; over 9 units one estimate from 4 to 8 passes may fall further)
+    assert max(true) < 1.3 and np.median(true) < 1.1, true
+
+
+@pytest.mark.slow
+def test_time_goal_renders_in_growing_rounds_until_the_time_is_spent(tmp_path):
+    done = quekaro("render", str(SCENE), "-D", f"res={RES}", "--units", "4", "--time", "4", "--spp", "100000",
+                   "-o", str(tmp_path / "t.exr"), "--no-progress", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    report = json.loads((tmp_path / "t.json").read_text())
+    progressive = report["render_calls"]["progressive"]
+    assert progressive["goal"] == "time" and progressive["rounds"] >= 3
+    assert progressive["reason"].startswith("the 4 s of rendering are spent")
+    assert progressive["seconds"] >= 4
+    assert all(u["verdict"] == "time" and u["spp"] > 64 for u in report["units"])
