@@ -38,7 +38,7 @@ from core.render.batch import batch_name, batches, render_batch, together_proble
 from core.render.process import ADAPTIVE_META, RenderProcess, RenderRequest, adopt_scene
 from core.rules.unit_params import Planner, RenderParams
 from planning.jobplan import plan_job_loaded, plan_params
-from planning.progressive import NOISE, TIME, Goal, PassDone, PassOrder, Progressive, RenderRound, RoundDone
+from planning.progressive import NOISE, TIME, Goal, PassDone, PassOrder, Progressive, RenderRound
 
 log = logging.getLogger(__name__)
 
@@ -384,22 +384,16 @@ class ProgressiveRun(UnitRun):
         instructions = machine.start()
         together = self._together([self._pass_job(PassOrder(u.index, 0, 1)) for u in self.plan.units])
         self.calls["calls"] = 0
-        while isinstance(instructions[0], RenderRound):
-            orders = instructions[0].orders
+        while isinstance(instructions[-1], RenderRound):
+            orders = instructions[-1].orders
+            instructions = []
             for tile in self._render_round(orders, together):
-                unit = int(tile.meta["unit_index"])
-                if unit in merged:
-                    merged[unit].add(tile)
-                else:
-                    merged[unit] = UnitPasses.first(tile)
-                done = merged[unit]
-                machine.handle(PassDone(unit, done.spp, done.seconds, done.relmse()))
+                instructions += machine.handle(self._merge(merged, tile, time.perf_counter() - start))
             rounds, passes = rounds + 1, passes + len(orders)
             self.samples_done = sum(m.spp * self.plan.units[u].rect.area for u, m in merged.items())
             settled = len(self.plan.units) - len({o.unit for o in orders})
             self._tell(settled, goal.spp_cap * self.plan.width * self.plan.height)
-            instructions = machine.handle(RoundDone(time.perf_counter() - start))
-        finish = instructions[0]
+        finish = instructions[-1]
         self.calls["progressive"] = {"goal": goal.kind, "noise": goal.noise, "time": goal.seconds,
                                      "spp_cap": goal.spp_cap, "reason": finish.reason, "rounds": rounds,
                                      "passes": passes, "seconds": time.perf_counter() - start}
@@ -407,6 +401,17 @@ class ProgressiveRun(UnitRun):
                                        "window_method": "passes"}) for u in self.plan.units]
         params = {u: self._record(u, merged[u], finish.units[u]) for u in merged}
         return composed(self.plan, self.plan.units, tiles, params)
+
+    @staticmethod
+    def _merge(merged: dict[int, UnitPasses], tile: Tile, elapsed: float) -> PassDone:
+        """Merge a pass's tile into its unit's passes; what the machine hears of it."""
+        unit = int(tile.meta["unit_index"])
+        if unit in merged:
+            merged[unit].add(tile)
+        else:
+            merged[unit] = UnitPasses.first(tile)
+        done = merged[unit]
+        return PassDone(unit, int(tile.meta["pass"]), done.spp, done.seconds, done.relmse(), elapsed)
 
     def _pass_job(self, order: PassOrder) -> RenderRequest:
         unit = self.plan.units[order.unit]

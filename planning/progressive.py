@@ -7,16 +7,18 @@ them (core.image.passes). Then, by the goal:
 - `noise` TAU: each unit whose estimated relative error sqrt(relMSE) is above TAU gets the samples its
   estimate says it lacks, at most doubling its count, never past the spp cap; the job stops when every
   unit is under TAU or at the cap.
-- `time` SECONDS: rounds of growing length (each at most the time spent so far) place samples where the
-  image's relMSE falls most per second: each unit's total n_u in proportion to sqrt(a_u v_u / k_u) (area,
-  per-sample relative variance, seconds per spp; never below what it has), until the time is spent or
-  every unit is at the cap.
+- `time` SECONDS: rounds of growing length (each at most the time spent so far, times the workers) place
+  samples where the image's relMSE falls most per second: each unit's total n_u in proportion to
+  sqrt(a_u v_u / k_u) (area, per-sample relative variance, seconds per spp; never below what it has),
+  until the time is spent or every unit is at the cap.
+A round is over when every unit has merged the samples it asked of it, from whichever passes: idle workers
+take extra passes of the units it still waits for (`Idle`), so one slow pass does not hold the job.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 FIRST_PASSES = 4  # passes before a unit's noise is first estimated
 FIRST_SHARE = 64  # the first passes render spp_cap / FIRST_SHARE samples each, at least 1 and at most
@@ -53,21 +55,25 @@ class Goal:
 
 @dataclass(frozen=True)
 class PassDone:
-    """A unit's pass has been merged: the unit's samples per pixel, seconds of render and estimated relMSE
-    (None while unknown) now, all passes together."""
+    """Pass `pass_index` of `unit` is merged: the unit's samples per pixel, seconds of render and estimated
+    relMSE (None while unknown) now, all its merged passes together; `elapsed` seconds since the job's
+    first pass was ordered; `workers` render at once (agents on a farm, 1 in one process)."""
 
     unit: int
+    pass_index: int
     spp: int
     seconds: float
     relmse: float | None
+    elapsed: float
+    workers: int = 1
 
 
 @dataclass(frozen=True)
-class RoundDone:
-    """Every pass ordered in the last round is done (each reported by a PassDone); `elapsed` seconds of
-    rendering so far."""
+class Idle:
+    """`slots` workers are idle and nothing ordered waits for them: extra passes of the units the round
+    still waits for (a slow worker's pass is then no longer the job's tail)."""
 
-    elapsed: float
+    slots: int
 
 
 # ---- instructions -------------------------------------------------------------------------------------
@@ -84,14 +90,16 @@ class PassOrder:
 
 @dataclass(frozen=True)
 class RenderRound:
-    """Render these passes, then report each (PassDone) and the round (RoundDone)."""
+    """Render these passes and report each (PassDone); the next decision comes when every unit has merged
+    the samples this round asked of it, from whichever passes."""
 
     orders: tuple[PassOrder, ...]
 
 
 @dataclass(frozen=True)
 class Finish:
-    """Stop: the job's image is its units' merged passes. `reason` says why; `units` each unit's verdict."""
+    """Stop (cancel the passes still out): the job's image is its units' merged passes. `reason` says why;
+    `units` each unit's verdict."""
 
     reason: str
     units: dict[int, str] = field(default_factory=dict)
@@ -99,21 +107,35 @@ class Finish:
 
 # ---- the machine --------------------------------------------------------------------------------------
 
+EXTRA_IN_FLIGHT = 2  # passes of one unit out at once, an idle worker's extra pass included
+
 
 @dataclass
 class UnitNoise:
-    """What the machine knows of one unit."""
+    """What the machine knows of one unit: merged samples and their noise, the passes out (pass index ->
+    spp ordered), and what the round asks of it: `target` spp ordered of passes merged (`credited`; a
+    stratified sampler may render a little more or less than it is asked)."""
 
     area: int
+    credited: int = 0
     spp: int = 0
     passes: int = 0
     seconds: float = 0.0
     relmse: float | None = None
+    target: int = 0
+    out: dict[int, int] = field(default_factory=dict)
+    next_pass: int = 0
 
     @property
     def variance(self) -> float:
         """Per-sample relative variance v: relMSE(n) = v / n."""
         return (self.relmse or 0.0) * self.spp
+
+    def order(self, spp: int) -> PassOrder:
+        made = PassOrder(0, self.next_pass, spp)
+        self.out[self.next_pass] = spp
+        self.next_pass += 1
+        return made
 
 
 class Progressive:
@@ -123,59 +145,83 @@ class Progressive:
         self.goal = goal
         self.units = [UnitNoise(a) for a in areas]
         self.finished: Finish | None = None
+        self.workers = 1
 
     def start(self) -> list[RenderRound | Finish]:
         """The first round: FIRST_PASSES passes of every unit (fewer where the cap comes first)."""
         spp = min(self.goal.first_spp, self.goal.spp_cap)
         passes = max(1, min(FIRST_PASSES, self.goal.spp_cap // spp))
-        orders = tuple(PassOrder(u, k, spp) for k in range(passes) for u in range(len(self.units)))
-        return [RenderRound(orders)]
+        orders = [self._order(u, spp) for _ in range(passes) for u in range(len(self.units))]
+        for unit in self.units:
+            unit.target = passes * spp
+        return [RenderRound(tuple(orders))]
 
-    def handle(self, stimulus: PassDone | RoundDone) -> list[RenderRound | Finish]:
+    def handle(self, stimulus: PassDone | Idle) -> list[RenderRound | Finish]:
         """The one entry: a stimulus in, the instructions it leads to out."""
         if self.finished is not None:
             return []
-        if isinstance(stimulus, PassDone):
-            unit = self.units[stimulus.unit]
-            unit.spp, unit.seconds, unit.relmse = stimulus.spp, stimulus.seconds, stimulus.relmse
-            unit.passes += 1
+        if isinstance(stimulus, Idle):
+            extra = self._extra(stimulus.slots)
+            return [RenderRound(extra)] if extra else []
+        unit = self.units[stimulus.unit]
+        unit.spp, unit.seconds, unit.relmse = stimulus.spp, stimulus.seconds, stimulus.relmse
+        unit.passes += 1
+        unit.credited += unit.out.pop(stimulus.pass_index, 0)
+        self.workers = max(1, stimulus.workers)
+        if any(u.credited < u.target for u in self.units):
             return []
-        orders = self._noise_round() if self.goal.kind == NOISE else self._time_round(stimulus.elapsed)
-        if orders:
-            return [RenderRound(orders)]
-        self.finished = Finish(self._reason(stimulus.elapsed), self._verdicts())
-        return [self.finished]
+        return self._decide(stimulus.elapsed)
+
+    def _order(self, index: int, spp: int) -> PassOrder:
+        return replace(self.units[index].order(spp), unit=index)
+
+    def _decide(self, elapsed: float) -> list[RenderRound | Finish]:
+        wanted = self._noise_round() if self.goal.kind == NOISE else self._time_round(elapsed)
+        if not wanted:
+            self.finished = Finish(self._reason(elapsed), self._verdicts())
+            return [self.finished]
+        orders = []
+        for index, spp in wanted:
+            unit = self.units[index]
+            unit.target = unit.credited + spp
+            orders.append(self._order(index, spp))
+        return [RenderRound(tuple(orders))]
+
+    def _extra(self, slots: int) -> tuple[PassOrder, ...]:
+        """Up to `slots` extra passes of the units furthest from what the round asks of them, each the size
+        of a pass it has out, at most EXTRA_IN_FLIGHT out per unit."""
+        waiting = [i for i, u in enumerate(self.units) if u.credited < u.target and 0 < len(u.out) < EXTRA_IN_FLIGHT]
+        short = sorted(waiting, key=lambda i: (self.units[i].credited - self.units[i].target, i))
+        return tuple(self._order(i, max(self.units[i].out.values())) for i in short[:max(0, slots)])
 
     # -- the noise goal --
 
-    def _noise_round(self) -> tuple[PassOrder, ...]:
-        orders = []
+    def _noise_round(self) -> list[tuple[int, int]]:
+        wanted = []
         for index, unit in enumerate(self.units):
             room = self.goal.spp_cap - unit.spp
             if room <= 0 or self._met(unit):
                 continue
             lacking = unit.variance / self.goal.noise ** 2 - unit.spp if unit.relmse is not None else unit.spp
-            spp = min(max(math.ceil(lacking), self.goal.first_spp), unit.spp, room)
-            orders.append(PassOrder(index, unit.passes, spp))
-        return tuple(orders)
+            wanted.append((index, min(max(math.ceil(lacking), self.goal.first_spp), unit.spp, room)))
+        return wanted
 
     def _met(self, unit: UnitNoise) -> bool:
         return unit.relmse is not None and math.sqrt(unit.relmse) <= self.goal.noise
 
     # -- the time goal --
 
-    def _time_round(self, elapsed: float) -> tuple[PassOrder, ...]:
+    def _time_round(self, elapsed: float) -> list[tuple[int, int]]:
         left = self.goal.seconds - elapsed
         if left <= 0:
-            return ()
-        budget = min(left, max(elapsed, ROUND_MIN_S))
-        targets = self._neyman(budget)
-        orders = []
-        for index, (unit, target) in enumerate(zip(self.units, targets, strict=True)):
+            return []
+        budget = min(left, max(elapsed, ROUND_MIN_S)) * self.workers
+        wanted = []
+        for index, (unit, target) in enumerate(zip(self.units, self._neyman(budget), strict=True)):
             spp = min(int(target) - unit.spp, self.goal.spp_cap - unit.spp)
             if spp >= 1:
-                orders.append(PassOrder(index, unit.passes, spp))
-        return tuple(orders)
+                wanted.append((index, spp))
+        return wanted
 
     def _neyman(self, budget: float) -> list[float]:
         """Each unit's total spp after `budget` more seconds: n_u = max(spp_u, lam sqrt(a_u v_u / k_u)),

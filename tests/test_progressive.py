@@ -15,21 +15,27 @@ from planning.progressive import (
     Finish,
     Goal,
     PassDone,
+    Idle,
     PassOrder,
     Progressive,
     RenderRound,
-    RoundDone,
 )
 
 
-def run_round(machine: Progressive, orders, relmse_per_sample, seconds_per_spp, elapsed):
-    """Report every order as done: each unit's relMSE is its per-sample variance over its spp."""
-    spp = {u: s.spp for u, s in enumerate(machine.units)}
+def done(machine: Progressive, order: PassOrder, relmse_per_sample, seconds_per_spp, elapsed, workers=1):
+    """Report one order as merged: the unit's relMSE is its per-sample variance over its spp."""
+    spp = machine.units[order.unit].spp + order.spp
+    u = order.unit
+    return machine.handle(PassDone(u, order.pass_index, spp, spp * seconds_per_spp[u], relmse_per_sample[u] / spp,
+                                   elapsed, workers))
+
+
+def run_round(machine: Progressive, orders, relmse_per_sample, seconds_per_spp, elapsed, workers=1):
+    """Report every order as done, in order; the instructions the last one led to."""
+    out = []
     for order in orders:
-        spp[order.unit] += order.spp
-        unit = order.unit
-        machine.handle(PassDone(unit, spp[unit], spp[unit] * seconds_per_spp[unit], relmse_per_sample[unit] / spp[unit]))
-    return machine.handle(RoundDone(elapsed))
+        out = done(machine, order, relmse_per_sample, seconds_per_spp, elapsed, workers)
+    return out
 
 
 def test_first_round_is_the_first_passes_of_every_unit():
@@ -62,7 +68,7 @@ def test_noise_goal_gives_each_unit_what_it_lacks_at_most_doubling_and_stops_whe
     assert instructions.units == {0: "met", 1: "met", 2: "met"}
     assert all(math.sqrt(u.relmse) <= 0.1 for u in machine.units)
     assert instructions.reason == "3 of 3 units under relative error 0.1, 0 at the cap of 1024 spp"
-    assert machine.handle(RoundDone(9.0)) == []  # finished: nothing more
+    assert machine.handle(Idle(4)) == []  # finished: nothing more
 
 
 def test_noise_goal_stops_at_the_cap_and_says_which_units():
@@ -137,3 +143,37 @@ def test_time_rounds_never_pass_the_cap_and_each_pass_is_new(areas, variance, co
         if isinstance(instructions, Finish):
             break
     assert isinstance(instructions, Finish)
+
+
+def test_a_round_decides_only_when_every_unit_has_what_it_asked_and_idle_workers_take_extra_passes():
+    """The tail: the round's last pass is slow; an idle worker renders the same unit's next pass, and the
+    round goes on as soon as that one lands. The slow pass still merges when it comes."""
+    machine = Progressive(Goal(NOISE, 1024, noise=0.01), [100, 100])
+    orders = machine.start()[0].orders
+    slow, rest = orders[-1], orders[:-1]
+    assert run_round(machine, rest, [1.0, 1.0], [0.01, 0.01], 1.0) == []  # unit 1 still waits for one pass
+    assert machine.handle(Idle(0)) == []
+    [extra] = machine.handle(Idle(3))
+    assert extra.orders == (PassOrder(slow.unit, FIRST_PASSES, slow.spp),)  # one unit waits: one extra pass
+    assert machine.handle(Idle(3)) == []  # at most two passes of a unit out at once
+    [next_round] = done(machine, extra.orders[0], [1.0, 1.0], [0.01, 0.01], 2.0)
+    assert isinstance(next_round, RenderRound)
+    assert done(machine, slow, [1.0, 1.0], [0.01, 0.01], 3.0) == []  # late: merged, decides nothing
+    assert machine.units[slow.unit].passes == FIRST_PASSES + 1
+
+
+def test_a_pass_rendered_with_fewer_samples_than_ordered_still_ends_its_round():
+    """A stratified sampler renders its own count (a square): the round counts the passes, not the spp."""
+    machine = Progressive(Goal(NOISE, 256, noise=0.5), [10])
+    orders = machine.start()[0].orders
+    out = []
+    for order in orders:
+        out = machine.handle(PassDone(0, order.pass_index, machine.units[0].spp + order.spp - 1, 1.0, 0.01, 1.0))
+    assert isinstance(out[0], Finish)
+
+
+def test_time_rounds_are_as_long_as_the_time_spent_times_the_workers():
+    machine = Progressive(Goal(TIME, 100_000, seconds=100.0), [100])
+    first = machine.start()[0].orders
+    [second] = run_round(machine, first, [1.0], [0.01], 2.0, workers=8)
+    assert sum(o.spp for o in second.orders) * 0.01 == pytest.approx(16.0, rel=0.02)
