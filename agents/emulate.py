@@ -24,6 +24,7 @@ import numpy as np
 
 from agents.speed import MIN_SPEED, RAYS_PER_SPEED_UNIT, REF_RAYS_PER_SAMPLE, REF_RES, REF_SPP, SpeedSample
 from core.errors import QuekaroError, RenderError
+from core.image.passes import WEIGHT
 from core.image.tiles import RGB, Tile
 from core.model.geometry import Rect
 from core.render.process import RenderRequest
@@ -173,7 +174,12 @@ class EmulatedWorker:
                 "rendered_at": rendered_at, **({"first_spp": job.first} if job.first is not None else {})}
         log.info("%s render of %s/%d: window %dx%d, %d spp, slept %.3f s (planned %.3f s)", MARK, job.job_id,
                  job.unit_index, window.w, window.h, job.spp, seconds, planned)
-        return Tile(pixels, window, job.unit, meta, emu.costs.channels)
+        channels = emu.costs.channels
+        if job.pass_index is not None:  # a progressive job's pass: the film's weights, one sample a pixel each
+            pixels = np.concatenate([pixels, np.full((*pixels.shape[:2], 1), job.spp, np.float32)], axis=-1)
+            channels = (*channels, WEIGHT)
+            meta["pass"] = job.pass_index
+        return Tile(pixels, window, job.unit, meta, channels)
 
 
 class Emulation:

@@ -341,7 +341,7 @@ class RenderAgent:
         return refused
 
     def _plan(self, job: m.JobInfo, units: tuple[WorkUnit, ...]) -> list[RenderParams]:
-        if job.first_spp is not None:  # an adaptive job: the master's plan set each unit's samples
+        if job.first_spp is not None or job.passes:  # adaptive or progressive: the master set each unit's samples
             return adaptive_params(units, job.depth, job.min_band)
         features = {k: [float(getattr(u, k)) for u in units] for k in ("C", "S", "Nd")}
         ranges = dict(job.ranges) or None
@@ -387,7 +387,8 @@ class RenderAgent:
             scene=scene, variant=job.variant, integrator=job.integrator,
             max_depth=params.depth, spp=params.spp, seed=award.seed, width=job.width, height=job.height,
             unit=unit.rect, band=params.band, threads=self.config.threads, job_id=job.job_id,
-            unit_index=unit.index, sensor=job.sensor, first=job.first_spp)
+            unit_index=unit.index, sensor=job.sensor, first=job.first_spp,
+            pass_index=unit.index if job.passes else None)
 
     def _render_tiles(self, requests: list[RenderRequest], timeout: float, abort: threading.Event | None,
                       may_batch: bool) -> list[Tile | Exception]:

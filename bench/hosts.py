@@ -78,6 +78,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--xmpp", choices=("auto", "prosody", "embedded"), default="auto",
                         help="XMPP server: Prosody when installed (auto), or the embedded one")
     parser.add_argument("--keep", type=Path, default=None, help="keep every process's home and logs here")
+    parser.add_argument("--progressive", action="store_true",
+                        help="submit the job with --progressive: each unit's samples in passes, the last units' "
+                             "passes also taken by idle agents")
 
 
 # ---- the cost map and the job ------------------------------------------------------------------------
@@ -137,14 +140,15 @@ class BenchJob:
 
 
 def make_job(costs: CostMap, scene: Path, spp: int, width: int = JOB_W, height: int = JOB_H,
-             units: int | None = None) -> BenchJob:
+             units: int | None = None, progressive: bool = False) -> BenchJob:
     """The wide scene (`wide_scene`) at width x height and `spp`, level off, as a bundle. At level off every
     unit renders at the user's spp and the master cuts farm_min_units(N) equal tiles."""
     defines = {"res": str(width), "height": str(height), "spp": str(spp)}
     with tempfile.TemporaryDirectory() as tmp:
         wide = wide_scene(Path(tmp), scene)
         bundle = make_bundle(wide, defines, Path(tmp) / "bundle.tar").path.read_bytes()
-    options: dict[str, Any] = {"level": "off", "spp": spp, **({"units": units} if units else {})}
+    options: dict[str, Any] = {"level": "off", "spp": spp, **({"units": units} if units else {}),
+                               **({"progressive": True} if progressive else {})}
     t1 = costs.seconds(Rect(0, 0, width, height), spp, width, height)
     return BenchJob(spp, t1, bundle, defines, options, width, height)
 
@@ -344,9 +348,13 @@ class StoreView:
         return min(a["started"] for a in self.attempts)
 
     def windows(self, width: int, height: int) -> list[Rect]:
-        """Each unit's rendered window: its window for the band its agent chose."""
-        return [Rect(r["x"], r["y"], r["w"], r["h"]).window(int(json.loads(r["params"])["band"]), width, height)
-                for r in self.results]
+        """Each unit's rendered window: its window for the band its agent chose (a progressive job's units
+        once, whatever their passes)."""
+        seen = {}
+        for r in self.results:
+            rect = Rect(r["x"], r["y"], r["w"], r["h"])
+            seen.setdefault(rect, rect.window(int(json.loads(r["params"])["band"]), width, height))
+        return list(seen.values())
 
 
 def stanzas(workdirs: Sequence[Path], start: float, end: float) -> dict[str, Any]:
@@ -469,10 +477,12 @@ def predict(costs: CostMap, job: BenchJob, store: StoreView, speeds: list[float]
     with exact bids, as `bench scaling` runs it."""
     unit_s = [costs.seconds(w, job.spp, job.width, job.height) for w in store.windows(job.width, job.height)]
 
+    passes = bool(job.options.get("progressive"))
+
     def makespan(estimates: list[float] | None) -> float:
         return statistics.mean(
             simulate(unit_s, speeds, latency=latency, config=UNBATCHED_AUCTION, seed=s, heartbeat_s=HEARTBEAT_S,
-                     delivery=delivery_s, estimates=estimates).makespan for s in range(SIM_SEEDS))
+                     delivery=delivery_s, estimates=estimates, passes=passes).makespan for s in range(SIM_SEEDS))
 
     sim, exact = makespan(bids(store, unit_s)), makespan(None)
     capacity = sum(speeds)
@@ -483,7 +493,7 @@ def predict(costs: CostMap, job: BenchJob, store: StoreView, speeds: list[float]
 def bids(store: StoreView, unit_s: list[float]) -> list[float]:
     """What agents bid at level off, at speed 1: the master's cost of a unit is its pixel count, and an
     agent's per-job correction scales that to its render times, on average exactly (agents.state)."""
-    areas = [r["w"] * r["h"] for r in store.results]
+    areas = [r.area for r in store.windows(1 << 16, 1 << 16)]
     rate = sum(unit_s) / sum(areas)
     return [a * rate for a in areas]
 
@@ -523,7 +533,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         return {"costs": str(args.costs), "spp": spp}
     counts = [int(c) for c in str(args.agents).split(",") if c.strip()]
     prosody, server_line = use_prosody(args.xmpp)
-    job = make_job(costs, args.scene, job_spp(costs, args.t1))
+    job = make_job(costs, args.scene, job_spp(costs, args.t1), progressive=args.progressive)
     progress(server_line)
     rows = []
     with ExitStack() as stack:
@@ -533,6 +543,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             rows.append(run_count(n, job, costs, args.costs, prosody, Path(root)))
             progress(row_line(rows[-1]))
     result = {"server": server_line, "scene": str(args.scene), "width": JOB_W, "height": JOB_H, "spp": job.spp,
+              "progressive": args.progressive,
               "t1_s": job.t1, "costs": str(args.costs), "measured": costs.info, "mixed_speeds": list(MIXED_SPEEDS),
               "load": os.getloadavg(), "cpus": os.cpu_count(), "rows": rows}
     text = format_report(result)
@@ -564,7 +575,8 @@ def format_report(result: dict[str, Any]) -> str:
     rows = result["rows"]
     lines = [
         f"job: {Path(result['scene']).name} widened to {result['width']}x{result['height']}, level off, "
-        f"{result['spp']} spp; T1 (one agent of speed 1, one unit, from the cost map) {result['t1_s']:.0f} s",
+        f"{result['spp']} spp{', in passes (--progressive)' if result.get('progressive') else ''}; "
+        f"T1 (one agent of speed 1, one unit, from the cost map) {result['t1_s']:.0f} s",
         f"cost map: measured at {m.get('width')}x{m.get('height')}, {m.get('cells')} cells of {m.get('cell')} px "
         f"at {m.get('measure_spp')} spp (fixed {1000 * float(m.get('fixed_s', 0)):.1f} ms per render call)",
         result["server"] + "; master, agents (`quekaro agent --emulate`) each a process; speeds cycle "

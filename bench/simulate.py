@@ -14,11 +14,23 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from core.image.passes import WEIGHT
 from core.model import messages as m
 from core.model.geometry import Rect
 from core.model.status import JobStatus
 from core.model.units import WorkUnit
-from master.auction import Auction, Config, Instruction, JobSubmitted, MessageReceived, SendToAgent, Tick, TileStored
+from master.auction import (
+    Auction,
+    Config,
+    Instruction,
+    JobSubmitted,
+    MessageReceived,
+    PassMerged,
+    SendToAgent,
+    Tick,
+    TileStored,
+)
+from planning.progressive import BUDGET, Goal
 
 
 @dataclass(frozen=True)
@@ -33,6 +45,8 @@ class SimResult:
 # The simulated agents render a unit a call, as the farm's did before its agents rendered units in batches:
 # 2 slots (one unit a round and a call), the setting the scaling and hosts figures were measured with.
 UNBATCHED_AUCTION = Config(slots=2)
+PASS_SPP = 4  # a progressive job's samples per unit: its budget, rendered in planning.progressive's passes
+PASS_CHANNELS = ("R", "G", "B", WEIGHT)
 
 
 def simulate(
@@ -45,6 +59,7 @@ def simulate(
     jitter: float = 0.0,
     delivery: float = 0.0,
     estimates: Sequence[float] | None = None,
+    passes: bool = False,
 ) -> SimResult:
     """Makespan of one job of units with these costs on agents of these speeds, by discrete-event simulation.
 
@@ -64,6 +79,11 @@ def simulate(
     level off) times a per-job correction, so their bids miss units that cost more or less per pixel than
     the mean; bench.hosts passes such bids (measured there: with exact bids the simulator came out 8 %
     short of 8 emulated agents, bids of 0.8-1.4x the render time losing the tail).
+
+    `passes`: the job renders progressively (`--progressive`, planning.progressive): each unit's samples in
+    passes, each pass a unit of its own at its share of the unit's cost, merged (here: at once) when its
+    tile lands, and idle agents take extra passes of the last units. The makespan is the job's, extra
+    passes included; `busy_s` counts them too.
     """
     if not costs or not speeds:
         raise ValueError("simulate needs at least one unit and one agent")
@@ -82,15 +102,17 @@ def simulate(
         depth=1,
         level="off",
         ranges={},
+        passes=passes,
     )
     specs = [
-        WorkUnit(index=i, rect=Rect(0, 0, 1, 1), C=0.0, S=1, Nd=0.0, cost=float(c))
+        WorkUnit(index=i, rect=Rect(0, 0, 1, 1), C=0.0, S=1, Nd=0.0, cost=float(c) / (PASS_SPP if passes else 1))
         for i, c in enumerate(bids)
     ]
     sim = _Sim(auction, latency, rng, jitter, {f"agent{i}": float(s) for i, s in enumerate(speeds)}, delivery,
                [float(c) for c in costs])
     submitted = 2 * latency
-    sim.push(submitted, "submit", "", (info, specs))
+    goal = Goal(BUDGET, PASS_SPP) if passes else None
+    sim.push(submitted, "submit", "", JobSubmitted(info, specs, goal=goal))
     for name in sim.speeds:
         sim.push(
             latency,
@@ -118,6 +140,7 @@ class _Sim:
         self.holding: dict[str, set[tuple[str, int]]] = {name: set() for name in speeds}
         self.messages = 0
         self.timer = math.inf
+        self.merged: dict[int, int] = {}  # a progressive job's samples merged per unit
 
     def push(self, t: float, kind: str, who: str, payload: Any) -> None:
         self.seq += 1
@@ -128,14 +151,17 @@ class _Sim:
         while self.queue:
             now, _, kind, who, payload = heapq.heappop(self.queue)
             if kind == "submit":
-                self.auction.handle(JobSubmitted(*payload), now)
-                job = payload[0].job_id
+                self.auction.handle(payload, now)
+                job = payload.info.job_id
                 self.deliver(self.auction.handle(Tick(), now), now)
             elif kind == "master":
                 self.messages += 1
                 # A stored tile stands for its upload, which the real master reads and hands to the auction.
                 stimulus = payload if isinstance(payload, TileStored) else MessageReceived(who, payload)
-                self.deliver(self.auction.handle(stimulus, now) + self.auction.handle(Tick(), now), now)
+                out = self.auction.handle(stimulus, now)
+                if isinstance(stimulus, TileStored) and self.auction.job_passes(stimulus.job_id):
+                    out += self.auction.handle(self._merged(stimulus), now)  # the master's merge, at once
+                self.deliver(out + self.auction.handle(Tick(), now), now)
             elif kind == "agent":
                 self.messages += 1
                 self.agent_receives(who, payload, now)
@@ -155,6 +181,12 @@ class _Sim:
                 return now
         raise RuntimeError("simulation ran out of events before the job finished")
 
+    def _merged(self, tile: TileStored) -> PassMerged:
+        """What the master tells the auction once it merged a pass (the samples so far of its unit)."""
+        units = self.auction.job_passes(tile.job_id)
+        self.merged[tile.index % units] = self.merged.get(tile.index % units, 0) + tile.figures.spp
+        return PassMerged(tile.job_id, tile.index, self.merged[tile.index % units], tile.figures.seconds, None)
+
     def _status(self, job_id: str) -> str:
         return self.auction.job_status(job_id)
 
@@ -170,19 +202,28 @@ class _Sim:
     def agent_receives(self, name: str, msg: m.Message, now: float) -> None:
         speed = self.speeds[name]
         if isinstance(msg, m.CallForProposal):
-            est = tuple(m.Estimate(index=u.index, seconds=u.cost / speed) for u in msg.units)
+            est = tuple(m.Estimate(index=u.index, seconds=u.work / speed) for u in msg.units)
             reply = m.Propose(conversation=msg.conversation, job_id=msg.job.job_id, estimates=est)
             self.push(now + self.latency, "master", name, reply)
         elif isinstance(msg, m.Award):
-            cost = self.costs[msg.unit.index] if self.costs else msg.unit.cost
+            cost = self._cost(msg.job, msg.unit)
             seconds = cost / speed * (1 + self.rng.uniform(-self.jitter, self.jitter))
             self.busy[name] += seconds
             self.holding[name].add((msg.job.job_id, msg.unit.index))
-            figures = m.TileFigures(depth=1, spp=1, band=0, seconds=seconds, nonfinite=0)
-            tile = TileStored(msg.job.job_id, msg.unit.index, msg.token, "", "0" * 64, figures, ())
+            spp = msg.unit.spp or 1
+            figures = m.TileFigures(depth=1, spp=spp, band=0, seconds=seconds, nonfinite=0)
+            tile = TileStored(msg.job.job_id, msg.unit.index, msg.token, "", "0" * 64, figures,
+                              PASS_CHANNELS if msg.job.passes else ())
             # A unit awarded into a free slot starts when the one rendering ends; the tile's delivery
             # (upload) overlaps the next render, and the master has it when that is done.
             end = max(now, self.render_end[name]) + seconds
             self.render_end[name] = end
             self.push(end + self.delivery, "release", name, (msg.job.job_id, msg.unit.index))
             self.push(end + self.delivery + self.latency, "master", name, tile)
+
+    def _cost(self, job: m.JobInfo, unit: WorkUnit) -> float:
+        """A unit's render seconds at speed 1; a pass's, its share of its unit's."""
+        if not job.passes:
+            return self.costs[unit.index] if self.costs else unit.cost
+        template = unit.index % self.auction.job_passes(job.job_id)
+        return (self.costs[template] if self.costs else unit.cost * PASS_SPP) * (unit.spp or 1) / PASS_SPP

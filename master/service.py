@@ -32,11 +32,13 @@ from core.data import default_rules_path
 from core.errors import MessageError, QuekaroError, TileError
 from core.home import ADMIN_TOKEN, FARM_FILE, MIN_FREE_BYTES, make_private
 from core.image.compose import TileSource
+from core.image.passes import WEIGHT
 from core.image.tiles import tile_source
 from core.logs import fields
 from core.model import messages as m
 from core.model.hashing import sha256_file
 from core.model.job import IMAGE_SUFFIXES, JobPlan, JobSpec, RenderOptions, SceneSpec
+from core.model.levels import OFF
 from core.model.seeds import plan_seed
 from core.model.status import JobStatus
 from core.model.units import SPP_MAX
@@ -59,11 +61,13 @@ from master import auction as au
 from master.data_plane import create_app, serve
 from master.http_guard import bind_free_port
 from master.job_api import add_job_routes
+from master.pass_merge import PassMerger, merged_units, read_verdicts, write_verdicts
 from master.sessions import SharedAccounts
 from master.store import JobRecord, JobStore
 from master.web import add_web_routes
 from planning.jobplan import Floors, farm_min_units, plan_job, scene_spp
 from planning.pipeline import AOV_PASS_FILE, assemble, kept_aov_pass
+from planning.progressive import Goal
 
 log = logging.getLogger(__name__)
 
@@ -161,6 +165,8 @@ class MasterService:
         self._lock = asyncio.Lock()
         self._assembling: dict[str, asyncio.Task] = {}
         self._aov_passes: set[asyncio.Task] = set()  # denoised jobs' AOV passes under way (`_aov_pass`)
+        self._merger = PassMerger()  # progressive jobs' passes, merged as they land (`_merge_later`)
+        self._merges: set[asyncio.Task] = set()
         self._agent_re = re.compile(config.agent_pattern.format(domain=re.escape(config.domain)))
         self._unrecorded: list[au.Record] = []  # records the store could not write yet (`_record`)
         self._ticks = itertools.count(1)
@@ -180,6 +186,7 @@ class MasterService:
         self._repair_store(now)
         upload = f"{self.config.url}/jobs/{{job}}/units/{{index}}/tile"
         auction_config = dataclasses.replace(self.config.auction, upload_url=upload)
+        self._fail_progressive(now)
         self.store.resume(now)  # awarded units of running jobs back to pending: the old master's awards are void
         self.auction, records = au.Auction.restore(
             self.store.running_jobs(), lambda job_id: self.job_info(self.store.job(job_id)),
@@ -194,6 +201,13 @@ class MasterService:
                 self._assemble_later(record.id)
         log.info("master %s up: HTTP %s, %d running job(s)", self.config.jid, self.config.url,
                  len(self.store.list_jobs("running")))
+
+    def _fail_progressive(self, now: float) -> None:
+        """Progressive jobs do not resume yet (their decisions live in the auction): each fails, saying so."""
+        for record in self.store.list_jobs("running"):
+            if record.spec.options.in_passes:
+                self.store.set_status(record.id, JobStatus.FAILED, now, "a progressive job does not resume after "
+                                      "a master restart yet; submit it again")
 
     def _repair_store(self, now: float) -> None:
         """Units done in the store without their tile on disk go back to auction (jobs not yet assembled)."""
@@ -298,6 +312,7 @@ class MasterService:
             defines=dict(defines), variant=plan.effects.variant, integrator=plan.effects.override,
             sensor=plan.options.sensor, rules_sha256=plan.rules_sha256, defuzzifier=plan.options.defuzzifier,
             min_band=plan.reach, first_spp=plan.first_spp, rfilter=plan.spec.rfilter,
+            passes=plan.options.in_passes,
         )
 
     async def submit(self, bundle: bytes | Path, defines: dict[str, str], options: RenderOptions) -> str:
@@ -374,8 +389,11 @@ class MasterService:
         now = time.time()
         self.store.create_job(job_id, scene_name, spec, plan, received)
         channels = tuple(plan.channels) if plan.channels is not None else None
+        goal = Goal.of(plan.options, plan.spp) if plan.options.in_passes else None
+        if goal is not None and channels is not None:
+            channels = (*channels, WEIGHT)  # a pass's tile carries its film's weights (core.image.passes)
         submitted = au.JobSubmitted(self.job_info(self.store.job(job_id)), plan.units, channels,
-                                    stimulus_id=f"submit-{job_id}")
+                                    stimulus_id=f"submit-{job_id}", goal=goal)
         self.store.apply(self.auction.handle(submitted, now), now)
 
     async def cancel(self, job_id: str) -> bool:
@@ -472,7 +490,12 @@ class MasterService:
             if isinstance(item, au.Record):
                 log.log(item.level, "%s", item.sentence(), extra=fields(**item.fields()))
                 if isinstance(item, au.JobDone):
+                    self._merger.forget(item.job_id)
                     self._assemble_later(item.job_id)
+                elif isinstance(item, au.PassesSettled):
+                    write_verdicts(self.job_dir(item.job_id), item)
+                elif isinstance(item, au.UnitDone) and self.auction.job_passes(item.job_id):
+                    self._merge_later(item)
         for to, message in outgoing(instructions):
             try:
                 performative, body = m.encode(message)
@@ -502,6 +525,24 @@ class MasterService:
         if self._unrecorded:
             log.warning("the job store recorded %d event(s) it could not before", len(self._unrecorded))
         self._unrecorded = []
+
+    def _merge_later(self, done: au.UnitDone) -> None:
+        """Merge a progressive job's pass in a thread; the auction then decides on the unit's new noise."""
+        units = self.auction.job_passes(done.job_id)
+
+        async def merge() -> None:
+            merged = await asyncio.to_thread(self._merger.merge, done.job_id, units, done.index, done.tile_path)
+            async with self._lock:
+                await self._handle(merged)
+
+        task = asyncio.get_running_loop().create_task(merge(), name=f"merge {done.job_id}/{done.index}")
+        self._merges.add(task)
+        task.add_done_callback(self._merge_done)
+
+    def _merge_done(self, task: asyncio.Task) -> None:
+        self._merges.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            log.error("%s failed: %s", task.get_name(), task.exception())
 
     async def _fail_job(self, job_id: str, exc: Exception) -> None:
         log.error("job %s: its messages cannot be encoded (%s): the job fails, the others go on", job_id, exc)
@@ -562,8 +603,15 @@ class MasterService:
             plan = store.plan(job_id, self.job_dir(job_id) / "scene" / record.scene)
         # Headers only: each tile's pixels are read while composition needs them. The store, not the
         # header, says which unit a tile is.
-        tiles = [tile_source(r.tile_path, unit_index=r.index, job_id=job_id) for r in results]
-        params = {r.index: r.params for r in results}
+        extra: dict[str, Any] = {}
+        if plan.options.in_passes:  # every stored pass merged into its unit
+            reason, verdicts = read_verdicts(self.job_dir(job_id))
+            tiles, params = merged_units(results, len(plan.units), verdicts)
+            extra["render_calls"] = {"progressive": {**Goal.of(plan.options, plan.spp).to_dict(),
+                                                     "reason": reason, "passes": len(results)}}
+        else:
+            tiles = [tile_source(r.tile_path, unit_index=r.index, job_id=job_id) for r in results]
+            params = {r.index: r.params for r in results}
         # The scene as submitted (its path and -a folders on the submitter's side), not the master's copy,
         # meaningless to the user.
         scene = {**plan.spec.to_dict(), **submitted_scene(self.job_dir(job_id) / "scene" / record.scene)}
@@ -572,15 +620,16 @@ class MasterService:
         ran = (record.finished or time.time()) - record.created
         report = assemble(plan, tiles, params, self.result_path(job_id), started=time.perf_counter() - ran,
                           extra={"job_id": job_id, "scene": scene, "created": record.created,
-                                 "finished": record.finished}, aov_pass=aov_pass)
+                                 "finished": record.finished, **extra}, aov_pass=aov_pass)
         return report
 
 
 def _check_farm_options(options: RenderOptions) -> None:
-    """Refuse what a farm does not render yet: progressive passes run in one process only."""
-    if options.progressive:
-        raise QuekaroError("--noise and --time: a farm does not render progressive passes yet; "
-                           "render the scene with `quekaro render --noise/--time` in one process")
+    """Refuse what a farm does not render yet: progressive passes at a rule level (in one process only)."""
+    if options.in_passes and options.level != OFF:
+        raise QuekaroError(f"--noise and --time at level {options.level}: a farm renders progressive passes at "
+                           "level off (the passes at the job's depth); at a rule level, render the scene with "
+                           "`quekaro render --noise/--time` in one process")
 
 
 def _check_stated_spp(spec: SceneSpec, scene_name: str, options: RenderOptions) -> None:

@@ -8,6 +8,7 @@ are `core.model.status`'s, and every change is checked against its transition ta
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import sqlite3
@@ -363,6 +364,9 @@ class JobStore:
         """The stored JobPlan of a job, its scene at `scene_path` (where the master unpacked its bundle)."""
         record = self.job(job_id)
         units = [u.unit() for u in self.units(job_id)]
+        if record.spec.options.in_passes:  # the units its plan made; the rows beyond are their passes
+            planned = record.plan["neighbours"]
+            units = [dataclasses.replace(u, spp=None) for u in units if str(u.index) in planned]
         return JobPlan.from_dict(record.plan, SceneSpec(scene_path, record.spec.defines), units)
 
     def results(self, job_id: str) -> list[ResultRecord]:
@@ -606,6 +610,8 @@ class JobStore:
             case au.UnitRequeued():
                 self._finish(db, ev.token, "requeued", now, None, None, ev.reason)
                 self._agent(db, ev.agent, now, None)
+            case au.PassesOrdered():
+                self._add_units(db, ev.job_id, ev.units)
             case au.JobDone():
                 self._end_job(db, ev.job_id, JobStatus.DONE, now, "")
             case au.JobFailed():
@@ -614,6 +620,8 @@ class JobStore:
                 self._end_job(db, ev.job_id, JobStatus.CANCELLED, now, ev.reason)
             case au.AgentJoined() | au.AgentLost() | au.AgentBack() | au.AgentBlocklisted() | au.BidRefused():
                 self._agent(db, ev.agent, now, None)
+            case au.PassesSettled():
+                pass  # the master writes the verdicts beside the job's tiles; its passes still out end with the job
             case au.MessageIgnored() | au.AgentForgotten() | au.AgentSilent() | au.JobsPaused() | au.JobsResumed():
                 pass  # changes nothing here (an agent's row and credits stay)
             case _:
@@ -704,14 +712,25 @@ class JobStore:
         if cur.rowcount == 0:
             self.job(job_id)  # raises for an unknown job
             return
-        if status != JobStatus.DONE:
-            self._move_units(db, UnitStatus.FAILED, [UnitStatus.PENDING, UnitStatus.AWARDED], "job_id = ?",
-                             (job_id,), f"unfinished units of job {job_id!r}, {status}")
-            db.execute(
-                "UPDATE attempts SET outcome = 'cancelled', finished = ?, reason = ?"
-                " WHERE job_id = ? AND outcome = 'running'",
-                (now, error, job_id),
-            )
+        # A failed or cancelled job's unfinished units; a done progressive job's passes still out.
+        self._move_units(db, UnitStatus.FAILED, [UnitStatus.PENDING, UnitStatus.AWARDED], "job_id = ?",
+                         (job_id,), f"unfinished units of job {job_id!r}, {status}")
+        db.execute(
+            "UPDATE attempts SET outcome = 'cancelled', finished = ?, reason = ?"
+            " WHERE job_id = ? AND outcome = 'running'",
+            (now, error or "the job's passes reached its goal", job_id),
+        )
+
+    @staticmethod
+    def _add_units(db: sqlite3.Connection, job_id: str, units: Sequence[WorkUnit]) -> None:
+        """A progressive job's passes, as units (pass 0 of each unit is the unit the job was created with)."""
+        db.executemany(
+            "INSERT INTO units (job_id, idx, x, y, w, h, C, S, Nd, cost, status, spp, depth_floor)"
+            " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)"
+            " ON CONFLICT (job_id, idx) DO UPDATE SET spp = excluded.spp",
+            [(job_id, u.index, *u.rect.as_list(), u.C, u.S, u.Nd, u.cost, UnitStatus.PENDING, u.spp,
+              u.depth_floor) for u in units],
+        )
 
     def _agent(self, db: sqlite3.Connection, name: str, now: float, credits: int | None) -> None:
         db.execute(

@@ -38,7 +38,7 @@ from core.render.batch import batch_name, batches, render_batch, together_proble
 from core.render.process import ADAPTIVE_META, RenderProcess, RenderRequest, adopt_scene
 from core.rules.unit_params import Planner, RenderParams
 from planning.jobplan import plan_job_loaded, plan_params
-from planning.progressive import NOISE, TIME, Goal, PassDone, PassOrder, Progressive, RenderRound
+from planning.progressive import BUDGET, Goal, PassDone, PassOrder, Progressive, RenderRound
 
 log = logging.getLogger(__name__)
 
@@ -285,7 +285,7 @@ def render_plan(plan: JobPlan, out: Path, worker: RenderProcess, started: float,
     job_id = job_id or uuid.uuid4().hex[:12]
     planner = Planner(plan.options.rules, plan.options.defuzzifier)
     chosen = plan_params(plan, planner)
-    kind = ProgressiveRun if plan.options.progressive else UnitRun
+    kind = ProgressiveRun if plan.options.in_passes else UnitRun
     run = kind(plan, chosen, job_id, plan.options.threads, worker, planner.rules_path.name, progress)
     job = run.render()
     if plan.options.denoise:
@@ -336,7 +336,7 @@ class UnitRun:
         """Whether the units render in batches: not at level off, whose units are plain Mitsuba's render
         call, nor in a two-pass (adaptive) job or a scene render_counts cannot render as Mitsuba does
         (the reason goes in the report)."""
-        if self.plan.options.level == OFF and not self.plan.options.progressive:
+        if self.plan.options.level == OFF and not self.plan.options.in_passes:
             problem = "level off renders each unit with Mitsuba's own render call"
         elif self.plan.first_spp is not None:
             problem = "an adaptive job's units each place their own samples in two passes"
@@ -371,14 +371,14 @@ class UnitRun:
 
 @dataclass
 class ProgressiveRun(UnitRun):
-    """The units rendered in passes to the job's noise or time goal (planning.progressive decides, this
+    """The units rendered in passes to the job's noise, time or budget goal (planning.progressive decides, this
     renders): each round's passes batched where the scene allows, merged per unit (core.image.passes).
     The rules (at a rule level) set each unit's depth and band; the samples go where the noise is."""
 
     def render(self) -> Composed:
-        options = self.plan.options
-        goal = Goal(NOISE if options.noise is not None else TIME, self.plan.spp, options.noise, options.time)
-        machine = Progressive(goal, [u.rect.area for u in self.plan.units])
+        goal = Goal.of(self.plan.options, self.plan.spp)
+        budgets = [p.spp for p in self.chosen] if goal.kind == BUDGET else None  # the rules' (or the user's) spp
+        machine = Progressive(goal, [u.rect.area for u in self.plan.units], budgets)
         merged: dict[int, UnitPasses] = {}
         start, rounds, passes = time.perf_counter(), 0, 0
         instructions = machine.start()
@@ -394,9 +394,8 @@ class ProgressiveRun(UnitRun):
             settled = len(self.plan.units) - len({o.unit for o in orders})
             self._tell(settled, goal.spp_cap * self.plan.width * self.plan.height)
         finish = instructions[-1]
-        self.calls["progressive"] = {"goal": goal.kind, "noise": goal.noise, "time": goal.seconds,
-                                     "spp_cap": goal.spp_cap, "reason": finish.reason, "rounds": rounds,
-                                     "passes": passes, "seconds": time.perf_counter() - start}
+        self.calls["progressive"] = {**goal.to_dict(), "reason": finish.reason, "rounds": rounds, "passes": passes,
+                                     "seconds": time.perf_counter() - start}
         tiles = [merged[u.index].tile({"unit_index": u.index, "seconds": merged[u.index].seconds,
                                        "window_method": "passes"}) for u in self.plan.units]
         params = {u: self._record(u, merged[u], finish.units[u]) for u in merged}
@@ -416,30 +415,20 @@ class ProgressiveRun(UnitRun):
     def _pass_job(self, order: PassOrder) -> RenderRequest:
         unit = self.plan.units[order.unit]
         base = unit_job(self.plan, unit, self.chosen[order.unit], self.job_id, self.threads)
+        # The least band, as a farm's agents render a pass (core.rules.unit_params.adaptive_params).
         return dataclasses.replace(base, spp=order.spp, seed=unit_seed(self.job_id, unit.index, order.pass_index),
-                                   first=None, pass_index=order.pass_index)
+                                   band=self.plan.reach, first=None, pass_index=order.pass_index)
 
     def _render_round(self, orders: Sequence[PassOrder], together: bool) -> list[Tile]:
-        """The round's passes: in layers holding one pass per unit (a batch draws each pixel once), each
-        layer in batches where the scene allows."""
-        layers: list[dict[int, RenderRequest]] = []
-        for order in orders:
-            layer = next((each for each in layers if order.unit not in each), None)
-            if layer is None:
-                layer = {}
-                layers.append(layer)
-            layer[order.unit] = self._pass_job(order)
-        tiles = []
-        for layer in layers:
-            jobs = list(layer.values())
-            groups = batches(jobs) if together else [[j] for j in jobs]
-            self.calls["calls"] += len(groups)
-            for batch in groups:
-                tiles.extend(self._render(batch, together))
-        return tiles
+        """The round's passes, in batches where the scene allows (a batch holds one pass of a unit)."""
+        jobs = [self._pass_job(order) for order in orders]
+        groups = batches(jobs) if together else [[j] for j in jobs]
+        self.calls["calls"] += len(groups)
+        return [tile for batch in groups for tile in self._render(batch, together)]
 
     def _record(self, unit: int, passes: UnitPasses, verdict: str) -> dict[str, Any]:
         relmse = passes.relmse()
-        return {**self.chosen[unit].to_dict(), "spp": passes.spp, "rules": self.rules, "passes": passes.passes,
+        return {**self.chosen[unit].to_dict(), "spp": passes.spp, "band": self.plan.reach, "rules": self.rules,
+                "passes": passes.passes,
                 "relmse_estimate": relmse, "relative_error_estimate": None if relmse is None else relmse ** 0.5,
                 "verdict": verdict}

@@ -2,8 +2,10 @@
 stops. A pure state machine (`Progressive.handle`: a typed stimulus in, typed instructions out, no I/O);
 the one-process pipeline drives it, and the farm's auction will.
 
-Every unit first renders FIRST_PASSES passes of `first_spp`, so that its noise can be estimated between
-them (core.image.passes). Then, by the goal:
+A `budget` job renders each unit's own samples (the user's spp, or the rules' at a rule level) in
+FIRST_PASSES passes, and ends when every unit has them. Otherwise every unit first renders FIRST_PASSES
+passes of `first_spp`, so that its noise can be estimated between them (core.image.passes). Then, by the
+goal:
 - `noise` TAU: each unit whose estimated relative error sqrt(relMSE) is above TAU gets the samples its
   estimate says it lacks, at most doubling its count, never past the spp cap; the job stops when every
   unit is under TAU or at the cap.
@@ -19,18 +21,21 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import Any
+
+from core.model.job import RenderOptions
 
 FIRST_PASSES = 4  # passes before a unit's noise is first estimated
 FIRST_SHARE = 64  # the first passes render spp_cap / FIRST_SHARE samples each, at least 1 and at most
 FIRST_SPP_MAX = 8  # FIRST_SPP_MAX: a time goal's first round must not outlast its time
 ROUND_MIN_S = 0.5  # the first time-goal round's length, at least
-NOISE, TIME = "noise", "time"
+NOISE, TIME, BUDGET = "noise", "time", "budget"
 
 
 @dataclass(frozen=True)
 class Goal:
-    """What a progressive job renders to: `kind` NOISE (relative error `noise` per unit) or TIME (`seconds`
-    of rendering), never past `spp_cap` samples per pixel in any unit."""
+    """What a progressive job renders to: `kind` NOISE (relative error `noise` per unit), TIME (`seconds` of
+    rendering) or BUDGET (each unit's own samples), never past `spp_cap` samples per pixel in any unit."""
 
     kind: str
     spp_cap: int
@@ -42,8 +47,18 @@ class Goal:
             raise ValueError(f"a noise goal needs a positive relative error, not {self.noise!r}")
         if self.kind == TIME and not (self.seconds is not None and 0 < self.seconds < math.inf):
             raise ValueError(f"a time goal needs a positive number of seconds, not {self.seconds!r}")
-        if self.kind not in (NOISE, TIME) or self.spp_cap < 1:
+        if self.kind not in (NOISE, TIME, BUDGET) or self.spp_cap < 1:
             raise ValueError(f"goal {self.kind!r} with spp cap {self.spp_cap}")
+
+    @classmethod
+    def of(cls, options: RenderOptions, spp_cap: int) -> Goal:
+        """A progressive job's goal from its options (`--noise` or `--time`), its spp the cap."""
+        kind = NOISE if options.noise is not None else TIME if options.time is not None else BUDGET
+        return cls(kind, spp_cap, options.noise, options.time)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The goal as a job's report gives it."""
+        return {"goal": self.kind, "noise": self.noise, "time": self.seconds, "spp_cap": self.spp_cap}
 
     @property
     def first_spp(self) -> int:
@@ -139,16 +154,23 @@ class UnitNoise:
 
 
 class Progressive:
-    """The decisions of one progressive job over units of the given pixel areas (index: position)."""
+    """The decisions of one progressive job over units of the given pixel areas (index: position); a budget
+    job's `budgets` are each unit's samples per pixel (None: the goal's spp_cap for every unit)."""
 
-    def __init__(self, goal: Goal, areas: list[int]) -> None:
+    def __init__(self, goal: Goal, areas: list[int], budgets: list[int] | None = None) -> None:
         self.goal = goal
         self.units = [UnitNoise(a) for a in areas]
+        self.budgets = list(budgets) if budgets is not None else [goal.spp_cap] * len(areas)
+        if len(self.budgets) != len(areas) or min(self.budgets, default=1) < 1:
+            raise ValueError(f"budgets {self.budgets[:8]} for {len(areas)} units")
         self.finished: Finish | None = None
         self.workers = 1
 
     def start(self) -> list[RenderRound | Finish]:
-        """The first round: FIRST_PASSES passes of every unit (fewer where the cap comes first)."""
+        """The first round: FIRST_PASSES passes of every unit (fewer where the cap comes first); a budget
+        job's whole samples."""
+        if self.goal.kind == BUDGET:
+            return [RenderRound(tuple(self._budget_orders()))]
         spp = min(self.goal.first_spp, self.goal.spp_cap)
         passes = max(1, min(FIRST_PASSES, self.goal.spp_cap // spp))
         orders = [self._order(u, spp) for _ in range(passes) for u in range(len(self.units))]
@@ -172,11 +194,25 @@ class Progressive:
             return []
         return self._decide(stimulus.elapsed)
 
+    def _budget_orders(self) -> list[PassOrder]:
+        """Each unit's budget in FIRST_PASSES passes (as equal as integers allow; fewer below that many spp),
+        pass by pass over the units (a batch holds one pass of a unit)."""
+        orders = []
+        for k in range(FIRST_PASSES):
+            for index, budget in enumerate(self.budgets):
+                count = min(FIRST_PASSES, budget)
+                if k < count:
+                    orders.append(self._order(index, budget // count + (k < budget % count)))
+        for unit, budget in zip(self.units, self.budgets, strict=True):
+            unit.target = budget
+        return orders
+
     def _order(self, index: int, spp: int) -> PassOrder:
         return replace(self.units[index].order(spp), unit=index)
 
     def _decide(self, elapsed: float) -> list[RenderRound | Finish]:
-        wanted = self._noise_round() if self.goal.kind == NOISE else self._time_round(elapsed)
+        wanted = (self._noise_round() if self.goal.kind == NOISE else self._time_round(elapsed)
+                  if self.goal.kind == TIME else [])
         if not wanted:
             self.finished = Finish(self._reason(elapsed), self._verdicts())
             return [self.finished]
@@ -241,6 +277,8 @@ class Progressive:
     # -- the end --
 
     def _reason(self, elapsed: float) -> str:
+        if self.goal.kind == BUDGET:
+            return f"every unit has its samples ({elapsed:.1f} s)"
         capped = sum(u.spp >= self.goal.spp_cap for u in self.units)
         if self.goal.kind == NOISE:
             met = sum(self._met(u) for u in self.units)
@@ -252,6 +290,8 @@ class Progressive:
 
     def _verdicts(self) -> dict[int, str]:
         def verdict(unit: UnitNoise) -> str:
+            if self.goal.kind == BUDGET:
+                return "budget"
             if self.goal.kind == NOISE and self._met(unit):
                 return "met"
             return "cap" if unit.spp >= self.goal.spp_cap else "time"

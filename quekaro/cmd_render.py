@@ -55,6 +55,9 @@ def add_job_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--time", type=float, metavar="SECONDS",
                         help="render in passes for SECONDS of rendering, each next pass where the measured noise "
                              "falls most per second; --spp caps every unit")
+    parser.add_argument("--progressive", action="store_true",
+                        help="render each unit's samples (yours, or the rules' at a rule level) in passes: on a farm "
+                             "idle agents take extra passes of the last units, and the page's image fills as they land")
     parser.add_argument("--denoise", action="store_true",
                         help="denoise the image with Intel Open Image Denoise: the render reconstructs with a box "
                              "filter and adds the denoiser's albedo and normal; the raw image is kept as SCENE.raw.exr")
@@ -76,7 +79,8 @@ def options_from_args(args: argparse.Namespace):
                             threads=getattr(args, "threads", None), rules=args.rules,
                             defuzzifier=args.defuzzifier, variant=args.variant,
                             integrator=args.integrator, units=args.units, sensor=args.sensor,
-                            adaptive=args.adaptive, denoise=args.denoise, noise=args.noise, time=args.time)
+                            adaptive=args.adaptive, denoise=args.denoise, noise=args.noise, time=args.time,
+                            progressive=args.progressive)
     options.check_used()
     return options
 

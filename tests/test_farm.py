@@ -424,8 +424,6 @@ def test_a_job_no_message_can_carry_is_refused_at_submit_with_a_reason(farm3):
     with pytest.raises(QuekaroError, match=r"HTTP 422: cbox.xml: sample_count 2000000 \(the scene's, or its -D\) "
                                            r"is above 1048576, .* give --spp"):
         client.submit(bundle_of(SCENE, many), many, {"level": "off"})
-    with pytest.raises(QuekaroError, match=r"HTTP 422: --noise and --time: a farm does not render progressive"):
-        client.submit(bundle_of(SCENE, DEFINES), DEFINES, {"level": "off", "noise": 0.05})
     with pytest.raises(QuekaroError, match=r"HTTP 422.*-D res: its value '32\\x00' holds"):
         client.submit(bundle_of(SCENE, DEFINES), {**DEFINES, "res": "32\x00"}, {"level": "off"})
     deep = urllib.request.Request(client.url + "/api/jobs", data=bundle_of(SCENE, DEFINES), method="POST", headers={

@@ -29,7 +29,9 @@ from planning.jobplan import default_unit_count, scene_spp
     ({"time": "10"}, r"option time \(--time '10'\): not a positive number"),
     ({"time": True}, r"option time \(--time True\): not a positive number"),
     ({"noise": 0.1, "time": 10}, "--noise and --time: give one goal"),
-    ({"noise": 0.1, "level": "S", "adaptive": True}, "--adaptive with --noise or --time"),
+    ({"noise": 0.1, "level": "S", "adaptive": True}, "--adaptive with --noise, --time or --progressive"),
+    ({"time": 5, "progressive": True}, "--time and --progressive: give one goal"),
+    ({"progressive": 1}, "option progressive: 1 is not true or false"),
 ])
 def test_bad_options_are_refused_naming_the_field(options, match):
     with pytest.raises(QuekaroError, match=match):
@@ -57,8 +59,8 @@ def test_good_options_round_trip():
     assert RenderOptions.from_dict(options.to_dict()) == options
     for goal in ({"noise": 0.05}, {"time": 12.5}):
         progressive = RenderOptions.from_dict(goal)
-        assert progressive.progressive and RenderOptions.from_dict(progressive.to_dict()) == progressive
-    assert "noise" not in options.to_dict() and not options.progressive  # a job without a goal reads as before
+        assert progressive.in_passes and RenderOptions.from_dict(progressive.to_dict()) == progressive
+    assert "noise" not in options.to_dict() and not options.in_passes  # a job without a goal reads as before
 
 
 def test_a_zero_sample_count_from_a_define_is_refused(tmp_path):

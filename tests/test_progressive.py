@@ -9,13 +9,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from planning.progressive import (
+    BUDGET,
     FIRST_PASSES,
     NOISE,
     TIME,
     Finish,
     Goal,
-    PassDone,
     Idle,
+    PassDone,
     PassOrder,
     Progressive,
     RenderRound,
@@ -80,7 +81,7 @@ def test_noise_goal_stops_at_the_cap_and_says_which_units():
             break
     assert instructions.units == {0: "cap", 1: "met"}
     assert machine.units[0].spp == 64
-    assert "1 of 2 units under relative error 0.01, 1 at the cap of 64 spp" == instructions.reason
+    assert instructions.reason == "1 of 2 units under relative error 0.01, 1 at the cap of 64 spp"
 
 
 def test_time_goal_places_samples_by_neyman_and_never_below_what_a_unit_has():
@@ -177,3 +178,14 @@ def test_time_rounds_are_as_long_as_the_time_spent_times_the_workers():
     first = machine.start()[0].orders
     [second] = run_round(machine, first, [1.0], [0.01], 2.0, workers=8)
     assert sum(o.spp for o in second.orders) * 0.01 == pytest.approx(16.0, rel=0.02)
+
+
+def test_a_budget_job_renders_each_units_own_samples_in_passes_and_ends_when_all_have_them():
+    machine = Progressive(Goal(BUDGET, 64), [10, 10, 10], budgets=[64, 10, 3])
+    [first] = machine.start()
+    by_unit = {u: sorted(o.spp for o in first.orders if o.unit == u) for u in range(3)}
+    assert by_unit == {0: [16, 16, 16, 16], 1: [2, 2, 3, 3], 2: [1, 1, 1]}
+    out = run_round(machine, first.orders, [1.0] * 3, [0.01] * 3, 2.0)
+    assert out == [Finish("every unit has its samples (2.0 s)", {0: "budget", 1: "budget", 2: "budget"})]
+    with pytest.raises(ValueError, match="budgets"):
+        Progressive(Goal(BUDGET, 64), [10], budgets=[0])

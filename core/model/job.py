@@ -101,15 +101,16 @@ class RenderOptions:
     adaptive: bool = False
     # Denoised (core.image.denoise): a box filter and the denoiser's AOVs; the raw image kept beside.
     denoise: bool = False
-    # Progressive (planning.progressive): passes until each unit's relative error is under `noise`, or for
-    # `time` seconds of rendering; `spp` is then the cap.
+    # In passes (planning.progressive): until each unit's relative error is under `noise`, or for `time`
+    # seconds of rendering (`spp` is then the cap), or `progressive`: each unit's own samples, in passes.
     noise: float | None = None
     time: float | None = None
+    progressive: bool = False
 
     def __post_init__(self) -> None:
         if self.level not in LEVELS:
             raise QuekaroError(f"--opt {self.level!r}: expected one of {', '.join(LEVELS)}")
-        for name in ("adaptive", "denoise"):
+        for name in ("adaptive", "denoise", "progressive"):
             if type(getattr(self, name)) is not bool:
                 raise QuekaroError(f"option {name}: {getattr(self, name)!r} is not true or false")
         if self.adaptive and self.level == OFF:
@@ -137,16 +138,18 @@ class RenderOptions:
             value = getattr(self, name)
             if value is not None and (type(value) not in (int, float) or not 0 < value < math.inf):
                 raise QuekaroError(f"option {name} (--{name} {value!r}): not a positive number")
-        if self.noise is not None and self.time is not None:
-            raise QuekaroError("--noise and --time: give one goal (a relative error, or seconds of rendering)")
-        if self.progressive and self.adaptive:
-            raise QuekaroError("--adaptive with --noise or --time: progressive passes place samples by their "
-                               "own measured noise; leave --adaptive out")
+        goals = [f"--{name}" for name in ("noise", "time", "progressive") if getattr(self, name) not in (None, False)]
+        if len(goals) > 1:
+            raise QuekaroError(f"{' and '.join(goals)}: give one goal (a relative error, seconds of rendering, or "
+                               "the job's samples in passes)")
+        if self.in_passes and self.adaptive:
+            raise QuekaroError("--adaptive with --noise, --time or --progressive: a job in passes places its samples "
+                           "by their own measured noise; leave --adaptive out")
 
     @property
-    def progressive(self) -> bool:
-        """Whether the job renders in passes to a noise or time goal (planning.progressive)."""
-        return self.noise is not None or self.time is not None
+    def in_passes(self) -> bool:
+        """Whether the job renders in passes (planning.progressive): to a noise or time goal, or its samples."""
+        return self.noise is not None or self.time is not None or self.progressive
 
     def check_used(self) -> None:
         """Refuse a new job's options that it would ignore: a rule file or defuzzifier at level off. Checked
@@ -169,7 +172,8 @@ class RenderOptions:
                 "variant": self.variant, "integrator": self.integrator, "units": self.units,
                 "sensor": self.sensor, "adaptive": self.adaptive,
                 **({"denoise": True} if self.denoise else {}),  # a job without it reads (and seeds) as before
-                **({name: getattr(self, name) for name in ("noise", "time") if getattr(self, name) is not None})}
+                **({name: getattr(self, name) for name in ("noise", "time") if getattr(self, name) is not None}),
+                **({"progressive": True} if self.progressive else {})}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> RenderOptions:
@@ -188,7 +192,7 @@ class RenderOptions:
                    defuzzifier=data.get("defuzzifier"), variant=data.get("variant"),
                    integrator=data.get("integrator"), units=data.get("units"), sensor=data.get("sensor", 0),
                    adaptive=data.get("adaptive", False), denoise=data.get("denoise", False),
-                   noise=data.get("noise"), time=data.get("time"))
+                   noise=data.get("noise"), time=data.get("time"), progressive=data.get("progressive", False))
 
 
 @dataclass

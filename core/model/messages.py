@@ -31,8 +31,9 @@ from core.model.units import SPP_MAX, WorkUnit
 from fuzzy.engine import DEFUZZIFIERS
 
 # 2: several awards a round, slots in Register; 3: the rules an agent plans with, in Register; 4: a round's
-# awards of one job to one agent in one message (Awards), and no inform from agents (the upload answers)
-PROTOCOL_VERSION = 4
+# awards of one job to one agent in one message (Awards), and no inform from agents (the upload answers);
+# 5: progressive jobs (JobInfo.passes: a unit is a pass, at its spp, its tile carrying the film's weights)
+PROTOCOL_VERSION = 5
 ONTOLOGY = "quekaro-render"
 PROTOCOL = "fipa-contract-net"
 # Prosody drops a sender whose stanza exceeds 256 KiB (design.md section 4): stay well below it.
@@ -91,6 +92,9 @@ class JobInfo:
     first_spp: int | None = constrained(lo=1, hi=SPP_MAX, default=None)
     # The reconstruction filter that replaces the scene's (a denoised job's box); None: the scene's own.
     rfilter: str | None = constrained(choices=RFILTERS, default=None)
+    # Progressive jobs: each unit is one pass of a unit of the image (master.auction.passes), rendered at
+    # its own spp, the job's depth and min_band, its tile carrying the film's weights (core.image.passes).
+    passes: bool = False
 
     def check(self) -> None:
         for name, (lo, hi) in self.ranges.items():
@@ -98,7 +102,12 @@ class JobInfo:
                 raise MessageError(f"range lower bound {lo} above upper bound {hi}", f"ranges.{name}")
 
     def check_unit(self, unit: WorkUnit, field: str) -> None:
-        """An adaptive job's units carry their mean spp, at least the first pass's; other jobs' none."""
+        """An adaptive job's units carry their mean spp, at least the first pass's; a progressive job's their
+        pass's; other jobs' none."""
+        if self.passes:
+            if unit.spp is None:
+                raise MessageError(f"unit {unit.index} of a progressive job has no spp (its pass's)", field)
+            return
         if self.first_spp is None and unit.spp is not None:
             raise MessageError(f"unit {unit.index} has spp {unit.spp} in a job whose rules choose it", field)
         if self.first_spp is not None and (unit.spp is None or unit.spp < self.first_spp):

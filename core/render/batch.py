@@ -36,7 +36,8 @@ def batches(jobs: Sequence[RenderRequest], cap: int = BATCH_SAMPLES,
     """The units grouped into batches that each render in one call: one depth per batch, in the order
     given, each batch's windows at their spp (`cost`) adding up to at most `cap` samples and their bounding
     rectangle at most `pixels`; a unit beyond either alone is a batch of its own. One depth, since the
-    depth is part of the integrator, and a call has one."""
+    depth is part of the integrator, and a call has one; one pass of a unit (a call draws each pixel once:
+    two passes of one unit in it would be one set of samples twice)."""
     open_batches: dict[int | None, list[RenderRequest]] = {}
     held: dict[int | None, tuple[int, Rect]] = {}  # per open batch: its samples and bounding rectangle
     done: list[list[RenderRequest]] = []
@@ -45,7 +46,8 @@ def batches(jobs: Sequence[RenderRequest], cap: int = BATCH_SAMPLES,
         if key in open_batches:
             samples, box = held[key]
             grown = box.bounding(job.window)
-            if samples + cost(job) <= cap and grown.area <= pixels:
+            again = any(other.unit == job.unit for other in open_batches[key])
+            if samples + cost(job) <= cap and grown.area <= pixels and not again:
                 open_batches[key].append(job)
                 held[key] = (samples + cost(job), grown)
                 continue

@@ -20,6 +20,8 @@ from master.auction.instructions import (
     JobsPaused,
     JobsResumed,
     MessageIgnored,
+    PassesOrdered,
+    PassesSettled,
     Record,
     RefuseTile,
     SendToAgent,
@@ -29,6 +31,7 @@ from master.auction.instructions import (
     UnitRequeued,
 )
 from master.auction.machine import Auction
+from master.auction.passes import pass_origin
 from master.auction.schedule import Placement, PlanAgent, ProjectedUnit, fluid_finish, project, refine
 from master.auction.state import Config, Transition
 from master.auction.stimuli import (
@@ -37,6 +40,7 @@ from master.auction.stimuli import (
     JobCancelRequested,
     JobSubmitted,
     MessageReceived,
+    PassMerged,
     Stimulus,
     Tick,
     TileStored,
@@ -68,6 +72,9 @@ __all__ = [
     "JobsResumed",
     "MessageIgnored",
     "MessageReceived",
+    "PassMerged",
+    "PassesOrdered",
+    "PassesSettled",
     "Placement",
     "PlanAgent",
     "ProjectedUnit",
@@ -83,6 +90,7 @@ __all__ = [
     "UnitFailed",
     "UnitRequeued",
     "fluid_finish",
+    "pass_origin",
     "project",
     "refine",
 ]

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from core.model import messages as m
+from core.model.units import WorkUnit
 
 
 @dataclass(frozen=True)
@@ -119,6 +120,30 @@ class UnitRequeued(Record):
     agent: str
     token: str = field(repr=False)
     reason: str
+
+
+@dataclass(frozen=True)
+class PassesOrdered(Record):
+    """A progressive job's next passes, each a work unit of its own (master.auction.passes): the store
+    keeps them as the job's units."""
+
+    template: ClassVar[str] = "job {job_id}: {count} passes ordered ({why})"
+    level: ClassVar[int] = logging.DEBUG
+    job_id: str
+    units: tuple[WorkUnit, ...] = field(repr=False)
+    count: int
+    why: str  # "a round" or "extra passes for idle agents"
+
+
+@dataclass(frozen=True)
+class PassesSettled(Record):
+    """A progressive job reached its goal (or its cap, or its time): why, and each unit's verdict; the
+    passes still out are cancelled and the job is done."""
+
+    template: ClassVar[str] = "job {job_id}: progressive passes end: {reason}"
+    job_id: str
+    reason: str
+    verdicts: dict[int, str]
 
 
 @dataclass(frozen=True)

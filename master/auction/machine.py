@@ -20,6 +20,7 @@ from collections import Counter, deque
 from collections.abc import Callable, Iterable, Sequence
 
 from core.errors import MessageError
+from core.image.passes import WEIGHT
 from core.model import messages as m
 from core.model.seeds import unit_seed
 from core.model.status import JobStatus, UnitStatus, job_transition, unit_transition
@@ -39,6 +40,8 @@ from master.auction.instructions import (
     JobsPaused,
     JobsResumed,
     MessageIgnored,
+    PassesOrdered,
+    PassesSettled,
     RefuseTile,
     SendToAgent,
     UnitAwarded,
@@ -46,6 +49,7 @@ from master.auction.instructions import (
     UnitFailed,
     UnitRequeued,
 )
+from master.auction.passes import PassBook
 from master.auction.schedule import (
     MAX_RATE,
     MIN_RATE,
@@ -63,11 +67,13 @@ from master.auction.stimuli import (
     JobCancelRequested,
     JobSubmitted,
     MessageReceived,
+    PassMerged,
     Stimulus,
     Tick,
     TileStored,
 )
 from master.auction.views import AgentView, AwardView, JobView
+from planning.progressive import Finish, Goal, Idle, PassDone, PassOrder, RenderRound
 
 
 def _batch_deadlines(out: list[Instruction], wins: dict[str, list[UnitState]]) -> list[Instruction]:
@@ -169,6 +175,8 @@ class Auction:
                 return self._on_message(stimulus.sender, stimulus.message, clock)
             case TileStored():
                 return self._on_tile(stimulus, clock)
+            case PassMerged():
+                return self._on_pass_merged(stimulus, clock)
             case Tick():
                 return [] if self._paused else self._tick(clock)
             case JobSubmitted():
@@ -213,6 +221,11 @@ class Auction:
             return None
         return JobView(job_id, job.status.value, job.error, dict(self.counts(job_id)), tuple(sorted(job.blocklist)))
 
+    def job_passes(self, job_id: str) -> int:
+        """A progressive job's unit count (its passes' work units: master.auction.passes); 0 for any other."""
+        job = self._jobs.get(job_id)
+        return len(job.passes.units) if job is not None and job.passes is not None else 0
+
     def job_status(self, job_id: str) -> str | None:
         """The job's status ('running', 'done', ...), or None for a job the auction does not know."""
         job = self._jobs.get(job_id)
@@ -250,7 +263,10 @@ class Auction:
             for unit in job.units.values():
                 _check_unit(self, job, unit, in_rounds[job.info.job_id, unit.spec.index])
             statuses = {u.status for u in job.units.values()}
-            if job.status == JobStatus.DONE or (job.status == JobStatus.RUNNING and statuses == {UnitStatus.DONE}):
+            if job.passes is not None:  # a progressive job ends with the passes still out cancelled
+                assert job.status == JobStatus.RUNNING or statuses <= {UnitStatus.DONE, UnitStatus.FAILED}, \
+                    f"job {job.info.job_id}: {job.status.value} with units {sorted(statuses)}"
+            elif job.status == JobStatus.DONE or (job.status == JobStatus.RUNNING and statuses == {UnitStatus.DONE}):
                 assert statuses == {UnitStatus.DONE} and job.status == JobStatus.DONE, f"job {job.info.job_id}: " \
                     f"{job.status.value} with units {sorted(statuses)}"
             if job.status in (JobStatus.FAILED, JobStatus.CANCELLED):
@@ -293,6 +309,8 @@ class Auction:
             job.failures_by_agent[agent] += 1
         job.blocklist = {a for a, n in job.failures_by_agent.items() if n >= self.config.blocklist_after}
         self._jobs[info.job_id] = job
+        if submitted.goal is not None:
+            return self._open_passes(job, submitted.goal, tuple(units))
         return self._finish_if_done(job) + self._fail_if_stuck(job)
 
     def _register(self, agent: str, now: float, speed: float = 1.0, credits: int = 0,
@@ -423,7 +441,7 @@ class Auction:
                         credits=state.credits, on_time=on_time)
         self._clear_award(job, unit, UnitStatus.DONE)
         unit.delivered_by = agent
-        return [done, *self._finish_if_done(job)]
+        return [done, *self._finish_if_done(job)]  # a progressive job ends on its passes' decision instead
 
     def _delivered(self, agent: str, job_id: str, index: int) -> bool:
         """Whether the unit is done by this agent's tile."""
@@ -509,6 +527,7 @@ class Auction:
             free = free_when[queueing]
             callable_now = {a.name for a in free if a.invited is None}  # earlier jobs' rounds took some
             agents = [a for a in free if a.name in callable_now and a.name not in job.blocklist]
+            out += self._extra_passes(job, agents)
             pending = sorted(
                 (u for u in job.units.values() if u.status == UnitStatus.PENDING),
                 key=lambda u: (-u.spec.work, u.spec.index),
@@ -630,7 +649,7 @@ class Auction:
     def _batch(job: Job, slots: int) -> int:
         """Units of `job` an agent with `slots` renders in one call and wins in one round: `batch_size`, or
         one where its units render one a call (level off, two-pass units)."""
-        return batch_size(slots) if batched(job.info.level, job.info.first_spp) else 1
+        return batch_size(slots) if batched(job.info.level, job.info.first_spp, job.info.passes) else 1
 
     def _queueing(self, job: Job, open_units: int) -> bool:
         """Whether units of `job` may be queued behind others: only while the farm's `open_units` are at
@@ -862,6 +881,61 @@ class Auction:
                             unit.deadline)
         return [SendToAgent(agent, award), record]
 
+    # --- progressive jobs: passes as units (master.auction.passes) ---------------------------------------
+
+    def _open_passes(self, job: Job, goal: Goal, units: tuple[WorkUnit, ...]) -> list[Instruction]:
+        """A progressive job: its units become templates, and its first round of passes is auctioned."""
+        job.units.clear()
+        job.passes = PassBook.open(goal, units, self._now)
+        return self._follow(job, job.passes.machine.start(), "a round")
+
+    def _on_pass_merged(self, merged: PassMerged, now: float) -> list[Instruction]:
+        """A pass merged into its unit: the decisions it leads to (more passes, or the job's end)."""
+        job = self._jobs.get(merged.job_id)
+        if job is None or job.passes is None or job.status != JobStatus.RUNNING:
+            return [_ignored(None, "no running progressive job of that id", merged.job_id, merged.index)]
+        book = job.passes
+        unit, pass_index = book.origin(merged.index)
+        done = PassDone(unit, pass_index, merged.spp, merged.seconds, merged.relmse, now - book.started,
+                        max(1, self.live_agents()))
+        return self._follow(job, book.machine.handle(done), "a round")
+
+    def _extra_passes(self, job: Job, agents: list[Agent]) -> list[Instruction]:
+        """Idle agents and nothing of the job pending: extra passes of the units its round waits for."""
+        idle = [a for a in agents if not a.holding]
+        if job.passes is None or not idle or any(u.status == UnitStatus.PENDING for u in job.units.values()):
+            return []
+        return self._follow(job, job.passes.machine.handle(Idle(len(idle))), "extra passes for idle agents")
+
+    def _follow(self, job: Job, decided: list[RenderRound | Finish], why: str) -> list[Instruction]:
+        out: list[Instruction] = []
+        for step in decided:
+            if isinstance(step, RenderRound):
+                out += self._add_passes(job, step.orders, why)
+            else:
+                out += self._settle(job, step)
+        return out
+
+    def _add_passes(self, job: Job, orders: tuple[PassOrder, ...], why: str) -> list[Instruction]:
+        units = tuple(job.passes.pass_unit(o) for o in orders)
+        for unit in units:
+            job.units[unit.index] = UnitState(unit, UnitStatus.PENDING)
+        return [PassesOrdered(job.info.job_id, units, len(units), why)]
+
+    def _settle(self, job: Job, finish: Finish) -> list[Instruction]:
+        """The job's passes reached its goal: those still out are cancelled; the job is done."""
+        out: list[Instruction] = [PassesSettled(job.info.job_id, finish.reason, dict(finish.units))]
+        for unit in job.units.values():
+            if unit.status == UnitStatus.AWARDED:
+                self._agents[unit.agent].holding.discard((job.info.job_id, unit.spec.index))
+                cancel = m.Cancel(conversation=unit.conversation, job_id=job.info.job_id, index=unit.spec.index,
+                                  reason="the job's passes reached its goal")
+                out.append(SendToAgent(unit.agent, cancel))
+            if unit.status != UnitStatus.DONE:
+                self._clear_award(job, unit, UnitStatus.FAILED)
+        self._set_job(job, JobStatus.DONE)
+        return [*out, JobDone(job.info.job_id)]
+
     def _set_unit(self, job: Job, unit: UnitState, status: UnitStatus) -> None:
         """The one place a unit's status changes: checked against `core.model.status.UNIT_TRANSITIONS`."""
         where = f"job {job.info.job_id!r} unit {unit.spec.index}"
@@ -954,7 +1028,8 @@ class Auction:
         return out
 
     def _finish_if_done(self, job: Job) -> list[Instruction]:
-        if job.status == JobStatus.RUNNING and all(u.status == UnitStatus.DONE for u in job.units.values()):
+        done = all(u.status == UnitStatus.DONE for u in job.units.values())
+        if job.passes is None and job.status == JobStatus.RUNNING and done:
             self._set_job(job, JobStatus.DONE)
             return [JobDone(job.info.job_id)]
         return []
@@ -976,6 +1051,8 @@ def _tile_refusal(job: Job, unit: WorkUnit, tile: TileStored) -> str:
     floor (it would lack the light of the paths cut), and in an adaptive job the unit's planned share in two
     passes (its image is averaged with the others' as if it had)."""
     where = f"unit {unit.index} of job {job.info.job_id}"
+    if job.passes is not None and tile.channels[-1:] != (WEIGHT,):
+        return f"{where}: a pass's tile ends with channel {WEIGHT}, this one with {list(tile.channels)[-1:]}"
     if job.channels is not None and tile.channels != job.channels:
         return f"{where}: tile channels {list(tile.channels)[:8]} differ from the job's {list(job.channels)[:8]}"
     try:

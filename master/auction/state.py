@@ -15,6 +15,7 @@ from typing import NamedTuple, Protocol
 from core.model import messages as m
 from core.model.status import JobStatus, UnitStatus
 from core.model.units import SLOTS, WorkUnit
+from master.auction.passes import PassBook
 
 STORY_LENGTH = 32  # changes of status kept per unit (the oldest are forgotten)
 
@@ -149,6 +150,7 @@ class Job:
     failures_by_agent: Counter[str] = field(default_factory=Counter)
     blocklist: set[str] = field(default_factory=set)
     channels: tuple[str, ...] | None = None  # what every tile of the job carries (None: not checked)
+    passes: PassBook | None = None  # a progressive job's decisions (its units are its passes)
 
 
 @dataclass

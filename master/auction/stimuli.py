@@ -13,6 +13,7 @@ from typing import Any
 
 from core.model import messages as m
 from core.model.units import WorkUnit
+from planning.progressive import Goal
 
 
 @dataclass(frozen=True)
@@ -32,6 +33,19 @@ class JobSubmitted(Stimulus):
     done: frozenset[int] = frozenset()
     failures: tuple[tuple[int, str, str], ...] = ()
     delivered_by: Mapping[int, str] = field(default_factory=dict)
+    goal: Goal | None = None  # a progressive job's: its units are templates, its passes are auctioned
+
+
+@dataclass(frozen=True)
+class PassMerged(Stimulus):
+    """The master merged pass `index` (a pass's work unit: master.auction.passes) of a progressive job into
+    its unit: the unit's samples per pixel, seconds of render and estimated relMSE now, all passes merged."""
+
+    job_id: str
+    index: int
+    spp: int
+    seconds: float
+    relmse: float | None
 
 
 @dataclass(frozen=True)

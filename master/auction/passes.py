@@ -1,0 +1,43 @@
+"""A progressive job in the auction: its units' passes are auctioned as units of their own.
+
+Pass `k` of unit `u` (of a job of `n` units) is the work unit of index k n + u: the unit's rectangle and
+features at the pass's spp, seeded by that index, so that the contract net, the store and the agents
+handle a pass as any unit. `PassBook` is what the auction keeps of the job: the decisions
+(planning.progressive.Progressive), the units the passes copy, and when the first pass was ordered.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from core.model.units import WorkUnit
+from planning.progressive import Goal, PassOrder, Progressive
+
+
+@dataclass
+class PassBook:
+    machine: Progressive
+    units: tuple[WorkUnit, ...]
+    started: float
+
+    @classmethod
+    def open(cls, goal: Goal, units: tuple[WorkUnit, ...], now: float) -> PassBook:
+        if [u.index for u in units] != list(range(len(units))):
+            raise ValueError("a progressive job's units are indexed 0 .. n - 1")
+        return cls(Progressive(goal, [u.rect.area for u in units]), units, now)
+
+    def pass_unit(self, order: PassOrder) -> WorkUnit:
+        """The work unit that renders `order`."""
+        return dataclasses.replace(self.units[order.unit], index=order.pass_index * len(self.units) + order.unit,
+                                   spp=order.spp)
+
+    def origin(self, index: int) -> tuple[int, int]:
+        """(unit, pass) of a pass's work unit index."""
+        return pass_origin(index, len(self.units))
+
+
+def pass_origin(index: int, units: int) -> tuple[int, int]:
+    """(unit, pass) of the work unit `index` of a progressive job of `units` units."""
+    pass_index, unit = divmod(index, units)
+    return unit, pass_index

@@ -1,0 +1,51 @@
+"""A progressive job on a real two-agent farm: its passes are auctioned as units, merged on the master as
+they land, and the job ends when every unit's estimated error is under the threshold; its image is the
+one-process job's up to noise, and its estimate honest against plain Mitsuba's converged image."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_progressive_render import RES, SCENE, _reference, true_errors
+
+from core.image.imageio import read_image
+from core.image.metrics import relmse
+from farm.local import LocalFarm
+from tests.test_farm import bundle_of, wait_job
+
+TAU = 0.05
+DEFINES = {"res": str(RES), "spp": "1024"}
+
+
+@pytest.mark.slow
+def test_a_noise_job_on_a_farm_meets_its_threshold_honestly_and_matches_one_process(tmp_path: Path) -> None:
+    with LocalFarm(tmp_path / "farm", agents=2, threads=1) as farm:
+        farm.wait_for_agents()
+        client = farm.client()
+        job_id = client.submit(bundle_of(SCENE, DEFINES), DEFINES, {"level": "off", "noise": TAU, "units": 9})
+        job = wait_job(farm, job_id)
+        assert job["status"] == "done", job
+        out = client.result(job_id, tmp_path / "farm.exr")
+        with pytest.raises(Exception, match=r"HTTP 422: --noise and --time at level S: a farm renders progressive"):
+            client.submit(bundle_of(SCENE, DEFINES), DEFINES, {"level": "S", "noise": TAU})
+    report = json.loads(out.with_suffix(".json").read_text())
+    progressive = report["render_calls"]["progressive"]
+    units = report["units"]
+    assert progressive["goal"] == "noise" and progressive["reason"].startswith(f"{len(units)} of {len(units)} units")
+    assert len(units) == 9 and {u["verdict"] for u in units} == {"met"}
+    assert all(u["relative_error_estimate"] <= TAU and u["passes"] >= 4 for u in units)
+    assert len({a for u in units for a in u["agent"].split(", ")}) == 2  # the passes of the job on both agents
+    image = read_image(out)[..., :3]
+    true = true_errors(image, _reference(), units, TAU)
+    assert max(true) < 1.3 and np.median(true) < 1.1, true
+    # the same job in one process: each image carries relative error ~TAU, so their relMSE is ~2 TAU^2
+    local = tmp_path / "local.exr"
+    from test_cli import quekaro
+
+    done = quekaro("render", str(SCENE), "-D", f"res={RES}", "-D", "spp=1024", "--noise", str(TAU), "--units",
+                   "9", "-o", str(local), "--no-progress", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert relmse(image, read_image(local)[..., :3]) < 3 * TAU ** 2
