@@ -13,7 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 
-from bench import accuracy, adaptive, allocation, denoise, fuzzy_engine, hosts, overhead, provenance, scaling
+from bench import accuracy, adaptive, allocation, denoise, fuzzy_engine, hosts, overhead, provenance, scaling, threshold
 from bench import farm as farm_bench
 
 BENCHMARKS: dict[str, tuple[ModuleType, str]] = {
@@ -23,6 +23,7 @@ BENCHMARKS: dict[str, tuple[ModuleType, str]] = {
     "accuracy": (accuracy, "time and error per (agents, optimisation level)"),
     "allocation": (allocation, "each level's render time and relMSE against uniform spp, predicted"),
     "adaptive": (adaptive, "the two-pass per-pixel adaptive render against uniform spp at equal render time"),
+    "threshold": (threshold, "the progressive render to a noise goal against uniform spp reaching it in every unit"),
     "denoise": (denoise, "the denoiser's gain at the same spp, with the scene's filter and with a box one"),
     "scaling": (scaling, "simulated auction scaling to 64 agents"),
     "hosts": (hosts, "the real protocol (XMPP server, master, agent processes) at 8-64 emulated agents"),

@@ -54,7 +54,7 @@ JOB_W, JOB_H = 1000, 600  # the paper's image
 MEASURE_W, MEASURE_H, MEASURE_CELL, MEASURE_SPP = 500, 300, 25, 64
 T1_S = 1200.0  # the single-agent time the job is sized to, at least
 MIXED_SPEEDS = (1.5, 0.5, 1.25, 0.75)  # cycled: mean 1, so N agents are a capacity of N
-TARGETS = {8: 0.92, 32: 0.85, 64: 0.75}
+TARGETS = {8: 0.95, 32: 0.93, 64: 0.90}  # issue 61: with passes, no tail
 MASTER_CPU_TARGET = 1.0  # cores, at 64 agents
 AGREEMENT = 0.10  # simulator against emulation, relative
 START_TIMEOUT_S = 300.0
@@ -585,7 +585,8 @@ def format_report(result: dict[str, Any]) -> str:
         f"machine: {result['cpus']} CPUs (shared), load average {result['load'][0]:.2f} at the end",
         "", HEAD, "|" + "---|" * 12, *(row_line(r) for r in rows), "",
     ]
-    lines += [f"N={r['agents']}: load average {r['load_before']:.2f} at submit (CPUs "
+    lines += [f"N={r['agents']}: efficiency's bound from the units' bands (T1 over their windows' seconds) "
+              f"{result['t1_s'] / r['units_seconds']:.3f}; load average {r['load_before']:.2f} at submit (CPUs "
               f"{100 * r.get('busy_at_submit', float('nan')):.0f} % busy after {r.get('settle_s', 0):.0f} s of "
               f"settling), submit to done "
               f"{r['submit_to_done_s']:.1f} s, simulated with exact bids {r['sim_exact_makespan_s']:.1f} s, "

@@ -45,7 +45,7 @@ class SimResult:
 # The simulated agents render a unit a call, as the farm's did before its agents rendered units in batches:
 # 2 slots (one unit a round and a call), the setting the scaling and hosts figures were measured with.
 UNBATCHED_AUCTION = Config(slots=2)
-PASS_SPP = 4  # a progressive job's samples per unit: its budget, rendered in planning.progressive's passes
+PASS_SPP = 16  # a progressive job's samples per unit: its budget, in planning.progressive's halving passes
 PASS_CHANNELS = ("R", "G", "B", WEIGHT)
 
 
@@ -159,7 +159,7 @@ class _Sim:
                 # A stored tile stands for its upload, which the real master reads and hands to the auction.
                 stimulus = payload if isinstance(payload, TileStored) else MessageReceived(who, payload)
                 out = self.auction.handle(stimulus, now)
-                if isinstance(stimulus, TileStored) and self.auction.job_passes(stimulus.job_id):
+                if isinstance(stimulus, TileStored) and self.auction.merges_passes(stimulus.job_id):
                     out += self.auction.handle(self._merged(stimulus), now)  # the master's merge, at once
                 self.deliver(out + self.auction.handle(Tick(), now), now)
             elif kind == "agent":

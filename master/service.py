@@ -494,7 +494,7 @@ class MasterService:
                     self._assemble_later(item.job_id)
                 elif isinstance(item, au.PassesSettled):
                     write_verdicts(self.job_dir(item.job_id), item)
-                elif isinstance(item, au.UnitDone) and self.auction.job_passes(item.job_id):
+                elif isinstance(item, au.UnitDone) and self.auction.merges_passes(item.job_id):
                     self._merge_later(item)
         for to, message in outgoing(instructions):
             try:

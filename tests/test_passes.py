@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from core.errors import TileError
-from core.image.passes import MIN_PASSES, WEIGHT, UnitPasses
+from core.image.passes import MIN_PASSES, WEIGHT, UnitPasses, box3
 from core.image.tiles import Tile
 from core.model.geometry import Rect
 
@@ -77,8 +77,17 @@ def test_variance_estimate_tracks_the_true_variance_of_the_merge() -> None:
     true = np.var(np.stack(merges), axis=0).mean()
     assert abs(np.mean(estimates) / true - 1) < 0.05
     rel = merged.relmse(epsilon=0.0)
-    value = merged.pixels()[1:3, 1:5, :3].astype(np.float64)
+    colour = merged.pixels()[..., :3].astype(np.float64)
+    value = np.minimum(colour, box3(colour))[1:3, 1:5]
     assert rel == pytest.approx(float(np.mean(merged.variance()[1:3, 1:5] / value ** 2)))
+
+
+def test_box3_is_the_mean_of_the_nine_pixels_around_with_edges_repeated():
+    image = np.arange(12, dtype=np.float64).reshape(3, 4, 1)
+    out = box3(image)
+    assert out[1, 1, 0] == pytest.approx(image[0:3, 0:3].mean())
+    assert out[0, 0, 0] == pytest.approx(np.mean([0, 0, 1, 0, 0, 1, 4, 4, 5]))
+    assert box3(np.full((1, 1, 3), 2.5)).tolist() == [[[2.5, 2.5, 2.5]]]
 
 
 def test_a_tile_without_the_weight_or_of_another_window_is_refused() -> None:

@@ -20,6 +20,7 @@ from planning.progressive import (
     PassOrder,
     Progressive,
     RenderRound,
+    budget_passes,
 )
 
 
@@ -183,8 +184,9 @@ def test_time_rounds_are_as_long_as_the_time_spent_times_the_workers():
 def test_a_budget_job_renders_each_units_own_samples_in_passes_and_ends_when_all_have_them():
     machine = Progressive(Goal(BUDGET, 64), [10, 10, 10], budgets=[64, 10, 3])
     [first] = machine.start()
-    by_unit = {u: sorted(o.spp for o in first.orders if o.unit == u) for u in range(3)}
-    assert by_unit == {0: [16, 16, 16, 16], 1: [2, 2, 3, 3], 2: [1, 1, 1]}
+    by_unit = {u: [o.spp for o in first.orders if o.unit == u] for u in range(3)}
+    assert by_unit == {0: [32, 16, 8, 4, 4], 1: [5, 2, 1, 1, 1], 2: [1, 1, 1]}
+    assert [budget_passes(b) for b in (1, 2, 16, 17)] == [[1], [1, 1], [8, 4, 2, 1, 1], [8, 4, 2, 1, 2]]
     out = run_round(machine, first.orders, [1.0] * 3, [0.01] * 3, 2.0)
     assert out == [Finish("every unit has its samples (2.0 s)", {0: "budget", 1: "budget", 2: "budget"})]
     with pytest.raises(ValueError, match="budgets"):

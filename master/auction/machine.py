@@ -226,6 +226,12 @@ class Auction:
         job = self._jobs.get(job_id)
         return len(job.passes.units) if job is not None and job.passes is not None else 0
 
+    def merges_passes(self, job_id: str) -> bool:
+        """Whether the job's passes are merged as they land (PassMerged): a noise or time goal decides on
+        their noise; a budget job only counts them."""
+        job = self._jobs.get(job_id)
+        return job is not None and job.passes is not None and job.passes.merges
+
     def job_status(self, job_id: str) -> str | None:
         """The job's status ('running', 'done', ...), or None for a job the auction does not know."""
         job = self._jobs.get(job_id)
@@ -441,6 +447,8 @@ class Auction:
                         credits=state.credits, on_time=on_time)
         self._clear_award(job, unit, UnitStatus.DONE)
         unit.delivered_by = agent
+        if job.passes is not None and not job.passes.merges:  # a budget job counts its passes, unmerged
+            return [done, *self._on_pass_merged(PassMerged(tile.job_id, tile.index, 0, 0.0, None), now)]
         return [done, *self._finish_if_done(job)]  # a progressive job ends on its passes' decision instead
 
     def _delivered(self, agent: str, job_id: str, index: int) -> bool:

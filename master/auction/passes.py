@@ -12,7 +12,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from core.model.units import WorkUnit
-from planning.progressive import Goal, PassOrder, Progressive
+from planning.progressive import BUDGET, Goal, PassOrder, Progressive
 
 
 @dataclass
@@ -31,6 +31,11 @@ class PassBook:
         """The work unit that renders `order`."""
         return dataclasses.replace(self.units[order.unit], index=order.pass_index * len(self.units) + order.unit,
                                    spp=order.spp)
+
+    @property
+    def merges(self) -> bool:
+        """Whether decisions need each pass merged (its noise): not a budget job's, which counts passes."""
+        return self.machine.goal.kind != BUDGET
 
     def origin(self, index: int) -> tuple[int, int]:
         """(unit, pass) of a pass's work unit index."""
