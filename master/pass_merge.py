@@ -25,6 +25,7 @@ class PassMerger:
     def __init__(self) -> None:
         self._sums: dict[str, dict[int, UnitPasses]] = {}
         self._locks: dict[str, threading.Lock] = {}
+        self._ended: set[str] = set()  # jobs forgotten: a late pass merges alone, its sums not kept
         self._guard = threading.Lock()
 
     def merge(self, job_id: str, units: int, index: int, tile_path: str) -> au.PassMerged:
@@ -33,7 +34,7 @@ class PassMerger:
         unit, _ = au.pass_origin(index, units)
         tile = read_tile(tile_path)
         with self._lock(job_id):
-            sums = self._sums.setdefault(job_id, {})
+            sums = self._sums.setdefault(job_id, {}) if job_id not in self._ended else {}
             if unit in sums:
                 sums[unit].add(tile)
             else:
@@ -47,6 +48,7 @@ class PassMerger:
         with self._guard:
             self._sums.pop(job_id, None)
             self._locks.pop(job_id, None)
+            self._ended.add(job_id)
 
     def _lock(self, job_id: str) -> threading.Lock:
         with self._guard:
