@@ -22,7 +22,7 @@ import numpy as np
 from bench.accuracy import DEFAULT_OUT, REPO
 from bench.args import check_minimums
 from bench.report import command_of, publish_markdown
-from bench.scaling import default_cache_dir, measured_spec
+from bench.scaling import default_cache_dir, suite_spec
 from bench.suite import BY_NAME, SUITE, scene_from_argument
 from core.errors import QuekaroError
 from core.image.film import film_channels, sanitize
@@ -127,9 +127,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     chosen = [scene_from_argument(s) for s in args.scenes] if args.scenes else list(SUITE)
     if len(chosen) == 1:
         entry = chosen[0]
-        defines = entry.with_size(args.res)
-        spec = measured_spec(entry.path.resolve(), args.res, defines=defines if "width" in defines else None)
-        scenes = {entry.name: {"role": entry.role, **measure_scene(spec, args)}}
+        scenes = {entry.name: {"role": entry.role, **measure_scene(suite_spec(entry, args.res), args)}}
     else:  # one process per scene, so that a crash costs one scene (the SIGSEGV once seen here: LANE_MULTIPLE)
         scenes = {e.name: _scene_in_child(e, args) for e in chosen}
     ratios = [s["ratio_equal_time"] for s in scenes.values()]

@@ -156,6 +156,12 @@ def measure(spec: SceneSpec, cell: int, spp: int, threads: int) -> tuple[TimeMap
     return tmap, cmap
 
 
+def suite_spec(entry: Any, res: int) -> SceneSpec:
+    """A suite scene (bench.suite.SuiteScene) at `res` wide, as the suite's benchmarks measure it."""
+    defines = entry.with_size(res)
+    return measured_spec(entry.path.resolve(), res, defines=defines if "width" in defines else None)
+
+
 def measured_spec(scene_path: Path, res: int, height: int | None = None,
                   defines: dict[str, str] | None = None) -> SceneSpec:
     """The scene as measured: its `defines` when given (the size is then the film's), else `-D res`, and

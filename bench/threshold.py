@@ -35,7 +35,7 @@ from bench.accuracy import DEFAULT_OUT, REPO, distinct
 from bench.adaptive import uniform
 from bench.args import check_minimums
 from bench.report import command_of, publish_markdown
-from bench.scaling import default_cache_dir, measured_spec
+from bench.scaling import default_cache_dir, suite_spec
 from bench.suite import BY_NAME, SUITE, scene_from_argument
 from core.errors import QuekaroError
 from core.image.imageio import read_image
@@ -218,9 +218,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     chosen = [scene_from_argument(s) for s in args.scenes] if args.scenes else list(SUITE)
     if len(chosen) == 1:
         entry = chosen[0]
-        defines = entry.with_size(args.res)
-        spec = measured_spec(entry.path.resolve(), args.res, defines=defines if "width" in defines else None)
-        scenes = {entry.name: {"role": entry.role, **measure_scene(spec, args)}}
+        scenes = {entry.name: {"role": entry.role, **measure_scene(suite_spec(entry, args.res), args)}}
     else:  # one process per scene, one after another: a crash costs one scene, and no two renders overlap
         scenes = {shown.name: _scene_in_child(e, args) for e, shown in zip(chosen, distinct(chosen), strict=True)}
     result = {"noise": args.noise, "spp_cap": args.spp, "res": args.res, "units": args.units,

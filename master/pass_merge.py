@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from core.files import written_atomically
-from core.image.passes import UnitPasses
+from core.image.passes import UnitPasses, merge_pass
 from core.image.tiles import Tile, read_tile
 from master import auction as au
 
@@ -35,11 +35,7 @@ class PassMerger:
         tile = read_tile(tile_path)
         with self._lock(job_id):
             sums = self._sums.setdefault(job_id, {}) if job_id not in self._ended else {}
-            if unit in sums:
-                sums[unit].add(tile)
-            else:
-                sums[unit] = UnitPasses.first(tile)
-            done = sums[unit]
+            done = merge_pass(sums, unit, tile)
             return au.PassMerged(job_id, index, done.spp, done.seconds, done.relmse(),
                                  stimulus_id=f"merged-{job_id}-{index}")
 
@@ -65,20 +61,14 @@ def merged_units(results: Iterable[Any], units: int, verdicts: dict[int, str]
     agents: dict[int, set[str]] = {}
     for result in sorted(results, key=lambda r: r.index):
         unit, _ = au.pass_origin(result.index, units)
-        tile = read_tile(result.tile_path)
-        if unit in sums:
-            sums[unit].add(tile)
-        else:
-            sums[unit] = UnitPasses.first(tile)
-            params[unit] = dict(result.params)
+        merge_pass(sums, unit, read_tile(result.tile_path))
+        params.setdefault(unit, dict(result.params))
         agents.setdefault(unit, set()).add(str(result.params.get("agent")))
     tiles, lines = [], {}
     for unit, passes in sorted(sums.items()):
         tiles.append(passes.tile({"unit_index": unit, "seconds": passes.seconds, "window_method": "passes"}))
-        relmse = passes.relmse()
-        lines[unit] = {**params[unit], "spp": passes.spp, "passes": passes.passes, "relmse_estimate": relmse,
-                       "relative_error_estimate": None if relmse is None else relmse ** 0.5,
-                       "verdict": verdicts.get(unit), "agent": ", ".join(sorted(agents[unit]))}
+        lines[unit] = {**params[unit], **passes.account(), "verdict": verdicts.get(unit),
+                       "agent": ", ".join(sorted(agents[unit]))}
     return tiles, lines
 
 

@@ -26,7 +26,7 @@ from core.image.compose import TileSource, compose_planar
 from core.image.denoise import AOV_SPP, AOVS, DENOISER_CHANNELS, QUALITY, denoise_planar
 from core.image.film import display_rgb, film_output
 from core.image.imageio import write_image, write_png_planar
-from core.image.passes import UnitPasses
+from core.image.passes import UnitPasses, merge_pass
 from core.image.tiles import Tile
 from core.model.geometry import Rect
 from core.model.hashing import sha256_file
@@ -405,11 +405,7 @@ class ProgressiveRun(UnitRun):
     def _merge(merged: dict[int, UnitPasses], tile: Tile, elapsed: float) -> PassDone:
         """Merge a pass's tile into its unit's passes; what the machine hears of it."""
         unit = int(tile.meta["unit_index"])
-        if unit in merged:
-            merged[unit].add(tile)
-        else:
-            merged[unit] = UnitPasses.first(tile)
-        done = merged[unit]
+        done = merge_pass(merged, unit, tile)
         return PassDone(unit, int(tile.meta["pass"]), done.spp, done.seconds, done.relmse(), elapsed)
 
     def _pass_job(self, order: PassOrder) -> RenderRequest:
@@ -427,8 +423,5 @@ class ProgressiveRun(UnitRun):
         return [tile for batch in groups for tile in self._render(batch, together)]
 
     def _record(self, unit: int, passes: UnitPasses, verdict: str) -> dict[str, Any]:
-        relmse = passes.relmse()
-        return {**self.chosen[unit].to_dict(), "spp": passes.spp, "band": self.plan.reach, "rules": self.rules,
-                "passes": passes.passes,
-                "relmse_estimate": relmse, "relative_error_estimate": None if relmse is None else relmse ** 0.5,
+        return {**self.chosen[unit].to_dict(), "band": self.plan.reach, "rules": self.rules, **passes.account(),
                 "verdict": verdict}

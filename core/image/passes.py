@@ -10,6 +10,7 @@ its variance (batch means, `UnitPasses.variance`), an estimate that improves wit
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -88,13 +89,14 @@ class UnitPasses:
         w = self.weight[..., None]
         return np.where(w > 0, self.sum / np.where(w > 0, w, 1.0), 0.0).astype(np.float32)
 
-    def variance(self) -> np.ndarray | None:
+    def variance(self, colour: np.ndarray | None = None) -> np.ndarray | None:
         """Per pixel and colour channel, the estimated variance of the merged value (H x W x 3), or None
         before MIN_PASSES passes: k / (k - 1) sum_k W_k^2 (L_k - L)^2 / (sum_k W_k)^2, the batch-means
-        variance of a weighted mean (for equal weights s^2 / k). Pixels without weight: 0."""
+        variance of a weighted mean (for equal weights s^2 / k). Pixels without weight: 0. `colour`: the
+        merged colour (float64, H x W x 3) where the caller has it already."""
         if self.passes < MIN_PASSES:
             return None
-        merged = self.pixels()[..., :3].astype(np.float64)
+        merged = self.pixels()[..., :3].astype(np.float64) if colour is None else colour
         spread = self.sq - 2.0 * merged * self.cross + merged * merged * self.wsq[..., None]
         w = np.where(self.weight > 0, self.weight, 1.0)[..., None]
         k = self.passes
@@ -109,19 +111,34 @@ class UnitPasses:
         it, the units of the suite's still life said to be under TAU were at 1.28 TAU (median) and up to
         1.5 (bench threshold); the lesser of the two is conservative at edges too (the neighbours' mean
         only brightens a dark pixel beside a bright one). None before MIN_PASSES passes."""
-        variance = self.variance()
-        if variance is None:
+        if self.passes < MIN_PASSES:
             return None
+        merged = self.pixels()[..., :3].astype(np.float64)
+        variance = self.variance(merged)
         x, y, w, h = self.core
         wx, wy = self.window[:2]
         cut = (slice(y - wy, y - wy + h), slice(x - wx, x - wx + w))
-        merged = self.pixels()[..., :3].astype(np.float64)
         value = np.minimum(merged, box3(merged))[cut]
         return float(np.mean(variance[cut] / (value * value + epsilon)))
+
+    def account(self) -> dict[str, Any]:
+        """The unit's line in a job's report: its samples, passes and estimated error."""
+        relmse = self.relmse()
+        return {"spp": self.spp, "passes": self.passes, "relmse_estimate": relmse,
+                "relative_error_estimate": None if relmse is None else relmse ** 0.5}
 
     def tile(self, meta: dict) -> Tile:
         """The merged unit as an ordinary tile (the film's channels, no weight)."""
         return Tile(self.pixels(), Rect(*self.window), Rect(*self.core), meta, self.channels)
+
+
+def merge_pass(sums: dict[int, UnitPasses], unit: int, tile: Tile) -> UnitPasses:
+    """Merge a pass's tile into `sums[unit]` (its first pass starts them); the unit's sums."""
+    if unit in sums:
+        sums[unit].add(tile)
+    else:
+        sums[unit] = UnitPasses.first(tile)
+    return sums[unit]
 
 
 def box3(image: np.ndarray) -> np.ndarray:
