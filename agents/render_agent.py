@@ -95,7 +95,6 @@ class AgentConfig:
     rules: Path | None = None  # default: core.data.default_rules_path()
     defuzzifier: str | None = None  # None: the rule file's dialect decides (centroid, or MASYRO's centre of sums)
     workdir: Path = field(default_factory=lambda: default_home().parent / "agents" / "agent")
-    auto_register: bool = False  # in-band registration: the embedded server only
     ca_file: str | None = None  # the farm's CA: verifies the XMPP server and the master's HTTPS
     verify_security: bool = False
     insecure_http: bool = False  # accept a plain-HTTP data plane across a network (said in every refusal)
@@ -218,7 +217,7 @@ class RenderAgent:
         log.info("%s: speed %.3f Mrays/s (reference render %.3f s, %s)", self.config.jid, self.speed.speed,
                  self.speed.seconds, self.speed.variant)
         await self._feed(Measured(self.speed.speed, self.speed.compile_s, stimulus_id="measured"))
-        await self.farm.start(auto_register=self.config.auto_register)
+        await self.farm.start()
         self._tasks = [asyncio.create_task(self._beat_forever(), name="agent heartbeat")]
         try:
             await self._stop.wait()
@@ -588,7 +587,6 @@ def build_parser() -> argparse.ArgumentParser:
                    help="default for jobs that name none (default: centroid; centre of sums for MASYRO's dialect)")
     p.add_argument("--workdir", type=Path, default=None,
                    help="bundle cache and tiles, made private (default: ~/.quekaro/agents/JID)")
-    p.add_argument("--register", action="store_true", help="create the XMPP account in-band (embedded server)")
     p.add_argument("--ca-file", default=None,
                    help="the farm's CA certificate: verifies the XMPP server's TLS and the master's HTTPS")
     p.add_argument("--insecure-http", action="store_true",
@@ -618,7 +616,7 @@ def config_from_args(args: argparse.Namespace) -> AgentConfig:
     return AgentConfig(jid=args.jid, password=password, master=args.master, master_url=args.master_url,
                        server=args.server,
                        port=args.port, threads=args.threads, rules=args.rules, defuzzifier=args.defuzzifier,
-                       workdir=workdir, auto_register=args.register, ca_file=args.ca_file,
+                       workdir=workdir, ca_file=args.ca_file,
                        verify_security=bool(args.ca_file), heartbeat_s=args.heartbeat, slots=args.slots,
                        insecure_http=args.insecure_http, emulate=args.emulate,
                        emulate_speed=args.speed or 1.0)

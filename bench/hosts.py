@@ -13,7 +13,6 @@ import contextlib
 import json
 import math
 import os
-import secrets
 import shutil
 import sqlite3
 import statistics
@@ -40,7 +39,7 @@ from core.model.geometry import Rect
 from core.model.hashing import sha256_file
 from core.scene.bundle import make_bundle
 from core.supervision import die_with_parent
-from core.transport.xmpp_server import EmbeddedXmppServer, ProsodyServer
+from core.transport.xmpp_server import ProsodyServer
 from farm.client import FarmClient
 from farm.local import stop_processes
 
@@ -75,8 +74,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--t1", type=float, default=T1_S, help="least single-agent seconds of the job")
     parser.add_argument("--threads", type=int, default=2, help="threads of the cost map's measurement")
     parser.add_argument("--remeasure", action="store_true", help="render the cells again, not from the cache")
-    parser.add_argument("--xmpp", choices=("auto", "prosody", "embedded"), default="auto",
-                        help="XMPP server: Prosody when installed (auto), or the embedded one")
     parser.add_argument("--keep", type=Path, default=None, help="keep every process's home and logs here")
     parser.add_argument("--progressive", action="store_true",
                         help="submit the job with --progressive: each unit's samples in passes, the last units' "
@@ -164,14 +161,13 @@ def speeds_for(n: int) -> list[float]:
 @dataclass
 class EmulatedFarm:
     """An XMPP server, the master and emulated agents (one process each) under `root`; a context manager.
-    `prosody`: a real Prosody (TLS verified against its certificate), else the embedded server. Each agent
+    The server is a real Prosody (TLS verified against its certificate, accounts made ahead). Each agent
     is `quekaro agent --emulate COSTS.json --speed F` (agents/emulate.py): a whole agent (XMPP, bids, bundle
     download, tile upload) that sleeps each render for the cost map's time and never imports Mitsuba."""
 
     root: Path
     costs: Path
     speeds: Sequence[float]
-    prosody: bool
     server: Any = None
     master: subprocess.Popen | None = None
     agents: list[subprocess.Popen] = field(default_factory=list)
@@ -220,21 +216,14 @@ class EmulatedFarm:
         raise QuekaroError(f"the master did not come up within {timeout:.0f} s (see {self.logs})")
 
     def _start_server(self, users: list[str]) -> dict[str, str]:
-        if self.prosody:
-            self.server = ProsodyServer(self.root / "prosody", domain=DOMAIN)
-            passwords = self.server.register_all(users)
-        else:
-            self.server = EmbeddedXmppServer(self.root / "xmpp", domain=DOMAIN)
-            self.server.allow(users)
-            passwords = {u: secrets.token_hex(16) for u in users}
+        self.server = ProsodyServer(self.root / "prosody", domain=DOMAIN)
+        passwords = self.server.register_all(users)
         self.server.start()
         return passwords
 
     def _xmpp_options(self) -> list[str]:
-        options = ["--server", "127.0.0.1", "--port", str(self.server.port)]
-        if self.prosody:
-            return [*options, "--ca-file", str(self.server.cert_dir / f"{DOMAIN}_cert.pem")]
-        return [*options, "--register"]
+        return ["--server", "127.0.0.1", "--port", str(self.server.port),
+                "--ca-file", str(self.server.cert_dir / f"{DOMAIN}_cert.pem")]
 
     def _master_command(self) -> list[str]:
         return [sys.executable, "-m", "quekaro", "master", "--home", str(self.home), "--jid", MASTER_JID,
@@ -399,11 +388,11 @@ def delivery(results: list[dict[str, Any]]) -> float:
 # ---- one agent count ----------------------------------------------------------------------------------
 
 
-def run_count(n: int, job: BenchJob, costs: CostMap, costs_path: Path, prosody: bool, root: Path) -> dict[str, Any]:
+def run_count(n: int, job: BenchJob, costs: CostMap, costs_path: Path, root: Path) -> dict[str, Any]:
     """One job on a fresh farm of n emulated agents, submitted once all have registered and the machine has
     settled; the figures, and the simulator's prediction beside."""
     speeds = speeds_for(n)
-    with EmulatedFarm(root / f"n{n}", costs_path, speeds, prosody) as farm:
+    with EmulatedFarm(root / f"n{n}", costs_path, speeds) as farm:
         started = time.monotonic()
         client = farm.client()
         up_s = time.monotonic() - started
@@ -501,15 +490,12 @@ def bids(store: StoreView, unit_s: list[float]) -> list[float]:
 # ---- the command ---------------------------------------------------------------------------------------
 
 
-def use_prosody(choice: str) -> tuple[bool, str]:
-    """Whether to run Prosody, and the line that says which server runs and why."""
+def server_line() -> str:
+    """The line that says which XMPP server runs; QuekaroError naming the packages where it cannot."""
     missing = [tool for tool in ("prosody", "prosodyctl", "openssl") if shutil.which(tool) is None]
-    if choice == "prosody" and missing:
-        raise QuekaroError(f"--xmpp prosody: not installed: {', '.join(missing)} (Debian packages prosody, openssl)")
-    if choice == "embedded" or missing:
-        why = "as asked" if choice == "embedded" else f"Prosody not installed: no {', '.join(missing)}"
-        return False, f"XMPP: the embedded pyjabber server ({why})"
-    return True, "XMPP: Prosody (TLS required, certificate verified, accounts made by prosodyctl)"
+    if missing:
+        raise QuekaroError(f"not installed: {', '.join(missing)} (Debian packages prosody, openssl)")
+    return "XMPP: Prosody (TLS required, certificate verified, accounts made by prosodyctl)"
 
 
 def load_costs(args: argparse.Namespace) -> CostMap:
@@ -532,17 +518,17 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             print(f"wrote {args.costs}: T1 at {JOB_W}x{JOB_H} = {t1:.0f} s at {spp} spp")
         return {"costs": str(args.costs), "spp": spp}
     counts = [int(c) for c in str(args.agents).split(",") if c.strip()]
-    prosody, server_line = use_prosody(args.xmpp)
+    server = server_line()
     job = make_job(costs, args.scene, job_spp(costs, args.t1), progressive=args.progressive)
-    progress(server_line)
+    progress(server)
     rows = []
     with ExitStack() as stack:
         root = args.keep or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="quekaro-hosts-")))
         for n in counts:
             progress(f"{n} emulated agents ...")
-            rows.append(run_count(n, job, costs, args.costs, prosody, Path(root)))
+            rows.append(run_count(n, job, costs, args.costs, Path(root)))
             progress(row_line(rows[-1]))
-    result = {"server": server_line, "scene": str(args.scene), "width": JOB_W, "height": JOB_H, "spp": job.spp,
+    result = {"server": server, "scene": str(args.scene), "width": JOB_W, "height": JOB_H, "spp": job.spp,
               "progressive": args.progressive,
               "t1_s": job.t1, "costs": str(args.costs), "measured": costs.info, "mixed_speeds": list(MIXED_SPEEDS),
               "load": os.getloadavg(), "cpus": os.cpu_count(), "rows": rows}

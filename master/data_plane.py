@@ -31,7 +31,16 @@ from aiohttp import web
 from core.errors import TileError
 from core.image.tiles import MAX_CHANNELS, durable_replace, read_tile
 from core.model.geometry import Rect
-from master.http_guard import JOB_PART, UNIT_PART, Refusal, bearer_token, disk_full, json_error, read_body_chunks
+from master.http_guard import (
+    JOB_PART,
+    UNIT_PART,
+    Refusal,
+    bearer_token,
+    disk_full,
+    json_error,
+    read_body_chunks,
+    sender_of,
+)
 from master.http_guard import serve as guarded_serve
 
 log = logging.getLogger(__name__)
@@ -111,7 +120,8 @@ async def _json_errors(request: web.Request, handler: Callable[[web.Request], Aw
     try:
         return await handler(request)
     except Refusal as exc:
-        log.info("%s %s refused (%d): %s", request.method, request.path, exc.status, exc.reason)
+        log.info("%s %s from %s refused (%d): %s", request.method, request.path, sender_of(request), exc.status,
+                 exc.reason)
         return json_error(exc.status, exc.reason)
     except web.HTTPException as exc:
         if exc.status >= 400:  # aiohttp's own 404/405/413: same JSON shape as ours

@@ -22,6 +22,8 @@ from typing import Any
 
 from aiohttp import web
 
+from core.transport.peers import describe_peer
+
 HEADER_TIMEOUT_S = 10.0
 BODY_GRACE_S = 30.0
 MIN_BODY_RATE = 64 * 1024  # bytes per second, on average, after the grace period
@@ -149,6 +151,14 @@ class Refusal(Exception):
     def __init__(self, status: int, reason: str) -> None:
         super().__init__(reason)
         self.status, self.reason = status, reason
+
+
+def sender_of(request: web.Request) -> str:
+    """Who sent `request`, for the log of a refusal: its address, and on loopback the local user."""
+    transport = request.transport
+    if transport is None:
+        return "(gone)"
+    return describe_peer(transport.get_extra_info("peername"), transport.get_extra_info("sockname"))
 
 
 def json_error(status: int, reason: str) -> web.Response:

@@ -18,7 +18,7 @@ from master.service import MasterConfig, MasterService
 def config_from(args: argparse.Namespace) -> MasterConfig:
     return MasterConfig(
         home=Path(args.home or default_home()), jid=args.jid, password=xmpp_password(args.password, args.password_file),
-        xmpp_host=args.server, xmpp_port=args.port, auto_register=args.register, ca_file=args.ca_file,
+        xmpp_host=args.server, xmpp_port=args.port, ca_file=args.ca_file,
         http_host=args.http_host, http_port=args.http_port, public_url=args.public_url, threads=args.threads,
         tls_cert=args.tls_cert, tls_key=args.tls_key, insecure_http=args.insecure_http,
         auction=au.Config(slots=_slots(args)), agent_allowlist=args.agents_allow,

@@ -88,7 +88,6 @@ class MasterConfig:
     password: str = ""
     xmpp_host: str | None = None
     xmpp_port: int = 5222
-    auto_register: bool = False
     ca_file: str | None = None
     http_host: str = "127.0.0.1"
     http_port: int = 8765
@@ -256,7 +255,7 @@ class MasterService:
             rates=SenderRates(AGENT_RATE, AGENT_BURST),
         )
         self.agent.set_handler(self._on_envelope)
-        await self.agent.start(auto_register=self.config.auto_register)
+        await self.agent.start()
 
     def _accepts(self, jid: str) -> bool:
         """Whether a sender may take part: its bare JID matches the agents' pattern and, with an allowlist,

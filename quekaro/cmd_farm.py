@@ -71,7 +71,6 @@ def _register_master(sub: argparse._SubParsersAction) -> None:
     parser.add_argument("--password-file", type=Path)
     parser.add_argument("--server", help="XMPP server host (default: the JID's domain)")
     parser.add_argument("--port", type=int, default=5222, help="XMPP client port")
-    parser.add_argument("--register", action="store_true", help="create the account in-band (embedded server)")
     parser.add_argument("--ca-file", help="CA certificate to verify the XMPP server's TLS certificate")
     parser.add_argument("--http-host", default="127.0.0.1", help="address the HTTP API binds to")
     parser.add_argument("--http-port", type=int, default=8765,

@@ -117,7 +117,7 @@ async def run(args: argparse.Namespace) -> int:
                 done.set()
 
     agent.set_handler(on_message)
-    await agent.start(auto_register=False)  # its account is made for it (LocalFarm.add_account)
+    await agent.start()  # its account is made for it (LocalFarm.add_account)
     await send(m.Register(conversation="liar", speed=1000.0, threads=1, rules="lies.xml"))
     emit("online")
 

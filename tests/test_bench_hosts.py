@@ -19,7 +19,7 @@ REPO = Path(__file__).resolve().parent.parent
 def test_two_emulated_agents_finish_a_job_and_json_is_the_whole_stdout(tmp_path: Path) -> None:
     costs, out = tmp_path / "costs.json", tmp_path / "hosts.md"
     done = subprocess.run([sys.executable, "-m", "quekaro", "bench", "hosts", "--json", "--agents", "2",
-                           "--t1", "4", "--xmpp", "embedded", "--costs", str(costs), "--out", str(out)],
+                           "--t1", "4", "--costs", str(costs), "--out", str(out)],
                           cwd=REPO, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     result = json.loads(done.stdout)  # progress went to stderr

@@ -173,8 +173,8 @@ def test_render_several_scenes_into_a_folder_with_progress(tmp_path: Path) -> No
 
 @pytest.mark.slow
 def test_a_farm_leaves_no_folder_of_pyjabber_in_the_temporary_folder(tmp_path: Path) -> None:
-    """pyjabber makes a folder at import in every process that imports spade: the farm's server, master
-    and agents, and never removes it itself."""
+    """pyjabber makes a folder at import in every process that imports spade (the master and agents) and
+    never removes it itself."""
     scratch = tmp_path / "tmp"
     scratch.mkdir()
     done = quekaro("demo", "--home", str(tmp_path / "farm"), "--agents", "2", "--threads", "1",

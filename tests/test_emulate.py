@@ -100,7 +100,7 @@ def _wait_for_done_logs(logs: Path, job_id: str, units: int, timeout: float = 30
 def test_two_emulated_agents_complete_a_job(tmp_path):
     costs = CostMap.from_file(_costs(tmp_path))
     job = make_job(costs, REPO / "scenes" / "caustic-corner.xml", spp=64, width=W, height=H, units=6)
-    with EmulatedFarm(tmp_path / "farm", tmp_path / "costs.json", speeds_for(2), prosody=False) as farm:
+    with EmulatedFarm(tmp_path / "farm", tmp_path / "costs.json", speeds_for(2)) as farm:
         client = farm.client(timeout=120)
         job_id = client.submit(job.bundle, job.defines, job.options)
         status = client.wait(job_id, 120, poll=0.2, while_waiting=farm.check_alive)

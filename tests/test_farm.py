@@ -509,7 +509,7 @@ def test_a_second_agent_logged_in_with_the_same_jid_is_named_in_the_log_and_by_q
     with LocalFarm(tmp_path / "home", agents=1, threads=1) as farm:
         farm.wait_for_agents()
         (agent,) = [c for c in farm.children if c.name == "agent-0"]
-        args = [a for a in agent.proc.args if a != "--register"]
+        args = list(agent.proc.args)
         args[args.index("--workdir") + 1] = str(tmp_path / "twin")
         with (tmp_path / "twin.log").open("wb") as log:
             twin = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT, cwd=REPO,

@@ -25,7 +25,7 @@ LAZY_PROJECT = {
                                               "override",
 }
 # Third-party modules that may be imported inside functions (the comment at each says why).
-LAZY_THIRD_PARTY = {"mitsuba", "drjit", "pyjabber", "loguru", "mitsuba_oidn"}  # OIDN: ~40 MB, denoised jobs only
+LAZY_THIRD_PARTY = {"mitsuba", "drjit", "mitsuba_oidn"}  # OIDN: ~40 MB, denoised jobs only
 
 
 def read_layers() -> list[list[str]]:

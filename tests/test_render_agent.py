@@ -37,7 +37,7 @@ from core.model.geometry import Rect
 from core.model.units import SLOTS, WorkUnit
 from core.scene.bundle import make_bundle
 from core.transport.xmpp import Envelope, FarmAgent
-from core.transport.xmpp_server import EmbeddedXmppServer
+from core.transport.xmpp_server import ProsodyServer
 from fuzzy.loader import load_rulebase
 
 pytestmark = pytest.mark.slow
@@ -90,7 +90,7 @@ class ScriptedMaster:
         app = create_app(expected=self._expected, bundle=self._bundle, on_tile=self._on_tile,
                          tile_dir=self.tile_dir, authorize_bundle=self._bundle_ok)
         self._runner, self.http_port = await serve(app, "127.0.0.1", 0)
-        await self.farm.start(auto_register=True)
+        await self.farm.start()
 
     async def stop(self) -> None:
         await self.farm.stop()
@@ -166,7 +166,7 @@ class ScriptedMaster:
 
 class Farm:
     def __init__(self, loop: LoopThread, master: ScriptedMaster, agent: subprocess.Popen, log: Path,
-                 server: EmbeddedXmppServer) -> None:
+                 server: ProsodyServer) -> None:
         self.loop, self.master, self.agent, self.log, self.server = loop, master, agent, log, server
 
     def run(self, coro: Coroutine[Any, Any, Any], timeout: float = 30.0) -> Any:
@@ -221,7 +221,9 @@ def bundles(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[str, by
 @pytest.fixture(scope="module")
 def farm(tmp_path_factory: pytest.TempPathFactory, bundles: dict[str, tuple[str, bytes]]):
     tmp = tmp_path_factory.mktemp("farm")
-    server = EmbeddedXmppServer(tmp / "xmpp")
+    server = ProsodyServer(tmp / "prosody")
+    for jid in (MASTER, AGENT):
+        server.register(jid.split("@")[0], PASSWORD)
     server.start()
     loop = LoopThread()
     master = ScriptedMaster(server.port, tmp / "master")
@@ -233,8 +235,7 @@ def farm(tmp_path_factory: pytest.TempPathFactory, bundles: dict[str, tuple[str,
             master.bundles[hashlib.sha256(data).hexdigest()] = data
         cmd = [sys.executable, "-m", "agents.render_agent", "--port", str(server.port), "--jid", AGENT,
                "--password", PASSWORD, "--master", MASTER, "--master-url", master.url(""), "--threads", "1",
-               "--workdir", str(tmp / "agent"),
-               "--register", "--heartbeat", "0.5"]
+               "--workdir", str(tmp / "agent"), "--heartbeat", "0.5"]
         with log.open("w") as sink:
             agent = subprocess.Popen(cmd, cwd=REPO, stdout=sink, stderr=subprocess.STDOUT,
                                      env=dict(os.environ, PYTHONPATH=str(REPO)))

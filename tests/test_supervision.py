@@ -137,8 +137,8 @@ def test_a_killed_agent_is_restarted_and_a_killed_farm_leaves_no_orphans(tmp_pat
 
 @pytest.mark.slow
 def test_a_master_restarted_three_times_on_the_same_server_hears_its_agents(tmp_path):
-    """Stopped cleanly (SIGTERM) and started again while the embedded server and the agents run: it was
-    deaf (a stale resource outranked its new one) until the server restarted. The agents stay connected,
+    """Stopped cleanly (SIGTERM) and started again while the XMPP server and the agents run (with the
+    embedded pyjabber server it was deaf: a stale resource outranked its new one). The agents stay connected,
     so the restarted master hears heartbeats first; it asks each for a Register and learns its speed."""
     from farm.local import LocalFarm
 

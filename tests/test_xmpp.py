@@ -1,5 +1,5 @@
 """The XMPP layer with real processes: two FarmAgents in separate processes (tests/xmpp_peer.py) talk
-through SPADE's embedded server and through a real Prosody with TLS; refusals; a server restart."""
+through a real Prosody with TLS; refusals; a server restart."""
 
 from __future__ import annotations
 
@@ -19,9 +19,11 @@ import pytest
 from prosody_support import needs_prosody
 
 from core.transport.xmpp import FarmAgent
-from core.transport.xmpp_server import EmbeddedXmppServer, ProsodyServer, XmppServerError, free_port, port_accepts
+from core.transport.xmpp_server import ProsodyServer, XmppServerError, free_port, port_accepts
 
 REPO = Path(__file__).resolve().parent.parent
+NAMES = ("echo", "ping", "friend", "mallory")  # the accounts the peers log in as
+pytestmark = needs_prosody
 PEER = REPO / "tests" / "xmpp_peer.py"
 FIGURES: dict[str, object] = {}
 
@@ -78,12 +80,25 @@ class Peer:
             return self.proc.wait()
 
 
+class Accounts:
+    """A Prosody on loopback with the peers' accounts (NAMES) made ahead, each exempt from the server's
+    rate per client: the figures and refusals here are the agents' own (the server's rate has its test)."""
+
+    def __init__(self, data_dir: Path) -> None:
+        self.server = ProsodyServer(data_dir, unlimited=[f"{name}@localhost" for name in NAMES])
+        self.passwords = self.server.register_all(NAMES)
+        self.port = self.server.port
+
+    def spawn(self, spawner, name: str, mode: str, /, *extra: str, **kwargs: object) -> Peer:
+        """Peer `name`@localhost logging in with its password (`spawner`: the `peers` fixture)."""
+        return spawner(self.port, f"{name}@localhost", self.passwords[name], mode, *extra, **kwargs)
+
+
 @pytest.fixture()
-def embedded(tmp_path: Path):
-    server = EmbeddedXmppServer(tmp_path / "xmpp")
-    server.start()
-    yield server
-    server.stop()
+def xmpp(tmp_path: Path):
+    accounts = Accounts(tmp_path / "prosody")
+    with accounts.server:
+        yield accounts
 
 
 @pytest.fixture()
@@ -106,63 +121,23 @@ def listening_sockets(pid: int) -> list[str]:
     return [line.split()[3] for line in out.splitlines() if f"pid={pid}," in line]
 
 
-def ping_figures(server_port: int, spawn, register: bool, passwords: dict[str, str]) -> dict:
-    echo = spawn(server_port, "echo@localhost", passwords["echo"], "echo", peers="ping@localhost",
-                 register=register)
+def ping_figures(xmpp: Accounts, peers) -> dict:
+    echo = xmpp.spawn(peers, "echo", "echo", peers="ping@localhost")
     echo.wait_for("online")
-    ping = spawn(server_port, "ping@localhost", passwords["ping"], "ping", "--to", "echo@localhost",
-                 "--count", "200", "--burst", "1000", peers="echo@localhost", register=register)
+    ping = xmpp.spawn(peers, "ping", "ping", "--to", "echo@localhost", "--count", "200", "--burst", "1000",
+                      peers="echo@localhost")
     online = ping.wait_for("online")
     result = ping.wait_for("result", timeout=90)
     assert ping.stop() == 0
     return {"online": online, "result": result, "echo": echo, "ping": ping}
 
 
-def test_embedded_server_binds_loopback_only_and_keeps_a_file_database(embedded: EmbeddedXmppServer) -> None:
-    addrs = listening_sockets(embedded.pid)
-    assert addrs, "the embedded server listens nowhere"
-    assert all(a.startswith("127.0.0.1:") for a in addrs), addrs
-    assert f"127.0.0.1:{embedded.port}" in addrs
-    assert not any(a.endswith(":9090") for a in addrs)  # pyjabber's admin page is not started
-    assert embedded.database.is_file()
-
-
-def test_the_embedded_server_binds_ports_the_os_chose_and_reports_both(embedded: EmbeddedXmppServer) -> None:
-    addrs = listening_sockets(embedded.pid)
-    assert embedded.port and embedded.s2s_port and embedded.port != embedded.s2s_port
-    assert {f"127.0.0.1:{embedded.port}", f"127.0.0.1:{embedded.s2s_port}"} <= set(addrs), addrs
-
-
-def test_a_server_that_cannot_bind_its_second_port_fails_to_start_naming_it(tmp_path) -> None:
-    """Its client port accepted before pyjabber found the server-to-server port taken and exited: start()
-    returned, and the farm's master tried a dead server for 30 s."""
-    with socket.create_server(("127.0.0.1", 0)) as taken:
-        server = EmbeddedXmppServer(tmp_path / "xmpp", s2s_port=taken.getsockname()[1])
-        with pytest.raises(XmppServerError, match="address already in use"):
-            server.start(timeout=60)
-        assert not server.running
-
-
-def test_two_processes_exchange_messages_through_the_embedded_server(embedded, peers) -> None:
-    out = ping_figures(embedded.port, peers, register=True, passwords={"echo": "pw-e", "ping": "pw-p"})
-    result = out["result"]
-    assert result["count"] == 200
-    assert result["burst_received"] == result["burst"] == 1000
-    assert out["online"]["tls"] is True
-    FIGURES["embedded"] = {k: result[k] for k in ("rtt_median_ms", "rtt_p95_ms", "msgs_per_s")}
-    print("\nembedded server:", FIGURES["embedded"])
-    # SPADE's web interface is never started: the agent listens on no socket at all.
-    assert listening_sockets(out["echo"].proc.pid) == []
-
-
-def test_unknown_senders_oversized_and_malformed_messages_are_refused(embedded, peers) -> None:
-    echo = peers(embedded.port, "echo@localhost", "pw-e", "echo", peers="ping@localhost", register=True)
+def test_unknown_senders_oversized_and_malformed_messages_are_refused(xmpp, peers) -> None:
+    echo = xmpp.spawn(peers, "echo", "echo", peers="ping@localhost")
     echo.wait_for("online")
-    ping = peers(embedded.port, "ping@localhost", "pw-p", "stream", "--to", "echo@localhost",
-                 "--interval", "0.2", peers="echo@localhost", register=True)
+    ping = xmpp.spawn(peers, "ping", "stream", "--to", "echo@localhost", "--interval", "0.2", peers="echo@localhost")
     ping.wait_for("pong")
-    intruder = peers(embedded.port, "mallory@localhost", "pw-m", "send", "--to", "echo@localhost",
-                     register=True)
+    intruder = xmpp.spawn(peers, "mallory", "send", "--to", "echo@localhost")
     refusal = echo.wait_for("refused", sender="mallory@localhost")
     assert refusal["kind"] == "sender"
     intruder.wait_for("sent")
@@ -171,27 +146,23 @@ def test_unknown_senders_oversized_and_malformed_messages_are_refused(embedded, 
     ping.wait_for("pong", seq=seq + 2, timeout=10)
 
 
-def test_known_sender_oversized_and_bad_metadata_refused(embedded, peers) -> None:
-    echo = peers(embedded.port, "echo@localhost", "pw-e", "echo", peers="friend@localhost", register=True)
+def test_known_sender_oversized_and_bad_metadata_refused(xmpp, peers) -> None:
+    echo = xmpp.spawn(peers, "echo", "echo", peers="friend@localhost")
     echo.wait_for("online")
-    big = peers(embedded.port, "friend@localhost", "pw-f", "send", "--to", "echo@localhost",
-                "--body-size", "5000", "--linger", "0.5", register=True)
+    big = xmpp.spawn(peers, "friend", "send", "--to", "echo@localhost", "--body-size", "5000", "--linger", "0.5")
     assert echo.wait_for("refused", sender="friend@localhost")["kind"] == "size"
     assert big.stop() == 0
-    bad = peers(embedded.port, "friend@localhost", "pw-f", "send", "--to", "echo@localhost",
-                "--ontology", "", "--linger", "0.5", register=True)
+    bad = xmpp.spawn(peers, "friend", "send", "--to", "echo@localhost", "--ontology", "", "--linger", "0.5")
     refusal = echo.wait_for("refused", sender="friend@localhost")
     assert refusal["kind"] == "metadata" and "ontology" in refusal["reason"]
     assert bad.stop() == 0
     assert echo.proc.poll() is None  # still running
 
 
-def test_a_flooding_sender_is_refused_unread_past_its_rate_and_the_others_are_heard(embedded, peers) -> None:
-    echo = peers(embedded.port, "echo@localhost", "pw-e", "echo", "--rate", "5,20",
-                 peers="ping@localhost,friend@localhost", register=True)
+def test_a_flooding_sender_is_refused_unread_past_its_rate_and_the_others_are_heard(xmpp, peers) -> None:
+    echo = xmpp.spawn(peers, "echo", "echo", "--rate", "5,20", peers="ping@localhost,friend@localhost")
     echo.wait_for("online")
-    flood = peers(embedded.port, "friend@localhost", "pw-f", "send", "--to", "echo@localhost", "--copies", "400",
-                  "--linger", "1", register=True)
+    flood = xmpp.spawn(peers, "friend", "send", "--to", "echo@localhost", "--copies", "400", "--linger", "1")
     flood.wait_for("sent")
     assert flood.stop() == 0
     first = echo.wait_for("refused", sender="friend@localhost")
@@ -199,8 +170,7 @@ def test_a_flooding_sender_is_refused_unread_past_its_rate_and_the_others_are_he
     time.sleep(1.0)
     refused = [e for e in echo.drain() if e["event"] == "refused" and e["sender"] == "friend@localhost"]
     assert 250 <= len(refused) <= 380, len(refused)  # 400 sent: the burst of 20 and 5 a second pass
-    ping = peers(embedded.port, "ping@localhost", "pw-p", "stream", "--to", "echo@localhost", "--interval", "0.3",
-                 peers="echo@localhost", register=True)
+    ping = xmpp.spawn(peers, "ping", "stream", "--to", "echo@localhost", "--interval", "0.3", peers="echo@localhost")
     ping.wait_for("pong", seq=3, timeout=20)  # another sender's own allowance: it is heard
 
 
@@ -233,13 +203,14 @@ def test_the_buckets_of_quiet_senders_are_dropped_once_there_are_many(monkeypatc
 
 @pytest.mark.slow
 def test_both_agents_reconnect_by_themselves_after_a_server_restart(tmp_path, peers) -> None:
-    server = EmbeddedXmppServer(tmp_path / "xmpp")
+    xmpp = Accounts(tmp_path / "prosody")
+    server = xmpp.server
     server.start()
     try:
-        echo = peers(server.port, "echo@localhost", "pw-e", "echo", peers="ping@localhost", register=True)
+        echo = xmpp.spawn(peers, "echo", "echo", peers="ping@localhost")
         echo.wait_for("online")
-        ping = peers(server.port, "ping@localhost", "pw-p", "stream", "--to", "echo@localhost",
-                     "--interval", "0.1", peers="echo@localhost", register=True)
+        ping = xmpp.spawn(peers, "ping", "stream", "--to", "echo@localhost", "--interval", "0.1",
+                          peers="echo@localhost")
         before = ping.wait_for("pong", seq=5)
         stopped_at = time.time()
         server.restart(downtime=1.0)
@@ -262,35 +233,26 @@ def test_both_agents_reconnect_by_themselves_after_a_server_restart(tmp_path, pe
     assert back_ping["outage_s"] < (up_at - stopped_at) + 10
 
 
-
-
-@pytest.mark.slow
-@needs_prosody
-def test_two_processes_through_prosody_with_tls_and_closed_registration(tmp_path, peers) -> None:
+def test_two_processes_through_prosody_with_tls_and_closed_registration(xmpp, peers) -> None:
     # Both exempt from the config's rate per client: the figures are Prosody's own, as the master sees it.
-    server = ProsodyServer(tmp_path / "prosody", unlimited=["echo@localhost", "ping@localhost"])
-    passwords = server.register_all(["echo", "ping"])
-    server.start()
-    try:
-        assert listening_sockets(server.pid) == [f"127.0.0.1:{server.port}"]
-        out = ping_figures(server.port, peers, register=False, passwords=passwords)
-        assert out["online"]["tls"] is True
-        result = out["result"]
-        assert result["burst_received"] == result["burst"] == 1000
-        FIGURES["prosody"] = {k: result[k] for k in ("rtt_median_ms", "rtt_p95_ms", "msgs_per_s")}
-        print("\nprosody:", FIGURES["prosody"])
-        # Registration is closed: a new account cannot be made in-band, so the login fails.
-        stranger = peers(server.port, "stranger@localhost", "whatever", "send", "--to", "echo@localhost",
-                         "--connect-timeout", "3", register=True)
-        assert "login refused" in stranger.wait_for("error", timeout=30)["reason"]
-        wrong = peers(server.port, "echo@localhost", "wrong-password", "echo", "--connect-timeout", "3")
-        assert "login refused" in wrong.wait_for("error", timeout=30)["reason"]
-    finally:
-        server.stop()
+    assert listening_sockets(xmpp.server.pid) == [f"127.0.0.1:{xmpp.port}"]
+    out = ping_figures(xmpp, peers)
+    assert out["online"]["tls"] is True
+    result = out["result"]
+    assert result["count"] == 200
+    assert result["burst_received"] == result["burst"] == 1000
+    FIGURES["prosody"] = {k: result[k] for k in ("rtt_median_ms", "rtt_p95_ms", "msgs_per_s")}
+    print("\nprosody:", FIGURES["prosody"])
+    assert listening_sockets(out["echo"].proc.pid) == []  # SPADE's web interface is never started
+    # Registration is closed: a new account cannot be made in-band, so the login fails.
+    stranger = peers(xmpp.port, "stranger@localhost", "whatever", "send", "--to", "echo@localhost",
+                     "--connect-timeout", "3", register=True)
+    assert "login refused" in stranger.wait_for("error", timeout=30)["reason"]
+    wrong = peers(xmpp.port, "echo@localhost", "wrong-password", "echo", "--connect-timeout", "3")
+    assert "login refused" in wrong.wait_for("error", timeout=30)["reason"]
 
 
 @pytest.mark.slow
-@needs_prosody
 def test_prosody_slows_a_client_that_floods_and_never_the_master(tmp_path, peers) -> None:
     """deploy/prosody's mod_limits: a client sending 300 KB at once is read at its rate (32 kB/s, so over
     9 s or more: 5 s is the bound, for slack), nothing is dropped, and master@ is exempt."""
@@ -319,7 +281,6 @@ def test_prosody_slows_a_client_that_floods_and_never_the_master(tmp_path, peers
         server.stop()
 
 
-@needs_prosody
 def test_prosody_whose_chosen_port_is_taken_before_it_binds_chooses_another(tmp_path) -> None:
     """Prosody runs on, listening nowhere, when its port is taken: start() waited 30 s for a port that
     never accepted, or, where the other process listens there, returned with clients talking to it."""
@@ -338,7 +299,6 @@ def test_prosody_whose_chosen_port_is_taken_before_it_binds_chooses_another(tmp_
         assert given.port == port and not given.running
 
 
-@needs_prosody
 def test_prosody_refuses_a_rate_it_would_misread_naming_the_variable(tmp_path) -> None:
     """mod_limits reads "32768" as nothing and falls back to 3000 bytes a second with one log line."""
     with pytest.raises(XmppServerError, match="QUEKARO_XMPP_C2S_RATE: 32768 is not a rate like 32kb/s"):
@@ -390,7 +350,6 @@ class FreezingRelay:
 
 
 @pytest.mark.slow
-@needs_prosody
 def test_a_dead_link_is_noticed_by_the_keepalive_and_the_agent_reconnects(tmp_path) -> None:
     """A link that goes silent without closing (a pulled cable, a host cut off) is noticed by the ping
     keepalive within its timeout, and the agent is back as soon as the server can be reached again. With

@@ -19,6 +19,8 @@ import signal
 import sys
 import time
 
+from spade.agent import Agent, AuthenticationFailure
+
 from core.transport.rates import SenderRates
 from core.transport.xmpp import Envelope, FarmAgent, XmppError
 
@@ -144,7 +146,13 @@ async def amain(args: argparse.Namespace) -> int:
         loop.add_signal_handler(sig, stop.set)
     agent = make_agent(args)
     try:
-        await agent.start(auto_register=args.register, timeout=args.connect_timeout)
+        if args.register:  # an intruder's try: SPADE's in-band registration (the farm never registers in-band)
+            await Agent.start(agent, auto_register=True)
+        else:
+            await agent.start(timeout=args.connect_timeout)
+    except AuthenticationFailure as exc:
+        emit("error", reason=f"in-band registration and login refused: {exc}")
+        return 2
     except XmppError as exc:
         emit("error", reason=str(exc))
         return 2
@@ -169,7 +177,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--port", type=int, required=True)
     p.add_argument("--server", default=None, help="host to connect to (default: the JID's domain)")
     p.add_argument("--peers", default="", help="comma-separated JIDs whose messages are accepted")
-    p.add_argument("--register", action="store_true", help="create the account in-band")
+    p.add_argument("--register", action="store_true", help="try in-band registration (closed: it fails)")
     p.add_argument("--max-body", type=int, default=4096)
     p.add_argument("--connect-timeout", type=float, default=30.0)
     p.add_argument("--warmup", type=float, default=0.0, help="seconds to wait once online")

@@ -1,6 +1,6 @@
 """Remove the empty folders pyjabber leaves in the temporary folder (/tmp).
 
-pyjabber (SPADE's embedded XMPP server, imported by `spade` itself) makes a `pyjabber_xep0363_*`
+pyjabber (SPADE's embedded XMPP server: `spade` imports it, the farm never runs it) makes a `pyjabber_xep0363_*`
 folder with `tempfile.mkdtemp` at import, for its HTTP upload feature, and never removes it: each
 agent, master and server process left one behind (thousands after a test run). The farm never uses
 that feature, so the folder, private to this process, is removed when the process exits normally;

@@ -37,7 +37,6 @@ DEFAULT_ONTOLOGY = "quekaro"
 # error in SPADE: keep bodies far below it (scenes and tiles travel over HTTP, not XMPP).
 DEFAULT_MAX_BODY = 64 * 1024
 INBOX_SIZE = 1000
-TLS_SETTLE_S = 0.05
 SESSION_TIMEOUT_S = 8.0
 # A ping to the server every KEEPALIVE_S; no answer within KEEPALIVE_TIMEOUT_S: the link is dead, reconnect.
 # Within the master's heartbeat timeout (15 s, master.auction.state.Config), so a silent agent is reconnecting by the
@@ -96,7 +95,7 @@ class FarmAgent(Agent):
         agent = FarmAgent("agent-1@localhost", pw, port=5222, peers={"master@localhost"},
                           validate=core.model.messages.parse)
         agent.set_handler(on_message)            # async def on_message(env: Envelope) -> None
-        await agent.start(auto_register=False)   # waits for the session; raises XmppError
+        await agent.start()   # waits for the session; raises XmppError
         await agent.send("master@localhost", "propose", body, conversation_id="job1/u3",
                          protocol="fipa-contract-net")
         ...
@@ -179,18 +178,17 @@ class FarmAgent(Agent):
     def forget_peer(self, jid: str) -> None:
         self.peers.discard(JID(jid).bare)
 
-    async def start(self, auto_register: bool = False, timeout: float = 30.0) -> None:
+    async def start(self, timeout: float = 30.0) -> None:
         """Connect, open the session and start the inbox; retries until `timeout` while the server is down.
 
-        `auto_register=True` creates the account in-band: the embedded server allows it, Prosody (with
-        the repository's config) does not. Raises XmppError on a wrong password or a server that never
-        answers.
+        The account must exist (the farm makes every account ahead; registration is closed). Raises
+        XmppError on a wrong password or a server that never answers.
         """
         self._stopping = False
         deadline = time.monotonic() + timeout
         while True:
             try:
-                await super().start(auto_register=auto_register)
+                await super().start(auto_register=False)
                 return
             except XmppError:  # a certificate not trusted: trying again for `timeout` changes nothing
                 await self._drop_client()
@@ -198,7 +196,7 @@ class FarmAgent(Agent):
             except AuthenticationFailure as exc:
                 await self._drop_client()
                 raise XmppError(f"XMPP login refused for {self.bare_jid} on {self.server}:{self.xmpp_port}"
-                                + ("" if auto_register else " (account missing or wrong password)")) from exc
+                                " (account missing or wrong password)") from exc
             except (TimeoutError, DisconnectedException, OSError) as exc:
                 await self._drop_client()
                 if time.monotonic() > deadline:
@@ -276,10 +274,6 @@ class FarmAgent(Agent):
 
         client.add_event_handler("session_start", current(self._on_session_start))
         client.add_event_handler("tls_success", current(self._on_tls))
-        # pyjabber races its own STARTTLS upgrade: a stream header that arrives before it has reset its
-        # parser is lost and the login hangs. slixmpp sends that header right after this event, so
-        # this handler blocks briefly (once per connection); harmless with Prosody.
-        client.add_event_handler("tls_success", lambda _e: time.sleep(TLS_SETTLE_S))
         client.add_event_handler("disconnected", current(self._on_disconnected))
         client.add_event_handler("message", current(self._message_received))
         outcome: asyncio.Future[str] = asyncio.get_running_loop().create_future()
