@@ -269,6 +269,8 @@ class Auction:
             for unit in job.units.values():
                 _check_unit(self, job, unit, in_rounds[job.info.job_id, unit.spec.index])
             statuses = {u.status for u in job.units.values()}
+            indexed = {i: status for status, indices in job.by_status.items() for i in indices}
+            assert indexed == {i: u.status for i, u in job.units.items()}, f"job {job.info.job_id}: by_status is stale"
             if job.passes is not None:  # a progressive job ends with the passes still out cancelled
                 assert job.status == JobStatus.RUNNING or statuses <= {UnitStatus.DONE, UnitStatus.FAILED}, \
                     f"job {job.info.job_id}: {job.status.value} with units {sorted(statuses)}"
@@ -488,8 +490,8 @@ class Auction:
                 state.invited = None
         out += self._forget_lost(now)
         for job in self._running():
-            for unit in job.units.values():
-                if unit.status == UnitStatus.AWARDED and now > unit.deadline:
+            for unit in job.having(UnitStatus.AWARDED):
+                if now > unit.deadline:
                     holder = unit.agent
                     out.append(
                         SendToAgent(
@@ -525,7 +527,7 @@ class Auction:
         for agent in self._agents.values():
             if agent.silent_until is not None and now >= agent.silent_until:
                 agent.silent_until = None  # called again; its silences count on until it answers
-        open_units = sum(u.status == UnitStatus.PENDING for j in self._running() for u in j.units.values())
+        open_units = sum(len(j.by_status.get(UnitStatus.PENDING, ())) for j in self._running())
         free_when: dict[bool, list[Agent]] = {}  # the free agents, whether units may queue or not
         for job in self._running():
             queueing = self._queueing(job, open_units)
@@ -536,14 +538,10 @@ class Auction:
             callable_now = {a.name for a in free if a.invited is None}  # earlier jobs' rounds took some
             agents = [a for a in free if a.name in callable_now and a.name not in job.blocklist]
             out += self._extra_passes(job, agents)
-            pending = sorted(
-                (u for u in job.units.values() if u.status == UnitStatus.PENDING),
-                key=lambda u: (-u.spec.work, u.spec.index),
-            )
-            if not agents or not pending:
+            if not agents or not job.by_status.get(UnitStatus.PENDING):
                 continue
             rates = self._rates(job)
-            plan = self._project(job, now, rates)
+            pending, plan = job.largest_pending(), self._project(job, now, rates)
             excluded = {u.spec.index: _excluded(u, rates.keys()) for u in pending}
             offered, room = {}, {}
             for agent in agents:
@@ -593,7 +591,7 @@ class Auction:
                   for a in self._agents.values()]
         times += [a.silent_until for a in self._agents.values() if a.silent_until is not None]
         for job in self._running():
-            times += [u.deadline for u in job.units.values() if u.status == UnitStatus.AWARDED]
+            times += [u.deadline for u in job.having(UnitStatus.AWARDED)]
         finite = [t for t in times if math.isfinite(t)]
         return min(finite) if finite else None
 
@@ -753,11 +751,10 @@ class Auction:
     # --- the look-ahead --------------------------------------------------------------------------------
 
     def _project(self, job: Job, now: float, rates: dict[str, float]) -> dict[int, Placement]:
-        units = [
-            ProjectedUnit(u.spec.index, u.spec.work, _excluded(u, rates.keys()))
-            for u in job.units.values()
-            if u.status in (UnitStatus.PENDING, UnitStatus.ANNOUNCED)
-        ]
+        """The list schedule of the job's pending and announced units on `rates`' agents, refined in the end
+        game."""
+        units = [ProjectedUnit(u.spec.index, u.spec.work, _excluded(u, rates.keys()))
+                 for u in job.having(UnitStatus.PENDING, UnitStatus.ANNOUNCED)]
         agents = [PlanAgent(name, self._available(self._agents[name], now), rate) for name, rate in rates.items()]
         plan = project(units, agents)
         # Refining pays in the end game, where the last units decide the makespan; earlier the next
@@ -893,7 +890,7 @@ class Auction:
 
     def _open_passes(self, job: Job, goal: Goal, units: tuple[WorkUnit, ...]) -> list[Instruction]:
         """A progressive job: its units become templates, and its first round of passes is auctioned."""
-        job.units.clear()
+        job.clear()
         job.passes = PassBook.open(goal, units, self._now)
         return self._follow(job, job.passes.machine.start(), "a round")
 
@@ -911,7 +908,7 @@ class Auction:
     def _extra_passes(self, job: Job, agents: list[Agent]) -> list[Instruction]:
         """Idle agents and nothing of the job pending: extra passes of the units its round waits for."""
         idle = [a for a in agents if not a.holding]
-        if job.passes is None or not idle or any(u.status == UnitStatus.PENDING for u in job.units.values()):
+        if job.passes is None or not idle or job.by_status.get(UnitStatus.PENDING):
             return []
         return self._follow(job, job.passes.machine.handle(Idle(len(idle))), "extra passes for idle agents")
 
@@ -927,7 +924,7 @@ class Auction:
     def _add_passes(self, job: Job, orders: tuple[PassOrder, ...], why: str) -> list[Instruction]:
         units = tuple(job.passes.pass_unit(o) for o in orders)
         for unit in units:
-            job.units[unit.index] = UnitState(unit, UnitStatus.PENDING)
+            job.add(UnitState(unit, UnitStatus.PENDING))
         return [PassesOrdered(job.info.job_id, units, len(units), why)]
 
     def _settle(self, job: Job, finish: Finish) -> list[Instruction]:
@@ -949,6 +946,7 @@ class Auction:
         where = f"job {job.info.job_id!r} unit {unit.spec.index}"
         start = unit.status
         unit.status = unit_transition(where, start, status)
+        job.moved(unit.spec.index, start, unit.status)
         unit.story.append(Transition(self._stimulus_id, start.value, status.value, self._now))
 
     def _set_job(self, job: Job, status: JobStatus) -> None:
@@ -994,9 +992,7 @@ class Auction:
     def _fail_if_stuck(self, job: Job) -> list[Instruction]:
         """Fail the job when a remaining unit failed too often, or every agent the farm knows (lost ones
         may come back until they are forgotten) is blocklisted for it."""
-        for unit in sorted(job.units.values(), key=lambda u: u.spec.index):
-            if unit.status != UnitStatus.PENDING:
-                continue
+        for unit in job.having(UnitStatus.PENDING):
             if unit.failures >= self.config.max_unit_failures:
                 why = f"unit {unit.spec.index} failed {unit.failures} times; last: {unit.last_reason}"
             elif self._agents and unit.failures and not set(self._agents) - job.blocklist:
@@ -1036,7 +1032,7 @@ class Auction:
         return out
 
     def _finish_if_done(self, job: Job) -> list[Instruction]:
-        done = all(u.status == UnitStatus.DONE for u in job.units.values())
+        done = len(job.by_status.get(UnitStatus.DONE, ())) == len(job.units)
         if job.passes is None and job.status == JobStatus.RUNNING and done:
             self._set_job(job, JobStatus.DONE)
             return [JobDone(job.info.job_id)]

@@ -6,6 +6,7 @@ Plain records: only `master.auction.machine.Auction` changes them, each unit's s
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections import Counter, deque
 from collections.abc import Mapping, Sequence
@@ -151,6 +152,56 @@ class Job:
     blocklist: set[str] = field(default_factory=set)
     channels: tuple[str, ...] | None = None  # what every tile of the job carries (None: not checked)
     passes: PassBook | None = None  # a progressive job's decisions (its units are its passes)
+    # Kept by `add` and `moved`, so that the auction's ticks need not read every unit: unit indices by
+    # status, and the pending units' (-cost, index), sorted (the most costly first).
+    by_status: dict[UnitStatus, set[int]] = field(default_factory=dict)
+    pending_order: list[tuple[float, int]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        for unit in self.units.values():
+            self._index(unit.spec.index, unit.status)
+
+    def add(self, unit: UnitState) -> None:
+        """A unit, new or in place of the one of its index (a progressive job's passes: pass 0 of each unit
+        takes the unit's own index)."""
+        index = unit.spec.index
+        if index in self.units:
+            self._unindex(index, self.units[index].status)
+        self.units[index] = unit
+        self._index(index, unit.status)
+
+    def clear(self) -> None:
+        """No units (a progressive job's submitted units become templates of its passes)."""
+        self.units.clear()
+        self.by_status.clear()
+        self.pending_order.clear()
+
+    def moved(self, index: int, start: UnitStatus, end: UnitStatus) -> None:
+        """Unit `index` went from `start` to `end` (the machine's one place of status changes calls this)."""
+        self._unindex(index, start)
+        self._index(index, end)
+
+    def largest_pending(self, limit: int | None = None) -> list[UnitState]:
+        """The pending units, most costly first (ties: the lower index), at most `limit` of them."""
+        return [self.units[i] for _, i in self.pending_order[:limit]]
+
+    def _index(self, index: int, status: UnitStatus) -> None:
+        self.by_status.setdefault(status, set()).add(index)
+        if status == UnitStatus.PENDING:
+            bisect.insort(self.pending_order, self._order_key(index))
+
+    def _unindex(self, index: int, status: UnitStatus) -> None:
+        self.by_status[status].discard(index)
+        if status == UnitStatus.PENDING:
+            del self.pending_order[bisect.bisect_left(self.pending_order, self._order_key(index))]
+
+    def _order_key(self, index: int) -> tuple[float, int]:
+        return -self.units[index].spec.work, index
+
+    def having(self, *statuses: UnitStatus) -> list[UnitState]:
+        """The units in any of `statuses`, by index."""
+        indices = sorted(i for status in statuses for i in self.by_status.get(status, ()))
+        return [self.units[i] for i in indices]
 
 
 @dataclass
