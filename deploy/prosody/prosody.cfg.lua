@@ -15,7 +15,6 @@
 --   QUEKARO_PROSODY_LOG      log file, or "console"                             (default "console")
 --   QUEKARO_PROSODY_USER     user to run as when started as root                (default "prosody")
 --   QUEKARO_XMPP_STANZA_LIMIT  largest stanza accepted, bytes                   (default 262144)
---   QUEKARO_REGISTRATION_ALLOWLIST  addresses/CIDRs allowed to register in-band (default: none, closed)
 --   QUEKARO_XMPP_C2S_RATE    what a client may send per second, "N kb/s" (1 kb = 1000 bytes)  (default "32kb/s")
 --   QUEKARO_XMPP_UNLIMITED   comma-separated JIDs exempt from that rate        (default master@<domain>)
 -- (an empty variable counts as unset)
@@ -70,7 +69,7 @@ local log_to = env("QUEKARO_PROSODY_LOG") or "console"
 -- Prosody's console sink is "*console"; a bare "console" would be a file of that name in the folder.
 log = { info = (log_to == "console") and "*console" or log_to }
 
-local enabled = {
+modules_enabled = {
 	"roster";      -- SPADE asks for its roster at login
 	"saslauth";
 	"tls";
@@ -80,25 +79,10 @@ local enabled = {
 	"posix";       -- pid file
 	"limits";      -- each client's send rate (above)
 }
--- Registration is closed: only accounts made with prosodyctl exist. The one exception is
--- QUEKARO_REGISTRATION_ALLOWLIST (comma-separated addresses or CIDR ranges): clients from there, and
--- only from there, may register in-band. docker-compose.yml sets it to its own private network so that
--- `--scale agent=N` works without pre-made accounts; never set it to a network strangers can reach.
-local allowlist = env("QUEKARO_REGISTRATION_ALLOWLIST")
-if allowlist and allowlist ~= "" then
-	local nets = {}
-	for net in allowlist:gmatch("[^,%s]+") do nets[#nets + 1] = net end
-	modules_disabled = { "s2s"; "http"; "admin_shell" }
-	enabled[#enabled + 1] = "register"
-	allow_registration = true
-	allowlist_registration_only = true
-	registration_allowlist = nets
-	min_seconds_between_registrations = 0
-else
-	modules_disabled = { "s2s"; "register"; "http"; "admin_shell" }
-	allow_registration = false
-end
-modules_enabled = enabled
+-- Registration is closed, always: only accounts made with prosodyctl exist (a local farm makes them,
+-- the compose file's xmpp role makes them, make-accounts.sh makes them for several hosts).
+modules_disabled = { "s2s"; "register"; "http"; "admin_shell" }
+allow_registration = false
 
 -- Clients must encrypt; passwords are stored hashed.
 c2s_require_encryption = true
