@@ -101,6 +101,8 @@ def _excluded(unit: UnitState, usable: Iterable[str]) -> frozenset[str]:
     not blocklisted for the job: `Auction._rates`'s keys) has not. Else none: the unit is retried where it
     failed (a render killed for memory, an agent briefly lost), bounded by `blocklist_after` and
     `max_unit_failures`, rather than failing or stalling its job on a one-agent farm."""
+    if not unit.failed_on:
+        return frozenset()
     failed = frozenset(unit.failed_on)
     return failed if not failed or any(name not in failed for name in usable) else frozenset()
 
@@ -992,6 +994,8 @@ class Auction:
     def _fail_if_stuck(self, job: Job) -> list[Instruction]:
         """Fail the job when a remaining unit failed too often, or every agent the farm knows (lost ones
         may come back until they are forgotten) is blocklisted for it."""
+        if not job.failures_by_agent and self.config.max_unit_failures > 0:  # no unit of it ever failed
+            return []
         for unit in job.having(UnitStatus.PENDING):
             if unit.failures >= self.config.max_unit_failures:
                 why = f"unit {unit.spec.index} failed {unit.failures} times; last: {unit.last_reason}"
