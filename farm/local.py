@@ -92,6 +92,7 @@ class LocalFarm:
         self._server_error = ""  # why its latest restart failed (a port taken meanwhile)
         self._supervise = supervise
         self._lock = threading.Lock()
+        self._states_unwritten: str | None = None  # why processes.json could not be written (retried each round)
         self._stopping = threading.Event()
         self._supervisor: threading.Thread | None = None
         self._previous_sigterm: object = None
@@ -227,8 +228,22 @@ class LocalFarm:
             changed = self._supervise_server(now)
             for child in self.children:
                 changed |= self._supervise_child(child, now)
-            if changed:
-                self._write_states()
+            if changed or self._states_unwritten:
+                self._try_write_states()
+
+    def _try_write_states(self) -> None:
+        """Write processes.json; where it cannot (a full disk), say so once and try again every round, so that
+        it never keeps a restarted process's old pid once space returns."""
+        try:
+            self._write_states()
+        except OSError as exc:
+            if self._states_unwritten is None:
+                _say(f"supervisor: {PROCESSES_FILE} not written ({exc}): trying again every round")
+            self._states_unwritten = str(exc)
+            return
+        if self._states_unwritten is not None:
+            _say(f"supervisor: {PROCESSES_FILE} written again")
+        self._states_unwritten = None
 
     def _supervise_child(self, child: Child, now: float) -> bool:
         if child.state == "running" and child.proc is not None and child.proc.poll() is not None:

@@ -30,6 +30,10 @@ local domain = env("QUEKARO_XMPP_DOMAIN") or "xmpp"
 -- Prosody close the sender's stream, and SPADE raises nothing: the farm keeps XMPP bodies under
 -- 64 KiB (core.xmpp.DEFAULT_MAX_BODY) and moves scenes and tiles over HTTP.
 c2s_stanza_size_limit = tonumber(env("QUEKARO_XMPP_STANZA_LIMIT") or "262144")
+-- Before a client has logged in, far less: a stream that sends more in one element is closed
+-- (policy-violation) before Prosody keeps it. 10 kB is Prosody 0.12's default, stated here on purpose:
+-- without a limit, 3 MB of unclosed tags from a stranger grew Prosody by hundreds of MB.
+c2s_unauthed_stanza_size_limit = 10000
 
 -- Prosody reads each client at QUEKARO_XMPP_C2S_RATE (mod_limits; 0.12's epoll backend paces a
 -- connection from its first byte, with no burst): a peer that floods slows itself down before the master
