@@ -13,7 +13,19 @@ from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 
-from bench import accuracy, adaptive, allocation, denoise, fuzzy_engine, hosts, overhead, provenance, scaling, threshold
+from bench import (
+    accuracy,
+    adaptive,
+    allocation,
+    denoise,
+    fuzzy_engine,
+    hosts,
+    master_load,
+    overhead,
+    provenance,
+    scaling,
+    threshold,
+)
 from bench import farm as farm_bench
 
 BENCHMARKS: dict[str, tuple[ModuleType, str]] = {
@@ -27,6 +39,7 @@ BENCHMARKS: dict[str, tuple[ModuleType, str]] = {
     "denoise": (denoise, "the denoiser's gain at the same spp, with the scene's filter and with a box one"),
     "scaling": (scaling, "simulated auction scaling to 64 agents"),
     "hosts": (hosts, "the real protocol (XMPP server, master, agent processes) at 8-64 emulated agents"),
+    "master": (master_load, "the master's auction CPU and the job's efficiency at simulated farms of 64-1024 agents"),
 }
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import heapq
 import math
 import random
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -40,6 +41,7 @@ class SimResult:
     agents: int
     busy_s: dict[str, float]  # seconds each agent spent rendering
     messages: int
+    master_cpu_s: float = 0.0  # CPU seconds the auction (the master's decisions) took in this process
 
 
 # The simulated agents render a unit a call, as the farm's did before its agents rendered units in batches:
@@ -122,7 +124,7 @@ def simulate(
         )
         sim.push(heartbeat_s, "beat", name, heartbeat_s)
     makespan = sim.run() - submitted
-    return SimResult(makespan, len(costs), len(speeds), sim.busy, sim.messages)
+    return SimResult(makespan, len(costs), len(speeds), sim.busy, sim.messages, sim.master_cpu_s)
 
 
 class _Sim:
@@ -141,6 +143,15 @@ class _Sim:
         self.messages = 0
         self.timer = math.inf
         self.merged: dict[int, int] = {}  # a progressive job's samples merged per unit
+        self.master_cpu_s = 0.0
+
+    def handle(self, stimulus: Any, now: float) -> list[Instruction]:
+        """The auction's answer to `stimulus`, its CPU time counted as the master's."""
+        started = time.process_time()
+        try:
+            return self.auction.handle(stimulus, now)
+        finally:
+            self.master_cpu_s += time.process_time() - started
 
     def push(self, t: float, kind: str, who: str, payload: Any) -> None:
         self.seq += 1
@@ -151,17 +162,17 @@ class _Sim:
         while self.queue:
             now, _, kind, who, payload = heapq.heappop(self.queue)
             if kind == "submit":
-                self.auction.handle(payload, now)
+                self.handle(payload, now)
                 job = payload.info.job_id
-                self.deliver(self.auction.handle(Tick(), now), now)
+                self.deliver(self.handle(Tick(), now), now)
             elif kind == "master":
                 self.messages += 1
                 # A stored tile stands for its upload, which the real master reads and hands to the auction.
                 stimulus = payload if isinstance(payload, TileStored) else MessageReceived(who, payload)
-                out = self.auction.handle(stimulus, now)
+                out = self.handle(stimulus, now)
                 if isinstance(stimulus, TileStored) and self.auction.merges_passes(stimulus.job_id):
-                    out += self.auction.handle(self._merged(stimulus), now)  # the master's merge, at once
-                self.deliver(out + self.auction.handle(Tick(), now), now)
+                    out += self.handle(self._merged(stimulus), now)  # the master's merge, at once
+                self.deliver(out + self.handle(Tick(), now), now)
             elif kind == "agent":
                 self.messages += 1
                 self.agent_receives(who, payload, now)
@@ -174,7 +185,7 @@ class _Sim:
                 self.holding[who].discard(payload)
             elif kind == "timer" and now >= self.timer:
                 self.timer = math.inf
-                self.deliver(self.auction.handle(Tick(), now), now)
+                self.deliver(self.handle(Tick(), now), now)
             if job is not None and self._status(job) != JobStatus.RUNNING:
                 if self._status(job) != JobStatus.DONE:
                     raise RuntimeError(f"simulated job ended {self._status(job)}: {self.auction.job_view(job).error}")
@@ -194,7 +205,9 @@ class _Sim:
         for item in instructions:
             if isinstance(item, SendToAgent):
                 self.push(now + self.latency, "agent", item.to, item.message)
+        started = time.process_time()
         due = self.auction.next_deadline()
+        self.master_cpu_s += time.process_time() - started
         if due is not None and due < self.timer:
             self.timer = max(due, now)
             self.push(self.timer + 1e-9, "timer", "", None)
