@@ -1,6 +1,7 @@
 """A progressive job's passes merged on the master (core.image.passes): as each pass's tile lands, into its
 unit's running sums, whose noise estimate the auction decides on (`PassMerger`); at assembly, every
-stored pass again, into one tile per unit (`merged_units`); and the passes' verdicts beside the tiles.
+stored pass again, into one tile per unit (`merged_units`); for the page's live image, one source per unit
+that merges its passes so far when it is composed (`merged_sources`); and the passes' verdicts.
 """
 
 from __future__ import annotations
@@ -12,8 +13,9 @@ from pathlib import Path
 from typing import Any
 
 from core.files import written_atomically
-from core.image.passes import UnitPasses, merge_pass
-from core.image.tiles import Tile, read_tile
+from core.image.compose import TileSource
+from core.image.passes import WEIGHT, UnitPasses, merge_pass
+from core.image.tiles import Tile, read_tile, tile_source
 from master import auction as au
 
 VERDICTS_FILE = "passes.json"  # a progressive job's end: why, and each unit's verdict
@@ -70,6 +72,30 @@ def merged_units(results: Iterable[Any], units: int, verdicts: dict[int, str]
         lines[unit] = {**params[unit], **passes.account(), "verdict": verdicts.get(unit),
                        "agent": ", ".join(sorted(agents[unit]))}
     return tiles, lines
+
+
+def merged_sources(results: Iterable[Any], units: int) -> list[TileSource]:
+    """One tile source per unit of the stored passes (the store's results: index, tile_path), which merges
+    that unit's passes when composition loads it: a unit's pixels are all its samples so far, and the
+    passes are read one unit at a time."""
+    paths: dict[int, list[str]] = {}
+    for result in sorted(results, key=lambda r: r.index):
+        if Path(result.tile_path).is_file():
+            paths.setdefault(au.pass_origin(result.index, units)[0], []).append(result.tile_path)
+    return [_merged_source(unit, files) for unit, files in sorted(paths.items())]
+
+
+def _merged_source(unit: int, files: list[str]) -> TileSource:
+    first = tile_source(files[0])
+
+    def load() -> Tile:
+        sums: dict[int, UnitPasses] = {}
+        for path in files:
+            merge_pass(sums, unit, read_tile(path))
+        return sums[unit].tile({"unit_index": unit})
+
+    channels = tuple(c for c in first.channels if c != WEIGHT)
+    return TileSource(first.rect, first.core, channels, load, {"unit_index": unit})
 
 
 def write_verdicts(job_dir: Path, settled: au.PassesSettled) -> None:

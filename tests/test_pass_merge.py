@@ -26,3 +26,24 @@ def test_passes_of_a_unit_merge_and_a_job_that_ended_keeps_no_sums(tmp_path):
     merger.forget("j")
     late = merger.merge("j", 2, 5, _pass(tmp_path, 5, 2.0))  # after the end: merged alone, not kept
     assert late.spp == 4 and merger._sums == {}
+
+
+def test_the_live_image_shows_each_unit_with_all_its_passes_merged(tmp_path):
+    """The page composes a progressive job's stored passes as one source per unit (`merged_sources`): its
+    pixels the passes' weighted mean, as the final assembly's, not the first pass alone (duplicates of a
+    core were dropped, so the live image stayed at the first pass)."""
+    from core.image.compose import compose_shrunk
+    from master.pass_merge import merged_sources, merged_units
+    from master.store import ResultRecord
+
+    results = [ResultRecord("j", i, _pass(tmp_path, i, value, spp), "", {})
+               for i, value, spp in ((0, 1.0, 4), (1, 4.0, 12), (2, 3.0, 8))]  # 1 unit, 3 passes
+    (source,) = merged_sources(results, 1)
+    assert source.channels == ("R", "G", "B") and source.core == Rect(0, 0, 4, 4)
+    live = compose_shrunk([source], 4, 4, 1)
+    (final,), _ = merged_units(results, 1, {})
+    expected = (1.0 * 4 + 4.0 * 12 + 3.0 * 8) / 24
+    assert np.allclose(live, expected) and np.allclose(final.pixels, expected)
+    assert merged_sources(results[:1], 1)[0].load().pixels[0, 0, 0] == 1.0  # one pass so far: itself
+    gone = ResultRecord("j", 3, str(tmp_path / "missing.exr"), "", {})
+    assert len(merged_sources([*results, gone], 1)) == 1  # a tile not on disk (yet) is left out

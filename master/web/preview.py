@@ -25,6 +25,7 @@ from core.image.film import display_rgb
 from core.image.imageio import write_png_planar
 from core.image.tiles import tile_source
 from core.model.job import RGB
+from master.pass_merge import merged_sources
 from master.store import ResultRecord
 from planning.pipeline import load_aov_pass
 
@@ -48,10 +49,11 @@ class Previews:
     jobs: dict[str, _JobPreview] = field(default_factory=dict)
 
     async def png(self, job_id: str, folder: Path, width: int, height: int, results: list[ResultRecord],
-                  reach: int = 0, colour: tuple[str, ...] = RGB, aov: Path | None = None) -> Path:
+                  reach: int = 0, colour: tuple[str, ...] = RGB, aov: Path | None = None,
+                  passes_of: int | None = None) -> Path:
         """The PNG showing `results`' tiles (composed again if a tile was added since the last one, or the
         AOV pass at `aov`, a denoised job's, appeared), their bands cut by `reach` as in the final image
-        (core.image.compose), in the film's `colour`.
+        (core.image.compose), in the film's `colour` (`passes_of`: as `write_preview`).
 
         Composing costs time on large images, so it runs in a thread, once at a time per job, and again
         only after MIN_INTERVAL_S or twice the last composition's time, whichever is longer."""
@@ -67,7 +69,7 @@ class Previews:
                 await asyncio.sleep(wait)
             started = time.monotonic()
             await asyncio.to_thread(write_preview, path, width, height, results, reach, colour,
-                                    aov if denoised else None)
+                                    aov if denoised else None, passes_of)
             state.shows, state.done_at, state.took_s = wanted, time.monotonic(), time.monotonic() - started
         return path
 
@@ -82,13 +84,17 @@ def shrink_factor(width: int, height: int) -> int:
 
 
 def write_preview(path: Path, width: int, height: int, results: list[ResultRecord], reach: int = 0,
-                  colour: tuple[str, ...] = RGB, aov: Path | None = None) -> Path:
+                  colour: tuple[str, ...] = RGB, aov: Path | None = None, passes_of: int | None = None) -> Path:
     """Blend the tiles of `results` into a PNG at `path`, of the image's size shrunk by `shrink_factor`;
     pixels no tile covers are black. `colour` is the film's colour channels (core.image.film.display_rgb);
-    `aov`, a denoised job's AOV pass, denoises the image where it exists.
+    `aov`, a denoised job's AOV pass, denoises the image where it exists; `passes_of`: a progressive job's
+    unit count, whose results are passes, each unit shown with all its passes so far merged.
     8-bit sRGB, encoded by Pillow (already the master's for the final PNG; no other image library)."""
     factor = shrink_factor(width, height)
-    tiles = [tile_source(r.tile_path, unit_index=r.index) for r in results if Path(r.tile_path).is_file()]
+    if passes_of is not None:
+        tiles = merged_sources(results, passes_of)
+    else:
+        tiles = [tile_source(r.tile_path, unit_index=r.index) for r in results if Path(r.tile_path).is_file()]
     planar = compose_shrunk(tiles, width, height, factor, reach=reach)
     aux = load_aov_pass(aov) if aov is not None else None
     if aux is not None:
