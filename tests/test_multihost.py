@@ -281,7 +281,8 @@ def test_agent_link_down_mid_unit_and_back(tmp_path):
         farm.net.link_up("a1")
         up = time.time()
         rejoin_s = farm.wait_agents({victim}, timeout=90)
-        refusal = rf"PUT /jobs/{job_id}/units/{first['idx']}/tile refused \(403\)"
+        sender = re.escape(farm.net.hosts["a1"].address)  # the refusal names who sent the tile
+        refusal = rf"PUT /jobs/{job_id}/units/{first['idx']}/tile from {sender}:\d+ refused \(403\)"
         _wait_for("agent-1's late tile refused", lambda: re.search(refusal, farm.log("master")), 30, farm)
         farm.wait_done(job_id, timeout=120)
         # Work after the cable is back: a second job, so that there is some whatever the first one left.
