@@ -39,6 +39,25 @@ def test_quekaro_render_renders_as_mitsuba(case, tmp_path):
     assert problems(case, out) == []
 
 
+PASS_CASES = ("spectral-spiky", "spectral-grey-box", "polarized-stokes", "second-sensor", "nested-depths", "moment",
+               "aov", "medium-grid")
+
+
+@pytest.mark.parametrize("name", PASS_CASES)
+def test_a_job_in_passes_renders_as_mitsuba(name, tmp_path):
+    """`--progressive` (each unit's samples in halving passes, merged on their film weights) on the inputs
+    passes had not met: spectral and polarized variants, a second sensor, nested integrators, moments, AOVs
+    and a medium; merged, the image is Mitsuba's at the job's spp."""
+    case = next(c for c in CASES if c.name == name)
+    out = tmp_path / "passes.exr"
+    done = quekaro("render", *job_args(case), "--progressive", "-o", str(out), "--threads", "2", "--no-progress")
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads(out.with_suffix(".json").read_text())
+    assert report["render_calls"]["progressive"]["goal"] == "budget"
+    assert all(u["passes"] >= 2 and u["spp"] == case.unit_spp for u in report["units"]), report["units"]
+    assert problems(case, out) == []
+
+
 @pytest.mark.parametrize("name,kind", [("radiancemeter", "radiancemeter"), ("irradiancemeter", "irradiancemeter")])
 def test_a_rule_level_plans_a_meter_as_one_unit(name, kind, tmp_path):
     """Level S on a radiance meter and on a shape's irradiance meter (sensors that render whole: one unit
