@@ -20,6 +20,7 @@ from typing import Any
 from bench.hosts import speeds_for
 from bench.report import DEFAULT_OUT, command_of, write_report
 from bench.simulate import simulate
+from core.errors import QuekaroError
 from planning.jobplan import farm_min_units
 
 PER_AGENT_S = 150.0  # the 8-agent `bench hosts` job's share (1201 s over 8 agents)
@@ -98,7 +99,7 @@ def _target_line(result: dict[str, Any]) -> str:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     counts = [int(c) for c in str(args.agents).split(",") if c.strip()]
     if not counts or min(counts) < 1:
-        raise SystemExit(f"--agents {args.agents!r}: farm sizes of at least one agent")
+        raise QuekaroError(f"--agents {args.agents!r}: farm sizes of at least one agent")
     rows = [run_row(n, args.per_agent_s, args.seed, passes) for n in counts for passes in (False, True)]
     result = {"per_agent_s": args.per_agent_s, "seed": args.seed, "speeds": list(speeds_for(4)), "rows": rows}
     result["projected_cores"] = project_cores(rows, TARGET_AGENTS)

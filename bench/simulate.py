@@ -147,9 +147,13 @@ class _Sim:
 
     def handle(self, stimulus: Any, now: float) -> list[Instruction]:
         """The auction's answer to `stimulus`, its CPU time counted as the master's."""
+        return self._master(self.auction.handle, stimulus, now)
+
+    def _master(self, call: Any, *args: Any) -> Any:
+        """`call(*args)`, a decision of the master's, its CPU time counted in `master_cpu_s`."""
         started = time.process_time()
         try:
-            return self.auction.handle(stimulus, now)
+            return call(*args)
         finally:
             self.master_cpu_s += time.process_time() - started
 
@@ -205,9 +209,7 @@ class _Sim:
         for item in instructions:
             if isinstance(item, SendToAgent):
                 self.push(now + self.latency, "agent", item.to, item.message)
-        started = time.process_time()
-        due = self.auction.next_deadline()
-        self.master_cpu_s += time.process_time() - started
+        due = self._master(self.auction.next_deadline)
         if due is not None and due < self.timer:
             self.timer = max(due, now)
             self.push(self.timer + 1e-9, "timer", "", None)

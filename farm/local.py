@@ -92,7 +92,7 @@ class LocalFarm:
         self._server_error = ""  # why its latest restart failed (a port taken meanwhile)
         self._supervise = supervise
         self._lock = threading.Lock()
-        self._states_unwritten: str | None = None  # why processes.json could not be written (retried each round)
+        self._states_unwritten = False  # processes.json could not be written: tried again each round
         self._stopping = threading.Event()
         self._supervisor: threading.Thread | None = None
         self._previous_sigterm: object = None
@@ -237,13 +237,13 @@ class LocalFarm:
         try:
             self._write_states()
         except OSError as exc:
-            if self._states_unwritten is None:
+            if not self._states_unwritten:
                 _say(f"supervisor: {PROCESSES_FILE} not written ({exc}): trying again every round")
-            self._states_unwritten = str(exc)
+            self._states_unwritten = True
             return
-        if self._states_unwritten is not None:
+        if self._states_unwritten:
             _say(f"supervisor: {PROCESSES_FILE} written again")
-        self._states_unwritten = None
+        self._states_unwritten = False
 
     def _supervise_child(self, child: Child, now: float) -> bool:
         if child.state == "running" and child.proc is not None and child.proc.poll() is not None:

@@ -58,44 +58,44 @@ def merged_units(results: Iterable[Any], units: int, verdicts: dict[int, str]
     """Every stored pass (the store's results: index, tile_path, params) merged into one tile per unit, and
     each unit's report line's parameters: the passes' depth and band, all their spp, the estimated error
     and the verdict."""
-    sums: dict[int, UnitPasses] = {}
-    params: dict[int, dict[str, Any]] = {}
-    agents: dict[int, set[str]] = {}
-    for result in sorted(results, key=lambda r: r.index):
-        unit, _ = au.pass_origin(result.index, units)
-        merge_pass(sums, unit, read_tile(result.tile_path))
-        params.setdefault(unit, dict(result.params))
-        agents.setdefault(unit, set()).add(str(result.params.get("agent")))
     tiles, lines = [], {}
-    for unit, passes in sorted(sums.items()):
-        tiles.append(passes.tile({"unit_index": unit, "seconds": passes.seconds, "window_method": "passes"}))
-        lines[unit] = {**params[unit], **passes.account(), "verdict": verdicts.get(unit),
-                       "agent": ", ".join(sorted(agents[unit]))}
+    for unit, passes in _passes_by_unit(results, units).items():
+        merged = _merge(unit, passes)
+        tiles.append(merged.tile({"unit_index": unit, "seconds": merged.seconds, "window_method": "passes"}))
+        agents = ", ".join(sorted({str(r.params.get("agent")) for r in passes}))
+        lines[unit] = {**passes[0].params, **merged.account(), "verdict": verdicts.get(unit), "agent": agents}
     return tiles, lines
 
 
 def merged_sources(results: Iterable[Any], units: int) -> list[TileSource]:
-    """One tile source per unit of the stored passes (the store's results: index, tile_path), which merges
-    that unit's passes when composition loads it: a unit's pixels are all its samples so far, and the
-    passes are read one unit at a time."""
-    paths: dict[int, list[str]] = {}
+    """One tile source per unit of the stored passes whose tiles are on disk, which merges that unit's
+    passes when composition loads it: a unit's pixels are all its samples so far, and the passes are read
+    one unit at a time."""
+    stored = [r for r in results if Path(r.tile_path).is_file()]
+    return [_merged_source(unit, passes) for unit, passes in _passes_by_unit(stored, units).items()]
+
+
+def _passes_by_unit(results: Iterable[Any], units: int) -> dict[int, list[Any]]:
+    """The results grouped by the unit each pass is of (au.pass_origin), units and passes in index order."""
+    grouped: dict[int, list[Any]] = {}
     for result in sorted(results, key=lambda r: r.index):
-        if Path(result.tile_path).is_file():
-            paths.setdefault(au.pass_origin(result.index, units)[0], []).append(result.tile_path)
-    return [_merged_source(unit, files) for unit, files in sorted(paths.items())]
+        grouped.setdefault(au.pass_origin(result.index, units)[0], []).append(result)
+    return dict(sorted(grouped.items()))
 
 
-def _merged_source(unit: int, files: list[str]) -> TileSource:
-    first = tile_source(files[0])
+def _merge(unit: int, passes: list[Any]) -> UnitPasses:
+    """The unit's passes (results) read and merged."""
+    sums: dict[int, UnitPasses] = {}
+    for result in passes:
+        merge_pass(sums, unit, read_tile(result.tile_path))
+    return sums[unit]
 
-    def load() -> Tile:
-        sums: dict[int, UnitPasses] = {}
-        for path in files:
-            merge_pass(sums, unit, read_tile(path))
-        return sums[unit].tile({"unit_index": unit})
 
+def _merged_source(unit: int, passes: list[Any]) -> TileSource:
+    first = tile_source(passes[0].tile_path)
     channels = tuple(c for c in first.channels if c != WEIGHT)
-    return TileSource(first.rect, first.core, channels, load, {"unit_index": unit})
+    return TileSource(first.rect, first.core, channels, lambda: _merge(unit, passes).tile({"unit_index": unit}),
+                      {"unit_index": unit})
 
 
 def write_verdicts(job_dir: Path, settled: au.PassesSettled) -> None:

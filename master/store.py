@@ -112,6 +112,12 @@ class JobRecord:
     finished: float | None
     error: str
 
+    @property
+    def planned_units(self) -> set[int] | None:
+        """A progressive job's units as its plan made them (their indices); the store's unit rows beyond
+        them are their passes. None for a job not in passes."""
+        return {int(k) for k in self.plan["neighbours"]} if self.spec.options.in_passes else None
+
 
 @dataclass(frozen=True)
 class UnitRecord:
@@ -364,9 +370,9 @@ class JobStore:
         """The stored JobPlan of a job, its scene at `scene_path` (where the master unpacked its bundle)."""
         record = self.job(job_id)
         units = [u.unit() for u in self.units(job_id)]
-        if record.spec.options.in_passes:  # the units its plan made; the rows beyond are their passes
-            planned = record.plan["neighbours"]
-            units = [dataclasses.replace(u, spp=None) for u in units if str(u.index) in planned]
+        planned = record.planned_units
+        if planned is not None:  # the units its plan made; the rows beyond are their passes
+            units = [dataclasses.replace(u, spp=None) for u in units if u.index in planned]
         return JobPlan.from_dict(record.plan, SceneSpec(scene_path, record.spec.defines), units)
 
     def results(self, job_id: str) -> list[ResultRecord]:

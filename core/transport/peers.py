@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import ipaddress
 import pwd
-import socket
 from pathlib import Path
 
 PROC_TABLES = (Path("/proc/net/tcp"), Path("/proc/net/tcp6"))
@@ -50,8 +49,8 @@ def _port(address: str) -> int:
 def _is_loopback(host: str) -> bool:
     try:
         return ipaddress.ip_address(host.split("%")[0]).is_loopback
-    except ValueError:
-        return host == socket.gethostname()
+    except ValueError:  # not an address (a Unix socket's peer)
+        return False
 
 
 def _user_name(uid: int) -> str:

@@ -102,18 +102,37 @@ def _stop_child(proc: subprocess.Popen | None, timeout: float) -> None:
     proc.wait(timeout=timeout)
 
 
-class _ChildServer:
-    """A server in a child process on a port of 127.0.0.1: start, stop, kill, restart."""
+class ProsodyServer:
+    """A real Prosody 0.12 in a child process on 127.0.0.1, with the repository's config, TLS required,
+    registration closed: start, stop, kill, restart.
+
+    Runs in the foreground as a child (no system service, no daemon) with `deploy/prosody/prosody.cfg.lua`,
+    its own pid file, a free port and a fresh self-signed certificate; everything it writes stays in
+    `data_dir`. Accounts are created with `prosodyctl register` before (or while) it runs. The tests use
+    it; `quekaro` never needs the system's Prosody service.
+    """
 
     host = "127.0.0.1"
 
-    def __init__(self, data_dir: Path | str, domain: str, port: int | None) -> None:
+    def __init__(self, data_dir: Path | str, domain: str = "localhost", port: int | None = None,
+                 config: Path = PROSODY_CONFIG, stanza_limit: int = 256 * 1024, c2s_rate: str | None = None,
+                 unlimited: Iterable[str] | None = None) -> None:
+        for tool in ("prosody", "prosodyctl"):
+            if shutil.which(tool) is None:
+                raise XmppServerError(f"{tool} is not installed (Debian package 'prosody')")
+        if not Path(config).is_file():
+            raise XmppServerError(f"Prosody config not found: {config}")
         self.data_dir = Path(data_dir).resolve()
         self.domain = domain
-        self.port = port or 0  # 0: the subclass chooses
-        self.log_path = self.data_dir / "server.log"
+        self.port = port or free_port()  # Prosody cannot be told port 0 and report what it bound
+        self._choose_port = port is None  # until it first starts: a port taken meanwhile is chosen again
+        self.log_path = self.data_dir / "server.log"  # the child's stdout and stderr
         self._proc: subprocess.Popen | None = None
         self._log_file: IO[bytes] | None = None
+        self._log_offset = 0
+        self.config = Path(config)
+        self.stanza_limit = stanza_limit
+        self.c2s_rate, self.unlimited = c2s_rate, None if unlimited is None else ",".join(unlimited)
 
     @property
     def pid(self) -> int | None:
@@ -130,23 +149,54 @@ class _ChildServer:
     def running(self) -> bool:
         return self.pid is not None
 
-    def _command(self) -> tuple[list[str], dict[str, str]]:
-        raise NotImplementedError
+    @property
+    def cert_dir(self) -> Path:
+        return self.data_dir / "certs"
 
-    def _prepare(self) -> None:
-        """Create what the first start needs (directories, certificate, accounts)."""
+    @property
+    def log_file(self) -> Path:
+        return self.data_dir / "prosody.log"
 
-    def _await_ready(self, timeout: float) -> None:
-        """Return once the child serves clients; raise XmppServerError (with its log) if it exits first."""
-        raise NotImplementedError
+    def env(self) -> dict[str, str]:
+        """The environment the repository's prosody.cfg.lua reads its settings from."""
+        return dict(
+            os.environ,
+            QUEKARO_XMPP_DOMAIN=self.domain,
+            QUEKARO_XMPP_PORT=str(self.port),
+            QUEKARO_XMPP_INTERFACE=self.host,
+            QUEKARO_PROSODY_DATA=str(self.data_dir / "data"),
+            QUEKARO_PROSODY_PIDFILE=str(self.data_dir / "prosody.pid"),
+            QUEKARO_PROSODY_LOG=str(self.log_file),
+            QUEKARO_XMPP_CERT=str(self.cert_dir / f"{self.domain}_cert.pem"),
+            QUEKARO_XMPP_KEY=str(self.cert_dir / f"{self.domain}_key.pem"),
+            QUEKARO_XMPP_STANZA_LIMIT=str(self.stanza_limit),
+            # Running as root in a container: keep files owned by us rather than switch to `prosody`.
+            QUEKARO_PROSODY_USER=_current_user(),
+            **{k: v for k, v in (("QUEKARO_XMPP_C2S_RATE", self.c2s_rate),
+                                 ("QUEKARO_XMPP_UNLIMITED", self.unlimited)) if v is not None},
+        )
 
-    def start(self, timeout: float = 30.0) -> None:
-        """Start the server and return once it accepts TCP connections on 127.0.0.1:port."""
+    def start(self, timeout: float = 30.0, attempts: int = 3) -> None:
+        """Start the server and return once it listens on 127.0.0.1:port. A port chosen here (none given)
+        that another process takes before Prosody binds it is chosen again, up to `attempts` times
+        (Prosody itself runs on, on no port)."""
+        for attempt in range(attempts):
+            try:
+                self._start_once(timeout)
+                self._choose_port = False  # a restart must come back where its clients look for it
+                return
+            except PortTaken:
+                if not self._choose_port or attempt == attempts - 1:
+                    raise
+                log.warning("XMPP port %d was taken before Prosody bound it: choosing another", self.port)
+                self.port = free_port()
+
+    def _start_once(self, timeout: float) -> None:
         if self.running:
             return
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self._prepare()
-        if self.port and port_accepts(self.host, self.port, timeout=0.2):
+        if port_accepts(self.host, self.port, timeout=0.2):
             raise PortTaken(f"port {self.host}:{self.port} is already in use")
         cmd, env = self._command()
         self._log_file = open(self.log_path, "ab")  # noqa: SIM115 (kept open for the child's life)
@@ -182,84 +232,18 @@ class _ChildServer:
         time.sleep(downtime)
         self.start(timeout=timeout)
 
-    def __enter__(self) -> _ChildServer:
+    def __enter__(self) -> ProsodyServer:
         self.start()
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
-
-class ProsodyServer(_ChildServer):
-    """A real Prosody 0.12 on 127.0.0.1 with the repository's config, TLS required, registration closed.
-
-    Runs in the foreground as a child (no system service, no daemon) with `deploy/prosody/prosody.cfg.lua`,
-    its own pid file, a free port and a fresh self-signed certificate; everything it writes stays in
-    `data_dir`. Accounts are created with `prosodyctl register` before (or while) it runs. The tests use
-    it; `quekaro` never needs the system's Prosody service.
-    """
-
-    def __init__(self, data_dir: Path | str, domain: str = "localhost", port: int | None = None,
-                 config: Path = PROSODY_CONFIG, stanza_limit: int = 256 * 1024, c2s_rate: str | None = None,
-                 unlimited: Iterable[str] | None = None) -> None:
-        for tool in ("prosody", "prosodyctl"):
-            if shutil.which(tool) is None:
-                raise XmppServerError(f"{tool} is not installed (Debian package 'prosody')")
-        if not Path(config).is_file():
-            raise XmppServerError(f"Prosody config not found: {config}")
-        super().__init__(data_dir, domain, port)
-        self.port = port or free_port()  # Prosody cannot be told port 0 and report what it bound
-        self._choose_port = port is None  # until it first starts: a port taken meanwhile is chosen again
-        self._log_offset = 0
-        self.config = Path(config)
-        self.stanza_limit = stanza_limit
-        self.c2s_rate, self.unlimited = c2s_rate, None if unlimited is None else ",".join(unlimited)
-
-    @property
-    def cert_dir(self) -> Path:
-        return self.data_dir / "certs"
-
-    def env(self) -> dict[str, str]:
-        """The environment the repository's prosody.cfg.lua reads its settings from."""
-        return dict(
-            os.environ,
-            QUEKARO_XMPP_DOMAIN=self.domain,
-            QUEKARO_XMPP_PORT=str(self.port),
-            QUEKARO_XMPP_INTERFACE=self.host,
-            QUEKARO_PROSODY_DATA=str(self.data_dir / "data"),
-            QUEKARO_PROSODY_PIDFILE=str(self.data_dir / "prosody.pid"),
-            QUEKARO_PROSODY_LOG=str(self.log_file),
-            QUEKARO_XMPP_CERT=str(self.cert_dir / f"{self.domain}_cert.pem"),
-            QUEKARO_XMPP_KEY=str(self.cert_dir / f"{self.domain}_key.pem"),
-            QUEKARO_XMPP_STANZA_LIMIT=str(self.stanza_limit),
-            # Running as root in a container: keep files owned by us rather than switch to `prosody`.
-            QUEKARO_PROSODY_USER=_current_user(),
-            **{k: v for k, v in (("QUEKARO_XMPP_C2S_RATE", self.c2s_rate),
-                                 ("QUEKARO_XMPP_UNLIMITED", self.unlimited)) if v is not None},
-        )
-
     def _prepare(self) -> None:
+        """What a start needs: the data folder and a certificate."""
         (self.data_dir / "data").mkdir(parents=True, exist_ok=True)
         if not (self.cert_dir / f"{self.domain}_cert.pem").exists():
             make_self_signed_cert(self.cert_dir, self.domain)
-
-    @property
-    def log_file(self) -> Path:
-        return self.data_dir / "prosody.log"
-
-    def start(self, timeout: float = 30.0, attempts: int = 3) -> None:
-        """As `_ChildServer.start`; a port chosen here (none given) that another process takes before
-        Prosody binds it is chosen again, up to `attempts` times (Prosody itself runs on, on no port)."""
-        for attempt in range(attempts):
-            try:
-                super().start(timeout)
-                self._choose_port = False  # a restart must come back where its clients look for it
-                return
-            except PortTaken:
-                if not self._choose_port or attempt == attempts - 1:
-                    raise
-                log.warning("XMPP port %d was taken before Prosody bound it: choosing another", self.port)
-                self.port = free_port()
 
     def _await_ready(self, timeout: float) -> None:
         """Until Prosody's log says it listens on the port (another process's listener there accepts too)."""
@@ -278,6 +262,11 @@ class ProsodyServer(_ChildServer):
         return (f"Activated service 'c2s' on [{self.host}]:{self.port}" in started
                 and port_accepts(self.host, self.port, timeout=0.2))
 
+    def _command(self) -> tuple[list[str], dict[str, str]]:
+        """Prosody's command line and environment (where its log starts is noted: `_log_since_start`)."""
+        self._log_offset = self.log_file.stat().st_size if self.log_file.exists() else 0
+        return ["prosody", "--config", str(self.config), "-F"], self.env()
+
     def _log_since_start(self) -> str:
         try:
             with self.log_file.open("rb") as fh:
@@ -285,10 +274,6 @@ class ProsodyServer(_ChildServer):
                 return fh.read().decode(errors="replace")
         except OSError:
             return ""
-
-    def _command(self) -> tuple[list[str], dict[str, str]]:
-        self._log_offset = self.log_file.stat().st_size if self.log_file.exists() else 0
-        return ["prosody", "--config", str(self.config), "-F"], self.env()
 
     def register(self, user: str, password: str | None = None) -> str:
         """Create (or reset) account user@domain with prosodyctl; returns the password used."""

@@ -104,7 +104,7 @@ def _excluded(unit: UnitState, usable: Iterable[str]) -> frozenset[str]:
     if not unit.failed_on:
         return frozenset()
     failed = frozenset(unit.failed_on)
-    return failed if not failed or any(name not in failed for name in usable) else frozenset()
+    return failed if any(name not in failed for name in usable) else frozenset()
 
 
 class Auction:

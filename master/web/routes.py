@@ -251,10 +251,10 @@ async def api_preview(request: web.Request) -> web.StreamResponse:
         return web.FileResponse(final, headers={"Content-Type": "image/png"})
     reach = filter_reach(float(record.plan.get("filter_radius", DEFAULT_FILTER_RADIUS)))  # as JobPlan.from_dict
     aov = aov_pass_path(service, record)
-    passes_of = len(record.plan["neighbours"]) if record.spec.options.in_passes else None  # as JobStore.plan
+    planned = record.planned_units
     path = await state.previews.png(job_id, service.job_dir(job_id), width, height, service.store.results(job_id),
                                     reach, tuple(record.plan.get("colour", RGB)), aov,  # as JobPlan.from_dict
-                                    passes_of)
+                                    None if planned is None else len(planned))
     return web.FileResponse(path, headers={"Content-Type": "image/png"})
 
 
