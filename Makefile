@@ -7,13 +7,15 @@ BIN := $(VENV)/bin
 
 # Debian packages: libllvm19 for Mitsuba's llvm variants, prosody (+ openssl for its certificates) for the
 # multi-host XMPP server and its tests, chromium + chromium-driver for the web page's browser tests, iproute2
-# (network namespaces) and faketime (an agent's clock 10 minutes off) for the multi-host tests.
+# (network namespaces) and faketime (an agent's clock 10 minutes off) for the multi-host tests, python3 (the
+# system's, which a second local user can run) for the hostile-local-user test.
 system-deps:
 	@need=""; \
 	[ -e /usr/lib/x86_64-linux-gnu/libLLVM-19.so.1 ] || [ -e /usr/lib/x86_64-linux-gnu/libLLVM.so.19.1 ] || ls /usr/lib/*/libLLVM*19* >/dev/null 2>&1 || need="$$need libllvm19"; \
 	command -v prosody >/dev/null 2>&1 || need="$$need prosody"; \
 	command -v openssl >/dev/null 2>&1 || need="$$need openssl"; \
 	command -v ip >/dev/null 2>&1 || need="$$need iproute2"; \
+	[ -x /usr/bin/python3 ] || need="$$need python3"; \
 	ls /usr/lib/*/faketime/libfaketimeMT.so.1 >/dev/null 2>&1 || need="$$need faketime"; \
 	[ -x /usr/bin/chromium ] || need="$$need chromium"; \
 	[ -x /usr/bin/chromedriver ] || need="$$need chromium-driver"; \
