@@ -38,7 +38,6 @@ from core.logs import fields
 from core.model import messages as m
 from core.model.hashing import sha256_file
 from core.model.job import IMAGE_SUFFIXES, JobPlan, JobSpec, RenderOptions, SceneSpec
-from core.model.levels import OFF
 from core.model.seeds import plan_seed
 from core.model.status import JobStatus
 from core.model.units import SPP_MAX
@@ -334,7 +333,6 @@ class MasterService:
             check_unpacked(scene, defines)
             options, rules_sha256 = _job_rules(job_dir / "scene", options)
             options.check_used()
-            _check_farm_options(options)
             digest = bundle_hash(bundle)
             _check_stated_spp(SceneSpec(scene, defines), scene_name, options)  # before the pre-pass
             # Seeded from the scene file as submitted, as `quekaro render` seeds it: a job reads the same
@@ -374,7 +372,10 @@ class MasterService:
     def _floors(self, options: RenderOptions) -> Floors:
         """Where the live agents plan the job's units as the master's plan does, its depth floors are measured
         only where its rules cut depth (else every unit is held at the user's depth, for an agent with other
-        rules that joins later); otherwise the agents' own rules may cut depth at any level."""
+        rules that joins later); otherwise the agents' own rules may cut depth at any level. A progressive
+        job's depths are its plan's (planning.jobplan.pin_passes): no agent's rules choose."""
+        if options.in_passes:
+            return Floors.RULES
         if self.auction is None:
             return Floors.ALWAYS
         mine = None if options.rules is not None else self._rules_digest
@@ -606,6 +607,8 @@ class MasterService:
         if plan.options.in_passes:  # every stored pass merged into its unit
             reason, verdicts = read_verdicts(self.job_dir(job_id))
             tiles, params = merged_units(results, len(plan.units), verdicts)
+            rules = Path(plan.options.rules or default_rules_path()).name  # the plan's, not an agent's
+            params = {unit: {**line, "rules": rules} for unit, line in params.items()}
             extra["render_calls"] = {"progressive": {**Goal.of(plan.options, plan.spp).to_dict(),
                                                      "reason": reason, "passes": len(results)}}
         else:
@@ -621,14 +624,6 @@ class MasterService:
                           extra={"job_id": job_id, "scene": scene, "created": record.created,
                                  "finished": record.finished, **extra}, aov_pass=aov_pass)
         return report
-
-
-def _check_farm_options(options: RenderOptions) -> None:
-    """Refuse what a farm does not render yet: progressive passes at a rule level (in one process only)."""
-    if options.in_passes and options.level != OFF:
-        raise QuekaroError(f"--noise and --time at level {options.level}: a farm renders progressive passes at "
-                           "level off (the passes at the job's depth); at a rule level, render the scene with "
-                           "`quekaro render --noise/--time` in one process")
 
 
 def _check_stated_spp(spec: SceneSpec, scene_name: str, options: RenderOptions) -> None:

@@ -25,9 +25,11 @@ from core.model.status import STORED_UNIT_STATUSES, JobStatus, UnitStatus, job_t
 from core.model.units import WorkUnit
 from master import auction as au
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 # A unit row's WorkUnit.work in SQL ({t}: the table's alias and a dot, or nothing).
 _WORK = "{t}cost * COALESCE({t}spp, 1)"
+_INSERT_UNIT = ("INSERT INTO units (job_id, idx, x, y, w, h, C, S, Nd, cost, status, spp, depth_floor, depth)"
+                " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)")
 
 
 def _sql_set(statuses: Iterable[str]) -> str:
@@ -55,6 +57,7 @@ CREATE TABLE units (
     attempts INTEGER NOT NULL DEFAULT 0,
     spp      INTEGER CHECK (spp IS NULL OR spp >= 1),  -- WorkUnit.spp (adaptive jobs), NULL where rules choose
     depth_floor INTEGER CHECK (depth_floor IS NULL OR depth_floor >= 1),  -- WorkUnit.depth_floor, NULL: none
+    depth    INTEGER CHECK (depth IS NULL OR depth >= -1),  -- WorkUnit.depth (a pass's, pinned), NULL: none
     PRIMARY KEY (job_id, idx)
 );
 CREATE TABLE attempts (
@@ -132,10 +135,11 @@ class UnitRecord:
     attempts: int
     spp: int | None = None
     depth_floor: int | None = None
+    depth: int | None = None
 
     def unit(self) -> WorkUnit:
         return WorkUnit(index=self.index, rect=self.rect, C=self.C, S=int(self.S), Nd=self.Nd, cost=self.cost,
-                        spp=self.spp, depth_floor=self.depth_floor)
+                        spp=self.spp, depth_floor=self.depth_floor, depth=self.depth)
 
 
 @dataclass(frozen=True)
@@ -237,6 +241,8 @@ class JobStore:
             version = self._migrate_from_3()
         if version == 4 and not readonly:
             version = self._migrate_from_4()
+        if version == 5 and not readonly:
+            version = self._migrate_from_5()
         if version != SCHEMA_VERSION:
             raise StoreError(f"{self.path}: schema version {version}, this program reads {SCHEMA_VERSION}")
 
@@ -296,6 +302,14 @@ class JobStore:
                 db.execute("PRAGMA user_version = 5")
         return 5
 
+    def _migrate_from_5(self) -> int:
+        """Schema 6 adds each pass's pinned depth (a progressive job at a rule level); none stored before."""
+        with self._tx() as db:
+            if db.execute("PRAGMA user_version").fetchone()[0] == 5:
+                db.execute("ALTER TABLE units ADD COLUMN depth INTEGER CHECK (depth IS NULL OR depth >= -1)")
+                db.execute("PRAGMA user_version = 6")
+        return 6
+
     @contextmanager
     def _tx(self) -> Iterator[sqlite3.Connection]:
         """One write transaction: BEGIN IMMEDIATE takes the write lock up front (no upgrade deadlocks)."""
@@ -336,12 +350,7 @@ class JobStore:
                 "INSERT INTO jobs (id, scene, spec, plan, status, created) VALUES (?, ?, ?, ?, ?, ?)",
                 (job_id, scene, json.dumps(spec.to_dict()), json.dumps(plan.to_dict()), JobStatus.RUNNING, now),
             )
-            db.executemany(
-                "INSERT INTO units (job_id, idx, x, y, w, h, C, S, Nd, cost, status, spp, depth_floor)"
-                " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                [(job_id, u.index, *u.rect.as_list(), u.C, u.S, u.Nd, u.cost, UnitStatus.PENDING, u.spp,
-                  u.depth_floor) for u in units],
-            )
+            db.executemany(_INSERT_UNIT, _unit_rows(job_id, units))
 
     def job(self, job_id: str) -> JobRecord:
         row = self.db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
@@ -361,7 +370,7 @@ class JobStore:
             UnitRecord(
                 r["job_id"], r["idx"], Rect(r["x"], r["y"], r["w"], r["h"]),
                 r["C"], r["S"], r["Nd"], r["cost"], UnitStatus(r["status"]), r["attempts"], r["spp"],
-                r["depth_floor"],
+                r["depth_floor"], r["depth"],
             )
             for r in rows
         ]  # fmt: skip
@@ -730,13 +739,8 @@ class JobStore:
     @staticmethod
     def _add_units(db: sqlite3.Connection, job_id: str, units: Sequence[WorkUnit]) -> None:
         """A progressive job's passes, as units (pass 0 of each unit is the unit the job was created with)."""
-        db.executemany(
-            "INSERT INTO units (job_id, idx, x, y, w, h, C, S, Nd, cost, status, spp, depth_floor)"
-            " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)"
-            " ON CONFLICT (job_id, idx) DO UPDATE SET spp = excluded.spp",
-            [(job_id, u.index, *u.rect.as_list(), u.C, u.S, u.Nd, u.cost, UnitStatus.PENDING, u.spp,
-              u.depth_floor) for u in units],
-        )
+        db.executemany(_INSERT_UNIT + " ON CONFLICT (job_id, idx) DO UPDATE SET spp = excluded.spp",
+                       _unit_rows(job_id, units))
 
     def _agent(self, db: sqlite3.Connection, name: str, now: float, credits: int | None) -> None:
         db.execute(
@@ -753,3 +757,8 @@ def _job(row: sqlite3.Row) -> JobRecord:
         JobStatus(row["status"]), row["created"], row["finished"], row["error"],
     )  # fmt: skip
 
+
+def _unit_rows(job_id: str, units: Iterable[WorkUnit]) -> list[tuple[Any, ...]]:
+    """`_INSERT_UNIT`'s rows: the units, pending."""
+    return [(job_id, u.index, *u.rect.as_list(), u.C, u.S, u.Nd, u.cost, UnitStatus.PENDING, u.spp, u.depth_floor,
+             u.depth) for u in units]

@@ -144,7 +144,7 @@ def plan_job_loaded(spec: SceneSpec, options: RenderOptions, seed: int = 0, min_
     if options.denoise:
         _check_denoisable(spec, effects, loaded, options.sensor)
         effects.reasons.extend(denoise_reasons(own_filter))
-    plan = _plan(spec, options, seed, min_units, effects, loaded, floors, farm)
+    plan = pin_passes(_plan(spec, options, seed, min_units, effects, loaded, floors, farm))
     if options.units and len(plan.units) != options.units and plan.effects.splittable:
         plan.effects.reasons.append(
             f"--units {options.units} is a target: {len(plan.units)} made (units are at least {DEFAULT_SIZES[0]} "
@@ -385,6 +385,16 @@ def _adaptive(plan: JobPlan, cmap: ComplexityMap, min_units: int) -> JobPlan:
              for u, spp in zip(grid, split.spp, strict=True)]  # cost as the partition's: rays at 1 spp
     return dataclasses.replace(plan, units=units, first_spp=split.first,
                                shares={**split.to_dict(), "rule_units": len(plan.units)})
+
+
+def pin_passes(plan: JobPlan) -> JobPlan:
+    """A progressive job at a rule level: each unit holds the depth and samples its rules chose, once, so that
+    all its passes, on whichever agent, estimate one image. Other plans are returned as they are."""
+    if not plan.options.in_passes or plan.options.level == OFF:
+        return plan
+    chosen = plan_params(plan, Planner(plan.options.rules, plan.options.defuzzifier))
+    units = [dataclasses.replace(u, depth=p.depth, spp=p.spp) for u, p in zip(plan.units, chosen, strict=True)]
+    return dataclasses.replace(plan, units=units)
 
 
 def plan_params(plan: JobPlan, planner: Planner) -> list[RenderParams]:

@@ -13,7 +13,9 @@ from test_progressive_render import RES, SCENE, _reference, true_errors
 
 from core.image.imageio import read_image
 from core.image.metrics import relmse
+from core.image.tiles import tile_source
 from farm.local import LocalFarm
+from master.store import JobStore
 from tests.test_farm import bundle_of, wait_job
 
 TAU = 0.05
@@ -29,8 +31,6 @@ def test_a_noise_job_on_a_farm_meets_its_threshold_honestly_and_matches_one_proc
         job = wait_job(farm, job_id)
         assert job["status"] == "done", job
         out = client.result(job_id, tmp_path / "farm.exr")
-        with pytest.raises(Exception, match=r"HTTP 422: --noise and --time at level S: a farm renders progressive"):
-            client.submit(bundle_of(SCENE, DEFINES), DEFINES, {"level": "S", "noise": TAU})
     report = json.loads(out.with_suffix(".json").read_text())
     progressive = report["render_calls"]["progressive"]
     units = report["units"]
@@ -72,3 +72,33 @@ def test_a_budget_job_on_a_farm_renders_each_units_samples_in_halving_passes(tmp
     assert len(units) == 9 and all(u["verdict"] == "budget" and u["passes"] >= 5 and u["spp"] >= 64 for u in units)
     a, b = read_image(out)[..., :3], read_image(plain)[..., :3]
     assert relmse(a, b) < 0.05 and abs(a.mean() / b.mean() - 1) < 0.03  # 64 spp each: noise alone
+
+
+@pytest.mark.slow
+def test_a_budget_job_at_a_rule_level_renders_as_in_one_process_each_unit_at_one_depth(tmp_path: Path) -> None:
+    """--progressive --opt VS: the master's plan pins each unit's depth and samples (the rules'), as
+    `quekaro render` does: the two reports agree unit by unit, every pass tile of a unit says its depth,
+    and the images agree up to noise."""
+    defines = {"res": str(RES), "spp": "64"}
+    options = {"level": "VS", "progressive": True, "units": 9}
+    with LocalFarm(tmp_path / "farm", agents=2, threads=1) as farm:
+        farm.wait_for_agents()
+        job_id = farm.client().submit(bundle_of(SCENE, defines), defines, options)
+        assert wait_job(farm, job_id)["status"] == "done"
+        out = farm.client().result(job_id, tmp_path / "farm.exr")
+        with JobStore(farm.home / "jobs.sqlite", readonly=True) as store:
+            pinned = {u.index: u.depth for u in store.units(job_id)}
+            depths = {r.index: tile_source(r.tile_path).meta["depth"] for r in store.results(job_id)}
+    n = 9
+    assert all(depths[i] == pinned[i % n] == pinned[i] for i in depths) and len(depths) >= 5 * n
+    from test_cli import quekaro
+
+    local = tmp_path / "local.exr"
+    done = quekaro("render", str(SCENE), "-D", f"res={RES}", "-D", "spp=64", "--opt", "VS", "--progressive",
+                   "--units", "9", "-o", str(local), "--no-progress", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    lines = [json.loads(p.with_suffix(".json").read_text())["units"] for p in (out, local)]
+    chosen = [[(u["rect"], u["depth"], u["spp"], u["rules"]) for u in units] for units in lines]
+    assert chosen[0] == chosen[1] and len({spp for _, _, spp, _ in chosen[0]}) > 1, chosen
+    a, b = read_image(out)[..., :3], read_image(local)[..., :3]
+    assert relmse(a, b) < 0.05 and abs(a.mean() / b.mean() - 1) < 0.03

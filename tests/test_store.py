@@ -105,7 +105,7 @@ def test_schema_pragmas_and_records(tmp_path: Path) -> None:
         with pytest.raises(StoreError, match="no job 'nope'"):
             store.job("nope")
         with pytest.raises(sqlite3.IntegrityError):  # foreign keys hold
-            store.db.execute("INSERT INTO units VALUES ('nope', 0, 0, 0, 1, 1, 0, 0, 0, 1, 'pending', 0, NULL, NULL)")
+            store.db.execute("INSERT INTO units VALUES ('nope', 0, 0, 0, 1, 1, 0, 0, 0, 1, 'pending', 0, NULL, NULL, NULL)")
     assert [j.id for j in JobStore(tmp_path / "farm.db").list_jobs()] == ["job-1"]
 
 
@@ -350,11 +350,15 @@ def test_readers_see_progress_while_the_master_writes(tmp_path: Path) -> None:
         reader.db.execute("UPDATE jobs SET status = 'failed'")
 
 
-# Schema 4's tables: schema 5 keeps the award token's sha256 in place of the token; schema 3's: schema 4
-# added the units' depth_floor column; schema 2's: schema 3 added their spp.
+# Schema 5's tables: schema 6 added the units' depth column; schema 4's: schema 5 keeps the award token's
+# sha256 in place of the token; schema 3's: schema 4 added the units' depth_floor column; schema 2's: schema
+# 3 added their spp.
+DEPTH_COLUMN = ("    depth    INTEGER CHECK (depth IS NULL OR depth >= -1),"
+                "  -- WorkUnit.depth (a pass's, pinned), NULL: none\n")
 HASH_COLUMN = ("    token_sha256 TEXT NOT NULL UNIQUE,"
                "      -- the award token's sha256: the token itself is never stored\n")
-SCHEMA_4 = [s.replace(HASH_COLUMN, "    token    TEXT NOT NULL UNIQUE,\n") for s in _SCHEMA.split(";")]
+SCHEMA_5 = [s.replace(DEPTH_COLUMN, "") for s in _SCHEMA.split(";")]
+SCHEMA_4 = [s.replace(HASH_COLUMN, "    token    TEXT NOT NULL UNIQUE,\n") for s in SCHEMA_5]
 FLOOR_COLUMN = ("    depth_floor INTEGER CHECK (depth_floor IS NULL OR depth_floor >= 1),"
                 "  -- WorkUnit.depth_floor, NULL: none\n")
 SPP_COLUMN = ("    spp      INTEGER CHECK (spp IS NULL OR spp >= 1),"
@@ -368,7 +372,7 @@ SCHEMA_1_JOBS = """CREATE TABLE jobs (id TEXT PRIMARY KEY, scene TEXT NOT NULL, 
 
 def write_old_store(path: Path, version: int, schema: list[str], job_columns: tuple[str, str]) -> None:
     """A job store as an older version wrote it: its tables, job-1 (its two JSON columns) and 4 units."""
-    assert all("token_sha256" not in statement for statement in schema)
+    assert version >= 5 or all("token_sha256" not in statement for statement in schema)
     db = sqlite3.connect(path, isolation_level=None)
     for statement in schema:
         db.execute(statement)
@@ -396,11 +400,13 @@ def test_a_schema_1_store_is_migrated_with_its_jobs(tmp_path: Path) -> None:
         assert store.db.execute("PRAGMA foreign_keys").fetchone()[0] == 1
 
 
-@pytest.mark.parametrize(("version", "schema", "column"), [(2, SCHEMA_2, "spp"), (3, SCHEMA_3, "depth_floor")])
+@pytest.mark.parametrize(("version", "schema", "column"),
+                         [(2, SCHEMA_2, "spp"), (3, SCHEMA_3, "depth_floor"), (5, SCHEMA_5, "depth")])
 def test_an_older_store_gains_the_units_newer_columns(tmp_path: Path, version, schema, column) -> None:
-    """A schema 2 or 3 home opens as the latest: its units keep everything and have no planned spp (schema 3
-    added it, adaptive jobs) or depth floor (schema 4, planning.depthcut); a new job's units then keep
-    theirs through the store (what the auction is rebuilt from after a restart), and 0 is refused."""
+    """A schema 2, 3 or 5 home opens as the latest: its units keep everything and have no planned spp (schema
+    3 added it, adaptive jobs), depth floor (schema 4, planning.depthcut) or pinned depth (schema 6, a
+    progressive job's passes); a new job's units then keep theirs through the store (what the auction is
+    rebuilt from after a restart), and a value below the column's least is refused."""
     path = tmp_path / "farm.db"
     with new_store(path) as store:
         plan, spec = store.job("job-1").plan, store.job("job-1").spec
@@ -413,7 +419,7 @@ def test_an_older_store_gains_the_units_newer_columns(tmp_path: Path, version, s
         store.create_job("job-2", "scene.xml", spec, plan_of(given), 101.0)
         assert [getattr(u, column) for u in store.running_jobs()[1].units] == [10, 11, 12]
         with pytest.raises(sqlite3.IntegrityError):
-            store.db.execute(f"UPDATE units SET {column} = 0 WHERE job_id = 'job-2'")
+            store.db.execute(f"UPDATE units SET {column} = -2 WHERE job_id = 'job-2'")
 
 
 def test_status_changes_are_checked_against_the_transition_table(tmp_path: Path) -> None:

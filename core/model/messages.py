@@ -26,14 +26,15 @@ from core.errors import MessageError, TileError
 from core.model.fields import constrained
 from core.model.geometry import DEFAULT_FILTER_RADIUS, Rect, filter_reach
 from core.model.job import RFILTERS, VARIANT_PATTERN
-from core.model.levels import LEVELS
+from core.model.levels import LEVELS, OFF
 from core.model.units import SPP_MAX, WorkUnit
 from fuzzy.engine import DEFUZZIFIERS
 
 # 2: several awards a round, slots in Register; 3: the rules an agent plans with, in Register; 4: a round's
 # awards of one job to one agent in one message (Awards), and no inform from agents (the upload answers);
-# 5: progressive jobs (JobInfo.passes: a unit is a pass, at its spp, its tile carrying the film's weights)
-PROTOCOL_VERSION = 5
+# 5: progressive jobs (JobInfo.passes: a unit is a pass, at its spp, its tile carrying the film's weights);
+# 6: a pass of a progressive job at a rule level carries its unit's depth (WorkUnit.depth)
+PROTOCOL_VERSION = 6
 ONTOLOGY = "quekaro-render"
 PROTOCOL = "fipa-contract-net"
 # Prosody drops a sender whose stanza exceeds 256 KiB (design.md section 4): stay well below it.
@@ -93,7 +94,8 @@ class JobInfo:
     # The reconstruction filter that replaces the scene's (a denoised job's box); None: the scene's own.
     rfilter: str | None = constrained(choices=RFILTERS, default=None)
     # Progressive jobs: each unit is one pass of a unit of the image (master.auction.passes), rendered at
-    # its own spp, the job's depth and min_band, its tile carrying the film's weights (core.image.passes).
+    # its own spp, its unit's depth (at a rule level) or the job's, and min_band, its tile carrying the
+    # film's weights (core.image.passes). No agent's rules choose: the master's plan did.
     passes: bool = False
 
     def check(self) -> None:
@@ -103,11 +105,16 @@ class JobInfo:
 
     def check_unit(self, unit: WorkUnit, field: str) -> None:
         """An adaptive job's units carry their mean spp, at least the first pass's; a progressive job's their
-        pass's; other jobs' none."""
+        pass's, and at a rule level their depth; other jobs' neither."""
         if self.passes:
             if unit.spp is None:
                 raise MessageError(f"unit {unit.index} of a progressive job has no spp (its pass's)", field)
+            if (unit.depth is None) != (self.level == OFF):
+                raise MessageError(f"unit {unit.index} of a progressive job at level {self.level} has depth "
+                                   f"{unit.depth} (a pass carries its unit's depth at a rule level only)", field)
             return
+        if unit.depth is not None:
+            raise MessageError(f"unit {unit.index} has depth {unit.depth} in a job that is not in passes", field)
         if self.first_spp is None and unit.spp is not None:
             raise MessageError(f"unit {unit.index} has spp {unit.spp} in a job whose rules choose it", field)
         if self.first_spp is not None and (unit.spp is None or unit.spp < self.first_spp):

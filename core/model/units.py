@@ -48,7 +48,9 @@ class WorkUnit:
     losing a measurable share of its light, as far as it was worth measuring (planning.depthcut: never
     below the true one), or the user's depth where no unit may be cut (a participating medium; a farm
     job whose rules cut none: planning.jobplan.Floors.HELD), None where depth is not cut (level off,
-    adaptive jobs, unbounded depth, a job in one process whose rules cut none).
+    adaptive jobs, unbounded depth, a job in one process whose rules cut none). `depth` is the depth every
+    pass of the unit renders at in a progressive job at a rule level (the plan's rules chose it once, so that
+    all its passes estimate one image), None where the job's depth or the agent's rules set it.
     """
 
     index: int = constrained(lo=0, hi=10**7)
@@ -61,6 +63,7 @@ class WorkUnit:
     neighbours: tuple[int, ...] = constrained(wire=False, default=())
     spp: int | None = constrained(lo=1, hi=SPP_MAX, default=None)
     depth_floor: int | None = constrained(lo=1, hi=1 << 16, default=None)
+    depth: int | None = constrained(lo=-1, hi=1024, default=None)
 
     def __post_init__(self) -> None:
         area = self.rect.area
@@ -89,6 +92,7 @@ class WorkUnit:
             "neighbours": list(self.neighbours),
             **({"spp": self.spp} if self.spp is not None else {}),
             **({"depth_floor": self.depth_floor} if self.depth_floor is not None else {}),
+            **({"depth": self.depth} if self.depth is not None else {}),
         }
 
     @classmethod
@@ -107,6 +111,7 @@ class WorkUnit:
                 neighbours=tuple(int(n) for n in data.get("neighbours", ())),
                 spp=None if data.get("spp") is None else int(data["spp"]),
                 depth_floor=None if data.get("depth_floor") is None else int(data["depth_floor"]),
+                depth=None if data.get("depth") is None else int(data["depth"]),
             )
         except UnitError:
             raise

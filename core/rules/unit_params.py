@@ -48,12 +48,13 @@ class RenderParams:
 
 
 def adaptive_params(units: Sequence[WorkUnit], depth: int, band: int) -> list[RenderParams]:
-    """An adaptive job's units (planning.budgets): each at the mean spp its plan gave it, the job's depth
-    and the least band; the rules set the level's samples when the job was planned, not per unit."""
+    """Units whose plan set their samples: an adaptive job's (planning.budgets) or a progressive job's passes,
+    each at its spp, its own depth where the plan pinned one (else the job's `depth`) and the least band; the
+    rules chose when the job was planned, not per unit."""
     missing = [u.index for u in units if u.spp is None]
     if missing:
-        raise ValueError(f"units {missing[:8]} of an adaptive job carry no planned spp")
-    return [RenderParams(int(depth), int(u.spp), int(band)) for u in units]
+        raise ValueError(f"units {missing[:8]} of an adaptive or progressive job carry no planned spp")
+    return [RenderParams(int(depth if u.depth is None else u.depth), int(u.spp), int(band)) for u in units]
 
 
 class Planner:

@@ -1056,7 +1056,8 @@ def _channels(channels: Sequence[str] | None) -> tuple[str, ...] | None:
 def _tile_refusal(job: Job, unit: WorkUnit, tile: TileStored) -> str:
     """Why the tile cannot be the unit's result, or "": it must carry the job's channels (else it could never
     be composed with the others), hold figures an inform may hold, render no shallower than the unit's depth
-    floor (it would lack the light of the paths cut), and in an adaptive job the unit's planned share in two
+    floor (it would lack the light of the paths cut), a pass at its unit's depth (merged, passes of two depths
+    would estimate neither image), and in an adaptive job the unit's planned share in two
     passes (its image is averaged with the others' as if it had)."""
     where = f"unit {unit.index} of job {job.info.job_id}"
     if job.passes is not None and tile.channels[-1:] != (WEIGHT,):
@@ -1068,6 +1069,9 @@ def _tile_refusal(job: Job, unit: WorkUnit, tile: TileStored) -> str:
     except MessageError as exc:
         return f"tile header's render parameters: {exc}"
     said = tile.figures
+    if job.passes is not None and said.depth != (job.info.depth if unit.depth is None else unit.depth):
+        return f"{where}: a pass's tile header says depth {said.depth}; its unit's passes render at depth " \
+               f"{job.info.depth if unit.depth is None else unit.depth}"
     if unit.depth_floor is not None and job.info.depth >= 1 and said.depth < unit.depth_floor:
         return f"{where}: tile header says depth {said.depth}; the plan allows no less than {unit.depth_floor} " \
                "(shallower paths lose its light)"

@@ -25,10 +25,12 @@ class PassBook:
     def open(cls, goal: Goal, units: tuple[WorkUnit, ...], now: float) -> PassBook:
         if [u.index for u in units] != list(range(len(units))):
             raise ValueError("a progressive job's units are indexed 0 .. n - 1")
-        return cls(Progressive(goal, [u.rect.area for u in units]), units, now)
+        # A budget job's units render their own samples where the plan's rules pinned them (a rule level).
+        budgets = [u.spp for u in units] if goal.kind == BUDGET and None not in {u.spp for u in units} else None
+        return cls(Progressive(goal, [u.rect.area for u in units], budgets), units, now)
 
     def pass_unit(self, order: PassOrder) -> WorkUnit:
-        """The work unit that renders `order`."""
+        """The work unit that renders `order`: its unit's, at the pass's spp (and the unit's pinned depth)."""
         return dataclasses.replace(self.units[order.unit], index=order.pass_index * len(self.units) + order.unit,
                                    spp=order.spp)
 
