@@ -18,6 +18,7 @@ from bench import (
     adaptive,
     allocation,
     denoise,
+    first_tile,
     fuzzy_engine,
     hosts,
     master_load,
@@ -40,6 +41,7 @@ BENCHMARKS: dict[str, tuple[ModuleType, str]] = {
     "scaling": (scaling, "simulated auction scaling to 64 agents"),
     "hosts": (hosts, "the real protocol (XMPP server, master, agent processes) at 8-64 emulated agents"),
     "master": (master_load, "the master's auction CPU and the job's efficiency at simulated farms of 64-1024 agents"),
+    "first-tile": (first_tile, "a job's first award to its first tile on the page, whole units and passes"),
 }
 
 

@@ -32,8 +32,8 @@ TARGET_AGENTS, TARGET_EFFICIENCY, TARGET_CORES = 1024, 0.85, 1.0
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--agents", default="64,128,256",
-                        help="farm sizes, comma-separated (the auction's CPU grows fast: 512 takes minutes, "
-                             "1024 about half an hour)")
+                        help="farm sizes, comma-separated (the auction's CPU grows faster than the farm: the "
+                             "largest take minutes)")
     parser.add_argument("--per-agent-s", type=float, default=PER_AGENT_S, help="seconds of work per agent")
     parser.add_argument("--seed", type=int, default=1, help="the units' costs and the auction's tie-breaks")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT / "master.md", help="the report (.md; .json beside)")
@@ -92,8 +92,7 @@ def _target_line(result: dict[str, Any]) -> str:
         return f"target at {TARGET_AGENTS} agents: not run, and too few runs in passes to project"
     verdict = "MISS (projected)" if cores >= TARGET_CORES else "projected under one core, not run"
     return (f"target at {TARGET_AGENTS} agents in passes: master < {TARGET_CORES:.0f} core: not run; the two "
-            f"largest runs' power law projects {cores:.1f} cores: {verdict}. The bound: at each tick with a free "
-            f"agent the auction projects every open unit over every agent, and ticks grow with the units")
+            f"largest runs' power law projects {cores:.1f} cores: {verdict}")
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:

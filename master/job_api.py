@@ -14,6 +14,7 @@ Every route needs the farm's admin token (`Authorization: Bearer ...`):
 
 from __future__ import annotations
 
+import dataclasses
 import hmac
 import json
 import os
@@ -121,15 +122,19 @@ async def submit(request: web.Request) -> web.Response:
 
 
 def job_summary(service: JobService, job_id: str) -> dict[str, Any]:
-    """Status and progress of one job, as the CLI shows it."""
+    """Status and progress of one job, as the CLI shows it. A progressive job's units are its image's (done:
+    their goal met), its passes apart (`passes`: done, ordered, mean spp so far, goal; None for a job not
+    in passes); `eta_at_least`: the ETA counts only the passes ordered so far."""
     record = service.store.job(job_id)
     shares = record.plan.get("shares") or None
     progress = service.store.progress(job_id, time.time())  # the store's times are wall-clock
+    passes = progress.passes
     return {
         "job_id": record.id, "scene": record.scene, "status": record.status, "error": record.error,
         "created": record.created, "finished": record.finished, "level": record.plan["options"]["level"],
         "units_done": progress.done, "units_total": progress.total, "units_failed": progress.failed,
-        "agents_busy": progress.agents_busy, "eta_s": progress.eta_s,
+        "agents_busy": progress.agents_busy, "eta_s": progress.eta_s, "eta_at_least": progress.eta_at_least,
+        "passes": None if passes is None else dataclasses.asdict(passes),
         "attempts_retried": progress.retried, "last_retry": progress.last_retry,
         "result_ready": service.result_path(job_id).with_suffix(".json").exists(),
         "effects": record.plan.get("effects", {}), "adaptive": shares,

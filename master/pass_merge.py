@@ -1,14 +1,15 @@
 """A progressive job's passes merged on the master (core.image.passes): as each pass's tile lands, into its
-unit's running sums, whose noise estimate the auction decides on (`PassMerger`); at assembly, every
-stored pass again, into one tile per unit (`merged_units`); for the page's live image, one source per unit
-that merges its passes so far when it is composed (`merged_sources`); and the passes' verdicts.
+unit's running sums, whose noise estimate the auction decides on (`PassMerger`, which takes the stored
+passes up again after a master restart: `passes_so_far`); at assembly, every stored pass again, into one
+tile per unit (`merged_units`); for the page's live image, one source per unit that merges its passes so
+far when it is composed (`merged_sources`); and the passes' verdicts.
 """
 
 from __future__ import annotations
 
 import json
 import threading
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +17,9 @@ from core.files import written_atomically
 from core.image.compose import TileSource
 from core.image.passes import WEIGHT, UnitPasses, merge_pass
 from core.image.tiles import Tile, read_tile, tile_source
+from core.model.units import WorkUnit
 from master import auction as au
+from planning.progressive import UnitSoFar
 
 VERDICTS_FILE = "passes.json"  # a progressive job's end: why, and each unit's verdict
 
@@ -40,6 +43,14 @@ class PassMerger:
             done = merge_pass(sums, unit, tile)
             return au.PassMerged(job_id, index, done.spp, done.seconds, done.relmse(),
                                  stimulus_id=f"merged-{job_id}-{index}")
+
+    def restore(self, job_id: str, units: int, results: Iterable[Any]) -> dict[int, UnitPasses]:
+        """After a master restart: the job's stored passes (the store's results) merged again, as the sums
+        the passes to come merge into; each unit's sums."""
+        sums = {unit: _merge(unit, passes) for unit, passes in _passes_by_unit(results, units).items()}
+        with self._lock(job_id):
+            self._sums[job_id] = sums
+        return dict(sums)
 
     def forget(self, job_id: str) -> None:
         """The job has ended: its sums go (assembly merges the stored passes again)."""
@@ -65,6 +76,23 @@ def merged_units(results: Iterable[Any], units: int, verdicts: dict[int, str]
         agents = ", ".join(sorted({str(r.params.get("agent")) for r in passes}))
         lines[unit] = {**passes[0].params, **merged.account(), "verdict": verdicts.get(unit), "agent": agents}
     return tiles, lines
+
+
+def passes_so_far(sums: dict[int, UnitPasses], rows: Sequence[WorkUnit], done: set[int], units: int
+                  ) -> tuple[UnitSoFar, ...]:
+    """Each unit's passes as a restarted master finds them: merged (`sums`, their samples as ordered from
+    the store's `rows` of the `done` passes), still out (the other rows), and the next pass index."""
+    credited, out, next_pass = [0] * units, [dict() for _ in range(units)], [0] * units
+    for row in rows:
+        unit, pass_index = au.pass_origin(row.index, units)
+        next_pass[unit] = max(next_pass[unit], pass_index + 1)
+        if row.index in done:
+            credited[unit] += row.spp or 0
+        else:
+            out[unit][pass_index] = row.spp or 0
+    return tuple(UnitSoFar(s.spp, credited[u], s.passes, s.seconds, s.relmse(), out[u], next_pass[u])
+                 if (s := sums.get(u)) is not None else UnitSoFar(out=out[u], next_pass=next_pass[u])
+                 for u in range(units))
 
 
 def merged_sources(results: Iterable[Any], units: int) -> list[TileSource]:

@@ -60,9 +60,9 @@ from master import auction as au
 from master.data_plane import create_app, serve
 from master.http_guard import bind_free_port
 from master.job_api import add_job_routes
-from master.pass_merge import PassMerger, merged_units, read_verdicts, write_verdicts
+from master.pass_merge import PassMerger, merged_units, passes_so_far, read_verdicts, write_verdicts
 from master.sessions import SharedAccounts
-from master.store import JobRecord, JobStore
+from master.store import JobRecord, JobStore, RunningJob
 from master.web import add_web_routes
 from planning.jobplan import Floors, farm_min_units, plan_job, scene_spp
 from planning.pipeline import AOV_PASS_FILE, assemble, kept_aov_pass
@@ -184,11 +184,10 @@ class MasterService:
         self._repair_store(now)
         upload = f"{self.config.url}/jobs/{{job}}/units/{{index}}/tile"
         auction_config = dataclasses.replace(self.config.auction, upload_url=upload)
-        self._fail_progressive(now)
         self.store.resume(now)  # awarded units of running jobs back to pending: the old master's awards are void
         self.auction, records = au.Auction.restore(
-            self.store.running_jobs(), lambda job_id: self.job_info(self.store.job(job_id)),
-            self.store.credits(), auction_config)
+            [self._taken_up(job) for job in self.store.running_jobs()],
+            lambda job_id: self.job_info(self.store.job(job_id)), self.store.credits(), auction_config, now=now)
         self.store.apply(records, now)
         await self._start_http()
         await self._start_xmpp()
@@ -200,12 +199,21 @@ class MasterService:
         log.info("master %s up: HTTP %s, %d running job(s)", self.config.jid, self.config.url,
                  len(self.store.list_jobs("running")))
 
-    def _fail_progressive(self, now: float) -> None:
-        """Progressive jobs do not resume yet (their decisions live in the auction): each fails, saying so."""
-        for record in self.store.list_jobs("running"):
-            if record.spec.options.in_passes:
-                self.store.set_status(record.id, JobStatus.FAILED, now, "a progressive job does not resume after "
-                                      "a master restart yet; submit it again")
+    def _taken_up(self, job: RunningJob) -> RunningJob:
+        """A running job as the restarted auction takes it up; a progressive one with its goal, its passes so
+        far (merged again from their tiles) and the seconds they had run."""
+        record = self.store.job(job.job_id)
+        if not record.spec.options.in_passes:
+            return job
+        plan = self.job_plan(record)
+        sums = self._merger.restore(job.job_id, len(plan.units), self.store.results(job.job_id))
+        so_far = passes_so_far(sums, job.units, set(job.done), len(plan.units))
+        attempts = self.store.attempts(job.job_id)  # the time its passes ran: from the first award to the last tile
+        ended = [a.finished for a in attempts if a.outcome == "done" and a.finished is not None]
+        elapsed = max(ended) - min(a.started for a in attempts) if ended else 0.0
+        resumed = au.ResumedPasses(tuple(plan.units), so_far, max(0.0, elapsed))
+        return dataclasses.replace(job, channels=_tile_channels(plan),
+                                   goal=Goal.of(plan.options, plan.spp), resumed=resumed)
 
     def _repair_store(self, now: float) -> None:
         """Units done in the store without their tile on disk go back to auction (jobs not yet assembled)."""
@@ -388,11 +396,8 @@ class MasterService:
     def _create_job(self, job_id: str, scene_name: str, spec: JobSpec, plan: JobPlan, received: float) -> None:
         now = time.time()
         self.store.create_job(job_id, scene_name, spec, plan, received)
-        channels = tuple(plan.channels) if plan.channels is not None else None
         goal = Goal.of(plan.options, plan.spp) if plan.options.in_passes else None
-        if goal is not None and channels is not None:
-            channels = (*channels, WEIGHT)  # a pass's tile carries its film's weights (core.image.passes)
-        submitted = au.JobSubmitted(self.job_info(self.store.job(job_id)), plan.units, channels,
+        submitted = au.JobSubmitted(self.job_info(self.store.job(job_id)), plan.units, _tile_channels(plan),
                                     stimulus_id=f"submit-{job_id}", goal=goal)
         self.store.apply(self.auction.handle(submitted, now), now)
 
@@ -624,6 +629,14 @@ class MasterService:
                           extra={"job_id": job_id, "scene": scene, "created": record.created,
                                  "finished": record.finished, **extra}, aov_pass=aov_pass)
         return report
+
+
+def _tile_channels(plan: JobPlan) -> tuple[str, ...] | None:
+    """What every tile of a job carries: its plan's channels, a pass's with its film's weights last
+    (core.image.passes); None where the plan does not say."""
+    if plan.channels is None:
+        return None
+    return (*plan.channels, WEIGHT) if plan.options.in_passes else tuple(plan.channels)
 
 
 def _check_stated_spp(spec: SceneSpec, scene_name: str, options: RenderOptions) -> None:

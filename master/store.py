@@ -24,6 +24,7 @@ from core.model.job import JobPlan, JobSpec, SceneSpec
 from core.model.status import STORED_UNIT_STATUSES, JobStatus, UnitStatus, job_transition, unit_transition
 from core.model.units import WorkUnit
 from master import auction as au
+from planning.progressive import BUDGET, NOISE, Goal
 
 SCHEMA_VERSION = 6
 # A unit row's WorkUnit.work in SQL ({t}: the table's alias and a dot, or nothing).
@@ -175,6 +176,8 @@ class RunningJob:
     failures: list[tuple[int, str, str]]  # (unit index, agent, reason) of its failed attempts, oldest first
     delivered_by: dict[int, str] = field(default_factory=dict)  # done unit -> the agent whose tile it has
     channels: list[str] | None = None  # what every tile of the job carries (its plan's)
+    goal: Goal | None = None  # a progressive job's, with its passes so far (the master adds both)
+    resumed: au.ResumedPasses | None = None
 
 
 @dataclass(frozen=True)
@@ -186,6 +189,19 @@ class Progress:
     eta_s: float | None  # None until a unit has finished
     retried: int = 0  # attempts that ended failed or requeued (their unit went back to auction)
     last_retry: str | None = None  # the latest of those: "agent: outcome (reason)"
+    eta_at_least: bool = False  # the ETA counts only the passes ordered so far (a noise goal orders more)
+    passes: PassProgress | None = None  # a progressive job's passes (its done/total count its image's units)
+
+
+@dataclass(frozen=True)
+class PassProgress:
+    """A progressive job's passes: done and ordered (extra passes and those its end cancelled included),
+    the mean samples per pixel the done ones give the image, and the goal (budget, noise or time)."""
+
+    done: int
+    ordered: int
+    spp_mean: float
+    goal: str
 
 
 class JobStore:
@@ -484,8 +500,15 @@ class JobStore:
         """Units done/total, agents rendering now, and an ETA from the finished units' seconds per unit of
         work (WorkUnit.work). Given `now` (wall-clock time, as the attempts' start times), the time the
         units being rendered have already rendered is taken off, each at most its unit's expected time, so
-        the ETA counts down between tiles."""
-        self.job(job_id)
+        the ETA counts down between tiles. A progressive job counts the units of its image, not its passes
+        (`_unit_progress`), and says how far its passes are (`PassProgress`)."""
+        record = self.job(job_id)
+        rows = self._row_progress(job_id, now)
+        planned = record.planned_units
+        return rows if planned is None else self._unit_progress(record, len(planned), rows, now)
+
+    def _row_progress(self, job_id: str, now: float | None) -> Progress:
+        """Progress counted over the job's unit rows (a progressive job's rows are its passes)."""
         db = self.db
         counts = dict(
             db.execute("SELECT status, COUNT(*) FROM units WHERE job_id = ? GROUP BY status", (job_id,))
@@ -513,6 +536,57 @@ class JobStore:
         retried, last = self._retries(job_id)
         return Progress(counts.get(UnitStatus.DONE, 0), total, counts.get(UnitStatus.FAILED, 0), busy, eta,
                         retried, last)
+
+    def _unit_progress(self, record: JobRecord, units: int, rows: Progress, now: float | None) -> Progress:
+        """A progressive job's progress: its `units` image units (`_units_met`), those left short of their
+        goal where it ended otherwise than done, its passes (`rows` counted them), and its ETA
+        (`_pass_eta`)."""
+        goal = Goal.of(record.spec.options, int(record.plan["spp"]))
+        done = self._units_met(record, units, goal)
+        short = units - done if record.status in (JobStatus.FAILED, JobStatus.CANCELLED) else 0
+        eta, at_least = self._pass_eta(record, goal, rows.eta_s, now)
+        passes = PassProgress(rows.done, rows.total, self._spp_mean(record.id, units), goal.kind)
+        return dataclasses.replace(rows, done=done, total=units, failed=short, eta_s=eta, eta_at_least=at_least,
+                                   passes=passes)
+
+    def _units_met(self, record: JobRecord, units: int, goal: Goal) -> int:
+        """Units of a progressive job whose goal is met. A done job's units all are (each has a verdict). A
+        budget job orders every pass at once: a unit is done once it has a pass done and none pending, out, or
+        failed with its job (its budget may be its own: a rule level's). A noise or time goal is judged at the
+        job's end only."""
+        if record.status == JobStatus.DONE:
+            return self.db.execute(
+                "SELECT COUNT(DISTINCT idx % ?) FROM units WHERE job_id = ? AND status = ?",
+                (units, record.id, UnitStatus.DONE)).fetchone()[0]
+        if goal.kind != BUDGET:
+            return 0
+        return self.db.execute(
+            "SELECT COUNT(*) FROM (SELECT idx % ? AS unit FROM units WHERE job_id = ? GROUP BY unit"
+            " HAVING SUM(status = ?) > 0 AND SUM(status IN (?, ?, ?)) = 0)",
+            (units, record.id, UnitStatus.DONE, UnitStatus.PENDING, UnitStatus.AWARDED, UnitStatus.FAILED)
+        ).fetchone()[0]
+
+    def _spp_mean(self, job_id: str, units: int) -> float:
+        """The samples per pixel the done passes give the image: each pass's spp over its area, over the
+        image's (its units' areas; pass 0 of unit u is row u)."""
+        samples, area = self.db.execute(
+            "SELECT SUM(CASE WHEN status = ? THEN spp * w * h ELSE 0 END), SUM(CASE WHEN idx < ? THEN w * h END)"
+            " FROM units WHERE job_id = ?", (UnitStatus.DONE, units, job_id)).fetchone()
+        return round((samples or 0) / area, 1) if area else 0.0
+
+    def _pass_eta(self, record: JobRecord, goal: Goal, rows_eta: float | None, now: float | None
+                  ) -> tuple[float | None, bool]:
+        """(ETA, whether it is only a lower bound). A budget job orders all its passes at once: the passes'
+        ETA is the job's. A time goal ends once its seconds from the first award are spent, or when the
+        passes out end if later. A noise goal may order more rounds: the ETA of the passes out is a lower
+        bound."""
+        if record.status != JobStatus.RUNNING or goal.kind == BUDGET:
+            return rows_eta, False
+        if goal.kind == NOISE:
+            return rows_eta, True
+        first = self.db.execute("SELECT MIN(started) FROM attempts WHERE job_id = ?", (record.id,)).fetchone()[0]
+        spent = max(0.0, now - first) if first is not None and now is not None else 0.0
+        return max(goal.seconds - spent, rows_eta or 0.0), False
 
     def _retries(self, job_id: str) -> tuple[int, str | None]:
         """How many attempts of the job ended without a tile (an agent that failed, died or lied), and

@@ -211,6 +211,10 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
         effects.reasons.append(f"sampler {sampler}: Mitsuba rounds each unit's spp to counts of its own (a "
                                "square, a power of four), so a unit may render more samples than its rules "
                                "chose; the report gives those it rendered")
+    if options.in_passes and sampler not in ("independent", None):
+        effects.reasons.append(f"sampler {sampler}: each pass stratifies its own samples, not the unit's all "
+                               "together: the merged passes are unbiased, but noisier than one render of "
+                               "their summed spp would be (the independent sampler loses nothing)")
     if options.level == "off":
         # The rules need no features at level off, so the pre-pass would be pure overhead.
         return dataclasses.replace(plan, units=_plain_units(width, height, target))

@@ -100,6 +100,21 @@ class PassDone:
 
 
 @dataclass(frozen=True)
+class UnitSoFar:
+    """One unit of a job taken up again (a master restart): its merged passes (`passes`, their samples per
+    pixel `spp` as rendered and `credited` as ordered, `seconds`, estimated `relmse`), the passes still out
+    (pass index -> spp ordered) and the next pass index, never used before (a pass's seed must not repeat)."""
+
+    spp: int = 0
+    credited: int = 0
+    passes: int = 0
+    seconds: float = 0.0
+    relmse: float | None = None
+    out: dict[int, int] = field(default_factory=dict)
+    next_pass: int = 0
+
+
+@dataclass(frozen=True)
 class Idle:
     """`slots` workers are idle and nothing ordered waits for them: extra passes of the units the round
     still waits for (a slow worker's pass is then no longer the job's tail)."""
@@ -187,12 +202,39 @@ class Progressive:
         job's whole samples."""
         if self.goal.kind == BUDGET:
             return [RenderRound(tuple(self._budget_orders()))]
+        firsts = [self._first_passes(index) for index in range(len(self.units))]
+        rounds = max(map(len, firsts), default=0)
+        return [RenderRound(tuple(each[k] for k in range(rounds) for each in firsts if k < len(each)))]
+
+    def _first_passes(self, index: int) -> list[PassOrder]:
+        """A unit's first FIRST_PASSES passes of `first_spp` (fewer where the cap comes first), its target."""
         spp = min(self.goal.first_spp, self.goal.spp_cap)
         passes = max(1, min(FIRST_PASSES, self.goal.spp_cap // spp))
-        orders = [self._order(u, spp) for _ in range(passes) for u in range(len(self.units))]
-        for unit in self.units:
-            unit.target = passes * spp
-        return [RenderRound(tuple(orders))]
+        self.units[index].target = passes * spp
+        return [self._order(index, spp) for _ in range(passes)]
+
+    def resume(self, so_far: list[UnitSoFar], elapsed: float) -> list[RenderRound | Finish]:
+        """In place of `start` for a job taken up again after `elapsed` seconds, each unit as it was (`so_far`):
+        the round waits for the passes still out, and orders what a unit lacks (a budget job's samples, or
+        the first passes of a unit with none); a job whose round had ended decides now."""
+        if len(so_far) != len(self.units):
+            raise ValueError(f"{len(so_far)} units resumed for {len(self.units)}")
+        orders: list[PassOrder] = []
+        for index, (unit, had) in enumerate(zip(self.units, so_far, strict=True)):
+            unit.spp, unit.credited, unit.passes, unit.seconds, unit.relmse = (
+                had.spp, had.credited, had.passes, had.seconds, had.relmse)
+            unit.out, unit.next_pass = dict(had.out), max(had.next_pass, max(had.out, default=-1) + 1)
+            unit.target = unit.credited + sum(unit.out.values())
+            if self.goal.kind == BUDGET:
+                orders += [self._order(index, spp) for spp in budget_passes(self.budgets[index] - unit.target)]
+                unit.target = max(unit.target, self.budgets[index])
+            elif unit.target == 0:
+                orders += self._first_passes(index)
+        if orders:
+            return [RenderRound(tuple(orders))]
+        if any(u.credited < u.target for u in self.units):
+            return []
+        return self._decide(elapsed)
 
     def handle(self, stimulus: PassDone | Idle) -> list[RenderRound | Finish]:
         """The one entry: a stimulus in, the instructions it leads to out."""

@@ -255,8 +255,8 @@ def run_status(args: argparse.Namespace) -> int:
         print("no jobs (quekaro submit SCENE adds one)")
     for job in jobs:
         running = job["status"] == "running" and job.get("eta_s") is not None
-        eta = f"{job['eta_s']:.0f} s" if running else "-"  # an ended job has none (it read "0 s")
-        print(f"{job['job_id']}  {job['status']:<9} {job['units_done']}/{job['units_total']} units  "
+        eta = _eta_text(job, " s") if running else "-"  # an ended job has none (it read "0 s")
+        print(f"{job['job_id']}  {job['status']:<9} {job['units_done']}/{job['units_total']} units{_passes_text(job)}  "
               f"agents busy {job['agents_busy']}  ETA {eta}  {job['scene']}"
               + (f"  error: {job['error']}" if job.get("error") else "")
               + (f"  PAUSED: {job['paused']}" if job.get("paused") else ""))
@@ -268,6 +268,20 @@ def run_status(args: argparse.Namespace) -> int:
             if job.get("adaptive"):
                 print(f"adaptive: {budgets.describe(job['adaptive'])}")
     return 0
+
+
+def _passes_text(job: dict) -> str:
+    """A progressive job's passes beside its units: done/ordered and the mean spp so far (else nothing)."""
+    passes = job.get("passes")
+    if not passes:
+        return ""
+    spp = str(passes["spp_mean"]).removesuffix(".0")  # as the page writes it: 287.5, 288, 1048576
+    return f", {passes['done']}/{passes['ordered']} passes, {spp} spp"
+
+
+def _eta_text(job: dict, unit: str) -> str:
+    """The ETA in whole seconds; "at least" where it counts only the passes ordered so far (a noise goal)."""
+    return ("at least " if job.get("eta_at_least") else "") + f"{job['eta_s']:.0f}{unit}"
 
 
 def _print_unit(client, args: argparse.Namespace) -> int:
@@ -323,22 +337,25 @@ def run_watch(args: argparse.Namespace) -> int:
 
 def watch(client, job_id: str, poll_s: float = 0.5) -> int:
     """A live progress bar until the job ends; exit status 0 only if it is done."""
+    first = client.status(job_id)
+    passes = (TextColumn("{task.fields[passes]}"),) if first.get("passes") else ()  # a progressive job's
     columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} units"),
-               TextColumn("agents busy {task.fields[busy]}"), TextColumn("ETA {task.fields[eta]}"),
+               *passes, TextColumn("agents busy {task.fields[busy]}"), TextColumn("ETA {task.fields[eta]}"),
                TimeElapsedColumn())
-    print_effects(client.status(job_id).get("effects") or {})
+    print_effects(first.get("effects") or {})
     with Progress(*columns, transient=False) as progress:
-        task = progress.add_task(job_id, total=None, busy=0, eta="-")
+        task = progress.add_task(job_id, total=None, busy=0, eta="-", passes="")
         said = None
         while True:
             job = client.status(job_id)
-            eta = f"{job['eta_s']:.0f}s" if job.get("eta_s") is not None else "-"
+            eta = _eta_text(job, "s") if job.get("eta_s") is not None else "-"
             if (job.get("paused") or None) != said:  # a line of its own: a bar in a pipe shows only at the end
                 said = job.get("paused") or None
                 progress.console.print(f"{job_id} paused: {said}" if said else f"{job_id} goes on")
             paused = " (paused)" if said else ""
             progress.update(task, total=job["units_total"], completed=job["units_done"],
-                            busy=job["agents_busy"], eta=eta, description=f"{job_id} {job['status']}{paused}")
+                            busy=job["agents_busy"], eta=eta, passes=_passes_text(job).lstrip(", "),
+                            description=f"{job_id} {job['status']}{paused}")
             if job["status"] != "running":
                 break
             time.sleep(poll_s)

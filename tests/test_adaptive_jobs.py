@@ -133,7 +133,7 @@ def test_the_level_spends_the_rules_samples_by_area():
     assert level_spp(units, [RenderParams(4, 10, 2), RenderParams(4, 30, 2)]) == 25  # (10 x 64 + 30 x 192) / 256
     params = adaptive_params([dataclasses.replace(u, spp=7) for u in units], depth=5, band=3)
     assert [(p.depth, p.spp, p.band) for p in params] == [(5, 7, 3), (5, 7, 3)]
-    with pytest.raises(ValueError, match=r"units \[0, 1\] of an adaptive job carry no planned spp"):
+    with pytest.raises(ValueError, match=r"units \[0, 1\] of an adaptive or progressive job carry no planned spp"):
         adaptive_params(units, depth=5, band=3)
 
 

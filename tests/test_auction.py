@@ -976,9 +976,10 @@ def test_agents_plan_alike_only_when_every_live_one_told_the_same_rules() -> Non
     assert a.plan_alike(mine, "centroid")  # the job's defuzzifier is everyone's
     message(a, "B", m.Register(conversation="r", speed=1.0, threads=1, rules="x", rules_sha256=other), 1.0)
     assert not a.plan_alike(mine, None) and a.plan_alike(None, None)  # other rules; a job's own rules are all's
-    a._agents["B"].lost = True
+    message(a, "A", m.Heartbeat(conversation="h", busy=()), 20.0)
+    assert [type(i) for i in tick(a, 20.0)] == [au.AgentLost]  # B, last heard from at 1.0
     assert a.plan_alike(mine, None)  # only live agents plan
-    message(a, "C", m.Heartbeat(conversation="h", busy=()), 2.0)  # known from heartbeats alone
+    message(a, "C", m.Heartbeat(conversation="h", busy=()), 21.0)  # known from heartbeats alone
     assert not a.plan_alike(mine, None) and not a.plan_alike(None, None)
 
 

@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bench.adaptive import oracle_ratio
+from bench.adaptive import oracle_counts, oracle_ratio
 from core.render.adaptive import predicted_ratio
 
 REPO = Path(__file__).resolve().parent.parent
@@ -34,12 +34,16 @@ def test_bench_adaptive_measures_each_scene_at_equal_time(tmp_path):
         assert run["relmse_adaptive"] > 0 and run["relmse_equal"] > 0
         assert run["ratio_equal_time"] == pytest.approx(run["relmse_adaptive"] / run["relmse_equal"])
         assert 0 < scene["oracle_equal_spp"] <= 1 + 1e-9
+        (oracle,) = scene["oracle_runs"]
+        assert oracle["oracle_s"] > 0 and oracle["flat_s"] > 0 and oracle["equal_spp"] >= 1
+        assert scene["oracle_equal_time"] == oracle["ratio_equal_time"] > 0
     assert (tmp_path / "cache" / "noise").is_dir()  # the oracle's noise maps are cached beside the references
     text = (tmp_path / "out" / "adaptive.md").read_text()
     ran = cmd[4:cmd.index("--out")] + cmd[cmd.index("--out") + 2:]  # the title names the command run, less --out
     assert text.startswith(f"# The two-pass adaptive render against uniform spp (`quekaro bench {shlex.join(ran)}`)")
     assert "| outdoor | report |" in text and "Median relMSE / uniform at equal render time" in text
     assert "Median of the oracle at the same spp" in text
+    assert "Bound of any per-pixel allocation through this path" in text and "| volume | " in text.split("oracle's")[-1]
 
 
 @pytest.mark.slow
@@ -54,6 +58,14 @@ def test_bench_adaptive_takes_scene_files_outside_the_suite(tmp_path):
     assert set(scenes) == {"caustic-corner", "glass-corner"}
     # Files from outside the suite are neither half (caustic-corner is the scene the rules were tuned on).
     assert all(s["role"] == "user" and s["runs"][0]["relmse_adaptive"] > 0 for s in scenes.values())
+
+
+def test_the_oracles_counts_keep_the_mean_and_follow_the_noise():
+    noise = np.array([[4.0, 1.0, 0.0, 0.25]] * 64)
+    counts = oracle_counts(noise, 16, np.random.default_rng(1))
+    assert abs(counts.mean() - 16) < 0.5 and counts.min() >= 1
+    assert counts[:, 0].mean() > 1.8 * counts[:, 1].mean() > 3 * counts[:, 3].mean()  # sqrt: 2, 1, 0.5
+    assert (oracle_counts(np.zeros((3, 3)), 16, np.random.default_rng(1)) == 16).all()
 
 
 def test_the_oracle_of_even_or_no_noise_is_uniform_spp():

@@ -33,6 +33,7 @@ from core.model import messages as m
 from core.scene.bundle import make_bundle
 from core.transport.rates import SenderRates
 from farm.local import LocalFarm
+from master.store import JobStore
 
 pytestmark = pytest.mark.slow
 
@@ -138,15 +139,21 @@ def test_agent_killed_mid_job_the_job_completes(farm3, tmp_path):
     assert np.isfinite(image).all() and (image.mean(axis=2) > 0).mean() > 0.9
 
 
-@pytest.mark.parametrize("options", [{"level": "off", "units": 9}, {"level": "S", "units": 9, "adaptive": True}],
-                         ids=["off", "adaptive"])
+@pytest.mark.parametrize("options", [{"level": "off", "units": 9}, {"level": "S", "units": 9, "adaptive": True},
+                                     {"level": "VS", "units": 9, "progressive": True},
+                                     {"level": "off", "units": 9, "noise": 0.05}],
+                         ids=["off", "adaptive", "passes", "noise"])
 def test_master_restarted_mid_job_resumes_without_rerendering(farm3, tmp_path, options):
     """An adaptive job's units keep their shares and its agents their first pass through the restart
-    (the store's rows and plan): the units rendered after it render the same plan."""
+    (the store's rows and plan): the units rendered after it render the same plan. A progressive job goes
+    on from its passes so far (merged again from their tiles): no pass is rendered twice, and each unit
+    ends with its own samples (a budget) or its verdict (a noise goal)."""
     client = farm3.client()
     defines = {"res": "96", "spp": "64"}
     job_id = client.submit(bundle_of(SCENE, defines), defines, options)
-    wait_job(farm3, job_id, until=lambda j: j["units_done"] >= 2)
+    deadline = time.monotonic() + 120
+    while len(_done_tokens(farm3.home, job_id)) < 4 and time.monotonic() < deadline:  # passes or units
+        time.sleep(0.05)
     master = farm3.children[0]
     master.proc.kill()
     master.proc.wait()
@@ -165,6 +172,15 @@ def test_master_restarted_mid_job_resumes_without_rerendering(farm3, tmp_path, o
         report = json.loads(out.with_suffix(".json").read_text())
         first, shares = report["adaptive"]["first_spp"], report["adaptive"]["unit_spp"]
         assert [(u["spp"], u["first_spp"]) for u in report["units"]] == [(spp, first) for spp in shares]
+    if "progressive" in options or "noise" in options:
+        report = json.loads(out.with_suffix(".json").read_text())
+        assert len(report["units"]) == 9 and len(done_before) < len(_done_tokens(farm3.home, job_id))
+        verdicts = {u["verdict"] for u in report["units"]}
+        assert verdicts <= ({"budget"} if "progressive" in options else {"met", "cap"}), report["units"]
+        if "progressive" in options:  # each unit its rules' own samples, through the restart
+            with JobStore(farm3.home / "jobs.sqlite", readonly=True) as store:
+                budgets = [u.spp for u in store.plan(job_id, tmp_path / "scene.xml").units]
+            assert [u["spp"] >= b for u, b in zip(report["units"], budgets, strict=True)] == [True] * 9
 
 
 def test_xmpp_server_restart_mid_job(farm3, tmp_path):

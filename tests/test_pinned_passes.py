@@ -4,6 +4,7 @@ samples, and a pass tile at another depth is refused (merged, passes of two dept
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import random
 
@@ -74,10 +75,18 @@ def test_a_pass_carries_its_units_depth_on_the_wire_only_at_a_rule_level():
             m.parse(performative, json.dumps(data))
 
 
-def test_the_store_keeps_a_passs_depth(tmp_path):
+def test_the_store_keeps_a_passs_depth_and_the_plan_its_units_pins_past_their_passes(tmp_path):
+    """The rows of a progressive job's units become its first passes (their spp the pass's): the plan keeps
+    what the rules pinned, for the auction to take up after a restart."""
     with JobStore(tmp_path / "jobs.db") as store:
         store.create_job("j", "s.xml", JobSpec(), plan_of([_unit(0, 5), _unit(1, None)]), 0.0)
         assert [u.unit().depth for u in store.units("j")] == [5, None]
+        plan = dataclasses.replace(plan_of([_unit(0, 5, 16), _unit(1, 8, 3)]),
+                                   options=RenderOptions(level="VS", spp=64, progressive=True))
+        store.create_job("p", "s.xml", JobSpec(options=plan.options), plan, 0.0)
+        store.apply([au.PassesOrdered("p", (_unit(0, 5, 8), _unit(1, 8, 2)), 2, "a round")], 1.0)
+        assert [u.spp for u in store.units("p")] == [8, 2]  # the first passes'
+        assert [(u.depth, u.spp) for u in store.plan("p", tmp_path / "s.xml").units] == [(5, 16), (8, 3)]
 
 
 def _pass_tile_refusal(depth: int) -> str:

@@ -71,3 +71,17 @@ def test_time_goal_renders_in_growing_rounds_until_the_time_is_spent(tmp_path):
     assert progressive["reason"].startswith("the 4 s of rendering are spent")
     assert progressive["seconds"] >= 4
     assert all(u["verdict"] == "time" and u["spp"] > 64 for u in report["units"])
+
+
+@pytest.mark.parametrize("options", [{"progressive": True}, {}], ids=["passes", "whole"])
+def test_a_stratified_sampler_in_passes_is_said_to_cost_noise(tmp_path, options):
+    """Each pass stratifies its own samples: the plan says the merged passes are noisier than one render
+    of their spp; a job not in passes says nothing of it."""
+    from core.model.job import RenderOptions, SceneSpec
+    from planning.jobplan import plan_job
+
+    scene = tmp_path / "cbox.xml"
+    scene.write_text(SCENE.read_text().replace('<sampler type="independent">', '<sampler type="stratified">'))
+    plan = plan_job(SceneSpec(scene, {"res": "32"}), RenderOptions(level="off", spp=16, threads=1, **options))
+    said = [r for r in plan.effects.reasons if r.startswith("sampler stratified: each pass")]
+    assert len(said) == (1 if options else 0), plan.effects.reasons

@@ -105,7 +105,8 @@ def test_schema_pragmas_and_records(tmp_path: Path) -> None:
         with pytest.raises(StoreError, match="no job 'nope'"):
             store.job("nope")
         with pytest.raises(sqlite3.IntegrityError):  # foreign keys hold
-            store.db.execute("INSERT INTO units VALUES ('nope', 0, 0, 0, 1, 1, 0, 0, 0, 1, 'pending', 0, NULL, NULL, NULL)")
+            store.db.execute("INSERT INTO units VALUES"
+                             " ('nope', 0, 0, 0, 1, 1, 0, 0, 0, 1, 'pending', 0, NULL, NULL, NULL)")
     assert [j.id for j in JobStore(tmp_path / "farm.db").list_jobs()] == ["job-1"]
 
 

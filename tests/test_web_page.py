@@ -11,12 +11,16 @@ from __future__ import annotations
 
 import io
 import json
+import re
 import secrets
 import sqlite3
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -128,6 +132,27 @@ def test_an_eta_counts_down_between_events_but_not_while_the_farm_is_paused(farm
         running.remove(); paused.remove();
         return [...before, ...after];""")
     assert shown == ["1 min 40 s", "1 min 40 s", "1 min 10 s", "1 min 40 s"]
+
+
+def test_a_noise_jobs_eta_is_a_lower_bound_and_a_cancelled_progressive_job_says_what_fell_short(farm, browser):
+    """A noise goal's ETA counts only the passes ordered so far: "at least", still counting down; a
+    progressive job that ended early names its units short of their goal, beside its passes."""
+    logged_in(browser, farm)
+    shown = browser.execute_script("""
+        const ago = Date.now() / 1000 - 30;  // the row arrived 30 s ago, with at least 100 s to go
+        const span = eta({status: "running", eta_s: 100, eta_at_least: true, receivedAt: ago});
+        document.body.append(span);
+        const before = span.textContent;
+        tickEtas();
+        const after = span.textContent;
+        span.remove();
+        const passes = {done: 9, ordered: 30, spp_mean: 88.5, goal: "noise"};
+        const bar = progressBar({units_done: 2, units_total: 6, units_failed: 4, passes});
+        const plain = progressBar({units_done: 2, units_total: 6, units_failed: 4, passes: null});
+        return [before, after, bar.querySelector(".bar-text").textContent,
+                plain.querySelector(".bar-text").textContent, bar.querySelectorAll(".bar span").length];""")
+    assert shown == ["at least 1 min 40 s", "at least 1 min 10 s",
+                     "2/6 units, 9/30 passes, 88.5 spp, 4 left short of their goal", "2/6 units, 4 left unrendered", 2]
 
 
 def test_a_running_jobs_time_counts_up_between_events_and_an_ended_ones_stays(farm, browser):
@@ -258,6 +283,58 @@ def test_an_adaptive_jobs_page_says_how_its_samples_were_shared(farm, browser, t
     assert ("shared by the pre-pass's noise" in shown) == shares["adapted"], shown
     screenshot(browser, tmp_path, "adaptive-job")
     assert client.wait(job_id, JOB_TIMEOUT_S)["status"] == "done"
+
+
+def _page_progress(browser: WebDriver) -> dict[str, Any]:
+    """The job page's progress, read at one instant by the page itself."""
+    return browser.execute_script("""
+        const view = document.getElementById("job-view");
+        const summary = document.getElementById("job-summary");
+        const bar = summary.querySelector(".bar-text");
+        return {status: view.dataset.status, done: Number(view.dataset.unitsDone),
+                total: Number(view.dataset.unitsTotal), passes: view.dataset.passesDone,
+                text: bar ? bar.textContent : "", summary: summary.textContent};""")
+
+
+def test_a_progressive_jobs_page_and_status_count_its_units_and_show_its_passes(farm, browser, tmp_path):
+    """A job in passes keeps each pass as a unit row: the page's bar counted those (done and total growing
+    as passes were ordered). It counts the image's units, a unit done once all its passes are, and shows
+    the passes and the mean spp beside them; `quekaro status` says the same."""
+    logged_in(browser, farm)
+    defines = {"res": "256", "spp": "256"}
+    job_id = farm.client().submit(bundle_of(defines), defines, {"level": "off", "progressive": True, "units": 6})
+    with JobStore(farm.home / "jobs.sqlite", readonly=True) as store:
+        planned = len(store.job(job_id).planned_units)
+    click(browser, f'#jobs-table tr[data-job="{job_id}"] a.job-link', 30)
+    seen: list[dict[str, Any]] = []
+    deadline = time.monotonic() + JOB_TIMEOUT_S
+    while time.monotonic() < deadline and not (seen and seen[-1]["status"] == "done"):
+        shown = wait_until(lambda: (p := _page_progress(browser))["text"] and p, 30, "the job's progress")
+        if not seen or shown != seen[-1]:
+            seen.append(shown)
+            if shown["status"] == "running" and shown["passes"] not in ("", "0"):
+                screenshot(browser, tmp_path, f"progressive-{shown['passes']}-passes")
+        time.sleep(0.2)
+    assert seen[-1]["status"] == "done", seen[-1]
+    screenshot(browser, tmp_path, "progressive-done")
+    running = [s for s in seen if s["status"] == "running" and s["passes"] not in ("", "0")]
+    assert running, seen  # the page showed the job between its first pass and its end
+    assert all(s["total"] == planned for s in seen), (planned, seen)  # its units, never its passes
+    dones = [s["done"] for s in seen]
+    assert dones == sorted(dones) and dones[-1] == planned
+    for s in running:
+        passes = re.search(rf"^{s['done']}/{planned} units, (\d+)/(\d+) passes, [\d.]+ spp$", s["text"])
+        assert passes, s
+        assert int(passes.group(1)) == int(s["passes"]) and int(passes.group(2)) >= 5 * planned, s  # 128 .. 16
+        assert int(passes.group(1)) > s["done"], s  # a unit is done only once all its passes are
+    assert any(re.search(r"ETA\s*\d", s["summary"]) for s in running), running  # a figure, counting down
+    final = re.search(rf"^{planned}/{planned} units, (\d+)/(\d+) passes, ([\d.]+) spp$", seen[-1]["text"])
+    assert final and float(final.group(3)) >= 256, seen[-1]  # no "left unrendered": cancelled extras are none
+    status = subprocess.run([sys.executable, "-m", "quekaro", "status", job_id, "--home", str(farm.home)],
+                            capture_output=True, text=True, timeout=60, cwd=REPO)
+    assert status.returncode == 0, status.stderr
+    assert re.search(rf"{job_id}\s+done\s+{planned}/{planned} units, {final.group(1)}/{final.group(2)} passes, "
+                     rf"{final.group(3)} spp\s+agents busy", status.stdout), status.stdout
 
 
 def test_a_link_to_a_job_opened_without_a_session_leads_to_that_job_after_the_login(farm, browser):

@@ -359,12 +359,14 @@ class JobPlan:
 
     def to_dict(self) -> dict[str, Any]:
         """Everything but the scene's location and the units (the job store keeps those in their own
-        columns and rows), the units' neighbours included."""
+        columns and rows), the units' neighbours included, and a progressive job's pinned depth and samples
+        per unit (its store rows hold its passes')."""
         return {"options": self.options.to_dict(), "width": self.width, "height": self.height,
                 "effects": self.effects.to_dict(), "spp": self.spp, "depth": self.depth,
                 "ranges": {k: list(v) for k, v in self.ranges().items()},
                 "prepass_seconds": self.prepass_seconds, "prepass_info": dict(self.prepass_info),
                 "neighbours": {str(u.index): list(u.neighbours) for u in self.units},
+                "pinned": {str(u.index): [u.depth, u.spp] for u in self.units if u.depth is not None},
                 "bundle_sha256": self.bundle_sha256, "rules_sha256": self.rules_sha256,
                 "filter_radius": self.filter_radius, "first_spp": self.first_spp, "shares": dict(self.shares),
                 "colour": list(self.colour), "image_file": self.image_file.to_dict(),
@@ -373,10 +375,14 @@ class JobPlan:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], spec: SceneSpec, units: list[WorkUnit]) -> JobPlan:
-        """The plan `to_dict` wrote, for the scene at `spec` with these units (their neighbours restored)."""
+        """The plan `to_dict` wrote, for the scene at `spec` with these units (their neighbours, and pinned
+        depth and samples, restored)."""
         try:
             near = {int(k): tuple(v) for k, v in data.get("neighbours", {}).items()}
             units = [dataclasses.replace(u, neighbours=near.get(u.index, u.neighbours)) for u in units]
+            pinned = {int(k): (int(depth), int(spp)) for k, (depth, spp) in data.get("pinned", {}).items()}
+            units = [dataclasses.replace(u, depth=pinned[u.index][0], spp=pinned[u.index][1])
+                     if u.index in pinned else u for u in units]
             spec = SceneSpec.from_dict({**spec.to_dict(), "rfilter": data.get("rfilter")})
             return cls(spec, RenderOptions.from_dict(data["options"]), int(data["width"]), int(data["height"]),
                        Effects.from_dict(data["effects"]), int(data["spp"]), int(data["depth"]), units,

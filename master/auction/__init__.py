@@ -31,7 +31,7 @@ from master.auction.instructions import (
     UnitRequeued,
 )
 from master.auction.machine import Auction
-from master.auction.passes import pass_origin
+from master.auction.passes import ResumedPasses, pass_origin
 from master.auction.schedule import Placement, PlanAgent, ProjectedUnit, fluid_finish, project, refine
 from master.auction.state import Config, Transition
 from master.auction.stimuli import (
@@ -80,6 +80,7 @@ __all__ = [
     "ProjectedUnit",
     "Record",
     "RefuseTile",
+    "ResumedPasses",
     "SendToAgent",
     "Stimulus",
     "Tick",

@@ -17,7 +17,7 @@ import math
 import random
 import statistics
 from collections import Counter, deque
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 
 from core.errors import MessageError
 from core.image.passes import WEIGHT
@@ -49,18 +49,30 @@ from master.auction.instructions import (
     UnitFailed,
     UnitRequeued,
 )
-from master.auction.passes import PassBook
+from master.auction.passes import PassBook, ResumedPasses
 from master.auction.schedule import (
     MAX_RATE,
     MIN_RATE,
+    ListSchedule,
     Placement,
     PlanAgent,
     ProjectedUnit,
-    project,
     refine,
     round_rate,
 )
-from master.auction.state import NOT_TOLD, Agent, Config, Job, PlansWith, ResumedJob, Round, Transition, UnitState
+from master.auction.state import (
+    NOT_TOLD,
+    OPEN,
+    Agent,
+    Config,
+    Job,
+    PlansWith,
+    ResumedJob,
+    Round,
+    Transition,
+    UnitState,
+    Watch,
+)
 from master.auction.stimuli import (
     DiskFreed,
     DiskFull,
@@ -76,7 +88,7 @@ from master.auction.views import AgentView, AwardView, JobView
 from planning.progressive import Finish, Goal, Idle, PassDone, PassOrder, RenderRound
 
 
-def _batch_deadlines(out: list[Instruction], wins: dict[str, list[UnitState]]) -> list[Instruction]:
+def _batch_deadlines(job: Job, out: list[Instruction], wins: dict[str, list[UnitState]]) -> list[Instruction]:
     """Units one agent won in one round render in one call and end together, after the last of them would
     have ended one by one: each is given the last one's deadline (its own would pass before the batch ends
     when the others take more than twice its estimate plus the slack)."""
@@ -84,7 +96,8 @@ def _batch_deadlines(out: list[Instruction], wins: dict[str, list[UnitState]]) -
     for won in wins.values():
         last = max(u.deadline for u in won)
         for unit in won:
-            unit.deadline = deadlines[unit.spec.index] = last
+            job.set_deadline(unit, last)
+            deadlines[unit.spec.index] = last
     return [dataclasses.replace(c, deadline=deadlines[c.index]) if isinstance(c, UnitAwarded) else c
             for c in out]
 
@@ -105,6 +118,111 @@ def _excluded(unit: UnitState, usable: Iterable[str]) -> frozenset[str]:
         return frozenset()
     failed = frozenset(unit.failed_on)
     return failed if any(name not in failed for name in usable) else frozenset()
+
+
+_NONE: frozenset[str] = frozenset()
+
+
+class _Offers:
+    """What `Auction._offers` has read off the projection's placements so far (most costly unit first): each
+    free agent's units worth offering, in that order, and whether a later placement could still change the
+    offers. One could while a free agent is still `fresh` (the schedule may yet start a unit on it now, which
+    others may contest), or while an agent has fewer than it may be offered (`need`) of the units no later
+    one would precede in its offer: all of them, or, where it may win a batch (own units first), its own."""
+
+    def __init__(self, room: dict[str, int], cap: int, fresh: set[str], now: float) -> None:
+        self.room, self.fresh, self.now = room, fresh, now
+        self.worth: dict[str, list[int]] = {name: [] for name in room}
+        self.plan: dict[int, Placement] = {}
+        self.need = {name: max(1, min(cap, max(len(room), r))) for name, r in room.items()}
+        self.counted = dict.fromkeys(room, 0)  # units no later one would precede in the agent's offer
+        self.wanting = set(room)  # agents with fewer counted than `need`
+
+    def placed(self, unit: UnitState, place: Placement, bidders: list[str]) -> None:
+        """`unit` is placed on one of the free agents (no other placement concerns the offers)."""
+        index = unit.spec.index
+        self.plan[index] = place
+        if place.finish > self.now:
+            self.fresh.discard(place.agent)
+        for name in bidders:
+            self.worth[name].append(index)
+            self.counted[name] += self.room[name] <= 1 or place.agent == name
+            if self.counted[name] >= self.need[name]:
+                self.wanting.discard(name)
+
+    def settled(self) -> bool:
+        return not self.fresh and not self.wanting
+
+
+class _LookAhead:
+    """The projection of a job's open units, read most costly first (`Job.open_order`): the list schedule
+    placed a unit at a time as it is read, or in the end game (`refined`) the refined schedule, whole. Read
+    it before any unit's status changes: all of it, or (`next_placed`) the placements on `watched` agents."""
+
+    def __init__(self, job: Job, agents: list[tuple[str, float, float]], usable: Collection[str],
+                 refine_moves: int, watched: Collection[str] = ()) -> None:
+        self.job, self.usable, self.watched = job, usable, watched
+        self.read = 0  # units of the job's open_order read
+        self.refined: dict[int, Placement] | None = None
+        self.schedule: ListSchedule | None = None
+        if refine_moves:
+            self.refined = self._whole([PlanAgent(*a) for a in agents], refine_moves)
+        else:
+            self.schedule = ListSchedule(agents)
+
+    def _whole(self, agents: list[PlanAgent], refine_moves: int) -> dict[int, Placement]:
+        """`project` then `refine`, the units given in the list schedule's order."""
+        units = [ProjectedUnit(i, -c, _excluded(self.job.units[i], self.usable)) for c, i in self.job.open_order]
+        schedule, plan = ListSchedule(agents), {}
+        for unit in units:
+            place = schedule.place(unit.cost, unit.excluded)
+            if place is not None:
+                plan[unit.index] = place
+        return refine(plan, units, agents, refine_moves)
+
+    def __iter__(self) -> Iterator[tuple[UnitState, Placement]]:
+        for _, index in self.job.open_order:
+            unit = self.job.units[index]
+            self.read += 1
+            place = self._place(unit)
+            if place is not None:
+                yield unit, place
+
+    def next_placed(self, stop: int) -> tuple[UnitState, Placement] | None:
+        """The next unit placed on a watched agent, and its place, reading no further than position `stop`
+        of the open units (None: none before it). Units that no agent may have failed on go through
+        `ListSchedule.place_until`, a unit at a time but with nothing kept of them."""
+        order, stop = self.job.open_order, min(stop, len(self.job.open_order))
+        while self.read < stop:
+            if self.schedule is not None and not self.job.open_failed:
+                self.read = self.schedule.place_until(self.job.open_costs, self.read, stop, self.watched)
+                if self.read == stop:
+                    break
+            unit = self.job.units[order[self.read][1]]
+            self.read += 1
+            place = self._place(unit)
+            if place is not None and place.agent in self.watched:
+                return unit, place
+        return None
+
+    @property
+    def finished(self) -> bool:
+        return self.read == len(self.job.open_order)
+
+    def _place(self, unit: UnitState) -> Placement | None:
+        if self.schedule is None:
+            return self.refined.get(unit.spec.index)
+        return self.schedule.place(unit.spec.work, _excluded(unit, self.usable) if unit.failed_on else _NONE)
+
+    def places_none_on(self, names: Collection[str]) -> bool:
+        """Whether no unit yet to read is placed on any of `names` (False where that cannot be told: in the
+        refined schedule, or where one of them failed before and may exclude agents)."""
+        order = self.job.open_order
+        if self.read == len(order):
+            return True
+        if self.schedule is None or self.job.open_failed:
+            return False
+        return self.schedule.never_places(names, self.job.open_costs[self.read:])
 
 
 class Auction:
@@ -128,6 +246,7 @@ class Auction:
         self._jobs: dict[str, Job] = {}
         self._agents: dict[str, Agent] = {}
         self._rounds: dict[str, Round] = {}
+        self._watch = Watch()  # the lost, silent and live agents, for the ticks (state.Watch)
         self._paused: tuple[str, float] | None = None  # why jobs stand still, since when (wall time)
         self._paused_s = 0.0  # wall seconds spent paused before that
         self._numbers = itertools.count(1)  # names stimuli that came without one
@@ -142,12 +261,13 @@ class Auction:
         credits: dict[str, int] | None = None,
         config: Config | None = None,
         rng: random.Random | None = None,
+        now: float = 0.0,
     ) -> tuple[Auction, list[Instruction]]:
         """The auction after a master restart: every running job with its done units and past failures, and
         the agents' records (`credits`, applied as each registers again). `describe` gives a job's CFP
         description (its scene URL depends on where the master serves now); a job it cannot describe fails
-        alone. Returns the auction and the records of resuming (a job that was in fact complete, or failed),
-        for the job store to apply."""
+        alone. A progressive job brings its goal and its passes so far. Returns the auction and the records of
+        resuming (a job that was in fact complete, or failed), for the job store to apply."""
         auction = cls(config, rng, credits=credits)
         out: list[Instruction] = []
         for job in jobs:
@@ -157,8 +277,9 @@ class Auction:
                 out.append(JobFailed(job.job_id, f"cannot resume the job: {type(exc).__name__}: {exc}"))
                 continue
             resumed = JobSubmitted(info, job.units, _channels(job.channels), frozenset(job.done),
-                                   tuple(job.failures), dict(job.delivered_by), stimulus_id=f"resume-{job.job_id}")
-            out += auction.handle(resumed, 0.0)
+                                   tuple(job.failures), dict(job.delivered_by), job.goal, job.resumed,
+                                   stimulus_id=f"resume-{job.job_id}")
+            out += auction.handle(resumed, now)
         return auction, out
 
     # --- the one entry -----------------------------------------------------------------------------------
@@ -273,6 +394,7 @@ class Auction:
             statuses = {u.status for u in job.units.values()}
             indexed = {i: status for status, indices in job.by_status.items() for i in indices}
             assert indexed == {i: u.status for i, u in job.units.items()}, f"job {job.info.job_id}: by_status is stale"
+            _check_open(job)
             if job.passes is not None:  # a progressive job ends with the passes still out cancelled
                 assert job.status == JobStatus.RUNNING or statuses <= {UnitStatus.DONE, UnitStatus.FAILED}, \
                     f"job {job.info.job_id}: {job.status.value} with units {sorted(statuses)}"
@@ -284,6 +406,7 @@ class Auction:
                     f"units {sorted(statuses)}"
             blocked = {a for a, n in job.failures_by_agent.items() if n >= self.config.blocklist_after}
             assert job.blocklist <= blocked, f"job {job.info.job_id}: blocklist {job.blocklist} beyond {blocked}"
+        self._check_watch()
         for agent in self._agents.values():
             for job_id, index in agent.holding:
                 unit = self._jobs[job_id].units[index]
@@ -293,6 +416,16 @@ class Auction:
                 round_ = self._rounds.get(agent.invited)
                 assert round_ is not None and agent.name in round_.offered, \
                     f"agent {agent.name} invited to round {agent.invited}, which does not call it"
+
+    def _check_watch(self) -> None:
+        """The invariants of what the auction keeps of its agents for its ticks (`Watch`, `Agent.held_end`)."""
+        agents, beats = self._agents.values(), set(self._watch.beats)
+        assert self._watch.lost == {a.name for a in agents if a.lost}, "Watch.lost is stale"
+        assert self._watch.silent == {a.name for a in agents if a.silent_until is not None}, "Watch.silent is stale"
+        assert self._watch.callable == {a.name for a in agents if self._callable(a)}, "Watch.callable is stale"
+        for agent in agents:
+            assert agent.held_end == self._held_end(agent), f"agent {agent.name}: held_end is stale"
+            assert agent.lost or (agent.last_seen, agent.name) in beats, f"agent {agent.name}: no current beat"
 
     # --- set-up --------------------------------------------------------------------------------------
 
@@ -306,21 +439,21 @@ class Auction:
         if done - {u.index for u in units}:
             raise ValueError(f"job {info.job_id!r}: done units {sorted(done - {u.index for u in units})} unknown")
         # Units done before a restart start as done: a state, not a change of it.
-        job = Job(info, {u.index: UnitState(u, UnitStatus.DONE if u.index in done else UnitStatus.PENDING)
-                         for u in units}, order=len(self._jobs), channels=submitted.channels)
-        for index, agent in submitted.delivered_by.items():
-            if index in done:
-                job.units[index].delivered_by = agent
-        for index, agent, reason in submitted.failures:
-            unit = job.units[index]
+        states = {u.index: UnitState(u, UnitStatus.DONE if u.index in done else UnitStatus.PENDING) for u in units}
+        for index, agent, reason in submitted.failures:  # before the job indexes its units (Job.open_failed)
+            unit = states[index]
             unit.failures += 1
             unit.failed_on.add(agent)
             unit.last_reason = reason
-            job.failures_by_agent[agent] += 1
+        job = Job(info, states, order=len(self._jobs), channels=submitted.channels)
+        job.failures_by_agent.update(agent for _, agent, _ in submitted.failures)
+        for index, agent in submitted.delivered_by.items():
+            if index in done:
+                job.units[index].delivered_by = agent
         job.blocklist = {a for a, n in job.failures_by_agent.items() if n >= self.config.blocklist_after}
         self._jobs[info.job_id] = job
         if submitted.goal is not None:
-            return self._open_passes(job, submitted.goal, tuple(units))
+            return self._open_passes(job, submitted.goal, tuple(units), submitted.resumed)
         return self._finish_if_done(job) + self._fail_if_stuck(job)
 
     def _register(self, agent: str, now: float, speed: float = 1.0, credits: int = 0,
@@ -336,12 +469,16 @@ class Auction:
             known = self._agents[agent] = Agent(agent, now, credits=credits, speed=speed, registered=registered,
                                                slots=slots, rules=rules)
             known.recent = deque(maxlen=self.config.recent_window)
+            self._watch.beat(known)
+            self._recheck(known)
             return [AgentJoined(agent, speed)]
         known.speed = speed
         known.registered = True
         known.slots = slots if registered else known.slots
         known.rules = rules if registered else known.rules
-        return self._seen(known, now)
+        out = self._seen(known, now)
+        self._recheck(known)
+        return out
 
     def plan_alike(self, rules_sha256: str | None, defuzzifier: str | None) -> bool:
         """Whether every live agent plans a job's units as the master's plan does: a job without rules of its
@@ -425,6 +562,8 @@ class Auction:
         round_.answered.add(agent)
         state = self._agents[agent]
         state.silences, state.silent_until = 0, None
+        self._watch.silent.discard(agent)
+        self._recheck(state)
 
     def _on_tile(self, tile: TileStored, now: float) -> list[Instruction]:
         """A tile of the unit's current award is stored: the unit is done, unless the tile claims what the plan
@@ -438,7 +577,7 @@ class Auction:
             return [RefuseTile(tile.job_id, tile.index, refused)]
         agent, seconds = unit.agent, tile.figures.seconds
         state = self._agents[agent]
-        state.holding.discard((tile.job_id, tile.index))
+        self._release(state, (tile.job_id, tile.index))
         on_time = seconds <= unit.estimate * (1 + self.config.credit_tolerance)
         state.credits += 1 if on_time else -1
         if on_time:
@@ -481,19 +620,23 @@ class Auction:
     def _expire(self, now: float) -> list[Instruction]:
         """Lost agents give their units back; units past their render deadline are failed on their agent."""
         out: list[Instruction] = []
-        for state in self._agents.values():
+        oldest = self._watch.oldest_beat(self._agents)
+        silent_long = oldest is not None and now - oldest > self.config.heartbeat_timeout_s
+        for state in self._agents.values() if silent_long else ():
             if not state.lost and now - state.last_seen > self.config.heartbeat_timeout_s:
                 state.lost = True
+                self._watch.lost.add(state.name)
                 out.append(AgentLost(state.name, "no heartbeat"))
                 for key in sorted(state.holding):
                     out += self._requeue(key, f"agent {state.name} lost")
                 if state.invited in self._rounds:
                     self._rounds[state.invited].offered.pop(state.name, None)
                 state.invited = None
+                self._recheck(state)
         out += self._forget_lost(now)
         for job in self._running():
-            for unit in job.having(UnitStatus.AWARDED):
-                if now > unit.deadline:
+            for unit in job.pop_late(now):
+                if now > unit.deadline:  # a failure before may have stopped the job
                     holder = unit.agent
                     out.append(
                         SendToAgent(
@@ -526,41 +669,27 @@ class Auction:
         """Calls for proposals: each free agent is offered the pending units the projection gives it, and
         those it would finish about as soon as the free agent they are projected to (module docstring)."""
         out: list[Instruction] = []
-        for agent in self._agents.values():
-            if agent.silent_until is not None and now >= agent.silent_until:
+        for name in sorted(self._watch.silent):
+            agent = self._agents[name]
+            if now >= agent.silent_until:
                 agent.silent_until = None  # called again; its silences count on until it answers
+                self._watch.silent.discard(name)
+                self._recheck(agent)
         open_units = sum(len(j.by_status.get(UnitStatus.PENDING, ())) for j in self._running())
         free_when: dict[bool, list[Agent]] = {}  # the free agents, whether units may queue or not
         for job in self._running():
             queueing = self._queueing(job, open_units)
             if queueing not in free_when:
-                free_when[queueing] = sorted((a for a in self._agents.values() if self._is_free(a, queueing)),
-                                             key=lambda a: (-a.score, a.name))
+                free_when[queueing] = self._free(queueing)
             free = free_when[queueing]
             callable_now = {a.name for a in free if a.invited is None}  # earlier jobs' rounds took some
             agents = [a for a in free if a.name in callable_now and a.name not in job.blocklist]
             out += self._extra_passes(job, agents)
             if not agents or not job.by_status.get(UnitStatus.PENDING):
                 continue
-            rates = self._rates(job)
-            pending, plan = job.largest_pending(), self._project(job, now, rates)
-            excluded = {u.spec.index: _excluded(u, rates.keys()) for u in pending}
-            offered, room = {}, {}
-            for agent in agents:
-                units = tuple(
-                    u.spec.index
-                    for u in pending
-                    if self._worth_offering(agent.name, u, excluded[u.spec.index], plan, rates, now, callable_now)
-                )
-                if units:
-                    offered[agent.name], room[agent.name] = units, self._room(agent, queueing, job)
+            offered, room = self._offers(job, agents, queueing, now)
             if not offered:
                 continue
-            # No agent is offered more units than the round calls agents or than it may win; one that may
-            # win a batch is offered the units projected to it first, so that the agents' batches differ.
-            offered = {name: _own_first(units, name, plan, room[name])[:min(self.config.max_cfp_units,
-                                                                            max(len(offered), room[name]))]
-                       for name, units in offered.items()}
             conv = self._new_id()
             held = frozenset(i for indices in offered.values() for i in indices)
             self._rounds[conv] = Round(conv, job.info.job_id, offered, held, now + self.config.cfp_timeout_s, room)
@@ -568,12 +697,52 @@ class Auction:
                 self._set_unit(job, job.units[index], UnitStatus.ANNOUNCED)
             for name, indices in offered.items():
                 self._agents[name].invited = conv
+                self._recheck(self._agents[name])
                 specs = tuple(job.units[i].spec for i in indices)
                 cfp = m.CallForProposal(
                     conversation=conv, job=job.info, units=specs, reply_within_s=self.config.cfp_timeout_s
                 )
                 out.append(SendToAgent(name, cfp))
         return out
+
+    def _offers(self, job: Job, agents: list[Agent], queueing: bool,
+                now: float) -> tuple[dict[str, tuple[int, ...]], dict[str, int]]:
+        """The pending units each of the free `agents` is called to bid on, and the units each may win: those
+        the projection places on it, and those placed first on another of them that it would finish about as
+        soon (`_worth_offering`). No agent is offered more units than the round calls agents or than it may
+        win; one that may win a batch is offered the units projected to it first, so that the agents'
+        batches differ. The placements are read most costly first, and only until no later one could change
+        the offers (`_Offers.settled`)."""
+        rates = self._rates(job)
+        room = {a.name: self._room(a, queueing, job) for a in agents}
+        fresh = {a.name for a in agents if self._available(a, now) <= now}
+        scan = _Offers(room, self.config.max_cfp_units, fresh, now)
+        look, check = self._look_ahead(job, now, rates, room.keys()), 2 * len(agents) + 32
+        while not scan.settled():
+            got = look.next_placed(check)  # on a free agent: the placements the offers read
+            if got is not None:
+                scan.placed(*got, self._bidders(*got, scan, rates, now))
+            elif look.finished or (not scan.fresh and look.places_none_on(scan.wanting)):
+                break  # the rest may never reach the agents still wanting
+            else:
+                check *= 2
+        offered = {name: tuple(units) for name, units in scan.worth.items() if units}
+        cap = {name: min(self.config.max_cfp_units, max(len(offered), room[name])) for name in offered}
+        return {name: _own_first(units, name, scan.plan, room[name])[:cap[name]]
+                for name, units in offered.items()}, {name: room[name] for name in offered}
+
+    def _bidders(self, unit: UnitState, place: Placement, scan: _Offers, rates: dict[str, float],
+                 now: float) -> list[str]:
+        """The free agents `unit`, placed at `place` on a free agent, is worth offering to: that agent; and
+        while it would start the unit now, any other that would finish it about as soon (records decide)."""
+        if unit.status != UnitStatus.PENDING:
+            return []
+        excluded = _excluded(unit, rates.keys())
+        names = [place.agent] if place.agent not in excluded else []
+        if place.start <= now:
+            names += [name for name in scan.worth if name != place.agent and name not in excluded
+                      and self._worth_offering(name, unit, place, rates, now)]
+        return names
 
     def projection(self, job_id: str, now: float) -> dict[int, Placement]:
         """Where the look-ahead would place each open (pending or announced) unit of the job at `now`."""
@@ -584,18 +753,17 @@ class Auction:
         """Seconds per unit of cost the projection assumes for `agent` on the job."""
         job = self._jobs[job_id]
         rates = self._rates(job)
-        return rates[agent] if agent in rates else self._prior_rate(self._agents[agent], job, rates)
+        return rates[agent] if agent in rates else self._prior_rate(self._agents[agent], self._typical(rates))
 
     def next_deadline(self) -> float | None:
         """The earliest auction time (`clock`) at which a Tick has something to do without a new stimulus."""
         times = [r.deadline for r in self._rounds.values()]
-        times += [a.last_seen + (self.config.forget_lost_s if a.lost else self.config.heartbeat_timeout_s)
-                  for a in self._agents.values()]
-        times += [a.silent_until for a in self._agents.values() if a.silent_until is not None]
-        for job in self._running():
-            times += [u.deadline for u in job.having(UnitStatus.AWARDED)]
-        finite = [t for t in times if math.isfinite(t)]
-        return min(finite) if finite else None
+        oldest = self._watch.oldest_beat(self._agents)  # + the timeout: the first live agent's
+        times += [] if oldest is None else [oldest + self.config.heartbeat_timeout_s]
+        times += [self._agents[n].last_seen + self.config.forget_lost_s for n in self._watch.lost]
+        times += [self._agents[n].silent_until for n in self._watch.silent]
+        times += [t for t in (job.next_due() for job in self._running()) if t is not None]
+        return min(filter(math.isfinite, times), default=None)
 
     def _pause(self, reason: str, free_bytes: int, now: float) -> list[Instruction]:
         if self._paused:
@@ -623,22 +791,38 @@ class Auction:
         return f"{self.rng.getrandbits(64):016x}"
 
     def _forget_lost(self, now: float) -> list[Instruction]:
-        stale = [a for a in self._agents.values()
-                 if a.lost and not a.holding and now - a.last_seen > self.config.forget_lost_s]
+        if not any(self._forgotten(self._agents[n], now) for n in self._watch.lost):
+            return []
+        stale = [a for a in self._agents.values() if self._forgotten(a, now)]
         for agent in stale:
             self.known_credits[agent.name] = agent.credits
             del self._agents[agent.name]
+            self._watch.lost.discard(agent.name)
+            self._watch.silent.discard(agent.name)
+            self._watch.callable.discard(agent.name)
         return [AgentForgotten(a.name) for a in stale]
+
+    def _forgotten(self, agent: Agent, now: float) -> bool:
+        return agent.lost and not agent.holding and now - agent.last_seen > self.config.forget_lost_s
 
     def _running(self) -> list[Job]:
         return sorted((j for j in self._jobs.values() if j.status == JobStatus.RUNNING), key=lambda j: j.order)
 
-    def _is_free(self, agent: Agent, queueing: bool) -> bool:
-        """Callable to an auction: live, not in one already, and holding nothing, or with a slot for another
-        unit while the farm has plenty of work (`queueing`, from `_queueing`, decided per job at each call)."""
-        if agent.lost or agent.invited is not None or agent.silent_until is not None:
-            return False
-        return not agent.holding or (len(agent.holding) < self._slots(agent) and queueing)
+    def _free(self, queueing: bool) -> list[Agent]:
+        """The agents callable to an auction, best record first (then by name): live, not in one already, not
+        silent, and holding nothing, or with a slot for another unit while the farm has plenty of work
+        (`queueing`, from `_queueing`, decided per job at each call)."""
+        free = [a for a in map(self._agents.__getitem__, self._watch.callable) if queueing or not a.holding]
+        return sorted(free, key=lambda a: (-a.score, a.name))
+
+    def _callable(self, agent: Agent) -> bool:
+        """Live, not in an auction already, not silent, and holding nothing or fewer units than its slots."""
+        return agent.invited is None and agent.silent_until is None and not agent.lost \
+            and (not agent.holding or len(agent.holding) < self._slots(agent))
+
+    def _recheck(self, agent: Agent) -> None:
+        """Keep `Watch.callable` after a change of what `_callable` reads of the agent."""
+        (self._watch.callable.add if self._callable(agent) else self._watch.callable.discard)(agent.name)
 
     def _room(self, agent: Agent, queueing: bool, job: Job) -> int:
         """Units a free agent may win in one round of `job`: a batch (`_batch`), within its free slots while
@@ -662,15 +846,22 @@ class Auction:
     def _queueing(self, job: Job, open_units: int) -> bool:
         """Whether units of `job` may be queued behind others: only while the farm's `open_units` are at
         least max(two of its batches, `queue_above`) per live agent (see `Config.queue_above`)."""
-        live = sum(not a.lost for a in self._agents.values())
+        live = len(self._agents) - len(self._watch.lost)
         return open_units >= max(2 * self._batch(job, self.config.slots), self.config.queue_above) * live
 
     def _seen(self, agent: Agent, now: float) -> list[Instruction]:
+        seen = agent.last_seen
         agent.last_seen = max(agent.last_seen, now)
         if agent.lost:
             # Back from an outage long enough to lose it: the calls it missed meanwhile are not held against it.
             agent.lost, agent.silences, agent.silent_until = False, 0, None
+            self._watch.lost.discard(agent.name)
+            self._watch.silent.discard(agent.name)
+            self._watch.beat(agent)
+            self._recheck(agent)
             return [AgentBack(agent.name)]
+        if agent.last_seen != seen:
+            self._watch.beat(agent)
         return []
 
     def _round_for(self, agent: str, conversation: str, job_id: str) -> tuple[Round | None, str]:
@@ -710,12 +901,13 @@ class Auction:
         for name in round_.offered:
             if name in self._agents and self._agents[name].invited == round_.conversation:
                 self._agents[name].invited = None
+                self._recheck(self._agents[name])
         out: list[Instruction] = self._silenced(round_, now)
         if job is None or job.status != JobStatus.RUNNING:
             return out
         wins: dict[str, list[UnitState]] = {}
         units = sorted((job.units[i] for i in round_.units), key=lambda u: (-u.spec.work, u.spec.index))
-        usable = self._rates(job).keys()
+        usable = self._rates(job).keys() if any(u.failed_on for u in units) else ()  # for `_excluded`
         for unit in units:
             if unit.status != UnitStatus.ANNOUNCED:
                 continue
@@ -726,7 +918,7 @@ class Auction:
             else:
                 wins.setdefault(winner, []).append(unit)
                 out += self._award(job, unit, winner, round_.bids[winner][unit.spec.index], now)
-        out = _batch_deadlines(out, wins)
+        out = _batch_deadlines(job, out, wins)
         for name in sorted(set(round_.bids) - set(wins)):
             if name in self._agents and round_.bids[name]:
                 reject = m.Reject(
@@ -747,6 +939,8 @@ class Auction:
             agent.silences += 1
             pause = min(self.config.silence_max_s, self.config.cfp_timeout_s * 2 ** (agent.silences - 1))
             agent.silent_until = now + pause
+            self._watch.silent.add(name)
+            self._recheck(agent)
             out.append(AgentSilent(name, pause))
         return out
 
@@ -755,16 +949,15 @@ class Auction:
     def _project(self, job: Job, now: float, rates: dict[str, float]) -> dict[int, Placement]:
         """The list schedule of the job's pending and announced units on `rates`' agents, refined in the end
         game."""
-        units = [ProjectedUnit(u.spec.index, u.spec.work, _excluded(u, rates.keys()))
-                 for u in job.having(UnitStatus.PENDING, UnitStatus.ANNOUNCED)]
-        agents = [PlanAgent(name, self._available(self._agents[name], now), rate) for name, rate in rates.items()]
-        plan = project(units, agents)
+        return {unit.spec.index: place for unit, place in self._look_ahead(job, now, rates)}
+
+    def _look_ahead(self, job: Job, now: float, rates: dict[str, float],
+                    watched: Collection[str] = ()) -> _LookAhead:
+        agents = [(name, self._available(self._agents[name], now), rate) for name, rate in rates.items()]
         # Refining pays in the end game, where the last units decide the makespan; earlier the next
-        # projection (at the next inform) corrects the list schedule anyway, and refining every tick of
-        # a 256-unit, 64-agent job cost ~60 ms of master CPU each time.
-        if not self.config.refine_moves or len(units) > self.config.refine_below * max(1, len(agents)):
-            return plan
-        return refine(plan, units, agents, self.config.refine_moves)
+        # projection (at the next inform) corrects the list schedule anyway.
+        end_game = job.open_count() <= self.config.refine_below * max(1, len(agents))
+        return _LookAhead(job, agents, rates.keys(), self.config.refine_moves if end_game else 0, watched)
 
     def _rates(self, job: Job) -> dict[str, float]:
         """Seconds per unit of cost of every live agent the job may use: learnt, or derived from speeds."""
@@ -777,18 +970,21 @@ class Auction:
             if job_id in a.rates or job_id in a.late_rates
         }
         rates = dict(known)
-        for a in live:
-            if a.name not in known:
-                rates[a.name] = self._prior_rate(a, job, known)
+        if len(known) < len(live):
+            typical = self._typical(known)
+            rates.update((a.name, self._prior_rate(a, typical)) for a in live if a.name not in known)
         return rates
 
-    def _prior_rate(self, agent: Agent, job: Job, known: dict[str, float]) -> float:
-        """Before it bids: its registered speed relative to agents whose rate is known (else 1 / speed)."""
-        speed = max(agent.speed, 1e-9)
-        if not known:
-            return round_rate(1.0 / speed)
-        # rate x speed is the job's cost in speed-seconds: alike for all agents if speeds are right.
-        return round_rate(statistics.median(r * self._agents[n].speed for n, r in known.items()) / speed)
+    def _typical(self, known: dict[str, float]) -> float | None:
+        """The job's cost in speed-seconds, rate x speed, alike for all agents if speeds are right: the median
+        over the `known` rates (None: none)."""
+        return statistics.median(r * self._agents[n].speed for n, r in known.items()) if known else None
+
+    @staticmethod
+    def _prior_rate(agent: Agent, typical: float | None) -> float:
+        """Before it bids: its registered speed relative to agents whose rate is known (`_typical`; else
+        1 / speed)."""
+        return round_rate((1.0 if typical is None else typical) / max(agent.speed, 1e-9))
 
     def _learn_rate(self, agent: Agent, job: Job, bids: dict[int, float]) -> None:
         """The agent's rate on the job from its bids: seconds over cost, summed (big units weigh most)."""
@@ -809,39 +1005,39 @@ class Auction:
         agent.rates[job_id] = round_rate(rate)
 
     def _available(self, agent: Agent, now: float) -> float:
-        """When the agent should be free: now, or when the units it holds should end (one after the other,
-        in award order). An agent past that time is assumed to need as long again as it has overrun (a late
-        agent looks ever later)."""
-        held = [self._jobs[j].units[i] for j, i in agent.holding if j in self._jobs and i in self._jobs[j].units]
-        if not held:
+        """When the agent should be free: now, or when the units it holds should end (`Agent.held_end`). An
+        agent past that time is assumed to need as long again as it has overrun (a late agent looks ever
+        later)."""
+        end = agent.held_end
+        if end == -math.inf:
             return now
+        return end if end >= now else 2 * now - end
+
+    def _hold(self, agent: Agent, key: tuple[str, int]) -> None:
+        """The agent holds the unit `key` (job, index), just awarded to it."""
+        agent.holding.add(key)
+        agent.held_end = self._held_end(agent)
+        self._recheck(agent)
+
+    def _release(self, agent: Agent, key: tuple[str, int]) -> None:
+        """The agent no longer holds the unit `key` (done, failed, taken back or cancelled)."""
+        agent.holding.discard(key)
+        agent.held_end = self._held_end(agent)
+        self._recheck(agent)
+
+    def _held_end(self, agent: Agent) -> float:
+        """When the units the agent holds should end, one after the other in award order (-inf: none)."""
+        held = [self._jobs[j].units[i] for j, i in agent.holding if j in self._jobs and i in self._jobs[j].units]
         end = -math.inf
         for unit in sorted(held, key=lambda u: u.awarded_at):
             end = max(end, unit.awarded_at) + unit.estimate
-        return end if end >= now else 2 * now - end
+        return end
 
-    def _worth_offering(
-        self,
-        name: str,
-        unit: UnitState,
-        excluded: frozenset[str],
-        plan: dict[int, Placement],
-        rates: dict[str, float],
-        now: float,
-        callable_now: set[str],
-    ) -> bool:
-        place = plan.get(unit.spec.index)
-        if place is None or name in excluded:
-            return False
-        if place.agent == name:
-            return True
-        # Contested among agents free now, when this one would finish about as soon (records decide).
+    def _worth_offering(self, name: str, unit: UnitState, place: Placement, rates: dict[str, float],
+                        now: float) -> bool:
+        """Whether free agent `name` would finish `unit`, placed first on another free agent, about as soon."""
         duration = rates[name] * unit.spec.work
-        return (
-            place.agent in callable_now
-            and place.start <= now
-            and duration <= (place.finish - now) * (1 + self.config.finish_tolerance) + 1e-9
-        )
+        return duration <= (place.finish - now) * (1 + self.config.finish_tolerance) + 1e-9
 
     def _pick(self, round_: Round, unit: UnitState, job: Job, full: set[str], now: float,
               excluded: frozenset[str]) -> str | None:
@@ -870,8 +1066,8 @@ class Auction:
         unit.attempts += 1
         start = self._available(self._agents[agent], now)  # after the units it holds already
         unit.awarded_at, unit.estimate = now, estimate
-        unit.deadline = start + estimate * self.config.render_factor + self.config.render_slack_s
-        self._agents[agent].holding.add((job.info.job_id, unit.spec.index))
+        job.set_deadline(unit, start + estimate * self.config.render_factor + self.config.render_slack_s)
+        self._hold(self._agents[agent], (job.info.job_id, unit.spec.index))
         url = self.config.upload_url.format(job=job.info.job_id, index=unit.spec.index)
         # The seed depends on the unit only, so a retried unit rendered alone renders the same samples as the
         # first try and as `quekaro render` of the same job (a batch draws from its first unit's seed).
@@ -890,8 +1086,13 @@ class Auction:
 
     # --- progressive jobs: passes as units (master.auction.passes) ---------------------------------------
 
-    def _open_passes(self, job: Job, goal: Goal, units: tuple[WorkUnit, ...]) -> list[Instruction]:
-        """A progressive job: its units become templates, and its first round of passes is auctioned."""
+    def _open_passes(self, job: Job, goal: Goal, units: tuple[WorkUnit, ...],
+                     resumed: ResumedPasses | None = None) -> list[Instruction]:
+        """A progressive job: its units become templates, and its first round of passes is auctioned. A job
+        `resumed` after a restart: its units are its passes so far, and its decisions go on from them."""
+        if resumed is not None:
+            job.passes = PassBook.open(goal, resumed.templates, self._now - resumed.elapsed)
+            return self._follow(job, job.passes.machine.resume(list(resumed.so_far), resumed.elapsed), "a round")
         job.clear()
         job.passes = PassBook.open(goal, units, self._now)
         return self._follow(job, job.passes.machine.start(), "a round")
@@ -934,7 +1135,7 @@ class Auction:
         out: list[Instruction] = [PassesSettled(job.info.job_id, finish.reason, dict(finish.units))]
         for unit in job.units.values():
             if unit.status == UnitStatus.AWARDED:
-                self._agents[unit.agent].holding.discard((job.info.job_id, unit.spec.index))
+                self._release(self._agents[unit.agent], (job.info.job_id, unit.spec.index))
                 cancel = m.Cancel(conversation=unit.conversation, job_id=job.info.job_id, index=unit.spec.index,
                                   reason="the job's passes reached its goal")
                 out.append(SendToAgent(unit.agent, cancel))
@@ -965,7 +1166,7 @@ class Auction:
         job = self._jobs[key[0]]
         unit = job.units[key[1]]
         if unit.agent in self._agents:
-            self._agents[unit.agent].holding.discard(key)
+            self._release(self._agents[unit.agent], key)
         record = UnitRequeued(key[0], key[1], unit.agent, unit.token, reason)
         self._clear_award(job, unit, UnitStatus.PENDING)
         return [record]
@@ -976,7 +1177,7 @@ class Auction:
         unit = job.units[key[1]]
         agent = unit.agent
         state = self._agents[agent]
-        state.holding.discard(key)
+        self._release(state, key)
         state.credits -= 1
         state.recent.append(False)
         unit.failures += 1
@@ -1019,7 +1220,7 @@ class Auction:
         job.error = reason
         for unit in job.units.values():
             if unit.status == UnitStatus.AWARDED:
-                self._agents[unit.agent].holding.discard((job.info.job_id, unit.spec.index))
+                self._release(self._agents[unit.agent], (job.info.job_id, unit.spec.index))
                 out.append(
                     SendToAgent(
                         unit.agent,
@@ -1080,6 +1281,20 @@ def _tile_refusal(job: Job, unit: WorkUnit, tile: TileStored) -> str:
         return f"{where} (adaptive): tile header says spp {said.spp}, first pass {said.first_spp}; the plan " \
                f"gives spp {unit.spp}, first pass {first}"
     return ""
+
+
+def _check_open(job: Job) -> None:
+    """The invariants of the job's indexes of open units (`Job.open_order`, `open_costs`, `open_failed`) and
+    of deadlines (`Job.due`)."""
+    opened = [u for u in job.units.values() if u.status in OPEN]
+    assert job.open_order == sorted((-u.spec.work, u.spec.index) for u in opened), \
+        f"job {job.info.job_id}: open_order is stale"
+    assert job.open_costs == [-c for c, _ in job.open_order], f"job {job.info.job_id}: open_costs is stale"
+    assert job.open_failed == {u.spec.index for u in opened if u.failed_on}, \
+        f"job {job.info.job_id}: open_failed is stale"
+    due = set(job.due)
+    assert all((u.deadline, u.spec.index, u.attempts) in due for u in job.having(UnitStatus.AWARDED)
+               if math.isfinite(u.deadline)), f"job {job.info.job_id}: a deadline missing from due"
 
 
 def _check_unit(auction: Auction, job: Job, unit: UnitState, rounds: int) -> None:

@@ -12,7 +12,17 @@ import dataclasses
 from dataclasses import dataclass
 
 from core.model.units import WorkUnit
-from planning.progressive import BUDGET, Goal, PassOrder, Progressive
+from planning.progressive import BUDGET, Goal, PassOrder, Progressive, UnitSoFar
+
+
+@dataclass(frozen=True)
+class ResumedPasses:
+    """A progressive job taken up again after a master restart: its units (`templates`, the plan's), what
+    each had of its passes (planning.progressive.UnitSoFar), and the seconds its passes had run."""
+
+    templates: tuple[WorkUnit, ...]
+    so_far: tuple[UnitSoFar, ...]
+    elapsed: float
 
 
 @dataclass

@@ -1,12 +1,16 @@
 """The auction's state: its settings, and what it knows of each job, unit, agent and open auction round.
 
 Plain records: only `master.auction.machine.Auction` changes them, each unit's status through the table of
-`core.model.status`, with the change kept in the unit's story.
+`core.model.status`, with the change kept in the unit's story. Beside them it keeps indexes, so that its
+ticks need not read every unit and agent: a job's units by status, its open units by cost and its awards by
+deadline (`Job`), and the agents its ticks watch (`Watch`); `Auction.validate` checks them against the
+records.
 """
 
 from __future__ import annotations
 
 import bisect
+import heapq
 import math
 from collections import Counter, deque
 from collections.abc import Mapping, Sequence
@@ -16,9 +20,11 @@ from typing import NamedTuple, Protocol
 from core.model import messages as m
 from core.model.status import JobStatus, UnitStatus
 from core.model.units import SLOTS, WorkUnit
-from master.auction.passes import PassBook
+from master.auction.passes import PassBook, ResumedPasses
+from planning.progressive import Goal
 
 STORY_LENGTH = 32  # changes of status kept per unit (the oldest are forgotten)
+OPEN = frozenset({UnitStatus.PENDING, UnitStatus.ANNOUNCED})  # a unit the auction has yet to award
 
 
 @dataclass(frozen=True)
@@ -86,6 +92,10 @@ class ResumedJob(Protocol):
     @property
     def delivered_by(self) -> Mapping[int, str]: ...  # done unit -> the agent whose tile made it done
     @property
+    def goal(self) -> Goal | None: ...  # a progressive job's
+    @property
+    def resumed(self) -> ResumedPasses | None: ...  # a progressive job's passes so far
+    @property
     def channels(self) -> Sequence[str] | None: ...  # what every tile of the job carries
 
 
@@ -135,6 +145,9 @@ class Agent:
     # Seconds per unit of cost, per job: from its latest bids, and from its last unit that overran.
     rates: dict[str, float] = field(default_factory=dict)
     late_rates: dict[str, float] = field(default_factory=dict)
+    # When the units it holds should end, one after the other in award order (-inf: none): kept by the
+    # auction as it awards and releases them (`Auction._hold`, `_release`).
+    held_end: float = -math.inf
 
     @property
     def score(self) -> int:
@@ -153,9 +166,15 @@ class Job:
     channels: tuple[str, ...] | None = None  # what every tile of the job carries (None: not checked)
     passes: PassBook | None = None  # a progressive job's decisions (its units are its passes)
     # Kept by `add` and `moved`, so that the auction's ticks need not read every unit: unit indices by
-    # status, and the pending units' (-cost, index), sorted (the most costly first).
+    # status; the open (pending or announced) units' (-cost, index), sorted (the most costly first), their
+    # costs in the same order, and those that failed before.
     by_status: dict[UnitStatus, set[int]] = field(default_factory=dict)
-    pending_order: list[tuple[float, int]] = field(default_factory=list)
+    open_order: list[tuple[float, int]] = field(default_factory=list)
+    open_costs: list[float] = field(default_factory=list)
+    open_failed: set[int] = field(default_factory=set)
+    # The awarded units' (deadline, index, attempts), a heap (`set_deadline`): entries of units since done,
+    # failed or awarded again are dropped when met.
+    due: list[tuple[float, int, int]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         for unit in self.units.values():
@@ -174,34 +193,105 @@ class Job:
         """No units (a progressive job's submitted units become templates of its passes)."""
         self.units.clear()
         self.by_status.clear()
-        self.pending_order.clear()
+        self.open_order.clear()
+        self.open_costs.clear()
+        self.open_failed.clear()
+        self.due.clear()
 
     def moved(self, index: int, start: UnitStatus, end: UnitStatus) -> None:
         """Unit `index` went from `start` to `end` (the machine's one place of status changes calls this)."""
-        self._unindex(index, start)
-        self._index(index, end)
+        self.by_status[start].discard(index)
+        self.by_status.setdefault(end, set()).add(index)
+        if (start in OPEN) != (end in OPEN):
+            (self._order if end in OPEN else self._unorder)(index)
 
-    def largest_pending(self, limit: int | None = None) -> list[UnitState]:
-        """The pending units, most costly first (ties: the lower index), at most `limit` of them."""
-        return [self.units[i] for _, i in self.pending_order[:limit]]
+    def open_count(self) -> int:
+        return len(self.open_order)
 
     def _index(self, index: int, status: UnitStatus) -> None:
         self.by_status.setdefault(status, set()).add(index)
-        if status == UnitStatus.PENDING:
-            bisect.insort(self.pending_order, self._order_key(index))
+        if status in OPEN:
+            self._order(index)
 
     def _unindex(self, index: int, status: UnitStatus) -> None:
         self.by_status[status].discard(index)
-        if status == UnitStatus.PENDING:
-            del self.pending_order[bisect.bisect_left(self.pending_order, self._order_key(index))]
+        if status in OPEN:
+            self._unorder(index)
+
+    def _order(self, index: int) -> None:
+        key = self._order_key(index)
+        at = bisect.bisect_left(self.open_order, key)
+        self.open_order.insert(at, key)
+        self.open_costs.insert(at, -key[0])
+        if self.units[index].failed_on:  # a unit fails while awarded: this holds while it is open
+            self.open_failed.add(index)
+
+    def _unorder(self, index: int) -> None:
+        at = bisect.bisect_left(self.open_order, self._order_key(index))
+        del self.open_order[at], self.open_costs[at]
+        self.open_failed.discard(index)
 
     def _order_key(self, index: int) -> tuple[float, int]:
         return -self.units[index].spec.work, index
+
+    def set_deadline(self, unit: UnitState, deadline: float) -> None:
+        """The render deadline of `unit`, awarded (`due` keeps it)."""
+        if math.isfinite(deadline):
+            heapq.heappush(self.due, (deadline, unit.spec.index, unit.attempts))
+        unit.deadline = deadline
+
+    def pop_late(self, now: float) -> list[UnitState]:
+        """The awarded units past their render deadline at `now`, by index. They leave `due`: the auction
+        fails them."""
+        late: dict[int, UnitState] = {}
+        while self.due and self.due[0][0] < now:
+            entry = heapq.heappop(self.due)
+            if self._current(entry):
+                late[entry[1]] = self.units[entry[1]]
+        return [late[i] for i in sorted(late)]
+
+    def next_due(self) -> float | None:
+        """The earliest render deadline of an awarded unit (None: none is finite)."""
+        while self.due and not self._current(self.due[0]):
+            heapq.heappop(self.due)
+        return self.due[0][0] if self.due else None
+
+    def _current(self, entry: tuple[float, int, int]) -> bool:
+        deadline, index, attempts = entry
+        unit = self.units.get(index)
+        return (unit is not None and unit.status == UnitStatus.AWARDED and unit.attempts == attempts
+                and unit.deadline == deadline)
 
     def having(self, *statuses: UnitStatus) -> list[UnitState]:
         """The units in any of `statuses`, by index."""
         indices = sorted(i for status in statuses for i in self.by_status.get(status, ()))
         return [self.units[i] for i in indices]
+
+
+@dataclass
+class Watch:
+    """What the auction's ticks need of its agents without reading every one: the lost ones, the silent ones
+    (`silent_until` set), those it may call to an auction (`Auction._callable`), and the live ones'
+    last_seen in a heap (`beat` at each change; entries of agents heard from again, lost or forgotten since
+    are dropped when met). The auction keeps it wherever those change; `Auction.validate` checks it."""
+
+    lost: set[str] = field(default_factory=set)
+    silent: set[str] = field(default_factory=set)
+    callable: set[str] = field(default_factory=set)
+    beats: list[tuple[float, str]] = field(default_factory=list)
+
+    def beat(self, agent: Agent) -> None:
+        heapq.heappush(self.beats, (agent.last_seen, agent.name))
+
+    def oldest_beat(self, agents: Mapping[str, Agent]) -> float | None:
+        """The earliest last_seen of a live agent (None: none is live)."""
+        while self.beats:
+            seen, name = self.beats[0]
+            agent = agents.get(name)
+            if agent is not None and not agent.lost and agent.last_seen == seen:
+                return seen
+            heapq.heappop(self.beats)
+        return None
 
 
 @dataclass

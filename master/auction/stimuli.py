@@ -13,6 +13,7 @@ from typing import Any
 
 from core.model import messages as m
 from core.model.units import WorkUnit
+from master.auction.passes import ResumedPasses
 from planning.progressive import Goal
 
 
@@ -34,6 +35,7 @@ class JobSubmitted(Stimulus):
     failures: tuple[tuple[int, str, str], ...] = ()
     delivered_by: Mapping[int, str] = field(default_factory=dict)
     goal: Goal | None = None  # a progressive job's: its units are templates, its passes are auctioned
+    resumed: ResumedPasses | None = None  # a progressive job after a restart: its units are its passes
 
 
 @dataclass(frozen=True)

@@ -56,11 +56,13 @@ function fmtNumber(v, digits = 3) {
 
 function eta(job) {
   if (job.status !== "running") return "";
-  if (job.eta_s === null || job.eta_s === undefined) return "after the first unit";
+  if (job.eta_s === null || job.eta_s === undefined) return job.passes ? "after the first pass" : "after the first unit";
   // The master sends a job again only when a row of it changes: the ETA counts down here in between
-  // (tickEtas), from when it arrived, except while the farm is paused.
-  const dataset = job.paused ? {} : { eta: String(job.eta_s), at: String(job.receivedAt || Date.now() / 1000) };
-  return el("span", { class: "eta", dataset }, fmtSeconds(job.eta_s));
+  // (tickEtas), from when it arrived, except while the farm is paused. A noise goal's ETA counts only the
+  // passes ordered so far: "at least".
+  const prefix = job.eta_at_least ? "at least " : "";
+  const dataset = job.paused ? {} : { eta: String(job.eta_s), at: String(job.receivedAt || Date.now() / 1000), prefix };
+  return el("span", { class: "eta", dataset }, prefix + fmtSeconds(job.eta_s));
 }
 
 function elapsed(job) {
@@ -73,7 +75,7 @@ function elapsed(job) {
 function tickEtas() {
   const now = Date.now() / 1000;
   for (const span of document.querySelectorAll("span.eta[data-eta]")) {
-    span.textContent = fmtSeconds(Math.max(0, Number(span.dataset.eta) - (now - Number(span.dataset.at))));
+    span.textContent = (span.dataset.prefix || "") + fmtSeconds(Math.max(0, Number(span.dataset.eta) - (now - Number(span.dataset.at))));
   }
   for (const span of document.querySelectorAll("span.elapsed[data-elapsed]")) {
     span.textContent = fmtSeconds(Number(span.dataset.elapsed) + Math.max(0, now - Number(span.dataset.at)));
@@ -187,13 +189,22 @@ function render() {
 // ---- jobs ---------------------------------------------------------------------------------------------
 
 // A unit is "failed" in the store only when its job ended without it (cancelled or failed): it was left
-// unrendered, not broken (a unit whose render fails is retried elsewhere).
+// unrendered, not broken (a unit whose render fails is retried elsewhere). A progressive job counts its
+// image's units (done: their goal met) and shows its passes apart, their share of the bar in a lighter
+// colour (a noise or time goal meets its units only at the job's end).
 function progressBar(job) {
   const total = job.units_total || 0;
   const share = total ? (100 * job.units_done) / total : 0;
-  return el("div", {},
-    el("div", { class: "bar" }, el("span", { style: `width: ${share.toFixed(1)}%` })),
-    el("span", { class: "bar-text" }, `${job.units_done}/${total} units` + (job.units_failed ? `, ${job.units_failed} left unrendered` : "")));
+  const passes = job.passes;
+  const passShare = passes && passes.ordered ? (100 * passes.done) / passes.ordered : 0;
+  const left = passes ? "left short of their goal" : "left unrendered";
+  return el("div", { class: "progress", dataset: passes ? { passesDone: String(passes.done), passesOrdered: String(passes.ordered) } : {} },
+    el("div", { class: "bar" },
+      passes ? el("span", { class: "bar-passes", style: `width: ${passShare.toFixed(1)}%` }) : null,
+      el("span", { class: "bar-units", style: `width: ${share.toFixed(1)}%` })),
+    el("span", { class: "bar-text" }, `${job.units_done}/${total} units`
+      + (passes ? `, ${passes.done}/${passes.ordered} passes, ${String(passes.spp_mean)} spp` : "")
+      + (job.units_failed ? `, ${job.units_failed} ${left}` : "")));
 }
 
 function effectsCell(effects) {
@@ -289,6 +300,7 @@ function renderJob() {
   view.dataset.status = job.status;
   view.dataset.unitsDone = job.units_done;
   view.dataset.unitsTotal = job.units_total;
+  view.dataset.passesDone = job.passes ? job.passes.done : "";
   document.getElementById("job-title").textContent = `Job ${job.job_id}: ${job.scene}`;
   const item = (label, value) => el("div", {}, el("b", {}, label), value);
   fill(document.getElementById("job-summary"),
