@@ -80,8 +80,9 @@ def merged_units(results: Iterable[Any], units: int, verdicts: dict[int, str]
 
 def passes_so_far(sums: dict[int, UnitPasses], rows: Sequence[WorkUnit], done: set[int], units: int
                   ) -> tuple[UnitSoFar, ...]:
-    """Each unit's passes as a restarted master finds them: merged (`sums`, their samples as ordered from
-    the store's `rows` of the `done` passes), still out (the other rows), and the next pass index."""
+    """Each unit's passes as a restarted master finds them: merged (`sums`: none for a budget job, which
+    only counts them), their samples as ordered (the store's `rows` of the `done` passes), still out (the
+    other rows), and the next pass index."""
     credited, out, next_pass = [0] * units, [dict() for _ in range(units)], [0] * units
     for row in rows:
         unit, pass_index = au.pass_origin(row.index, units)
@@ -91,7 +92,8 @@ def passes_so_far(sums: dict[int, UnitPasses], rows: Sequence[WorkUnit], done: s
         else:
             out[unit][pass_index] = row.spp or 0
     return tuple(UnitSoFar(s.spp, credited[u], s.passes, s.seconds, s.relmse(), out[u], next_pass[u])
-                 if (s := sums.get(u)) is not None else UnitSoFar(out=out[u], next_pass=next_pass[u])
+                 if (s := sums.get(u)) is not None else
+                 UnitSoFar(credited=credited[u], out=out[u], next_pass=next_pass[u])
                  for u in range(units))
 
 

@@ -66,7 +66,7 @@ from master.store import JobRecord, JobStore, RunningJob
 from master.web import add_web_routes
 from planning.jobplan import Floors, farm_min_units, plan_job, scene_spp
 from planning.pipeline import AOV_PASS_FILE, assemble, kept_aov_pass
-from planning.progressive import Goal
+from planning.progressive import BUDGET, Goal
 
 log = logging.getLogger(__name__)
 
@@ -206,14 +206,17 @@ class MasterService:
         if not record.spec.options.in_passes:
             return job
         plan = self.job_plan(record)
-        sums = self._merger.restore(job.job_id, len(plan.units), self.store.results(job.job_id))
+        goal = Goal.of(plan.options, plan.spp)
+        # A budget job's passes are counted, never merged (PassBook.merges): its tiles are not read here.
+        sums = {} if goal.kind == BUDGET else self._merger.restore(job.job_id, len(plan.units),
+                                                                     self.store.results(job.job_id))
         so_far = passes_so_far(sums, job.units, set(job.done), len(plan.units))
         attempts = self.store.attempts(job.job_id)  # the time its passes ran: from the first award to the last tile
         ended = [a.finished for a in attempts if a.outcome == "done" and a.finished is not None]
         elapsed = max(ended) - min(a.started for a in attempts) if ended else 0.0
         resumed = au.ResumedPasses(tuple(plan.units), so_far, max(0.0, elapsed))
         return dataclasses.replace(job, channels=_tile_channels(plan),
-                                   goal=Goal.of(plan.options, plan.spp), resumed=resumed)
+                                   goal=goal, resumed=resumed)
 
     def _repair_store(self, now: float) -> None:
         """Units done in the store without their tile on disk go back to auction (jobs not yet assembled)."""
