@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from core.errors import QuekaroError, SceneError
+from core.model.frames import FRAME_MAX, SEQUENCE_ID, FrameRange
 from core.model.geometry import DEFAULT_FILTER_RADIUS, filter_reach
 from core.model.integrators import CATALOGUE
 from core.model.levels import LEVELS, OFF, RULE_LEVELS
@@ -227,13 +228,37 @@ JOB_HEADER_MAX = 8000  # bytes of a submitted job's -D parameters and options (a
 
 @dataclass(frozen=True)
 class JobSpec:
-    """What a user submits beside a scene bundle: the scene's -D parameters and the options."""
+    """What a user submits beside a scene bundle: the scene's -D parameters, the options, a label (`name`), and
+    for a frame sequence either the range the master expands (`frames`) or, on each of its jobs, the sequence
+    it belongs to and its frame number (`sequence`, `frame`)."""
 
     defines: dict[str, str] = field(default_factory=dict)
     options: RenderOptions = field(default_factory=RenderOptions)
+    name: str | None = None
+    frames: FrameRange | None = None
+    sequence: str | None = None
+    frame: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.name is not None and (not isinstance(self.name, str) or not _NAME.fullmatch(self.name)):
+            raise QuekaroError(f"--name {str(self.name)[:40]!r}: 1 to {NAME_MAX} printable characters")
+        if self.sequence is not None and (not isinstance(self.sequence, str)
+                                          or not SEQUENCE_ID.fullmatch(self.sequence)):
+            raise QuekaroError(f"job field sequence {str(self.sequence)[:40]!r}: expected seq- and 8-32 hex digits")
+        if (self.sequence is None) != (self.frame is None):
+            raise QuekaroError("job fields sequence and frame: a frame of a sequence gives both")
+        if self.frame is not None and (type(self.frame) is not int or not 0 <= self.frame <= FRAME_MAX):
+            raise QuekaroError(f"job field frame {self.frame!r}: not a whole number in 0..{FRAME_MAX}")
+        if self.frames is not None and self.sequence is not None:
+            raise QuekaroError("job fields frames and sequence: a range is expanded into frames, not one of them")
+        if self.frames is not None and self.frames.define in self.defines:
+            raise QuekaroError(f"-D {self.frames.define}: given both as a frame range and as a value")
 
     def to_dict(self) -> dict[str, Any]:
-        return {"defines": dict(self.defines), "options": self.options.to_dict()}
+        extra = {"name": self.name, "frames": self.frames.to_dict() if self.frames else None,
+                 "sequence": self.sequence, "frame": self.frame}
+        return {"defines": dict(self.defines), "options": self.options.to_dict(),
+                **{k: v for k, v in extra.items() if v is not None}}
 
     def header(self) -> str:
         """The job as its submission's header carries it (JSON); a QuekaroError naming -D where it is longer
@@ -248,19 +273,33 @@ class JobSpec:
                                "file or a file it includes")
         return text
 
+    def frame_job(self, sequence: str, frame: int) -> JobSpec:
+        """One frame of this range's sequence: its parameter set to the frame's number."""
+        assert self.frames is not None
+        return JobSpec({**self.defines, self.frames.define: str(frame)}, self.options, self.name, None, sequence,
+                       frame)
+
     @classmethod
     def from_dict(cls, data: Any) -> JobSpec:
         """Strict: unknown keys, and parameters that are not name -> text, are refused naming them."""
         if not isinstance(data, dict):
             raise QuekaroError(f"a job must be a JSON object, got {type(data).__name__}")
-        unknown = sorted(set(data) - {"defines", "options"})
+        unknown = sorted(set(data) - set(_SPEC_FIELDS))
         if unknown:
-            raise QuekaroError(f"job field {unknown[0][:40]!r} is not known (known: defines, options)")
+            raise QuekaroError(f"job field {unknown[0][:40]!r} is not known (known: {', '.join(_SPEC_FIELDS)})")
         defines = data.get("defines", {})
         if not isinstance(defines, dict) or not all(isinstance(k, str) and isinstance(v, str)
                                                     for k, v in defines.items()):
             raise QuekaroError("job field defines: expected an object of name -> text (-D name=value)")
-        return cls(dict(defines), RenderOptions.from_dict(data.get("options", {})))
+        frames = data.get("frames")
+        return cls(dict(defines), RenderOptions.from_dict(data.get("options", {})), data.get("name"),
+                   None if frames is None else FrameRange.from_dict(frames), data.get("sequence"),
+                   data.get("frame"))
+
+
+_SPEC_FIELDS = ("defines", "options", "name", "frames", "sequence", "frame")
+NAME_MAX = 80
+_NAME = re.compile(rf"[^\x00-\x1f\x7f]{{1,{NAME_MAX}}}")
 
 
 RGB = ("R", "G", "B")
