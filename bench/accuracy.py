@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
-from PIL import Image
 
+from bench.images import write_difference, write_plot
 from bench.provenance import rules_digest, rules_for
 from bench.suite import SUITE, SuiteScene, scene_from_argument
 from core.errors import QuekaroError
@@ -65,7 +65,6 @@ DEFAULT_AGENTS = "1,2"  # a farm of one agent and of two, side by side
 S_TIME_RATIO, S_DIFF_PERCENT, RELMSE_RATIO = 0.75, 1.21, 0.8  # the targets (issue 15)
 AS_WRITTEN = Asked()  # jobs compute what the scene file says
 DIFF_WHITE = 0.10  # a display difference of 10 % is white in the grey difference images
-READER_SIDE = 256  # the difference images' longest side at most, in pixels: a reader's size, not the render's
 RELMSE_DENOISED, FLIP_DENOISED = 0.2, 0.5  # the denoised targets over raw uniform, equal wall time (issue 64)
 
 
@@ -102,6 +101,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="time the whole `quekaro render` process instead of a farm (smallest agent count)")
     parser.add_argument("--adaptive", action="store_true",
                         help="the optimised levels as adaptive jobs (`--adaptive`), through the farm or in one process")
+    parser.add_argument("--progressive", action="store_true",
+                        help="every level's jobs in passes (`--progressive`: each unit's own samples, level off's "
+                             "the user's), through the farm or in one process")
     parser.add_argument("--rules", type=Path, default=None,
                         help="rule file for the rule levels (default: rules/pathtracing.xml): a retune tried on "
                              "the suite; the output names it and its rules' digest")
@@ -157,6 +159,7 @@ def parse_grid(args: argparse.Namespace) -> tuple[list[SuiteScene], list[int], l
     if args.runs < 1:
         raise QuekaroError(f"--runs {args.runs}: at least one timed run per cell")
     check_denoise(args)
+    check_progressive(args)
     search_paths(args)
     RenderOptions(depth=args.depth, integrator=args.integrator, sensor=args.sensor)  # refuses what a job would
     if args.inprocess and agents != [1]:
@@ -173,6 +176,19 @@ def check_denoise(args: argparse.Namespace) -> None:
         raise QuekaroError(f"--bias-spp {args.bias_spp}: the denoiser's bias is measured with --denoise only")
     if args.bias_spp < 1:
         raise QuekaroError(f"--bias-spp {args.bias_spp}: at least one sample per pixel")
+
+
+def check_progressive(args: argparse.Namespace) -> None:
+    """--progressive renders every cell in passes: not with --adaptive (a job in passes places its samples by
+    its own noise, RenderOptions refuses both) nor --denoise (its cells would be denoised jobs in passes,
+    which this run would not tell apart from whole ones)."""
+    if not args.progressive:
+        return
+    other = "--adaptive" if args.adaptive else "--denoise" if args.denoise else None
+    if other:
+        raise QuekaroError(f"--progressive with {other}: run them apart (a job in passes "
+                           + ("places its samples by its own measured noise)" if other == "--adaptive"
+                              else "is compared raw, against raw plain Mitsuba)"))
 
 
 def bias_spp(args: argparse.Namespace) -> int:
@@ -259,12 +275,12 @@ def _self_cpu() -> float:
 
 
 @contextmanager
-def farm_runner(agents: int, threads: int, home: Path, units: int | None = None,
-                adaptive: bool = False, asked: Asked = AS_WRITTEN, rules: Path | None = None) -> Iterator[Any]:
+def farm_runner(agents: int, threads: int, home: Path, units: int | None = None, adaptive: bool = False,
+                asked: Asked = AS_WRITTEN, rules: Path | None = None, progressive: bool = False) -> Iterator[Any]:
     """A function (spec, level, spp, out, denoise=False) -> (report, wall s, CPU s) running jobs on a real
     local farm, timed from submit to done (`adaptive`: the optimised levels as adaptive jobs; `asked`: the
     sensor, integrator and depth; `rules`: the rule levels' rule file, carried in each job's bundle as
-    `quekaro submit --rules` does; `denoise`: a denoised job)."""
+    `quekaro submit --rules` does; `denoise`: a denoised job; `progressive`: every job in passes)."""
 
     with LocalFarm(home, agents=agents, threads=max(1, threads // agents)) as farm:
         farm.wait_for_agents()
@@ -279,6 +295,7 @@ def farm_runner(agents: int, threads: int, home: Path, units: int | None = None,
             options |= {"units": units} if units and level != "off" else {}
             options |= {"adaptive": True} if adaptive and level != "off" else {}
             options |= {"denoise": True} if denoise else {}
+            options |= {"progressive": True} if progressive else {}
             job_id = client.submit(bundle, spec.defines, options)
             status = client.wait(job_id, JOB_TIMEOUT_S, while_waiting=farm.check_alive)
             wall = time.perf_counter() - start
@@ -293,7 +310,7 @@ def farm_runner(agents: int, threads: int, home: Path, units: int | None = None,
 
 @contextmanager
 def inprocess_runner(threads: int, units: int | None = None, adaptive: bool = False,
-                     asked: Asked = AS_WRITTEN, rules: Path | None = None) -> Iterator[Any]:
+                     asked: Asked = AS_WRITTEN, rules: Path | None = None, progressive: bool = False) -> Iterator[Any]:
     """The same function as `farm_runner`, timing the whole `quekaro render` process a user runs."""
 
     def run_job(spec: Any, level: str, spp: int, out: Path, denoise: bool = False) -> tuple[dict, float, float]:
@@ -301,6 +318,7 @@ def inprocess_runner(threads: int, units: int | None = None, adaptive: bool = Fa
         chosen += ["--adaptive"] if adaptive and level != "off" else []
         chosen += ["--rules", str(rules)] if rules is not None and level != "off" else []
         chosen += ["--denoise"] if denoise else []
+        chosen += ["--progressive"] if progressive else []
         chosen += [*asked.args(), *(arg for folder in spec.search_paths for arg in ("-a", str(folder)))]
         cmd = [sys.executable, "-m", "quekaro", "render", str(spec.path), "--opt", level, "--spp", str(spp),
                "-t", str(threads), "-o", str(out), *chosen, *(f"-D{k}={v}" for k, v in spec.defines.items())]
@@ -315,7 +333,8 @@ def inprocess_runner(threads: int, units: int | None = None, adaptive: bool = Fa
 
 
 def spent(report: dict[str, Any]) -> dict[str, Any]:
-    """How the rules spent samples: pixel-weighted mean spp, spp and depth ranges, unit count."""
+    """How the rules spent samples: pixel-weighted mean spp, spp and depth ranges, unit count, and for a job
+    in passes the passes of all its units."""
     units = report["units"]
     area = np.array([u["rect"][2] * u["rect"][3] for u in units], dtype=float)
     spp = np.array([u["spp"] for u in units], dtype=float)
@@ -325,6 +344,7 @@ def spent(report: dict[str, Any]) -> dict[str, Any]:
         "spp_min": int(spp.min()), "spp_max": int(spp.max()), "depth_min": int(depth.min()),
         "depth_max": int(depth.max()), "render_seconds": float(report["totals"]["render_seconds"]),
         "prepass_seconds": float(report["totals"].get("prepass_seconds", 0.0)),
+        **({"passes": sum(int(u["passes"]) for u in units)} if all("passes" in u for u in units) else {}),
     }
 
 
@@ -396,8 +416,8 @@ def label(cell: dict[str, Any]) -> str:
 def runner(n: int, args: argparse.Namespace, home: Path) -> Any:
     """The job runner of this run: one process (--inprocess) or a farm of n agents at `home`."""
     if args.inprocess:
-        return inprocess_runner(args.threads, args.units, args.adaptive, asked(args), args.rules)
-    return farm_runner(n, args.threads, home, args.units, args.adaptive, asked(args), args.rules)
+        return inprocess_runner(args.threads, args.units, args.adaptive, asked(args), args.rules, args.progressive)
+    return farm_runner(n, args.threads, home, args.units, args.adaptive, asked(args), args.rules, args.progressive)
 
 
 def run_cell(run_job: Callable, spec: SceneSpec, level: str, args: argparse.Namespace, stem: Path,
@@ -425,7 +445,8 @@ def run_cell(run_job: Callable, spec: SceneSpec, level: str, args: argparse.Name
     rects = [Rect.from_list(u["rect"]) for u in report["units"]]
     seams = seam_measure(images[-1], ref, rects)
     account = denoise_account([rep for rep, _, _ in timed], raws, ref) if denoise else {}
-    return {"level": level, "denoise": denoise, "variant": report["effects"]["variant"],
+    passes = {"progressive": True} if args.progressive else {}  # a run's cells without the key were whole
+    return {"level": level, "denoise": denoise, **passes, "variant": report["effects"]["variant"],
             "seconds": float(np.median([wall for _, wall, _ in timed])),
             "cpu_seconds": float(np.median([cpu for _, _, cpu in timed])),
             "seconds_runs": [wall for _, wall, _ in timed], **first, **mean_metrics(images, ref), **used[-1],
@@ -552,29 +573,10 @@ def denoiser_bias(spec: SceneSpec, args: argparse.Namespace, ref: np.ndarray,
 
 
 def write_diff_images(name: str, diffs: dict[str, np.ndarray], out: Path) -> None:
-    """Grey difference images against the reference, one per cell label (white = DIFF_WHITE or more), as
-    8-bit greyscale PNGs (Pillow, a quarter of the size of matplotlib's RGBA ones) at a reader's size
-    (`reader_sized`); a label's "+" is "-" in the file name (cbox-S-denoise.png)."""
-    folder = out / "accuracy-diff"
-    folder.mkdir(parents=True, exist_ok=True)
+    """Grey difference images against the reference, one per cell label (white = DIFF_WHITE or more), at a
+    reader's size (bench.images); a label's "+" is "-" in the file name (cbox-S-denoise.png)."""
     for key, diff in diffs.items():
-        grey = grey_levels(reader_sized(diff) / DIFF_WHITE)
-        Image.fromarray(grey, mode="L").save(folder / f"{name}-{key.replace('+', '-')}.png", optimize=True)
-
-
-def reader_sized(diff: np.ndarray) -> np.ndarray:
-    """The (H, W) difference image with its longest side at most READER_SIDE, each pixel the mean of the
-    ones it covers (Pillow's box resampling: the mean difference is kept)."""
-    scale = READER_SIDE / max(diff.shape)
-    if scale >= 1:
-        return diff
-    size = (max(1, round(diff.shape[1] * scale)), max(1, round(diff.shape[0] * scale)))
-    return np.asarray(Image.fromarray(diff.astype(np.float32)).resize(size, Image.Resampling.BOX))
-
-
-def grey_levels(value: np.ndarray) -> np.ndarray:
-    """Values in [0, 1] (clipped) as 8-bit grey levels: 256 equal bins, the last one closed (1.0 is 255)."""
-    return np.minimum(np.clip(value, 0.0, 1.0) * 256, 255).astype(np.uint8)
+        write_difference(out / "accuracy-diff" / f"{name}-{key.replace('+', '-')}.png", diff / DIFF_WHITE)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -635,16 +637,17 @@ def run_settings(args: argparse.Namespace, agents: list[int], levels: list[str])
             **asked(args).options(),  # only what differs from the scene as written: older partial runs still match
             **({"rules_digest": rules_digest(args.rules)} if args.rules is not None else {}),
             **({"search_paths": [str(p) for p in args.search_paths]} if args.search_paths else {}),
-            **({"denoise": True, "bias_spp": bias_spp(args)} if args.denoise else {})}  # raw runs match as before
+            **({"denoise": True, "bias_spp": bias_spp(args)} if args.denoise else {}),  # raw runs match as before
+            **({"progressive": True} if args.progressive else {})}
 
 
 def mode(args: argparse.Namespace, digest: str | None = None) -> str:
     """How the jobs ran: through a farm or in one process, whether the optimised levels were adaptive, with
     which rule file (`digest`, what its rules compute: bench.provenance.rules_digest) when not the default,
-    and whether denoised cells were added (--denoise)."""
+    whether denoised cells were added (--denoise), and whether every job ran in passes (--progressive)."""
     rules = f", rules {_shown(args.rules)} (digest {digest[:12]})" if digest else ""
     return (("inprocess" if args.inprocess else "farm") + (", adaptive" if args.adaptive else "") + rules
-            + (", denoise" if args.denoise else ""))
+            + (", denoise" if args.denoise else "") + (", progressive" if args.progressive else ""))
 
 
 def write_partial(settings: dict[str, Any], cells: list[dict[str, Any]], out: Path) -> None:
@@ -899,8 +902,9 @@ def plot(every: list[dict[str, Any]], path: Path) -> None:
         first = min(c["agents"] for c in mine)
         for i, n in enumerate(sorted({c["agents"] for c in mine})):
             sel = sorted((c for c in mine if c["agents"] == n), key=lambda c: c["seconds"])
+            how = "in passes" if sel[0].get("progressive") else "whole units"
             ax.plot([c["seconds"] for c in sel], [c["relmse"] for c in sel], "o", color=f"C{i}",
-                    label=f"fuzzy, {n} agent(s), wall")
+                    label=f"fuzzy, {how}, {n} agent(s), wall")
             for c in sel:
                 ax.annotate(c["level"], (c["seconds"], c["relmse"]), fontsize=7)
             if n == first:
@@ -921,7 +925,7 @@ def plot(every: list[dict[str, Any]], path: Path) -> None:
         if k == 0:
             ax.legend(fontsize=6)
     fig.tight_layout()
-    fig.savefig(path)
+    write_plot(path, fig)
 
 
 def plot_denoised(ax: Any, cells: list[dict[str, Any]]) -> None:

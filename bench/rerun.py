@@ -1,8 +1,8 @@
-"""`make bench` (python -m bench.rerun): write README.md's figure files again, each with the command that
-wrote it (its provenance), in the README's order, then rewrite the README's blocks from them. By default
-only the stale ones (planned with a rule file other than the shipped one); `--all` every one; REPORT
-arguments only those (stale or not); `--dry-run` prints the commands. Run it alone on the machine: the
-figures are timings."""
+"""`make bench` (python -m bench.rerun): write the benchmark summary's figure files again (docs/benchmarks/
+README.md), each with the command that wrote it (its provenance), in the summary's order, then rewrite the
+summary's blocks from them. By default only the stale ones (planned with a rule file other than the shipped
+one); `--all` every one; REPORT arguments only those (stale or not); `--dry-run` prints the commands. Run it
+alone on the machine: the figures are timings."""
 
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.rerun", description=__doc__.split("\n\n")[0])
     parser.add_argument("--all", action="store_true", help="every included report, not only the stale ones")
     parser.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
-    parser.add_argument("--readme", type=Path, default=REPO / "README.md", help=argparse.SUPPRESS)
+    parser.add_argument("--readme", type=Path, default=docs.SUMMARY, help=argparse.SUPPRESS)
     parser.add_argument("reports", nargs="*", type=Path, metavar="REPORT",
                         help="report files to write again (default: the README's stale ones)")
     args = parser.parse_args(argv)
@@ -58,7 +58,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.dry_run:
             continue
         started = time.perf_counter()
-        done = subprocess.run([sys.executable, "-m", "quekaro", "bench", *bench_argv], cwd=args.readme.parent)
+        # From the repository's root, where the commands ran (their scene and --out paths are relative to it).
+        done = subprocess.run([sys.executable, "-m", "quekaro", "bench", *bench_argv], cwd=REPO)
         if done.returncode != 0:  # what was written before stays; this report and the rest are left as they were
             print(f"bench.rerun: {report} not written again (exit status {done.returncode})", file=sys.stderr)
             return done.returncode

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
+from bench.images import write_plot
 from bench.simulate import simulate
 from core.errors import QuekaroError
 from core.model import integrators
@@ -62,7 +63,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeats", type=int, default=3, help="simulations (seeds) averaged per cell")
     parser.add_argument("--cell", type=int, default=32, help="side of the grid cells timed for real")
     parser.add_argument("--measure-spp", type=int, default=64, help="spp of the real cell renders")
-    # 2 ms one way: design.md section 4 measured a 1.8 ms round trip through SPADE's server (pessimistic).
+    # 2 ms one way: docs/design.md section 4 measured a 1.8 ms round trip through SPADE's server (pessimistic).
     parser.add_argument("--latency", type=float, default=0.002, help="one-way message latency, seconds")
     parser.add_argument("--delivery", type=float, default=DELIVERY_S,
                         help="seconds from a unit's render end to its inform (tile written, hashed, uploaded)")
@@ -86,7 +87,7 @@ class TimeMap:
 
     def unit_seconds(self, rect: Rect, spp: int, band: int = BAND) -> float:
         """fixed_s + spp x the time map summed over the unit's window, on an agent of speed 1. Render time
-        is linear in spp (design.md section 3), so the job's spp need not be rendered to measure it."""
+        is linear in spp (docs/design.md section 3), so the job's spp need not be rendered to measure it."""
         h, w = self.per_sample.shape
         window = rect.window(band, w, h)
         return self.fixed_s + spp * float(self.per_sample[window.slices()].sum())
@@ -398,4 +399,4 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=6.5, loc="lower left")
     fig.tight_layout()
-    fig.savefig(path)
+    write_plot(path, fig)

@@ -126,7 +126,7 @@ MAX_TIMING_SPP = 1 << 14
 
 def spp_timing(spec: Any, spp: int, threads: int, variant: str, asked: Asked = Asked()) -> tuple[float, float]:
     """(t0, k) of t(spp) = t0 + k spp for the plain Mitsuba process, from the faster of two runs at two spp.
-    Render time is linear in spp (design.md section 3), so the spp for a given time follows from the line."""
+    Render time is linear in spp (docs/design.md section 3), so the spp for a given time follows from the line."""
     size = ", ".join(f"{k}={v}" for k, v in spec.defines.items())
     return fit_spp_line(lambda n: min(plain_render(spec, n, threads, variant, seed=s, asked=asked)[1] for s in (1, 2)),
                         spp, what=f"{spec.path.name} ({size})")

@@ -227,7 +227,7 @@ def _moment_pass(scene: Any, integrator: str, max_depth: int, spp: int, seed: in
                  sensor: int = 0) -> tuple[np.ndarray, ...]:
     """Per-pixel per-sample variance (mean over RGB, non-finite -> the largest finite value) and mean, from
     Mitsuba's `moment` integrator wrapping the render's own (0.99 correlation with the error at fixed spp,
-    design.md section 3).
+    docs/design.md section 3).
     It is what makes caustic-lit diffuse surfaces complex while plain glass is not; the mean lets the noise
     be taken relative to the brightness (ComplexityMap.relative_noise), as relMSE weighs a pixel's error."""
     import mitsuba as mi
@@ -268,7 +268,7 @@ def _ray_count_pass(scene: Any, w: int, h: int, max_depth: int, spp: int, seed: 
 
     The tracer follows the BSDF sampling and Russian roulette of Mitsuba's `path` integrator but shades
     nothing. Ray count is what a path tracer's time is made of (rank correlation 0.90 with true time,
-    design.md section 3); unlike per-tile timing it needs no crop (each new crop compiles a kernel, ~0.1 s)
+    docs/design.md section 3); unlike per-tile timing it needs no crop (each new crop compiles a kernel, ~0.1 s)
     and it is per pixel. A pixel that hits nothing costs one ray; glass costs only the bounces it adds."""
     import drjit as dr
     import mitsuba as mi

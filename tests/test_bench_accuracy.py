@@ -11,7 +11,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 from PIL import Image
 
@@ -294,11 +293,6 @@ def test_tree_cpu_seconds_counts_a_busy_child():
         os.waitpid(pid, 0)
 
 
-def test_grey_levels_bin_the_difference_and_clip_it():
-    levels = bench_accuracy.grey_levels(np.array([-1.0, 0.0, 1 / 256 - 1e-9, 1 / 256, 0.5, 255 / 256, 1.0, 7.0]))
-    assert levels.dtype == np.uint8 and levels.tolist() == [0, 0, 0, 1, 128, 255, 255, 255]
-
-
 def test_the_render_time_baseline_matches_render_seconds_by_the_slope_alone():
     """A job's render seconds hold no process start, load or writing: the uniform spp at equal render time
     is render seconds / k, not (render seconds - t0) / k, which gave plain Mitsuba about half its samples
@@ -431,11 +425,19 @@ def test_denoise_targets_are_medians_over_scenes_of_ratios_to_raw_uniform():
     assert s_relmse["value"] is None and bench_accuracy.denoise_target_line(s_relmse).endswith("not measured")
 
 
-def test_difference_images_are_written_at_a_readers_size():
-    diff = np.zeros((384, 512), dtype=np.float32)
-    diff[:, 256:] = 0.2
-    small = bench_accuracy.reader_sized(diff)
-    assert small.shape == (192, 256) and small.mean() == pytest.approx(diff.mean())
-    assert bench_accuracy.reader_sized(diff[:32]).shape == (16, 256)  # the longest side, the aspect kept
-    tiny = diff[:32, :40]
-    assert bench_accuracy.reader_sized(tiny) is tiny  # never enlarged
+@pytest.mark.slow
+def test_progressive_cells_render_every_level_in_passes(tmp_path):
+    """--progressive: each cell's jobs ran in passes (their reports say so, level off too), each beside its
+    uniform baseline, and the run says its mode."""
+    result = bench_accuracy.run(args_for(tmp_path, "--inprocess", "--progressive", "--runs", "1", "caustic-corner"))
+    assert result["mode"] == "inprocess, progressive"
+    assert [(c["level"], c["progressive"]) for c in result["cells"]] == [("off", True), ("S", True)]
+    for cell in result["cells"]:
+        assert cell["passes"] > cell["units"] >= 1  # several passes of each unit, merged
+        assert cell["uniform_spp"] >= 1 and 0 < cell["uniform_relmse"] < 10
+
+
+@pytest.mark.parametrize("other", ["--adaptive", "--denoise"])
+def test_progressive_is_refused_beside_adaptive_and_denoise(tmp_path, other):
+    with pytest.raises(QuekaroError, match=f"--progressive with {other}"):
+        bench_accuracy.parse_grid(args_for(tmp_path, "--progressive", other))

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from bench import scaling as bench_scaling
 from core.errors import QuekaroError
@@ -42,7 +43,8 @@ def test_scaling_json_has_rows_with_sane_efficiencies(tmp_path):
     assert equal[0]["naive_efficiency"] == pytest.approx(1.0, abs=0.2)
     assert result["measured"]["cells"] == 16 and result["t1_s"] > 0
     assert {t["agents"] for t in result["targets"]} == set()  # N=8 and 32 were not simulated
-    assert (tmp_path / "scaling.png").stat().st_size > 1000
+    png, full = Image.open(tmp_path / "scaling.png"), Image.open(tmp_path / "full-size" / "scaling.png")
+    assert (png.mode, png.size) == ("P", (600, 360)) and full.size == (1200, 720)  # 8-bit at 100 dpi; 200 dpi
     assert "| equal | 4 |" in (tmp_path / "scaling.md").read_text()
 
 

@@ -397,7 +397,7 @@ def test_registers_again_after_the_server_restarts(farm: Farm, bundles: dict) ->
     farm.server.restart()
     restarted = time.monotonic()
     # Usually ~2 s; a reconnect that misses the disconnect event waits for SPADE's 55 s keepalive
-    # (design.md section 4), seen once in a loaded full run: the bound covers that path.
+    # (docs/design.md section 4), seen once in a loaded full run: the bound covers that path.
     reg = farm.run(farm.master.expect(m.Register, since=restarted, timeout=70.0), 75)
     assert reg.speed > 0
     scene, _ = bundles["cbox"]

@@ -1,6 +1,6 @@
 """A FarmAgent in its own process, driven by tests/test_xmpp.py: echo, ping, stream, send one message, or sink.
 
-Agents in one process bypass XMPP (design.md section 4), so every XMPP test runs two of these. Each
+Agents in one process bypass XMPP (docs/design.md section 4), so every XMPP test runs two of these. Each
 prints JSON lines on stdout: {"event": "online"|"refused"|"reconnected"|"pong"|"result"|"error", ...};
 PEER_LOG=DEBUG in the environment shows slixmpp's traffic on stderr.
 

@@ -37,7 +37,7 @@ from fuzzy.engine import DEFUZZIFIERS
 PROTOCOL_VERSION = 6
 ONTOLOGY = "quekaro-render"
 PROTOCOL = "fipa-contract-net"
-# Prosody drops a sender whose stanza exceeds 256 KiB (design.md section 4): stay well below it.
+# Prosody drops a sender whose stanza exceeds 256 KiB (docs/design.md section 4): stay well below it.
 MAX_BODY_BYTES = 64 * 1024
 # A CFP lists at most this many units; with the field limits below it stays under MAX_BODY_BYTES.
 MAX_CFP_UNITS = 64

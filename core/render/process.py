@@ -277,7 +277,7 @@ def set_window(scene: Any, window: Rect, base: tuple[float, float] | None, senso
     (perspective and thin-lens sensors) crops at (0, 0) with the window's size and moves the principal
     point by (x / W, y / H): the same rays (tested to float precision), but Dr.Jit compiles one kernel per
     window size, not per position (a crop offset is baked into the kernel and costs ~0.45 s to compile;
-    design.md section 3). Other sensors use a crop.
+    docs/design.md section 3). Other sensors use a crop.
     """
     import mitsuba as mi
 

@@ -4,7 +4,7 @@
 with their metadata, and hands a message (an `Envelope`) to the code above only once its sender, size
 and metadata pass; a refusal is logged and counted (`Refusal`), never raised. What a body means is
 decided above: a `validate` callback, typically `core.model.messages.parse`, may refuse it. SPADE's
-pitfalls it avoids are at the code that avoids them (design.md section 4).
+pitfalls it avoids are at the code that avoids them (docs/design.md section 4).
 """
 
 from __future__ import annotations
