@@ -282,6 +282,9 @@ class Work:
         return f"unit {self.key[1]} of job {self.key[0]} (ticket {self.ticket}, {self.status})"
 
 
+JOBS_KEPT = 64  # jobs an agent remembers having rendered (AgentState.jobs_rendered)
+
+
 class Calibration:
     """Per job, the ratio of a unit's real wall time to its uncorrected estimate (moving average).
 
@@ -341,6 +344,7 @@ class AgentState:
         self.finished: dict[tuple[str, int, str], None] = {}  # (job, unit, token) answered, oldest first
         self.planned: dict[Key, Params] = {}  # the rules' choice per unit bid on, oldest first
         self.kernels: set[tuple[Any, ...]] = set()  # what the render process has compiled
+        self.jobs_rendered: dict[str, None] = {}  # jobs with a render call here, the latest JOBS_KEPT
         self.units_done = 0
         self.units_failed = 0
         self._tickets = itertools.count(1)
@@ -626,6 +630,7 @@ class AgentState:
         work.params = params
         self._move(work, "rendering")
         more = self._batch_with(work, now)
+        self._rendered(work.award.job.job_id)
         base = [self.base_estimate(w.award.unit, w.params) for w in self.step]
         # One kernel a call: a new one's compilation is shared by the batch, as its seconds are.
         compile_s = self.uncorrected(work.award.job, work.award.unit, params) - base[0]
@@ -648,10 +653,11 @@ class AgentState:
 
     def _batch_with(self, first: Work, now: float) -> tuple[Batched, ...]:
         """Waiting units of `first`'s job and depth that render in its call, oldest first, up to `batch`
-        (half the slots) in all: not at level off (plain Mitsuba's render, one call a unit) nor in a two-pass
-        (adaptive) job. A unit that cannot be planned stays queued (and fails when its turn comes)."""
+        (half the slots) in all: not at level off (plain Mitsuba's render, one call a unit), nor in a two-pass
+        (adaptive) job, nor on a progressive job's first call here (`_first_call`). A unit that cannot be
+        planned stays queued (and fails when its turn comes)."""
         job = first.award.job
-        if not self.batches(job):
+        if not self.batches(job) or self._first_call(job, first):
             return ()
         more: list[Batched] = []
         for work in list(self.queue):
@@ -672,6 +678,17 @@ class AgentState:
             self.step.append(work)
             more.append(Batched(work.ticket, work.award, params))
         return tuple(more)
+
+    def _first_call(self, job: m.JobInfo, first: Work) -> bool:
+        """Whether `first` is a progressive job's first render call here: it renders alone, so that its pass
+        reaches the page after one pass's samples, not a batch's."""
+        return job.passes and job.job_id not in self.jobs_rendered
+
+    def _rendered(self, job_id: str) -> None:
+        self.jobs_rendered.pop(job_id, None)
+        self.jobs_rendered[job_id] = None
+        while len(self.jobs_rendered) > JOBS_KEPT:  # the oldest first (dicts keep insertion order)
+            self.jobs_rendered.pop(next(iter(self.jobs_rendered)))
 
     def batches(self, job: m.JobInfo) -> bool:
         """Whether the job's units render in batches here (`batched`, and a batch above 1): the render step

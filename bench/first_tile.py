@@ -225,16 +225,17 @@ def follow_events(farm: LocalFarm, page: PageSession, job_id: str) -> float | No
     return watch.seen_at
 
 
-def store_times(home: Path, job_id: str) -> dict[str, Any]:
-    """From the master's store: the first award, the first tile, and the render call that delivered it (the
-    attempts its agent was awarded with that tile's, in one auction round)."""
+def store_times(home: Path, job_id: str, alone: bool) -> dict[str, Any]:
+    """From the master's store: the first award, the first tile, and the render call that delivered it: the
+    attempts its agent was awarded with that tile's, in one auction round, or the tile's alone (`alone`: an
+    agent renders a progressive job's first pass alone, agents/state.py)."""
     with JobStore(home / "jobs.sqlite", readonly=True) as store:
         award = store.db.execute("SELECT MIN(started) FROM attempts WHERE job_id = ?", (job_id,)).fetchone()[0]
         idx, tile = store.db.execute("SELECT idx, recorded FROM results WHERE job_id = ? ORDER BY recorded LIMIT 1",
                                      (job_id,)).fetchone()
         attempts = store.attempts(job_id)
     done = next(a for a in attempts if a.index == idx and a.outcome == "done")
-    call = [a for a in attempts if a.agent == done.agent and a.started == done.started]
+    call = [done] if alone else [a for a in attempts if a.agent == done.agent and a.started == done.started]
     return {"award": award, "tile": tile, "call_units": len(call),
             "call_estimate_s": sum(a.estimate or 0.0 for a in call), "first_estimate_s": done.estimate or 0.0,
             "call_render_s": sum(a.seconds or 0.0 for a in call)}  # each unit's share of its call's seconds
@@ -244,7 +245,7 @@ def measure(farm: LocalFarm, page: PageSession, bundle: bytes, job: dict[str, An
             poll: float) -> Run:
     """One job, watched as `run_of` (round, mode, watch) says."""
     job_id, submitted, shown = submit_and_time(farm, page, bundle, job, run_of[2], poll)
-    found = store_times(farm.home, job_id)
+    found = store_times(farm.home, job_id, alone=run_of[1] == "passes")
     award = found["award"]
     return Run(*run_of, job_id, round(award - submitted, 3), round(found["tile"] - award, 3),
                None if shown is None else round(shown - award, 3), found["call_units"],
@@ -377,5 +378,5 @@ def _call_spp(args: argparse.Namespace, mode: str) -> str:
     if args.level != "off":
         return ""
     if mode == "passes":
-        return f" of {budget_passes(args.spp)[0]} spp (a budget's first pass, the largest)"
+        return f" of {budget_passes(args.spp)[0]} spp (a budget's first pass, the largest, alone in its call)"
     return f" of {args.spp} spp"

@@ -909,3 +909,34 @@ def test_validate_catches_an_idle_render_process_with_units_waiting() -> None:
     agent.state.works.pop(("job-1", 0))
     with pytest.raises(AssertionError, match="no render step, but unit 1 of job job-1"):
         agent.state.validate()
+
+
+def test_a_progressive_jobs_first_pass_here_renders_alone_then_passes_batch() -> None:
+    """Its first call compiles the film's kernel and returns one pass soonest (the page's first tile); the
+    passes waiting meanwhile then render together in the next call."""
+    agent = Agent(slots=8)
+    info = replace(job(), passes=True, level="off")
+    passes = [replace(unit(i), spp=4, depth=6) for i in range(4)]
+    fetch = only(agent(award(info, passes[0])), FetchBundle)
+    for p in passes[1:]:
+        agent(award(info, p))
+    first = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
+    assert first.more == ()
+    out = agent(RenderFinished(first.ticket, Path("/tiles/first.exr"), 0.25), dt=0.25)
+    fetch = only(out, FetchBundle)
+    second = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
+    assert [b.award.unit.index for b in second.more] == [2, 3]
+
+
+def test_each_progressive_job_renders_its_first_pass_here_alone_though_its_kernel_is_compiled() -> None:
+    agent = Agent(slots=8)
+    for name in ("job-1", "job-2"):  # one scene, one film: job-2's kernel is job-1's
+        info = replace(job(name), passes=True, level="off")
+        fetch = only(agent(award(info, replace(unit(0), spp=4, depth=6))), FetchBundle)
+        agent(award(info, replace(unit(1), spp=4, depth=6)))
+        start = only(agent(BundleReady(fetch.ticket, SCENE)), StartRender)
+        assert start.more == (), name
+        out = agent(RenderFinished(start.ticket, Path(f"/tiles/{name}.exr"), 0.25), dt=0.25)
+        rest = only(agent(BundleReady(only(out, FetchBundle).ticket, SCENE)), StartRender)
+        out = agent(RenderFinished(rest.ticket, Path(f"/tiles/{name}-1.exr"), 0.25), dt=0.25)
+    assert list(agent.state.jobs_rendered) == ["job-1", "job-2"]
