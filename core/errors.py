@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import difflib
+import re
+from collections.abc import Iterable
+
 
 class QuekaroError(Exception):
     """Base of every error the farm reports to a user rather than crashing on."""
@@ -26,3 +30,17 @@ class MessageError(QuekaroError):
         self.reason = reason
         self.field = field
         super().__init__(f"{reason}" + (f" (field {field!r})" if field else ""))
+
+
+def did_you_mean(word: str, known: Iterable[str]) -> str:
+    """" (did you mean X?)" for the known name closest to a mistyped `word`, else ""."""
+    close = difflib.get_close_matches(word, list(known), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]}?)" if close else ""
+
+
+_CPP_LOCATION = re.compile(r"\s*\[[\w./-]+\.(?:cpp|cc|h|hpp|inl):\d+\]")
+
+
+def without_locations(text: str) -> str:
+    """Mitsuba's message without its C++ source locations (`[parser.cpp:111]`), which no user acts on."""
+    return _CPP_LOCATION.sub("", text).strip()

@@ -53,3 +53,8 @@ def configure(level: str, fmt: str = "text", role: str = "", stream: IO[str] | N
         root.removeHandler(old)
     root.addHandler(handler)
     root.setLevel(getattr(logging, str(level).upper(), logging.INFO))
+
+
+def verbosity(count: int) -> str:
+    """The log level of `-v` given `count` times, as Mitsuba's -v: warnings alone without, INFO, then DEBUG."""
+    return ("WARNING", "INFO", "DEBUG")[min(max(count, 0), 2)]

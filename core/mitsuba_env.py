@@ -9,7 +9,7 @@ import os
 import sys
 from typing import Any
 
-from core.errors import QuekaroError, RenderError
+from core.errors import QuekaroError, RenderError, did_you_mean
 
 # Mitsuba and Dr.Jit are imported where used: `import mitsuba` costs ~0.35 s and 85 MB, must follow the
 # variant choice (core.mitsuba_env), and processes that never render must not pay for it.
@@ -56,7 +56,8 @@ def _select_variant(variant: str) -> str:
 
     available = mi.variants()
     if variant not in available:
-        raise QuekaroError(f"Mitsuba variant {variant!r} is not available (have: {', '.join(available)})")
+        raise QuekaroError(f"Mitsuba variant {variant!r} is not available{did_you_mean(variant, available)} "
+                           f"(have: {', '.join(available)})")
     if variant.startswith("llvm_"):
         reason = None
         try:

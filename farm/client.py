@@ -6,6 +6,7 @@ import json
 import socket
 import time
 import urllib.error
+import urllib.parse
 import urllib.request
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -13,7 +14,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-from core.errors import QuekaroError
+from core.errors import QuekaroError, without_locations
 from core.files import staged_together
 from core.home import ADMIN_TOKEN, FARM_FILE, default_home
 from core.image.imageio import read_image, write_png
@@ -45,6 +46,14 @@ def _reach(url: str) -> None:
     _REACHED.add(url)
 
 
+class FarmRefusal(QuekaroError):
+    """What the master answered a request it refused: its reason (the message) and the HTTP `status`."""
+
+    def __init__(self, status: int, reason: str) -> None:
+        super().__init__(reason)
+        self.status = status
+
+
 @dataclass(frozen=True)
 class FarmClient:
     """A master's URL and the admin token that its job API demands."""
@@ -53,31 +62,33 @@ class FarmClient:
     token: str
     timeout: float = 600.0
     ca_file: Path | None = None  # the farm's CA, to verify an https master (None: the system's CAs)
+    home: Path | None = None  # the home whose farm.json named the URL (a refused connection: a stale file)
 
     @classmethod
     def from_home(cls, home: Path | None = None, url: str | None = None,
                   token_file: Path | None = None, ca_file: Path | None = None) -> FarmClient:
         """From the farm.json the master writes in its home, overridden by explicit url/token/CA file."""
-        home = Path(home or default_home())
+        home = Path(home or default_home()).absolute()
         info: dict[str, Any] = {}
         farm_file = home / FARM_FILE
         if farm_file.exists():
             info = json.loads(farm_file.read_text())
-        url = url or info.get("url")
         token_path = Path(token_file or info.get("token_file") or home / ADMIN_TOKEN)
-        if not url:
-            raise QuekaroError(f"no farm found: {farm_file} does not exist (start one with `quekaro up`, "
-                               "or give --url and --token-file)")
-        if not str(url).startswith(("http://", "https://")):
+        if not (url or info.get("url")):
+            raise QuekaroError(f"no farm is running in {home} (no {FARM_FILE}): start one with quekaro up, "
+                               "or give --url and --token-file")
+        if not str(url or info["url"]).startswith(("http://", "https://")):
             raise QuekaroError(f"--url {url!r}: the master's URL starts with http:// or https://")
+        url = str(url or info["url"])
         if not token_path.is_file():
             raise QuekaroError(f"admin token file {token_path} " + ("is not a file" if token_path.exists()
                                                                     else "not found"))
-        if ca_file is not None and not str(url).startswith("https://"):
+        if ca_file is not None and not url.startswith("https://"):
             raise QuekaroError(f"--ca-file {ca_file}: the master at {url} speaks plain HTTP, so no certificate "
                                "is verified")
         ca = ca_file or info.get("ca_file")
-        return cls(url.rstrip("/"), token_path.read_text().strip(), ca_file=Path(ca) if ca else None)
+        return cls(url.rstrip("/"), token_path.read_text().strip(), ca_file=Path(ca) if ca else None,
+                   home=home if url == info.get("url") else None)
 
     def _request(self, method: str, path: str, body: bytes | None = None,
                  headers: dict[str, str] | None = None) -> bytes:
@@ -94,9 +105,13 @@ class FarmClient:
             with urllib.request.urlopen(req, timeout=self.timeout, context=context) as resp:
                 return resp.read(), resp.headers
         except urllib.error.HTTPError as exc:
-            raise QuekaroError(f"{method} {path}: HTTP {exc.code}: {_reason(exc)}") from None
+            raise FarmRefusal(exc.code, _reason(exc)) from None
         except urllib.error.URLError as exc:
-            raise QuekaroError(f"cannot reach the master at {self.url}: {exc.reason}") from None
+            if self.home is not None and isinstance(exc.reason, ConnectionRefusedError):
+                raise QuekaroError(f"no farm is running in {self.home} ({FARM_FILE} is stale): start one with "
+                                   "quekaro up") from None
+            why = getattr(exc.reason, "strerror", None) or exc.reason
+            raise QuekaroError(f"cannot reach the master at {self.url} ({why})") from None
 
     def _json(self, method: str, path: str, **kw: Any) -> Any:
         return json.loads(self._request(method, path, **kw))
@@ -106,13 +121,18 @@ class FarmClient:
         return dict(self._json("GET", "/api/farm"))
 
     def submit(self, bundle: bytes, defines: dict[str, str], options: dict[str, Any]) -> str:
-        header = JobSpec(defines, RenderOptions.from_dict(options)).header()
-        answer = self._json("POST", "/api/jobs", body=bundle,
-                            headers={"X-Quekaro-Job": header, "Content-Type": "application/x-tar"})
-        return str(answer["job_id"])
+        return str(self.submit_spec(bundle, JobSpec(defines, RenderOptions.from_dict(options)))["job_id"])
 
-    def jobs(self) -> list[dict[str, Any]]:
-        return list(self._json("GET", "/api/jobs")["jobs"])
+    def submit_spec(self, bundle: bytes, spec: JobSpec) -> dict[str, Any]:
+        """The master's answer to a job: {"job_id"}, and for a frame range {"sequence", "jobs": [{frame,
+        job_id}]} (the range's jobs, one a frame)."""
+        return dict(self._json("POST", "/api/jobs", body=bundle,
+                               headers={"X-Quekaro-Job": spec.header(), "Content-Type": "application/x-tar"}))
+
+    def jobs(self, sequence: str | None = None) -> list[dict[str, Any]]:
+        """Every job's summary, or one sequence's (frame order)."""
+        query = f"?sequence={urllib.parse.quote(sequence)}" if sequence else ""
+        return list(self._json("GET", f"/api/jobs{query}")["jobs"])
 
     def status(self, job_id: str) -> dict[str, Any]:
         return dict(self._json("GET", f"/api/jobs/{job_id}"))
@@ -174,6 +194,6 @@ class FarmClient:
 
 def _reason(exc: urllib.error.HTTPError) -> str:
     try:
-        return str(json.loads(exc.read()).get("error", exc.reason))
+        return without_locations(str(json.loads(exc.read()).get("error", exc.reason)))
     except (ValueError, AttributeError):
         return str(exc.reason)

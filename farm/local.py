@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from core.errors import QuekaroError
-from core.home import AGENTS_ALLOW, FARM_FILE, PROCESSES_FILE, default_home, make_private
+from core.home import AGENTS_ALLOW, FARM_FILE, PROCESSES_FILE, default_home, make_private, read_processes
 from core.scene.bundle import check_rules
 from core.supervision import RestartPolicy, die_with_parent, log_tail
 from core.transport.xmpp_server import ProsodyServer, XmppServerError
@@ -379,6 +379,42 @@ class LocalFarm:
         if self._caller_umask is not None:  # a farm run inside a program (a test, a benchmark) leaves it as it was
             os.umask(self._caller_umask)
             self._caller_umask = None
+
+
+def stop_farm(home: Path, timeout: float = 60.0) -> list[str] | None:
+    """Stop the farm running in `home` (`quekaro down`): SIGTERM to the process holding HOME/farm.lock (`quekaro
+    up` or `demo`), which stops its children as Ctrl-C does; wait until it lets the lock go. Returns the names
+    of the processes it ran, None where no farm holds the home."""
+    try:
+        fd = os.open(Path(home) / LOCK_FILE, os.O_RDWR)
+    except FileNotFoundError:
+        return None
+    try:
+        if _try_lock(fd):
+            return None
+        pid = int(os.read(fd, 32).decode(errors="replace").strip() or 0)
+        names = [p["name"] for p in read_processes(home) if p.get("state") == "running"]
+        if pid <= 0:
+            raise QuekaroError(f"the farm in {home} holds {LOCK_FILE} but names no process in it")
+        os.kill(pid, signal.SIGTERM)
+        deadline = time.monotonic() + timeout
+        while not _try_lock(fd):
+            if time.monotonic() > deadline:
+                raise QuekaroError(f"the farm in {home} (pid {pid}) did not stop within {timeout:.0f} s "
+                                   f"(see {Path(home) / 'logs'})")
+            time.sleep(0.2)
+        return names
+    finally:
+        os.close(fd)  # lets the lock go if it was taken here
+
+
+def _try_lock(fd: int) -> bool:
+    """Whether this process could take the home's lock, that is, no farm holds it."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    return True
 
 
 def _say(line: str) -> None:

@@ -15,13 +15,14 @@ import os
 import sys
 from importlib.metadata import entry_points
 
+from core import logs
 from core.errors import QuekaroError
 from core.render import spawn
 
 # The module that registers each top-level command (tests/test_cli.py checks it against what they register),
 # in the order `quekaro --help` lists them.
 OWNERS = {"rules": "quekaro.cmd_rules", "render": "quekaro.cmd_render", "diff": "quekaro.cmd_diff",
-          **dict.fromkeys(("up", "demo", "master", "agent", "submit", "status", "watch", "result", "cancel",
+          **dict.fromkeys(("up", "down", "demo", "master", "agent", "submit", "status", "watch", "result", "cancel",
                            "agents", "logs"), "quekaro.cmd_farm"),
           "ca": "quekaro.cmd_ca"}
 COMMAND_MODULES = tuple(dict.fromkeys(OWNERS.values()))
@@ -41,6 +42,14 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     if owner is None:
         for entry in entry_points(group=PLUGIN_GROUP):
             entry.load()(sub)
+    return parser
+
+
+def command_parser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:
+    """The sub-command's own parser, whose errors print its usage (not `quekaro COMMAND ...`'s)."""
+    for action in parser._subparsers._group_actions if parser._subparsers else ():
+        if isinstance(action, argparse._SubParsersAction) and command in action.choices:
+            return action.choices[command]
     return parser
 
 
@@ -66,9 +75,11 @@ def _run(argv: list[str]) -> int:
     parser = build_parser(argv[0] if argv else None)
     args, extra = parser.parse_known_args(argv)
     if extra and not hasattr(args, "argv"):  # only pass-through commands (`bench`) take what is left
-        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+        command_parser(parser, args.command).error(f"unrecognized arguments: {' '.join(extra)}")
     if extra:
         args.argv = [*extra, *args.argv] if extra and extra[0].startswith("-") else [*args.argv, *extra]
+    if getattr(args, "verbose", 0):
+        logs.configure(logs.verbosity(args.verbose))
     try:
         return int(args.func(args) or 0)
     except (QuekaroError, RuleFileError, FuzzyInputError) as exc:

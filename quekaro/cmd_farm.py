@@ -1,12 +1,15 @@
-"""`quekaro up | demo | master | agent | submit | status | watch | result | cancel`: running a farm, and
+"""`quekaro up | down | demo | master | agent | submit | status | watch | result | cancel`: running a farm, and
 using one. The processes themselves live in `farm.local` (up, demo), `master.service` and
 `agents.render_agent`; this module is argument parsing and printing."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import math
 import os
+import secrets
 import shutil
 import sys
 import tempfile
@@ -16,21 +19,37 @@ from pathlib import Path
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from core.data import DEMO_SCENE
-from core.errors import QuekaroError
+from core.errors import QuekaroError, without_locations
 from core.home import ADMIN_TOKEN, MIN_FREE_BYTES, default_home, read_processes
 from core.logs import FORMATS
-from core.model.job import JobSpec
+from core.model.frames import SEQUENCE_ID, FrameRange, frame_name
+from core.model.job import IMAGE_SUFFIXES, JobSpec, SceneSpec
 from core.model.units import SLOTS
 from core.scene.bundle import make_bundle
-from core.scene.scene import parse_defines
+from core.scene.scene import check_parameters, parse_defines, referenced_files
 from farm.client import FarmClient
-from farm.local import LocalFarm
+from farm.local import LocalFarm, stop_farm
 from planning import budgets
-from quekaro.cmd_render import add_job_arguments, options_from_args, search_paths, writable_outputs
+from quekaro.cmd_render import (
+    add_job_arguments,
+    check_writable,
+    options_from_args,
+    outputs,
+    search_paths,
+    split_range,
+    writable_outputs,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     _register_up(sub)
+    down = sub.add_parser("down", help="stop the local farm of a home (the one `quekaro up` started there)",
+                          description="Stop the local farm that `quekaro up` (or `demo`) runs in HOME: its master, "
+                                      "agents and XMPP server, as Ctrl-C in its terminal would. Waits until they "
+                                      "are gone and names them. Exit status 0 also where no farm runs there "
+                                      "(it says so); 2 where the farm did not stop.")
+    down.add_argument("--home", type=Path, help="farm directory (default: $QUEKARO_HOME or ~/.quekaro/farm)")
+    down.set_defaults(func=run_down)
     _register_master(sub)
     # `quekaro agent ...` is dispatched to agents.render_agent before parsing (see quekaro.cli.main);
     # this entry is for `quekaro --help`.
@@ -105,28 +124,39 @@ def _register_client(sub: argparse._SubParsersAction) -> None:
     submit = sub.add_parser("submit", help="submit a scene to the farm")
     add_job_arguments(submit)
     _add_farm_location(submit)
-    submit.add_argument("--wait", action="store_true", help="watch the job until it ends")
+    submit.add_argument("--wait", action="store_true",
+                        help="watch the job until it ends; exit status 1 (and the reason) if it fails")
+    submit.add_argument("-o", "--output", "--out", dest="out", type=Path,
+                        help="with --wait: write the image there when done, as quekaro result -o does (a file for "
+                             "one job, else a folder: SCENE.exr, a frame's SCENE_0001.exr)")
+    submit.add_argument("--name", help="a label for the job, shown by status, watch and the page")
+    submit.add_argument("--sequence", action="store_true",
+                        help="the scene files are the frames of one sequence, numbered 1..N in the order given")
+    submit.add_argument("-t", "--threads", type=int,
+                        help="refused: on a farm each agent renders with its own threads (quekaro up --threads)")
     submit.set_defaults(func=run_submit)
-    status = sub.add_parser("status", help="jobs and their progress (one job if given)")
-    status.add_argument("job", nargs="?")
+    status = sub.add_parser("status", help="jobs and their progress (one job or sequence if given)")
+    status.add_argument("job", nargs="?", help="a job id, or a sequence id (seq-...) for its frames")
     status.add_argument("--unit", type=int, metavar="N",
                         help="one unit of JOB: its attempts and its story (what moved it, and when)")
     status.add_argument("--json", action="store_true")
     _add_farm_location(status)
     status.set_defaults(func=run_status)
-    watch = sub.add_parser("watch", help="a live progress bar for a job: units done, agents busy, ETA")
-    watch.add_argument("job")
+    watch = sub.add_parser("watch", help="a live progress bar for a job or sequence: units done, agents busy, ETA "
+                                         "(a plain line a change when not on a terminal)")
+    watch.add_argument("job", help="a job id, or a sequence id (seq-...)")
     _add_farm_location(watch)
     watch.set_defaults(func=run_watch)
-    result = sub.add_parser("result", help="download a finished job's image (and its report)")
-    result.add_argument("job")
-    result.add_argument("-o", "--out", type=Path, required=True,
+    result = sub.add_parser("result", help="download a finished job's image (and its report), or a sequence's")
+    result.add_argument("job", help="a job id, or a sequence id (seq-...) for every frame")
+    result.add_argument("-o", "--output", "--out", dest="out", type=Path,
                         help="output image file (its suffix is the film's file_format's: .exr, .pfm, .rgbe), or "
-                             "a folder for JOB.exr (the PNG and the report go beside it)")
+                             "a folder (default: this one) for SCENE.exr, a frame's SCENE_0001.exr; the PNG and "
+                             "the report go beside it, replacing earlier ones as quekaro render does")
     _add_farm_location(result)
     result.set_defaults(func=run_result)
-    cancel = sub.add_parser("cancel", help="cancel a job")
-    cancel.add_argument("job")
+    cancel = sub.add_parser("cancel", help="cancel a job, or every frame of a sequence")
+    cancel.add_argument("job", help="a job id, or a sequence id (seq-...)")
     _add_farm_location(cancel)
     cancel.set_defaults(func=run_cancel)
     agents = sub.add_parser("agents", help="the agents the master knows: state, speed, units done, last heard")
@@ -147,9 +177,28 @@ def _register_client(sub: argparse._SubParsersAction) -> None:
 def run_up(args: argparse.Namespace) -> int:
     os.environ["QUEKARO_LOG_FORMAT"] = args.log_format  # the farm's processes inherit it
     with LocalFarm(args.home, args.agents, args.threads, args.rules, args.http_port, supervise=True) as farm:
-        print(f"farm up: master {farm.url}, {_agents(farm.n_agents)}, home {farm.home} (Ctrl-C stops it)")
+        print(f"farm up: master {farm.url}, {_agents(farm.n_agents)}")
+        _print_page(farm)
+        home = f" --home {farm.home}" if args.home else ""
+        print(f"home:     {farm.home} (logs: quekaro logs{home})")
+        print(f"stop:     quekaro down{home}, or Ctrl-C here", flush=True)
         _warn_if_short_of_space(farm.home)
         farm.wait()
+    return 0
+
+
+def _print_page(farm: LocalFarm, while_: str = "") -> None:
+    """Where the farm's web page is and how to log in to it."""
+    print(f"web page: {farm.url}/ui/ (log in with the admin token in {farm.home / ADMIN_TOKEN}{while_})", flush=True)
+
+
+def run_down(args: argparse.Namespace) -> int:
+    home = Path(args.home or default_home()).resolve()
+    stopped = stop_farm(home)
+    if stopped is None:
+        print(f"no farm is running in {home}")
+        return 0
+    print(f"stopped the farm in {home}: {', '.join(stopped) or 'its processes'}")
     return 0
 
 
@@ -168,8 +217,7 @@ def run_demo(args: argparse.Namespace) -> int:
     os.environ["QUEKARO_LOG_FORMAT"] = args.log_format  # the farm's processes inherit it
     with LocalFarm(args.home, args.agents, args.threads, args.rules, args.http_port, supervise=True) as farm:
         print(f"farm up: master {farm.url}, {_agents(farm.n_agents)}, home {farm.home}")
-        print(f"web page: {farm.url}/ui/ (log in with the admin token in {farm.home / ADMIN_TOKEN}; "
-              "up while the demo runs)", flush=True)
+        _print_page(farm, "; up while the demo runs")
         farm.wait_for_agents()
         with tempfile.TemporaryDirectory() as tmp:
             bundle = make_bundle(DEMO_SCENE, {}, Path(tmp) / "bundle.tar").path.read_bytes()
@@ -206,26 +254,36 @@ def _client(args: argparse.Namespace):
 
 
 def run_submit(args: argparse.Namespace) -> int:
-    """One job per scene (its bundle carries the files it reads and the rule file); with --wait, watch each."""
-    defines = parse_defines(args.defines)
-    asked = options_from_args(args)
-    JobSpec(defines, asked).header()  # a -D list too long to carry: refused before anything is packed
-    options = asked.to_dict()
-    options["rules"] = None  # the rule file travels inside the bundle, to every agent
-    bundles = [_bundle_bytes(scene, defines, args) for scene in args.scenes]  # every input checked first
+    """One job per scene (its bundle carries the files it reads and the rule file), a frame range's one a
+    frame (the master makes them), or with --sequence the scenes as one sequence's frames; with --wait,
+    watch each, and with -o write the images."""
+    defines, frames = split_range(parse_defines(args.defines))
+    _refuse_unusable(args, frames)
+    options = options_from_args(args)
+    JobSpec(defines, options, args.name, frames).header()  # a -D list too long to carry: refused before packing
+    spec = JobSpec(defines, dataclasses.replace(options, rules=None), args.name, frames)  # rules: in the bundle
+    if args.out is not None:
+        _result_folder(args.out, len(args.scenes) > 1 or frames is not None or args.sequence)
+    bundles = [_bundle_bytes(scene, defines, frames, args) for scene in args.scenes]  # every input checked first
     client = _client(args)
-    jobs, refused = [], []
-    for scene, bundle in zip(args.scenes, bundles, strict=True):
+    sequence = f"seq-{secrets.token_hex(6)}" if args.sequence else None
+    ids, refused = [], []
+    for n, (scene, bundle) in enumerate(zip(args.scenes, bundles, strict=True), start=1):
+        job = dataclasses.replace(spec, sequence=sequence, frame=n) if sequence else spec
         try:
-            jobs.append(client.submit(bundle, defines, options))
+            answer = client.submit_spec(bundle, job)
         except QuekaroError as exc:
             if len(args.scenes) == 1:
                 raise
             print(f"quekaro: error: {scene}: {exc}", file=sys.stderr)  # the others are still submitted
             refused.append(str(scene))
             continue
-        print(jobs[-1])
-    statuses = [watch(client, job_id) for job_id in jobs] if args.wait else [0]
+        ids.append(answer["job_id"])
+        _print_submitted(answer, scene, len(args.scenes), n if sequence else None)
+    if sequence and ids:
+        ids = [sequence]
+        print(f"{sequence}  {len(args.scenes) - len(refused)} frames")
+    statuses = [_wait_and_fetch(client, job_id, args.out) for job_id in ids] if args.wait else [0]
     if refused:
         print(f"quekaro: error: {len(refused)} of {len(args.scenes)} scenes refused: {', '.join(refused)}",
               file=sys.stderr)
@@ -233,9 +291,51 @@ def run_submit(args: argparse.Namespace) -> int:
     return max(statuses)
 
 
-def _bundle_bytes(scene: Path, defines: dict[str, str], args: argparse.Namespace) -> bytes:
+def _refuse_unusable(args: argparse.Namespace, frames: FrameRange | None) -> None:
+    """Options of submit that cannot work together, refused before anything is packed."""
+    if args.threads is not None:
+        raise QuekaroError(f"-t {args.threads}: on a farm each agent renders with its own threads (quekaro up "
+                           "--threads N, quekaro agent --threads N); a job cannot set them")
+    if args.sequence and frames is not None:
+        raise QuekaroError(f"--sequence and -D {frames.define}={frames.first}:{frames.last}: a sequence is either "
+                           "several scene files or one file's frame range, not both")
+    if args.out is not None and not args.wait:
+        raise QuekaroError(f"-o {args.out}: the image is written when the job ends: add --wait, or fetch it "
+                           "later with quekaro result JOB -o ...")
+
+
+def _print_submitted(answer: dict, scene: Path, scenes: int, frame: int | None) -> None:
+    """The new job's id (with its scene when several were submitted), or a range's sequence and frames."""
+    if answer.get("jobs") is not None:
+        print(f"{answer['sequence']}  {scene.name}  {len(answer['jobs'])} frames")
+    elif frame is not None:
+        print(f"{answer['job_id']}  {scene.name}  frame {frame}")
+    else:
+        print(answer["job_id"] if scenes == 1 else f"{answer['job_id']}  {scene.name}")
+
+
+def _wait_and_fetch(client: FarmClient, job_id: str, out: Path | None) -> int:
+    """Watch the job (or sequence) to its end, then write its images to `out` if given."""
+    status = watch(client, job_id)
+    if status == 0 and out is not None:
+        _fetch(client, job_id, out)
+    return status
+
+
+def _bundle_bytes(scene: Path, defines: dict[str, str], frames: FrameRange | None,
+                  args: argparse.Namespace) -> bytes:
+    """The scene's bundle, its -D checked against its parameters first; for a range, one bundle serves every
+    frame, so the frame number may not change which files the scene reads."""
+    paths = search_paths(args)
+    first = defines if frames is None else {**defines, frames.define: str(frames.first)}
+    check_parameters(SceneSpec(scene, first, paths))
+    if frames is not None and len(frames) > 1:
+        second = {**defines, frames.define: str(frames.frames()[1])}
+        if referenced_files(SceneSpec(scene, first, paths)) != referenced_files(SceneSpec(scene, second, paths)):
+            raise QuekaroError(f"{scene}: -D {frames.define} changes which files the scene reads, and a range is "
+                               "uploaded once; submit each frame's file with --sequence")
     with tempfile.TemporaryDirectory() as tmp:
-        return Path(make_bundle(scene, defines, Path(tmp) / "bundle.tar", search_paths=search_paths(args),
+        return Path(make_bundle(scene, first, Path(tmp) / "bundle.tar", search_paths=paths,
                                 rules=args.rules).path).read_bytes()
 
 
@@ -243,31 +343,94 @@ def run_status(args: argparse.Namespace) -> int:
     client = _client(args)
     if args.unit is not None:
         return _print_unit(client, args)
-    jobs = [client.status(args.job)] if args.job else client.jobs()
+    answer = client.status(args.job) if args.job else None
     if args.json:
-        print(json.dumps(jobs, indent=2))
+        print(json.dumps(answer if answer is not None else client.jobs(), indent=2))
         return 0
+    plane = client.farm()["data_plane"]  # first: a farm not running is said alone
     _print_processes(Path(args.home or default_home()))
-    plane = client.farm()["data_plane"]
     if "insecure" in plane:
         print(f"WARNING: data plane {plane}")
+    if answer is not None and "frames" in answer:  # a sequence: its line, then each frame's
+        print(_sequence_line(answer))
+        for job in answer["frames"]:
+            _print_job(job, f"frame {job.get('frame')}  ")
+        return 0
+    if answer is not None:
+        _print_job(answer)
+        print(f"job: {parameters_text(answer)}")
+        print_effects(answer.get("effects") or {})
+        if answer.get("adaptive"):
+            print(f"adaptive: {budgets.describe(answer['adaptive'])}")
+        return 0
+    jobs = client.jobs()
     if not jobs:
         print("no jobs (quekaro submit SCENE adds one)")
-    for job in jobs:
-        running = job["status"] == "running" and job.get("eta_s") is not None
-        eta = _eta_text(job, " s") if running else "-"  # an ended job has none (it read "0 s")
-        print(f"{job['job_id']}  {job['status']:<9} {job['units_done']}/{job['units_total']} units{_passes_text(job)}  "
-              f"agents busy {job['agents_busy']}  ETA {eta}  {job['scene']}"
-              + (f"  error: {job['error']}" if job.get("error") else "")
-              + (f"  PAUSED: {job['paused']}" if job.get("paused") else ""))
-        if job.get("attempts_retried"):
-            print(f"  {job['attempts_retried']} attempt(s) ended without a tile, their units auctioned again; "
-                  f"latest: {job['last_retry']}")
-        if args.job:
-            print_effects(job.get("effects") or {})
-            if job.get("adaptive"):
-                print(f"adaptive: {budgets.describe(job['adaptive'])}")
+    for group in _by_sequence(jobs):
+        if group[0].get("sequence"):
+            print(_sequence_line({"sequence": group[0]["sequence"], "name": group[0].get("name"),
+                                  "scene": group[0].get("scene"), "status": sequence_status(group), "frames": group}))
+        else:
+            _print_job(group[0])
     return 0
+
+
+def _print_job(job: dict, lead: str = "") -> None:
+    """A job's line: id, status, progress, ETA, scene and name; its retries below it."""
+    running = job["status"] == "running" and job.get("eta_s") is not None
+    eta = _eta_text(job, " s") if running else "-"  # an ended job has none (it read "0 s")
+    print(f"{lead}{job['job_id']}  {job['status']:<9} {job['units_done']}/{job['units_total']} units"
+          f"{_passes_text(job)}  agents busy {job['agents_busy']}  ETA {eta}  {job['scene']}{_name_text(job)}"
+          + (f"  error: {without_locations(job['error'])}" if job.get("error") else "")
+          + (f"  PAUSED: {job['paused']}" if job.get("paused") else ""))
+    if job.get("attempts_retried"):
+        print(f"  {job['attempts_retried']} attempt(s) ended without a tile, their units auctioned again; "
+              f"latest: {job['last_retry']}")
+
+
+def _name_text(job: dict) -> str:
+    return f"  \"{job['name']}\"" if job.get("name") else ""
+
+
+def parameters_text(job: dict) -> str:
+    """What a job renders, from its summary: scene, level, spp, resolution, -D values and name."""
+    parts = [str(job.get("scene"))]
+    if job.get("level") is not None:
+        parts.append(f"level {job['level']}")
+    if job.get("spp") is not None:
+        parts.append(f"{job['spp']} spp")
+    if job.get("resolution"):
+        parts.append("x".join(map(str, job["resolution"])))
+    parts += [f"-D {name}={value}" for name, value in (job.get("defines") or {}).items()]
+    if job.get("frame") is not None:
+        parts.append(f"frame {job['frame']} of {job.get('sequence')}")
+    return ", ".join(parts) + _name_text(job)
+
+
+def sequence_status(frames: list[dict]) -> str:
+    """A sequence's status from its frames': running while any runs; failed if any failed; done when all are."""
+    states = {job["status"] for job in frames}
+    for state in ("running", "failed", "cancelled"):
+        if state in states:
+            return state
+    return "done" if states <= {"done"} else sorted(states)[0]
+
+
+def _sequence_line(sequence: dict) -> str:
+    """A sequence's line: id, status, frames done/total, units over all frames, scene and name."""
+    frames = sequence["frames"]
+    done = sum(job["status"] == "done" for job in frames)
+    units = sum(job["units_done"] for job in frames), sum(job["units_total"] for job in frames)
+    return (f"{sequence['sequence']}  {sequence['status']:<9} {done}/{len(frames)} frames  "
+            f"{units[0]}/{units[1]} units  {sequence.get('scene')}{_name_text(sequence)}")
+
+
+def _by_sequence(jobs: list[dict]) -> list[list[dict]]:
+    """The jobs in order, a sequence's frames together where its first frame is (each plain job alone)."""
+    groups: dict[str, list[dict]] = {}
+    for job in jobs:
+        groups.setdefault(job.get("sequence") or job["job_id"], []).append(job)
+    return list(groups.values())
 
 
 def _passes_text(job: dict) -> str:
@@ -335,41 +498,111 @@ def run_watch(args: argparse.Namespace) -> int:
     return watch(_client(args), args.job)
 
 
+def progress_of(client, job_id: str) -> dict:
+    """A job's summary as watch shows it; a sequence's frames summed (units, agents busy) with its frames
+    done/total, and the errors of its failed frames."""
+    job = client.status(job_id)
+    if "frames" not in job:
+        return job
+    frames = job["frames"]
+    return {**job, "job_id": job_id, "units_done": sum(f["units_done"] for f in frames),
+            "units_total": sum(f["units_total"] for f in frames), "agents_busy": sum(f["agents_busy"] for f in frames),
+            "eta_s": None, "passes": None, "paused": next((f["paused"] for f in frames if f.get("paused")), None),
+            "frames_text": f"{sum(f['status'] == 'done' for f in frames)}/{len(frames)} frames ",
+            "error": "; ".join(f"frame {f.get('frame')}: {f['error']}" for f in frames if f.get("error"))}
+
+
 def watch(client, job_id: str, poll_s: float = 0.5) -> int:
-    """A live progress bar until the job ends; exit status 0 only if it is done."""
-    first = client.status(job_id)
-    passes = (TextColumn("{task.fields[passes]}"),) if first.get("passes") else ()  # a progressive job's
+    """Progress until the job (or sequence) ends: a live bar on a terminal, else a plain line a change (at
+    most one every PLAIN_EVERY_S seconds, and the last); exit status 0 only if it is done."""
+    first = progress_of(client, job_id)
+    frames = first.get("frames")
+    print(f"sequence of {len(frames)} frames, the first: {parameters_text(frames[0])}" if frames
+          else f"job: {parameters_text(first)}")
+    print_effects(first.get("effects") or {})
+    job = (_watch_bar if sys.stdout.isatty() else _watch_lines)(client, job_id, first, poll_s)
+    if job["status"] != "done":
+        print(f"job {job_id} {job['status']}: {without_locations(job.get('error') or '')}", file=sys.stderr)
+        return 1
+    return 0
+
+
+PLAIN_EVERY_S = 2.0  # the fewest seconds between two plain progress lines
+
+
+def _progress_line(job: dict) -> str:
+    paused = f" (paused: {job['paused']})" if job.get("paused") else ""
+    return (f"{job['job_id']} {job['status']}{paused}: {job.get('frames_text', '')}{job['units_done']}/"
+            f"{job['units_total']} units{_passes_text(job)}, agents busy {job['agents_busy']}")
+
+
+def _watch_lines(client, job_id: str, job: dict, poll_s: float) -> dict:
+    """A plain line whenever the progress changes, rate-limited: logs and pipes show it as it goes."""
+    said, said_at = None, -math.inf
+    while True:
+        line = _progress_line(job)
+        ended = job["status"] != "running"
+        if line != said and (ended or time.monotonic() - said_at >= PLAIN_EVERY_S):
+            eta = f", ETA {_eta_text(job, ' s')}" if job.get("eta_s") is not None and not ended else ""
+            print(line + eta, flush=True)
+            said, said_at = line, time.monotonic()
+        if ended:
+            return job
+        time.sleep(poll_s)
+        job = progress_of(client, job_id)
+
+
+def _watch_bar(client, job_id: str, job: dict, poll_s: float) -> dict:
+    """A rich progress bar, a paused job's reason on a line of its own."""
+    passes = (TextColumn("{task.fields[passes]}"),) if job.get("passes") else ()  # a progressive job's
     columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} units"),
                *passes, TextColumn("agents busy {task.fields[busy]}"), TextColumn("ETA {task.fields[eta]}"),
                TimeElapsedColumn())
-    print_effects(first.get("effects") or {})
     with Progress(*columns, transient=False) as progress:
         task = progress.add_task(job_id, total=None, busy=0, eta="-", passes="")
         said = None
         while True:
-            job = client.status(job_id)
             eta = _eta_text(job, "s") if job.get("eta_s") is not None else "-"
-            if (job.get("paused") or None) != said:  # a line of its own: a bar in a pipe shows only at the end
+            if (job.get("paused") or None) != said:
                 said = job.get("paused") or None
                 progress.console.print(f"{job_id} paused: {said}" if said else f"{job_id} goes on")
             paused = " (paused)" if said else ""
             progress.update(task, total=job["units_total"], completed=job["units_done"],
                             busy=job["agents_busy"], eta=eta, passes=_passes_text(job).lstrip(", "),
-                            description=f"{job_id} {job['status']}{paused}")
+                            description=f"{job_id} {job['status']}{paused} {job.get('frames_text', '')}".rstrip())
             if job["status"] != "running":
-                break
+                return job
             time.sleep(poll_s)
-    if job["status"] != "done":
-        print(f"job {job_id} {job['status']}: {job.get('error', '')}", file=sys.stderr)
-        return 1
-    return 0
+            job = progress_of(client, job_id)
 
 
 def run_result(args: argparse.Namespace) -> int:
-    (out,) = writable_outputs([Path(args.job)], args.out)  # an EXR file, or JOB.exr in a folder, as `render -o`
-    out = _client(args).result(args.job, out)
-    print(f"{out}  report: {out.with_suffix('.json')}")
+    _fetch(_client(args), args.job, args.out)
     return 0
+
+
+def _fetch(client: FarmClient, job_id: str, out: Path | None) -> None:
+    """Write a job's image (SCENE.exr, a frame's SCENE_0001.exr) to `out` (a file, or a folder: by default
+    this one), or every frame of a sequence into the folder `out`; print where each went."""
+    answer = client.status(job_id)
+    frames = answer.get("frames")
+    folder = _result_folder(out or Path("."), frames is not None)
+    for job in frames if frames is not None else [answer]:
+        name = Path(job["scene"]).stem
+        name = name if job.get("frame") is None else frame_name(name, job["frame"])
+        target = folder / f"{name}.exr" if folder is not None else out
+        written = client.result(job["job_id"], target)
+        print(f"{written}  report: {written.with_suffix('.json')}")
+
+
+def _result_folder(out: Path, several: bool) -> Path | None:
+    """The folder images go to (checked writable), or None where `out` names the one image file."""
+    one_file = out.suffix.lower() in IMAGE_SUFFIXES and not out.is_dir()
+    if one_file and several:
+        raise QuekaroError(f"-o {out}: several images (a sequence's frames, or several scenes) need a folder")
+    outputs([Path("scene.xml")], out)  # refuses an image format no film writes (-o x.png)
+    check_writable(out.parent if one_file else out, out)
+    return None if one_file else out
 
 
 def run_agents(args: argparse.Namespace) -> int:
@@ -437,5 +670,6 @@ def follow_log(path: Path, lines: int, follow: bool, poll_s: float = 0.25) -> No
 
 def run_cancel(args: argparse.Namespace) -> int:
     cancelled = _client(args).cancel(args.job)
-    print(f"{args.job}: {'cancelled' if cancelled else 'had already ended'}")
+    what = "every frame still running cancelled" if SEQUENCE_ID.fullmatch(args.job) else "cancelled"
+    print(f"{args.job}: {what if cancelled else 'had already ended'}")
     return 0

@@ -4,6 +4,7 @@ Mitsuba's own flags where they mean the same (-m, -t, -a, -s, -o, -D, several sc
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import tempfile
@@ -14,12 +15,13 @@ from pathlib import Path
 
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from core.errors import QuekaroError
+from core.errors import QuekaroError, did_you_mean
 from core.image.imageio import read_image
+from core.model.frames import FrameRange, frame_name
 from core.model.integrators import CATALOGUE
 from core.model.job import IMAGE_SUFFIXES, RenderOptions, SceneSpec
-from core.model.levels import LEVELS
-from core.scene.scene import parse_defines
+from core.model.levels import LEVELS, canonical
+from core.scene.scene import check_parameters, parse_defines
 from fuzzy.engine import DEFUZZIFIERS
 from planning import budgets
 from planning.accuracy import REF_SPP, Asked, accuracy_report, default_cache, reference_path
@@ -32,10 +34,11 @@ def add_job_arguments(parser: argparse.ArgumentParser) -> None:
     """The options a job takes, shared by `render` and `submit`."""
     parser.add_argument("scenes", type=Path, nargs="+", metavar="SCENE",
                         help="Mitsuba 3 scene file(s) (XML); several render (or are submitted) one after another")
-    parser.add_argument("-D", dest="defines", action="append", default=[], metavar="NAME=VALUE",
-                        help="set a scene <default> parameter, as Mitsuba's -D (repeatable)")
-    parser.add_argument("--opt", dest="level", choices=LEVELS, default="off",
-                        help="optimisation level of the fuzzy rules (off: the user's spp/depth everywhere)")
+    parser.add_argument("-D", "--define", dest="defines", action="append", default=[], metavar="NAME=VALUE",
+                        help="set a scene parameter ($NAME), as Mitsuba's -D (repeatable); NAME=FIRST:LAST[:STEP] "
+                             "renders a frame sequence, one image a frame (SCENE_0001.exr ...)")
+    parser.add_argument("--opt", dest="level", type=canonical, choices=LEVELS, default="off",
+                        help="optimisation level of the fuzzy rules, any case (off: the user's spp/depth everywhere)")
     parser.add_argument("--spp", type=int, help="predefined samples per pixel (default: the scene's)")
     add_asked_arguments(parser)
     parser.add_argument("--rules", type=Path,
@@ -43,7 +46,8 @@ def add_job_arguments(parser: argparse.ArgumentParser) -> None:
                              "the agents)")
     parser.add_argument("--defuzzifier", choices=DEFUZZIFIERS,
                         help="defuzzification of the rules' outputs (default: centroid; on a farm, each agent's own)")
-    parser.add_argument("-m", "--variant", help="force the Mitsuba variant (e.g. llvm_ad_spectral)")
+    parser.add_argument("-m", "--mode", "--variant", dest="variant",
+                        help="force the Mitsuba variant (e.g. llvm_ad_spectral; Mitsuba's -m)")
     parser.add_argument("--units", type=int, help="target number of work units")
     parser.add_argument("--adaptive", action="store_true",
                         help="at a rule level: the rules set the level's samples, the pre-pass's noise shares them "
@@ -61,20 +65,35 @@ def add_job_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--denoise", action="store_true",
                         help="denoise the image with Intel Open Image Denoise: the render reconstructs with a box "
                              "filter and adds the denoiser's albedo and normal; the raw image is kept as SCENE.raw.exr")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="log more: -v what the planning does, -vv everything (Mitsuba's -v)")
 
 
 def add_asked_arguments(parser: argparse.ArgumentParser) -> None:
     """What a job computes besides its scene file, and where its files are: --depth, --integrator, -s, -a
     (shared by `render`, `submit` and `bench accuracy`)."""
     parser.add_argument("--depth", type=int, help="predefined path depth (default: from the effect analysis)")
-    parser.add_argument("--integrator", choices=sorted(CATALOGUE),
-                        help="replace the scene's integrator by this type (default: the scene's own, as written)")
+    parser.add_argument("--integrator", type=integrator_type, metavar="TYPE",
+                        help="replace the scene's integrator by this type (default: the scene's own, as written): "
+                             + ", ".join(sorted(CATALOGUE)))
     parser.add_argument("-s", "--sensor", type=int, default=0, help="index of the sensor to render (Mitsuba's -s)")
-    parser.add_argument("-a", dest="search_paths", action="append", default=[], type=Path, metavar="PATH",
-                        help="add a folder to the file search path, searched last (Mitsuba's -a; repeatable)")
+    parser.add_argument("-a", dest="search_paths", action="append", default=[], metavar="PATH",
+                        help="add folders to the file search path, searched last (Mitsuba's -a: repeatable, "
+                             "and several in one separated by ';')")
+
+
+def integrator_type(name: str) -> str:
+    """--integrator's value: a type of Mitsuba's catalogue, or an error naming the closest."""
+    if name not in CATALOGUE:
+        raise argparse.ArgumentTypeError(f"{name!r} is not one of Mitsuba's integrators{did_you_mean(name, CATALOGUE)} "
+                                         f"(known: {', '.join(sorted(CATALOGUE))})")
+    return name
 
 
 def options_from_args(args: argparse.Namespace):
+    if args.rules is not None and not args.rules.is_file():  # before any complaint about the level
+        raise QuekaroError(f"--rules {args.rules}: " + ("a folder, not a rule file" if args.rules.is_dir()
+                                                        else "file not found"))
     options = RenderOptions(level=args.level, spp=args.spp, depth=args.depth,
                             threads=getattr(args, "threads", None), rules=args.rules,
                             defuzzifier=args.defuzzifier, variant=args.variant,
@@ -86,17 +105,30 @@ def options_from_args(args: argparse.Namespace):
 
 
 def search_paths(args: argparse.Namespace) -> tuple[Path, ...]:
-    """The -a folders, each checked to exist (Mitsuba would silently search nothing)."""
-    for folder in args.search_paths:
+    """The -a folders (each -a may hold several, separated by ';'), each checked to exist (Mitsuba would
+    silently search nothing)."""
+    folders = [Path(part) for given in args.search_paths for part in str(given).split(";") if part]
+    for folder in folders:
         if not folder.is_dir():
             raise QuekaroError(f"-a {folder}: not a folder")
-    return tuple(args.search_paths)
+    return tuple(folders)
+
+
+def split_range(defines: dict[str, str]) -> tuple[dict[str, str], FrameRange | None]:
+    """The -D parameters apart from the one frame range among them (NAME=FIRST:LAST[:STEP]), if any."""
+    ranges = [r for r in (FrameRange.parse(name, value) for name, value in defines.items()) if r is not None]
+    if len(ranges) > 1:
+        raise QuekaroError(f"-D {ranges[0].define} and -D {ranges[1].define}: both are frame ranges; a sequence "
+                           "numbers its frames by one parameter (give the other a single value)")
+    if not ranges:
+        return defines, None
+    return {k: v for k, v in defines.items() if k != ranges[0].define}, ranges[0]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser("render", help="render scenes in one process (no agents)")
     add_job_arguments(parser)
-    parser.add_argument("-o", "--out", type=Path, default=Path("out"),
+    parser.add_argument("-o", "--output", "--out", dest="out", type=Path, default=Path("out"),
                         help="output image file, or a folder for SCENE.exr (default: out/): its suffix is the "
                              "film's file_format's (.exr, .pfm, .rgbe), as Mitsuba names it; the PNG and the JSON "
                              "report go beside it; several scenes need a folder")
@@ -115,17 +147,21 @@ def register(sub: argparse._SubParsersAction) -> None:
 OTHER_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".ppm", ".hdr", ".tga", ".bmp", ".tif", ".tiff", ".webp")
 
 
-def outputs(scenes: list[Path], out: Path) -> list[Path]:
+def outputs(scenes: list[Path], out: Path, frames: FrameRange | None = None) -> list[Path]:
     """Where each scene's image goes: `out` itself for one scene named *.exr (*.pfm, *.rgbe; the film's
     file_format sets the suffix written), else `out`/SCENE.exr (refused when two scenes would write the
-    same file, or when `out` names another image format)."""
+    same file, or when `out` names another image format). A frame range writes a folder's SCENE_0001.exr ..."""
     if out.suffix.lower() in (*OTHER_IMAGE_SUFFIXES, ".json") and not out.is_dir():
         raise QuekaroError(f"-o {out}: the image is written as its film's file_format asks (EXR, PFM or RGBE), "
                            f"with a PNG preview and the report beside it; give -o {out.with_suffix('.exr')} "
                            "or a folder")
-    if len(scenes) == 1 and out.suffix.lower() in IMAGE_SUFFIXES and not out.is_dir():
+    one_file = out.suffix.lower() in IMAGE_SUFFIXES and not out.is_dir()
+    if one_file and frames is not None:
+        raise QuekaroError(f"-o {out}: -D {frames.define}={frames.first}:{frames.last} renders {len(frames)} "
+                           "frames, one image each (SCENE_0001.exr ...): give -o a folder")
+    if len(scenes) == 1 and one_file:
         return [out]
-    if out.suffix.lower() in IMAGE_SUFFIXES and not out.is_dir():
+    if one_file:
         raise QuekaroError(f"-o {out}: {len(scenes)} scenes need a folder, not one file")
     paths = [out / f"{scene.stem}.exr" for scene in scenes]
     clash = sorted({p.name for p in paths if paths.count(p) > 1})
@@ -134,10 +170,10 @@ def outputs(scenes: list[Path], out: Path) -> list[Path]:
     return paths
 
 
-def writable_outputs(scenes: list[Path], out: Path) -> list[Path]:
+def writable_outputs(scenes: list[Path], out: Path, frames: FrameRange | None = None) -> list[Path]:
     """`outputs`, each folder checked writable (`check_writable`) before any work: an image must not be
     lost at the end of its render."""
-    targets = outputs(scenes, out)
+    targets = outputs(scenes, out, frames)
     for folder in dict.fromkeys(path.parent for path in targets):
         check_writable(folder, out)
     return targets
@@ -157,7 +193,8 @@ def check_writable(folder: Path, out: Path) -> None:
 
 def run(args: argparse.Namespace) -> int:
     startup = process_age()  # the interpreter's start and imports, paid once, by the first scene
-    defines, paths = parse_defines(args.defines), search_paths(args)
+    defines, frames = split_range(parse_defines(args.defines))
+    paths = search_paths(args)
     options = options_from_args(args)
     if args.ref_spp is not None and not args.report_accuracy:
         raise QuekaroError(f"--ref-spp {args.ref_spp}: the reference is rendered only with --report-accuracy")
@@ -165,9 +202,11 @@ def run(args: argparse.Namespace) -> int:
     if args.ref_spp < 1:
         raise QuekaroError(f"--ref-spp {args.ref_spp}: must be at least 1")
     failed = []
-    for scene, out in zip(args.scenes, writable_outputs(args.scenes, args.out), strict=True):
+    for scene, out in zip(args.scenes, writable_outputs(args.scenes, args.out, frames), strict=True):
         try:
-            render_one(SceneSpec(scene, defines, paths), options, out, args, startup)
+            for spec, image in frame_jobs(SceneSpec(scene, defines, paths), frames, out):
+                render_one(spec, options, image, args, startup)
+                startup = 0.0
         except QuekaroError as exc:
             if len(args.scenes) == 1:
                 raise
@@ -179,6 +218,18 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     return 0
+
+
+def frame_jobs(spec: SceneSpec, frames: FrameRange | None, out: Path) -> list[tuple[SceneSpec, Path]]:
+    """The scene's job and image, or with a frame range each frame's (SCENE_0001.exr beside `out`), every -D
+    checked against the scene's parameters first."""
+    first = spec if frames is None else dataclasses.replace(spec, defines={**spec.defines,
+                                                                            frames.define: str(frames.first)})
+    check_parameters(first)
+    if frames is None:
+        return [(spec, out)]
+    return [(dataclasses.replace(spec, defines={**spec.defines, frames.define: str(n)}),
+             out.with_name(frame_name(spec.path.stem, n) + out.suffix)) for n in frames.frames()]
 
 
 def render_one(spec: SceneSpec, options: RenderOptions, out: Path, args: argparse.Namespace,

@@ -8,3 +8,8 @@ from fuzzy.rulebase import OP_LABELS
 OFF = "off"
 RULE_LEVELS = OP_LABELS
 LEVELS = (OFF, *RULE_LEVELS)
+
+
+def canonical(name: str) -> str:
+    """The level `name` spells in any case (`s`, `OFF`), as LEVELS writes it; an unknown name as given."""
+    return {level.lower(): level for level in LEVELS}.get(name.lower(), name)

@@ -26,7 +26,7 @@ from lxml import etree
 from core.errors import SceneError
 from core.model.hashing import sha256_file
 from core.rules.unit_params import Planner
-from core.scene.resolver import Reference, SceneFiles, parse_xml, read_scene
+from core.scene.resolver import Reference, SceneFiles, check_scene_file, parse_xml, read_scene
 from fuzzy.errors import RuleFileError
 
 MANIFEST_NAME = "QUEKARO-MANIFEST.json"
@@ -85,8 +85,7 @@ def scene_members(scene_path: Path, defines: dict[str, str] | None = None,
     XML file, the line and every folder searched. The XML loses its `<path>`s and names the members, so the
     unpacked scene reads exactly the files the original read, and nothing outside the bundle."""
     scene = Path(os.path.abspath(scene_path))
-    if not scene.is_file():
-        raise BundleError(f"{scene_path}: scene file not found")
+    check_scene_file(scene_path, BundleError)
     try:
         found = read_scene(scene, {str(k): str(v) for k, v in (defines or {}).items()}, search_paths,
                            cwd=Path.cwd())

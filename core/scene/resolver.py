@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from lxml import etree
 
-from core.errors import SceneError
+from core.errors import SceneError, did_you_mean
 
 MAX_INCLUDE_DEPTH = 15
 SRC_ATTR = "{urn:quekaro}src"  # private attribute: which file an element came from
@@ -47,6 +47,7 @@ class SceneFiles:
     references: list[Reference] = field(default_factory=list)
     params: dict[str, str] = field(default_factory=dict)
     includers: dict[Path, Path] = field(default_factory=dict)  # included file -> the file including it
+    referenced: set[str] = field(default_factory=set)  # the `$name`s written in the files: the -D Mitsuba takes
     within: Path | None = None  # a folder no reference may leave (an unpacked bundle's)
 
     def files(self) -> list[Path]:
@@ -89,8 +90,7 @@ def read_scene(main: Path, defines: dict[str, str], search_paths: Sequence[Path]
     (meshes, textures, envmaps, volume grids, measured BSDFs) are looked up last, as Mitsuba does when it
     builds the plugins after reading all the XML: with the main file's final list, whichever file named it."""
     main = Path(main).absolute()
-    if not main.is_file():
-        raise SceneError(f"{main}: scene file not found")
+    check_scene_file(main)
     check_defines(defines)
     found = SceneFiles(main, params=dict(defines), within=None if within is None else Path(within).resolve())
     top = [main.parent, *([cwd] if cwd is not None else []), *(Path(p).absolute() for p in search_paths)]
@@ -99,6 +99,24 @@ def read_scene(main: Path, defines: dict[str, str], search_paths: Sequence[Path]
     for file, elem, name in deferred:
         found.references.append(_resolved(file, elem, "file", name, top, found.within))
     return found
+
+
+def check_scene_file(path: Path, error: type[SceneError] = SceneError) -> None:
+    """`error` unless `path` is a file: a folder, or nothing, named as such."""
+    if Path(path).is_dir():
+        raise error(f"{path}: a folder, not a scene file (give the XML file in it)")
+    if not Path(path).is_file():
+        raise error(f"{path}: scene file not found")
+
+
+def check_parameters(found: SceneFiles, defines: Iterable[str]) -> None:
+    """SceneError naming a -D parameter that no file of the scene uses as `$name` (Mitsuba refuses it at
+    load, "unused parameters"), with the parameters the scene does use."""
+    for name in sorted(set(defines) - found.referenced):
+        known = sorted(found.referenced)
+        listed = f"its parameters: {', '.join(known)}" if known else "it takes no parameters"
+        raise SceneError(f"-D {name}: {found.main.name} has no parameter {name}"
+                         f"{did_you_mean(name, known)}; {listed}")
 
 
 def check_defines(defines: dict[str, str]) -> None:
@@ -123,6 +141,7 @@ def _read_file(path: Path, folders: list[Path], found: SceneFiles,
         if not isinstance(elem.tag, str):
             continue
         for key, value in elem.attrib.items():
+            found.referenced.update(_PARAM_RE.findall(value))
             elem.set(key, _PARAM_RE.sub(lambda m: found.params.get(m.group(1), m.group(0)), value))
         elem.set(SRC_ATTR, str(path))
         _visit(elem, path, root, folders, found, deferred, stack)

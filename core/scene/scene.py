@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import importlib.util
 import re
 import tempfile
 from collections.abc import Iterable
@@ -21,7 +22,7 @@ from typing import Any
 from lxml import etree
 
 from core import mitsuba_env
-from core.errors import QuekaroError, SceneError
+from core.errors import QuekaroError, SceneError, did_you_mean, without_locations
 from core.image import film as film_mod
 from core.model.job import FILM_COLOURS, RGB, ImageFile, SceneSpec
 from core.scene import resolver
@@ -80,8 +81,7 @@ def load(spec: SceneSpec, variant: str | None = None, threads: int | None = None
         mitsuba_env.init(variant or mitsuba_env.DEFAULT_VARIANT, threads)
     elif threads is not None:
         mitsuba_env.init(mi.variant(), threads)
-    if not spec.path.is_file():
-        raise SceneError(f"{spec.path}: scene file not found")
+    resolver.check_scene_file(spec.path)
     if spec.rfilter is None:
         return _load_file(spec.path, spec)
     with tempfile.TemporaryDirectory(prefix="quekaro-filter-") as folder:  # Mitsuba reads every file at load
@@ -105,13 +105,40 @@ def _load_file(path: Path, spec: SceneSpec) -> Any:
     try:
         return mi.load_file(str(path), **spec.defines)
     except RuntimeError as exc:
-        raise SceneError(f"{spec.path}: {exc}") from exc
+        raise SceneError(f"{spec.path}: {mitsuba_message(exc)}") from exc
     finally:
         resolver.clear()
         for folder in before:
             resolver.append(folder)
         if threads_before < 2:
             dr.set_thread_count(threads_before)
+
+
+_UNKNOWN_PLUGIN = re.compile(r'Plugin "([^"]+)" not found')
+
+
+def mitsuba_message(exc: Exception) -> str:
+    """Mitsuba's error as a user reads it: no C++ source locations, and for an unknown plugin type the
+    closest one Mitsuba has."""
+    text = without_locations(str(exc))
+    unknown = _UNKNOWN_PLUGIN.search(text)
+    if unknown:
+        text += did_you_mean(unknown.group(1), plugin_names())
+    return text
+
+
+def plugin_names() -> list[str]:
+    """The plugin types Mitsuba ships (its plugins folder's libraries), without importing it."""
+    spec = importlib.util.find_spec("mitsuba")  # once imported, its alias module's: the same folder
+    if spec is None or not spec.origin:
+        return []
+    return sorted({lib.name.split(".")[0] for lib in (Path(spec.origin).parent / "plugins").glob("*.so")})
+
+
+def check_parameters(spec: SceneSpec) -> None:
+    """Refuse a -D parameter the scene never uses (Mitsuba would, at load: "unused parameters"), listing
+    those it does, before anything is packed or rendered."""
+    resolver.check_parameters(read(spec), spec.defines)
 
 
 def filtered_copy(spec: SceneSpec, folder: Path) -> Path:

@@ -1,0 +1,111 @@
+"""Jobs and frame sequences from the command line, on a real local farm: `submit --wait -o` writes the image,
+`result` names it after the scene (a frame's SCENE_0001.exr), several scenes say which id is which, `status`
+shows a job's parameters and a sequence as one line, and `watch`, `status`, `cancel`, `result` take a
+sequence id."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from farm.local import LocalFarm
+
+REPO = Path(__file__).resolve().parent.parent
+CBOX, GLASS = REPO / "scenes" / "cbox.xml", REPO / "scenes" / "glass-corner.xml"
+SMALL = ["-D", "res=16", "--units", "1"]
+
+
+@pytest.fixture(scope="module")
+def home(tmp_path_factory: pytest.TempPathFactory):
+    with LocalFarm(tmp_path_factory.mktemp("farm") / "home", agents=1, threads=1) as farm:
+        farm.wait_for_agents()
+        yield farm.home
+
+
+def quekaro(home: Path, *args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    done = subprocess.run([sys.executable, "-m", "quekaro", *args, "--home", str(home)], capture_output=True,
+                          text=True, cwd=cwd, timeout=300)
+    assert "Traceback" not in done.stderr, done.stderr
+    return done
+
+
+def images(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.glob("*.exr"))
+
+
+@pytest.mark.slow
+def test_a_frame_range_is_one_sequence_written_frame_by_frame(home: Path, tmp_path: Path) -> None:
+    sent = quekaro(home, "submit", str(CBOX), *SMALL, "-D", "spp=1:3", "--wait", "-o", str(tmp_path / "out"))
+    assert sent.returncode == 0, sent.stderr
+    first, *_ = sent.stdout.splitlines()
+    sequence, scene, frames = first.split("  ")
+    assert sequence.startswith("seq-") and (scene, frames) == ("cbox.xml", "3 frames"), first
+    assert images(tmp_path / "out") == ["cbox_0001.exr", "cbox_0002.exr", "cbox_0003.exr"]
+
+    status = quekaro(home, "status", sequence).stdout.splitlines()
+    assert status[0].startswith(f"{sequence}  done      3/3 frames  3/3 units  cbox.xml"), status
+    assert [line.split("  ")[0] for line in status[1:]] == ["frame 1", "frame 2", "frame 3"], status
+    frame_jobs = [line.split("  ")[1] for line in status[1:]]
+    listed = quekaro(home, "status").stdout.splitlines()
+    assert any(line.startswith(f"{sequence}  done      3/3 frames") for line in listed), listed
+    assert not [line for line in listed if line.split("  ")[0] in frame_jobs]  # grouped under the sequence
+
+    fetched = quekaro(home, "result", sequence, cwd=tmp_path)
+    assert fetched.returncode == 0 and images(tmp_path) == images(tmp_path / "out"), fetched.stderr
+    watched = quekaro(home, "watch", sequence)
+    assert watched.stdout.splitlines()[-1] == f"{sequence} done: 3/3 frames 3/3 units, agents busy 0", watched.stdout
+    frame = quekaro(home, "result", frame_jobs[1], "-o", str(tmp_path / "one"))
+    assert frame.returncode == 0 and images(tmp_path / "one") == ["cbox_0002.exr"], frame.stderr
+    assert quekaro(home, "cancel", sequence).stdout == f"{sequence}: had already ended\n"
+
+
+@pytest.mark.slow
+def test_several_files_with_sequence_are_its_frames_in_order(home: Path, tmp_path: Path) -> None:
+    sent = quekaro(home, "submit", str(CBOX), str(GLASS), *SMALL, "--spp", "1", "--sequence", "--wait",
+                   "-o", str(tmp_path))
+    assert sent.returncode == 0, sent.stderr
+    lines = sent.stdout.splitlines()
+    sequence = lines[2].split("  ")[0]
+    assert lines[0].endswith("  cbox.xml  frame 1") and lines[1].endswith("  glass-corner.xml  frame 2"), lines
+    assert lines[2] == f"{sequence}  2 frames" and sequence.startswith("seq-"), lines
+    assert images(tmp_path) == ["cbox_0001.exr", "glass-corner_0002.exr"]
+
+
+@pytest.mark.slow
+def test_several_scenes_say_which_id_is_which_and_status_shows_the_parameters(home: Path) -> None:
+    sent = quekaro(home, "submit", str(CBOX), str(GLASS), *SMALL, "--spp", "2", "--name", "shot 1", "--wait")
+    assert sent.returncode == 0, sent.stderr
+    ids = [line.split("  ") for line in sent.stdout.splitlines() if line.endswith(".xml")]
+    assert [scene for _id, scene in ids] == ["cbox.xml", "glass-corner.xml"], sent.stdout
+    shown = quekaro(home, "status", ids[0][0]).stdout
+    assert 'job: cbox.xml, level off, 2 spp, 16x16, -D res=16  "shot 1"' in shown, shown
+
+
+@pytest.mark.slow
+def test_submit_wait_writes_the_image_and_result_names_it_after_the_scene(home: Path, tmp_path: Path) -> None:
+    sent = quekaro(home, "submit", str(CBOX), *SMALL, "--spp", "1", "--wait", "-o", str(tmp_path / "mine.exr"))
+    assert sent.returncode == 0 and (tmp_path / "mine.exr").is_file(), sent.stderr
+    job_id = sent.stdout.splitlines()[0]
+    fetched = quekaro(home, "result", job_id, cwd=tmp_path)
+    assert fetched.returncode == 0 and fetched.stdout.startswith("cbox.exr  report: cbox.json"), fetched.stdout
+    assert (tmp_path / "cbox.png").is_file() and (tmp_path / "cbox.json").is_file()
+
+
+@pytest.mark.slow
+def test_a_cancelled_sequence_ends_wait_with_its_reason(home: Path) -> None:
+    waiting = subprocess.Popen([sys.executable, "-m", "quekaro", "submit", str(CBOX), "-D", "res=64", "-D",
+                                "spp=4000:4002", "--units", "1", "--wait", "--home", str(home)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        sequence = waiting.stdout.readline().split("  ")[0]
+        cancelled = quekaro(home, "cancel", sequence)
+        assert cancelled.stdout == f"{sequence}: every frame still running cancelled\n", cancelled.stderr
+        _out, err = waiting.communicate(timeout=300)
+    finally:
+        if waiting.poll() is None:
+            waiting.kill()
+            waiting.wait()
+    assert waiting.returncode == 1 and f"job {sequence} cancelled" in err, err
