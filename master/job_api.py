@@ -1,15 +1,17 @@
 """The master's job API over HTTP (`add_job_routes`); `quekaro submit/status/watch/result/cancel` use it.
 
 Every route needs the farm's admin token (`Authorization: Bearer ...`):
-    POST /api/jobs                 a scene bundle (tar); header X-Quekaro-Job: {"defines", "options"}
-    GET  /api/jobs                 every job with its progress
-    GET  /api/jobs/{job}           one job: status, progress, agents busy, ETA, error
+    POST /api/jobs                 a scene bundle (tar); header X-Quekaro-Job: a `JobSpec`; one with `frames`
+                                   becomes one job per frame, sharing a sequence id (`seq-...`)
+    GET  /api/jobs[?sequence=SEQ]  every job (or a sequence's, in frame order) with its progress
+    GET  /api/jobs/{job}           one job: status, progress, agents busy, ETA, error; a sequence id: its frames
     GET  /api/jobs/{job}/result    the composed image, EXR unless the film asks otherwise (409 until done)
     GET  /api/jobs/{job}/report    the JSON report
     GET  /api/jobs/{job}/units/{n} one unit: status, agent, attempts, and its story
-    POST /api/jobs/{job}/cancel    cancel the job
+    POST /api/jobs/{job}/cancel    cancel the job (a sequence id: every frame)
     GET  /api/agents               agents the auction knows, with their records
     GET  /api/farm                 the data plane's address, and why jobs are paused if they are
+Downloads are named as `quekaro result` names them (`download_name`): SCENE.exr, a frame's SCENE_0001.exr.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ import dataclasses
 import hmac
 import json
 import os
+import secrets
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -26,11 +30,12 @@ from typing import Any, Protocol
 from aiohttp import web
 
 from core.errors import QuekaroError
-from core.model.job import RAW_SUFFIX, JobSpec, RenderOptions
+from core.model.frames import SEQUENCE_ID, frame_name
+from core.model.job import RAW_SUFFIX, JobSpec
 from master import sessions
 from master.auction import Auction
 from master.http_guard import Refusal, bearer_token, disk_full, json_error, read_body_chunks
-from master.store import JobStore, StoreError
+from master.store import JobRecord, JobStore, StoreError
 from planning import budgets
 
 
@@ -46,7 +51,7 @@ class JobService(Protocol):
     data_plane: str
     shared_accounts: sessions.SharedAccounts
 
-    async def submit(self, bundle: Path, defines: dict[str, str], options: RenderOptions) -> str: ...
+    async def submit(self, bundle: Path, spec: JobSpec) -> str: ...
     async def cancel(self, job_id: str) -> bool: ...
     async def ensure_assembled(self, job_id: str) -> Path: ...
     def result_path(self, job_id: str) -> Path: ...
@@ -102,8 +107,8 @@ async def _receive_to_file(request: web.Request, folder: Path, limit: int) -> Pa
 
 
 async def submit(request: web.Request) -> web.Response:
-    """POST /api/jobs: the body is the scene bundle (tar), the header X-Quekaro-Job its `JobSpec`
-    ({"defines", "options"}); 201 with the new job's id."""
+    """POST /api/jobs: the body is the scene bundle (tar), the header X-Quekaro-Job its `JobSpec`; 201 with
+    the new job's id (and its name), or for a frame range the sequence's id and each frame's job."""
     service = _service(request)
     try:
         spec = JobSpec.from_dict(json.loads(request.headers.get("X-Quekaro-Job", "{}")))
@@ -113,12 +118,55 @@ async def submit(request: web.Request) -> web.Response:
         return json_error(400, str(exc))
     bundle = await _receive_to_file(request, service.jobs_dir, MAX_BUNDLE_BYTES)
     try:
-        job_id = await service.submit(bundle, spec.defines, spec.options)
+        if spec.frames is not None:
+            sequence, jobs = await _submit_frames(service, bundle, spec)
+            return web.json_response({"job_id": sequence, "sequence": sequence, "jobs": jobs}, status=201)
+        job_id = await service.submit(bundle, spec)
     except QuekaroError as exc:
         return json_error(422, str(exc))
     finally:
         bundle.unlink(missing_ok=True)
-    return web.json_response({"job_id": job_id}, status=201)
+    return web.json_response({"job_id": job_id, **({"name": spec.name} if spec.name else {})}, status=201)
+
+
+async def _submit_frames(service: JobService, bundle: Path, spec: JobSpec) -> tuple[str, list[dict[str, Any]]]:
+    """One job per frame of `spec.frames`, all of one new sequence, each with its own link to the bundle
+    (received once). A frame refused cancels the frames submitted before it: a sequence is whole or absent."""
+    assert spec.frames is not None
+    sequence, jobs = f"seq-{secrets.token_hex(6)}", []
+    for frame in spec.frames.frames():
+        try:
+            job_id = await service.submit(_linked(bundle), spec.frame_job(sequence, frame))
+        except QuekaroError as exc:
+            for job in jobs:
+                await service.cancel(job["job_id"])
+            raise QuekaroError(f"-D {spec.frames.define}={frame} (frame {frame} of the sequence): {exc}") from exc
+        jobs.append({"frame": frame, "job_id": job_id})
+    return sequence, jobs
+
+
+def _linked(bundle: Path) -> Path:
+    """Another name for the received bundle beside it (a hard link; a copy where links are refused): each
+    frame's job takes its own."""
+    fd, name = tempfile.mkstemp(prefix=".frame-", suffix=".tar", dir=bundle.parent)
+    os.close(fd)
+    os.unlink(name)
+    try:
+        os.link(bundle, name)
+    except OSError:
+        shutil.copyfile(bundle, name)
+    return Path(name)
+
+
+def download_name(record: JobRecord, suffix: str) -> str:
+    """What a job's file is called where it lands: its scene's stem, a frame's numbered (cbox_0001.exr)."""
+    stem = Path(record.scene).stem
+    return (stem if record.spec.frame is None else frame_name(stem, record.spec.frame)) + suffix
+
+
+def attachment(record: JobRecord, suffix: str) -> dict[str, str]:
+    """The Content-Disposition header that names a download as `download_name` does."""
+    return {"Content-Disposition": f'attachment; filename="{download_name(record, suffix)}"'}
 
 
 def job_summary(service: JobService, job_id: str) -> dict[str, Any]:
@@ -131,6 +179,9 @@ def job_summary(service: JobService, job_id: str) -> dict[str, Any]:
     passes = progress.passes
     return {
         "job_id": record.id, "scene": record.scene, "status": record.status, "error": record.error,
+        "name": record.spec.name, "sequence": record.spec.sequence, "frame": record.spec.frame,
+        "spp": record.plan.get("spp"), "resolution": [record.plan.get("width"), record.plan.get("height")],
+        "defines": dict(record.spec.defines),
         "created": record.created, "finished": record.finished, "level": record.plan["options"]["level"],
         "units_done": progress.done, "units_total": progress.total, "units_failed": progress.failed,
         "agents_busy": progress.agents_busy, "eta_s": progress.eta_s, "eta_at_least": progress.eta_at_least,
@@ -174,21 +225,51 @@ async def job_unit(request: web.Request) -> web.Response:
 
 
 async def list_jobs(request: web.Request) -> web.Response:
+    """Every job, or with `?sequence=SEQ` that sequence's, in frame order."""
     service = _service(request)
-    return web.json_response({"jobs": [job_summary(service, r.id) for r in service.store.list_jobs()]})
+    sequence = request.query.get("sequence")
+    records = service.store.list_jobs() if sequence is None else service.store.sequence(sequence)
+    return web.json_response({"jobs": [job_summary(service, r.id) for r in records]})
+
+
+def sequence_status(frames: list[dict[str, Any]]) -> str:
+    """A sequence's status from its frames': running while one runs, failed if one failed, done when all are,
+    else cancelled."""
+    statuses = {f["status"] for f in frames}
+    for status in ("running", "failed", "done"):
+        if status in statuses and (status != "done" or statuses == {"done"}):
+            return status
+    return "cancelled"
+
+
+def sequence_summary(service: JobService, sequence: str) -> dict[str, Any]:
+    """A sequence and its frames' summaries (StoreError for a sequence the store has no job of)."""
+    records = service.store.sequence(sequence)
+    if not records:
+        raise StoreError(f"no sequence {sequence!r}")
+    frames = [job_summary(service, r.id) for r in records]
+    return {"sequence": sequence, "name": records[0].spec.name, "scene": records[0].scene,
+            "status": sequence_status(frames), "frames": frames}
 
 
 async def job_status(request: web.Request) -> web.Response:
+    """One job's summary, or a sequence's (`sequence_summary`)."""
     service = _service(request)
+    job_id = request.match_info["job"]
     try:
-        return web.json_response(job_summary(service, request.match_info["job"]))
+        if SEQUENCE_ID.fullmatch(job_id):
+            return web.json_response(sequence_summary(service, job_id))
+        return web.json_response(job_summary(service, job_id))
     except StoreError as exc:
         return json_error(404, str(exc))
 
 
-async def _finished_result(request: web.Request) -> tuple[JobService, str] | web.Response:
+async def _finished_result(request: web.Request) -> tuple[JobService, JobRecord] | web.Response:
     service = _service(request)
     job_id = request.match_info["job"]
+    if SEQUENCE_ID.fullmatch(job_id):
+        return json_error(400, f"{job_id} is a sequence: each frame's image is fetched by its job id "
+                               f"(GET /api/jobs?sequence={job_id} lists them)")
     try:
         record = service.store.job(job_id)
     except StoreError as exc:
@@ -202,47 +283,61 @@ async def _finished_result(request: web.Request) -> tuple[JobService, str] | web
             raise Refusal(507, "disk full on the master: the job's image is composed once space is freed; "
                                "ask again then") from exc
         raise
-    return service, job_id
+    return service, record
 
 
 async def job_result(request: web.Request) -> web.StreamResponse:
     """The composed image (`result_image`), 409 until the job is done."""
-    found = await _finished_result(request)
-    if isinstance(found, web.Response):
-        return found
-    service, job_id = found
-    image = service.result_image(job_id)
-    return web.FileResponse(image, headers={"Content-Disposition": f'attachment; filename="{job_id}{image.suffix}"'})
+    return await _finished_file(request, "image")
 
 
 async def job_report(request: web.Request) -> web.StreamResponse:
-    found = await _finished_result(request)
-    if isinstance(found, web.Response):
-        return found
-    service, job_id = found
-    return web.FileResponse(service.result_path(job_id).with_suffix(".json"))
+    return await _finished_file(request, "report")
 
 
 async def job_raw(request: web.Request) -> web.StreamResponse:
     """A denoised job's raw image with the denoiser's AOVs (result.raw.exr); 404 for a job not denoised."""
+    return await _finished_file(request, "raw")
+
+
+def result_file(service: JobService, job_id: str, kind: str) -> Path:
+    """A done job's file of `kind`: its composed image, raw image, JSON report or PNG."""
+    if kind == "image":
+        return service.result_image(job_id)
+    return service.result_path(job_id).with_suffix({"raw": RAW_SUFFIX, "report": ".json", "png": ".png"}[kind])
+
+
+async def _finished_file(request: web.Request, kind: str) -> web.StreamResponse:
+    """A finished job's file of `kind` (`result_file`), named as `download_name` names it."""
     found = await _finished_result(request)
     if isinstance(found, web.Response):
         return found
-    service, job_id = found
-    raw = service.result_path(job_id).with_suffix(RAW_SUFFIX)
-    if not raw.exists():
-        return json_error(404, f"job {job_id} was not denoised: its image is the raw one")
-    return web.FileResponse(raw, headers={"Content-Disposition": f'attachment; filename="{job_id}{RAW_SUFFIX}"'})
+    service, record = found
+    path = result_file(service, record.id, kind)
+    if not path.exists():
+        why = "was not denoised: its image is the raw one" if kind == "raw" else f"has no {path.name}"
+        return json_error(404, f"job {record.id} {why}")
+    suffix = RAW_SUFFIX if kind == "raw" else path.suffix
+    return web.FileResponse(path, headers=attachment(record, suffix))
+
+
+async def cancel_jobs(service: JobService, job_id: str) -> dict[str, Any]:
+    """Cancel a job, or every frame of a sequence (StoreError for neither): whether any was running."""
+    if SEQUENCE_ID.fullmatch(job_id):
+        records = service.store.sequence(job_id)
+        if not records:
+            raise StoreError(f"no sequence {job_id!r}")
+        cancelled = [r.id for r in records if await service.cancel(r.id)]
+        return {"job_id": job_id, "sequence": job_id, "cancelled": bool(cancelled), "frames_cancelled": cancelled}
+    return {"job_id": job_id, "cancelled": await service.cancel(job_id)}
 
 
 async def job_cancel(request: web.Request) -> web.Response:
     service = _service(request)
-    job_id = request.match_info["job"]
     try:
-        cancelled = await service.cancel(job_id)
+        return web.json_response(await cancel_jobs(service, request.match_info["job"]))
     except StoreError as exc:
         return json_error(404, str(exc))
-    return web.json_response({"job_id": job_id, "cancelled": cancelled})
 
 
 async def farm(request: web.Request) -> web.Response:
@@ -256,16 +351,19 @@ async def agents(request: web.Request) -> web.Response:
 
 
 def agent_rows(service: JobService, counts: dict[str, tuple[int, int]] | None = None) -> list[dict[str, Any]]:
-    """Every agent the master knows: its state (lost, rendering, idle), speed, credits, the units it holds,
-    units done and failed (`counts`: the store's `agent_counts`, read if not given), and seconds since it
-    was last heard from, and `shared`, what the master says if several clients log in with its JID (the
-    web page shows the same rows)."""
+    """Every agent the master knows: its state (lost, draining, rendering, idle), its speed (seconds of the
+    reference render it does per second: 2.0 renders twice as fast as the reference machine), its render
+    threads, its credits (units done within 10 % of their estimate less those late or failed: what breaks
+    ties between equal bids), the units it holds, units done and failed (`counts`: the store's
+    `agent_counts`, read if not given), and seconds since it was last heard from, and `shared`, what the
+    master says if several clients log in with its JID (the web page shows the same rows)."""
     counts = service.store.agent_counts() if counts is None else counts
     rows = []
     for agent in (service.auction.agent_views(time.time()) if service.auction else ()):
         done, failed = counts.get(agent.name, (0, 0))
-        state = "lost" if agent.lost else "rendering" if agent.holding else "idle"
+        state = "lost" if agent.lost else "draining" if agent.draining else "rendering" if agent.holding else "idle"
         rows.append({"jid": agent.name, "state": state, "lost": agent.lost, "credits": agent.credits,
+                     "draining": agent.draining, "threads": agent.threads,
                      "speed": agent.speed, "holding": list(agent.holding), "units_done": done,
                      "units_failed": failed, "last_seen_s": agent.heard_s_ago,
                      "blocklisted_for": list(agent.blocklisted_for), "shared": _shared(service, agent.name)})

@@ -37,7 +37,7 @@ from core.image.tiles import tile_source
 from core.logs import fields
 from core.model import messages as m
 from core.model.hashing import sha256_file
-from core.model.job import IMAGE_SUFFIXES, JobPlan, JobSpec, RenderOptions, SceneSpec
+from core.model.job import IMAGE_SUFFIXES, RAW_SUFFIX, JobPlan, JobSpec, RenderOptions, SceneSpec
 from core.model.seeds import plan_seed
 from core.model.status import JobStatus
 from core.model.units import SPP_MAX
@@ -324,10 +324,14 @@ class MasterService:
             passes=plan.options.in_passes,
         )
 
-    async def submit(self, bundle: bytes | Path, defines: dict[str, str], options: RenderOptions) -> str:
-        """Accept a job: keep its bundle (bytes, or a file of the jobs folder, moved), plan it (pre-pass in a
+    async def submit(self, bundle: bytes | Path, spec: JobSpec) -> str:
+        """Accept a job (`spec`: its -D parameters, options, name, and its sequence and frame if it is one
+        frame of one): keep its bundle (bytes, or a file of the jobs folder, moved), plan it (pre-pass in a
         child process), auction its units. The job is stored as created when its upload had arrived: its
-        time includes the planning (pre-pass) it waited for."""
+        time includes the planning (pre-pass) it waited for. A frame range is expanded by the job API."""
+        if spec.frames is not None:
+            raise QuekaroError("a frame range is one job per frame: submit each frame's own spec")
+        defines, options = spec.defines, spec.options
         received = time.time()
         job_id = uuid.uuid4().hex[:12]
         job_dir = self.job_dir(job_id)
@@ -358,7 +362,7 @@ class MasterService:
             if isinstance(exc, QuekaroError):
                 raise _as_submitted(exc, job_dir / "scene") from exc
             raise
-        self._create_job(job_id, scene_name, JobSpec(defines, options), plan, received)
+        self._create_job(job_id, scene_name, dataclasses.replace(spec, options=options), plan, received)
         if options.denoise:  # rendered while the agents render the units; assembly waits for it
             task = asyncio.get_running_loop().create_task(self._aov_pass(job_id), name=f"AOV pass {job_id}")
             self._aov_passes.add(task)
@@ -410,6 +414,37 @@ class MasterService:
                 return self.store.cancel(job_id, time.time())
             out = await self._handle(au.JobCancelRequested(job_id, stimulus_id=f"cancel-{job_id}"))
             return any(isinstance(i, au.JobCancelled) for i in out)  # False: it had already ended
+
+    async def retry_unit(self, job_id: str, index: int) -> str | None:
+        """Render a done unit again (the auction's `UnitRetryRequested`): None once it is back to the auction,
+        else why not. A done job the auction does not know (ended before this master started) is taken up
+        first, as a restart takes up a running one; its composed image goes, to be composed again."""
+        async with self._lock:
+            record = self.store.job(job_id)
+            if self.auction.job_view(job_id) is None and record.status == JobStatus.DONE:
+                units = self.store.units(job_id)
+                adopt = au.JobSubmitted(self.job_info(record), [u.unit() for u in units],
+                                        _tile_channels(self.job_plan(record)), frozenset(u.index for u in units),
+                                        stimulus_id=f"adopt-{job_id}")
+                self.auction.handle(adopt, time.time())  # its JobDone restates what the store has
+            out = await self._handle(au.UnitRetryRequested(job_id, index, stimulus_id=f"retry-{job_id}-{index}"))
+        ignored = [i for i in out if isinstance(i, au.MessageIgnored) and i.job_id == job_id]
+        return ignored[0].reason if ignored else None
+
+    async def drain(self, agent: str, drain: bool) -> str | None:
+        """Drain an agent (no new award; it finishes what it holds), or resume it: None once done, else why not."""
+        kind, verb = (au.AgentDrainRequested, "drain") if drain else (au.AgentResumeRequested, "resume")
+        async with self._lock:
+            out = await self._handle(kind(agent, stimulus_id=f"{verb}-{agent}"))
+        ignored = [i for i in out if isinstance(i, au.MessageIgnored) and i.agent is None and i.job_id is None]
+        return ignored[0].reason if ignored else None
+
+    async def delete_job(self, job_id: str) -> None:
+        """Forget an ended job: its rows and its folder (bundle, tiles, image). StoreError for a running one."""
+        async with self._lock:
+            self.store.delete_job(job_id)
+            self._merger.forget(job_id)
+        await asyncio.to_thread(shutil.rmtree, self.job_dir(job_id), True)
 
     # ---- the data plane's callbacks -----------------------------------------------------------------
 
@@ -504,6 +539,8 @@ class MasterService:
                     write_verdicts(self.job_dir(item.job_id), item)
                 elif isinstance(item, au.UnitDone) and self.auction.merges_passes(item.job_id):
                     self._merge_later(item)
+                elif isinstance(item, au.UnitRetried):
+                    self._drop_result(item.job_id)
         for to, message in outgoing(instructions):
             try:
                 performative, body = m.encode(message)
@@ -575,6 +612,12 @@ class MasterService:
         self._aov_passes.discard(task)
         if not task.cancelled() and task.exception() is not None:
             log.error("%s failed: %s", task.get_name(), task.exception())
+
+    def _drop_result(self, job_id: str) -> None:
+        """A job runs again (a unit retried): its composed image, report and preview go, composed again at its end."""
+        stem = self.result_path(job_id)
+        for suffix in (*IMAGE_SUFFIXES, RAW_SUFFIX, ".json", ".png"):
+            stem.with_suffix(suffix).unlink(missing_ok=True)
 
     async def _assemble(self, job_id: str) -> dict[str, Any]:
         """The job's image, after its AOV pass where it is denoised, composed in a thread."""

@@ -380,6 +380,20 @@ class JobStore:
             sql, args = sql + " WHERE status = ?", (status,)
         return [_job(r) for r in self.db.execute(sql + " ORDER BY created, id", args)]
 
+    def sequence(self, sequence: str) -> list[JobRecord]:
+        """The jobs of a frame sequence (their specs name it), in frame order; empty for an unknown one."""
+        jobs = [r for r in self.list_jobs() if r.spec.sequence == sequence]
+        return sorted(jobs, key=lambda r: (r.spec.frame, r.created, r.id))
+
+    def delete_job(self, job_id: str) -> None:
+        """Forget an ended job: its row, units, attempts and results (its files are the master's to remove).
+        A running job is refused (StoreError): cancel it first."""
+        with self._tx() as db:
+            if self.job(job_id).status == JobStatus.RUNNING:
+                raise StoreError(f"job {job_id!r} is running: cancel it before deleting it")
+            for table, key in (("results", "job_id"), ("attempts", "job_id"), ("units", "job_id"), ("jobs", "id")):
+                db.execute(f"DELETE FROM {table} WHERE {key} = ?", (job_id,))
+
     def units(self, job_id: str) -> list[UnitRecord]:
         rows = self.db.execute("SELECT * FROM units WHERE job_id = ? ORDER BY idx", (job_id,))
         return [
@@ -699,6 +713,10 @@ class JobStore:
             case au.UnitRequeued():
                 self._finish(db, ev.token, "requeued", now, None, None, ev.reason)
                 self._agent(db, ev.agent, now, None)
+            case au.UnitRetried():  # its tile's row goes (the file is the master's to remove); a done job runs again
+                db.execute("DELETE FROM results WHERE job_id = ? AND idx = ?", (ev.job_id, ev.index))
+                self._set_unit(db, ev.job_id, ev.index, UnitStatus.PENDING)
+                self._reopen_job(db, ev.job_id)
             case au.PassesOrdered():
                 self._add_units(db, ev.job_id, ev.units)
             case au.JobDone():
@@ -707,7 +725,8 @@ class JobStore:
                 self._end_job(db, ev.job_id, JobStatus.FAILED, now, ev.reason)
             case au.JobCancelled():
                 self._end_job(db, ev.job_id, JobStatus.CANCELLED, now, ev.reason)
-            case au.AgentJoined() | au.AgentLost() | au.AgentBack() | au.AgentBlocklisted() | au.BidRefused():
+            case (au.AgentJoined() | au.AgentLost() | au.AgentBack() | au.AgentBlocklisted() | au.BidRefused()
+                  | au.AgentDrained() | au.AgentResumed()):
                 self._agent(db, ev.agent, now, None)
             case au.PassesSettled():
                 pass  # the master writes the verdicts beside the job's tiles; its passes still out end with the job

@@ -526,3 +526,41 @@ def test_a_schema_4_store_keeps_the_hash_of_each_award_token_and_finds_its_attem
         assert stored == {token_sha256("ab" * 16), token_sha256("cd" * 16)} and "cd" * 16 not in stored
         store.finish_attempt("ab" * 16, "requeued", 102.0, reason="lost")
         assert store.units("job-1")[0].status == UnitStatus.PENDING
+
+
+def test_a_sequences_jobs_are_found_in_frame_order_and_an_ended_job_is_deleted_whole(tmp_path: Path) -> None:
+    store = new_store(tmp_path / "jobs.sqlite")
+    options = RenderOptions(level="S", spp=16)
+    for frame, job_id in ((3, "f3"), (1, "f1"), (2, "f2")):
+        spec = JobSpec({"frame": str(frame)}, options, "walk", None, "seq-0123456789ab", frame)
+        store.create_job(job_id, "scene.xml", spec, plan_of(specs(2)), now=200.0 - frame)
+    assert [r.id for r in store.sequence("seq-0123456789ab")] == ["f1", "f2", "f3"]
+    assert store.sequence("seq-ffffffffffff") == [] and store.job("f1").spec.name == "walk"
+    with pytest.raises(StoreError, match="is running: cancel it before deleting it"):
+        store.delete_job("f1")
+    store.record_award("f1", 0, "A", "tok-f1", 201.0, 1.0)
+    store.record_result("f1", 0, "/tiles/0.exr", HASH, {"spp": 16}, 202.0)
+    store.cancel("f1", 203.0)
+    store.delete_job("f1")
+    with pytest.raises(StoreError, match="no job 'f1'"):
+        store.job("f1")
+    for table in ("units", "attempts", "results"):
+        assert store.db.execute(f"SELECT COUNT(*) FROM {table} WHERE job_id = 'f1'").fetchone()[0] == 0
+    assert [r.id for r in store.sequence("seq-0123456789ab")] == ["f2", "f3"]
+    assert len(store.units("job-1")) == 4  # the other jobs keep theirs
+
+
+def test_a_retried_unit_loses_its_result_and_its_done_job_runs_again(tmp_path: Path) -> None:
+    store = new_store(tmp_path / "jobs.sqlite", n=1)
+    store.record_award("job-1", 0, "A", "tok", 101.0, 1.0)
+    store.record_result("job-1", 0, "/tiles/0.exr", HASH, {"spp": 16}, 102.0)
+    store.finish_attempt("tok", "done", 102.0, 1.0, {"spp": 16})
+    store.mark_done("job-1", 0, 102.0)
+    store.set_status("job-1", JobStatus.DONE, 103.0)
+    store.apply([au.UnitRetried("job-1", 0, "asked by the user")], 104.0)
+    record = store.job("job-1")
+    assert (record.status, record.finished) == (JobStatus.RUNNING, None)
+    assert [u.status for u in store.units("job-1")] == [UnitStatus.PENDING] and store.results("job-1") == []
+    assert [a.outcome for a in store.attempts("job-1")] == ["done"]  # its history stays
+    [running] = store.running_jobs()
+    assert running.done == [] and running.delivered_by == {}

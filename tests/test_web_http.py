@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import io
 import json
+import shutil
 import time
 import tomllib
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -72,6 +73,7 @@ class FakeMaster:
     data_plane: str = "http (loopback)"
     shared_accounts: SharedAccounts = field(default_factory=SharedAccounts)
     submitted: list[tuple[bytes, dict[str, str], RenderOptions]] = field(default_factory=list)
+    specs: list[JobSpec] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.jobs_dir = self.home / "jobs"
@@ -87,42 +89,68 @@ class FakeMaster:
     def result_path(self, job_id: str) -> Path:
         return self.job_dir(job_id) / "result.exr"
 
+    def result_image(self, job_id: str) -> Path:
+        return self.result_path(job_id)
+
+    async def retry_unit(self, job_id: str, index: int) -> str | None:
+        """As the master's: the store's unit back to pending where it is done (the auction's decision is
+        tests/test_auction_page.py's), else why not."""
+        if not any(u.index == index and u.status == "done" for u in self.store.units(job_id)):
+            return "only a done unit is retried"
+        self.store.apply([au.UnitRetried(job_id, index, "asked by the user")], time.time())
+        return None
+
+    async def drain(self, agent: str, drain: bool) -> str | None:
+        """Through the real auction, as the master's."""
+        kind = au.AgentDrainRequested if drain else au.AgentResumeRequested
+        ignored = [i for i in self.auction.handle(kind(agent), time.time()) if isinstance(i, au.MessageIgnored)]
+        return ignored[0].reason if ignored else None
+
+    async def delete_job(self, job_id: str) -> None:
+        self.store.delete_job(job_id)
+        shutil.rmtree(self.job_dir(job_id), ignore_errors=True)
+
     async def cancel(self, job_id: str) -> bool:
         return self.store.cancel(job_id, time.time())
 
     async def ensure_assembled(self, job_id: str) -> Path:
         return self.result_path(job_id).with_suffix(".json")
 
-    async def submit(self, bundle: Path, defines: dict[str, str], options: RenderOptions) -> str:
-        self.submitted.append((bundle.read_bytes(), defines, options))
+    async def submit(self, bundle: Path, spec: JobSpec) -> str:
+        self.submitted.append((bundle.read_bytes(), spec.defines, spec.options))
+        self.specs.append(spec)
         bundle.unlink()  # the real master moves it into the new job's folder
-        return "job0000002"
+        return f"job000000{len(self.submitted) + 1}"
 
-    def add_job(self, job_id: str = JOB, level: str = "S", denoise: bool = False) -> None:
+    def add_job(self, job_id: str = JOB, level: str = "S", denoise: bool = False, name: str | None = None,
+                sequence: str | None = None, frame: int | None = None) -> None:
         effects = Effects("llvm_ad_rgb", "path", 8, ["the scene's integrator is path"])
         options = RenderOptions(level=level, spp=16, denoise=denoise)
         plan = JobPlan(SceneSpec(Path("scene.xml")), options, W, H, effects, 16, 8, _units(), bundle_sha256="ef" * 32)
-        self.store.create_job(job_id, "scene.xml", JobSpec({"res": "32"}, options), plan, time.time())
+        defines = {"res": "32", **({"frame": str(frame)} if frame is not None else {})}
+        spec = JobSpec(defines, options, name, None, sequence, frame)
+        self.store.create_job(job_id, "scene.xml", spec, plan, time.time())
         self.job_dir(job_id).mkdir(parents=True, exist_ok=True)
         (self.job_dir(job_id) / "bundle.tar").write_bytes(b"the job's bundle")
 
-    def award(self, index: int, token: str = AWARD) -> None:
-        self.store.record_award(JOB, index, AGENT, token, time.time(), 2.0)
+    def award(self, index: int, token: str = AWARD, job_id: str = JOB) -> None:
+        self.store.record_award(job_id, index, AGENT, token, time.time(), 2.0)
 
-    def finish(self, index: int, token: str = AWARD, value: float = 0.5, noise: float = 0.0) -> None:
+    def finish(self, index: int, token: str = AWARD, value: float = 0.5, noise: float = 0.0,
+               job_id: str = JOB) -> None:
         """The unit's tile lands (a flat tile of `value`, with Gaussian `noise` if asked), as the master
         records one."""
         rect = _units()[index].rect
-        meta = {"job_id": JOB, "unit_index": index, "spp": 12, "depth": 6, "band": 0, "agent": AGENT}
-        (self.job_dir(JOB) / "tiles").mkdir(exist_ok=True)
+        meta = {"job_id": job_id, "unit_index": index, "spp": 12, "depth": 6, "band": 0, "agent": AGENT}
+        (self.job_dir(job_id) / "tiles").mkdir(exist_ok=True)
         pixels = value + noise * np.random.default_rng(index).standard_normal((rect.h, rect.w, 3))
-        path = write_tile(self.job_dir(JOB) / "tiles" / f"unit-{index}.exr",
+        path = write_tile(self.job_dir(job_id) / "tiles" / f"unit-{index}.exr",
                           Tile(pixels.clip(0).astype(np.float32), rect, rect, meta))
         params = {"spp": 12, "depth": 6, "band": 0, "seconds": 1.5, "nonfinite": 0, "agent": AGENT,
                   "outputs": {"Rl": 0.75, "Ls": 0.8, "Ibs": 0.1}, "rules": "pathtracing.xml"}
-        self.store.record_result(JOB, index, str(path), "00" * 32, params, time.time())
+        self.store.record_result(job_id, index, str(path), "00" * 32, params, time.time())
         self.store.finish_attempt(token, "done", time.time(), 1.5, params)
-        self.store.mark_done(JOB, index, time.time())
+        self.store.mark_done(job_id, index, time.time())
 
 
 @dataclass

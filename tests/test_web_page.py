@@ -18,7 +18,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +28,7 @@ from selenium.webdriver.common.action_chains import ActionChains
 from selenium.webdriver.common.by import By
 from selenium.webdriver.remote.webdriver import WebDriver
 from selenium.webdriver.support.ui import Select
-from web_support import click, http, no_downloads, require_browser, rows, screenshot, start_browser, wait_until
+from web_support import click, http, module_browser, module_farm, rows, screenshot, wait_until
 
 from core.model.geometry import filter_reach
 from core.scene.bundle import make_bundle
@@ -53,23 +52,8 @@ def bundle_of(defines: dict[str, str]) -> bytes:
         return make_bundle(SCENE, defines, Path(tmp) / "b.tar").path.read_bytes()
 
 
-@pytest.fixture(scope="module")
-def farm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LocalFarm]:
-    require_browser()
-    with LocalFarm(tmp_path_factory.mktemp("farm"), agents=2, threads=1) as farm:
-        farm.wait_for_agents()
-        yield farm
-
-
-@pytest.fixture(scope="module")
-def browser(farm: LocalFarm, tmp_path_factory: pytest.TempPathFactory) -> Iterator[WebDriver]:
-    with pytest.MonkeyPatch.context() as patch:
-        no_downloads(patch)
-        driver = start_browser(tmp_path_factory.mktemp("chromium-profile"))
-        try:
-            yield driver
-        finally:
-            driver.quit()
+farm = pytest.fixture(scope="module", name="farm")(module_farm)
+browser = pytest.fixture(scope="module", name="browser")(module_browser)
 
 
 def admin_token(farm: LocalFarm) -> str:
@@ -261,8 +245,9 @@ def test_watch_a_job_render_until_its_image_is_complete_then_click_a_unit(farm, 
     agents = wait_until(lambda: len(found := rows(browser, "#agents-table tbody tr")) == 2 and found, 20,
                         "two agents")
     assert {a["data"]["state"] for a in agents} <= {"idle", "rendering"}, agents
-    assert sum(int(a["cells"][3]) for a in agents) >= total  # units done, over both
-    assert all(a["cells"][7].endswith("s ago") for a in agents), agents
+    assert sum(int(a["cells"][4]) for a in agents) >= total  # units done, over both
+    assert all(a["cells"][6].endswith("s ago") for a in agents), agents
+    assert all(a["cells"][1] == "1" and a["cells"][3].endswith(" x reference") for a in agents), agents  # threads
     screenshot(browser, tmp_path, "agents")
     errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
     assert not errors, errors  # no script error, no resource the page's CSP refused

@@ -23,7 +23,7 @@ import os
 import time
 import urllib.error
 import urllib.request
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +33,8 @@ from selenium.webdriver.chrome.service import Service
 from selenium.webdriver.common import selenium_manager
 from selenium.webdriver.common.by import By
 from selenium.webdriver.remote.webdriver import WebDriver
+
+from farm.local import LocalFarm
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path("/usr/bin/chromedriver")
@@ -132,3 +134,23 @@ def http(method: str, url: str, headers: dict[str, str] | None = None,
     except urllib.error.HTTPError as exc:
         return exc.code, dict(exc.headers), exc.read()
 
+
+
+def module_farm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LocalFarm]:
+    """A browser test module's farm (`farm = pytest.fixture(scope="module", name="farm")(module_farm)`): the
+    embedded XMPP server, the master and two render agents of one Dr.Jit thread each."""
+    require_browser()
+    with LocalFarm(tmp_path_factory.mktemp("farm"), agents=2, threads=1) as farm:
+        farm.wait_for_agents()
+        yield farm
+
+
+def module_browser(farm: LocalFarm, tmp_path_factory: pytest.TempPathFactory) -> Iterator[WebDriver]:
+    """A browser test module's chromium (after its farm), with nothing allowed to download."""
+    with pytest.MonkeyPatch.context() as patch:
+        no_downloads(patch)
+        driver = start_browser(tmp_path_factory.mktemp("chromium-profile"))
+        try:
+            yield driver
+        finally:
+            driver.quit()

@@ -8,9 +8,11 @@ are used: tests/test_layers.py fails on any other read of the auction.
 from master.auction.instructions import (
     AgentBack,
     AgentBlocklisted,
+    AgentDrained,
     AgentForgotten,
     AgentJoined,
     AgentLost,
+    AgentResumed,
     AgentSilent,
     BidRefused,
     Instruction,
@@ -29,12 +31,15 @@ from master.auction.instructions import (
     UnitDone,
     UnitFailed,
     UnitRequeued,
+    UnitRetried,
 )
 from master.auction.machine import Auction
 from master.auction.passes import ResumedPasses, pass_origin
 from master.auction.schedule import Placement, PlanAgent, ProjectedUnit, fluid_finish, project, refine
 from master.auction.state import Config, Transition
 from master.auction.stimuli import (
+    AgentDrainRequested,
+    AgentResumeRequested,
     DiskFreed,
     DiskFull,
     JobCancelRequested,
@@ -44,15 +49,20 @@ from master.auction.stimuli import (
     Stimulus,
     Tick,
     TileStored,
+    UnitRetryRequested,
 )
 from master.auction.views import AgentView, AwardView, JobView
 
 __all__ = [
     "AgentBack",
     "AgentBlocklisted",
+    "AgentDrainRequested",
+    "AgentDrained",
     "AgentForgotten",
     "AgentJoined",
     "AgentLost",
+    "AgentResumeRequested",
+    "AgentResumed",
     "AgentSilent",
     "AgentView",
     "Auction",
@@ -90,6 +100,8 @@ __all__ = [
     "UnitDone",
     "UnitFailed",
     "UnitRequeued",
+    "UnitRetried",
+    "UnitRetryRequested",
     "fluid_finish",
     "pass_origin",
     "project",

@@ -123,6 +123,16 @@ class UnitRequeued(Record):
 
 
 @dataclass(frozen=True)
+class UnitRetried(Record):
+    """A done unit goes back to the auction at the user's request: its tile is dropped, its job runs again."""
+
+    template: ClassVar[str] = "unit {index} of job {job_id}: to be rendered again ({reason})"
+    job_id: str
+    index: int
+    reason: str
+
+
+@dataclass(frozen=True)
 class PassesOrdered(Record):
     """A progressive job's next passes, each a work unit of its own (master.auction.passes): the store
     keeps them as the job's units."""
@@ -205,6 +215,21 @@ class AgentForgotten(Record):
     """An agent lost for `Config.forget_lost_s` is dropped from the agents the master lists."""
 
     template: ClassVar[str] = "agent {agent}: lost too long, no longer listed"
+    agent: str
+
+
+@dataclass(frozen=True)
+class AgentDrained(Record):
+    """The user drained the agent: it gets no new award, and finishes what it holds (`holding` units)."""
+
+    template: ClassVar[str] = "agent {agent}: draining ({holding} units left to finish)"
+    agent: str
+    holding: int
+
+
+@dataclass(frozen=True)
+class AgentResumed(Record):
+    template: ClassVar[str] = "agent {agent}: resumed, called to auctions again"
     agent: str
 
 

@@ -28,9 +28,11 @@ from core.model.units import WorkUnit, batch_size, batched
 from master.auction.instructions import (
     AgentBack,
     AgentBlocklisted,
+    AgentDrained,
     AgentForgotten,
     AgentJoined,
     AgentLost,
+    AgentResumed,
     AgentSilent,
     BidRefused,
     Instruction,
@@ -48,6 +50,7 @@ from master.auction.instructions import (
     UnitDone,
     UnitFailed,
     UnitRequeued,
+    UnitRetried,
 )
 from master.auction.passes import PassBook, ResumedPasses
 from master.auction.schedule import (
@@ -74,6 +77,8 @@ from master.auction.state import (
     Watch,
 )
 from master.auction.stimuli import (
+    AgentDrainRequested,
+    AgentResumeRequested,
     DiskFreed,
     DiskFull,
     JobCancelRequested,
@@ -83,6 +88,7 @@ from master.auction.stimuli import (
     Stimulus,
     Tick,
     TileStored,
+    UnitRetryRequested,
 )
 from master.auction.views import AgentView, AwardView, JobView
 from planning.progressive import Finish, Goal, Idle, PassDone, PassOrder, RenderRound
@@ -310,6 +316,10 @@ class Auction:
                 return self._pause("disk full on the master", stimulus.free_bytes, now)
             case DiskFreed():
                 return self._resume("space on the master again", stimulus.free_bytes, now)
+            case UnitRetryRequested():
+                return self._retry_unit(stimulus.job_id, stimulus.index)
+            case AgentDrainRequested() | AgentResumeRequested():
+                return self._drain(stimulus.agent, isinstance(stimulus, AgentDrainRequested))
         raise TypeError(f"not a stimulus of the auction: {type(stimulus).__name__}")
 
     # --- the read API: what the master, its page and its job API may know --------------------------------
@@ -370,7 +380,7 @@ class Auction:
         running = self._running()
         return [AgentView(a.name, a.lost, a.credits, a.speed, tuple(sorted(f"{j}/{i}" for j, i in a.holding)),
                           round(max(0.0, clock - a.last_seen), 1),
-                          tuple(j.info.job_id for j in running if a.name in j.blocklist))
+                          tuple(j.info.job_id for j in running if a.name in j.blocklist), a.threads, a.draining)
                 for a in self._agents.values()]
 
     def live_agents(self) -> int:
@@ -497,8 +507,10 @@ class Auction:
         match msg:
             case m.Register():
                 welcome = SendToAgent(sender, m.Welcome(conversation=msg.conversation))  # the agent retries until it
-                return [*self._register(sender, now, speed=msg.speed, slots=msg.slots,
-                                       rules=PlansWith(msg.rules_sha256, msg.defuzzifier)), welcome]
+                out = self._register(sender, now, speed=msg.speed, slots=msg.slots,
+                                     rules=PlansWith(msg.rules_sha256, msg.defuzzifier))
+                self._agents[sender].threads = msg.threads
+                return [*out, welcome]
             case m.Heartbeat():
                 return self._on_heartbeat(sender, msg, now)
             case m.Propose():
@@ -778,6 +790,38 @@ class Auction:
         self._paused = None
         return [JobsResumed(reason, free_bytes)]
 
+    def _retry_unit(self, job_id: str, index: int) -> list[Instruction]:
+        """A done unit back to the auction at the user's request; a done job runs again for it. Refused (an
+        ignored record saying why) for a unit not done, a job ended otherwise, or a job in passes (its units
+        are merged from passes, each decided on by its goal)."""
+        job = self._jobs.get(job_id)
+        unit = job.units.get(index) if job else None
+        if job is None or unit is None:
+            return [_ignored(None, "no such unit in a job the master auctions", job_id, index)]
+        if job.passes is not None:
+            why = "a job in passes renders its units in passes until its goal: a unit is not retried alone"
+            return [_ignored(None, why, job_id, index)]
+        if unit.status != UnitStatus.DONE or job.status not in (JobStatus.RUNNING, JobStatus.DONE):
+            why = f"the unit is {unit.status.value} and its job {job.status.value}: only a done unit is retried"
+            return [_ignored(None, why, job_id, index)]
+        if job.status == JobStatus.DONE:
+            self._set_job(job, JobStatus.RUNNING)
+        self._set_unit(job, unit, UnitStatus.PENDING)
+        unit.delivered_by = None
+        return [UnitRetried(job_id, index, "asked by the user")]
+
+    def _drain(self, name: str, drain: bool) -> list[Instruction]:
+        """Drain an agent (no new award; it finishes what it holds) or resume it; a change that changes
+        nothing is ignored, saying why."""
+        agent = self._agents.get(name)
+        if agent is None:
+            return [_ignored(None, f"no agent {name} is known")]
+        if agent.draining == drain:
+            return [_ignored(None, f"agent {name} is {'already draining' if drain else 'not draining'}")]
+        agent.draining = drain
+        self._recheck(agent)
+        return [AgentDrained(name, len(agent.holding)) if drain else AgentResumed(name)]
+
     def _cancel_job(self, job_id: str, reason: str) -> list[Instruction]:
         job = self._jobs.get(job_id)
         if job is None or job.status != JobStatus.RUNNING:
@@ -816,8 +860,9 @@ class Auction:
         return sorted(free, key=lambda a: (-a.score, a.name))
 
     def _callable(self, agent: Agent) -> bool:
-        """Live, not in an auction already, not silent, and holding nothing or fewer units than its slots."""
-        return agent.invited is None and agent.silent_until is None and not agent.lost \
+        """Live, not drained, not in an auction already, not silent, and holding nothing or fewer units than
+        its slots."""
+        return agent.invited is None and agent.silent_until is None and not agent.lost and not agent.draining \
             and (not agent.holding or len(agent.holding) < self._slots(agent))
 
     def _recheck(self, agent: Agent) -> None:
@@ -908,10 +953,11 @@ class Auction:
         wins: dict[str, list[UnitState]] = {}
         units = sorted((job.units[i] for i in round_.units), key=lambda u: (-u.spec.work, u.spec.index))
         usable = self._rates(job).keys() if any(u.failed_on for u in units) else ()  # for `_excluded`
+        drained = {name for name in round_.offered if name in self._agents and self._agents[name].draining}
         for unit in units:
             if unit.status != UnitStatus.ANNOUNCED:
                 continue
-            full = {name for name, won in wins.items() if len(won) >= round_.room.get(name, 1)}
+            full = drained | {name for name, won in wins.items() if len(won) >= round_.room.get(name, 1)}
             winner = self._pick(round_, unit, job, full, now, _excluded(unit, usable))
             if winner is None:
                 self._set_unit(job, unit, UnitStatus.PENDING)

@@ -142,6 +142,8 @@ class Agent:
     silent_until: float | None = None  # left out of auctions until then (Config.silence_max_s)
     slots: int | None = None  # units it holds at once, as its Register told (None: Config.slots)
     rules: PlansWith = NOT_TOLD  # what it plans with, as its Register told
+    threads: int | None = None  # its render threads, as its Register told (None: not told)
+    draining: bool = False  # the user drained it: no new award, it finishes what it holds
     # Seconds per unit of cost, per job: from its latest bids, and from its last unit that overran.
     rates: dict[str, float] = field(default_factory=dict)
     late_rates: dict[str, float] = field(default_factory=dict)

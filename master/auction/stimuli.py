@@ -1,4 +1,5 @@
-"""What the auction is told: a job submitted or cancelled, a message or a tile from an agent, the disk, the clock.
+"""What the auction is told: a job submitted or cancelled, a message or a tile from an agent, the disk, the clock,
+and what the user asks of units and agents from the page (retry a done unit, drain or resume an agent).
 
 Each stimulus carries a `stimulus_id` (the master names it from its source: a message's conversation, a
 tile's unit; the auction numbers one left empty), which every instruction it causes and every unit change
@@ -54,6 +55,28 @@ class PassMerged(Stimulus):
 class JobCancelRequested(Stimulus):
     job_id: str
     reason: str = "cancelled by the user"
+
+
+@dataclass(frozen=True)
+class UnitRetryRequested(Stimulus):
+    """The user asks for a done unit to be rendered again: it goes back to the auction (its job runs again)."""
+
+    job_id: str
+    index: int
+
+
+@dataclass(frozen=True)
+class AgentDrainRequested(Stimulus):
+    """The user drains an agent: it is awarded nothing new and finishes the units it holds."""
+
+    agent: str
+
+
+@dataclass(frozen=True)
+class AgentResumeRequested(Stimulus):
+    """The user resumes a drained agent: it is called to auctions again."""
+
+    agent: str
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,8 @@ class AgentView:
     holding: tuple[str, ...]  # "job/unit" of the units it holds, sorted
     heard_s_ago: float
     blocklisted_for: tuple[str, ...]  # running jobs that no longer offer it units
+    threads: int | None = None  # its render threads, as its Register told
+    draining: bool = False  # drained by the user: awarded nothing new
 
 
 @dataclass(frozen=True)

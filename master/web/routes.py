@@ -5,14 +5,20 @@
     GET  /ui/login, POST /ui/login          the login form; POST the admin token to open a session
     POST /ui/logout                         ends the session (CSRF)
     GET  /ui/static/...                     the page's CSS and JavaScript (no session)
-    GET  /ui/api/jobs[/{job}]               jobs table; one job with its units
-    GET  /ui/api/jobs/{job}/units/{unit}    one unit: attempts, the rules that fired
+    GET  /ui/api/jobs[/{job}]               jobs table; one job with its units (a sequence id: its frames)
+    GET  /ui/api/jobs/{job}/units/{unit}    one unit: attempts, the rules that fired, its lines of the log
     GET  /ui/api/jobs/{job}/preview.png     the image so far
     GET  /ui/api/jobs/{job}/report          a finished job's report
-    POST /ui/api/jobs/{job}/cancel          (CSRF)
+    GET  /ui/api/jobs/{job}/download/{kind} image (EXR), png, report (JSON) or raw (EXR), named as the CLI
+                                            names them; png of a job that did not finish: its partial image
+    POST /ui/api/jobs/{job}/cancel          (CSRF; a sequence id: every frame)
     POST /ui/api/jobs/{job}/resubmit        the job again (CSRF); a JSON body {"denoise": bool} may turn
                                             its denoising on or off
+    POST /ui/api/jobs/{job}/units/{unit}/retry  a done unit rendered again (CSRF)
+    POST /ui/api/jobs/{job}/delete          an ended job's files and rows (CSRF)
     GET  /ui/api/agents                     agents table
+    POST /ui/api/agents/drain               {"agent": JID, "drain": bool}: drain or resume it (CSRF)
+    GET  /ui/api/logs[/{name}][?lines=N]    the farm's process logs; one log's last lines
     GET  /ui/events[?job=ID]                server-sent events (master.web.events)
 """
 
@@ -34,11 +40,12 @@ from aiohttp import web
 
 from core.errors import QuekaroError
 from core.model.geometry import DEFAULT_FILTER_RADIUS, filter_reach
-from core.model.job import RGB
+from core.model.job import RGB, JobSpec
 from core.model.status import JobStatus
 from master.http_guard import JOB_PART, UNIT_PART
+from master.job_api import attachment, cancel_jobs, result_file
 from master.store import JobRecord, StoreError
-from master.web import auth
+from master.web import auth, logs
 from master.web.events import Watcher, stream
 from master.web.preview import Previews, shrink_factor
 from master.web.rules import fired_rules, planner_for
@@ -87,9 +94,15 @@ def add_web_routes(app: web.Application, service: WebService) -> WebState:
     r.add_get("/ui/api/jobs/{job}/units/{unit}", api_unit)
     r.add_get("/ui/api/jobs/{job}/preview.png", api_preview)
     r.add_get("/ui/api/jobs/{job}/report", api_report)
+    r.add_get("/ui/api/jobs/{job}/download/{kind}", api_download)
     r.add_post("/ui/api/jobs/{job}/cancel", api_cancel)
     r.add_post("/ui/api/jobs/{job}/resubmit", api_resubmit)
+    r.add_post("/ui/api/jobs/{job}/units/{unit}/retry", api_retry)
+    r.add_post("/ui/api/jobs/{job}/delete", api_delete)
     r.add_get("/ui/api/agents", api_agents)
+    r.add_post("/ui/api/agents/drain", api_drain)
+    r.add_get("/ui/api/logs", api_logs)
+    r.add_get("/ui/api/logs/{name}", api_log)
     r.add_get("/ui/events", events)
     app.on_response_prepare.append(_secure_headers)
     app.on_shutdown.append(_closing)
@@ -213,6 +226,7 @@ async def api_unit(request: web.Request) -> web.Response:
     except (StoreError, KeyError) as exc:
         raise web.HTTPNotFound(reason=str(exc).strip("'\"")) from None
     view["rules"] = await asyncio.to_thread(_rules_of, record, view)
+    view["log"] = await asyncio.to_thread(logs.unit_lines, service.home, job_id, int(unit))
     return web.json_response(view)
 
 
@@ -234,28 +248,63 @@ def _rules_of(record: JobRecord, unit: dict[str, Any]) -> dict[str, Any]:
         return {"error": f"the rules could not be evaluated here: {exc}", "note": note}
 
 
+def _record(service: WebService, job_id: str) -> JobRecord:
+    try:
+        return service.store.job(job_id)
+    except StoreError as exc:
+        raise web.HTTPNotFound(reason=str(exc)) from None
+
+
 async def api_preview(request: web.Request) -> web.StreamResponse:
     """The finished job's PNG, or the tiles landed so far composed (`master.web.preview`). A finished
     job's own result.png is served only when it fits MAX_SIDE; a larger one's preview is composed, once."""
     state = _state(request)
     service = _authorized(request)
-    job_id = _job_id(request)
-    try:
-        record = service.store.job(job_id)
-    except StoreError as exc:
-        raise web.HTTPNotFound(reason=str(exc)) from None
+    record = _record(service, _job_id(request))
     width, height = int(record.plan["width"]), int(record.plan["height"])
-    final = service.result_path(job_id).with_suffix(".png")
+    final = service.result_path(record.id).with_suffix(".png")
     if record.status == JobStatus.DONE and final.is_file() and shrink_factor(width, height) == 1:
-        state.previews.forget(job_id)
+        state.previews.forget(record.id)
         return web.FileResponse(final, headers={"Content-Type": "image/png"})
+    return web.FileResponse(await _composed(state, record), headers={"Content-Type": "image/png"})
+
+
+async def _composed(state: WebState, record: JobRecord) -> Path:
+    """The PNG of the job's tiles landed so far (the rest black), shrunk where the image is large."""
+    service = state.service
+    width, height = int(record.plan["width"]), int(record.plan["height"])
     reach = filter_reach(float(record.plan.get("filter_radius", DEFAULT_FILTER_RADIUS)))  # as JobPlan.from_dict
-    aov = aov_pass_path(service, record)
     planned = record.planned_units
-    path = await state.previews.png(job_id, service.job_dir(job_id), width, height, service.store.results(job_id),
-                                    reach, tuple(record.plan.get("colour", RGB)), aov,  # as JobPlan.from_dict
-                                    None if planned is None else len(planned))
-    return web.FileResponse(path, headers={"Content-Type": "image/png"})
+    return await state.previews.png(record.id, service.job_dir(record.id), width, height,
+                                    service.store.results(record.id), reach,
+                                    tuple(record.plan.get("colour", RGB)),  # as JobPlan.from_dict
+                                    aov_pass_path(service, record), None if planned is None else len(planned))
+
+
+DOWNLOADS = ("image", "png", "report", "raw")
+
+
+async def api_download(request: web.Request) -> web.StreamResponse:
+    """A job's file to save, named as `quekaro result` names it (SCENE.exr, a frame's SCENE_0001.exr): a
+    done job's image, PNG, report or raw image; the PNG of a job that ended without finishing is its partial
+    image (its tiles so far, the rest black), named SCENE.partial.png. 409 for what the job does not have yet."""
+    state = _state(request)
+    service = _authorized(request)
+    record, kind = _record(service, _job_id(request)), request.match_info["kind"]
+    if kind not in DOWNLOADS:
+        raise web.HTTPNotFound(reason=f"no download {kind[:40]!r}: {', '.join(DOWNLOADS)}")
+    if record.status != JobStatus.DONE:
+        if kind != "png" or record.status == JobStatus.RUNNING or not service.store.results(record.id):
+            raise web.HTTPConflict(reason=f"job {record.id} is {record.status}: "
+                                          + ("it has no tile" if kind == "png" and record.status != JobStatus.RUNNING
+                                             else "its files are written when it is done"))
+        return web.FileResponse(await _composed(state, record), headers=attachment(record, ".partial.png"))
+    await service.ensure_assembled(record.id)
+    path = result_file(service, record.id, kind)
+    if not path.is_file():
+        raise web.HTTPNotFound(reason=f"job {record.id} has no {kind} file" + (": it was not denoised"
+                                                                              if kind == "raw" else ""))
+    return web.FileResponse(path, headers=attachment(record, ".raw.exr" if kind == "raw" else path.suffix))
 
 
 async def api_report(request: web.Request) -> web.Response:
@@ -270,6 +319,25 @@ async def api_agents(request: web.Request) -> web.Response:
     return web.json_response({"agents": agents_view(_authorized(request))})
 
 
+async def api_logs(request: web.Request) -> web.Response:
+    """The farm's process logs (a local farm's: none for a farm of separate hosts), each with its size."""
+    service = _authorized(request)
+    found = logs.farm_logs(service.home)
+    return web.json_response({"logs": [{"name": n, "bytes": p.stat().st_size} for n, p in found.items()]})
+
+
+async def api_log(request: web.Request) -> web.Response:
+    """One process's log: its last `lines` lines (default 200)."""
+    service = _authorized(request)
+    name, lines = request.match_info["name"], request.query.get("lines", "200")
+    path = logs.farm_logs(service.home).get(name)
+    if path is None:
+        raise web.HTTPNotFound(reason=f"no log of {name[:64]!r}")
+    if not lines.isascii() or not lines.isdigit():
+        raise web.HTTPBadRequest(reason=f"lines={lines[:20]!r}: a count of lines")
+    return web.json_response({"name": name, "lines": await asyncio.to_thread(logs.tail, path, int(lines))})
+
+
 # ---- actions (POST, CSRF) -------------------------------------------------------------------------------
 
 
@@ -279,28 +347,77 @@ async def api_cancel(request: web.Request) -> web.Response:
     await auth.require_action(request, state.sessions)
     job_id = _job_id(request)
     try:
-        cancelled = await state.service.cancel(job_id)
+        answer = await cancel_jobs(state.service, job_id)
     except StoreError as exc:
         raise web.HTTPNotFound(reason=str(exc)) from None
-    log.info("web page: job %s %s", job_id, "cancelled" if cancelled else "had already ended")
-    return web.json_response({"job_id": job_id, "cancelled": cancelled})
+    log.info("web page: job %s %s", job_id, "cancelled" if answer["cancelled"] else "had already ended")
+    return web.json_response(answer)
+
+
+async def api_retry(request: web.Request) -> web.Response:
+    """Render a done unit again (`MasterService.retry_unit`): 409 with the auction's reason where it will not."""
+    state = _state(request)
+    await auth.require_action(request, state.sessions)
+    job_id, unit = _job_id(request), request.match_info["unit"]
+    if not UNIT_PART.fullmatch(unit):
+        raise web.HTTPNotFound(reason="no such unit")
+    _record(state.service, job_id)
+    refused = await state.service.retry_unit(job_id, int(unit))
+    if refused:
+        raise web.HTTPConflict(reason=f"unit {unit} of job {job_id}: {refused}")
+    log.info("web page: unit %s of job %s to be rendered again", unit, job_id)
+    return web.json_response({"job_id": job_id, "unit": int(unit), "retried": True})
+
+
+async def api_delete(request: web.Request) -> web.Response:
+    """Delete an ended job: its rows and its folder. 409 for a running job."""
+    state = _state(request)
+    await auth.require_action(request, state.sessions)
+    record = _record(state.service, _job_id(request))
+    if record.status == JobStatus.RUNNING:
+        raise web.HTTPConflict(reason=f"job {record.id} is running: cancel it before deleting it")
+    await state.service.delete_job(record.id)
+    state.previews.forget(record.id)
+    log.info("web page: job %s deleted", record.id)
+    return web.json_response({"job_id": record.id, "deleted": True})
+
+
+async def api_drain(request: web.Request) -> web.Response:
+    """Drain an agent (the auction awards it nothing new; it finishes what it holds), or resume it."""
+    state = _state(request)
+    await auth.require_action(request, state.sessions)
+    body = await _json_object(request)
+    agent, drain = body.get("agent"), body.get("drain")
+    if not isinstance(agent, str) or not isinstance(drain, bool) or set(body) != {"agent", "drain"}:
+        raise web.HTTPBadRequest(reason='expected {"agent": JID, "drain": true or false}')
+    refused = await state.service.drain(agent, drain)
+    if refused:
+        raise web.HTTPConflict(reason=refused)
+    log.info("web page: agent %s %s", agent, "draining" if drain else "resumed")
+    return web.json_response({"agent": agent, "draining": drain})
 
 
 RESUBMIT_FIELDS = ("denoise",)  # what a re-submission may change of the job's options
 
 
-async def _resubmit_changes(request: web.Request) -> dict[str, Any]:
-    """The options a re-submission changes: its JSON body's fields (none without a body). 400 for a body
-    that is not a JSON object, an unknown field, or a denoise that is not true or false."""
+async def _json_object(request: web.Request) -> dict[str, Any]:
+    """The request's JSON object body ({} without a body); 400 for a body that is not one."""
     body = await request.read()
     if not body.strip():
         return {}
     try:
-        changes = json.loads(body)
+        data = json.loads(body)
     except (ValueError, RecursionError):
         raise web.HTTPBadRequest(reason="the body is not JSON") from None
-    if not isinstance(changes, dict):
+    if not isinstance(data, dict):
         raise web.HTTPBadRequest(reason="the body must be a JSON object, e.g. {\"denoise\": true}")
+    return data
+
+
+async def _resubmit_changes(request: web.Request) -> dict[str, Any]:
+    """The options a re-submission changes: its JSON body's fields (none without a body). 400 for a body
+    that is not a JSON object, an unknown field, or a denoise that is not true or false."""
+    changes = await _json_object(request)
     unknown = sorted(set(changes) - set(RESUBMIT_FIELDS))
     if unknown:
         raise web.HTTPBadRequest(reason=f"unknown field {unknown[0][:40]!r}: a re-submission may change "
@@ -328,7 +445,7 @@ async def api_resubmit(request: web.Request) -> web.Response:
     await asyncio.to_thread(shutil.copyfile, bundle, copy)
     try:
         options = dataclasses.replace(record.spec.options, rules=None, **changes)
-        new_id = await service.submit(copy, dict(record.spec.defines), options)
+        new_id = await service.submit(copy, JobSpec(dict(record.spec.defines), options, record.spec.name))
     except QuekaroError as exc:
         raise web.HTTPUnprocessableEntity(reason=str(exc).replace("\n", " ")[:500]) from None
     finally:

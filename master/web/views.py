@@ -3,8 +3,9 @@
 - `jobs_view`: every job with its state, level, progress, ETA, times and effect decisions (the job API's
   `job_summary`, plus the options and image size the page shows, and whether a denoised job's AOV pass
   is rendered yet: `aov_pass`);
-- `job_view`: one job and its units, each with its rectangle, features (C, S, Nd), state, the agent
-  holding or having rendered it, and the parameters the rules chose (spp, depth, band, Rl/Ls/Ibs);
+- `job_view`: one job and its units, each with its rectangle, features (C, S, Nd), state (a unit its
+  cancelled job left unrendered reads cancelled), the agent holding or having rendered it, and the
+  parameters the rules chose (spp, depth, band, Rl/Ls/Ibs); a sequence id: the sequence and its frames;
 - `unit_view`: one unit's attempts (agent, times, outcome) beside the same;
 - `agents_view`: the job API's agent rows, with a local farm's restarting processes and blocklists;
 - `report_view`: a finished job's report, without its per-unit list (the units are on the page already).
@@ -18,8 +19,9 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from core.home import read_processes
+from core.model.frames import SEQUENCE_ID
 from core.model.status import JobStatus
-from master.job_api import JobService, agent_rows, job_summary, unit_story
+from master.job_api import JobService, agent_rows, job_summary, sequence_summary, unit_story
 from master.store import JobRecord, UnitRecord
 from planning.pipeline import AOV_PASS_FILE
 
@@ -34,6 +36,9 @@ class WebService(JobService, Protocol):
     home: Path
 
     def job_dir(self, job_id: str) -> Path: ...
+    async def retry_unit(self, job_id: str, index: int) -> str | None: ...
+    async def drain(self, agent: str, drain: bool) -> str | None: ...
+    async def delete_job(self, job_id: str) -> None: ...
 
 
 def _round(value: float | None, digits: int = 4) -> float | None:
@@ -51,8 +56,7 @@ def job_row(service: WebService, record: JobRecord, now: float) -> dict[str, Any
     options = record.spec.options
     end = record.finished if record.finished is not None else now
     row.update({
-        "width": record.plan.get("width"), "height": record.plan.get("height"), "spp": record.plan.get("spp"),
-        "depth": record.plan.get("depth"), "defines": dict(record.spec.defines),
+        "width": record.plan.get("width"), "height": record.plan.get("height"), "depth": record.plan.get("depth"),
         "options": {"spp": options.spp, "depth": options.depth, "units": options.units,
                     "integrator": options.integrator, "variant": options.variant,
                     "defuzzifier": options.defuzzifier, "sensor": options.sensor,
@@ -69,11 +73,15 @@ def jobs_view(service: WebService) -> list[dict[str, Any]]:
     return [job_row(service, r, now) for r in reversed(service.store.list_jobs())]
 
 
-def _unit_row(unit: UnitRecord, params: dict[str, Any] | None, agent: str | None) -> dict[str, Any]:
+def _unit_row(unit: UnitRecord, params: dict[str, Any] | None, agent: str | None,
+              job_status: JobStatus) -> dict[str, Any]:
+    """A unit as the page shows it: the store's "failed" of a unit its cancelled job left unrendered reads
+    "cancelled" (the store's word says only that the job ended without it)."""
     params = params or {}
     outputs = params.get("outputs") or {}
+    status = "cancelled" if job_status == JobStatus.CANCELLED and unit.status == "failed" else str(unit.status)
     return {"index": unit.index, "rect": unit.rect.as_list(), "C": _round(unit.C, 6), "S": int(unit.S),
-            "Nd": _round(unit.Nd, 6), "cost": _round(unit.cost), "status": str(unit.status),
+            "Nd": _round(unit.Nd, 6), "cost": _round(unit.cost), "status": status,
             "attempts": unit.attempts, "agent": agent or params.get("agent"),
             "spp": params.get("spp"), "depth": params.get("depth"), "band": params.get("band"),
             "seconds": _round(params.get("seconds"), 3),
@@ -81,13 +89,22 @@ def _unit_row(unit: UnitRecord, params: dict[str, Any] | None, agent: str | None
 
 
 def job_view(service: WebService, job_id: str) -> dict[str, Any]:
-    """One job and every unit of it (raises StoreError for an unknown job)."""
+    """One job and every unit of it, or a sequence and its frames' rows (raises StoreError for neither).
+    `partial`: a job that ended without finishing has tiles, its image shows them alone."""
+    if SEQUENCE_ID.fullmatch(job_id):
+        now = time.time()
+        summary = sequence_summary(service, job_id)
+        frames = [job_row(service, service.store.job(f["job_id"]), now) for f in summary["frames"]]
+        return {**summary, "job_id": job_id, "frames": frames,
+                "frames_done": sum(f["status"] == "done" for f in frames)}
     record = service.store.job(job_id)
     params = {r.index: r.params for r in service.store.results(job_id)}
     holding = {a.index: a.agent for a in service.store.attempts(job_id) if a.outcome == "running"}
-    units = [_unit_row(u, params.get(u.index), holding.get(u.index)) for u in service.store.units(job_id)]
+    units = [_unit_row(u, params.get(u.index), holding.get(u.index), record.status)
+             for u in service.store.units(job_id)]
+    ended = record.status in (JobStatus.CANCELLED, JobStatus.FAILED)
     return {**job_row(service, record, time.time()), "ranges": record.plan.get("ranges", {}),
-            "tiles": len(params), "units": units}
+            "tiles": len(params), "partial": ended and bool(params), "units": units}
 
 
 def unit_view(service: WebService, job_id: str, index: int) -> dict[str, Any]:
@@ -98,8 +115,9 @@ def unit_view(service: WebService, job_id: str, index: int) -> dict[str, Any]:
     params = {r.index: r.params for r in service.store.results(job_id)}.get(index)
     attempts = service.store.attempts(job_id, index)
     holding = next((a.agent for a in attempts if a.outcome == "running"), None)
+    status = service.store.job(job_id).status
     # C and Nd unrounded: the rules are evaluated on them (the job view rounds them for the partition)
-    return {**_unit_row(units[0], params, holding), "C": units[0].C, "Nd": units[0].Nd, "job_id": job_id,
+    return {**_unit_row(units[0], params, holding, status), "C": units[0].C, "Nd": units[0].Nd, "job_id": job_id,
             "agent_rules": (params or {}).get("rules"), "story": unit_story(service, job_id, index),
             "attempt_list": [{"agent": a.agent, "started": a.started, "finished": a.finished,
                               "outcome": a.outcome, "estimate_s": _round(a.estimate, 2),

@@ -1,10 +1,14 @@
-// The farm's page: jobs, one job's image and partition, agents. Plain JavaScript, no framework, no build.
+// The farm's page: jobs (a sequence as one row), one job's image and partition, agents, logs. Plain JavaScript,
+// no framework, no build.
 // Data arrives by server-sent events (/ui/events); the only timer is a 1 s one that ages "last heartbeat"
 // and counts ETAs down locally. Every value from the server is put in the page as text (textContent), never as HTML.
 "use strict";
 
 const CSRF = document.querySelector('meta[name="csrf-token"]').content;
-const STATE_COLOURS = { pending: "#6b7280", awarded: "#d97706", done: "#15803d", failed: "#b91c1c" };
+const STATE_COLOURS = { pending: "#6b7280", awarded: "#d97706", done: "#15803d", failed: "#b91c1c", cancelled: "#7c3aed" };
+// A unit's state in the store's words -> the page's (the legend's).
+const STATE_WORDS = { pending: "queued", announced: "queued", awarded: "rendering", done: "done", failed: "failed", cancelled: "cancelled" };
+const SEQUENCE_ID = /^seq-[0-9a-f]{8,32}$/;
 const VIRIDIS = [[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]];
 
 const state = {
@@ -127,7 +131,7 @@ function decoded(text) {
 function route() {
   const hash = window.location.hash || "#/jobs";
   const jobId = hash.startsWith("#/job/") ? decoded(hash.slice("#/job/".length)) : null;
-  state.view = jobId !== null ? "job" : hash === "#/agents" ? "agents" : "jobs";
+  state.view = jobId !== null ? "job" : hash === "#/agents" ? "agents" : hash === "#/logs" ? "logs" : "jobs";
   if (jobId !== state.jobId || state.source === null) {
     state.jobId = jobId;
     state.job = null;
@@ -142,9 +146,11 @@ function route() {
     if (jobId !== null && !JOB_ID.test(jobId)) state.job = { error: `no job ${JSON.stringify(jobId)}: not a job id` };
     connect();
   }
-  for (const name of ["jobs", "job", "agents"]) document.getElementById(`${name}-view`).hidden = state.view !== name;
-  document.getElementById("nav-jobs").classList.toggle("active", state.view !== "agents");
+  for (const name of ["jobs", "job", "agents", "logs"]) document.getElementById(`${name}-view`).hidden = state.view !== name;
+  document.getElementById("nav-jobs").classList.toggle("active", state.view === "jobs" || state.view === "job");
   document.getElementById("nav-agents").classList.toggle("active", state.view === "agents");
+  document.getElementById("nav-logs").classList.toggle("active", state.view === "logs");
+  if (state.view === "logs") loadLogs();
   render();
 }
 
@@ -183,7 +189,7 @@ function connect() {
 function render() {
   if (state.view === "jobs") renderJobs();
   else if (state.view === "job") renderJob();
-  else renderAgents();
+  else if (state.view === "agents") renderAgents();
 }
 
 // ---- jobs ---------------------------------------------------------------------------------------------
@@ -213,16 +219,29 @@ function effectsCell(effects) {
   return el("details", {}, el("summary", {}, head), el("ul", {}, (effects.reasons || []).map((r) => el("li", {}, r))));
 }
 
+// A button that acts on the second click within 4 s (the first arms it; no browser dialog).
+function armedButton(action, id, label, act) {
+  const key = `${action}-${id}`;
+  const armed = state.armed.has(key);
+  return el("button", {
+    type: "button", class: armed ? "danger armed" : "danger", "data-action": action, "data-job": id,
+    onclick: () => {
+      if (!state.armed.has(key)) {
+        state.armed.set(key, setTimeout(() => { state.armed.delete(key); render(); }, 4000));
+        render();
+        return;
+      }
+      clearTimeout(state.armed.get(key));
+      state.armed.delete(key);
+      act();
+    },
+  }, armed ? `Confirm ${label.toLowerCase()}` : label);
+}
+
 function actionButtons(job) {
   const buttons = [];
-  if (job.status === "running") {
-    const key = `cancel-${job.job_id}`;
-    const armed = state.armed.has(key);
-    buttons.push(el("button", {
-      type: "button", class: armed ? "danger armed" : "danger", "data-action": "cancel", "data-job": job.job_id,
-      onclick: () => cancelJob(job.job_id),
-    }, armed ? "Confirm cancel" : "Cancel"));
-  }
+  if (job.status === "running") buttons.push(armedButton("cancel", job.job_id, "Cancel", () => cancelJob(job.job_id)));
+  else buttons.push(armedButton("delete", job.job_id, "Delete", () => deleteJob(job.job_id)));
   buttons.push(el("button", {
     type: "button", "data-action": "resubmit", "data-job": job.job_id, onclick: () => resubmitJob(job.job_id),
   }, "Re-submit"));
@@ -236,18 +255,33 @@ function actionButtons(job) {
 }
 
 function cancelJob(jobId) {
-  // Two clicks: the first arms the button for 4 s, the second cancels (no browser dialog).
-  const key = `cancel-${jobId}`;
-  if (!state.armed.has(key)) {
-    state.armed.set(key, setTimeout(() => { state.armed.delete(key); render(); }, 4000));
-    render();
-    return;
-  }
-  clearTimeout(state.armed.get(key));
-  state.armed.delete(key);
   post(`/ui/api/jobs/${encodeURIComponent(jobId)}/cancel`)
     .then((r) => say(r.cancelled ? `Job ${jobId} cancelled.` : `Job ${jobId} had already ended.`))
     .catch((e) => say(`Cancel failed: ${e.message}`, true));
+}
+
+function deleteJob(jobId) {
+  post(`/ui/api/jobs/${encodeURIComponent(jobId)}/delete`)
+    .then(() => {
+      say(`Job ${jobId} deleted: its image, tiles and records are gone.`);
+      if (state.jobId === jobId) window.location.hash = "#/jobs";
+    })
+    .catch((e) => say(`Delete failed: ${e.message}`, true));
+}
+
+function retryUnit(jobId, index) {
+  post(`/ui/api/jobs/${encodeURIComponent(jobId)}/units/${index}/retry`)
+    .then(() => {
+      say(`Unit ${index} of job ${jobId} goes back to the auction, to be rendered again.`);
+      if (state.jobId === jobId && state.selected === index) loadUnit(index);
+    })
+    .catch((e) => say(`Retry failed: ${e.message}`, true));
+}
+
+function drainAgent(jid, drain) {
+  post("/ui/api/agents/drain", { agent: jid, drain })
+    .then(() => say(drain ? `Agent ${jid} drains: no new unit; it finishes those it holds.` : `Agent ${jid} resumed.`))
+    .catch((e) => say(`${drain ? "Drain" : "Resume"} failed: ${e.message}`, true));
 }
 
 // `denoise` true or false turns the new job's denoising on or off; left out, the job's own options stay.
@@ -264,13 +298,61 @@ function denoiseText(job) {
   return job.aov_pass ? "yes: the preview is denoised" : "yes: the preview is raw until the AOV pass is rendered";
 }
 
+function definesText(defines) {
+  return Object.entries(defines || {}).map(([k, v]) => `${k}=${v}`).join(" ");
+}
+
+function resolutionText(job) {
+  const [w, h] = job.resolution || [job.width, job.height];
+  return `${w} x ${h}`;
+}
+
+// A sequence's status from its frames' (as the master's job API says it).
+function sequenceStatus(frames) {
+  const statuses = new Set(frames.map((f) => f.status));
+  if (statuses.has("running")) return "running";
+  if (statuses.has("failed")) return "failed";
+  return statuses.size === 1 && statuses.has("done") ? "done" : "cancelled";
+}
+
+// The jobs table's rows: a job alone, or a sequence's frames as one row (frames done/total).
+function tableRows(jobs) {
+  const rows = [], sequences = new Map();
+  for (const job of jobs) {
+    if (!job.sequence) { rows.push(job); continue; }
+    if (!sequences.has(job.sequence)) {
+      const row = { sequence: job.sequence, frames: [] };
+      sequences.set(job.sequence, row);
+      rows.push(row);
+    }
+    sequences.get(job.sequence).frames.push(job);
+  }
+  return rows;
+}
+
+function sequenceRow(seq) {
+  const frames = seq.frames.slice().sort((a, b) => a.frame - b.frame);
+  const first = frames[0], status = sequenceStatus(frames);
+  const done = frames.filter((f) => f.status === "done").length;
+  return el("tr", { "data-job": seq.sequence, "data-status": status, "data-sequence": seq.sequence },
+    el("td", {}, el("a", { href: `#/job/${seq.sequence}`, class: "job-link" }, first.name || seq.sequence),
+      el("div", { class: "muted" }, `sequence ${seq.sequence}`)),
+    el("td", {}, first.scene), el("td", {}, badge(status)), el("td", {}, first.level), el("td", {}, first.spp),
+    el("td", {}, resolutionText(first)), el("td", {}, definesText(first.defines)),
+    el("td", {}, el("span", { class: "frames-done" }, `${done}/${frames.length} frames done`)),
+    el("td", {}), el("td", {}, fmtTime(first.created)), el("td", {}), el("td", {}),
+    el("td", {}, status === "running" ? armedButton("cancel", seq.sequence, "Cancel", () => cancelJob(seq.sequence)) : null));
+}
+
 function renderJobs() {
   if (state.view !== "jobs") return;
-  const rows = state.jobs.map((job) => el("tr", { "data-job": job.job_id, "data-status": job.status },
-    el("td", {}, el("a", { href: `#/job/${job.job_id}`, class: "job-link" }, job.job_id)),
+  const rows = tableRows(state.jobs).map((job) => job.frames ? sequenceRow(job) : el("tr", { "data-job": job.job_id, "data-status": job.status },
+    el("td", {}, el("a", { href: `#/job/${job.job_id}`, class: "job-link" }, job.name || job.job_id),
+      job.name ? el("div", { class: "muted" }, job.job_id) : null),
     el("td", {}, job.scene),
     el("td", {}, badge(job.paused ? `${job.status} (paused)` : job.status), job.error ? el("div", { class: "muted" }, job.error) : null),
     el("td", {}, job.level, job.options && job.options.denoise ? el("div", { class: "muted" }, "denoised") : null),
+    el("td", {}, job.spp), el("td", {}, resolutionText(job)), el("td", { class: "defines" }, definesText(job.defines)),
     el("td", {}, progressBar(job)),
     el("td", {}, eta(job)),
     el("td", {}, fmtTime(job.created)),
@@ -288,23 +370,32 @@ function renderJob() {
   const job = state.job;
   const view = document.getElementById("job-view");
   if (!job) {  // the stream has not sent this job yet: nothing of the job shown before stays
+    clearJob();
     document.getElementById("job-title").textContent = `Job ${state.jobId}`;
     fill(document.getElementById("job-summary"), el("div", { class: "muted" }, "waiting for the master"));
     return;
   }
-  if (job.error && !job.units) {
+  if (job.error && !job.units && !job.frames) {  // no such job: its title, a sentence, and no image of another
+    clearJob();
     document.getElementById("job-title").textContent = `Job ${state.jobId}`;
-    fill(document.getElementById("job-summary"), el("div", {}, job.error));
+    fill(document.getElementById("job-summary"), el("div", { id: "no-job" }, `no job ${state.jobId}`),
+      el("div", { class: "muted" }, job.error));
     return;
   }
+  if (job.frames) { renderSequence(job); return; }
+  document.getElementById("frames-table").hidden = true;
+  document.getElementById("job-stage-part").hidden = false;
   view.dataset.status = job.status;
   view.dataset.unitsDone = job.units_done;
   view.dataset.unitsTotal = job.units_total;
   view.dataset.passesDone = job.passes ? job.passes.done : "";
-  document.getElementById("job-title").textContent = `Job ${job.job_id}: ${job.scene}`;
+  document.getElementById("job-title").textContent = `Job ${job.name ? `${job.name} (${job.job_id})` : job.job_id}: ${job.scene}`
+    + (job.sequence ? `, frame ${job.frame}` : "");
   const item = (label, value) => el("div", {}, el("b", {}, label), value);
   fill(document.getElementById("job-summary"),
-    item("state", badge(job.status)), item("level", job.level),
+    item("state", badge(job.status)), job.partial ? item("image so far", badge("partial")) : null, item("level", job.level),
+    job.sequence ? item("sequence", el("a", { href: `#/job/${job.sequence}` }, `${job.sequence}, frame ${job.frame}`)) : null,
+    item("-D", definesText(job.defines) || "-"),
     item("progress", progressBar(job)),
     item("ETA", eta(job) || "-"),
     item("image", `${job.width} x ${job.height}, spp ${job.spp}, depth ${job.depth} (the job's: each unit's own are on the partition)`),
@@ -315,11 +406,66 @@ function renderJob() {
     job.adaptive_text ? el("div", { id: "job-adaptive" }, el("b", {}, "adaptive"), " " + job.adaptive_text) : null,
     el("div", {}, actionButtons(job)),
     job.error ? item("error", job.error) : null);
+  renderDownloads(job);
   refreshPreview(job);
   drawOverlay();
   refreshSelected(job);
   if (job.status === "done" && job.result_ready && state.reportFor !== job.job_id) loadReport(job.job_id);
   if (job.status !== "done") document.getElementById("report").hidden = true;
+}
+
+// Nothing of a job shown before stays: its image, partition, unit, report and downloads.
+function clearJob() {
+  const img = document.getElementById("preview");
+  img.removeAttribute("src");
+  delete img.dataset.tiles;
+  const canvas = document.getElementById("overlay");
+  canvas.getContext("2d").clearRect(0, 0, canvas.width, canvas.height);
+  canvas.dataset.units = "0";
+  fill(document.getElementById("legend"));
+  document.getElementById("report").hidden = true;
+  document.getElementById("downloads").hidden = true;
+  document.getElementById("frames-table").hidden = true;
+  document.getElementById("job-stage-part").hidden = true;
+  delete document.getElementById("job-view").dataset.status;
+}
+
+// A done job's files to save (named as `quekaro result` names them); a job that ended without finishing
+// offers its partial image.
+function renderDownloads(job) {
+  const box = document.getElementById("downloads");
+  const base = `/ui/api/jobs/${encodeURIComponent(job.job_id)}/download`;
+  const link = (kind, text) => el("a", { href: `${base}/${kind}`, download: "", "data-download": kind }, text);
+  if (job.status === "done" && job.result_ready) {
+    fill(box, el("b", {}, "Download"), link("image", "image (EXR)"), link("png", "PNG"), link("report", "report (JSON)"),
+      job.options && job.options.denoise ? link("raw", "raw image (EXR, with AOVs)") : null);
+  } else if (job.partial) {
+    fill(box, el("b", {}, "Download"), link("png", "partial image (PNG: the tiles done, the rest black)"));
+  } else {
+    box.hidden = true;
+    return;
+  }
+  box.hidden = false;
+}
+
+// A sequence: one row per frame, each with its progress; a frame is opened, cancelled or deleted as a job.
+function renderSequence(seq) {
+  clearJob();
+  const view = document.getElementById("job-view");
+  view.dataset.status = seq.status;
+  document.getElementById("job-title").textContent = `Sequence ${seq.name ? `${seq.name} (${seq.sequence})` : seq.sequence}: ${seq.scene}`;
+  const first = seq.frames[0] || {};
+  const item = (label, value) => el("div", {}, el("b", {}, label), value);
+  fill(document.getElementById("job-summary"), item("state", badge(seq.status)),
+    item("frames", el("span", { id: "frames-done" }, `${seq.frames_done}/${seq.frames.length} done`)),
+    item("level", first.level), item("spp", first.spp), item("resolution", resolutionText(first)),
+    seq.status === "running" ? el("div", {}, armedButton("cancel", seq.sequence, "Cancel", () => cancelJob(seq.sequence))) : null);
+  const rows = seq.frames.map((f) => el("tr", { "data-job": f.job_id, "data-frame": String(f.frame), "data-status": f.status },
+    el("td", {}, String(f.frame)), el("td", {}, el("a", { href: `#/job/${f.job_id}` }, f.job_id)),
+    el("td", {}, badge(f.status), f.error ? el("div", { class: "muted" }, f.error) : null),
+    el("td", {}, progressBar(f)), el("td", {}, elapsed(f)), el("td", {}, actionButtons(f))));
+  fill(document.querySelector("#frames-table tbody"), ...rows);
+  document.getElementById("frames-table").hidden = false;
 }
 
 function refreshPreview(job) {
@@ -427,7 +573,7 @@ function renderLegend(range) {
   const legend = document.getElementById("legend");
   if (state.colour === "status") {
     fill(legend, ...Object.entries(STATE_COLOURS).map(([name, colour]) =>
-      el("span", {}, el("span", { class: "swatch", style: `background: ${colour}` }), ` ${name} `)));
+      el("span", { "data-state": name }, el("span", { class: "swatch", style: `background: ${colour}` }), ` ${STATE_WORDS[name]} `)));
     return;
   }
   const lo = range ? fmtNumber(range[0]) : "-", hi = range ? fmtNumber(range[1]) : "-";
@@ -466,7 +612,7 @@ function loadUnit(index) {
 
 function renderUnit(unit) {
   const rows = [
-    ["state", badge(unit.status)], ["rectangle", unit.rect.join(", ")],
+    ["state", badge(STATE_WORDS[unit.status] || unit.status)], ["rectangle", unit.rect.join(", ")],
     ["C (complexity)", fmtNumber(unit.C, 4)], ["S (size, px)", unit.S], ["Nd (neighbour difference)", fmtNumber(unit.Nd, 4)],
     ["cost", fmtNumber(unit.cost, 4)], ["agent", unit.agent || "-"], ["attempts", unit.attempts],
     ["spp", unit.spp ?? "-"], ["depth", unit.depth ?? "-"], ["band", unit.band ?? "-"],
@@ -493,8 +639,15 @@ function renderUnit(unit) {
     el("tr", {}, ["time", "from", "to", "stimulus"].map((h) => el("th", {}, h))),
     (unit.story || []).map((s) => el("tr", {}, el("td", {}, fmtTime(s.at)), el("td", {}, s.start),
       el("td", {}, s.finish), el("td", {}, s.stimulus_id))));
+  const job = state.job || {};
+  const retry = unit.status === "done" && !job.passes && (job.status === "running" || job.status === "done")
+    ? el("button", { type: "button", "data-action": "retry", onclick: () => retryUnit(unit.job_id, unit.index) }, "Render again")
+    : null;
+  const lines = unit.log || [];
   fill(document.getElementById("unit-details"),
-    el("h3", { id: "unit-title", "data-unit": unit.index }, `Unit ${unit.index}`), table,
+    el("h3", { id: "unit-title", "data-unit": unit.index }, `Unit ${unit.index}`), retry, table,
+    el("h3", {}, "Log"), lines.length ? el("pre", { class: "unit-log", id: "unit-log" }, lines.join("\n"))
+      : el("p", { class: "muted", id: "unit-log" }, "No line of the master's log names this unit (a farm of separate hosts keeps no log here)."),
     el("h3", {}, "Rules that fired"), rulesPart, el("h3", {}, "Attempts"), attempts,
     el("h3", {}, "Story"), unit.story && unit.story.length ? story
       : el("p", { class: "muted" }, "No change of state since the master started."));
@@ -518,7 +671,7 @@ function loadReport(jobId) {
     const pairs = [
       ["units", totals.units], ["render seconds (agents)", fmtNumber(totals.render_seconds, 4)],
       ["samples", totals.samples], ["non-finite pixels", totals.nonfinite],
-      ["pre-pass seconds", fmtNumber(totals.prepass_seconds, 3)], ["compose seconds", fmtNumber(totals.seconds, 3)],
+      ["pre-pass seconds", fmtNumber(totals.prepass_seconds, 3)], ["job seconds (upload to composed image)", fmtNumber(totals.seconds, 3)],
       ["tiles used", compose.tiles_used], ["pixels filled from neighbours (no finite sample)", compose.filled], ["pixels uncovered", compose.uncovered],
     ];
     fill(box, el("h3", {}, "Report"),
@@ -535,12 +688,47 @@ function renderAgents() {
   const age = Date.now() / 1000 - state.agentsAt;
   const rows = state.agents.map((a) => el("tr", { "data-agent": a.jid, "data-state": a.state },
     el("td", {}, a.jid, a.shared ? el("div", { class: "warning" }, a.shared) : null),
-    el("td", {}, badge(a.state), a.blocklisted_for && a.blocklisted_for.length ? el("div", { class: "muted" }, `for ${a.blocklisted_for.join(", ")}`) : null),
-    el("td", {}, fmtNumber(a.speed, 3)), el("td", {}, a.units_done), el("td", {}, a.units_failed),
-    el("td", {}, a.holding.join(" ")), el("td", {}, a.credits),
-    el("td", {}, `${(a.last_seen_s + age).toFixed(0)} s ago`), el("td", {}, a.restarts)));
+    el("td", {}, a.threads ?? "-"),
+    el("td", { class: "agent-state" }, agentState(a),
+      a.blocklisted_for && a.blocklisted_for.length ? el("div", { class: "muted" }, `blocklisted for ${a.blocklisted_for.join(", ")}`) : null),
+    el("td", {}, `${fmtNumber(a.speed, 3)} x reference`), el("td", {}, a.units_done), el("td", {}, a.units_failed),
+    el("td", {}, `${(a.last_seen_s + age).toFixed(0)} s ago`), el("td", {}, a.restarts),
+    el("td", {}, a.lost ? null : el("button", {
+      type: "button", "data-action": a.draining ? "resume" : "drain", onclick: () => drainAgent(a.jid, !a.draining),
+    }, a.draining ? "Resume" : "Drain"))));
   fill(document.querySelector("#agents-table tbody"), ...rows);
   document.getElementById("agents-empty").hidden = state.agents.length > 0;
+}
+
+// An agent's state in words: idle, rendering JOB unit N (each unit it holds), draining, lost.
+function agentState(a) {
+  const holding = (a.holding || []).map((h) => { const [job, unit] = h.split("/"); return `${job} unit ${unit}`; });
+  if (a.state === "rendering") return el("span", {}, badge("rendering"), ` ${holding.join(", ")}`);
+  if (a.state === "draining") return el("span", {}, badge("draining"), holding.length ? ` finishing ${holding.join(", ")}` : " nothing left to finish");
+  return badge(a.state);
+}
+
+// ---- logs ---------------------------------------------------------------------------------------------
+
+function loadLogs() {
+  getJSON("/ui/api/logs").then((answer) => {
+    const select = document.getElementById("log-name");
+    const chosen = select.value;
+    fill(select, answer.logs.map((l) => el("option", { value: l.name }, `${l.name} (${l.bytes} bytes)`)));
+    if (answer.logs.some((l) => l.name === chosen)) select.value = chosen;
+    document.getElementById("logs-empty").hidden = answer.logs.length > 0;
+    if (answer.logs.length) loadLog(select.value);
+    else document.getElementById("log-text").textContent = "";
+  }).catch((e) => say(`Logs: ${e.message}`, true));
+}
+
+function loadLog(name) {
+  getJSON(`/ui/api/logs/${encodeURIComponent(name)}?lines=400`).then((answer) => {
+    const text = document.getElementById("log-text");
+    text.textContent = answer.lines.join("\n");
+    text.dataset.log = answer.name;
+    text.scrollTop = text.scrollHeight;
+  }).catch((e) => say(`Log ${name}: ${e.message}`, true));
 }
 
 // ---- start --------------------------------------------------------------------------------------------
@@ -554,6 +742,8 @@ document.getElementById("show-grid").addEventListener("change", (event) => { sta
 document.getElementById("logout").addEventListener("click", () => {
   post("/ui/logout").finally(() => toLogin());
 });
+document.getElementById("log-name").addEventListener("change", (event) => loadLog(event.target.value));
+document.getElementById("log-refresh").addEventListener("click", () => loadLogs());
 window.addEventListener("hashchange", route);
 window.addEventListener("resize", () => drawOverlay());
 setInterval(() => { if (state.view === "agents") renderAgents(); tickEtas(); }, 1000);  // ages heartbeats and ETAs; no request
