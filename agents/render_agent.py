@@ -16,6 +16,7 @@ import logging
 import os
 import re
 import signal
+import socket
 import sys
 import threading
 import time
@@ -80,6 +81,12 @@ POLL_S = 0.25  # how often the beat loop ticks (to Register again at once after 
 ACCEPTED = frozenset({"cfp", "accept-proposal", "accept-proposals", "reject-proposal", "cancel", "welcome",
                       "introduce"})
 
+
+
+def host_name() -> str | None:
+    """This machine's name as Register carries it (letters, digits, '.', '_', '-'), or None if it has none."""
+    name = re.sub(r"[^A-Za-z0-9._-]", "-", socket.gethostname())[:253]
+    return name or None
 
 @dataclass
 class AgentConfig:
@@ -164,7 +171,8 @@ class RenderAgent:
                                 rules=self.planner.rules_path.name, heartbeat_s=config.heartbeat_s,
                                 max_render_s=config.max_render_s, session=_stamp(), check_url=self._url_refusal,
                                 batch=1 if self.emulation else None,  # an emulated render sleeps a unit at a time
-                                rules_sha256=self.planner.rulebase.digest(), defuzzifier=config.defuzzifier)
+                                rules_sha256=self.planner.rulebase.digest(), defuzzifier=config.defuzzifier,
+                                host=host_name())
         self._tls = client_context(Path(config.ca_file) if config.ca_file else None)
         self._planners: dict[tuple[str | None, str | None], Planner] = {(None, config.defuzzifier): self.planner}
         self._stop = asyncio.Event()
@@ -385,7 +393,7 @@ class RenderAgent:
         return RenderRequest(
             scene=scene, variant=job.variant, integrator=job.integrator,
             max_depth=params.depth, spp=params.spp, seed=award.seed, width=job.width, height=job.height,
-            unit=unit.rect, band=params.band, threads=self.config.threads, job_id=job.job_id,
+            unit=unit.rect, band=params.band, threads=self.state.threads_for(job), job_id=job.job_id,
             unit_index=unit.index, sensor=job.sensor, first=job.first_spp,
             pass_index=unit.index if job.passes else None)
 

@@ -321,7 +321,7 @@ class AgentState:
                  rules: str = "", heartbeat_s: float = HEARTBEAT_S, max_render_s: float = MAX_RENDER_S,
                  session: str = "0", check_url: Callable[[str], str | None] = lambda _url: None,
                  batch: int | None = None, rules_sha256: str | None = None,
-                 defuzzifier: str | None = None) -> None:
+                 defuzzifier: str | None = None, host: str | None = None) -> None:
         if slots < 1:
             raise ValueError(f"slots must be at least 1, got {slots}")
         self.batch = batch_size(slots) if batch is None else batch
@@ -330,7 +330,7 @@ class AgentState:
         self.plan, self.seconds = plan, seconds
         self.check_url = check_url  # why a data plane URL is refused (not the master's, plain HTTP across a network)
         self.slots, self.threads, self.rules = slots, threads, rules[:256]
-        self.rules_sha256, self.defuzzifier = rules_sha256, defuzzifier  # told in Register
+        self.rules_sha256, self.defuzzifier, self.host = rules_sha256, defuzzifier, host  # told in Register
         self.heartbeat_s, self.max_render_s, self.session = heartbeat_s, max_render_s, session
         self.speed: Measured | None = None
         self.calibration = Calibration()
@@ -483,10 +483,17 @@ class AgentState:
         compile_s = 0.0
         if self.speed is not None and self._kernel(job, unit, params) not in self.kernels:
             compile_s = self.speed.compile_s  # Dr.Jit bakes the window size and the depth into the kernel
-        return self.base_estimate(unit, params) + compile_s
+        return self.base_estimate(unit, params, job) + compile_s
 
-    def base_estimate(self, unit: WorkUnit, params: Params) -> float:
-        return self.seconds(unit.cost, params.spp, self.speed.speed if self.speed else 1.0)
+    def base_estimate(self, unit: WorkUnit, params: Params, job: m.JobInfo | None = None) -> float:
+        """Its render's seconds at this agent's measured speed, on the threads `job` renders on here (the
+        speed was measured on all of them; a render is about as much slower as it has fewer)."""
+        slower = self.threads / self.threads_for(job) if job is not None else 1.0
+        return self.seconds(unit.cost, params.spp, self.speed.speed if self.speed else 1.0) * slower
+
+    def threads_for(self, job: m.JobInfo) -> int:
+        """The threads the job's renders run on here: its own (`submit -t`), never more than this agent's."""
+        return min(job.threads, self.threads) if job.threads is not None else self.threads
 
     # ---- messages in ----------------------------------------------------------------------------------
 
@@ -582,7 +589,7 @@ class AgentState:
         self._unwelcomed.add(conversation)
         return SendToMaster(m.Register(conversation=conversation, speed=self.speed.speed, threads=self.threads,
                                        rules=self.rules, slots=self.slots, rules_sha256=self.rules_sha256,
-                                       defuzzifier=self.defuzzifier))
+                                       defuzzifier=self.defuzzifier, host=self.host))
 
     def _on_welcome(self, welcome: m.Welcome) -> list[Instruction]:
         """The master heard a Register of this connection: no more of them until the next connection."""

@@ -2,16 +2,20 @@
 
 `configure(level, fmt, role)` sets the root logger once per process. A log call passes its structured
 form as `extra=fields(...)`: the text format prints only the sentence, the JSON format adds the fields.
+`farm_logs(home)` finds a local farm's log files, which `quekaro logs` and the page read.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import re
 import sys
+from pathlib import Path
 from typing import IO, Any
 
 FORMATS = ("text", "json")
+LOG_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # a process's name, as a log file's stem
 _FIELDS = "quekaro_fields"
 
 
@@ -58,3 +62,10 @@ def configure(level: str, fmt: str = "text", role: str = "", stream: IO[str] | N
 def verbosity(count: int) -> str:
     """The log level of `-v` given `count` times, as Mitsuba's -v: warnings alone without, INFO, then DEBUG."""
     return ("WARNING", "INFO", "DEBUG")[min(max(count, 0), 2)]
+
+
+def farm_logs(home: Path) -> dict[str, Path]:
+    """A local farm's logs by process name: HOME/logs/NAME.log, and the XMPP server's as `xmpp`."""
+    logs = {p.stem: p for p in sorted((home / "logs").glob("*.log")) if LOG_NAME.fullmatch(p.stem)}
+    server = home / "xmpp" / "prosody.log"  # core.transport.xmpp_server.ProsodyServer's log file
+    return logs | ({"xmpp": server} if server.is_file() else {})

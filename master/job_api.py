@@ -363,7 +363,7 @@ def agent_rows(service: JobService, counts: dict[str, tuple[int, int]] | None = 
         done, failed = counts.get(agent.name, (0, 0))
         state = "lost" if agent.lost else "draining" if agent.draining else "rendering" if agent.holding else "idle"
         rows.append({"jid": agent.name, "state": state, "lost": agent.lost, "credits": agent.credits,
-                     "draining": agent.draining, "threads": agent.threads,
+                     "draining": agent.draining, "threads": agent.threads, "host": agent.host,
                      "speed": agent.speed, "holding": list(agent.holding), "units_done": done,
                      "units_failed": failed, "last_seen_s": agent.heard_s_ago,
                      "blocklisted_for": list(agent.blocklisted_for), "shared": _shared(service, agent.name)})

@@ -310,10 +310,13 @@ class MasterService:
 
     def job_info(self, record: JobRecord) -> m.JobInfo:
         """The job as agents see it in calls for proposals (rebuilt from the store after a restart)."""
-        return self._job_info(record.id, record.scene, record.spec.defines, self.job_plan(record))
+        return self._job_info(record.id, record.scene, record.spec.defines, self.job_plan(record),
+                              record.spec.options.threads)
 
-    def _job_info(self, job_id: str, scene_name: str, defines: dict[str, str], plan: JobPlan) -> m.JobInfo:
-        """The job as its messages describe it."""
+    def _job_info(self, job_id: str, scene_name: str, defines: dict[str, str], plan: JobPlan,
+                  threads: int | None) -> m.JobInfo:
+        """The job as its messages describe it; `threads`: the user's for each agent (`submit -t`), None for
+        each agent's own (the plan's are the master's pre-pass's)."""
         return m.JobInfo(
             job_id=job_id, scene_url=f"{self.config.url}/jobs/{job_id}/bundle",
             scene_hash=plan.bundle_sha256, width=plan.width, height=plan.height, spp=plan.spp,
@@ -321,7 +324,7 @@ class MasterService:
             defines=dict(defines), variant=plan.effects.variant, integrator=plan.effects.override,
             sensor=plan.options.sensor, rules_sha256=plan.rules_sha256, defuzzifier=plan.options.defuzzifier,
             min_band=plan.reach, first_spp=plan.first_spp, rfilter=plan.spec.rfilter,
-            passes=plan.options.in_passes,
+            passes=plan.options.in_passes, threads=threads,
         )
 
     async def submit(self, bundle: bytes | Path, spec: JobSpec) -> str:
@@ -356,7 +359,7 @@ class MasterService:
             seed = plan_seed(submitted_scene_sha256(scene), defines, options.to_dict())
             plan = await self._plan(SceneSpec(scene, defines), options, seed)
             plan = dataclasses.replace(plan, bundle_sha256=digest, rules_sha256=rules_sha256)
-            m.check_job(self._job_info(job_id, scene_name, defines, plan))  # now, not at its first message
+            m.check_job(self._job_info(job_id, scene_name, defines, plan, options.threads))  # now, not later
         except BaseException as exc:
             shutil.rmtree(job_dir, ignore_errors=True)
             if isinstance(exc, QuekaroError):

@@ -115,6 +115,7 @@ def unit_record(unit: WorkUnit, tile: Tile | TileSource, params: dict[str, Any])
         "outputs": params.get("outputs", {}), "seconds": float(tile.meta.get("seconds", 0.0)),
         "nonfinite": int(tile.meta.get("nonfinite", 0)), "agent": params.get("agent"),
         "rules": params.get("rules"), "method": tile.meta.get("window_method"),
+        **({"threads": tile.meta["threads"]} if "threads" in tile.meta else {}),  # Dr.Jit's, as it rendered
         **({"depth_floor": unit.depth_floor} if unit.depth_floor is not None else {}),
         **{k: tile.meta[k] for k in ADAPTIVE_META if k in tile.meta},  # a two-pass render's own account
         **({"emulated": True} if params.get("emulated") else {}),  # slept by an emulated agent, not rendered

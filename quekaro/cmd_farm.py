@@ -21,7 +21,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from core.data import DEMO_SCENE
 from core.errors import QuekaroError, without_locations
 from core.home import ADMIN_TOKEN, MIN_FREE_BYTES, default_home, read_processes
-from core.logs import FORMATS
+from core.logs import FORMATS, farm_logs
 from core.model.frames import SEQUENCE_ID, FrameRange, frame_name
 from core.model.job import IMAGE_SUFFIXES, JobSpec, SceneSpec
 from core.model.units import SLOTS
@@ -133,7 +133,8 @@ def _register_client(sub: argparse._SubParsersAction) -> None:
     submit.add_argument("--sequence", action="store_true",
                         help="the scene files are the frames of one sequence, numbered 1..N in the order given")
     submit.add_argument("-t", "--threads", type=int,
-                        help="refused: on a farm each agent renders with its own threads (quekaro up --threads)")
+                        help="Dr.Jit threads each agent renders the job on (Mitsuba's -t), at most its own "
+                             "--threads; also the master's pre-pass (default: each agent's own)")
     submit.set_defaults(func=run_submit)
     status = sub.add_parser("status", help="jobs and their progress (one job or sequence if given)")
     status.add_argument("job", nargs="?", help="a job id, or a sequence id (seq-...) for its frames")
@@ -293,9 +294,6 @@ def run_submit(args: argparse.Namespace) -> int:
 
 def _refuse_unusable(args: argparse.Namespace, frames: FrameRange | None) -> None:
     """Options of submit that cannot work together, refused before anything is packed."""
-    if args.threads is not None:
-        raise QuekaroError(f"-t {args.threads}: on a farm each agent renders with its own threads (quekaro up "
-                           "--threads N, quekaro agent --threads N); a job cannot set them")
     if args.sequence and frames is not None:
         raise QuekaroError(f"--sequence and -D {frames.define}={frames.first}:{frames.last}: a sequence is either "
                            "several scene files or one file's frame range, not both")
@@ -615,10 +613,13 @@ def run_agents(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(rows, indent=2))
         return 0
-    print(f"{'agent':<32} {'state':<10} {'speed':>6} {'done':>5} {'failed':>6} {'credits':>7} {'heard':>7}  holding")
+    print(f"{'agent':<28} {'host':<16} {'threads':>7} {'state':<10} {'speed':>7} {'done':>5} {'failed':>6} "
+          f"{'heard':>7}  holding")
     for row in rows:
-        print(f"{row['jid']:<32} {row['state']:<10} {row['speed']:>6.2f} {row['units_done']:>5} "
-              f"{row['units_failed']:>6} {row['credits']:>7} {row['last_seen_s']:>6.1f}s  {' '.join(row['holding'])}")
+        print(f"{row['jid']:<28} {row.get('host') or '-':<16} {row.get('threads') or '-':>7} {row['state']:<10} "
+              f"{row['speed']:>6.2f}x {row['units_done']:>5} {row['units_failed']:>6} {row['last_seen_s']:>6.1f}s  "
+              f"{' '.join(row['holding'])}")
+    print("speed: renders per second against the reference machine (2.00x: twice as fast)")
     for row in rows:
         if row.get("shared"):
             print(f"warning: {row['shared']}")
@@ -630,13 +631,6 @@ def _lines(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError(f"{value}: a count of lines, 0 or more")
     return value
-
-
-def farm_logs(home: Path) -> dict[str, Path]:
-    """A local farm's logs by process name: HOME/logs/NAME.log, and the XMPP server's as `xmpp`."""
-    logs = {p.stem: p for p in sorted((home / "logs").glob("*.log"))}
-    server = home / "xmpp" / "prosody.log"  # core.transport.xmpp_server.ProsodyServer's log file
-    return logs | ({"xmpp": server} if server.is_file() else {})
 
 
 def run_logs(args: argparse.Namespace) -> int:

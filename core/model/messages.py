@@ -33,8 +33,9 @@ from fuzzy.engine import DEFUZZIFIERS
 # 2: several awards a round, slots in Register; 3: the rules an agent plans with, in Register; 4: a round's
 # awards of one job to one agent in one message (Awards), and no inform from agents (the upload answers);
 # 5: progressive jobs (JobInfo.passes: a unit is a pass, at its spp, its tile carrying the film's weights);
-# 6: a pass of a progressive job at a rule level carries its unit's depth (WorkUnit.depth)
-PROTOCOL_VERSION = 6
+# 6: a pass of a progressive job at a rule level carries its unit's depth (WorkUnit.depth); 7: a job's
+# threads per agent (JobInfo.threads, `submit -t`) and an agent's host (Register.host)
+PROTOCOL_VERSION = 7
 ONTOLOGY = "quekaro-render"
 PROTOCOL = "fipa-contract-net"
 # Prosody drops a sender whose stanza exceeds 256 KiB (docs/design.md section 4): stay well below it.
@@ -97,6 +98,8 @@ class JobInfo:
     # its own spp, its unit's depth (at a rule level) or the job's, and min_band, its tile carrying the
     # film's weights (core.image.passes). No agent's rules choose: the master's plan did.
     passes: bool = False
+    # Dr.Jit threads each agent renders the job on (`submit -t`), at most its own --threads; None: its own.
+    threads: int | None = constrained(lo=1, hi=4096, default=None)
 
     def check(self) -> None:
         for name, (lo, hi) in self.ranges.items():
@@ -359,6 +362,8 @@ class Register(Message):
     speed: float = constrained(lo=1e-6, hi=1e6)
     threads: int = constrained(lo=1, hi=4096)
     rules: str = constrained(max_len=256)
+    # The machine it runs on (its host name), for the user's eyes: the page's and `quekaro agents`' rows.
+    host: str | None = constrained(max_len=253, pattern=re.compile(r"[A-Za-z0-9._-]{1,253}"), default=None)
     # Units it holds at once (its --slots): the master awards it no more. None: not told (the master's own).
     slots: int | None = constrained(lo=1, hi=MAX_CFP_UNITS, default=None)
     # What it plans with: the digest of what its rules compute (fuzzy.rulebase.RuleBase.digest, a sha256;

@@ -323,10 +323,12 @@ def render_job_here(job: RenderRequest, cache: _SceneCache | None = None) -> Til
 def unit_meta(job: RenderRequest, sensor: Any, seconds: float, load_s: float, nonfinite: int, spp: int,
               method: str) -> dict[str, Any]:
     """A rendered unit's tile header: what rendered it, how, and what it cost."""
+    import drjit as dr
     import mitsuba as mi
 
     return {
         "job_id": job.job_id, "unit_index": job.unit_index, "seconds": seconds, "load_seconds": load_s,
+        "threads": dr.thread_count(),
         "nonfinite": nonfinite, "spp": spp, "depth": job.max_depth, "integrator": job.integrator,
         "variant": mi.variant(), "seed": job.seed, "band": job.band, "window_method": method,
         "pid": os.getpid(), "sensor": job.sensor, "filter_radius": float(sensor.film().rfilter().radius()),

@@ -380,7 +380,8 @@ class Auction:
         running = self._running()
         return [AgentView(a.name, a.lost, a.credits, a.speed, tuple(sorted(f"{j}/{i}" for j, i in a.holding)),
                           round(max(0.0, clock - a.last_seen), 1),
-                          tuple(j.info.job_id for j in running if a.name in j.blocklist), a.threads, a.draining)
+                          tuple(j.info.job_id for j in running if a.name in j.blocklist), a.threads, a.draining,
+                          a.host)
                 for a in self._agents.values()]
 
     def live_agents(self) -> int:
@@ -509,7 +510,7 @@ class Auction:
                 welcome = SendToAgent(sender, m.Welcome(conversation=msg.conversation))  # the agent retries until it
                 out = self._register(sender, now, speed=msg.speed, slots=msg.slots,
                                      rules=PlansWith(msg.rules_sha256, msg.defuzzifier))
-                self._agents[sender].threads = msg.threads
+                self._agents[sender].threads, self._agents[sender].host = msg.threads, msg.host
                 return [*out, welcome]
             case m.Heartbeat():
                 return self._on_heartbeat(sender, msg, now)

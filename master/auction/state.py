@@ -143,6 +143,7 @@ class Agent:
     slots: int | None = None  # units it holds at once, as its Register told (None: Config.slots)
     rules: PlansWith = NOT_TOLD  # what it plans with, as its Register told
     threads: int | None = None  # its render threads, as its Register told (None: not told)
+    host: str | None = None  # the machine it runs on, as its Register told
     draining: bool = False  # the user drained it: no new award, it finishes what it holds
     # Seconds per unit of cost, per job: from its latest bids, and from its last unit that overran.
     rates: dict[str, float] = field(default_factory=dict)

@@ -32,6 +32,7 @@ class AgentView:
     blocklisted_for: tuple[str, ...]  # running jobs that no longer offer it units
     threads: int | None = None  # its render threads, as its Register told
     draining: bool = False  # drained by the user: awarded nothing new
+    host: str | None = None  # the machine it runs on, as its Register told
 
 
 @dataclass(frozen=True)

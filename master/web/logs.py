@@ -7,20 +7,13 @@ is read (`TAIL_BYTES`, `UNIT_BYTES`): a log of weeks is never read whole for a p
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
-LOG_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # a process's name, as the page may ask for it
+from core.logs import farm_logs
+
 TAIL_BYTES = 256 * 1024  # the end of a log the page shows
 UNIT_BYTES = 4 * 1024 * 1024  # the end of the master's log searched for a unit's lines
 LINES_MAX = 2000
-
-
-def farm_logs(home: Path) -> dict[str, Path]:
-    """A local farm's logs by process name: HOME/logs/NAME.log, and the XMPP server's as `xmpp`."""
-    logs = {p.stem: p for p in sorted((home / "logs").glob("*.log")) if LOG_NAME.fullmatch(p.stem)}
-    server = home / "xmpp" / "prosody.log"  # core.transport.xmpp_server.ProsodyServer's log file
-    return logs | ({"xmpp": server} if server.is_file() else {})
 
 
 def _end_lines(path: Path, size: int) -> list[str]:

@@ -688,7 +688,7 @@ function renderAgents() {
   const age = Date.now() / 1000 - state.agentsAt;
   const rows = state.agents.map((a) => el("tr", { "data-agent": a.jid, "data-state": a.state },
     el("td", {}, a.jid, a.shared ? el("div", { class: "warning" }, a.shared) : null),
-    el("td", {}, a.threads ?? "-"),
+    el("td", {}, a.host ?? "-"), el("td", {}, a.threads ?? "-"),
     el("td", { class: "agent-state" }, agentState(a),
       a.blocklisted_for && a.blocklisted_for.length ? el("div", { class: "muted" }, `blocklisted for ${a.blocklisted_for.join(", ")}`) : null),
     el("td", {}, `${fmtNumber(a.speed, 3)} x reference`), el("td", {}, a.units_done), el("td", {}, a.units_failed),
