@@ -661,10 +661,10 @@ class AgentState:
     def _batch_with(self, first: Work, now: float) -> tuple[Batched, ...]:
         """Waiting units of `first`'s job and depth that render in its call, oldest first, up to `batch`
         (half the slots) in all: not at level off (plain Mitsuba's render, one call a unit), nor in a two-pass
-        (adaptive) job, nor on a progressive job's first call here (`_first_call`). A unit that cannot be
+        (adaptive) job, nor on the job's first call here (`_first_call`). A unit that cannot be
         planned stays queued (and fails when its turn comes)."""
         job = first.award.job
-        if not self.batches(job) or self._first_call(job, first):
+        if not self.batches(job) or self._first_call(job):
             return ()
         more: list[Batched] = []
         for work in list(self.queue):
@@ -686,10 +686,10 @@ class AgentState:
             more.append(Batched(work.ticket, work.award, params))
         return tuple(more)
 
-    def _first_call(self, job: m.JobInfo, first: Work) -> bool:
-        """Whether `first` is a progressive job's first render call here: it renders alone, so that its pass
-        reaches the page after one pass's samples, not a batch's."""
-        return job.passes and job.job_id not in self.jobs_rendered
+    def _first_call(self, job: m.JobInfo) -> bool:
+        """Whether this is the job's first render call here: its first unit renders alone, so that its tile
+        reaches the page after one unit's samples (one pass's, in passes), not a batch's."""
+        return job.job_id not in self.jobs_rendered
 
     def _rendered(self, job_id: str) -> None:
         self.jobs_rendered.pop(job_id, None)
