@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import IO, Any
 
 FORMATS = ("text", "json")
+MITSUBA_LOGGER = "mitsuba"  # the logger whose own level Mitsuba's log follows in a render process
 LOG_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # a process's name, as a log file's stem
 _FIELDS = "quekaro_fields"
 
@@ -62,6 +63,15 @@ def configure(level: str, fmt: str = "text", role: str = "", stream: IO[str] | N
 def verbosity(count: int) -> str:
     """The log level of `-v` given `count` times, as Mitsuba's -v: warnings alone without, INFO, then DEBUG."""
     return ("WARNING", "INFO", "DEBUG")[min(max(count, 0), 2)]
+
+
+def verbose(count: int) -> None:
+    """A command's `-v` given `count` times: its log at `verbosity(count)`, and Mitsuba's own in its render
+    process too (core.render.process reads the MITSUBA_LOGGER's level; processes that never set it, such
+    as agents at INFO, keep Mitsuba at warnings)."""
+    level = verbosity(count)
+    configure(level)
+    logging.getLogger(MITSUBA_LOGGER).setLevel(level)
 
 
 def farm_logs(home: Path) -> dict[str, Path]:

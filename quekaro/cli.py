@@ -79,7 +79,7 @@ def _run(argv: list[str]) -> int:
     if extra:
         args.argv = [*extra, *args.argv] if extra and extra[0].startswith("-") else [*args.argv, *extra]
     if getattr(args, "verbose", 0):
-        logs.configure(logs.verbosity(args.verbose))
+        logs.verbose(args.verbose)
     try:
         return int(args.func(args) or 0)
     except (QuekaroError, RuleFileError, FuzzyInputError) as exc:

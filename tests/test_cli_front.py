@@ -58,11 +58,14 @@ def test_verbosity_follows_mitsubas_v() -> None:
     assert [verbosity(n) for n in range(4)] == ["WARNING", "INFO", "DEBUG", "DEBUG"]
 
 
-def test_v_logs_what_the_planning_does(tmp_path: Path) -> None:
+def test_v_logs_what_the_planning_and_mitsuba_do(tmp_path: Path) -> None:
+    """-v: the command's INFO lines and Mitsuba's own, from its render process, as Mitsuba's -v shows them."""
     args = ["render", str(CBOX), "-D", "res=8", "--spp", "1", "-t", "1", "--no-progress", "-o", "x.exr"]
     quiet, told = quekaro(*args, cwd=tmp_path), quekaro(*args, "-v", cwd=tmp_path)
     assert quiet.returncode == told.returncode == 0, told.stderr
     assert " INFO planning.pipeline: " in told.stderr and " INFO " not in quiet.stderr
+    assert "Loading XML file" in told.stderr and "[SamplingIntegrator] Starting render job" in told.stderr
+    assert "Loading XML file" not in quiet.stderr
 
 
 def test_split_range_takes_one_range_and_refuses_two() -> None:

@@ -10,6 +10,7 @@ job's sensor. Its tile keeps every channel the film writes (the colour named R, 
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import pickle
 import signal
@@ -25,7 +26,7 @@ from typing import Any, NoReturn
 
 import numpy as np
 
-from core import mitsuba_env
+from core import logs, mitsuba_env
 from core.errors import QuekaroError, RenderError, SceneError
 from core.image.film import film_channels, film_weight, sanitize
 from core.image.passes import WEIGHT
@@ -384,6 +385,14 @@ def render_full(spec: SceneSpec, variant: str, integrator: str | None, depth: in
 # ---- the child process ------------------------------------------------------------------------------
 
 
+def mitsuba_log_level(name: str) -> Any:
+    """Mitsuba's log level for a Python level's name: DEBUG and INFO as such, anything else warnings
+    (Mitsuba's default)."""
+    import mitsuba as mi
+
+    return {"DEBUG": mi.LogLevel.Debug, "INFO": mi.LogLevel.Info}.get(name, mi.LogLevel.Warn)
+
+
 def _child_entry(fd: int) -> NoReturn:
     """Entry point of the render process: fd is its end of the socket pair to the parent."""
     _child_main(Connection(fd))
@@ -393,7 +402,7 @@ def _child_main(conn: Any) -> NoReturn:
     """Loop of the render process: receive a job dict, answer ("ok", pixels, rect, meta) or ("error", ...);
     released (None) or left by the parent, it ends (`_exit_now`)."""
     start = time.perf_counter()
-    import mitsuba  # noqa: F401  (imported once here, so each unit pays nothing for it)
+    import mitsuba  # imported once here, so each unit pays nothing for it
 
     conn.send(("ready", {"import_seconds": time.perf_counter() - start, "pid": os.getpid()}))
     cache = _local_cache  # what a call made here adopted (adopt_scene), the units find
@@ -406,6 +415,9 @@ def _child_main(conn: Any) -> NoReturn:
             _exit_now()
         if isinstance(message, tuple) and message[0] == "call":
             conn.send(_called(*message[1:]))
+            continue
+        if isinstance(message, tuple) and message[0] == "log":  # no answer
+            mitsuba.set_log_level(mitsuba_log_level(message[1]))
             continue
         try:
             tile = render_job_here(RenderRequest.from_dict(message), cache)
@@ -501,6 +513,9 @@ class RenderProcess:
             raise RenderError(f"render process failed to start ({_death_reason(self._reap())})") from None
         self.import_seconds = float(info["import_seconds"])
         self._ready = True
+        # Mitsuba's own log there: the level of this process's "mitsuba" logger, where one is set (the CLI's
+        # `-v`: INFO, `-vv`: DEBUG); else warnings, as Mitsuba's default.
+        self._conn.send(("log", logging.getLevelName(logging.getLogger(logs.MITSUBA_LOGGER).level)))
 
     def call(self, fn: Callable[..., Any], *args: Any, doing: str = "its work", timeout: float | None = None,
              abort: threading.Event | None = None) -> Any:
