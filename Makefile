@@ -19,11 +19,15 @@ system-deps:
 	ls /usr/lib/*/faketime/libfaketimeMT.so.1 >/dev/null 2>&1 || need="$$need faketime"; \
 	[ -x /usr/bin/chromium ] || need="$$need chromium"; \
 	[ -x /usr/bin/chromedriver ] || need="$$need chromium-driver"; \
+	command -v dockerd >/dev/null 2>&1 || need="$$need docker.io"; \
+	command -v debootstrap >/dev/null 2>&1 || need="$$need debootstrap"; \
 	if [ -n "$$need" ]; then \
 	  if [ "$$(id -u)" = 0 ]; then \
 	    echo "installing Debian packages:$$need"; \
 	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$need >/dev/null; \
 	    systemctl disable --now prosody >/dev/null 2>&1 || service prosody stop >/dev/null 2>&1 || true; \
+	    case "$$need" in *docker.io*) systemctl disable --now docker.socket docker.service >/dev/null 2>&1 \
+	      || service docker stop >/dev/null 2>&1 || true;; esac; \
 	  else \
 	    echo "missing Debian packages:$$need (run 'sudo apt-get install$$need'); Mitsuba falls back to scalar_rgb without libllvm19"; \
 	  fi; \
@@ -47,12 +51,12 @@ test: setup
 lint: setup
 	$(BIN)/ruff check .
 
-# README.md's figure blocks, copied again from the files the benchmarks wrote (docs/benchmarks/).
+# docs/benchmarks/README.md's figure blocks, copied again from the files the benchmarks wrote.
 docs-figures: setup
 	$(BIN)/python -m bench.docs
 
-# README.md's figure files written again by the commands that wrote them (each report's .provenance.json),
-# then its blocks refreshed: the stale ones (planned with another rule file than the shipped one), or
+# docs/benchmarks/README.md's figure files written again by the commands that wrote them (each report's
+# .provenance.json), then its blocks refreshed: the stale ones (planned with another rule file than the shipped one), or
 # every one with BENCH=--all (BENCH=--dry-run lists the commands). Hours; run it alone on the machine.
 bench: setup
 	$(BIN)/python -m bench.rerun $(BENCH)

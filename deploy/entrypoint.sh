@@ -91,11 +91,15 @@ agent)
     ;;
 health)
     # A container's healthcheck: `health xmpp` (the client port accepts) or `health master` (the HTTP
-    # API answers /healthz), on the ports the role was given.
+    # API answers /healthz), on the ports the role was given; HTTPS where the master has a certificate
+    # (QUEKARO_TLS_CERT), verified against QUEKARO_CA_FILE.
     case "${1:-}" in
     xmpp) exec python3 -c "import socket,sys; socket.create_connection(('127.0.0.1', int(sys.argv[1])), 3)" "$port" ;;
-    master) exec python3 -c "import urllib.request,sys; urllib.request.urlopen(sys.argv[1], timeout=3)" \
-        "http://127.0.0.1:${QUEKARO_HTTP_PORT:-8765}/healthz" ;;
+    master)
+        scheme=http; [ -n "${QUEKARO_TLS_CERT:-}" ] && scheme=https
+        exec python3 -c "import ssl,sys,urllib.request; tls = ssl.create_default_context(cafile=sys.argv[2] or None) \
+if sys.argv[1].startswith('https:') else None; urllib.request.urlopen(sys.argv[1], timeout=3, context=tls)" \
+            "$scheme://127.0.0.1:${QUEKARO_HTTP_PORT:-8765}/healthz" "${QUEKARO_CA_FILE:-}" ;;
     *) echo "health: xmpp or master" >&2; exit 2 ;;
     esac
     ;;

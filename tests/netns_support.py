@@ -7,6 +7,10 @@ the host's `eth0` with the next free address of the subnet. A host reaches the o
 bridge: its namespace has nothing but `lo` and that `eth0`. `link_down(host)` pulls the host's cable (the
 bridge port goes down, the host's `eth0` loses its carrier), `link_up(host)` plugs it back.
 
+Bridged frames pass the root namespace's iptables FORWARD chain where br_netfilter is loaded, and a
+Docker engine sets that chain's policy to DROP: the bridge gets its own ACCEPT rule (`-i BRIDGE -o
+BRIDGE`), removed with it, so the test network works whatever the policy.
+
 Names carry a prefix made of this process's pid (`qk` + 6 hex digits + a counter): every interface and
 namespace a `Network` makes starts with it, `close()` removes them all (processes first, then links,
 then namespaces) and checks that nothing is left, and a new `Network` first removes what a killed test
@@ -104,6 +108,7 @@ class Network:
             self._made_bridge = True
             ip("addr", "add", f"{self.gateway}/{self.subnet.prefixlen}", "dev", self.bridge)
             ip("link", "set", self.bridge, "up")
+            _forward_rule("-I", self.bridge)
         except BaseException:
             self.close()
             raise
@@ -178,6 +183,7 @@ class Network:
             ip("link", "del", host.port, check=False)
             ip("netns", "del", host.netns, check=False)
         if self._made_bridge:
+            _forward_rule("-D", self.bridge, check=False)
             ip("link", "del", self.bridge, check=False)
         left = leftovers(self.prefix)
         self.hosts.clear()
@@ -202,20 +208,42 @@ def _end(procs: list[subprocess.Popen], timeout: float = 10.0) -> None:
             proc.wait()
 
 
+def _forward_rule(action: str, bridge: str, check: bool = True) -> None:
+    """Insert (-I) or delete (-D) the bridge's ACCEPT rule in FORWARD; nothing to do without iptables."""
+    if shutil.which("iptables") is None:
+        return
+    done = subprocess.run(["iptables", action, "FORWARD", "-i", bridge, "-o", bridge, "-j", "ACCEPT"],
+                          capture_output=True, text=True, check=False)
+    if check and done.returncode != 0:
+        raise NetnsError(f"iptables {action} FORWARD for {bridge}: {done.stderr.strip()}")
+
+
+def _forward_bridges() -> list[str]:
+    """The bridges that have a rule of `_forward_rule` in FORWARD."""
+    if shutil.which("iptables") is None:
+        return []
+    rules = subprocess.run(["iptables", "-S", "FORWARD"], capture_output=True, text=True, check=False).stdout
+    return [m.group(1) for m in re.finditer(r"^-A FORWARD -i (\S+) -o \1 -j ACCEPT$", rules, re.MULTILINE)]
+
+
 def leftovers(prefix: str = "qk") -> list[str]:
-    """Namespaces and links whose names start with `prefix`."""
+    """Namespaces, links and FORWARD rules (by their bridge, `iptables:NAME`) whose names start with `prefix`."""
     names = [line.split()[0] for line in ip("netns", "list", check=False).splitlines() if line.strip()]
     links = [line.split()[0].split("@")[0] for line in ip("-br", "link", check=False).splitlines() if line.strip()]
-    return [n for n in names + links if n.startswith(prefix) and PREFIX_RE.match(n)]
+    found = [n for n in names + links if n.startswith(prefix) and PREFIX_RE.match(n)]
+    return found + [f"iptables:{b}" for b in _forward_bridges() if b.startswith(prefix) and PREFIX_RE.match(b)]
 
 
 def sweep_leftovers() -> None:
     """Remove what a killed test run left behind: names with the prefix of a pid that no longer runs."""
     for name in leftovers():
-        pid = int(PREFIX_RE.match(name).group(1), 16)  # type: ignore[union-attr]
+        bridge = name.removeprefix("iptables:")
+        pid = int(PREFIX_RE.match(bridge).group(1), 16)  # type: ignore[union-attr]
         if _alive(pid):
             continue
-        if name in ip("netns", "list", check=False).split():
+        if bridge != name:
+            _forward_rule("-D", bridge, check=False)
+        elif name in ip("netns", "list", check=False).split():
             for member in ip("netns", "pids", name, check=False).split():
                 with contextlib.suppress(ProcessLookupError, ValueError):
                     os.kill(int(member), signal.SIGKILL)

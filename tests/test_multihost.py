@@ -1,12 +1,13 @@
 """The farm across hosts, on one machine: Prosody and the master in one network namespace, each agent in
 its own, all on one bridge (tests/netns_support.py), every link verified against the farm's own CA.
 
-Set-up, as the README's "Several hosts" section tells a user: `quekaro ca init`, `quekaro ca issue` for
+Set-up, as docs/hosts.md tells a user: `quekaro ca init`, `quekaro ca issue` for
 Prosody (its XMPP domain) and for the master's HTTPS (its address), accounts with
 deploy/prosody/make-accounts.sh, Prosody on the master's host (port 5222), `quekaro master` with
 --tls-cert/--tls-key and an https --public-url (port 8765), and `quekaro agent --ca-file` on each agent
 host. Cases: a job through three agent hosts; an agent's cable pulled mid-unit and plugged back; the
-master's host cut off for 30 s; agents whose clocks are 10 minutes off (libfaketime).
+master's host cut off for 30 s; agents whose clocks are 10 minutes off (libfaketime); and the test
+network itself under a FORWARD policy of DROP, as a Docker engine leaves it.
 
 Needs root and iproute2 (skipped with the reason otherwise, failed instead under .ci/run, which sets
 QUEKARO_REQUIRE_NETNS=1), Prosody and openssl (tests/prosody_support.py), and libfaketime for the clock.
@@ -18,6 +19,7 @@ import contextlib
 import dataclasses
 import os
 import re
+import shutil
 import sqlite3
 import subprocess
 import sys
@@ -168,7 +170,7 @@ def farm_on_hosts(root: Path, agents: int = 3,
         names = [f"a{i}" for i in range(1, agents + 1)]
         for name in names:
             net.add_host(name)
-        # The farm's CA and its two server certificates (the user's commands, as the README gives them).
+        # The farm's CA and its two server certificates (the user's commands, as docs/hosts.md gives them).
         quekaro("ca", "init", "--dir", str(ca))
         quekaro("ca", "issue", "--dir", str(ca), "xmpp", DOMAIN)
         quekaro("ca", "issue", "--dir", str(ca), "master", master.address)
@@ -217,6 +219,31 @@ def _wait_for_master(home: Path, procs: dict[str, subprocess.Popen], logs: Path)
 
 
 # ---- the cases ------------------------------------------------------------------------------------------
+
+
+def test_the_bridge_works_whatever_the_forward_policy(tmp_path):
+    """A Docker engine sets iptables' FORWARD policy to DROP, which bridged frames meet where br_netfilter
+    is loaded: the test network's own ACCEPT rule keeps its hosts talking, and goes with the network. The
+    policy is put back after."""
+    require_netns()
+    if shutil.which("iptables") is None:
+        pytest.skip("no iptables here: nothing sets a FORWARD policy")
+    policy = re.search(r"^-P FORWARD (\w+)$", subprocess.run(["iptables", "-S", "FORWARD"], capture_output=True,
+                                                             text=True, check=True).stdout, re.MULTILINE)[1]
+    with Network() as net:
+        net.add_host("a")
+        b = net.add_host("b")
+        assert f"iptables:{net.bridge}" in leftovers(net.prefix)
+        net.spawn("b", [sys.executable, "-m", "http.server", "--bind", b.address, "8000"], tmp_path / "b.log")
+        deadline = time.monotonic() + 30
+        while not net.can_connect("a", b.address, 8000) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        subprocess.run(["iptables", "-P", "FORWARD", "DROP"], check=True)
+        try:
+            assert net.can_connect("a", b.address, 8000)
+        finally:
+            subprocess.run(["iptables", "-P", "FORWARD", policy], check=True)
+    assert not leftovers(net.prefix)
 
 
 def test_a_job_through_three_agent_hosts(tmp_path):
