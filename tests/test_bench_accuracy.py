@@ -435,6 +435,9 @@ def test_progressive_cells_render_every_level_in_passes(tmp_path):
     for cell in result["cells"]:
         assert cell["passes"] > cell["units"] >= 1  # several passes of each unit, merged
         assert cell["uniform_spp"] >= 1 and 0 < cell["uniform_relmse"] < 10
+    names = [t["name"] for t in result["targets"] if "median relMSE" in t["name"]]
+    assert names == [f"level {level} in passes: median relMSE over 1 scene(s) <= 1.0 x uniform (equal wall time)"
+                     for level in ("off", "S")]
 
 
 @pytest.mark.parametrize("other", ["--adaptive", "--denoise"])
