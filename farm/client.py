@@ -1,4 +1,4 @@
-"""The user's side of the master's job API: submit, status, result, cancel (plain HTTP, stdlib only)."""
+"""The user's side of the master's job API: submit, status, result, cancel, requeue (plain HTTP, stdlib only)."""
 
 from __future__ import annotations
 
@@ -190,6 +190,11 @@ class FarmClient:
 
     def cancel(self, job_id: str) -> bool:
         return bool(self._json("POST", f"/api/jobs/{job_id}/cancel")["cancelled"])
+
+    def requeue(self, job_id: str) -> dict[str, Any]:
+        """Run a failed or cancelled job again (a sequence: its failed or cancelled frames): {"requeued": [job
+        ids], and for a sequence "refused": {job id: why}}. FarmRefusal (409) says why nothing runs again."""
+        return dict(self._json("POST", f"/api/jobs/{job_id}/requeue"))
 
 
 def _reason(exc: urllib.error.HTTPError) -> str:

@@ -1,4 +1,4 @@
-"""The master's job API over HTTP (`add_job_routes`); `quekaro submit/status/watch/result/cancel` use it.
+"""The master's job API over HTTP (`add_job_routes`); `quekaro submit/status/watch/result/cancel/requeue` use it.
 
 Every route needs the farm's admin token (`Authorization: Bearer ...`):
     POST /api/jobs                 a scene bundle (tar); header X-Quekaro-Job: a `JobSpec`; one with `frames`
@@ -9,6 +9,8 @@ Every route needs the farm's admin token (`Authorization: Bearer ...`):
     GET  /api/jobs/{job}/report    the JSON report
     GET  /api/jobs/{job}/units/{n} one unit: status, agent, attempts, and its story
     POST /api/jobs/{job}/cancel    cancel the job (a sequence id: every frame)
+    POST /api/jobs/{job}/requeue   a failed or cancelled job runs again, its done units kept (a sequence id:
+                                   every failed or cancelled frame); 409 with the reason where it will not
     GET  /api/agents               agents the auction knows, with their records
     GET  /api/farm                 the data plane's address, and why jobs are paused if they are
 Downloads are named as `quekaro result` names them (`download_name`): SCENE.exr, a frame's SCENE_0001.exr.
@@ -53,6 +55,7 @@ class JobService(Protocol):
 
     async def submit(self, bundle: Path, spec: JobSpec) -> str: ...
     async def cancel(self, job_id: str) -> bool: ...
+    async def requeue(self, job_id: str) -> str | None: ...
     async def ensure_assembled(self, job_id: str) -> Path: ...
     def result_path(self, job_id: str) -> Path: ...
     def result_image(self, job_id: str) -> Path: ...
@@ -72,6 +75,7 @@ def add_job_routes(app: web.Application, service: JobService) -> None:
     app.router.add_get("/api/jobs/{job}/raw", job_raw)
     app.router.add_get("/api/jobs/{job}/units/{unit:[0-9]{1,7}}", job_unit)
     app.router.add_post("/api/jobs/{job}/cancel", job_cancel)
+    app.router.add_post("/api/jobs/{job}/requeue", job_requeue)
     app.router.add_get("/api/agents", agents)
     app.router.add_get("/api/farm", farm)
 
@@ -338,6 +342,42 @@ async def job_cancel(request: web.Request) -> web.Response:
         return web.json_response(await cancel_jobs(service, request.match_info["job"]))
     except StoreError as exc:
         return json_error(404, str(exc))
+
+
+class RequeueRefused(QuekaroError):
+    """A requeue the master will not make: the auction's reason (a running or done job, ...)."""
+
+
+async def requeue_jobs(service: JobService, job_id: str) -> dict[str, Any]:
+    """Run a failed or cancelled job again, or every failed or cancelled frame of a sequence (StoreError for
+    neither; RequeueRefused, saying why, where nothing runs again)."""
+    if not SEQUENCE_ID.fullmatch(job_id):
+        refused = await service.requeue(job_id)
+        if refused:
+            raise RequeueRefused(f"job {job_id}: {refused}")
+        return {"job_id": job_id, "requeued": [job_id]}
+    records = service.store.sequence(job_id)
+    if not records:
+        raise StoreError(f"no sequence {job_id!r}")
+    ended = [r.id for r in records if r.status in ("failed", "cancelled")]
+    if not ended:
+        raise RequeueRefused(f"sequence {job_id}: no frame of it failed or was cancelled")
+    refusals = {frame: await service.requeue(frame) for frame in ended}
+    requeued = [frame for frame, refused in refusals.items() if not refused]
+    if not requeued:
+        raise RequeueRefused(f"sequence {job_id}: " + "; ".join(f"job {f}: {r}" for f, r in refusals.items()))
+    return {"job_id": job_id, "sequence": job_id, "requeued": requeued,
+            "refused": {frame: refused for frame, refused in refusals.items() if refused}}
+
+
+async def job_requeue(request: web.Request) -> web.Response:
+    service = _service(request)
+    try:
+        return web.json_response(await requeue_jobs(service, request.match_info["job"]))
+    except StoreError as exc:
+        return json_error(404, str(exc))
+    except RequeueRefused as exc:
+        return json_error(409, str(exc))
 
 
 async def farm(request: web.Request) -> web.Response:

@@ -423,24 +423,43 @@ class MasterService:
         else why not. A done job the auction does not know (ended before this master started) is taken up
         first, as a restart takes up a running one; its composed image goes, to be composed again."""
         async with self._lock:
-            record = self.store.job(job_id)
-            if self.auction.job_view(job_id) is None and record.status == JobStatus.DONE:
-                units = self.store.units(job_id)
-                adopt = au.JobSubmitted(self.job_info(record), [u.unit() for u in units],
-                                        _tile_channels(self.job_plan(record)), frozenset(u.index for u in units),
-                                        stimulus_id=f"adopt-{job_id}")
-                self.auction.handle(adopt, time.time())  # its JobDone restates what the store has
+            self._adopt_done(self.store.job(job_id))
             out = await self._handle(au.UnitRetryRequested(job_id, index, stimulus_id=f"retry-{job_id}-{index}"))
-        ignored = [i for i in out if isinstance(i, au.MessageIgnored) and i.job_id == job_id]
-        return ignored[0].reason if ignored else None
+        return _refusal(out, job_id)
+
+    async def requeue(self, job_id: str) -> str | None:
+        """Run a failed or cancelled job again (the auction's `JobRequeueRequested`): its done units kept, the
+        others auctioned. None once it runs, else why not. A job the auction does not know (it ended before
+        this master started) comes from the store, as a restart takes up a running one. StoreError: no job."""
+        async with self._lock:
+            record = self.store.job(job_id)
+            if not (self.job_dir(job_id) / "bundle.tar").is_file():
+                return "its bundle is no longer on the master: submit the scene again"
+            self._adopt_done(record)
+            taken_up = None
+            if self.auction.job_view(job_id) is None and record.status != JobStatus.RUNNING:
+                job = self._taken_up(self.store.taken_up(job_id))
+                taken_up = au.JobSubmitted.taken_up(self.job_info(record), job, f"requeue-{job_id}")
+            out = await self._handle(au.JobRequeueRequested(job_id, taken_up, stimulus_id=f"requeue-{job_id}"))
+        return _refusal(out, job_id)
+
+    def _adopt_done(self, record: JobRecord) -> None:
+        """A done job the auction does not know (ended before this master started), taken up as done: a unit of
+        it may be retried, and a requeue of it is refused by the auction, saying why."""
+        if self.auction.job_view(record.id) is not None or record.status != JobStatus.DONE:
+            return
+        units = self.store.units(record.id)
+        adopt = au.JobSubmitted(self.job_info(record), [u.unit() for u in units],
+                                _tile_channels(self.job_plan(record)), frozenset(u.index for u in units),
+                                stimulus_id=f"adopt-{record.id}")
+        self.auction.handle(adopt, time.time())  # its JobDone restates what the store has
 
     async def drain(self, agent: str, drain: bool) -> str | None:
         """Drain an agent (no new award; it finishes what it holds), or resume it: None once done, else why not."""
         kind, verb = (au.AgentDrainRequested, "drain") if drain else (au.AgentResumeRequested, "resume")
         async with self._lock:
             out = await self._handle(kind(agent, stimulus_id=f"{verb}-{agent}"))
-        ignored = [i for i in out if isinstance(i, au.MessageIgnored) and i.agent is None and i.job_id is None]
-        return ignored[0].reason if ignored else None
+        return _refusal(out, None)
 
     async def delete_job(self, job_id: str) -> None:
         """Forget an ended job: its rows and its folder (bundle, tiles, image). StoreError for a running one."""
@@ -499,9 +518,18 @@ class MasterService:
         answered or finished may be free: waiting for the timer would idle it), carried out."""
         now = time.time()
         out = self.auction.handle(stimulus, now)
+        out += self._drain_again(out, now)
         out += self.auction.handle(au.Tick(stimulus_id=f"tick-after-{stimulus.stimulus_id}"), now)
         await self._execute(out)
         return out
+
+    def _drain_again(self, out: list[au.Instruction], now: float) -> list[au.Instruction]:
+        """An agent the store says the user drained, joining (after a master restart, or forgotten and back),
+        is drained again before anything is awarded to it."""
+        joined = [i.agent for i in out if isinstance(i, au.AgentJoined)]
+        drained = self.store.drained() if joined else set()
+        return [item for agent in joined if agent in drained
+                for item in self.auction.handle(au.AgentDrainRequested(agent, stimulus_id=f"drained-{agent}"), now)]
 
     async def _tick_forever(self) -> None:
         while True:
@@ -542,7 +570,7 @@ class MasterService:
                     write_verdicts(self.job_dir(item.job_id), item)
                 elif isinstance(item, au.UnitDone) and self.auction.merges_passes(item.job_id):
                     self._merge_later(item)
-                elif isinstance(item, au.UnitRetried):
+                elif isinstance(item, au.UnitRetried | au.JobRequeued):
                     self._drop_result(item.job_id)
         for to, message in outgoing(instructions):
             try:
@@ -617,7 +645,8 @@ class MasterService:
             log.error("%s failed: %s", task.get_name(), task.exception())
 
     def _drop_result(self, job_id: str) -> None:
-        """A job runs again (a unit retried): its composed image, report and preview go, composed again at its end."""
+        """A job runs again (a unit retried, a job requeued): its composed image, report and preview go, composed
+        again at its end (a stale image must not be served meanwhile)."""
         stem = self.result_path(job_id)
         for suffix in (*IMAGE_SUFFIXES, RAW_SUFFIX, ".json", ".png"):
             stem.with_suffix(suffix).unlink(missing_ok=True)
@@ -741,6 +770,12 @@ def _admin_token(home: Path) -> str:
         path.touch(mode=0o600)
         path.write_text(secrets.token_hex(24))
     return path.read_text().strip()
+
+
+def _refusal(out: list[au.Instruction], job_id: str | None) -> str | None:
+    """Why the auction refused what the user asked of the job (`job_id`; None: of an agent), or None."""
+    ignored = [i for i in out if isinstance(i, au.MessageIgnored) and i.agent is None and i.job_id == job_id]
+    return ignored[0].reason if ignored else None
 
 
 def outgoing(instructions: list[au.Instruction]) -> list[tuple[str, m.Message]]:

@@ -2,7 +2,8 @@
 
 `JobStore(path)` holds it. The auction (`master.auction`) never touches the store: the master records
 the auction's records with `JobStore.apply`. After a restart `resume` sends awarded units back to pending
-and the auction rebuilds itself from `running_jobs` and `credits`. Statuses (rows and CHECK constraints)
+and the auction rebuilds itself from `running_jobs` and `credits`; drained agents (`drained`) are drained
+again as they come back. Statuses (rows and CHECK constraints)
 are `core.model.status`'s, and every change is checked against its transition table, as the auction's are.
 """
 
@@ -21,12 +22,19 @@ from typing import Any
 from core.errors import QuekaroError
 from core.model.geometry import Rect
 from core.model.job import JobPlan, JobSpec, SceneSpec
-from core.model.status import STORED_UNIT_STATUSES, JobStatus, UnitStatus, job_transition, unit_transition
+from core.model.status import (
+    STORED_UNIT_STATUSES,
+    JobStatus,
+    TransitionError,
+    UnitStatus,
+    job_transition,
+    unit_transition,
+)
 from core.model.units import WorkUnit
 from master import auction as au
 from planning.progressive import BUDGET, NOISE, Goal
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 # A unit row's WorkUnit.work in SQL ({t}: the table's alias and a dot, or nothing).
 _WORK = "{t}cost * COALESCE({t}spp, 1)"
 _INSERT_UNIT = ("INSERT INTO units (job_id, idx, x, y, w, h, C, S, Nd, cost, status, spp, depth_floor, depth)"
@@ -46,7 +54,8 @@ CREATE TABLE jobs (
     status   TEXT NOT NULL CHECK (status IN ({_sql_set(JobStatus)})),
     created  REAL NOT NULL,
     finished REAL,
-    error    TEXT NOT NULL DEFAULT ''
+    error    TEXT NOT NULL DEFAULT '',
+    requeued REAL                           -- its latest requeue: failures before it are not held against it
 );
 CREATE TABLE units (
     job_id   TEXT NOT NULL REFERENCES jobs(id) ON DELETE CASCADE,
@@ -91,7 +100,8 @@ CREATE TABLE results (
 CREATE TABLE agents (
     name      TEXT PRIMARY KEY,
     credits   INTEGER NOT NULL DEFAULT 0,
-    last_seen REAL
+    last_seen REAL,
+    draining  INTEGER NOT NULL DEFAULT 0 CHECK (draining IN (0, 1))  -- drained by the user, across restarts
 );
 """
 
@@ -259,6 +269,8 @@ class JobStore:
             version = self._migrate_from_4()
         if version == 5 and not readonly:
             version = self._migrate_from_5()
+        if version == 6 and not readonly:
+            version = self._migrate_from_6()
         if version != SCHEMA_VERSION:
             raise StoreError(f"{self.path}: schema version {version}, this program reads {SCHEMA_VERSION}")
 
@@ -277,7 +289,8 @@ class JobStore:
                     old = json.loads(r["options"])
                     spec = {"defines": json.loads(r["defines"]), "options": old["options"]}
                     plan = {**old["plan"], "options": old["options"]}
-                    db.execute("INSERT INTO jobs_v2 VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                    db.execute("INSERT INTO jobs_v2 (id, scene, spec, plan, status, created, finished, error)"
+                               " VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                                (r["id"], r["scene"], json.dumps(spec), json.dumps(plan), r["status"],
                                 r["created"], r["finished"], r["error"]))
                 db.execute("DROP TABLE jobs")
@@ -325,6 +338,18 @@ class JobStore:
                 db.execute("ALTER TABLE units ADD COLUMN depth INTEGER CHECK (depth IS NULL OR depth >= -1)")
                 db.execute("PRAGMA user_version = 6")
         return 6
+
+    def _migrate_from_6(self) -> int:
+        """Schema 7 keeps each job's latest requeue and each agent's drain; none before. (A schema 1 home's jobs
+        table, made anew by `_migrate_from_1`, has its requeued column already.)"""
+        with self._tx() as db:
+            if db.execute("PRAGMA user_version").fetchone()[0] == 6:
+                if "requeued" not in {r["name"] for r in db.execute("PRAGMA table_info(jobs)")}:
+                    db.execute("ALTER TABLE jobs ADD COLUMN requeued REAL")
+                db.execute("ALTER TABLE agents ADD COLUMN draining INTEGER NOT NULL DEFAULT 0"
+                           " CHECK (draining IN (0, 1))")
+                db.execute("PRAGMA user_version = 7")
+        return 7
 
     @contextmanager
     def _tx(self) -> Iterator[sqlite3.Connection]:
@@ -499,6 +524,10 @@ class JobStore:
     def credits(self) -> dict[str, int]:
         return {r["name"]: r["credits"] for r in self.db.execute("SELECT name, credits FROM agents")}
 
+    def drained(self) -> set[str]:
+        """The agents the user drained (and did not resume): drained again as they come back after a restart."""
+        return {r["name"] for r in self.db.execute("SELECT name FROM agents WHERE draining = 1")}
+
     def attempts(self, job_id: str, index: int | None = None) -> list[AttemptRecord]:
         """A job's attempts (one unit's with `index`), oldest first (without their tokens' hashes)."""
         sql = ("SELECT idx, agent, started, finished, outcome, estimate, seconds, reason FROM attempts"
@@ -649,13 +678,14 @@ class JobStore:
     def running_jobs(self) -> list[RunningJob]:
         """Every running job with its units, those done (and by whom) and its past failures: what the auction
         rebuilds itself from after a restart (with `credits`)."""
-        out = []
-        for record in self.list_jobs(JobStatus.RUNNING):
-            units = self.units(record.id)
-            done = [u.index for u in units if u.status == UnitStatus.DONE]
-            out.append(RunningJob(record.id, [u.unit() for u in units], done, self.failures(record.id),
-                                  self._delivered_by(record.id), record.plan.get("channels")))
-        return out
+        return [self.taken_up(record.id) for record in self.list_jobs(JobStatus.RUNNING)]
+
+    def taken_up(self, job_id: str) -> RunningJob:
+        """A job as the auction takes it up: running after a restart, or ended to run again (a requeue)."""
+        units = self.units(job_id)
+        done = [u.index for u in units if u.status == UnitStatus.DONE]
+        return RunningJob(job_id, [u.unit() for u in units], done, self.failures(job_id),
+                          self._delivered_by(job_id), self.job(job_id).plan.get("channels"))
 
     def _delivered_by(self, job_id: str) -> dict[int, str]:
         """The agent of each done unit's done attempt (a unit is never done twice)."""
@@ -681,8 +711,11 @@ class JobStore:
         return bad
 
     def failures(self, job_id: str) -> list[tuple[int, str, str]]:
+        """The job's failed attempts since its latest requeue (those before are forgiven), oldest first."""
         rows = self.db.execute(
-            "SELECT idx, agent, reason FROM attempts WHERE job_id = ? AND outcome = 'failed' ORDER BY id",
+            "SELECT a.idx, a.agent, a.reason FROM attempts a JOIN jobs j ON j.id = a.job_id"
+            " WHERE a.job_id = ? AND a.outcome = 'failed' AND a.started >= COALESCE(j.requeued, a.started)"
+            " ORDER BY a.id",
             (job_id,),
         )
         return [(r["idx"], r["agent"], r["reason"]) for r in rows]
@@ -717,6 +750,8 @@ class JobStore:
                 db.execute("DELETE FROM results WHERE job_id = ? AND idx = ?", (ev.job_id, ev.index))
                 self._set_unit(db, ev.job_id, ev.index, UnitStatus.PENDING)
                 self._reopen_job(db, ev.job_id)
+            case au.JobRequeued():
+                self._requeue_job(db, ev.job_id, ev.units, now)
             case au.PassesOrdered():
                 self._add_units(db, ev.job_id, ev.units)
             case au.JobDone():
@@ -725,8 +760,10 @@ class JobStore:
                 self._end_job(db, ev.job_id, JobStatus.FAILED, now, ev.reason)
             case au.JobCancelled():
                 self._end_job(db, ev.job_id, JobStatus.CANCELLED, now, ev.reason)
-            case (au.AgentJoined() | au.AgentLost() | au.AgentBack() | au.AgentBlocklisted() | au.BidRefused()
-                  | au.AgentDrained() | au.AgentResumed()):
+            case au.AgentDrained() | au.AgentResumed():
+                self._agent(db, ev.agent, now, None)
+                db.execute("UPDATE agents SET draining = ? WHERE name = ?", (isinstance(ev, au.AgentDrained), ev.agent))
+            case au.AgentJoined() | au.AgentLost() | au.AgentBack() | au.AgentBlocklisted() | au.BidRefused():
                 self._agent(db, ev.agent, now, None)
             case au.PassesSettled():
                 pass  # the master writes the verdicts beside the job's tiles; its passes still out end with the job
@@ -802,13 +839,33 @@ class JobStore:
         db.execute(f"UPDATE units SET status = ? WHERE status IN ({marks}) AND {where}", (status, *sources, *args))
 
     def _reopen_job(self, db: sqlite3.Connection, job_id: str) -> None:
-        """A job ended as done runs again (repair); a running job stays running."""
+        """A job ended as done runs again (repair, a retried unit); a running job stays running. A failed or
+        cancelled one runs again only when requeued (`_requeue_job`)."""
+        status = self._job_status(db, job_id)
+        if status in (JobStatus.FAILED, JobStatus.CANCELLED):
+            raise TransitionError(f"job {job_id!r}: {status} -> running only by a requeue, not by a unit")
+        if status != JobStatus.RUNNING:
+            to = job_transition(f"job {job_id!r}", status, JobStatus.RUNNING)
+            db.execute("UPDATE jobs SET status = ?, finished = NULL WHERE id = ?", (to, job_id))
+
+    def _requeue_job(self, db: sqlite3.Connection, job_id: str, units: Sequence[int], now: float) -> None:
+        """A failed or cancelled job runs again: its `units` (failed with it: none done) back to pending, no
+        end, no error, and its failures so far forgiven."""
+        to = job_transition(f"job {job_id!r}", self._job_status(db, job_id), JobStatus.RUNNING)
+        for index in units:
+            status = self._unit(db, job_id, index)["status"]
+            if status != UnitStatus.FAILED:
+                raise StoreError(f"job {job_id!r} unit {index}: {status}, not failed with its job: not requeued")
+            self._set_unit(db, job_id, index, UnitStatus.PENDING)
+        db.execute("UPDATE jobs SET status = ?, finished = NULL, error = '', requeued = ? WHERE id = ?",
+                   (to, now, job_id))
+
+    @staticmethod
+    def _job_status(db: sqlite3.Connection, job_id: str) -> JobStatus:
         row = db.execute("SELECT status FROM jobs WHERE id = ?", (job_id,)).fetchone()
         if row is None:
             raise StoreError(f"no job {job_id!r}")
-        if row["status"] != JobStatus.RUNNING:
-            to = job_transition(f"job {job_id!r}", row["status"], JobStatus.RUNNING)
-            db.execute("UPDATE jobs SET status = ?, finished = NULL WHERE id = ?", (to, job_id))
+        return JobStatus(row["status"])
 
     def _end_job(self, db: sqlite3.Connection, job_id: str, status: JobStatus, now: float, error: str) -> None:
         """A running job ends as `status`; a job already ended stays as it ended."""

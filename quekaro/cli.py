@@ -23,7 +23,7 @@ from core.render import spawn
 # in the order `quekaro --help` lists them.
 OWNERS = {"rules": "quekaro.cmd_rules", "render": "quekaro.cmd_render", "diff": "quekaro.cmd_diff",
           **dict.fromkeys(("up", "down", "demo", "master", "agent", "submit", "status", "watch", "result", "cancel",
-                           "agents", "logs"), "quekaro.cmd_farm"),
+                           "agents", "logs", "requeue"), "quekaro.cmd_farm"),
           "ca": "quekaro.cmd_ca"}
 COMMAND_MODULES = tuple(dict.fromkeys(OWNERS.values()))
 PLUGIN_GROUP = "quekaro.commands"

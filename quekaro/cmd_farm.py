@@ -1,5 +1,5 @@
-"""`quekaro up | down | demo | master | agent | submit | status | watch | result | cancel`: running a farm, and
-using one. The processes themselves live in `farm.local` (up, demo), `master.service` and
+"""`quekaro up | down | demo | master | agent | submit | status | watch | result | cancel | requeue`: running a
+farm, and using one. The processes themselves live in `farm.local` (up, demo), `master.service` and
 `agents.render_agent`; this module is argument parsing and printing."""
 
 from __future__ import annotations
@@ -160,6 +160,15 @@ def _register_client(sub: argparse._SubParsersAction) -> None:
     cancel.add_argument("job", help="a job id, or a sequence id (seq-...)")
     _add_farm_location(cancel)
     cancel.set_defaults(func=run_cancel)
+    requeue = sub.add_parser("requeue", help="run a failed or cancelled job again, its done units kept; or every "
+                                             "failed or cancelled frame of a sequence",
+                             description="A failed or cancelled job runs again: the units it had done keep their "
+                                         "tiles, the others are rendered. A sequence id requeues each of its failed "
+                                         "or cancelled frames (one frame alone: its job id). A running or done job "
+                                         "is refused.")
+    requeue.add_argument("job", help="a job id, or a sequence id (seq-...)")
+    _add_farm_location(requeue)
+    requeue.set_defaults(func=run_requeue)
     agents = sub.add_parser("agents", help="the agents the master knows: state, speed, units done, last heard")
     agents.add_argument("--json", action="store_true")
     _add_farm_location(agents)
@@ -660,6 +669,15 @@ def follow_log(path: Path, lines: int, follow: bool, poll_s: float = 0.25) -> No
                 sys.stdout.flush()
             else:
                 time.sleep(poll_s)
+
+
+def run_requeue(args: argparse.Namespace) -> int:
+    answer = _client(args).requeue(args.job)
+    for job_id in answer["requeued"]:
+        print(f"{job_id}: runs again (its done units kept)")
+    for job_id, why in answer.get("refused", {}).items():
+        print(f"{job_id}: not requeued: {why}")
+    return 0
 
 
 def run_cancel(args: argparse.Namespace) -> int:

@@ -1,22 +1,39 @@
 """What the page asks of the auction, as typed stimuli into the pure machine: drain an agent (no new award; it
-finishes what it holds) and resume it, and render a done unit again (its job, done or running, runs again).
-Each refusal is an ignored record saying why; the machine's invariants hold after every stimulus."""
+finishes what it holds) and resume it, render a done unit again (its job, done or running, runs again), and
+requeue a failed or cancelled job (its done units kept, the rest auctioned again, its failures forgiven; one
+the auction does not know taken up from the store; one in passes going on from its passes). Each refusal is an
+ignored record saying why; the machine's invariants hold after every stimulus."""
 
 from __future__ import annotations
 
+import dataclasses
 import random
 from collections import Counter
 
-from auction_support import register, submit, tick
-from test_auction import ONE_A_ROUND, awards, bid_all, events, info, inform, informed, round_trip, sends, specs
+from auction_support import message, register, submit, tick, tile
+from test_auction import (
+    ONE_A_ROUND,
+    awards,
+    bid_all,
+    events,
+    failure,
+    info,
+    inform,
+    informed,
+    round_trip,
+    sends,
+    specs,
+)
 
+from core.image.passes import WEIGHT
 from core.model import messages as m
 from core.model.status import JobStatus
 from master import auction as au
+from planning.progressive import BUDGET, TIME, Goal
 
 
-def make(costs: list[float], agents: list[str]) -> au.Auction:
-    a = au.Auction(ONE_A_ROUND, rng=random.Random(3))
+def make(costs: list[float], agents: list[str], config: au.Config = ONE_A_ROUND) -> au.Auction:
+    a = au.Auction(config, rng=random.Random(3))
     submit(a, info(), specs(costs))
     for name in agents:
         register(a, name, 0.0)
@@ -97,3 +114,127 @@ def test_a_retry_of_a_unit_not_done_or_of_no_unit_is_refused_saying_why() -> Non
     assert a.counts("job-1") == Counter(done=1, failed=1)
     assert reasons(handle(a, au.UnitRetryRequested("job-1", 1))) == [
         "the unit is done and its job cancelled: only a done unit is retried"]
+
+
+def finish_all(a: au.Auction, now: float, **tile_kw) -> tuple[list[int], list[au.Instruction]]:
+    """Round trips until the job ends, every award's tile stored: the units awarded, in order, and what the
+    last tile led to."""
+    awarded, out = [], []
+    a.__dict__.pop("_test_calls", None)  # calls made before the job ended: their rounds are closed
+    while a.job_status("job-1") == JobStatus.RUNNING:
+        for award in round_trip(a, now).values():
+            awarded.append(award.message.unit.index)
+            out = tile(a, award.message, 1.0, now + 0.5, **tile_kw)
+            a.validate()
+        now += 1.0
+    return awarded, out
+
+
+def cancelled_after(a: au.Auction, done: int) -> list[int]:
+    """`done` units rendered, then the job cancelled: the units done."""
+    finished = []
+    while len(finished) < done:
+        for award in list(round_trip(a, 0.0).values())[:done - len(finished)]:
+            informed(a, award.to, inform(award, 1.0), 0.5)
+            finished.append(award.message.unit.index)
+    handle(a, au.JobCancelRequested("job-1"))
+    return finished
+
+
+def test_a_cancelled_job_requeued_keeps_its_done_units_and_auctions_only_the_rest() -> None:
+    a = make([1.0, 2.0, 3.0, 4.0], ["A", "B"])
+    kept = cancelled_after(a, 2)
+    assert a.job_status("job-1") == JobStatus.CANCELLED and a.counts("job-1") == Counter(done=2, failed=2)
+    out = handle(a, au.JobRequeueRequested("job-1", stimulus_id="requeue-job-1"), 1.0)
+    rest = tuple(sorted({0, 1, 2, 3} - set(kept)))
+    assert events(out) == [au.JobRequeued("job-1", rest, 2, "asked by the user")]
+    assert a.job_view("job-1").status == "running" and a.job_view("job-1").error == ""
+    assert a.counts("job-1") == Counter(done=2, pending=2)
+    assert a.story("job-1", rest[0])[-1] == au.Transition("requeue-job-1", "failed", "pending", 1.0)
+    awarded, last = finish_all(a, 2.0)
+    assert sorted(awarded) == list(rest)  # the units done before the cancel are not rendered again
+    assert events(last, au.JobDone) and a.counts("job-1") == Counter(done=4)
+
+
+def test_a_failed_job_requeued_has_its_failures_forgiven_and_runs_to_its_end() -> None:
+    a = make([1.0, 2.0], ["A"], au.Config(slots=2, max_unit_failures=2, blocklist_after=2))
+    now, out = 0.0, []
+    while not events(out, au.JobFailed):
+        award = next(iter(round_trip(a, now).values()))
+        out = message(a, award.to, failure(award, "out of memory"), now + 0.5)
+        now += 1.0
+    assert a.job_view("job-1").blocklist == ("A",) and "out of memory" in a.job_view("job-1").error
+    out = handle(a, au.JobRequeueRequested("job-1"), now)
+    assert [type(e) for e in events(out)] == [au.JobRequeued] and events(out)[0].count == 2
+    assert a.job_view("job-1").blocklist == () and a.job_view("job-1").error == ""
+    assert not events(tick(a, now), au.JobFailed)  # the unit that failed it does not fail it again at once
+    awarded, last = finish_all(a, now + 1.0)
+    assert sorted(awarded) == [0, 1] and events(last, au.JobDone)
+
+
+def test_a_requeue_of_a_running_done_or_unknown_job_is_refused_saying_why() -> None:
+    a = make([1.0], ["A"])
+    running = "only a failed or cancelled job is requeued: it is running"
+    assert reasons(handle(a, au.JobRequeueRequested("job-1"))) == [running]
+    assert reasons(handle(a, au.JobRequeueRequested("job-2"))) == ["no job of that id the master auctions"]
+    stranger = au.JobSubmitted(info("job-3"), specs([1.0]))
+    assert reasons(handle(a, au.JobRequeueRequested("job-2", stranger))) == ["no job of that id the master auctions"]
+    finish_all(a, 0.0)
+    assert reasons(handle(a, au.JobRequeueRequested("job-1"))) == [
+        "only a failed or cancelled job is requeued: it is done: render one of its units again (retry) instead"]
+    assert a.job_status("job-1") == JobStatus.DONE
+
+
+def test_a_job_the_auction_does_not_know_is_requeued_as_the_store_holds_it() -> None:
+    """It ended before this master started: taken up with its done units done and its failures forgiven."""
+    a = au.Auction(ONE_A_ROUND, rng=random.Random(3))
+    register(a, "A", 0.0)
+    store_says = au.JobSubmitted(info(), specs([1.0, 2.0, 3.0]), done=frozenset({1}),
+                                 failures=tuple((0, "A", "crash") for _ in range(9)), delivered_by={1: "A"})
+    out = handle(a, au.JobRequeueRequested("job-1", store_says, stimulus_id="requeue-job-1"), 1.0)
+    assert events(out) == [au.JobRequeued("job-1", (0, 2), 2, "asked by the user")]
+    assert a.counts("job-1") == Counter(done=1, pending=2) and a.job_view("job-1").blocklist == ()
+    awarded, last = finish_all(a, 2.0)
+    assert sorted(awarded) == [0, 2] and events(last, au.JobDone)
+
+
+def in_passes(goal: Goal) -> au.Auction:
+    a = au.Auction(ONE_A_ROUND, rng=random.Random(3))
+    a.handle(au.JobSubmitted(dataclasses.replace(info(), passes=True, level="off"), specs([1.0, 2.0]), goal=goal), 0.0)
+    register(a, "A", 0.0)
+    return a
+
+
+PASS_TILE = {"channels": ("R", "G", "B", WEIGHT), "depth": 8}  # what the job in passes takes of a pass (info())
+
+
+def test_a_cancelled_job_in_passes_requeued_goes_on_from_its_passes() -> None:
+    """Its machine still waits for the passes its cancel stopped: back to pending, they are what it renders."""
+    a = in_passes(Goal(BUDGET, 4))
+    ordered = a.counts("job-1")["pending"]
+    first = next(iter(round_trip(a, 0.0).values()))
+    tile(a, first.message, 1.0, 0.5, **PASS_TILE)
+    handle(a, au.JobCancelRequested("job-1"))
+    assert a.counts("job-1") == Counter(done=1, failed=ordered - 1)
+    out = handle(a, au.JobRequeueRequested("job-1"), 1.0)
+    assert events(out)[0].count == ordered - 1 and a.counts("job-1") == Counter(done=1, pending=ordered - 1)
+    awarded, last = finish_all(a, 2.0, **PASS_TILE)
+    assert first.message.unit.index not in awarded and len(awarded) == ordered - 1
+    assert [type(e) for e in events(last)][-2:] == [au.PassesSettled, au.JobDone]
+
+
+def test_a_job_with_a_time_goal_is_not_requeued() -> None:
+    a = in_passes(Goal(TIME, 64, seconds=10.0))
+    handle(a, au.JobCancelRequested("job-1"))
+    assert reasons(handle(a, au.JobRequeueRequested("job-1"))) == [
+        "a job with a time goal spends its seconds from its first pass: submit it again instead"]
+    assert a.job_status("job-1") == JobStatus.CANCELLED
+
+
+def test_the_look_ahead_counts_on_no_drained_agent() -> None:
+    """A drained agent takes no new unit: a unit projected to it would never be offered to the others."""
+    a = make([4.0, 1.0], ["A", "B"])
+    handle(a, au.AgentDrainRequested("A"))
+    assert {p.agent for p in a.projection("job-1", 0.0).values()} == {"B"}
+    awarded, last = finish_all(a, 0.0)
+    assert sorted(awarded) == [0, 1] and events(last, au.JobDone)

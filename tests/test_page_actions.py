@@ -1,14 +1,16 @@
 """The page's job, unit, agent and log verbs in a real browser (headless Debian chromium, tests/web_support.py)
 against a real local farm (the embedded XMPP server, the master, two render agents, tiny scenes): a done job's
 downloads named as the CLI names them, a unit rendered again, a cancelled job's units painted cancelled and its
-partial image, a job deleted, an agent drained and resumed, the logs view, a sequence as one row with its
-frames, and a link to no job leaving no image of the job shown before."""
+partial image, a job deleted, a cancelled job requeued to its end (its done units not rendered again), an agent
+drained and resumed, the logs view, a sequence as one row with its frames, and a link to no job leaving no image
+of the job shown before."""
 
 from __future__ import annotations
 
 import io
 import time
 
+import numpy as np
 import pytest
 from PIL import Image
 from selenium.webdriver.common.by import By
@@ -16,6 +18,7 @@ from selenium.webdriver.remote.webdriver import WebDriver
 from test_web_page import JOB_TIMEOUT_S, admin_token, bundle_of, job_row, logged_in, session_cookie
 from web_support import click, http, module_browser, module_farm, rows, screenshot, wait_until
 
+from core.image.imageio import read_image
 from core.model.frames import FrameRange
 from core.model.job import JobSpec, RenderOptions
 from farm.local import LocalFarm
@@ -99,6 +102,41 @@ def test_a_cancelled_jobs_units_read_cancelled_its_partial_image_and_its_delete(
     wait_until(lambda: not browser.find_elements(By.CSS_SELECTOR, f'#jobs-table tr[data-job="{job_id}"]'), 30,
                "the job gone from the table")
     assert job_id not in {j["job_id"] for j in client.jobs()} and not (farm.home / "jobs" / job_id).exists()
+
+
+def test_a_cancelled_job_requeued_from_the_page_finishes_without_rendering_its_done_units_again(farm, browser,
+                                                                                                  tmp_path):
+    logged_in(browser, farm)
+    client = farm.client()
+    spec, options = {"res": "128", "spp": "256"}, {"level": "off", "units": 16}
+    job_id = client.submit(bundle_of(spec), spec, options)
+    wait_until(lambda: client.status(job_id)["units_done"], JOB_TIMEOUT_S, "a first tile")
+    assert client.cancel(job_id) is True
+
+    def attempts() -> dict[int, list[str]]:
+        return {i: [a["outcome"] for a in client.unit(job_id, i)["attempts"]] for i in range(16)}
+
+    before = {i for i, outcomes in attempts().items() if "done" in outcomes}
+    assert 0 < len(before) < 16, before
+    open_job(browser, farm, job_id)
+    view = browser.find_element(By.ID, "job-view")
+    wait_until(lambda: view.get_attribute("data-status") == "cancelled", 30, "the job cancelled")
+    click(browser, '#job-summary button[data-action="requeue"]')
+    wait_until(lambda: "runs again" in browser.find_element(By.ID, "message").text, 20, "the requeue said")
+    wait_until(lambda: view.get_attribute("data-status") in ("running", "done"), 30, "the job running again")
+    assert client.wait(job_id, JOB_TIMEOUT_S)["status"] == "done"
+    wait_until(lambda: view.get_attribute("data-status") == "done" and browser.execute_script(
+        "return document.getElementById('preview').dataset.final") == "1", 60, "the image filled, final")
+    after = attempts()
+    assert all(outcomes.count("done") == 1 for outcomes in after.values()), after
+    assert all(after[i] == ["done"] for i in before), after  # done before the cancel: never awarded again
+    screenshot(browser, tmp_path, "requeued-done")
+    requeued = read_image(client.result(job_id, tmp_path / "requeued.exr"))
+    whole_id = client.submit(bundle_of(spec), spec, options)  # the same job, never cancelled
+    assert client.wait(whole_id, JOB_TIMEOUT_S)["status"] == "done"
+    whole = read_image(client.result(whole_id, tmp_path / "whole.exr"))
+    assert requeued.shape == whole.shape and np.isfinite(requeued).all()
+    assert abs(requeued.mean() - whole.mean()) < 0.05 * whole.mean()  # the same image, other samples
 
 
 def test_an_agent_drained_gets_no_unit_and_resumed_it_does(farm, browser, tmp_path):

@@ -30,8 +30,8 @@ def test_illegal_changes_raise_naming_the_unit_or_job_and_both_statuses() -> Non
     with pytest.raises(TransitionError, match=r"^job 'j' unit 3: done -> awarded is not an allowed status change"
                                               r" \(from done: pending\)$"):
         st.unit_transition("job 'j' unit 3", UnitStatus.DONE, UnitStatus.AWARDED)
-    with pytest.raises(TransitionError, match=r"^job 'j': failed -> running .*\(from failed: nothing\)$"):
-        st.job_transition("job 'j'", JobStatus.FAILED, JobStatus.RUNNING)
+    with pytest.raises(TransitionError, match=r"^job 'j': failed -> done .*\(from failed: running\)$"):
+        st.job_transition("job 'j'", JobStatus.FAILED, JobStatus.DONE)
     with pytest.raises(TransitionError, match="job 'j': running -> running"):
         st.job_transition("job 'j'", "running", "running")
     with pytest.raises(TransitionError, match="job 'j' unit 1: 'sold' is not a valid UnitStatus"):
@@ -76,12 +76,14 @@ def _drive_auction() -> None:
         award = round_trip(a, now)[0]
         message(a, award.to, failure(award), now)
     assert a._jobs["job-1"].status == JobStatus.FAILED
+    a.handle(au.JobRequeueRequested("job-1"), 22.0)  # requeued: its failed unit back to pending, the job running
     a = make([1.0, 2.0, 3.0], ["A", "B"], au.Config(slots=1))  # cancelled: two units awarded, one announced
     round_trip(a, 0.0)
     register(a, "C", 0.1)
     tick(a, 0.1)
     assert a.counts("job-1") == {"awarded": 2, "announced": 1}
     cancel(a, "job-1")
+    a.handle(au.JobRequeueRequested("job-1"), 0.2)
 
 
 def _drive_store(tmp_path: Path) -> None:
@@ -103,8 +105,10 @@ def _drive_store(tmp_path: Path) -> None:
     tile.unlink()
     store.repair(["job-1"], 110.0)
     store.set_status("job-1", JobStatus.FAILED, 111.0)
+    store.apply([au.JobRequeued("job-1", (0,), 1, "asked by the user")], 111.5)
     other = new_store(tmp_path / "other.db", n=1)
     other.set_status("job-1", JobStatus.CANCELLED, 112.0)
+    other.apply([au.JobRequeued("job-1", (0,), 1, "asked by the user")], 113.0)
 
 
 def test_the_tables_hold_exactly_the_changes_the_auction_and_the_store_make(tmp_path: Path, monkeypatch) -> None:

@@ -351,14 +351,20 @@ def test_readers_see_progress_while_the_master_writes(tmp_path: Path) -> None:
         reader.db.execute("UPDATE jobs SET status = 'failed'")
 
 
-# Schema 5's tables: schema 6 added the units' depth column; schema 4's: schema 5 keeps the award token's
-# sha256 in place of the token; schema 3's: schema 4 added the units' depth_floor column; schema 2's: schema
-# 3 added their spp.
+# Schema 6's tables: schema 7 added the jobs' requeued and the agents' draining columns; schema 5's: schema 6
+# added the units' depth column; schema 4's: schema 5 keeps the award token's sha256 in place of the token;
+# schema 3's: schema 4 added the units' depth_floor column; schema 2's: schema 3 added their spp.
+REQUEUED_COLUMN = ("    error    TEXT NOT NULL DEFAULT '',\n    requeued REAL"
+                   "                           -- its latest requeue: failures before it are not held against it\n")
+DRAINING_COLUMN = ("    last_seen REAL,\n    draining  INTEGER NOT NULL DEFAULT 0 CHECK (draining IN (0, 1))"
+                   "  -- drained by the user, across restarts\n")
+SCHEMA_6 = [s.replace(REQUEUED_COLUMN, "    error    TEXT NOT NULL DEFAULT ''\n")
+            .replace(DRAINING_COLUMN, "    last_seen REAL\n") for s in _SCHEMA.split(";")]
 DEPTH_COLUMN = ("    depth    INTEGER CHECK (depth IS NULL OR depth >= -1),"
                 "  -- WorkUnit.depth (a pass's, pinned), NULL: none\n")
 HASH_COLUMN = ("    token_sha256 TEXT NOT NULL UNIQUE,"
                "      -- the award token's sha256: the token itself is never stored\n")
-SCHEMA_5 = [s.replace(DEPTH_COLUMN, "") for s in _SCHEMA.split(";")]
+SCHEMA_5 = [s.replace(DEPTH_COLUMN, "") for s in SCHEMA_6]
 SCHEMA_4 = [s.replace(HASH_COLUMN, "    token    TEXT NOT NULL UNIQUE,\n") for s in SCHEMA_5]
 FLOOR_COLUMN = ("    depth_floor INTEGER CHECK (depth_floor IS NULL OR depth_floor >= 1),"
                 "  -- WorkUnit.depth_floor, NULL: none\n")
@@ -564,3 +570,55 @@ def test_a_retried_unit_loses_its_result_and_its_done_job_runs_again(tmp_path: P
     assert [a.outcome for a in store.attempts("job-1")] == ["done"]  # its history stays
     [running] = store.running_jobs()
     assert running.done == [] and running.delivered_by == {}
+
+
+def test_a_requeued_job_runs_again_with_its_done_units_kept_and_its_failures_forgiven(tmp_path: Path) -> None:
+    store = new_store(tmp_path / "jobs.sqlite", n=3)
+    store.record_award("job-1", 0, "A", "tok-0", 101.0, 1.0)
+    store.record_result("job-1", 0, "/tiles/0.exr", HASH, {"spp": 16}, 102.0)
+    store.finish_attempt("tok-0", "done", 102.0, 1.0, {"spp": 16})
+    store.mark_done("job-1", 0, 102.0)
+    store.record_award("job-1", 1, "A", "tok-1", 103.0, 1.0)
+    store.finish_attempt("tok-1", "failed", 104.0, reason="out of memory")
+    store.apply([au.JobFailed("job-1", "unit 1 failed 5 times")], 105.0)
+    assert [u.status for u in store.units("job-1")] == [UnitStatus.DONE, UnitStatus.FAILED, UnitStatus.FAILED]
+    with pytest.raises(StoreError, match="job 'job-1' unit 0: done, not failed with its job: not requeued"):
+        store.apply([au.JobRequeued("job-1", (0, 1, 2), 3, "asked by the user")], 106.0)
+    assert store.job("job-1").status == JobStatus.FAILED  # one transaction: nothing of it recorded
+    store.apply([au.JobRequeued("job-1", (1, 2), 2, "asked by the user")], 106.0)
+    record = store.job("job-1")
+    assert (record.status, record.finished, record.error) == (JobStatus.RUNNING, None, "")
+    assert [u.status for u in store.units("job-1")] == [UnitStatus.DONE, UnitStatus.PENDING, UnitStatus.PENDING]
+    assert len(store.results("job-1")) == 1 and [a.outcome for a in store.attempts("job-1")] == ["done", "failed"]
+    [running] = store.running_jobs()  # what a restart takes up: the failure before the requeue is forgiven
+    assert (running.done, running.failures, running.delivered_by) == ([0], [], {0: "A"})
+    store.record_award("job-1", 1, "B", "tok-2", 107.0, 1.0)
+    store.finish_attempt("tok-2", "failed", 108.0, reason="crash")
+    assert store.failures("job-1") == [(1, "B", "crash")]  # one after it counts
+    with pytest.raises(TransitionError, match="job 'job-1': running -> running"):
+        store.apply([au.JobRequeued("job-1", (), 0, "asked by the user")], 109.0)
+
+
+def test_a_drained_agent_stays_drained_in_the_store_until_it_is_resumed(tmp_path: Path) -> None:
+    path = tmp_path / "jobs.sqlite"
+    with new_store(path) as store:
+        store.apply([au.AgentJoined("A", 1.0), au.AgentJoined("B", 1.0), au.AgentDrained("A", 0)], 100.0)
+        assert store.drained() == {"A"}
+    with JobStore(path) as store:  # a restarted master's
+        assert store.drained() == {"A"}
+        store.apply([au.AgentResumed("A"), au.AgentDrained("C", 0)], 101.0)
+        assert store.drained() == {"C"} and set(store.credits()) == {"A", "B", "C"}
+
+
+def test_a_schema_6_store_gains_the_requeue_and_drain_columns(tmp_path: Path) -> None:
+    path = tmp_path / "farm.db"
+    with new_store(path) as store:
+        plan, spec = store.job("job-1").plan, store.job("job-1").spec
+    path.unlink()
+    write_old_store(path, 6, SCHEMA_6, (json.dumps(spec.to_dict()), json.dumps(plan)))
+    sqlite3.connect(path, isolation_level=None).execute("INSERT INTO agents (name) VALUES ('A')").connection.close()
+    with JobStore(path) as store:
+        assert store.db.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
+        assert store.drained() == set() and store.running_jobs()[0].done == []
+        store.apply([au.AgentDrained("A", 0)], 101.0)
+        assert store.drained() == {"A"}

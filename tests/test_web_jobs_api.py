@@ -2,7 +2,8 @@
 SQLite job store and the real auction behind the stand-in master of tests/test_web_http.py): a frame range
 submitted as one job per frame sharing a sequence id, a sequence's summary, list and cancel, job summaries'
 name/spp/resolution/-D, downloads named as the CLI names them (a cancelled job's partial PNG), a cancelled
-job's units read "cancelled", retry, delete, drain and resume (CSRF on each), and the farm's logs."""
+job's units read "cancelled", retry, requeue (a job, a sequence's ended frames), delete, drain and resume (CSRF
+on each), and the farm's logs."""
 
 from __future__ import annotations
 
@@ -15,6 +16,8 @@ from PIL import Image
 from test_web_http import ADMIN, AGENT, JOB, Page, run
 
 from core.model.job import JobSpec
+from core.model.status import UnitStatus
+from master import auction as au
 from master.web.auth import CSRF_HEADER
 
 SEQ = "seq-0123456789ab"
@@ -214,5 +217,70 @@ def test_the_farms_logs_and_a_units_lines_of_the_masters_log(tmp_path):
         said = [line.split(f"unit 0 of job {JOB}: ", 1)[1] for line in unit["log"]]
         assert said == ["awarded to a", "failed on a: out of memory; back to the auction"]
         assert (await page.http.get(f"{page.url}/ui/api/logs", headers={})).status == 401
+
+    run(tmp_path, scenario)
+
+
+def requeues_in_the_store(page: Page) -> None:
+    """The stand-in master requeues as the master's store records it (the auction's decision, and its taking up
+    of a job it does not know, are tests/test_auction_page.py's): a failed or cancelled job's units not done
+    back to pending, the job running; else why not."""
+    store = page.master.store
+
+    async def requeue(job_id: str) -> str | None:
+        status = store.job(job_id).status
+        if status not in ("failed", "cancelled"):
+            return f"only a failed or cancelled job is requeued: it is {status}"
+        units = tuple(u.index for u in store.units(job_id) if u.status == UnitStatus.FAILED)
+        store.apply([au.JobRequeued(job_id, units, len(units), "asked by the user")], time.time())
+        return None
+
+    page.master.requeue = requeue
+
+
+def test_a_requeue_needs_the_csrf_token_or_the_api_token_and_says_why_it_is_refused(tmp_path):
+    async def scenario(page: Page) -> None:
+        requeues_in_the_store(page)
+        cookie, csrf = await page.session()
+        url = f"{page.url}/ui/api/jobs/{JOB}/requeue"
+        refused = await page.http.post(url, headers={"Cookie": cookie})
+        assert refused.status == 403 and "CSRF" in (await refused.json())["error"]
+        both = {"Cookie": cookie, CSRF_HEADER: csrf}
+        running = await page.http.post(url, headers=both)
+        assert running.status == 409
+        said = (await running.json())["error"]
+        assert said == f"job {JOB}: only a failed or cancelled job is requeued: it is running"
+        page.master.award(0)
+        page.master.finish(0)
+        page.master.store.cancel(JOB, time.time())
+        requeued = await page.http.post(url, headers=both)
+        assert requeued.status == 200 and await requeued.json() == {"job_id": JOB, "requeued": [JOB]}
+        assert [u.status for u in page.master.store.units(JOB)] == ["done", "pending", "pending", "pending"]
+        assert page.master.store.job(JOB).status == "running"
+        assert (await page.http.post(f"{page.url}/api/jobs/{JOB}/requeue")).status == 401
+        status, answer = await api(page, "POST", f"/api/jobs/{JOB}/requeue")
+        assert status == 409 and answer["error"].endswith("it is running")
+        status, answer = await api(page, "POST", "/api/jobs/job9999999/requeue")
+        assert status == 404 and "no job 'job9999999'" in answer["error"]
+
+    run(tmp_path, scenario)
+
+
+def test_a_sequence_requeue_runs_its_failed_and_cancelled_frames_again(tmp_path):
+    async def scenario(page: Page) -> None:
+        requeues_in_the_store(page)
+        ids = frames_of(page, ("done", "failed", "cancelled", "running"))
+        status, answer = await api(page, "POST", f"/api/jobs/{SEQ}/requeue")
+        assert status == 200 and answer == {"job_id": SEQ, "sequence": SEQ, "requeued": ids[1:3], "refused": {}}
+        assert [page.master.store.job(i).status for i in ids] == ["done", "running", "running", "running"]
+        status, answer = await api(page, "POST", f"/api/jobs/{SEQ}/requeue")
+        assert status == 409 and answer["error"] == f"sequence {SEQ}: no frame of it failed or was cancelled"
+        status, answer = await api(page, "POST", "/api/jobs/seq-ffffffffffff/requeue")
+        assert status == 404 and "no sequence" in answer["error"]
+        page.master.store.cancel(ids[3], time.time())  # one frame alone: its job id, from the page
+        cookie, csrf = await page.session()
+        response = await page.http.post(f"{page.url}/ui/api/jobs/{ids[3]}/requeue",
+                                        headers={"Cookie": cookie, CSRF_HEADER: csrf})
+        assert response.status == 200 and page.master.store.job(ids[3]).status == "running"
 
     run(tmp_path, scenario)

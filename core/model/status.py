@@ -48,6 +48,9 @@ UNIT_TRANSITIONS: dict[tuple[UnitStatus, UnitStatus], tuple[str, str]] = {
     (_U.ANNOUNCED, _U.FAILED): ("A", "its job failed or was cancelled during the unit's round"),
     (_U.AWARDED, _U.FAILED): ("AS", "its job failed or was cancelled while the unit rendered"),
     (_U.DONE, _U.PENDING): ("S", "repaired as the master starts: done, but its tile is not on disk"),
+    # Legal: a unit fails only with its job (its own failures send it back to pending), so a unit still
+    # failed has no tile and nothing of it is on an agent; its job runs again only by the user's requeue.
+    (_U.FAILED, _U.PENDING): ("AS", "its failed or cancelled job requeued by the user"),
 }
 
 JOB_TRANSITIONS: dict[tuple[JobStatus, JobStatus], tuple[str, str]] = {
@@ -56,6 +59,10 @@ JOB_TRANSITIONS: dict[tuple[JobStatus, JobStatus], tuple[str, str]] = {
                                     "master cannot describe it"),
     (_J.RUNNING, _J.CANCELLED): ("AS", "cancelled by the user"),
     (_J.DONE, _J.RUNNING): ("S", "repaired as the master starts: a done unit's tile is gone"),
+    # Legal: an ended job keeps its done units' tiles and its plan; requeued, it is auctioned again from them,
+    # as a restarted master takes up a running job.
+    (_J.FAILED, _J.RUNNING): ("AS", "requeued by the user: its units not done go back to the auction"),
+    (_J.CANCELLED, _J.RUNNING): ("AS", "requeued by the user: its units not done go back to the auction"),
 }
 
 _S = TypeVar("_S", UnitStatus, JobStatus)

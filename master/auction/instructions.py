@@ -133,6 +133,18 @@ class UnitRetried(Record):
 
 
 @dataclass(frozen=True)
+class JobRequeued(Record):
+    """A failed or cancelled job runs again at the user's request: its `units` not done go back to pending
+    (the done ones keep their tiles); its error and end are cleared, and its failures before are forgiven."""
+
+    template: ClassVar[str] = "job {job_id}: runs again, {count} units back to the auction ({reason})"
+    job_id: str
+    units: tuple[int, ...] = field(repr=False)
+    count: int
+    reason: str
+
+
+@dataclass(frozen=True)
 class PassesOrdered(Record):
     """A progressive job's next passes, each a work unit of its own (master.auction.passes): the store
     keeps them as the job's units."""

@@ -17,7 +17,7 @@ import math
 import random
 import statistics
 from collections import Counter, deque
-from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator
 
 from core.errors import MessageError
 from core.image.passes import WEIGHT
@@ -39,6 +39,7 @@ from master.auction.instructions import (
     JobCancelled,
     JobDone,
     JobFailed,
+    JobRequeued,
     JobsPaused,
     JobsResumed,
     MessageIgnored,
@@ -82,6 +83,7 @@ from master.auction.stimuli import (
     DiskFreed,
     DiskFull,
     JobCancelRequested,
+    JobRequeueRequested,
     JobSubmitted,
     MessageReceived,
     PassMerged,
@@ -91,7 +93,7 @@ from master.auction.stimuli import (
     UnitRetryRequested,
 )
 from master.auction.views import AgentView, AwardView, JobView
-from planning.progressive import Finish, Goal, Idle, PassDone, PassOrder, RenderRound
+from planning.progressive import TIME, Finish, Goal, Idle, PassDone, PassOrder, RenderRound
 
 
 def _batch_deadlines(job: Job, out: list[Instruction], wins: dict[str, list[UnitState]]) -> list[Instruction]:
@@ -282,10 +284,7 @@ class Auction:
             except Exception as exc:  # one job the master cannot describe must not stop the others
                 out.append(JobFailed(job.job_id, f"cannot resume the job: {type(exc).__name__}: {exc}"))
                 continue
-            resumed = JobSubmitted(info, job.units, _channels(job.channels), frozenset(job.done),
-                                   tuple(job.failures), dict(job.delivered_by), job.goal, job.resumed,
-                                   stimulus_id=f"resume-{job.job_id}")
-            out += auction.handle(resumed, now)
+            out += auction.handle(JobSubmitted.taken_up(info, job, f"resume-{job.job_id}"), now)
         return auction, out
 
     # --- the one entry -----------------------------------------------------------------------------------
@@ -312,6 +311,8 @@ class Auction:
                 return self._add_job(stimulus)
             case JobCancelRequested():
                 return self._cancel_job(stimulus.job_id, stimulus.reason)
+            case JobRequeueRequested():
+                return self._requeue_job(stimulus.job_id, stimulus.taken_up)
             case DiskFull():
                 return self._pause("disk full on the master", stimulus.free_bytes, now)
             case DiskFreed():
@@ -811,6 +812,48 @@ class Auction:
         unit.delivered_by = None
         return [UnitRetried(job_id, index, "asked by the user")]
 
+    def _requeue_job(self, job_id: str, taken_up: JobSubmitted | None) -> list[Instruction]:
+        """A failed or cancelled job runs again: its units not done back to pending, its done ones kept, its
+        failures forgiven (else the unit that failed it would fail it again at once). A job the auction does
+        not know comes `taken_up` from the store and is auctioned as a restart takes up a running one.
+        Refused (an ignored record saying why) for a running or done job, and for a job with a time goal."""
+        job = self._jobs.get(job_id)
+        goal = job.passes.machine.goal if job is not None and job.passes else taken_up.goal if taken_up else None
+        if job is None and (taken_up is None or taken_up.info.job_id != job_id):
+            return [_ignored(None, "no job of that id the master auctions", job_id)]
+        if job is not None and job.status in (JobStatus.RUNNING, JobStatus.DONE):
+            why = "it is running" if job.status == JobStatus.RUNNING else \
+                "it is done: render one of its units again (retry) instead"
+            return [_ignored(None, f"only a failed or cancelled job is requeued: {why}", job_id)]
+        if goal is not None and goal.kind == TIME:
+            why = "a job with a time goal spends its seconds from its first pass: submit it again instead"
+            return [_ignored(None, why, job_id)]
+        if job is None:
+            units = tuple(sorted({u.index for u in taken_up.units} - taken_up.done))
+            requeued = JobRequeued(job_id, units, len(units), "asked by the user")
+            return [requeued, *self._add_job(dataclasses.replace(taken_up, failures=()))]
+        self._close_rounds(job_id)  # its units announced when it ended are announced afresh
+        job.failures_by_agent.clear()
+        job.blocklist.clear()
+        units = job.having(UnitStatus.FAILED)
+        for unit in job.units.values():  # before they reopen (Job.open_failed)
+            unit.failures, unit.last_reason = 0, ""
+            unit.failed_on.clear()
+        for unit in units:
+            self._set_unit(job, unit, UnitStatus.PENDING)
+        self._set_job(job, JobStatus.RUNNING)
+        job.error = ""
+        indices = tuple(u.spec.index for u in units)
+        return [JobRequeued(job_id, indices, len(indices), "asked by the user")]
+
+    def _close_rounds(self, job_id: str) -> None:
+        """The ended job's open rounds close before their time: no award, and no agent called to them is
+        held to an answer."""
+        for conversation, round_ in list(self._rounds.items()):
+            if round_.job_id == job_id:
+                del self._rounds[conversation]
+                self._uninvite(round_)
+
     def _drain(self, name: str, drain: bool) -> list[Instruction]:
         """Drain an agent (no new award; it finishes what it holds) or resume it; a change that changes
         nothing is ignored, saying why."""
@@ -944,10 +987,7 @@ class Auction:
 
     def _resolve(self, round_: Round, now: float) -> list[Instruction]:
         job = self._jobs.get(round_.job_id)
-        for name in round_.offered:
-            if name in self._agents and self._agents[name].invited == round_.conversation:
-                self._agents[name].invited = None
-                self._recheck(self._agents[name])
+        self._uninvite(round_)
         out: list[Instruction] = self._silenced(round_, now)
         if job is None or job.status != JobStatus.RUNNING:
             return out
@@ -975,6 +1015,13 @@ class Auction:
                 )
                 out.append(SendToAgent(name, reject))
         return out
+
+    def _uninvite(self, round_: Round) -> None:
+        """The agents called to `round_`, which has closed, may be called to another."""
+        for name in round_.offered:
+            if name in self._agents and self._agents[name].invited == round_.conversation:
+                self._agents[name].invited = None
+                self._recheck(self._agents[name])
 
     def _silenced(self, round_: Round, now: float) -> list[Instruction]:
         """The agents called to `round_` that never answered, each left out of auctions for a while."""
@@ -1007,9 +1054,10 @@ class Auction:
         return _LookAhead(job, agents, rates.keys(), self.config.refine_moves if end_game else 0, watched)
 
     def _rates(self, job: Job) -> dict[str, float]:
-        """Seconds per unit of cost of every live agent the job may use: learnt, or derived from speeds."""
+        """Seconds per unit of cost of every live agent the job may use: learnt, or derived from speeds. A
+        drained agent is left out: projected units it will never take would be kept from the others."""
         live = [a for a in self._agents.values()
-                if not a.lost and a.silent_until is None and a.name not in job.blocklist]
+                if not a.lost and a.silent_until is None and not a.draining and a.name not in job.blocklist]
         job_id = job.info.job_id
         known = {
             a.name: max(a.rates.get(job_id, 0.0), a.late_rates.get(job_id, 0.0))
@@ -1295,10 +1343,6 @@ def _ignored(
     agent: str | None, reason: str, job_id: str | None = None, index: int | None = None
 ) -> MessageIgnored:
     return MessageIgnored(agent, reason, job_id, index)
-
-
-def _channels(channels: Sequence[str] | None) -> tuple[str, ...] | None:
-    return None if channels is None else tuple(channels)
 
 
 def _tile_refusal(job: Job, unit: WorkUnit, tile: TileStored) -> str:

@@ -1,5 +1,5 @@
-"""What the auction is told: a job submitted or cancelled, a message or a tile from an agent, the disk, the clock,
-and what the user asks of units and agents from the page (retry a done unit, drain or resume an agent).
+"""What the auction is told: a job submitted, cancelled or requeued, a message or a tile from an agent, the disk,
+the clock, and what the user asks of units and agents from the page (retry a done unit, drain or resume an agent).
 
 Each stimulus carries a `stimulus_id` (the master names it from its source: a message's conversation, a
 tile's unit; the auction numbers one left empty), which every instruction it causes and every unit change
@@ -15,6 +15,7 @@ from typing import Any
 from core.model import messages as m
 from core.model.units import WorkUnit
 from master.auction.passes import ResumedPasses
+from master.auction.state import ResumedJob
 from planning.progressive import Goal
 
 
@@ -38,6 +39,12 @@ class JobSubmitted(Stimulus):
     goal: Goal | None = None  # a progressive job's: its units are templates, its passes are auctioned
     resumed: ResumedPasses | None = None  # a progressive job after a restart: its units are its passes
 
+    @classmethod
+    def taken_up(cls, info: m.JobInfo, job: ResumedJob, stimulus_id: str) -> JobSubmitted:
+        """A job the store holds, as the auction takes it up (after a restart, or to requeue it)."""
+        return cls(info, job.units, None if job.channels is None else tuple(job.channels), frozenset(job.done),
+                   tuple(job.failures), dict(job.delivered_by), job.goal, job.resumed, stimulus_id=stimulus_id)
+
 
 @dataclass(frozen=True)
 class PassMerged(Stimulus):
@@ -55,6 +62,16 @@ class PassMerged(Stimulus):
 class JobCancelRequested(Stimulus):
     job_id: str
     reason: str = "cancelled by the user"
+
+
+@dataclass(frozen=True)
+class JobRequeueRequested(Stimulus):
+    """The user asks a failed or cancelled job to run again: its done units stay done, the others go back to
+    the auction. `taken_up`: the job as the store holds it, for a job the auction does not know (it ended
+    before this master started); its past failures are not held against its units."""
+
+    job_id: str
+    taken_up: JobSubmitted | None = None
 
 
 @dataclass(frozen=True)

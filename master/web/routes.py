@@ -12,6 +12,8 @@
     GET  /ui/api/jobs/{job}/download/{kind} image (EXR), png, report (JSON) or raw (EXR), named as the CLI
                                             names them; png of a job that did not finish: its partial image
     POST /ui/api/jobs/{job}/cancel          (CSRF; a sequence id: every frame)
+    POST /ui/api/jobs/{job}/requeue         a failed or cancelled job runs again (CSRF; a sequence id: every
+                                            failed or cancelled frame)
     POST /ui/api/jobs/{job}/resubmit        the job again (CSRF); a JSON body {"denoise": bool} may turn
                                             its denoising on or off
     POST /ui/api/jobs/{job}/units/{unit}/retry  a done unit rendered again (CSRF)
@@ -43,7 +45,7 @@ from core.model.geometry import DEFAULT_FILTER_RADIUS, filter_reach
 from core.model.job import RGB, JobSpec
 from core.model.status import JobStatus
 from master.http_guard import JOB_PART, UNIT_PART
-from master.job_api import attachment, cancel_jobs, result_file
+from master.job_api import RequeueRefused, attachment, cancel_jobs, requeue_jobs, result_file
 from master.store import JobRecord, StoreError
 from master.web import auth, logs
 from master.web.events import Watcher, stream
@@ -96,6 +98,7 @@ def add_web_routes(app: web.Application, service: WebService) -> WebState:
     r.add_get("/ui/api/jobs/{job}/report", api_report)
     r.add_get("/ui/api/jobs/{job}/download/{kind}", api_download)
     r.add_post("/ui/api/jobs/{job}/cancel", api_cancel)
+    r.add_post("/ui/api/jobs/{job}/requeue", api_requeue)
     r.add_post("/ui/api/jobs/{job}/resubmit", api_resubmit)
     r.add_post("/ui/api/jobs/{job}/units/{unit}/retry", api_retry)
     r.add_post("/ui/api/jobs/{job}/delete", api_delete)
@@ -351,6 +354,21 @@ async def api_cancel(request: web.Request) -> web.Response:
     except StoreError as exc:
         raise web.HTTPNotFound(reason=str(exc)) from None
     log.info("web page: job %s %s", job_id, "cancelled" if answer["cancelled"] else "had already ended")
+    return web.json_response(answer)
+
+
+async def api_requeue(request: web.Request) -> web.Response:
+    """Run a failed or cancelled job again, as `quekaro requeue` does: 409 with the reason where it will not."""
+    state = _state(request)
+    await auth.require_action(request, state.sessions)
+    job_id = _job_id(request)
+    try:
+        answer = await requeue_jobs(state.service, job_id)
+    except StoreError as exc:
+        raise web.HTTPNotFound(reason=str(exc)) from None
+    except RequeueRefused as exc:
+        raise web.HTTPConflict(reason=str(exc)) from None
+    log.info("web page: %s runs again", ", ".join(f"job {j}" for j in answer["requeued"]))
     return web.json_response(answer)
 
 

@@ -242,6 +242,7 @@ function actionButtons(job) {
   const buttons = [];
   if (job.status === "running") buttons.push(armedButton("cancel", job.job_id, "Cancel", () => cancelJob(job.job_id)));
   else buttons.push(armedButton("delete", job.job_id, "Delete", () => deleteJob(job.job_id)));
+  if (job.status === "failed" || job.status === "cancelled") buttons.push(requeueButton(job.job_id));
   buttons.push(el("button", {
     type: "button", "data-action": "resubmit", "data-job": job.job_id, onclick: () => resubmitJob(job.job_id),
   }, "Re-submit"));
@@ -252,6 +253,21 @@ function actionButtons(job) {
     onclick: () => resubmitJob(job.job_id, !denoised),
   }, denoised ? "Re-submit without denoising" : "Re-submit denoised"));
   return buttons;
+}
+
+// A failed or cancelled job (a sequence: its failed or cancelled frames) runs again, its done units kept.
+function requeueButton(id) {
+  return el("button", {
+    type: "button", "data-action": "requeue", "data-job": id, onclick: () => requeueJob(id),
+    title: "Run it again: the units done are kept, the others are rendered.",
+  }, "Requeue");
+}
+
+function requeueJob(id) {
+  post(`/ui/api/jobs/${encodeURIComponent(id)}/requeue`)
+    .then((r) => say(r.sequence ? `Sequence ${id}: ${r.requeued.length} frame(s) run again.`
+      : `Job ${id} runs again: its units done are kept, the others go back to the auction.`))
+    .catch((e) => say(`Requeue failed: ${e.message}`, true));
 }
 
 function cancelJob(jobId) {
@@ -459,7 +475,8 @@ function renderSequence(seq) {
   fill(document.getElementById("job-summary"), item("state", badge(seq.status)),
     item("frames", el("span", { id: "frames-done" }, `${seq.frames_done}/${seq.frames.length} done`)),
     item("level", first.level), item("spp", first.spp), item("resolution", resolutionText(first)),
-    seq.status === "running" ? el("div", {}, armedButton("cancel", seq.sequence, "Cancel", () => cancelJob(seq.sequence))) : null);
+    seq.status === "running" ? el("div", {}, armedButton("cancel", seq.sequence, "Cancel", () => cancelJob(seq.sequence))) : null,
+    seq.frames.some((f) => f.status === "failed" || f.status === "cancelled") ? el("div", {}, requeueButton(seq.sequence)) : null);
   const rows = seq.frames.map((f) => el("tr", { "data-job": f.job_id, "data-frame": String(f.frame), "data-status": f.status },
     el("td", {}, String(f.frame)), el("td", {}, el("a", { href: `#/job/${f.job_id}` }, f.job_id)),
     el("td", {}, badge(f.status), f.error ? el("div", { class: "muted" }, f.error) : null),
