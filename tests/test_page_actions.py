@@ -187,6 +187,8 @@ def test_a_sequence_is_one_row_its_view_lists_its_frames_and_no_job_leaves_no_im
     wait_until(lambda: "2/2 frames done" in job_row(browser, sequence).text, 30, "the sequence's row")
     assert not browser.find_elements(By.CSS_SELECTOR, f'#jobs-table tr[data-job="{answer["jobs"][0]["job_id"]}"]')
     assert "orbit" in job_row(browser, sequence).text
+    cells = rows(browser, f'#jobs-table tr[data-job="{sequence}"]')[0]["cells"]
+    assert "1..2" in cells[4] and "res=32 spp=1..2" in cells[6], cells  # spp and -D over the frames
     click(browser, f'#jobs-table tr[data-job="{sequence}"] a.job-link')
     frames = wait_until(lambda: rows(browser, "#frames-table tbody tr"), 30, "the frames")
     assert [f["data"]["frame"] for f in frames] == ["1", "2"] and all(f["data"]["status"] == "done" for f in frames)

@@ -346,6 +346,18 @@ function tableRows(jobs) {
   return rows;
 }
 
+// A value over a sequence's frames: the one they share, or "first..last" where it varies (the frame's own).
+function spanText(frames, value) {
+  const values = frames.map(value);
+  return values.every((v) => v === values[0]) ? values[0] : `${values[0]}..${values[values.length - 1]}`;
+}
+
+// A sequence's -D values: each as its frames share it, or as the span the frames run over.
+function sequenceDefines(frames) {
+  const names = Object.keys(frames[0].defines || {});
+  return Object.fromEntries(names.map((name) => [name, spanText(frames, (f) => (f.defines || {})[name])]));
+}
+
 function sequenceRow(seq) {
   const frames = seq.frames.slice().sort((a, b) => a.frame - b.frame);
   const first = frames[0], status = sequenceStatus(frames);
@@ -353,8 +365,8 @@ function sequenceRow(seq) {
   return el("tr", { "data-job": seq.sequence, "data-status": status, "data-sequence": seq.sequence },
     el("td", {}, el("a", { href: `#/job/${seq.sequence}`, class: "job-link" }, first.name || seq.sequence),
       el("div", { class: "muted" }, `sequence ${seq.sequence}`)),
-    el("td", {}, first.scene), el("td", {}, badge(status)), el("td", {}, first.level), el("td", {}, first.spp),
-    el("td", {}, resolutionText(first)), el("td", {}, definesText(first.defines)),
+    el("td", {}, first.scene), el("td", {}, badge(status)), el("td", {}, first.level), el("td", {}, spanText(frames, (f) => f.spp)),
+    el("td", {}, resolutionText(first)), el("td", {}, definesText(sequenceDefines(frames))),
     el("td", {}, el("span", { class: "frames-done" }, `${done}/${frames.length} frames done`)),
     el("td", {}), el("td", {}, fmtTime(first.created)), el("td", {}), el("td", {}),
     el("td", {}, status === "running" ? armedButton("cancel", seq.sequence, "Cancel", () => cancelJob(seq.sequence)) : null));
