@@ -563,10 +563,10 @@ def test_the_agents_event_is_sent_when_a_row_changes_not_as_their_ages_tick(tmp_
             await read_events(stream, lambda name, _data: name == "agents", timeout=3.5)
         agent = page.master.auction._agents[AGENT]
         agent.last_seen -= 30  # what the page shows is now 30 s off (AGE_SLACK_S is 5)
-        [(_, data)] = await read_events(stream, lambda name, _data: name == "agents", timeout=2 * events.TICK_S + 1)
+        [(_, data)] = await read_events(stream, lambda name, _data: name == "agents", timeout=2 * events.AGENTS_TICK_S + 1)
         assert data["agents"][0]["last_seen_s"] >= 30 and "server_now" in data
         agent.lost = True
-        [(_, data)] = await read_events(stream, lambda name, _data: name == "agents", timeout=2 * events.TICK_S + 1)
+        [(_, data)] = await read_events(stream, lambda name, _data: name == "agents", timeout=2 * events.AGENTS_TICK_S + 1)
         assert data["agents"][0]["state"] == "lost"
 
     run(tmp_path, scenario)

@@ -30,6 +30,7 @@ from selenium.webdriver.remote.webdriver import WebDriver
 from selenium.webdriver.support.ui import Select
 from web_support import click, http, module_browser, module_farm, rows, screenshot, wait_until
 
+from agents.render_agent import host_name
 from core.model.geometry import filter_reach
 from core.scene.bundle import make_bundle
 from farm.local import LocalFarm
@@ -245,9 +246,10 @@ def test_watch_a_job_render_until_its_image_is_complete_then_click_a_unit(farm, 
     agents = wait_until(lambda: len(found := rows(browser, "#agents-table tbody tr")) == 2 and found, 20,
                         "two agents")
     assert {a["data"]["state"] for a in agents} <= {"idle", "rendering"}, agents
-    assert sum(int(a["cells"][4]) for a in agents) >= total  # units done, over both
-    assert all(a["cells"][6].endswith("s ago") for a in agents), agents
-    assert all(a["cells"][1] == "1" and a["cells"][3].endswith(" x reference") for a in agents), agents  # threads
+    assert sum(int(a["cells"][5]) for a in agents) >= total  # units done, over both
+    assert all(a["cells"][7].endswith("s ago") for a in agents), agents
+    assert all(a["cells"][1] == host_name() and a["cells"][2] == "1" and a["cells"][4].endswith(" x reference")
+               for a in agents), agents  # host, threads, speed
     screenshot(browser, tmp_path, "agents")
     errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
     assert not errors, errors  # no script error, no resource the page's CSP refused
