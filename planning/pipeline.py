@@ -38,7 +38,7 @@ from core.render.batch import batch_name, batches, render_batch, together_proble
 from core.render.process import ADAPTIVE_META, RenderProcess, RenderRequest, adopt_scene
 from core.rules.unit_params import Planner, RenderParams
 from planning.jobplan import plan_job_loaded, plan_params
-from planning.progressive import BUDGET, Goal, PassDone, PassOrder, Progressive, RenderRound
+from planning.progressive import BUDGET, ONE_PROCESS_PASSES, Goal, PassDone, PassOrder, Progressive, RenderRound
 
 log = logging.getLogger(__name__)
 
@@ -379,7 +379,7 @@ class ProgressiveRun(UnitRun):
     def render(self) -> Composed:
         goal = Goal.of(self.plan.options, self.plan.spp)
         budgets = [p.spp for p in self.chosen] if goal.kind == BUDGET else None  # the rules' (or the user's) spp
-        machine = Progressive(goal, [u.rect.area for u in self.plan.units], budgets)
+        machine = Progressive(goal, [u.rect.area for u in self.plan.units], budgets, ONE_PROCESS_PASSES)
         merged: dict[int, UnitPasses] = {}
         start, rounds, passes = time.perf_counter(), 0, 0
         instructions = machine.start()

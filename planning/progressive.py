@@ -31,6 +31,9 @@ FIRST_PASSES = 4  # passes before a unit's noise is first estimated
 # hosts' job (8-64 agents of mixed speeds), halving passes came within 1-2 % of the bound the units' bands
 # set, where 4 or 8 equal passes stayed 3-5 % below it (issue 61's note).
 BUDGET_PASSES = 5
+# In one process there is no agents' tail to shorten, and each pass is a render call of its own: a budget
+# there renders in the fewest passes between which its noise is estimated.
+ONE_PROCESS_PASSES = 2
 FIRST_SHARE = 64  # the first passes render spp_cap / FIRST_SHARE samples each, at least 1 and at most
 FIRST_SPP_MAX = 8  # FIRST_SPP_MAX: a time goal's first round must not outlast its time
 ROUND_MIN_S = 0.5  # the first time-goal round's length, at least
@@ -70,12 +73,13 @@ class Goal:
         return min(max(1, self.spp_cap // FIRST_SHARE), FIRST_SPP_MAX)
 
 
-def budget_passes(budget: int) -> list[int]:
-    """A budget's passes: halving, at most BUDGET_PASSES, the last taking what is left (16: 8, 4, 2, 1, 1)."""
+def budget_passes(budget: int, parts: int = BUDGET_PASSES) -> list[int]:
+    """A budget's passes: halving, at most `parts`, the last taking what is left (16: 8, 4, 2, 1, 1; in two
+    parts 8, 8)."""
     sizes: list[int] = []
     left = budget
     while left > 0:
-        size = left if len(sizes) == BUDGET_PASSES - 1 else max(1, left // 2)
+        size = left if len(sizes) == parts - 1 else max(1, left // 2)
         sizes.append(size)
         left -= size
     return sizes
@@ -188,8 +192,10 @@ class Progressive:
     """The decisions of one progressive job over units of the given pixel areas (index: position); a budget
     job's `budgets` are each unit's samples per pixel (None: the goal's spp_cap for every unit)."""
 
-    def __init__(self, goal: Goal, areas: list[int], budgets: list[int] | None = None) -> None:
+    def __init__(self, goal: Goal, areas: list[int], budgets: list[int] | None = None,
+                 budget_parts: int = BUDGET_PASSES) -> None:
         self.goal = goal
+        self.budget_parts = budget_parts  # a budget job's passes per unit (`budget_passes`)
         self.units = [UnitNoise(a) for a in areas]
         self.budgets = list(budgets) if budgets is not None else [goal.spp_cap] * len(areas)
         if len(self.budgets) != len(areas) or min(self.budgets, default=1) < 1:
@@ -226,7 +232,8 @@ class Progressive:
             unit.out, unit.next_pass = dict(had.out), max(had.next_pass, max(had.out, default=-1) + 1)
             unit.target = unit.credited + sum(unit.out.values())
             if self.goal.kind == BUDGET:
-                orders += [self._order(index, spp) for spp in budget_passes(self.budgets[index] - unit.target)]
+                orders += [self._order(index, spp)
+                           for spp in budget_passes(self.budgets[index] - unit.target, self.budget_parts)]
                 unit.target = max(unit.target, self.budgets[index])
             elif unit.target == 0:
                 orders += self._first_passes(index)
@@ -255,8 +262,8 @@ class Progressive:
     def _budget_orders(self) -> list[PassOrder]:
         """Each unit's budget in `budget_passes`, pass by pass over the units (a batch holds one pass of a
         unit; the auction awards the largest first)."""
-        sizes = [budget_passes(b) for b in self.budgets]
-        orders = [self._order(index, each[k]) for k in range(BUDGET_PASSES) for index, each in enumerate(sizes)
+        sizes = [budget_passes(b, self.budget_parts) for b in self.budgets]
+        orders = [self._order(index, each[k]) for k in range(self.budget_parts) for index, each in enumerate(sizes)
                   if k < len(each)]
         for unit, budget in zip(self.units, self.budgets, strict=True):
             unit.target = budget

@@ -191,3 +191,13 @@ def test_a_budget_job_renders_each_units_own_samples_in_passes_and_ends_when_all
     assert out == [Finish("every unit has its samples (2.0 s)", {0: "budget", 1: "budget", 2: "budget"})]
     with pytest.raises(ValueError, match="budgets"):
         Progressive(Goal(BUDGET, 64), [10], budgets=[0])
+
+
+def test_in_two_parts_a_budget_renders_in_two_passes_a_unit_as_one_process_does():
+    """No agents' tail to shorten in one process: the fewest passes between which the noise is estimated."""
+    assert [budget_passes(b, 2) for b in (1, 2, 16, 17)] == [[1], [1, 1], [8, 8], [8, 9]]
+    machine = Progressive(Goal(BUDGET, 64), [10, 10], budgets=[64, 5], budget_parts=2)
+    [first] = machine.start()
+    assert [(o.unit, o.spp) for o in first.orders] == [(0, 32), (1, 2), (0, 32), (1, 3)]  # pass by pass
+    out = run_round(machine, first.orders, [1.0] * 2, [0.01] * 2, 1.0)
+    assert out == [Finish("every unit has its samples (1.0 s)", {0: "budget", 1: "budget"})]
