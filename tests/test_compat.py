@@ -5,6 +5,7 @@ same file in the same variant by the per-pixel statistical test of tests/render_
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 from compat_cases import (
@@ -162,7 +163,8 @@ def test_result_writes_the_films_file_or_into_a_folder_and_refuses_other_formats
     assert wait_done(farm.client(), job_id)["status"] == "done"
     folder = quekaro("result", job_id, "-o", str(tmp_path / "renders"), "--home", str(home))
     assert folder.returncode == 0, folder.stderr[-2000:]
-    assert all((tmp_path / "renders" / f"{job_id}{suffix}").is_file() for suffix in (".exr", ".png", ".json"))
+    stem = Path(farm.client().status(job_id)["scene"]).stem  # named after its scene, as `quekaro render` names it
+    assert all((tmp_path / "renders" / f"{stem}{suffix}").is_file() for suffix in (".exr", ".png", ".json"))
     png = quekaro("result", job_id, "-o", str(tmp_path / "picture.png"), "--home", str(home))
     assert png.returncode == 2 and "film's file_format asks (EXR, PFM or RGBE)" in png.stderr
     assert not (tmp_path / "picture.png").exists()

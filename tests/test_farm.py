@@ -466,7 +466,9 @@ def test_submitting_several_scenes_one_refused_still_submits_the_others(farm3, t
                            "--home", str(farm3.home)], capture_output=True, text=True, cwd=REPO, timeout=300)
     assert done.returncode == 2, done.stderr
     assert f"1 of 2 scenes refused: {broken}" in done.stderr and "no_such_plugin_here" in done.stderr
-    (job_id,) = done.stdout.split()
+    (line,) = done.stdout.splitlines()  # the one submitted: its id and its scene
+    job_id, scene = line.split()
+    assert scene == SCENE.name
     assert [j["job_id"] for j in farm3.client().jobs()] == [job_id]
     assert wait_job(farm3, job_id)["status"] == "done"
 

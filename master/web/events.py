@@ -1,6 +1,6 @@
 """Live updates of the page by server-sent events (`GET /ui/events[?job=ID]`).
 
-One stream per open page (`stream`). Four times a second (`TICK_S`; the page itself never polls) its
+One stream per open page (`stream`). Once a second (`TICK_S`; the page itself never polls) its
 `Watcher` looks for changed rows and sends only what changed, each as a named event whose data is one JSON
 object: `jobs` (the jobs table), `job` (the job `?job=` names, with its units) and `agents` (the agents
 table, with `server_now`; built once a second, `AGENTS_TICK_S`, or when rows changed).
@@ -22,7 +22,7 @@ from master.store import StoreError
 from master.web.views import WebService, agents_view, job_view, jobs_view
 from planning.pipeline import AOV_PASS_FILE
 
-TICK_S = 0.25  # a tile on the page within a quarter second of its row: one counter read an idle tick
+TICK_S = 1.0  # how often a stream looks for changed rows: one counter read an idle tick
 AGENTS_TICK_S = 1.0  # heartbeats change no row: the agents table is built this often, or on a row's change
 KEEPALIVE_S = 15.0
 AGE_SLACK_S = 5.0  # seconds a "last heard" shown may be off; agents beat every 2 s by default
