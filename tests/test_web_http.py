@@ -554,7 +554,7 @@ def test_a_denoised_jobs_aov_pass_landing_is_an_event_though_no_row_changed(tmp_
     run(tmp_path, scenario, denoise=True)
 
 
-AGENTS_WAIT_S = 2 * events.AGENTS_TICK_S + 1  # an agents event comes within two of its ticks
+AGENTS_WAIT_S = 2 * events.TICK_S + 1  # an agents event comes within two of its ticks
 
 
 def test_the_agents_event_is_sent_when_a_row_changes_not_as_their_ages_tick(tmp_path):

@@ -1,9 +1,8 @@
 """Live updates of the page by server-sent events (`GET /ui/events[?job=ID]`).
 
-One stream per open page (`stream`). Once a second (`TICK_S`; the page itself never polls) its
-`Watcher` looks for changed rows and sends only what changed, each as a named event whose data is one JSON
-object: `jobs` (the jobs table), `job` (the job `?job=` names, with its units) and `agents` (the agents
-table, with `server_now`; built once a second, `AGENTS_TICK_S`, or when rows changed).
+One stream per open page (`stream`). Once a second (`TICK_S`; the page itself never polls) its `Watcher`
+sends only what changed, each as a named event whose data is one JSON object: `jobs` (the jobs table),
+`job` (the job `?job=` names, with its units) and `agents` (the agents table, with `server_now`).
 """
 
 from __future__ import annotations
@@ -22,8 +21,7 @@ from master.store import StoreError
 from master.web.views import WebService, agents_view, job_view, jobs_view
 from planning.pipeline import AOV_PASS_FILE
 
-TICK_S = 1.0  # how often a stream looks for changed rows: one counter read an idle tick
-AGENTS_TICK_S = 1.0  # heartbeats change no row: the agents table is built this often, or on a row's change
+TICK_S = 1.0
 KEEPALIVE_S = 15.0
 AGE_SLACK_S = 5.0  # seconds a "last heard" shown may be off; agents beat every 2 s by default
 AGEING = ("last_seen_s", "heard_at")  # the fields that change by the clock alone
@@ -46,7 +44,6 @@ class Watcher:
     waiting: set[str] = field(default_factory=set)  # jobs done whose report is not written yet
     aov_waiting: set[str] = field(default_factory=set)  # denoised jobs whose AOV pass is not kept yet
     agents_at: float = 0.0  # time.monotonic() when the agents table was last sent
-    agents_built: float = -AGENTS_TICK_S  # time.monotonic() when it was last built
     ages: dict[str, float] = field(default_factory=dict)  # each agent's last_seen_s as last sent
 
     def _change_key(self) -> tuple[Any, ...]:
@@ -62,8 +59,7 @@ class Watcher:
         """The events whose data differ from what this stream sent last."""
         out = []
         key = self._change_key()
-        changed = key != self.key
-        if changed:
+        if key != self.key:
             self.key = key
             self.counts = self.service.store.agent_counts()  # a scan of every attempt: only when rows changed
             jobs = jobs_view(self.service)
@@ -72,10 +68,7 @@ class Watcher:
             out += self._if_new("jobs", {"jobs": jobs})
             if self.job_id is not None:
                 out += self._if_new("job", self._job())
-        if not changed and time.monotonic() - self.agents_built < AGENTS_TICK_S:
-            return out
-        self.agents_built = time.monotonic()
-        agents = agents_view(self.service, self.counts)
+        agents = agents_view(self.service, self.counts)  # every tick: heartbeats change no row
         if self._ages_drifted(agents):
             self.sent.pop("agents", None)
         steady = [{k: v for k, v in row.items() if k not in AGEING} for row in agents]
