@@ -51,9 +51,11 @@ test: setup
 lint: setup
 	$(BIN)/ruff check .
 
-# docs/benchmarks/README.md's figure blocks, copied again from the files the benchmarks wrote.
+# docs/benchmarks/README.md's figure blocks, copied again from the files the benchmarks wrote, and the
+# README's figure (docs/benchmarks/curves.png) drawn again from the accuracy reports.
 docs-figures: setup
 	$(BIN)/python -m bench.docs
+	$(BIN)/python -m bench.curves
 
 # docs/benchmarks/README.md's figure files written again by the commands that wrote them (each report's
 # .provenance.json), then its blocks refreshed: the stale ones (planned with another rule file than the shipped one), or

@@ -12,7 +12,7 @@ import math
 import random
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from core.image.passes import WEIGHT
@@ -93,7 +93,8 @@ def simulate(
     if len(bids) != len(costs):
         raise ValueError(f"simulate: {len(bids)} estimates for {len(costs)} units")
     rng = random.Random(seed)
-    auction = Auction(config or UNBATCHED_AUCTION, rng=random.Random(seed + 1))
+    # Its units have no pixels: each renders its five passes (pass_samples 1), as bench hosts' units do.
+    auction = Auction(replace(config or UNBATCHED_AUCTION, pass_samples=1), rng=random.Random(seed + 1))
     info = m.JobInfo(
         job_id="sim",
         scene_url="http://sim/scene",

@@ -65,7 +65,8 @@ class LocalFarm:
     """The processes of a local farm; use as a context manager."""
 
     def __init__(self, home: Path | None, agents: int = 2, threads: int | None = None,
-                 rules: list[Path] | None = None, http_port: int = 0, supervise: bool = False) -> None:
+                 rules: list[Path] | None = None, http_port: int = 0, supervise: bool = False,
+                 pass_samples: int | None = None) -> None:
         if agents < 1:
             raise QuekaroError(f"--agents {agents}: a farm needs at least one agent")
         if threads is not None and threads < 1:
@@ -83,6 +84,7 @@ class LocalFarm:
             raise QuekaroError(f"--rules: {len(self.rules)} rule files for {agents} agents; agent i takes file "
                                f"i, so {', '.join(r.name for r in self.rules[agents:])} would never be used "
                                f"(give --agents {len(self.rules)} or more)")
+        self.pass_samples = pass_samples  # the master's --pass-samples (None: its default)
         self.http_port = http_port  # 0: the master binds a free one and names it in farm.json (self.url)
         self.url = f"http://127.0.0.1:{http_port}" if http_port else ""
         self.server: ProsodyServer | None = None
@@ -188,7 +190,8 @@ class LocalFarm:
         # The pre-pass takes the agents' threads together: a job's agents wait for its plan.
         return [sys.executable, "-m", "quekaro", "master", "--home", str(self.home), "--jid", MASTER_JID,
                 *self._xmpp_options(), "--http-port", str(self.http_port),
-                "--threads", str(self.threads * self.n_agents), "--agents-allow", str(self.home / AGENTS_ALLOW)]
+                "--threads", str(self.threads * self.n_agents), "--agents-allow", str(self.home / AGENTS_ALLOW),
+                *(["--pass-samples", str(self.pass_samples)] if self.pass_samples else [])]
 
     def _agent_command(self, i: int) -> list[str]:
         # One account per agent, made before the farm named it; a restarted agent logs in again as it.

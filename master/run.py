@@ -21,7 +21,7 @@ def config_from(args: argparse.Namespace) -> MasterConfig:
         xmpp_host=args.server, xmpp_port=args.port, ca_file=args.ca_file,
         http_host=args.http_host, http_port=args.http_port, public_url=args.public_url, threads=args.threads,
         tls_cert=args.tls_cert, tls_key=args.tls_key, insecure_http=args.insecure_http,
-        auction=au.Config(slots=_slots(args)), agent_allowlist=args.agents_allow,
+        auction=au.Config(slots=_slots(args), pass_samples=_pass_samples(args)), agent_allowlist=args.agents_allow,
     )
 
 
@@ -30,6 +30,13 @@ def _slots(args: argparse.Namespace) -> int:
     if slots < 1:
         raise QuekaroError(f"--slots {slots}: must be at least 1")
     return slots
+
+
+def _pass_samples(args: argparse.Namespace) -> int:
+    least = au.Config.pass_samples if args.pass_samples is None else args.pass_samples
+    if least < 1:
+        raise QuekaroError(f"--pass-samples {least}: must be at least 1")
+    return least
 
 
 async def serve(config: MasterConfig) -> None:

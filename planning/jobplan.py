@@ -68,11 +68,6 @@ def _stated_spp(sensors: list[etree._Element] | None, spec: SceneSpec, sensor_in
     return None
 
 
-# At least this many samples in a level-off unit when the job's spp is known (a few seconds of a simple
-# scene here): below it, the render calls and bands of more units cost more than their progress is worth.
-OFF_UNIT_SAMPLES = 1 << 24
-
-
 def farm_min_units(live_agents: int) -> int:
     """Units a farm job needs at least for its live agents: 4 each on small farms, and from 8 agents on
     3 each plus 8 for the end game. Every unit pays a render call and its bands, so past the few each
@@ -92,11 +87,12 @@ FARM_RULE_SIDE = 90
 def default_unit_count(width: int, height: int, level: str, min_units: int = 1, spp: int | None = None,
                        farm: bool = False) -> int:
     """Units of about 256 px a side at level off and RULE_SIDE (FARM_RULE_SIDE for a `farm` job) when the
-    rules run, and at least `min_units` (a farm asks for a few per agent). At level off nothing is gained by
-    small units in one process: each render call costs ~0.05 s and bands add pixels (16 units of 128 px ran
-    1.16x one plain render of cbox 512x512, 256 spp); given the `spp`, a level-off unit also holds at least
-    OFF_UNIT_SAMPLES samples, so that a short render is one unit, as plain Mitsuba renders it, and a long
-    one still shows progress unit by unit. When the rules run, the rules move samples
+    rules run, and at least `min_units` (a farm asks for a few per agent). Given the `spp` (a job's plan),
+    level off is one unit, Mitsuba's own render call over the whole film, as the `mitsuba` command renders
+    it: every further unit costs a render call and its bands (cbox 512x512 at 256 spp, 4 units ran 1.05x
+    the command's whole process, one unit 1.02x; `--progressive` renders level off in passes with a live
+    image). Without the spp (an adaptive job's render grid) level off tiles by size.
+    When the rules run, the rules move samples
     between units, so the noisy corner of a scene must fall in units of its own (the partition weighs
     cost by relative noise, so the costly corner is split and the cheap wall stays in big units), while
     every unit pays a fixed cost per render call (~0.05 s here, ~20 spp of a 40 px unit), a 2 px band
@@ -108,7 +104,7 @@ def default_unit_count(width: int, height: int, level: str, min_units: int = 1, 
     side = 256 if level == "off" else FARM_RULE_SIDE if farm else RULE_SIDE
     wanted = round(width * height / (side * side))
     if level == "off" and spp is not None:
-        wanted = min(wanted, width * height * spp // OFF_UNIT_SAMPLES)
+        wanted = 1
     wanted = max(wanted, min_units)
     return max(1, min(256, wanted, width * height))
 

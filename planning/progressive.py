@@ -73,13 +73,14 @@ class Goal:
         return min(max(1, self.spp_cap // FIRST_SHARE), FIRST_SPP_MAX)
 
 
-def budget_passes(budget: int, parts: int = BUDGET_PASSES) -> list[int]:
-    """A budget's passes: halving, at most `parts`, the last taking what is left (16: 8, 4, 2, 1, 1; in two
-    parts 8, 8)."""
+def budget_passes(budget: int, parts: int = BUDGET_PASSES, least: int = 1) -> list[int]:
+    """A budget's passes: halving, at most `parts`, none below `least` spp where the budget allows, the last
+    taking what is left (16: 8, 4, 2, 1, 1; in two parts 8, 8; at least 4: 8, 4, 4)."""
     sizes: list[int] = []
     left = budget
     while left > 0:
-        size = left if len(sizes) == parts - 1 else max(1, left // 2)
+        last = len(sizes) == parts - 1 or left // 2 < least
+        size = left if last else max(1, left // 2)
         sizes.append(size)
         left -= size
     return sizes
@@ -190,13 +191,15 @@ class UnitNoise:
 
 class Progressive:
     """The decisions of one progressive job over units of the given pixel areas (index: position); a budget
-    job's `budgets` are each unit's samples per pixel (None: the goal's spp_cap for every unit)."""
+    job's `budgets` are each unit's samples per pixel (None: the goal's spp_cap for every unit), in at most
+    `budget_parts` passes of at least `pass_samples` samples each (a unit's pixels x spp) where it has them."""
 
     def __init__(self, goal: Goal, areas: list[int], budgets: list[int] | None = None,
-                 budget_parts: int = BUDGET_PASSES) -> None:
+                 budget_parts: int = BUDGET_PASSES, pass_samples: int = 1) -> None:
         self.goal = goal
         self.budget_parts = budget_parts  # a budget job's passes per unit (`budget_passes`)
         self.units = [UnitNoise(a) for a in areas]
+        self.least = [max(1, -(-pass_samples // max(1, a))) for a in areas]  # a budget pass's spp, at least
         self.budgets = list(budgets) if budgets is not None else [goal.spp_cap] * len(areas)
         if len(self.budgets) != len(areas) or min(self.budgets, default=1) < 1:
             raise ValueError(f"budgets {self.budgets[:8]} for {len(areas)} units")
@@ -232,8 +235,8 @@ class Progressive:
             unit.out, unit.next_pass = dict(had.out), max(had.next_pass, max(had.out, default=-1) + 1)
             unit.target = unit.credited + sum(unit.out.values())
             if self.goal.kind == BUDGET:
-                orders += [self._order(index, spp)
-                           for spp in budget_passes(self.budgets[index] - unit.target, self.budget_parts)]
+                orders += [self._order(index, spp) for spp in
+                           budget_passes(self.budgets[index] - unit.target, self.budget_parts, self.least[index])]
                 unit.target = max(unit.target, self.budgets[index])
             elif unit.target == 0:
                 orders += self._first_passes(index)
@@ -262,7 +265,7 @@ class Progressive:
     def _budget_orders(self) -> list[PassOrder]:
         """Each unit's budget in `budget_passes`, pass by pass over the units (a batch holds one pass of a
         unit; the auction awards the largest first)."""
-        sizes = [budget_passes(b, self.budget_parts) for b in self.budgets]
+        sizes = [budget_passes(b, self.budget_parts, least) for b, least in zip(self.budgets, self.least, strict=True)]
         orders = [self._order(index, each[k]) for k in range(self.budget_parts) for index, each in enumerate(sizes)
                   if k < len(each)]
         for unit, budget in zip(self.units, self.budgets, strict=True):

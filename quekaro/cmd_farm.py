@@ -106,6 +106,10 @@ def _register_master(sub: argparse._SubParsersAction) -> None:
                              "and renders them in one call, the next half awarded while it renders; 2: one unit a "
                              "call; 1: one at a time). An agent started with fewer says so when it registers, "
                              "and is awarded no more")
+    parser.add_argument("--pass-samples", type=int,
+                        help="a --progressive job's pass holds at least this many samples (its unit's pixels x "
+                             "spp) where the unit has them (default 262144: a smaller pass costs more in its "
+                             "award, render call and upload than it renders; 1: five passes a unit, however small)")
     parser.add_argument("--agents-allow", type=Path,
                         help="file of agent JIDs (one a line, read again when it changes): only these may bid; "
                              "default: any JID matching agent*@DOMAIN that the XMPP server authenticated")

@@ -16,7 +16,6 @@ from core.model.geometry import Rect, filter_reach
 from core.model.job import SceneSpec
 from core.model.seeds import unit_seed
 from core.render.batch import (
-    BATCH_SAMPLES,
     batch_counts,
     batches,
     bounds,
@@ -79,12 +78,6 @@ def test_each_pixel_draws_its_units_spp_and_band_pixels_of_other_batches_their_w
     assert ((counts > 0) == held).all()
     # unit 1 (x 16..32, y 0..20) between units 0, 2 and 4: its middle is left to its own batch
     assert (counts[0:16, 20:28] == 0).all() and (counts[0:16, 16:20] == 8).all()
-
-
-def test_a_batch_holds_at_most_what_a_level_off_unit_does():
-    from planning.jobplan import OFF_UNIT_SAMPLES
-
-    assert BATCH_SAMPLES == OFF_UNIT_SAMPLES
 
 
 def test_a_batch_of_mixed_depths_is_refused():

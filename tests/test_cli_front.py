@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from core.errors import did_you_mean, without_locations
+from core.errors import QuekaroError, did_you_mean, without_locations
 from core.home import ADMIN_TOKEN, FARM_FILE
 from core.logs import verbosity
 from farm.client import FarmClient, FarmRefusal
@@ -197,3 +197,13 @@ def test_parameters_and_a_sequences_status_from_summaries() -> None:
     frames = [{"status": s} for s in ("done", "failed", "running")]
     assert sequence_status(frames) == "running" and sequence_status(frames[:2]) == "failed"
     assert sequence_status(frames[:1]) == "done"
+
+
+def test_the_masters_pass_samples_reach_its_auction_and_a_bad_one_is_refused() -> None:
+    from master.run import config_from
+
+    base = ("master", "--password", "p")
+    assert config_from(parse(*base)).auction.pass_samples == 1 << 18
+    assert config_from(parse(*base, "--pass-samples", "1")).auction.pass_samples == 1
+    with pytest.raises(QuekaroError, match="--pass-samples 0: must be at least 1"):
+        config_from(parse(*base, "--pass-samples", "0"))

@@ -75,14 +75,11 @@ def test_a_zero_sample_count_from_a_define_is_refused(tmp_path):
         scene_spp(SceneSpec(scene, {"spp": "0"}))
 
 
-def test_a_short_level_off_render_is_one_unit_and_a_long_one_keeps_its_tiles():
-    """Level off: 256 px tiles, each of at least OFF_UNIT_SAMPLES samples once the spp is known; never
-    fewer than the farm's `min_units`, and the rule levels' count does not depend on the spp."""
+def test_a_level_off_job_is_one_unit_as_mitsuba_renders_it():
+    """Level off: one unit once the spp is known (Mitsuba's own render call), never fewer than the farm's
+    `min_units`; by size (256 px tiles) without the spp; the rule levels' count does not depend on the spp."""
     assert default_unit_count(512, 512, "off") == 4  # spp unknown: tiles by size only
-    assert default_unit_count(512, 512, "off", spp=64) == 1  # 2^24 samples: one unit, as plain Mitsuba
-    assert default_unit_count(512, 512, "off", spp=128) == 2
-    assert default_unit_count(512, 512, "off", spp=4096) == 4  # no more than the tiles by size
-    assert default_unit_count(1920, 1080, "off", spp=1) == 1
+    assert default_unit_count(512, 512, "off", spp=64) == default_unit_count(4096, 4096, "off", spp=4096) == 1
     assert default_unit_count(512, 512, "off", min_units=8, spp=64) == 8  # a farm's agents each get some
     assert default_unit_count(512, 512, "S", spp=1) == default_unit_count(512, 512, "S", spp=4096) == 84
 

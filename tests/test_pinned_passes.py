@@ -108,3 +108,23 @@ def _pass_tile_refusal(depth: int) -> str:
 def test_a_pass_tile_at_another_depth_than_its_units_is_refused():
     assert _pass_tile_refusal(5) == ""
     assert "a pass's tile header says depth 8; its unit's passes render at depth 5" in _pass_tile_refusal(8)
+
+
+def _passes_of(config: au.Config, units: tuple[WorkUnit, ...]) -> dict[int, list[int]]:
+    """Each unit's first round of passes (their spp) when the auction opens a budget job of `units`."""
+    a = au.Auction(config, rng=random.Random(1))
+    out = a.handle(au.JobSubmitted(_job(), units, CHANNELS, goal=Goal(BUDGET, 64)), 0.0)
+    [ordered] = [i for i in out if isinstance(i, au.PassesOrdered)]
+    by_unit: dict[int, list[int]] = {}
+    for unit in ordered.units:
+        by_unit.setdefault(unit.index % len(units), []).append(unit.spp)
+    return by_unit
+
+
+def test_a_farms_pass_holds_at_least_the_masters_pass_samples_where_its_unit_has_them():
+    """Config.pass_samples (the master's --pass-samples): an 8x8 unit of 16 spp is one pass by default,
+    a 512x512 one keeps its five; at 1 every unit renders its five passes."""
+    small = _unit(0, 5, 16)
+    large = WorkUnit(index=1, rect=Rect(8, 0, 512, 512), C=0.1, S=512 * 512, Nd=0.0, cost=1.0, spp=16, depth=5)
+    assert _passes_of(au.Config(), (small, large)) == {0: [16], 1: budget_passes(16)}
+    assert _passes_of(au.Config(pass_samples=1), (small, large)) == {0: budget_passes(16), 1: budget_passes(16)}

@@ -193,6 +193,21 @@ def test_a_budget_job_renders_each_units_own_samples_in_passes_and_ends_when_all
         Progressive(Goal(BUDGET, 64), [10], budgets=[0])
 
 
+def test_a_budget_pass_holds_at_least_the_samples_asked_where_its_unit_has_them():
+    """A farm's passes hold at least `pass_samples` samples (master.auction Config.pass_samples): a small
+    unit renders whole in one pass, a large one halves down to that size, the budget always met."""
+    assert budget_passes(64, 5, 8) == [32, 16, 8, 8] and budget_passes(64, 5, 16) == [32, 16, 16]
+    assert budget_passes(11, 5, 65) == [11] and budget_passes(16, 5, 1) == budget_passes(16)
+    # cbox 512 px at level VB on a farm: 90 px units of 11 spp (89 k samples) are one pass each; a
+    # 32768-pixel unit of 64 spp halves to 8 spp (2^18 samples); a large unit keeps its five passes.
+    machine = Progressive(Goal(BUDGET, 64), [8100, 32768, 600 * 600], budgets=[11, 64, 64], pass_samples=1 << 18)
+    [first] = machine.start()
+    by_unit = {u: [o.spp for o in first.orders if o.unit == u] for u in range(3)}
+    assert by_unit == {0: [11], 1: [32, 16, 8, 8], 2: [32, 16, 8, 4, 4]}
+    out = run_round(machine, first.orders, [1.0] * 3, [0.01] * 3, 2.0)
+    assert out == [Finish("every unit has its samples (2.0 s)", {0: "budget", 1: "budget", 2: "budget"})]
+
+
 def test_in_two_parts_a_budget_renders_in_two_passes_a_unit_as_one_process_does():
     """No agents' tail to shorten in one process: the fewest passes between which the noise is estimated."""
     assert [budget_passes(b, 2) for b in (1, 2, 16, 17)] == [[1], [1, 1], [8, 8], [8, 9]]

@@ -20,6 +20,7 @@ from tests.test_farm import bundle_of, wait_job
 
 TAU = 0.05
 DEFINES = {"res": str(RES), "spp": "1024"}
+EVERY_PASS = 1  # the master's --pass-samples: these small units still render their five passes
 
 
 @pytest.mark.slow
@@ -56,7 +57,7 @@ def test_a_budget_job_on_a_farm_renders_each_units_samples_in_halving_passes(tmp
     """--progressive: every unit gets its 64 spp in passes of 32, 16, 8, 4 and 4 (an idle agent's extra
     pass may add one), the job ends when all have them, and the image is the plain job's up to noise."""
     defines = {"res": str(RES), "spp": "64"}
-    with LocalFarm(tmp_path / "farm", agents=2, threads=1) as farm:
+    with LocalFarm(tmp_path / "farm", agents=2, threads=1, pass_samples=EVERY_PASS) as farm:
         farm.wait_for_agents()
         client = farm.client()
         passes = client.submit(bundle_of(SCENE, defines), defines, {"level": "off", "progressive": True, "units": 9})
@@ -81,7 +82,7 @@ def test_a_budget_job_at_a_rule_level_renders_as_in_one_process_each_unit_at_one
     and the images agree up to noise."""
     defines = {"res": str(RES), "spp": "64"}
     options = {"level": "VS", "progressive": True, "units": 9}
-    with LocalFarm(tmp_path / "farm", agents=2, threads=1) as farm:
+    with LocalFarm(tmp_path / "farm", agents=2, threads=1, pass_samples=EVERY_PASS) as farm:
         farm.wait_for_agents()
         job_id = farm.client().submit(bundle_of(SCENE, defines), defines, options)
         assert wait_job(farm, job_id)["status"] == "done"

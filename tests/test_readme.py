@@ -15,11 +15,11 @@ LINK = re.compile(r"!?\[[^\]]*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
 FENCE = re.compile(r"^(```|~~~).*?^\1", re.S | re.M)
 OUTSIDE_NOTE = re.compile(r"\.\./shared/(?!scenes\b)")
 BARE_DESIGN = re.compile(r"(?<![\w/.-])design\.md")
-MEDIAN = re.compile(r"^target: level \w+: median relMSE over \d+ scene\(s\) <= [\d.]+ x uniform "
+MEDIAN = re.compile(r"^target: level (?!off)\w+(?: in passes)?: median relMSE over \d+ scene\(s\) <= [\d.]+ x uniform "
                     r"\(equal wall time\): (\d+\.\d+)", re.M)
-# the 64-spp accuracy runs the README's advice sums up: one process and farm, rule-planned and adaptive
-ADVICE_REPORTS = ("accuracy.md", "inprocess/accuracy.md", "inprocess-adaptive/accuracy.md",
-                  "farm-adaptive/accuracy.md")
+# the 64-spp accuracy runs the README's advice sums up: one process and farm, whole, in passes and adaptive
+ADVICE_REPORTS = ("accuracy.md", "inprocess/accuracy.md", "inprocess-progressive/accuracy.md",
+                  "farm-progressive/accuracy.md", "inprocess-adaptive/accuracy.md", "farm-adaptive/accuracy.md")
 
 
 def repo_files() -> list[Path]:

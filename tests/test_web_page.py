@@ -312,7 +312,8 @@ def test_a_progressive_jobs_page_and_status_count_its_units_and_show_its_passes(
     for s in running:
         passes = re.search(rf"^{s['done']}/{planned} units, (\d+)/(\d+) passes, [\d.]+ spp$", s["text"])
         assert passes, s
-        assert int(passes.group(1)) == int(s["passes"]) and int(passes.group(2)) >= 5 * planned, s  # 128 .. 16
+        # 128, 64, 32, 32: a farm's pass holds at least 2^18 samples (Config.pass_samples)
+        assert int(passes.group(1)) == int(s["passes"]) and int(passes.group(2)) >= 4 * planned, s
         assert int(passes.group(1)) > s["done"], s  # a unit is done only once all its passes are
     assert any(re.search(r"ETA\s*\d", s["summary"]) for s in running), running  # a figure, counting down
     final = re.search(rf"^{planned}/{planned} units, (\d+)/(\d+) passes, ([\d.]+) spp$", seen[-1]["text"])

@@ -23,7 +23,7 @@ from core.render.per_pixel import check_renderable, render_counts
 from core.render.process import RenderProcess, RenderRequest, aim, local_cache, unit_meta
 from core.scene.scene import sensor_of
 
-BATCH_SAMPLES = 1 << 24  # the least a level-off unit holds (planning.jobplan.OFF_UNIT_SAMPLES)
+BATCH_SAMPLES = 1 << 24  # the most a batch's render call holds (a few seconds of a simple scene here)
 # A batch renders the whole image's film where the image has at most this many pixels, else the least
 # rectangle holding its units' windows, itself at most this many: the film's memory and its development
 # stay bounded whatever the image's size (a 2048 x 2048 film).

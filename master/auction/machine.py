@@ -1186,10 +1186,10 @@ class Auction:
         """A progressive job: its units become templates, and its first round of passes is auctioned. A job
         `resumed` after a restart: its units are its passes so far, and its decisions go on from them."""
         if resumed is not None:
-            job.passes = PassBook.open(goal, resumed.templates, self._now - resumed.elapsed)
+            job.passes = PassBook.open(goal, resumed.templates, self._now - resumed.elapsed, self.config.pass_samples)
             return self._follow(job, job.passes.machine.resume(list(resumed.so_far), resumed.elapsed), "a round")
         job.clear()
-        job.passes = PassBook.open(goal, units, self._now)
+        job.passes = PassBook.open(goal, units, self._now, self.config.pass_samples)
         return self._follow(job, job.passes.machine.start(), "a round")
 
     def _on_pass_merged(self, merged: PassMerged, now: float) -> list[Instruction]:

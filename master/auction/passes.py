@@ -32,12 +32,14 @@ class PassBook:
     started: float
 
     @classmethod
-    def open(cls, goal: Goal, units: tuple[WorkUnit, ...], now: float) -> PassBook:
+    def open(cls, goal: Goal, units: tuple[WorkUnit, ...], now: float, pass_samples: int = 1) -> PassBook:
+        """The job's book; a budget job's passes hold at least `pass_samples` samples each where their unit
+        has them (planning.progressive.budget_passes)."""
         if [u.index for u in units] != list(range(len(units))):
             raise ValueError("a progressive job's units are indexed 0 .. n - 1")
         # A budget job's units render their own samples where the plan's rules pinned them (a rule level).
         budgets = [u.spp for u in units] if goal.kind == BUDGET and None not in {u.spp for u in units} else None
-        return cls(Progressive(goal, [u.rect.area for u in units], budgets), units, now)
+        return cls(Progressive(goal, [u.rect.area for u in units], budgets, pass_samples=pass_samples), units, now)
 
     def pass_unit(self, order: PassOrder) -> WorkUnit:
         """The work unit that renders `order`: its unit's, at the pass's spp (and the unit's pinned depth)."""

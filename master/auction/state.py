@@ -64,6 +64,12 @@ class Config:
     # which agent frees up first, and the simulation's tail grew (64 agents, 2 slots: efficiency 0.77 ->
     # 0.71 with 3 here instead of 4).
     queue_above: float = 4.0
+    # A budget job's pass holds at least this many samples (its unit's pixels x spp) where the unit has them:
+    # each pass pays an award, a render call, a tile's upload and its record, ~17 ms on a 2-agent farm here
+    # (cbox 512 px at level VB in five passes a unit: 170 passes rendered 4.1 s, its 34 units whole 1.8 s).
+    # 2^18 samples render in ~70 ms on this machine's 2 cores; bench hosts' units (6.4 M samples) keep
+    # their five passes. 1: every unit in its five passes, however small.
+    pass_samples: int = 1 << 18
     max_cfp_units: int = m.MAX_CFP_UNITS
     upload_url: str = "http://127.0.0.1:8765/jobs/{job}/units/{index}/tile"
 
