@@ -241,7 +241,7 @@ def summary(scenes: dict[str, dict[str, Any]]) -> dict[str, Any]:
     return {"honest_share": share, "honest_units": honest, "all_units": units, "median_time_ratio": ratio,
             "targets": [{"name": f"units whose true error is within {HONEST_FACTOR:g} x their claim",
                          "value": share, "limit": HONEST_SHARE, "pass": share >= HONEST_SHARE,
-                         "shown": f"{share:.0%} ({honest} of {units}) (target >= {HONEST_SHARE:.0%})"},
+                         "shown": f"{share:.1%} ({honest} of {units}) (target >= {HONEST_SHARE:.0%})"},
                         {"name": "median render time, progressive / uniform", "value": ratio,
                          "limit": TIME_RATIO, "pass": ratio <= TIME_RATIO,
                          "shown": f"{ratio:.2f} (target <= {TIME_RATIO:g})"}]}

@@ -158,7 +158,7 @@ def test_the_targets_pool_the_units_and_take_the_median_ratio():
                           **summary({"a": _scene(19, 20, 0.5)})})
     assert "| a | tune | 0.05 | 2.00 (3.00) | 16 / 64 / 1024 | 1024 (needs 2000, capped); the probe's 700 gave " \
            "1.60 TAU | 4.00 | 1.30 (1.40) | 0.50 | 19 of 20, 1 at the cap |" in text
-    assert f"target: units whose true error is within {HONEST_FACTOR:g} x their claim: 95% (19 of 20) " \
+    assert f"target: units whose true error is within {HONEST_FACTOR:g} x their claim: 95.0% (19 of 20) " \
            "(target >= 95%): PASS" in text
     assert "target: median render time, progressive / uniform: 0.50 (target <= 0.6): PASS" in text
     assert "load average (1 min) 1.0 at the start, 2.0 at the end" in text
