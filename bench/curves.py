@@ -15,10 +15,10 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from bench.images import write_plot
+from core.model.levels import LEVELS
 
 BENCHMARKS = Path(__file__).resolve().parent.parent / "docs" / "benchmarks"
 FIGURE = BENCHMARKS / "curves.png"
-LEVELS = ("off", "VS", "S", "N", "B", "VB")
 COLUMNS = 3
 
 
