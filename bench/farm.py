@@ -2,7 +2,8 @@
 
 `run` measures one job (scene, spp, level, units fixed) in two comparisons, each side by side (`alternate`):
 `quekaro render` against a local farm of one agent (ratio target OVERHEAD_TARGET), and a farm of one
-1-thread agent against one of two (speedup target SPEEDUP_TARGET). Farm start-up is not counted.
+1-thread agent against one of two (speedup target SPEEDUP_TARGET), where the two agents also render the job
+in passes (`--progressive`: what passes cost over whole units, no target). Farm start-up is not counted.
 """
 
 from __future__ import annotations
@@ -61,11 +62,11 @@ class _Job:
         subprocess.run(cmd, check=True, cwd=REPO, capture_output=True)
         return time.perf_counter() - start
 
-    def farm_seconds(self, farm: Any) -> float:
-        """The job on a running farm, from submit to the downloaded image."""
+    def farm_seconds(self, farm: Any, passes: bool = False) -> float:
+        """The job on a running farm, from submit to the downloaded image; `passes`: in passes."""
         client = farm.client()
         start = time.perf_counter()
-        job_id = client.submit(self.bundle, self.defines, self.options)
+        job_id = client.submit(self.bundle, self.defines, self.options | ({"progressive": True} if passes else {}))
         status = client.wait(job_id, JOB_TIMEOUT_S, while_waiting=farm.check_alive)
         if status["status"] != "done":
             raise RuntimeError(f"benchmark job {job_id} {status['status']}: {status.get('error')}")
@@ -102,7 +103,8 @@ def rules_file(args: argparse.Namespace) -> Path | None:
 def run(args: argparse.Namespace) -> dict:
     """1. `quekaro render` with T threads against a farm of 1 agent of T threads: ratio farm / render.
     2. A farm of 1 agent of 1 thread against one of 2 such agents, both up at once (an idle farm costs a
-    few heartbeats a second): speedup T(1 agent) / T(2 agents)."""
+    few heartbeats a second): speedup T(1 agent) / T(2 agents); and the 2 agents' job in passes: ratio
+    T(passes) / T(whole units)."""
     if args.repeats < 1:
         raise ValueError(f"--repeats {args.repeats}: must be at least 1")
     with tempfile.TemporaryDirectory() as tmp_name:
@@ -114,8 +116,8 @@ def run(args: argparse.Namespace) -> dict:
                               args.repeats)
         with ExitStack() as stack:
             one, two = _up(stack, tmp / "farm-b", 1, 1), _up(stack, tmp / "farm-c", 2, 1)
-            second = alternate({"one": lambda: job.farm_seconds(one), "two": lambda: job.farm_seconds(two)},
-                               args.repeats)
+            second = alternate({"one": lambda: job.farm_seconds(one), "two": lambda: job.farm_seconds(two),
+                                "passes": lambda: job.farm_seconds(two, passes=True)}, args.repeats)
     result = _result(args, first, second)
     text = format_report(result)
     result["report"] = str(write_report(args.out, "farm", "Farm overhead and 2-agent speedup", text,
@@ -129,7 +131,7 @@ def _result(args: argparse.Namespace, first: dict[str, list[float]], second: dic
     """The headline ratios from each side's fastest run (noise only ever adds time), medians beside, and
     every run."""
     render_s, farm1_s = min(first["render"]), min(first["farm"])
-    one_s, two_s = min(second["one"]), min(second["two"])
+    one_s, two_s, passes_s = min(second["one"]), min(second["two"]), min(second["passes"])
     return {
         "scene": str(args.scene), "res": args.res, "spp": args.spp, "level": args.level, "units": args.units,
         "threads": args.threads, "repeats": args.repeats,
@@ -137,8 +139,10 @@ def _result(args: argparse.Namespace, first: dict[str, list[float]], second: dic
         "overhead_ratio_median": statistics.median(first["farm"]) / statistics.median(first["render"]),
         "farm_1x1_thread_seconds": one_s, "farm_2x1_thread_seconds": two_s, "speedup_2_agents": one_s / two_s,
         "speedup_2_agents_median": statistics.median(second["one"]) / statistics.median(second["two"]),
+        "farm_2x1_thread_passes_seconds": passes_s, "passes_ratio": passes_s / two_s,
+        "passes_ratio_median": statistics.median(second["passes"]) / statistics.median(second["two"]),
         "runs": {"render": first["render"], "farm_1_agent": first["farm"], "farm_1x1_thread": second["one"],
-                 "farm_2x1_thread": second["two"]},
+                 "farm_2x1_thread": second["two"], "farm_2x1_thread_passes": second["passes"]},
         "targets": {"overhead_ratio": OVERHEAD_TARGET, "speedup_2_agents": SPEEDUP_TARGET},
     }
 
@@ -161,4 +165,7 @@ def format_report(r: dict) -> str:
         f"farm, 2 agents x 1 thread     {r['farm_2x1_thread_seconds']:7.2f} s   [{runs('farm_2x1_thread')}]",
         f"  speedup {r['speedup_2_agents']:.2f} (medians {r['speedup_2_agents_median']:.2f}; target >= "
         f"{SPEEDUP_TARGET}) {verdict(r['speedup_2_agents'] >= SPEEDUP_TARGET)}",
+        f"farm, 2 agents, in passes     {r['farm_2x1_thread_passes_seconds']:7.2f} s   "
+        f"[{runs('farm_2x1_thread_passes')}]",
+        f"  passes / whole units {r['passes_ratio']:.3f} (medians {r['passes_ratio_median']:.3f})",
     ])

@@ -33,10 +33,12 @@ def test_sides_alternate_after_one_warm_up_each() -> None:
 def test_ratios_use_each_sides_fastest_run() -> None:
     args = argparse.Namespace(scene=Path("s.xml"), res=8, spp=1, level="off", units=1, threads=2, repeats=2)
     r = bench_farm._result(args, {"render": [30.0, 20.0], "farm": [21.0, 40.0]},
-                           {"one": [50.0, 40.0], "two": [25.0, 30.0]})
+                           {"one": [50.0, 40.0], "two": [25.0, 30.0], "passes": [29.0, 26.0]})
     assert r["overhead_ratio"] == pytest.approx(21.0 / 20.0)
     assert r["speedup_2_agents"] == pytest.approx(40.0 / 25.0)
     assert r["overhead_ratio_median"] == pytest.approx(30.5 / 25.0)
+    assert r["passes_ratio"] == pytest.approx(26.0 / 25.0)
+    assert r["passes_ratio_median"] == pytest.approx(27.5 / 27.5)
     assert "MISS" in bench_farm.format_report(r) and "PASS" in bench_farm.format_report(r)
 
 
@@ -47,7 +49,7 @@ def test_tiny_real_run_prints_json_with_the_issues_keys(tmp_path: Path) -> None:
                          text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     result = json.loads(out.stdout)
-    for key in ("overhead_ratio", "speedup_2_agents"):
+    for key in ("overhead_ratio", "speedup_2_agents", "passes_ratio"):
         assert math.isfinite(result[key]) and result[key] > 0
     assert all(len(v) == 1 and v[0] > 0 for v in result["runs"].values())
     assert bench_farm.format_report(result) in (tmp_path / "farm.md").read_text()

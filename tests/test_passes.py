@@ -58,16 +58,25 @@ def test_equal_weights_give_the_sample_variance_over_k() -> None:
     np.testing.assert_allclose(merged.variance(), np.var(values, ddof=1) / 3, rtol=1e-12)
 
 
-def test_variance_estimate_tracks_the_true_variance_of_the_merge() -> None:
-    """Passes of unequal weight around a known mean: the estimate's mean over pixels is within 5 % of the
-    merge's true variance (measured by repeating the merge), and relMSE is that over value^2 + epsilon."""
+# Pass sizes as the jobs order them: equal, a budget's halving passes (budget_passes(16)), a noise goal's
+# first passes then doubling ones (planning.progressive), and a mixed one.
+PASS_SIZES = {"equal": [4] * 6, "halving": [8, 4, 2, 1, 1], "doubling": [8, 8, 8, 8, 32, 64],
+              "mixed": [1, 2, 3, 1, 2, 3, 1, 2]}
+
+
+@pytest.mark.parametrize("sizes", PASS_SIZES.values(), ids=PASS_SIZES.keys())
+def test_variance_estimate_tracks_the_true_variance_of_the_merge(sizes) -> None:
+    """Passes of these sizes around a known mean: the estimate's mean over pixels and trials is within 5 % of
+    the merge's true variance (measured by repeating the merge; 400 trials of 72 pixel channels, the
+    estimate's own spread well under 2 %), and relMSE is that over value^2 + epsilon. Unequal passes need
+    the weighted estimator's own correction: with k / (k - 1), as for equal passes, the halving passes
+    read 0.83 of the truth and the doubling ones 0.81."""
     rng = np.random.default_rng(7)
-    sigma, trials, k = 0.5, 400, 8
+    sigma, trials = 0.5, 400
     estimates, merges = [], []
     for _ in range(trials):
         merged = None
-        for j in range(k):
-            spp = 1 + j % 3  # weights 1, 2, 3: each pass's value has variance sigma^2 / spp
+        for spp in sizes:  # each pass's value has variance sigma^2 / spp
             w = np.full((4, 6), float(spp))
             value = 2.0 + rng.normal(0, sigma / np.sqrt(spp), (4, 6, 4))
             tile = pass_tile(value * w[..., None], w, spp)
@@ -75,6 +84,7 @@ def test_variance_estimate_tracks_the_true_variance_of_the_merge() -> None:
         estimates.append(merged.variance().mean())
         merges.append(merged.pixels()[..., :3])
     true = np.var(np.stack(merges), axis=0).mean()
+    assert true == pytest.approx(sigma ** 2 / sum(sizes), rel=0.05)
     assert abs(np.mean(estimates) / true - 1) < 0.05
     rel = merged.relmse(epsilon=0.0)
     colour = merged.pixels()[..., :3].astype(np.float64)
