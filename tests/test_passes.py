@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from core.errors import TileError
-from core.image.passes import MIN_PASSES, WEIGHT, UnitPasses, box3
+from core.image.passes import FREE_MIN, MIN_PASSES, WEIGHT, UnitPasses, box3
 from core.image.tiles import Tile
 from core.model.geometry import Rect
 
@@ -42,6 +42,24 @@ def test_a_pixel_no_pass_weighted_stays_black() -> None:
     merged.add(pass_tile(np.ones((4, 6, 4)) * 3, weight))
     assert merged.pixels()[0, 0].tolist() == [0, 0, 0, 0] and merged.pixels()[1, 1, 0] == 2.0
     assert merged.variance()[0, 0].tolist() == [0, 0, 0]
+
+
+def test_the_estimates_edges_where_one_pass_holds_nearly_all_of_a_pixels_weight() -> None:
+    """The denominator (sum W)^2 - sum W^2 is 2 W1 W2 for two passes. Where one pass holds all of a pixel's
+    weight, or all but under FREE_MIN of its square, the variance is unknown: 0, finite. Above that it
+    equals the definition sum W_k^2 (L_k - L)^2 / (2 W1 W2) to 1e-6 (relative)."""
+    first_w, second_w = np.ones((4, 6)), np.ones((4, 6))
+    second_w[0, 0], second_w[0, 1], second_w[0, 2] = 0.0, 1e-9, 1e-3
+    merged = UnitPasses.first(pass_tile(np.ones((4, 6, 4)), first_w))
+    merged.add(pass_tile(np.full((4, 6, 4), 3.0) * second_w[..., None], second_w))
+    variance = merged.variance()
+    assert np.isfinite(variance).all() and variance[0, 0].tolist() == variance[0, 1].tolist() == [0, 0, 0]
+    assert 2 * 1e-9 < FREE_MIN < 2 * 1e-3  # the second pass's share of the squared weight at (0, 1) and (0, 2)
+    w2 = 1e-3
+    mean = (1.0 + 3.0 * w2) / (1.0 + w2)
+    expected = ((1.0 - mean) ** 2 + w2 ** 2 * (3.0 - mean) ** 2) / (2.0 * w2)
+    assert variance[0, 2] == pytest.approx([expected] * 3, rel=1e-6)
+    assert variance[1, 1] == pytest.approx([1.0, 1.0, 1.0])  # equal passes of 1 and 3: s^2 / k = 2 / 2
 
 
 def test_variance_unknown_before_two_passes() -> None:

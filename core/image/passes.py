@@ -21,6 +21,10 @@ from core.model.geometry import Rect
 
 WEIGHT = "quekaro.weight"  # a pass tile's last channel: the film's filter weight sum per pixel
 MIN_PASSES = 2  # a variance from fewer passes is unknown
+# A pixel's variance is unknown (0) where one pass holds all but this share of its squared weight: the
+# spread's expanded form is exact to ~1e-16 of sum W^2 L^2, so below it rounding would pass for noise
+# (at FREE_MIN a relMSE of ~1e-10 at most).
+FREE_MIN = 1e-6
 
 
 def split_weight(tile: Tile) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
@@ -89,6 +93,12 @@ class UnitPasses:
         w = self.weight[..., None]
         return np.where(w > 0, self.sum / np.where(w > 0, w, 1.0), 0.0).astype(np.float32)
 
+    def merged_colour(self) -> np.ndarray:
+        """The merged colour (H x W x 3) in float64, as the estimate needs it: float32 would round each
+        pass's difference from it by ~1e-7 of the value."""
+        w = self.weight[..., None]
+        return np.where(w > 0, self.sum[..., :3] / np.where(w > 0, w, 1.0), 0.0)
+
     def variance(self, colour: np.ndarray | None = None) -> np.ndarray | None:
         """Per pixel and colour channel, the estimated variance of the merged value (H x W x 3), or None
         before MIN_PASSES passes: sum_k W_k^2 (L_k - L)^2 / ((sum_k W_k)^2 - sum_k W_k^2), the batch-means
@@ -100,10 +110,10 @@ class UnitPasses:
         merged colour (float64, H x W x 3) where the caller has it already."""
         if self.passes < MIN_PASSES:
             return None
-        merged = self.pixels()[..., :3].astype(np.float64) if colour is None else colour
+        merged = self.merged_colour() if colour is None else colour
         spread = self.sq - 2.0 * merged * self.cross + merged * merged * self.wsq[..., None]
-        free = self.weight * self.weight - self.wsq  # > 0 where two or more passes weigh the pixel
-        ok = free > 1e-12 * self.weight * self.weight
+        free = self.weight * self.weight - self.wsq  # 2 W1 W2 for two passes: 0 where one holds all the weight
+        ok = free > FREE_MIN * self.weight * self.weight
         return np.maximum(spread, 0.0) / np.where(ok, free, 1.0)[..., None] * ok[..., None]
 
     def relmse(self, epsilon: float = RELMSE_EPSILON) -> float | None:
@@ -117,7 +127,7 @@ class UnitPasses:
         only brightens a dark pixel beside a bright one). None before MIN_PASSES passes."""
         if self.passes < MIN_PASSES:
             return None
-        merged = self.pixels()[..., :3].astype(np.float64)
+        merged = self.merged_colour()
         variance = self.variance(merged)
         x, y, w, h = self.core
         wx, wy = self.window[:2]
