@@ -90,14 +90,17 @@ class UnitPasses:
 
     def pixels(self) -> np.ndarray:
         """The merged image of the window (float32, H x W x C): sum / weight; 0 where no pass had weight."""
-        w = self.weight[..., None]
-        return np.where(w > 0, self.sum / np.where(w > 0, w, 1.0), 0.0).astype(np.float32)
+        return self._developed(self.sum).astype(np.float32)
 
     def merged_colour(self) -> np.ndarray:
         """The merged colour (H x W x 3) in float64, as the estimate needs it: float32 would round each
         pass's difference from it by ~1e-7 of the value."""
+        return self._developed(self.sum[..., :3])
+
+    def _developed(self, sums: np.ndarray) -> np.ndarray:
+        """`sums` (H x W x C) over the weight, float64; 0 where no pass had weight."""
         w = self.weight[..., None]
-        return np.where(w > 0, self.sum[..., :3] / np.where(w > 0, w, 1.0), 0.0)
+        return np.where(w > 0, sums / np.where(w > 0, w, 1.0), 0.0)
 
     def variance(self, colour: np.ndarray | None = None) -> np.ndarray | None:
         """Per pixel and colour channel, the estimated variance of the merged value (H x W x 3), or None
