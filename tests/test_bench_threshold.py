@@ -45,6 +45,9 @@ def test_bench_threshold_measures_the_job_and_uniform_spp_at_the_same_goal(tmp_p
     assert scene["size"] == [64, 64] and p["units"] == len(p["rects"]) == len(p["spp"]) == len(p["true_over_tau"])
     assert sum(w * h for _, _, w, h in p["rects"]) == 64 * 64  # the units tile the image
     assert p["wall_s"] > p["render_s"] > 0 and p["units_render_s"] > 0
+    # each side timed twice in turn (the default --repeats), the fastest kept
+    assert len(p["runs_s"]) == len(u["runs_s"]) == 2 and result["repeats"] == 2
+    assert p["render_s"] == min(p["runs_s"]) and u["seconds"] == min(u["runs_s"]) > 0
     assert p["passes"] >= 4 * p["units"] and p["rounds"] >= 2
     assert set(p["verdicts"]) <= {"met", "cap"} and 0 <= p["honest"] <= p["units"]
     assert all(0 < t <= r for t, r in zip(p["true_over_tau"], p["raw_over_tau"], strict=True))
@@ -59,7 +62,7 @@ def test_bench_threshold_measures_the_job_and_uniform_spp_at_the_same_goal(tmp_p
     assert len(list((tmp_path / "cache" / "references").glob("cbox-*.exr"))) == 1
     text = (tmp_path / "out" / "threshold.md").read_text()
     assert text.startswith("# Rendering to a noise threshold against uniform spp (`quekaro bench threshold cbox")
-    assert "| cbox | tune | 0.03 |" in text and "load average (1 min)" in text
+    assert "| cbox | tune | 0.03 |" in text and "load average (1 min)" in text and "the fastest of 2" in text
     assert "target: units whose true error is within 1.2 x their claim:" in text
     assert "target: median render time, progressive / uniform:" in text and ("PASS" in text or "MISS" in text)
 
@@ -68,13 +71,15 @@ def test_bench_threshold_measures_the_job_and_uniform_spp_at_the_same_goal(tmp_p
 def test_bench_threshold_measures_each_scene_in_a_process_of_its_own_under_a_name_of_its_own(tmp_path):
     # The suite's cbox and the project's scenes/cbox.xml: one stem, told apart by their folders.
     cmd = [sys.executable, "-m", "quekaro", "bench", "threshold", "cbox", str(REPO / "scenes" / "cbox.xml"),
-           "--res", "32", "--ref-spp", "256", "--noise", "0.05", "--spp", "256", "--units", "4", "--json",
-           "--out", str(tmp_path / "out"), "--cache-dir", str(tmp_path / "cache")]
+           "--res", "32", "--ref-spp", "256", "--noise", "0.05", "--spp", "256", "--units", "4", "--repeats", "1",
+           "--json", "--out", str(tmp_path / "out"), "--cache-dir", str(tmp_path / "cache")]
     done = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     result = json.loads(done.stdout)
     assert {n: s["role"] for n, s in result["scenes"].items()} == {"cbox-cbox": "tune", "scenes-cbox": "user"}
     assert result["all_units"] == sum(s["progressive"]["units"] for s in result["scenes"].values())
+    assert all(len(s["progressive"]["runs_s"]) == len(s["uniform"]["runs_s"]) == 1  # --repeats reached each child
+               for s in result["scenes"].values())
     ratios = sorted(s["time_ratio"] for s in result["scenes"].values())
     assert result["median_time_ratio"] == pytest.approx(sum(ratios) / 2)
     text = (tmp_path / "out" / "threshold.md").read_text()
@@ -83,7 +88,8 @@ def test_bench_threshold_measures_each_scene_in_a_process_of_its_own_under_a_nam
 
 @pytest.mark.parametrize(("option", "says"), [("--units", "--units 0: at least 1"),
                                               ("--probe-spp", "--probe-spp 0: at least 1"),
-                                              ("--noise", "--noise 0.0: a positive relative error")])
+                                              ("--noise", "--noise 0.0: a positive relative error"),
+                                              ("--repeats", "--repeats 0: at least 1")])
 def test_a_goal_or_count_it_cannot_run_with_is_refused_before_anything_renders(tmp_path, option, says):
     cmd = [sys.executable, "-m", "quekaro", "bench", "threshold", "cbox", option, "0", "--out", str(tmp_path / "out")]
     done = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=120)
@@ -139,9 +145,11 @@ def _scene(honest: int, units: int, ratio: float) -> dict:
     spread = {"min": 0.8, "median": 1.0, "max": 1.1}
     return {"role": "tune", "time_ratio": ratio,
             "progressive": {"units": units, "honest": honest, "render_s": 2.0, "wall_s": 3.0, "at_cap": 1,
+                            "runs_s": [2.5, 2.0],
                             "spp_spread": {"min": 16, "median": 64, "max": 1024}, "true_over_tau_spread": spread,
                             "raw_over_tau_spread": spread},
             "uniform": {"spp": 1024, "predicted_spp": 1500, "says_spp": 2000, "capped": True, "seconds": 4.0,
+                        "runs_s": [4.0, 4.25],
                         "worst_over_tau": 1.3, "worst_raw_over_tau": 1.4, "probe_predicted_spp": 700,
                         "renders": [{"worst_over_tau": 1.6}, {"worst_over_tau": 1.3}]}}
 
@@ -154,10 +162,11 @@ def test_the_targets_pool_the_units_and_take_the_median_ratio():
     missed = summary({"a": _scene(18, 20, 0.61)})
     assert [t["pass"] for t in missed["targets"]] == [False, False]
     text = format_report({"noise": 0.05, "spp_cap": 1024, "res": 64, "units": 16, "ref_spp": 4096, "probe_spp": 64,
-                          "threads": 2, "seconds": 12.0, "load": [1.0, 2.0], "scenes": {"a": _scene(19, 20, 0.5)},
+                          "threads": 2, "repeats": 2, "seconds": 12.0, "load": [1.0, 2.0],
+                          "scenes": {"a": _scene(19, 20, 0.5)},
                           **summary({"a": _scene(19, 20, 0.5)})})
     assert "| a | tune | 0.05 | 2.00 (3.00) | 16 / 64 / 1024 | 1024 (needs 2000, capped); the probe's 700 gave " \
-           "1.60 TAU | 4.00 | 1.30 (1.40) | 0.50 | 19 of 20, 1 at the cap |" in text
+           "1.60 TAU | 4.00 | 1.30 (1.40) | 0.50 | 2.50, 2.00 / 4.00, 4.25 | 19 of 20, 1 at the cap |" in text
     assert f"target: units whose true error is within {HONEST_FACTOR:g} x their claim: 95.0% (19 of 20) " \
            "(target >= 95%): PASS" in text
     assert "target: median render time, progressive / uniform: 0.50 (target <= 0.6): PASS" in text
