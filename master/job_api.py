@@ -253,7 +253,8 @@ def sequence_summary(service: JobService, sequence: str) -> dict[str, Any]:
         raise StoreError(f"no sequence {sequence!r}")
     frames = [job_summary(service, r.id) for r in records]
     return {"sequence": sequence, "name": records[0].spec.name, "scene": records[0].scene,
-            "status": sequence_status(frames), "frames": frames}
+            "status": sequence_status(frames), "agents_busy": service.store.agents_busy([r.id for r in records]),
+            "frames": frames}
 
 
 async def job_status(request: web.Request) -> web.Response:

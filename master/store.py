@@ -205,8 +205,8 @@ class Progress:
 
 @dataclass(frozen=True)
 class PassProgress:
-    """A progressive job's passes: done and ordered (extra passes and those its end cancelled included),
-    the mean samples per pixel the done ones give the image, and the goal (budget, noise or time)."""
+    """A progressive job's passes: done and ordered (extra passes included; those withdrawn, gone), the
+    mean samples per pixel the done ones give the image, and the goal (budget, noise or time)."""
 
     done: int
     ordered: int
@@ -528,6 +528,12 @@ class JobStore:
         """The agents the user drained (and did not resume): drained again as they come back after a restart."""
         return {r["name"] for r in self.db.execute("SELECT name FROM agents WHERE draining = 1")}
 
+    def agents_busy(self, job_ids: Sequence[str]) -> int:
+        """Agents rendering a unit of any of these jobs now (an agent on two frames counts once)."""
+        marks = ", ".join("?" * len(job_ids))
+        return self.db.execute(f"SELECT COUNT(DISTINCT agent) FROM attempts WHERE outcome = 'running' AND job_id IN "
+                               f"({marks})", tuple(job_ids)).fetchone()[0]
+
     def attempts(self, job_id: str, index: int | None = None) -> list[AttemptRecord]:
         """A job's attempts (one unit's with `index`), oldest first (without their tokens' hashes)."""
         sql = ("SELECT idx, agent, started, finished, outcome, estimate, seconds, reason FROM attempts"
@@ -557,9 +563,7 @@ class JobStore:
             db.execute("SELECT status, COUNT(*) FROM units WHERE job_id = ? GROUP BY status", (job_id,))
         )
         total = sum(counts.values())
-        busy = db.execute(
-            "SELECT COUNT(DISTINCT agent) FROM attempts WHERE job_id = ? AND outcome = 'running'", (job_id,)
-        ).fetchone()[0]
+        busy = self.agents_busy([job_id])
         rate = db.execute(
             f"SELECT SUM(a.seconds), SUM({_WORK.format(t='u.')}) FROM attempts a"
             " JOIN units u ON (a.job_id, a.idx) = (u.job_id, u.idx)"
@@ -611,10 +615,11 @@ class JobStore:
 
     def _spp_mean(self, job_id: str, units: int) -> float:
         """The samples per pixel the done passes give the image: each pass's spp over its area, over the
-        image's (its units' areas; pass 0 of unit u is row u)."""
+        image's (its units' areas: every pass of unit u, row k units + u, has its rectangle)."""
         samples, area = self.db.execute(
-            "SELECT SUM(CASE WHEN status = ? THEN spp * w * h ELSE 0 END), SUM(CASE WHEN idx < ? THEN w * h END)"
-            " FROM units WHERE job_id = ?", (UnitStatus.DONE, units, job_id)).fetchone()
+            "SELECT SUM(samples), SUM(area) FROM (SELECT SUM(CASE WHEN status = ? THEN spp * w * h ELSE 0 END)"
+            " AS samples, MAX(w * h) AS area FROM units WHERE job_id = ? GROUP BY idx % ?)",
+            (UnitStatus.DONE, job_id, units)).fetchone()
         return round((samples or 0) / area, 1) if area else 0.0
 
     def _pass_eta(self, record: JobRecord, goal: Goal, rows_eta: float | None, now: float | None
@@ -765,6 +770,8 @@ class JobStore:
                 db.execute("UPDATE agents SET draining = ? WHERE name = ?", (isinstance(ev, au.AgentDrained), ev.agent))
             case au.AgentJoined() | au.AgentLost() | au.AgentBack() | au.AgentBlocklisted() | au.BidRefused():
                 self._agent(db, ev.agent, now, None)
+            case au.PassesWithdrawn():
+                self._withdraw(db, ev.job_id, ev.units)
             case au.PassesSettled():
                 pass  # the master writes the verdicts beside the job's tiles; its passes still out end with the job
             case au.MessageIgnored() | au.AgentForgotten() | au.AgentSilent() | au.JobsPaused() | au.JobsResumed():
@@ -885,6 +892,15 @@ class JobStore:
             " WHERE job_id = ? AND outcome = 'running'",
             (now, error or "the job's passes reached its goal", job_id),
         )
+
+    @staticmethod
+    def _withdraw(db: sqlite3.Connection, job_id: str, units: Sequence[int]) -> None:
+        """A progressive job's passes called off before they landed: gone, with their attempts (a pass is
+        the job's own bookkeeping, not the user's unit; what was never merged is no part of the image)."""
+        marks = ", ".join("?" * len(units))
+        db.execute(f"DELETE FROM attempts WHERE job_id = ? AND idx IN ({marks})", (job_id, *units))
+        db.execute(f"DELETE FROM units WHERE job_id = ? AND status != ? AND idx IN ({marks})",
+                   (job_id, UnitStatus.DONE, *units))
 
     @staticmethod
     def _add_units(db: sqlite3.Connection, job_id: str, units: Sequence[WorkUnit]) -> None:

@@ -15,7 +15,10 @@ goal:
   sqrt(a_u v_u / k_u) (area, per-sample relative variance, seconds per spp; never below what it has),
   until the time is spent or every unit is at the cap.
 A round is over when every unit has merged the samples it asked of it, from whichever passes: idle workers
-take extra passes of the units it still waits for (`Idle`), so one slow pass does not hold the job.
+take extra passes of the units it still waits for (`Idle`), so one slow pass does not hold the job. When a
+unit's landed passes (`PassLanded`, a tile stored before its merge) hold what the round asks of it, its
+passes still out are withdrawn (`Withdraw`): a unit never gets more samples than it was asked, so the spp
+cap holds.
 """
 
 from __future__ import annotations
@@ -73,6 +76,16 @@ class Goal:
         return min(max(1, self.spp_cap // FIRST_SHARE), FIRST_SPP_MAX)
 
 
+def describe(progressive: dict[str, Any]) -> str:
+    """A report's progressive part (`render_calls.progressive`: the goal, why it stopped, its passes) in one
+    line, as `quekaro render` and `quekaro result` print it."""
+    kind, cap = progressive["goal"], progressive["spp_cap"]
+    goal = ("each unit's own samples" if kind == BUDGET else
+            f"relative error {progressive['noise']:g} a unit, at most {cap} spp" if kind == NOISE else
+            f"{progressive['time']:g} s of rendering, at most {cap} spp")
+    return f"passes: {goal}; stopped: {progressive.get('reason') or 'not yet'} ({progressive['passes']} passes)"
+
+
 def budget_passes(budget: int, parts: int = BUDGET_PASSES, least: int = 1) -> list[int]:
     """A budget's passes: halving, at most `parts`, none below `least` spp where the budget allows, the last
     taking what is left (16: 8, 4, 2, 1, 1; in two parts 8, 8; at least 4: 8, 4, 4)."""
@@ -102,6 +115,15 @@ class PassDone:
     relmse: float | None
     elapsed: float
     workers: int = 1
+
+
+@dataclass(frozen=True)
+class PassLanded:
+    """Pass `pass_index` of `unit` is stored, not merged yet: its samples count toward the round now, so
+    that a pass still out that the unit no longer needs is withdrawn before it lands too."""
+
+    unit: int
+    pass_index: int
 
 
 @dataclass(frozen=True)
@@ -148,6 +170,13 @@ class RenderRound:
 
 
 @dataclass(frozen=True)
+class Withdraw:
+    """Cancel these passes, still out: their unit has landed what its round asks of it."""
+
+    orders: tuple[PassOrder, ...]
+
+
+@dataclass(frozen=True)
 class Finish:
     """Stop (cancel the passes still out): the job's image is its units' merged passes. `reason` says why;
     `units` each unit's verdict."""
@@ -176,6 +205,7 @@ class UnitNoise:
     target: int = 0
     out: dict[int, int] = field(default_factory=dict)
     next_pass: int = 0
+    landed: dict[int, int] = field(default_factory=dict)
 
     @property
     def variance(self) -> float:
@@ -246,17 +276,22 @@ class Progressive:
             return []
         return self._decide(elapsed)
 
-    def handle(self, stimulus: PassDone | Idle) -> list[RenderRound | Finish]:
+    def handle(self, stimulus: PassDone | PassLanded | Idle) -> list[RenderRound | Withdraw | Finish]:
         """The one entry: a stimulus in, the instructions it leads to out."""
         if self.finished is not None:
             return []
         if isinstance(stimulus, Idle):
             extra = self._extra(stimulus.slots)
             return [RenderRound(extra)] if extra else []
+        if isinstance(stimulus, PassLanded):
+            return self._landed(stimulus)
         unit = self.units[stimulus.unit]
         unit.spp, unit.seconds, unit.relmse = stimulus.spp, stimulus.seconds, stimulus.relmse
         unit.passes += 1
-        unit.credited += unit.out.pop(stimulus.pass_index, 0)
+        if stimulus.pass_index in unit.landed:
+            unit.credited += unit.landed.pop(stimulus.pass_index)
+        else:  # merged without a landing reported (one process)
+            unit.credited += unit.out.pop(stimulus.pass_index, 0)
         self.workers = max(1, stimulus.workers)
         if any(u.credited < u.target for u in self.units):
             return []
@@ -288,10 +323,24 @@ class Progressive:
             orders.append(self._order(index, spp))
         return [RenderRound(tuple(orders))]
 
+    def _landed(self, landed: PassLanded) -> list[Withdraw]:
+        """A pass stored: once the unit's landed samples hold what the round asks, its passes still out
+        (an idle worker's extra pass, or the slow one it doubled) are withdrawn."""
+        unit = self.units[landed.unit]
+        if landed.pass_index not in unit.out:
+            return []
+        unit.landed[landed.pass_index] = unit.out.pop(landed.pass_index)
+        if not unit.out or unit.credited + sum(unit.landed.values()) < unit.target:
+            return []
+        spare = tuple(PassOrder(landed.unit, k, spp) for k, spp in sorted(unit.out.items()))
+        unit.out.clear()
+        return [Withdraw(spare)]
+
     def _extra(self, slots: int) -> tuple[PassOrder, ...]:
         """Up to `slots` extra passes of the units furthest from what the round asks of them, each the size
         of a pass it has out, at most EXTRA_IN_FLIGHT out per unit."""
-        waiting = [i for i, u in enumerate(self.units) if u.credited < u.target and 0 < len(u.out) < EXTRA_IN_FLIGHT]
+        waiting = [i for i, u in enumerate(self.units)
+                   if u.credited + sum(u.landed.values()) < u.target and 0 < len(u.out) < EXTRA_IN_FLIGHT]
         short = sorted(waiting, key=lambda i: (self.units[i].credited - self.units[i].target, i))
         return tuple(self._order(i, max(self.units[i].out.values())) for i in short[:max(0, slots)])
 
@@ -344,12 +393,12 @@ class Progressive:
     def _reason(self, elapsed: float) -> str:
         if self.goal.kind == BUDGET:
             return f"every unit has its samples ({elapsed:.1f} s)"
-        capped = sum(u.spp >= self.goal.spp_cap for u in self.units)
-        if self.goal.kind == NOISE:
-            met = sum(self._met(u) for u in self.units)
-            return (f"{met} of {len(self.units)} units under relative error {self.goal.noise:g}, {capped} at the "
-                    f"cap of {self.goal.spp_cap} spp")
-        if elapsed >= self.goal.seconds:
+        if self.goal.kind == NOISE:  # it ends when each unit is under the error or at the cap
+            met, units = sum(self._met(u) for u in self.units), len(self.units)
+            above = f", the other {units - met} at the cap of {self.goal.spp_cap} spp" if met < units else ""
+            return f"{met} of {units} units under relative error {self.goal.noise:g}{above}"
+        noisy = any(u.spp < self.goal.spp_cap and u.variance > 0 for u in self.units)
+        if elapsed >= self.goal.seconds or noisy:  # noisy: what is left buys no unit another sample
             return f"the {self.goal.seconds:g} s of rendering are spent ({elapsed:.1f} s)"
         return f"no unit has noise left to lower under the cap of {self.goal.spp_cap} spp ({elapsed:.1f} s)"
 

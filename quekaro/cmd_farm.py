@@ -29,7 +29,7 @@ from core.scene.bundle import make_bundle
 from core.scene.scene import check_parameters, parse_defines, referenced_files
 from farm.client import FarmClient
 from farm.local import LocalFarm, stop_farm
-from planning import budgets
+from planning import budgets, progressive
 from quekaro.cmd_render import (
     add_job_arguments,
     check_writable,
@@ -510,14 +510,14 @@ def run_watch(args: argparse.Namespace) -> int:
 
 
 def progress_of(client, job_id: str) -> dict:
-    """A job's summary as watch shows it; a sequence's frames summed (units, agents busy) with its frames
-    done/total, and the errors of its failed frames."""
+    """A job's summary as watch shows it; a sequence's frames' units summed, with its frames done/total and
+    the errors of its failed frames (its agents busy are the master's count: an agent on two frames is one)."""
     job = client.status(job_id)
     if "frames" not in job:
         return job
     frames = job["frames"]
     return {**job, "job_id": job_id, "units_done": sum(f["units_done"] for f in frames),
-            "units_total": sum(f["units_total"] for f in frames), "agents_busy": sum(f["agents_busy"] for f in frames),
+            "units_total": sum(f["units_total"] for f in frames),
             "eta_s": None, "passes": None, "paused": next((f["paused"] for f in frames if f.get("paused")), None),
             "frames_text": f"{sum(f['status'] == 'done' for f in frames)}/{len(frames)} frames ",
             "error": "; ".join(f"frame {f.get('frame')}: {f['error']}" for f in frames if f.get("error"))}
@@ -570,7 +570,8 @@ def _watch_bar(client, job_id: str, job: dict, poll_s: float) -> dict:
                *passes, TextColumn("agents busy {task.fields[busy]}"), TextColumn("ETA {task.fields[eta]}"),
                TimeElapsedColumn())
     with Progress(*columns, transient=False) as progress:
-        task = progress.add_task(job_id, total=None, busy=0, eta="-", passes="")
+        task = progress.add_task(job_id, total=job["units_total"], completed=job["units_done"],
+                                 busy=job["agents_busy"], eta="-", passes="")
         said = None
         while True:
             eta = _eta_text(job, "s") if job.get("eta_s") is not None else "-"
@@ -604,6 +605,9 @@ def _fetch(client: FarmClient, job_id: str, out: Path | None) -> None:
         target = folder / f"{name}.exr" if folder is not None else out
         written = client.result(job["job_id"], target)
         print(f"{written}  report: {written.with_suffix('.json')}")
+        calls = json.loads(written.with_suffix(".json").read_text()).get("render_calls") or {}
+        if calls.get("progressive"):
+            print(f"  {progressive.describe(calls['progressive'])}")
 
 
 def _result_folder(out: Path, several: bool) -> Path | None:

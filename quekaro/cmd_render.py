@@ -23,7 +23,7 @@ from core.model.job import IMAGE_SUFFIXES, RenderOptions, SceneSpec
 from core.model.levels import LEVELS, canonical
 from core.scene.scene import check_parameters, parse_defines
 from fuzzy.engine import DEFUZZIFIERS
-from planning import budgets
+from planning import budgets, progressive
 from planning.accuracy import REF_SPP, Asked, accuracy_report, default_cache, reference_path
 from planning.pipeline import Progress as RenderProgress
 from planning.pipeline import render_job, write_json_atomic
@@ -306,6 +306,8 @@ def print_report(report: dict, out: Path) -> None:
         print(f"  - {reason}")
     if report.get("adaptive"):
         print(f"adaptive: {budgets.describe(report['adaptive'])}")
+    if (report.get("render_calls") or {}).get("progressive"):
+        print(progressive.describe(report["render_calls"]["progressive"]))
     print(f"png: {report['image']['png']}  report: {out.with_suffix('.json')}")
     for line in report["image"].get("lossy", []):
         print(f"note: {line}")

@@ -238,3 +238,28 @@ def test_the_look_ahead_counts_on_no_drained_agent() -> None:
     assert {p.agent for p in a.projection("job-1", 0.0).values()} == {"B"}
     awarded, last = finish_all(a, 0.0)
     assert sorted(awarded) == [0, 1] and events(last, au.JobDone)
+
+
+def test_a_slow_pass_that_an_idle_agents_extra_pass_stood_in_for_is_withdrawn_and_its_tile_ignored() -> None:
+    """B holds a pass and goes quiet; A, idle, renders an extra pass of that unit. When A's lands the unit
+    has its budget: B's pass is withdrawn (B told to stop), the job ends, and B's late tile adds nothing."""
+    a = in_passes(Goal(BUDGET, 4))
+    register(a, "B", 0.0)
+    slow, now, out = None, 0.0, []
+    while a.job_status("job-1") == JobStatus.RUNNING and now < 40:
+        for award in round_trip(a, now).values():
+            if slow is None and award.to == "B":
+                slow = award
+                continue
+            out += tile(a, award.message, 1.0, now + 0.5, **PASS_TILE)
+            a.validate()
+        now += 1.0
+    assert slow is not None and a.job_status("job-1") == JobStatus.DONE
+    [withdrawn] = events(out, au.PassesWithdrawn)
+    assert withdrawn.units == (slow.message.unit.index,)
+    assert any(isinstance(i, au.SendToAgent) and i.to == "B" and isinstance(i.message, m.Cancel)
+               and i.message.index == slow.message.unit.index for i in out)
+    late = tile(a, slow.message, 9.0, now, **PASS_TILE)
+    assert [type(i) for i in late] == [au.MessageIgnored]
+    book = a._jobs["job-1"].passes  # the decisions' own count: each unit has its budget, no more
+    assert [u.credited for u in book.machine.units] == [4, 4]

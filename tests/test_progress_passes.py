@@ -67,6 +67,35 @@ def budget_job(path: Path) -> JobStore:
     return store
 
 
+def test_a_withdrawn_pass_leaves_the_store_and_its_unit_done_by_the_pass_that_stood_in(tmp_path: Path) -> None:
+    """Unit 0's last pass is slow; an idle agent's extra pass of it lands first and the slow one is withdrawn
+    (planning.progressive.Withdraw): it goes with its attempt, so the unit is done with every pass it keeps
+    done, and nothing reads as failed."""
+    store = budget_job(tmp_path / "jobs.sqlite")
+    sizes = budget_passes(SPP)
+    for k in range(len(sizes) - 1):
+        render(store, k * N, 101.0 + k, float(sizes[k]))
+    slow = (len(sizes) - 1) * N
+    render(store, slow, 110.0, None)
+    extra = len(sizes) * N
+    order(store, [(0, len(sizes), sizes[-1])])
+    render(store, extra, 111.0, 1.0)
+    store.apply([au.PassesWithdrawn(JOB, (slow,), 1, "its unit has the samples its round asks from another pass")],
+                112.5)
+    p = store.progress(JOB, 113.0)
+    assert (p.done, p.failed) == (1, 0)
+    assert (p.passes.done, p.passes.ordered) == (len(sizes), N * len(sizes))  # the extra in the slow one's place
+    assert store.attempts(JOB, slow) == []
+    # unit 1's first pass (row 1, the unit's own row) stood in for by an extra one: the image's area holds
+    stood_in = len(sizes) * N + 1
+    order(store, [(1, len(sizes), sizes[0])])
+    render(store, stood_in, 114.0, 8.0)
+    store.apply([au.PassesWithdrawn(JOB, (1,), 1, "its unit has the samples its round asks from another pass")],
+                122.5)
+    p = store.progress(JOB, 123.0)
+    assert p.passes.spp_mean == (SPP + sizes[0]) / N  # unit 0's 16 and unit 1's 8 spp over 4 equal units
+
+
 def test_a_budget_jobs_unit_is_done_once_every_pass_of_it_is_done(tmp_path: Path) -> None:
     store = budget_job(tmp_path / "jobs.sqlite")
     sizes = budget_passes(SPP)

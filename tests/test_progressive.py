@@ -17,10 +17,13 @@ from planning.progressive import (
     Goal,
     Idle,
     PassDone,
+    PassLanded,
     PassOrder,
     Progressive,
     RenderRound,
+    Withdraw,
     budget_passes,
+    describe,
 )
 
 
@@ -69,7 +72,7 @@ def test_noise_goal_gives_each_unit_what_it_lacks_at_most_doubling_and_stops_whe
     assert isinstance(instructions, Finish)
     assert instructions.units == {0: "met", 1: "met", 2: "met"}
     assert all(math.sqrt(u.relmse) <= 0.1 for u in machine.units)
-    assert instructions.reason == "3 of 3 units under relative error 0.1, 0 at the cap of 1024 spp"
+    assert instructions.reason == "3 of 3 units under relative error 0.1"
     assert machine.handle(Idle(4)) == []  # finished: nothing more
 
 
@@ -82,7 +85,7 @@ def test_noise_goal_stops_at_the_cap_and_says_which_units():
             break
     assert instructions.units == {0: "cap", 1: "met"}
     assert machine.units[0].spp == 64
-    assert instructions.reason == "1 of 2 units under relative error 0.01, 1 at the cap of 64 spp"
+    assert instructions.reason == "1 of 2 units under relative error 0.01, the other 1 at the cap of 64 spp"
 
 
 def test_time_goal_places_samples_by_neyman_and_never_below_what_a_unit_has():
@@ -149,7 +152,8 @@ def test_time_rounds_never_pass_the_cap_and_each_pass_is_new(areas, variance, co
 
 def test_a_round_decides_only_when_every_unit_has_what_it_asked_and_idle_workers_take_extra_passes():
     """The tail: the round's last pass is slow; an idle worker renders the same unit's next pass, and the
-    round goes on as soon as that one lands. The slow pass still merges when it comes."""
+    round goes on as soon as that one lands. The slow pass is withdrawn when the extra one lands, so the
+    unit gets the samples it asked for, not twice them."""
     machine = Progressive(Goal(NOISE, 1024, noise=0.01), [100, 100])
     orders = machine.start()[0].orders
     slow, rest = orders[-1], orders[:-1]
@@ -158,12 +162,54 @@ def test_a_round_decides_only_when_every_unit_has_what_it_asked_and_idle_workers
     [extra] = machine.handle(Idle(3))
     assert extra.orders == (PassOrder(slow.unit, FIRST_PASSES, slow.spp),)  # one unit waits: one extra pass
     assert machine.handle(Idle(3)) == []  # at most two passes of a unit out at once
+    assert machine.handle(PassLanded(slow.unit, extra.orders[0].pass_index)) == [Withdraw((slow,))]
+    assert machine.handle(Idle(3)) == []  # it waits only for the merge now: no extra pass
     [next_round] = done(machine, extra.orders[0], [1.0, 1.0], [0.01, 0.01], 2.0)
     assert isinstance(next_round, RenderRound)
-    assert done(machine, slow, [1.0, 1.0], [0.01, 0.01], 3.0) == []  # late: merged, decides nothing
-    assert machine.units[slow.unit].passes == FIRST_PASSES + 1
+    assert machine.handle(PassLanded(slow.unit, slow.pass_index)) == []  # withdrawn: lands on nothing
+    assert machine.units[slow.unit].credited == FIRST_PASSES * slow.spp
 
 
+def test_a_pass_that_lands_short_of_its_round_withdraws_nothing():
+    """A budget of 16 in passes 8, 4, 2, 1, 1: landings short of it withdraw nothing; an extra pass for the
+    last one, landing first, withdraws that one."""
+    machine = Progressive(Goal(BUDGET, 16), [10])
+    orders = machine.start()[0].orders
+    assert [o.spp for o in orders] == [8, 4, 2, 1, 1]
+    assert [machine.handle(PassLanded(0, o.pass_index)) for o in orders[:-1]] == [[]] * 4
+    [extra] = machine.handle(Idle(2))
+    assert extra.orders == (PassOrder(0, 5, 1),)
+    assert machine.handle(PassLanded(0, 5)) == [Withdraw((orders[-1],))]
+    assert sum(machine.units[0].landed.values()) == 16
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.sampled_from([BUDGET, NOISE]), st.integers(4, 40),
+       st.lists(st.tuples(st.sampled_from(["land", "merge", "idle"]), st.integers(0, 50)), max_size=120))
+def test_landed_samples_never_pass_the_cap_whatever_lands_first(kind, cap, events):
+    """Any interleaving of landings, merges and idle workers' extra passes (a farm's tail): no unit ever
+    holds more samples, landed or merged, than its budget or the spp cap."""
+    machine = Progressive(Goal(kind, cap, noise=0.01 if kind == NOISE else None), [50, 80])
+    for step in machine.start():
+        assert isinstance(step, RenderRound)
+    for what, pick in events:
+        if machine.finished is not None:
+            break
+        units = machine.units
+        if what == "idle":
+            machine.handle(Idle(1 + pick % 3))
+        elif what == "land":
+            out = [(u, k) for u, unit in enumerate(units) for k in sorted(unit.out)]
+            if out:
+                machine.handle(PassLanded(*out[pick % len(out)]))
+        else:
+            landed = [(u, k) for u, unit in enumerate(units) for k in sorted(unit.landed)]
+            if landed:
+                u, k = landed[pick % len(landed)]
+                spp = units[u].credited + units[u].landed[k]
+                machine.handle(PassDone(u, k, spp, spp * 0.01, 1.0 / spp, 1.0, 2))
+        for unit in machine.units:
+            assert unit.credited + sum(unit.landed.values()) <= cap, (unit, cap)
 def test_a_pass_rendered_with_fewer_samples_than_ordered_still_ends_its_round():
     """A stratified sampler renders its own count (a square): the round counts the passes, not the spp."""
     machine = Progressive(Goal(NOISE, 256, noise=0.5), [10])
@@ -216,3 +262,26 @@ def test_in_two_parts_a_budget_renders_in_two_passes_a_unit_as_one_process_does(
     assert [(o.unit, o.spp) for o in first.orders] == [(0, 32), (1, 2), (0, 32), (1, 3)]  # pass by pass
     out = run_round(machine, first.orders, [1.0] * 2, [0.01] * 2, 1.0)
     assert out == [Finish("every unit has its samples (1.0 s)", {0: "budget", 1: "budget"})]
+
+
+def test_a_reports_progressive_part_reads_as_one_line_for_each_goal():
+    part = {"spp_cap": 64, "noise": None, "time": None, "reason": "every unit has its samples (1.0 s)", "passes": 9}
+    assert describe({**part, "goal": BUDGET}) == \
+        "passes: each unit's own samples; stopped: every unit has its samples (1.0 s) (9 passes)"
+    assert describe({**part, "goal": NOISE, "noise": 0.05, "reason": "2 of 2 units under relative error 0.05"}) == \
+        "passes: relative error 0.05 a unit, at most 64 spp; stopped: 2 of 2 units under relative error 0.05 (9 passes)"
+    assert describe({**part, "goal": TIME, "time": 3.0, "reason": None}).startswith(
+        "passes: 3 s of rendering, at most 64 spp; stopped: not yet")
+
+
+def test_a_time_goal_with_too_little_left_for_a_sample_says_its_time_is_spent():
+    """The last round's time buys no unit one more sample: the time is what ends the job, not the noise
+    (a loaded machine reached 4 s less a few ms and read "no unit has noise left")."""
+    machine = Progressive(Goal(TIME, 100000, seconds=4.0), [100, 100])
+    [first] = machine.start()
+    [end] = run_round(machine, first.orders, [1.0, 1.0], [1.0, 1.0], 4.0 - 1e-4)
+    assert isinstance(end, Finish) and end.reason.startswith("the 4 s of rendering are spent"), end
+    quiet = Progressive(Goal(TIME, 100000, seconds=4.0), [100])
+    [first] = quiet.start()
+    [end] = run_round(quiet, first.orders, [0.0], [1.0], 1.0)  # a black unit: nothing to lower
+    assert end.reason.startswith("no unit has noise left"), end

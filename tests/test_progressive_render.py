@@ -49,8 +49,9 @@ def test_noise_goal_renders_each_unit_to_the_threshold_and_its_estimate_is_hones
     progressive = report["render_calls"]["progressive"]
     assert progressive["goal"] == "noise" and progressive["noise"] == tau and progressive["spp_cap"] == 1024
     units = report["units"]
-    assert progressive["reason"] == f"{len(units)} of {len(units)} units under relative error 0.05, 0 at the cap " \
-                                    "of 1024 spp"
+    assert progressive["reason"] == f"{len(units)} of {len(units)} units under relative error 0.05"
+    assert (f"passes: relative error 0.05 a unit, at most 1024 spp; stopped: {progressive['reason']} "
+            f"({progressive['passes']} passes)") in done.stdout, done.stdout  # said, not only in the report
     assert {u["verdict"] for u in units} == {"met"} and all(u["relative_error_estimate"] <= tau for u in units)
     assert all(u["passes"] >= 4 and u["method"] == "passes" for u in units)
     assert len({u["spp"] for u in units}) > 1  # the samples went where the noise is, not uniformly

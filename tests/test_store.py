@@ -167,6 +167,16 @@ def test_done_needs_a_durable_result_and_happens_once(tmp_path: Path) -> None:
     assert store.results("job-1")[0].tile_path == "/t/0.exr"
 
 
+def test_an_agent_rendering_two_frames_is_one_agent_busy(tmp_path: Path) -> None:
+    """A sequence's frames are jobs of their own: an agent holding a unit of two of them is busy once."""
+    store = new_store(tmp_path / "farm.db")
+    store.create_job("job-2", "scene.xml", JobSpec({}, RenderOptions(level="S", spp=16)), plan_of(specs(2)), now=100.0)
+    store.record_award("job-1", 0, "A", "aa" * 16, 1.0, 1.0)
+    store.record_award("job-2", 0, "A", "bb" * 16, 1.0, 1.0)
+    store.record_award("job-2", 1, "B", "cc" * 16, 1.0, 1.0)
+    assert [store.agents_busy(jobs) for jobs in (["job-1"], ["job-2"], ["job-1", "job-2"])] == [1, 2, 2]
+
+
 def test_auction_events_are_recorded(tmp_path: Path) -> None:
     store = new_store(tmp_path / "farm.db", n=3)
     auction = au.Auction(ONE_A_ROUND, rng=random.Random(5))

@@ -317,7 +317,17 @@ def test_a_progressive_jobs_page_and_status_count_its_units_and_show_its_passes(
         assert int(passes.group(1)) > s["done"], s  # a unit is done only once all its passes are
     assert any(re.search(r"ETA\s*\d", s["summary"]) for s in running), running  # a figure, counting down
     final = re.search(rf"^{planned}/{planned} units, (\d+)/(\d+) passes, ([\d.]+) spp$", seen[-1]["text"])
-    assert final and float(final.group(3)) >= 256, seen[-1]  # no "left unrendered": cancelled extras are none
+    assert final and float(final.group(3)) == 256, seen[-1]  # its budget: an extra pass stands in, never adds
+    assert final.group(1) == final.group(2), seen[-1]  # the passes it kept all done: those withdrawn are gone
+    # the partition is the image's units, each with its passes together, not one rectangle a pass
+    canvas = browser.find_element(By.ID, "overlay")
+    assert (canvas.get_attribute("data-units"), canvas.get_attribute("data-done")) == (str(planned), str(planned))
+    ActionChains(browser).move_to_element_with_offset(canvas, 0, 0).click().perform()
+    wait_until(lambda: rows(browser, "#unit-table tr"), 20, "the unit's details")
+    cells = {row["cells"][0]: row["cells"][1] for row in rows(browser, "#unit-table tr")}
+    assert cells["state"] == "done" and cells["spp"] == "256" and int(cells["passes done"]) >= 4, cells
+    attempts = [row["cells"] for row in rows(browser, "#attempts-table tr")][1:]  # pass, agent, ..., outcome
+    assert len({row[0] for row in attempts if row[4] == "done"}) == int(cells["passes done"]), attempts
     status = subprocess.run([sys.executable, "-m", "quekaro", "status", job_id, "--home", str(farm.home)],
                             capture_output=True, text=True, timeout=60, cwd=REPO)
     assert status.returncode == 0, status.stderr

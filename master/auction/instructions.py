@@ -169,6 +169,19 @@ class PassesSettled(Record):
 
 
 @dataclass(frozen=True)
+class PassesWithdrawn(Record):
+    """Passes of a progressive job called off before they land: their unit has what its round asks
+    (planning.progressive.Withdraw). The store fails them and cancels their attempts."""
+
+    template: ClassVar[str] = "job {job_id}: {count} passes withdrawn ({reason})"
+    level: ClassVar[int] = logging.DEBUG
+    job_id: str
+    units: tuple[int, ...] = field(repr=False)
+    count: int
+    reason: str
+
+
+@dataclass(frozen=True)
 class JobDone(Record):
     template: ClassVar[str] = "job {job_id}: every unit done"
     job_id: str

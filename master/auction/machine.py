@@ -45,6 +45,7 @@ from master.auction.instructions import (
     MessageIgnored,
     PassesOrdered,
     PassesSettled,
+    PassesWithdrawn,
     RefuseTile,
     SendToAgent,
     UnitAwarded,
@@ -93,7 +94,9 @@ from master.auction.stimuli import (
     UnitRetryRequested,
 )
 from master.auction.views import AgentView, AwardView, JobView
-from planning.progressive import TIME, Finish, Goal, Idle, PassDone, PassOrder, RenderRound
+from planning.progressive import TIME, Finish, Goal, Idle, PassDone, PassLanded, PassOrder, RenderRound, Withdraw
+
+END = (UnitStatus.DONE, UnitStatus.FAILED)  # a unit's statuses that no award leaves
 
 
 def _batch_deadlines(job: Job, out: list[Instruction], wins: dict[str, list[UnitState]]) -> list[Instruction]:
@@ -604,9 +607,14 @@ class Auction:
                         credits=state.credits, on_time=on_time)
         self._clear_award(job, unit, UnitStatus.DONE)
         unit.delivered_by = agent
+        if job.passes is not None:
+            done = [done, *self._follow(job, job.passes.machine.handle(PassLanded(*job.passes.origin(tile.index))),
+                                        "a pass landed")]
+        else:
+            done = [done]
         if job.passes is not None and not job.passes.merges:  # a budget job counts its passes, unmerged
-            return [done, *self._on_pass_merged(PassMerged(tile.job_id, tile.index, 0, 0.0, None), now)]
-        return [done, *self._finish_if_done(job)]  # a progressive job ends on its passes' decision instead
+            return [*done, *self._on_pass_merged(PassMerged(tile.job_id, tile.index, 0, 0.0, None), now)]
+        return [*done, *self._finish_if_done(job)]  # a progressive job ends on its passes' decision instead
 
     def _delivered(self, agent: str, job_id: str, index: int) -> bool:
         """Whether the unit is done by this agent's tile."""
@@ -835,7 +843,7 @@ class Auction:
         self._close_rounds(job_id)  # its units announced when it ended are announced afresh
         job.failures_by_agent.clear()
         job.blocklist.clear()
-        units = job.having(UnitStatus.FAILED)
+        units = [u for u in job.having(UnitStatus.FAILED) if not u.withdrawn]
         for unit in job.units.values():  # before they reopen (Job.open_failed)
             unit.failures, unit.last_reason = 0, ""
             unit.failed_on.clear()
@@ -1210,14 +1218,33 @@ class Auction:
             return []
         return self._follow(job, job.passes.machine.handle(Idle(len(idle))), "extra passes for idle agents")
 
-    def _follow(self, job: Job, decided: list[RenderRound | Finish], why: str) -> list[Instruction]:
+    def _follow(self, job: Job, decided: list[RenderRound | Withdraw | Finish], why: str) -> list[Instruction]:
         out: list[Instruction] = []
         for step in decided:
             if isinstance(step, RenderRound):
                 out += self._add_passes(job, step.orders, why)
+            elif isinstance(step, Withdraw):
+                out += self._withdraw(job, step.orders)
             else:
                 out += self._settle(job, step)
         return out
+
+    def _withdraw(self, job: Job, orders: tuple[PassOrder, ...]) -> list[Instruction]:
+        """Passes still out that their unit no longer needs: called off, so that none lands past its cap."""
+        return self._withdraw_passes(job, [job.passes.pass_index(o) for o in orders],
+                                     "its unit has the samples its round asks from another pass")
+
+    def _withdraw_passes(self, job: Job, indices: list[int], reason: str) -> list[Instruction]:
+        """Passes not done that the job no longer needs: called off, never requeued, gone from the store."""
+        units = [job.units[i] for i in indices if i in job.units and job.units[i].status not in END]
+        out: list[Instruction] = []
+        for unit in units:
+            out += self._call_off(job, unit, reason)
+            unit.withdrawn = True
+        if not units:
+            return out
+        gone = tuple(u.spec.index for u in units)
+        return [PassesWithdrawn(job.info.job_id, gone, len(gone), reason), *out]
 
     def _add_passes(self, job: Job, orders: tuple[PassOrder, ...], why: str) -> list[Instruction]:
         units = tuple(job.passes.pass_unit(o) for o in orders)
@@ -1228,14 +1255,7 @@ class Auction:
     def _settle(self, job: Job, finish: Finish) -> list[Instruction]:
         """The job's passes reached its goal: those still out are cancelled; the job is done."""
         out: list[Instruction] = [PassesSettled(job.info.job_id, finish.reason, dict(finish.units))]
-        for unit in job.units.values():
-            if unit.status == UnitStatus.AWARDED:
-                self._release(self._agents[unit.agent], (job.info.job_id, unit.spec.index))
-                cancel = m.Cancel(conversation=unit.conversation, job_id=job.info.job_id, index=unit.spec.index,
-                                  reason="the job's passes reached its goal")
-                out.append(SendToAgent(unit.agent, cancel))
-            if unit.status != UnitStatus.DONE:
-                self._clear_award(job, unit, UnitStatus.FAILED)
+        out += self._withdraw_passes(job, list(job.units), "the job's passes reached its goal")
         self._set_job(job, JobStatus.DONE)
         return [*out, JobDone(job.info.job_id)]
 
@@ -1314,21 +1334,19 @@ class Auction:
         self._set_job(job, status)
         job.error = reason
         for unit in job.units.values():
-            if unit.status == UnitStatus.AWARDED:
-                self._release(self._agents[unit.agent], (job.info.job_id, unit.spec.index))
-                out.append(
-                    SendToAgent(
-                        unit.agent,
-                        m.Cancel(
-                            conversation=unit.conversation,
-                            job_id=job.info.job_id,
-                            index=unit.spec.index,
-                            reason=reason[:1024],
-                        ),
-                    )
-                )
-            if unit.status != UnitStatus.DONE:
-                self._clear_award(job, unit, UnitStatus.FAILED)
+            if unit.status not in END:
+                out += self._call_off(job, unit, reason)
+        return out
+
+    def _call_off(self, job: Job, unit: UnitState, reason: str) -> list[Instruction]:
+        """A unit not done that its job no longer wants: its agent (if it holds it) told to stop; failed."""
+        out: list[Instruction] = []
+        if unit.status == UnitStatus.AWARDED:
+            self._release(self._agents[unit.agent], (job.info.job_id, unit.spec.index))
+            cancel = m.Cancel(conversation=unit.conversation, job_id=job.info.job_id, index=unit.spec.index,
+                              reason=reason[:1024])
+            out.append(SendToAgent(unit.agent, cancel))
+        self._clear_award(job, unit, UnitStatus.FAILED)
         return out
 
     def _finish_if_done(self, job: Job) -> list[Instruction]:

@@ -43,8 +43,12 @@ class PassBook:
 
     def pass_unit(self, order: PassOrder) -> WorkUnit:
         """The work unit that renders `order`: its unit's, at the pass's spp (and the unit's pinned depth)."""
-        return dataclasses.replace(self.units[order.unit], index=order.pass_index * len(self.units) + order.unit,
+        return dataclasses.replace(self.units[order.unit], index=self.pass_index(order),
                                    spp=order.spp)
+
+    def pass_index(self, order: PassOrder) -> int:
+        """The work unit index that renders `order` (`pass_unit`'s)."""
+        return order.pass_index * len(self.units) + order.unit
 
     @property
     def merges(self) -> bool:

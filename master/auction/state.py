@@ -120,6 +120,7 @@ class UnitState:
     estimate: float = 0.0
     deadline: float = math.inf
     delivered_by: str | None = None  # the agent whose tile made it done
+    withdrawn: bool = False  # a pass its job no longer needs: failed, and never requeued
     story: deque[Transition] = field(default_factory=lambda: deque(maxlen=STORY_LENGTH))
 
 

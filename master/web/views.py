@@ -5,7 +5,8 @@
   is rendered yet: `aov_pass`);
 - `job_view`: one job and its units, each with its rectangle, features (C, S, Nd), state (a unit its
   cancelled job left unrendered reads cancelled), the agent holding or having rendered it, and the
-  parameters the rules chose (spp, depth, band, Rl/Ls/Ibs); a sequence id: the sequence and its frames;
+  parameters the rules chose (spp, depth, band, Rl/Ls/Ibs); a progressive job's units are its image's,
+  each with its passes together; a sequence id: the sequence and its frames;
 - `unit_view`: one unit's attempts (agent, times, outcome) beside the same;
 - `agents_view`: the job API's agent rows, with a local farm's restarting processes and blocklists;
 - `report_view`: a finished job's report, without its per-unit list (the units are on the page already).
@@ -100,28 +101,60 @@ def job_view(service: WebService, job_id: str) -> dict[str, Any]:
     record = service.store.job(job_id)
     params = {r.index: r.params for r in service.store.results(job_id)}
     holding = {a.index: a.agent for a in service.store.attempts(job_id) if a.outcome == "running"}
-    units = [_unit_row(u, params.get(u.index), holding.get(u.index), record.status)
-             for u in service.store.units(job_id)]
+    rows = [_unit_row(u, params.get(u.index), holding.get(u.index), record.status)
+            for u in service.store.units(job_id)]
+    planned = record.planned_units
+    units = rows if planned is None else [_unit_of_passes(u, passes) for u, passes in _by_unit(rows, len(planned))]
     ended = record.status in (JobStatus.CANCELLED, JobStatus.FAILED)
     return {**job_row(service, record, time.time()), "ranges": record.plan.get("ranges", {}),
             "tiles": len(params), "partial": ended and bool(params), "units": units}
 
 
+def _by_unit(rows: list[dict[str, Any]], units: int) -> list[tuple[int, list[dict[str, Any]]]]:
+    """A progressive job's rows (its passes: row k units + u is pass k of unit u) grouped by unit."""
+    grouped: dict[int, list[dict[str, Any]]] = {}
+    for row in rows:
+        grouped.setdefault(row["index"] % units, []).append(row)
+    return sorted(grouped.items())
+
+
+# A unit of passes reads as its most active pass: one rendering makes it rendering, then one waiting.
+_PASS_STATES = ("awarded", "pending", "done", "cancelled", "failed")
+
+
+def _unit_of_passes(unit: int, passes: list[dict[str, Any]]) -> dict[str, Any]:
+    """A progressive job's unit as the page shows it, from its passes' rows: the samples, seconds and
+    attempts of them all, the agents holding or having rendered them, and how many are done."""
+    done = [p for p in passes if p["status"] == "done"]
+    first = done[0] if done else passes[0]
+    agents = sorted({p["agent"] for p in passes if p["agent"] and p["status"] in ("awarded", "done")})
+    return {**first, "index": unit, "status": min((p["status"] for p in passes), key=_PASS_STATES.index),
+            "attempts": sum(p["attempts"] for p in passes), "agent": ", ".join(agents) or None,
+            "spp": sum(p["spp"] or 0 for p in done) or None, "passes": len(done),
+            "seconds": _round(sum(p["seconds"] or 0.0 for p in done), 3) if done else None}
+
+
 def unit_view(service: WebService, job_id: str, index: int) -> dict[str, Any]:
-    """One unit: its row, and every attempt at it (agent, started, finished, outcome, seconds, reason)."""
-    units = [u for u in service.store.units(job_id) if u.index == index]
-    if not units:
+    """One unit: its row, and every attempt at it (agent, started, finished, outcome, seconds, reason); a
+    progressive job's unit: its passes together, each attempt naming its pass."""
+    record = service.store.job(job_id)
+    n = len(record.planned_units) if record.planned_units is not None else None
+    rows = [u for u in service.store.units(job_id) if (u.index % n if n else u.index) == index]
+    if not rows:
         raise KeyError(f"job {job_id!r} has no unit {index}")
-    params = {r.index: r.params for r in service.store.results(job_id)}.get(index)
-    attempts = service.store.attempts(job_id, index)
-    holding = next((a.agent for a in attempts if a.outcome == "running"), None)
-    status = service.store.job(job_id).status
+    results = {r.index: r.params for r in service.store.results(job_id)}
+    attempts = sorted((a for u in rows for a in service.store.attempts(job_id, u.index)), key=lambda a: a.started)
+    holding = {a.index: a.agent for a in attempts if a.outcome == "running"}
+    shown = [_unit_row(u, results.get(u.index), holding.get(u.index), record.status) for u in rows]
+    rendered = results.get(next((u.index for u in rows if u.index in results), rows[0].index)) or {}
     # C and Nd unrounded: the rules are evaluated on them (the job view rounds them for the partition)
-    return {**_unit_row(units[0], params, holding, status), "C": units[0].C, "Nd": units[0].Nd, "job_id": job_id,
-            "agent_rules": (params or {}).get("rules"), "story": unit_story(service, job_id, index),
+    return {**(_unit_of_passes(index, shown) if n else shown[0]), "C": rows[0].C, "Nd": rows[0].Nd,
+            "job_id": job_id, "agent_rules": rendered.get("rules"),
+            "story": unit_story(service, job_id, rows[-1].index),
             "attempt_list": [{"agent": a.agent, "started": a.started, "finished": a.finished,
                               "outcome": a.outcome, "estimate_s": _round(a.estimate, 2),
-                              "seconds": _round(a.seconds, 3), "reason": a.reason} for a in attempts]}
+                              "seconds": _round(a.seconds, 3), "reason": a.reason,
+                              **({"pass": a.index // n} if n else {})} for a in attempts]}
 
 
 def _process_states(home: Path) -> dict[str, dict[str, Any]]:

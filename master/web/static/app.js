@@ -624,7 +624,7 @@ function unitAt(event) {
 function refreshSelected(job) {
   if (state.selected === null) return;
   const unit = job.units.find((u) => u.index === state.selected);
-  const key = unit ? `${unit.status}-${unit.attempts}-${unit.agent}` : null;
+  const key = unit ? `${unit.status}-${unit.attempts}-${unit.agent}-${unit.passes}` : null;
   if (key !== state.selectedKey) loadUnit(state.selected);
 }
 
@@ -632,7 +632,7 @@ function loadUnit(index) {
   const job = state.job;
   state.selected = index;
   const unit = job.units.find((u) => u.index === index);
-  state.selectedKey = unit ? `${unit.status}-${unit.attempts}-${unit.agent}` : null;
+  state.selectedKey = unit ? `${unit.status}-${unit.attempts}-${unit.agent}-${unit.passes}` : null;
   drawOverlay();
   getJSON(`/ui/api/jobs/${encodeURIComponent(job.job_id)}/units/${index}`)
     .then(renderUnit)
@@ -645,7 +645,7 @@ function renderUnit(unit) {
     ["C (complexity)", fmtNumber(unit.C, 4)], ["S (size, px)", unit.S], ["Nd (neighbour difference)", fmtNumber(unit.Nd, 4)],
     ["cost", fmtNumber(unit.cost, 4)], ["agent", unit.agent || "-"], ["attempts", unit.attempts],
     ["spp", unit.spp ?? "-"], ["depth", unit.depth ?? "-"], ["band", unit.band ?? "-"],
-    ["render seconds", unit.seconds ?? "-"],
+    ["render seconds", unit.seconds ?? "-"], ...(unit.passes === undefined ? [] : [["passes done", unit.passes]]),
     ["Rl, Ls, Ibs", Object.keys(unit.outputs || {}).length ? Object.entries(unit.outputs).map(([k, v]) => `${k} ${fmtNumber(v, 3)}`).join(", ") : "-"],
   ];
   const table = el("table", { id: "unit-table" }, rows.map(([k, v]) => el("tr", {}, el("th", {}, k), el("td", { "data-field": k }, v))));
@@ -661,8 +661,10 @@ function renderUnit(unit) {
         el("b", {}, `${r.name} ${r.strength.toFixed(3)}`), ` IF ${r.if} THEN ${r.then}`))));
   }
   const attempts = el("table", { id: "attempts-table" },
-    el("tr", {}, ["agent", "started", "finished", "outcome", "seconds", "reason"].map((h) => el("th", {}, h))),
-    (unit.attempt_list || []).map((a) => el("tr", {}, el("td", {}, a.agent), el("td", {}, fmtTime(a.started)),
+    el("tr", {}, [...(unit.passes === undefined ? [] : ["pass"]), "agent", "started", "finished", "outcome", "seconds",
+      "reason"].map((h) => el("th", {}, h))),
+    (unit.attempt_list || []).map((a) => el("tr", {}, ...(a.pass === undefined ? [] : [el("td", {}, a.pass)]),
+      el("td", {}, a.agent), el("td", {}, fmtTime(a.started)),
       el("td", {}, fmtTime(a.finished)), el("td", {}, a.outcome), el("td", {}, a.seconds ?? ""), el("td", {}, a.reason))));
   const story = el("table", { id: "story-table" },
     el("tr", {}, ["time", "from", "to", "stimulus"].map((h) => el("th", {}, h))),
