@@ -435,8 +435,11 @@ class JobStore:
         record = self.job(job_id)
         units = [u.unit() for u in self.units(job_id)]
         planned = record.planned_units
-        if planned is not None:  # the units its plan made; the rows beyond are their passes
-            units = [dataclasses.replace(u, spp=None) for u in units if u.index in planned]
+        if planned is not None:  # the units its plan made: pass k of unit u is row k n + u, u's rectangle and
+            first: dict[int, WorkUnit] = {}  # features at the pass's spp; a withdrawn pass's row is gone, so
+            for unit in units:  # each unit is read from its first row left (each keeps a pass done)
+                first.setdefault(unit.index % len(planned), unit)
+            units = [dataclasses.replace(first[i], index=i, spp=None) for i in sorted(first)]
         return JobPlan.from_dict(record.plan, SceneSpec(scene_path, record.spec.defines), units)
 
     def results(self, job_id: str) -> list[ResultRecord]:

@@ -94,6 +94,8 @@ def test_a_withdrawn_pass_leaves_the_store_and_its_unit_done_by_the_pass_that_st
                 122.5)
     p = store.progress(JOB, 123.0)
     assert p.passes.spp_mean == (SPP + sizes[0]) / N  # unit 0's 16 and unit 1's 8 spp over 4 equal units
+    plan = store.plan(JOB, Path("scene.xml"))  # as a restarted master and the assembly read it: every unit
+    assert [(u.index, u.rect) for u in plan.units] == [(u.index, u.rect) for u in units()]
 
 
 def test_a_budget_jobs_unit_is_done_once_every_pass_of_it_is_done(tmp_path: Path) -> None:
