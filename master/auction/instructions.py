@@ -160,7 +160,7 @@ class PassesOrdered(Record):
 @dataclass(frozen=True)
 class PassesSettled(Record):
     """A progressive job reached its goal (or its cap, or its time): why, and each unit's verdict; the
-    passes still out are cancelled and the job is done."""
+    passes still out are withdrawn and the job is done."""
 
     template: ClassVar[str] = "job {job_id}: progressive passes end: {reason}"
     job_id: str

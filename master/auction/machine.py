@@ -602,19 +602,18 @@ class Auction:
         elif unit.spec.work > 0:
             state.late_rates[tile.job_id] = round_rate(min(seconds / unit.spec.work, MAX_RATE))
         state.recent.append(True)
-        done = UnitDone(tile.job_id, tile.index, agent, unit.token, seconds=seconds, estimate=unit.estimate,
-                        tile_path=tile.tile_path, tile_hash=tile.sha256, report=tile.stored(agent),
-                        credits=state.credits, on_time=on_time)
+        out: list[Instruction] = [
+            UnitDone(tile.job_id, tile.index, agent, unit.token, seconds=seconds, estimate=unit.estimate,
+                     tile_path=tile.tile_path, tile_hash=tile.sha256, report=tile.stored(agent),
+                     credits=state.credits, on_time=on_time)]
         self._clear_award(job, unit, UnitStatus.DONE)
         unit.delivered_by = agent
         if job.passes is not None:
-            done = [done, *self._follow(job, job.passes.machine.handle(PassLanded(*job.passes.origin(tile.index))),
-                                        "a pass landed")]
-        else:
-            done = [done]
+            out += self._follow(job, job.passes.machine.handle(PassLanded(*job.passes.origin(tile.index))),
+                                "a pass landed")
         if job.passes is not None and not job.passes.merges:  # a budget job counts its passes, unmerged
-            return [*done, *self._on_pass_merged(PassMerged(tile.job_id, tile.index, 0, 0.0, None), now)]
-        return [*done, *self._finish_if_done(job)]  # a progressive job ends on its passes' decision instead
+            return [*out, *self._on_pass_merged(PassMerged(tile.job_id, tile.index, 0, 0.0, None), now)]
+        return [*out, *self._finish_if_done(job)]  # a progressive job ends on its passes' decision instead
 
     def _delivered(self, agent: str, job_id: str, index: int) -> bool:
         """Whether the unit is done by this agent's tile."""
@@ -1253,7 +1252,7 @@ class Auction:
         return [PassesOrdered(job.info.job_id, units, len(units), why)]
 
     def _settle(self, job: Job, finish: Finish) -> list[Instruction]:
-        """The job's passes reached its goal: those still out are cancelled; the job is done."""
+        """The job's passes reached its goal: those still out are withdrawn; the job is done."""
         out: list[Instruction] = [PassesSettled(job.info.job_id, finish.reason, dict(finish.units))]
         out += self._withdraw_passes(job, list(job.units), "the job's passes reached its goal")
         self._set_job(job, JobStatus.DONE)

@@ -22,6 +22,7 @@ from typing import Any, Protocol
 from core.home import read_processes
 from core.model.frames import SEQUENCE_ID
 from core.model.status import JobStatus
+from master.auction.passes import pass_origin
 from master.job_api import JobService, agent_rows, job_summary, sequence_summary, unit_story
 from master.store import JobRecord, UnitRecord
 from planning.pipeline import AOV_PASS_FILE
@@ -111,10 +112,10 @@ def job_view(service: WebService, job_id: str) -> dict[str, Any]:
 
 
 def _by_unit(rows: list[dict[str, Any]], units: int) -> list[tuple[int, list[dict[str, Any]]]]:
-    """A progressive job's rows (its passes: row k units + u is pass k of unit u) grouped by unit."""
+    """A progressive job's rows (its passes) grouped by unit."""
     grouped: dict[int, list[dict[str, Any]]] = {}
     for row in rows:
-        grouped.setdefault(row["index"] % units, []).append(row)
+        grouped.setdefault(pass_origin(row["index"], units)[0], []).append(row)
     return sorted(grouped.items())
 
 
@@ -139,11 +140,12 @@ def unit_view(service: WebService, job_id: str, index: int) -> dict[str, Any]:
     progressive job's unit: its passes together, each attempt naming its pass."""
     record = service.store.job(job_id)
     n = len(record.planned_units) if record.planned_units is not None else None
-    rows = [u for u in service.store.units(job_id) if (u.index % n if n else u.index) == index]
+    rows = [u for u in service.store.units(job_id) if (pass_origin(u.index, n)[0] if n else u.index) == index]
     if not rows:
         raise KeyError(f"job {job_id!r} has no unit {index}")
     results = {r.index: r.params for r in service.store.results(job_id)}
-    attempts = sorted((a for u in rows for a in service.store.attempts(job_id, u.index)), key=lambda a: a.started)
+    indices = {u.index for u in rows}
+    attempts = sorted((a for a in service.store.attempts(job_id) if a.index in indices), key=lambda a: a.started)
     holding = {a.index: a.agent for a in attempts if a.outcome == "running"}
     shown = [_unit_row(u, results.get(u.index), holding.get(u.index), record.status) for u in rows]
     rendered = results.get(next((u.index for u in rows if u.index in results), rows[0].index)) or {}
@@ -154,7 +156,7 @@ def unit_view(service: WebService, job_id: str, index: int) -> dict[str, Any]:
             "attempt_list": [{"agent": a.agent, "started": a.started, "finished": a.finished,
                               "outcome": a.outcome, "estimate_s": _round(a.estimate, 2),
                               "seconds": _round(a.seconds, 3), "reason": a.reason,
-                              **({"pass": a.index // n} if n else {})} for a in attempts]}
+                              **({"pass": pass_origin(a.index, n)[1]} if n else {})} for a in attempts]}
 
 
 def _process_states(home: Path) -> dict[str, dict[str, Any]]:
