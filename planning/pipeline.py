@@ -10,9 +10,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import threading
 import time
 import uuid
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +29,7 @@ from core.image.film import display_rgb, film_output
 from core.image.imageio import write_image, write_png_planar
 from core.image.passes import UnitPasses, merge_pass
 from core.image.tiles import Tile
+from core.interrupt import first_ctrl_c_stops
 from core.model.geometry import Rect
 from core.model.hashing import sha256_file
 from core.model.job import RAW_SUFFIX, ImageFile, JobPlan, RenderOptions, SceneSpec
@@ -38,11 +40,22 @@ from core.render.batch import batch_name, batches, render_batch, together_proble
 from core.render.process import ADAPTIVE_META, RenderProcess, RenderRequest, adopt_scene
 from core.rules.unit_params import Planner, RenderParams
 from planning.jobplan import plan_job_loaded, plan_params
-from planning.progressive import BUDGET, ONE_PROCESS_PASSES, Goal, PassDone, PassOrder, Progressive, RenderRound
+from planning.progressive import (
+    BUDGET,
+    ONE_PROCESS_PASSES,
+    Finish,
+    Goal,
+    PassDone,
+    PassOrder,
+    Progressive,
+    RenderRound,
+    Stop,
+)
 
 log = logging.getLogger(__name__)
 
 UNIT_TIMEOUT_S = 3600.0
+STOPPING = "quekaro: stopping: the image keeps the passes rendered so far (Ctrl-C again quits without it)"
 # What a progressive unit's report line adds (ProgressiveRun._record).
 PASS_RECORD = ("passes", "relmse_estimate", "relative_error_estimate", "verdict")
 
@@ -351,14 +364,15 @@ class UnitRun:
         self.calls.update(together=not problem, why_not=problem)
         return not problem
 
-    def _render(self, batch: list[RenderRequest], together: bool) -> list[Tile]:
+    def _render(self, batch: list[RenderRequest], together: bool, abort: threading.Event | None = None
+                ) -> list[Tile]:
         """A batch's tiles; a batch of one unit is Mitsuba's render call. What a batch's render raises
         beyond the project's own errors (a Dr.Jit failure) is a RenderError naming its units, as a unit's
-        is."""
+        is. `abort` set (and the worker interrupted) ends it in a RenderError."""
         if not together or len(batch) == 1:
-            return [self.worker.render(batch[0], timeout=UNIT_TIMEOUT_S)]
+            return [self.worker.render(batch[0], timeout=UNIT_TIMEOUT_S, abort=abort)]
         try:
-            return render_batch(self.worker, batch, UNIT_TIMEOUT_S)
+            return render_batch(self.worker, batch, UNIT_TIMEOUT_S, abort)
         except QuekaroError:
             raise
         except Exception as exc:
@@ -385,22 +399,39 @@ class ProgressiveRun(UnitRun):
         instructions = machine.start()
         together = self._together([self._pass_job(PassOrder(u.index, 0, 1)) for u in self.plan.units])
         self.calls["calls"] = 0
-        while isinstance(instructions[-1], RenderRound):
-            orders = instructions[-1].orders
-            instructions = []
-            for tile in self._render_round(orders, together):
-                instructions += machine.handle(self._merge(merged, tile, time.perf_counter() - start))
-            rounds, passes = rounds + 1, passes + len(orders)
-            self.samples_done = sum(m.spp * self.plan.units[u].rect.area for u, m in merged.items())
-            settled = len(self.plan.units) - len({o.unit for o in orders})
-            self._tell(settled, goal.spp_cap * self.plan.width * self.plan.height)
+        with first_ctrl_c_stops(self.worker.interrupt, STOPPING) as stop:
+            while isinstance(instructions[-1], RenderRound):
+                orders = instructions[-1].orders
+                log.info("round %d: %d passes (%d spp) ordered", rounds + 1, len(orders), sum(o.spp for o in orders))
+                instructions = []
+                try:
+                    for tile in self._render_round(orders, together, stop):
+                        instructions += machine.handle(self._merge(merged, tile, time.perf_counter() - start))
+                        passes += 1
+                except RenderError:
+                    if not stop.is_set():
+                        raise
+                    instructions = self._stopped(machine, time.perf_counter() - start)
+                rounds += 1
+                self.samples_done = sum(m.spp * self.plan.units[u].rect.area for u, m in merged.items())
+                settled = len(self.plan.units) - len({o.unit for o in orders})
+                self._tell(settled, goal.spp_cap * self.plan.width * self.plan.height)
         finish = instructions[-1]
         self.calls["progressive"] = {**goal.to_dict(), "reason": finish.reason, "rounds": rounds, "passes": passes,
-                                     "seconds": time.perf_counter() - start}
+                                     "seconds": time.perf_counter() - start, "interrupted": stop.is_set()}
         tiles = [merged[u.index].tile({"unit_index": u.index, "seconds": merged[u.index].seconds,
                                        "window_method": "passes"}) for u in self.plan.units]
         params = {u: self._record(u, merged[u], finish.units[u]) for u in merged}
         return composed(self.plan, self.plan.units, tiles, params)
+
+    @staticmethod
+    def _stopped(machine: Progressive, elapsed: float) -> list[Finish]:
+        """Ctrl-C ended the round: the job ends on its passes so far, or, a unit without one, nothing is kept."""
+        finish = machine.handle(Stop(elapsed))
+        if not finish:
+            log.warning("stopped before every unit had a pass: no image written")
+            raise KeyboardInterrupt
+        return finish
 
     @staticmethod
     def _merge(merged: dict[int, UnitPasses], tile: Tile, elapsed: float) -> PassDone:
@@ -416,12 +447,14 @@ class ProgressiveRun(UnitRun):
         return dataclasses.replace(base, spp=order.spp, seed=unit_seed(self.job_id, unit.index, order.pass_index),
                                    band=self.plan.reach, first=None, pass_index=order.pass_index)
 
-    def _render_round(self, orders: Sequence[PassOrder], together: bool) -> list[Tile]:
-        """The round's passes, in batches where the scene allows (a batch holds one pass of a unit)."""
+    def _render_round(self, orders: Sequence[PassOrder], together: bool, stop: threading.Event) -> Iterator[Tile]:
+        """The round's passes, batch by batch, in batches where the scene allows (a batch holds one pass of a
+        unit); `stop` set ends the batch in flight (a RenderError)."""
         jobs = [self._pass_job(order) for order in orders]
         groups = batches(jobs) if together else [[j] for j in jobs]
-        self.calls["calls"] += len(groups)
-        return [tile for batch in groups for tile in self._render(batch, together)]
+        for batch in groups:
+            self.calls["calls"] += 1
+            yield from self._render(batch, together, stop)
 
     def _record(self, unit: int, passes: UnitPasses, verdict: str) -> dict[str, Any]:
         return {**self.chosen[unit].to_dict(), "band": self.plan.reach, "rules": self.rules, **passes.account(),

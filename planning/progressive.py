@@ -127,6 +127,14 @@ class PassLanded:
 
 
 @dataclass(frozen=True)
+class Stop:
+    """The user stopped the job (Ctrl-C) `elapsed` seconds after its first pass was ordered: it ends on the
+    passes merged so far, if every unit has one."""
+
+    elapsed: float
+
+
+@dataclass(frozen=True)
 class UnitSoFar:
     """One unit of a job taken up again (a master restart): its merged passes (`passes`, their samples per
     pixel `spp` as rendered and `credited` as ordered, `seconds`, estimated `relmse`), the passes still out
@@ -276,10 +284,13 @@ class Progressive:
             return []
         return self._decide(elapsed)
 
-    def handle(self, stimulus: PassDone | PassLanded | Idle) -> list[RenderRound | Withdraw | Finish]:
-        """The one entry: a stimulus in, the instructions it leads to out."""
+    def handle(self, stimulus: PassDone | PassLanded | Idle | Stop) -> list[RenderRound | Withdraw | Finish]:
+        """The one entry: a stimulus in, the instructions it leads to out. A Stop while a unit has no pass
+        merged gives nothing: there is no image to keep."""
         if self.finished is not None:
             return []
+        if isinstance(stimulus, Stop):
+            return self._stop(stimulus.elapsed)
         if isinstance(stimulus, Idle):
             extra = self._extra(stimulus.slots)
             return [RenderRound(extra)] if extra else []
@@ -389,6 +400,16 @@ class Progressive:
         return [u.spp for u in self.units]
 
     # -- the end --
+
+    def _stop(self, elapsed: float) -> list[Finish]:
+        if any(u.spp == 0 for u in self.units):
+            return []
+        spp = sorted(u.spp for u in self.units)
+        held = f"{spp[0]} spp a unit" if spp[0] == spp[-1] else f"{spp[0]}-{spp[-1]} spp a unit"
+        self.finished = Finish(f"Ctrl-C after {elapsed:.1f} s, with {held}",
+                               {i: "met" if self.goal.kind == NOISE and self._met(u) else "stopped"
+                                for i, u in enumerate(self.units)})
+        return [self.finished]
 
     def _reason(self, elapsed: float) -> str:
         if self.goal.kind == BUDGET:

@@ -235,11 +235,14 @@ def frame_jobs(spec: SceneSpec, frames: FrameRange | None, out: Path) -> list[tu
 def render_one(spec: SceneSpec, options: RenderOptions, out: Path, args: argparse.Namespace,
                startup: float) -> None:
     """One scene's job, its report printed (and its accuracy, with --report-accuracy: `startup` is the
-    process's own start, which the first scene's wall time includes)."""
+    process's own start, which the first scene's wall time includes). A job in passes stopped by Ctrl-C
+    writes its image and then raises KeyboardInterrupt (exit 130, as a shell's loop expects)."""
     started = time.perf_counter()
     with render_progress(spec.path.name, enabled=not args.no_progress) as progress:
         report = render_job(spec, options, out, progress=progress)
     print_report(report, out)
+    if ((report.get("render_calls") or {}).get("progressive") or {}).get("interrupted"):
+        raise KeyboardInterrupt  # its image is written; the scenes and frames after it are not rendered
     if args.report_accuracy:
         add_accuracy(report, spec, out, time.perf_counter() - started + startup, args)
 

@@ -21,6 +21,7 @@ from planning.progressive import (
     PassOrder,
     Progressive,
     RenderRound,
+    Stop,
     Withdraw,
     budget_passes,
     describe,
@@ -285,3 +286,18 @@ def test_a_time_goal_with_too_little_left_for_a_sample_says_its_time_is_spent():
     [first] = quiet.start()
     [end] = run_round(quiet, first.orders, [0.0], [1.0], 1.0)  # a black unit: nothing to lower
     assert end.reason.startswith("no unit has noise left"), end
+
+
+def test_ctrl_c_ends_a_job_on_its_passes_once_every_unit_has_one_and_only_then():
+    """Stop before a unit has a pass keeps nothing; after, the job ends there: a unit under the error is met,
+    the others stopped, and nothing more is decided."""
+    machine = Progressive(Goal(NOISE, 1024, noise=0.05), [10, 10, 10])
+    orders = machine.start()[0].orders
+    firsts = [next(o for o in orders if o.unit == u) for u in (0, 1)]
+    run_round(machine, firsts, [0.0001, 1.0, 1.0], [0.01] * 3, 1.0)
+    assert machine.handle(Stop(1.5)) == [] and machine.finished is None  # unit 2 has no pass
+    done(machine, next(o for o in orders if o.unit == 2), [0.0001, 1.0, 1.0], [0.01] * 3, 2.0)
+    [finish] = machine.handle(Stop(2.3))
+    assert finish.units == {0: "met", 1: "stopped", 2: "stopped"}
+    assert finish.reason == f"Ctrl-C after 2.3 s, with {orders[0].spp} spp a unit"  # one first pass each
+    assert machine.handle(Idle(2)) == [] and machine.handle(Stop(3.0)) == []

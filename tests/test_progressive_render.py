@@ -4,6 +4,10 @@ against plain Mitsuba's converged image of the same file."""
 from __future__ import annotations
 
 import json
+import os
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +18,7 @@ from core.image.imageio import read_image
 from core.image.metrics import RELMSE_EPSILON
 
 REPO = Path(__file__).resolve().parent.parent
+ROUNDS_BEFORE_CTRL_C = 3
 SCENE = REPO / "scenes" / "cbox.xml"
 RES = 96
 
@@ -86,3 +91,37 @@ def test_a_stratified_sampler_in_passes_is_said_to_cost_noise(tmp_path, options)
     plan = plan_job(SceneSpec(scene, {"res": "32"}), RenderOptions(level="off", spp=16, threads=1, **options))
     said = [r for r in plan.effects.reasons if r.startswith("sampler stratified: each pass")]
     assert len(said) == (1 if options else 0), plan.effects.reasons
+
+
+@pytest.mark.slow
+def test_ctrl_c_keeps_the_passes_so_far_and_stops_the_sequence(tmp_path):
+    """A terminal's Ctrl-C (SIGINT to the process group, the render process included) during a time job:
+    the frame's image is written from the passes merged so far, its report says why it stopped, the exit
+    status is 130, and the frames after it are not rendered."""
+    command = [sys.executable, "-m", "quekaro", "render", str(SCENE), "-D", f"res={RES}", "-D", "max_depth=5:6",
+               "--units", "4", "--time", "600", "--spp", "100000", "-o", str(tmp_path),
+               "--no-progress", "-v"]
+    proc = subprocess.Popen(command, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    said = []
+    try:
+        for line in proc.stderr:  # the log: a line a round
+            said.append(line)
+            if f"round {ROUNDS_BEFORE_CTRL_C}:" in line:
+                break
+        os.killpg(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=120)
+        err = "".join(said) + err
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    assert "stopping: the image keeps the passes rendered so far" in err
+    report = json.loads((tmp_path / "cbox_0005.json").read_text())
+    progressive = report["render_calls"]["progressive"]
+    assert progressive["interrupted"] and progressive["reason"].startswith("Ctrl-C after ")
+    assert progressive["rounds"] >= ROUNDS_BEFORE_CTRL_C and progressive["seconds"] < 600
+    assert f"stopped: {progressive['reason']}" in out, out
+    assert all(u["verdict"] == "stopped" and u["spp"] >= 1 for u in report["units"])
+    image = read_image(tmp_path / "cbox_0005.exr")[..., :3]
+    assert np.isfinite(image).all() and image.mean() > 0
+    assert not (tmp_path / "cbox_0006.exr").exists()  # the next frame: not rendered

@@ -319,6 +319,9 @@ def test_a_progressive_jobs_page_and_status_count_its_units_and_show_its_passes(
     final = re.search(rf"^{planned}/{planned} units, (\d+)/(\d+) passes, ([\d.]+) spp$", seen[-1]["text"])
     assert final and float(final.group(3)) == 256, seen[-1]  # its budget: an extra pass stands in, never adds
     assert final.group(1) == final.group(2), seen[-1]  # the passes it kept all done: those withdrawn are gone
+    report = wait_until(lambda: browser.find_element(By.ID, "report").is_displayed()
+                        and browser.find_element(By.ID, "report").text, 30, "the report")
+    assert re.search(rf"passes: each unit's own samples; stopped: .+ \({final.group(1)} passes\)", report), report
     # the partition is the image's units, each with its passes together, not one rectangle a pass
     canvas = browser.find_element(By.ID, "overlay")
     assert (canvas.get_attribute("data-units"), canvas.get_attribute("data-done")) == (str(planned), str(planned))

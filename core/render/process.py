@@ -394,7 +394,9 @@ def mitsuba_log_level(name: str) -> Any:
 
 
 def _child_entry(fd: int) -> NoReturn:
-    """Entry point of the render process: fd is its end of the socket pair to the parent."""
+    """Entry point of the render process: fd is its end of the socket pair to the parent. A terminal's Ctrl-C
+    reaches the parent's whole process group: the parent decides (core.interrupt), the child ignores it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     _child_main(Connection(fd))
 
 

@@ -22,10 +22,11 @@ from typing import Any, Protocol
 from core.home import read_processes
 from core.model.frames import SEQUENCE_ID
 from core.model.status import JobStatus
-from master.auction.passes import pass_origin
+from master.auction import pass_origin
 from master.job_api import JobService, agent_rows, job_summary, sequence_summary, unit_story
 from master.store import JobRecord, UnitRecord
 from planning.pipeline import AOV_PASS_FILE
+from planning.progressive import describe
 
 ACCURACY_NOTE = ("The farm keeps no per-job accuracy report yet (no reference render is made for a job; "
                  "`quekaro bench accuracy` measures levels against references): shown is what the job's "
@@ -184,7 +185,8 @@ def agents_view(service: WebService, counts: dict[str, tuple[int, int]] | None =
 
 
 def report_view(service: WebService, job_id: str) -> dict[str, Any]:
-    """A finished job's report (its totals, composition, pre-pass, effects), or why there is none yet."""
+    """A finished job's report (its totals, composition, pre-pass, effects; a job in passes: its goal and
+    why it stopped), or why there is none yet."""
     record = service.store.job(job_id)
     path = service.result_path(job_id).with_suffix(".json")
     if record.status != JobStatus.DONE or not path.is_file():
@@ -192,5 +194,7 @@ def report_view(service: WebService, job_id: str) -> dict[str, Any]:
                 "accuracy": None, "accuracy_note": ACCURACY_NOTE}
     report = json.loads(path.read_text())
     keep = ("totals", "compose", "prepass", "effects", "user", "options", "image", "created", "finished")
+    progressive = (report.get("render_calls") or {}).get("progressive")
     return {"job_id": job_id, "available": True, **{k: report.get(k) for k in keep},
+            "passes": describe(progressive) if progressive else None,
             "accuracy": report.get("accuracy"), "accuracy_note": None if report.get("accuracy") else ACCURACY_NOTE}

@@ -705,6 +705,7 @@ function loadReport(jobId) {
       ["pre-pass seconds", fmtNumber(totals.prepass_seconds, 3)], ["job seconds (upload to composed image)", fmtNumber(totals.seconds, 3)],
       ["tiles used", compose.tiles_used], ["pixels filled from neighbours (no finite sample)", compose.filled], ["pixels uncovered", compose.uncovered],
     ];
+    if (report.passes) pairs.unshift(["job in passes", report.passes]);  // its goal and why it stopped
     fill(box, el("h3", {}, "Report"),
       el("dl", {}, pairs.flatMap(([k, v]) => [el("dt", {}, k), el("dd", {}, v ?? "-")])),
       accuracyPart(report));
