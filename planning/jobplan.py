@@ -194,10 +194,15 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     # the same wherever it runs: a farm's minimum count (min_units) is its render units' (_adaptive), else
     # the level's budget fell with the farm's size (the rules weigh each unit's size).
     chosen = None if options.adaptive else options.units
-    target = chosen or default_unit_count(width, height, options.level, 1 if options.adaptive else min_units, spp,
-                                          farm and not options.adaptive)
+    goal = "noise" if options.noise is not None else "time" if options.time is not None else None
+    # A noise or time goal places samples by each unit's noise: at level off too, units by size, not one.
+    target = chosen or default_unit_count(width, height, options.level, 1 if options.adaptive else min_units,
+                                          None if goal else spp, farm and not options.adaptive)
     if not effects.splittable:
         return _one_unit(plan, "this integrator renders as one unit")
+    if goal and not chosen and not farm and options.level == OFF and target > 1:
+        effects.reasons.append(f"units: {target} of about 256 px, not one: the {goal} goal gives each unit the "
+                               "samples its own measured noise asks (one unit would hold the image to its mean)")
     sensor_type, sampler = _sensor_kind(sensors, loaded, options.sensor)
     if sensor_type not in TILED_SENSORS:
         effects.reasons.append(f"one unit, the whole film: sensor {sensor_type}, whose crop windows are not "

@@ -525,13 +525,19 @@ def progress_of(client, job_id: str) -> dict:
 
 def watch(client, job_id: str, poll_s: float = 0.5) -> int:
     """Progress until the job (or sequence) ends: a live bar on a terminal, else a plain line a change (at
-    most one every PLAIN_EVERY_S seconds, and the last); exit status 0 only if it is done."""
+    most one every PLAIN_EVERY_S seconds, and the last); exit status 0 only if it is done. Ctrl-C stops the
+    watching, not the job, and says so."""
     first = progress_of(client, job_id)
     frames = first.get("frames")
     print(f"sequence of {len(frames)} frames, the first: {parameters_text(frames[0])}" if frames
           else f"job: {parameters_text(first)}")
     print_effects(first.get("effects") or {})
-    job = (_watch_bar if sys.stdout.isatty() else _watch_lines)(client, job_id, first, poll_s)
+    try:
+        job = (_watch_bar if sys.stdout.isatty() else _watch_lines)(client, job_id, first, poll_s)
+    except KeyboardInterrupt:
+        print(f"\nstopped watching; {job_id} goes on on the farm: quekaro cancel {job_id} stops it, "
+              f"quekaro result {job_id} fetches it", file=sys.stderr)
+        raise
     if job["status"] != "done":
         print(f"job {job_id} {job['status']}: {without_locations(job.get('error') or '')}", file=sys.stderr)
         return 1

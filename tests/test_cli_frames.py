@@ -5,6 +5,8 @@ sequence id."""
 
 from __future__ import annotations
 
+import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -109,3 +111,27 @@ def test_a_cancelled_sequence_ends_wait_with_its_reason(home: Path) -> None:
             waiting.kill()
             waiting.wait()
     assert waiting.returncode == 1 and f"job {sequence} cancelled" in err, err
+
+
+@pytest.mark.slow
+def test_ctrl_c_on_submit_wait_stops_the_watching_not_the_job(home: Path) -> None:
+    waiting = subprocess.Popen([sys.executable, "-m", "quekaro", "submit", str(CBOX), "-D", "res=64", "--spp", "4000",
+                                "--units", "1", "--wait", "--home", str(home)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        job_id = waiting.stdout.readline().strip()
+        while not waiting.stdout.readline().startswith(f"{job_id} "):  # a progress line: it is watching
+            pass
+        waiting.send_signal(signal.SIGINT)
+        _out, err = waiting.communicate(timeout=60)
+    finally:
+        if waiting.poll() is None:
+            waiting.kill()
+            waiting.wait()
+    assert waiting.returncode == 130, err
+    assert (f"stopped watching; {job_id} goes on on the farm: quekaro cancel {job_id} stops it, "
+            f"quekaro result {job_id} fetches it") in err, err
+    assert "Traceback" not in err, err
+    status = quekaro(home, "status", job_id).stdout
+    assert re.match(rf"{job_id}\s+(running|queued)", status), status  # the job goes on
+    assert quekaro(home, "cancel", job_id).returncode == 0

@@ -125,3 +125,19 @@ def test_ctrl_c_keeps_the_passes_so_far_and_stops_the_sequence(tmp_path):
     image = read_image(tmp_path / "cbox_0005.exr")[..., :3]
     assert np.isfinite(image).all() and image.mean() > 0
     assert not (tmp_path / "cbox_0006.exr").exists()  # the next frame: not rendered
+
+
+@pytest.mark.parametrize(("goal", "units"), [({"noise": 0.05}, 4), ({"time": 10.0}, 4), ({"progressive": True}, 1),
+                                             ({"noise": 0.05, "units": 2}, 2)])
+def test_a_noise_or_time_goal_at_level_off_has_units_by_size(goal, units):
+    """One unit would hold the whole image to its mean error: a noise or time goal at level off splits the
+    image as a farm's does (about 256 px a side), and says why; a budget job keeps Mitsuba's one call."""
+    from core.model.job import RenderOptions, SceneSpec
+    from planning.jobplan import plan_job
+
+    plan = plan_job(SceneSpec(SCENE, {"res": "512"}), RenderOptions(level="off", spp=64, threads=1, **goal))
+    assert len(plan.units) == units
+    said = [r for r in plan.effects.reasons if r.startswith("units: ")]
+    assert said == ([f"units: 4 of about 256 px, not one: the {next(iter(goal))} goal gives each unit the samples "
+                     "its own measured noise asks (one unit would hold the image to its mean)"]
+                    if units == 4 else [])
