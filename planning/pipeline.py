@@ -55,7 +55,8 @@ from planning.progressive import (
 log = logging.getLogger(__name__)
 
 UNIT_TIMEOUT_S = 3600.0
-STOPPING = "quekaro: stopping: the image keeps the passes rendered so far (Ctrl-C again quits without it)"
+STOPPING = ("quekaro: stopping: the image keeps the passes merged so far, once every unit has one (Ctrl-C again "
+            "quits without it)")
 # What a progressive unit's report line adds (ProgressiveRun._record).
 PASS_RECORD = ("passes", "relmse_estimate", "relative_error_estimate", "verdict")
 
@@ -270,6 +271,9 @@ def render_job(spec: SceneSpec, options: RenderOptions, out: Path, job_id: str |
         # once, and this process, which composes and writes, never pays for Mitsuba's import or shutdown.
         plan = worker.call(plan_for_units_here, spec, options, seed, doing="planning", timeout=UNIT_TIMEOUT_S)
         return render_plan(plan, out, worker, start, job_id, progress)
+    except KeyboardInterrupt:
+        worker.kill()  # a render in flight would not read the request to exit that `stop` sends first
+        raise
     finally:
         worker.stop()
 
@@ -399,6 +403,7 @@ class ProgressiveRun(UnitRun):
         instructions = machine.start()
         together = self._together([self._pass_job(PassOrder(u.index, 0, 1)) for u in self.plan.units])
         self.calls["calls"] = 0
+        self._tell(0, goal.spp_cap * self.plan.width * self.plan.height)  # rendering, no longer planning
         with first_ctrl_c_stops(self.worker.interrupt, STOPPING) as stop:
             while isinstance(instructions[-1], RenderRound):
                 orders = instructions[-1].orders

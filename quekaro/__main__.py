@@ -1,7 +1,10 @@
-"""`python -m quekaro` runs the command line."""
+"""`python -m quekaro` runs the command line (Ctrl-C while it imports: exit status 130, no traceback)."""
 
 import sys
 
-from quekaro.cli import main
+try:
+    from quekaro.cli import main
+except KeyboardInterrupt:
+    sys.exit(130)
 
 sys.exit(main())

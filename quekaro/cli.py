@@ -54,6 +54,14 @@ def command_parser(parser: argparse.ArgumentParser, command: str) -> argparse.Ar
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The command line; Ctrl-C anywhere is exit status 130 without a traceback."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        return 130
+
+
+def _main(argv: list[str] | None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["agent"]:
         # The render agent owns its options (python -m agents.render_agent takes the same ones). Lazy:
@@ -85,8 +93,6 @@ def _run(argv: list[str]) -> int:
     except (QuekaroError, RuleFileError, FuzzyInputError) as exc:
         print(f"quekaro: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        return 130
     except BrokenPipeError:  # `quekaro status | head -1`: the reader left; say nothing more (Python's recipe)
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 1

@@ -48,7 +48,9 @@ def add_job_arguments(parser: argparse.ArgumentParser) -> None:
                         help="defuzzification of the rules' outputs (default: centroid; on a farm, each agent's own)")
     parser.add_argument("-m", "--mode", "--variant", dest="variant",
                         help="force the Mitsuba variant (e.g. llvm_ad_spectral; Mitsuba's -m)")
-    parser.add_argument("--units", type=int, help="target number of work units")
+    parser.add_argument("--units", type=int,
+                        help="target number of work units (default by size; level off: one, or about 256 px a side "
+                             "with --noise or --time)")
     parser.add_argument("--adaptive", action="store_true",
                         help="at a rule level: the rules set the level's samples, the pre-pass's noise shares them "
                              "among the units, and each unit renders half its share uniformly and the rest "
@@ -126,7 +128,9 @@ def split_range(defines: dict[str, str]) -> tuple[dict[str, str], FrameRange | N
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    parser = sub.add_parser("render", help="render scenes in one process (no agents)")
+    parser = sub.add_parser("render", help="render scenes in one process (no agents)",
+                            epilog="Ctrl-C in passes (--noise, --time, --progressive) stops the render and writes the "
+                                   "image of the passes so far (exit status 130); a second Ctrl-C quits without it.")
     add_job_arguments(parser)
     parser.add_argument("-o", "--output", "--out", dest="out", type=Path, default=Path("out"),
                         help="output image file, or a folder for SCENE.exr (default: out/): its suffix is the "
@@ -201,12 +205,18 @@ def run(args: argparse.Namespace) -> int:
     args.ref_spp = REF_SPP if args.ref_spp is None else args.ref_spp
     if args.ref_spp < 1:
         raise QuekaroError(f"--ref-spp {args.ref_spp}: must be at least 1")
-    failed = []
+    failed, written = [], 0
+    wanted = len(args.scenes) * (len(frames.frames()) if frames else 1)
     for scene, out in zip(args.scenes, writable_outputs(args.scenes, args.out, frames), strict=True):
         try:
             for spec, image in frame_jobs(SceneSpec(scene, defines, paths), frames, out):
                 render_one(spec, options, image, args, startup)
-                startup = 0.0
+                startup, written = 0.0, written + 1
+        except KeyboardInterrupt as exc:
+            if wanted > 1:
+                kept = written + isinstance(exc, Stopped)
+                print(f"quekaro: Ctrl-C: {kept} of {wanted} images written, the rest not rendered", file=sys.stderr)
+            raise
         except QuekaroError as exc:
             if len(args.scenes) == 1:
                 raise
@@ -232,17 +242,21 @@ def frame_jobs(spec: SceneSpec, frames: FrameRange | None, out: Path) -> list[tu
              out.with_name(frame_name(spec.path.stem, n) + out.suffix)) for n in frames.frames()]
 
 
+class Stopped(KeyboardInterrupt):
+    """Ctrl-C stopped a job in passes after its image was written."""
+
+
 def render_one(spec: SceneSpec, options: RenderOptions, out: Path, args: argparse.Namespace,
                startup: float) -> None:
     """One scene's job, its report printed (and its accuracy, with --report-accuracy: `startup` is the
     process's own start, which the first scene's wall time includes). A job in passes stopped by Ctrl-C
-    writes its image and then raises KeyboardInterrupt (exit 130, as a shell's loop expects)."""
+    writes its image and then raises Stopped, a KeyboardInterrupt (exit 130, as a shell's loop expects)."""
     started = time.perf_counter()
     with render_progress(spec.path.name, enabled=not args.no_progress) as progress:
         report = render_job(spec, options, out, progress=progress)
     print_report(report, out)
     if ((report.get("render_calls") or {}).get("progressive") or {}).get("interrupted"):
-        raise KeyboardInterrupt  # its image is written; the scenes and frames after it are not rendered
+        raise Stopped  # its image is written; the scenes and frames after it are not rendered
     if args.report_accuracy:
         add_accuracy(report, spec, out, time.perf_counter() - started + startup, args)
 

@@ -18,6 +18,8 @@ LAZY_PROJECT = {
     ("quekaro.cli", "fuzzy.errors"): "`fuzzy` loads its engine and numpy (~0.1 s), after `quekaro render` has "
                                      "started its render process (core.render.spawn), whose Mitsuba import overlaps",
     ("quekaro.cmd_farm", "master.run"): "SPADE and aiohttp take ~0.4 s; only `quekaro master` needs them",
+    ("quekaro.__main__", "quekaro.cli"): "in a try: Ctrl-C in the first ~0.1 s, while the command line imports, "
+                                         "exits 130 without a traceback",
     ("bench.cli", "bench.commands"): "matplotlib and pyfuzzylite (~0.3 s; pyfuzzylite sets up the root logger "
                                      "at import, which silenced every farm log): only `quekaro bench` loads them",
     ("planning.plain", "core.render.process"): "the uniform baseline's process is timed as a user's plain render: "

@@ -115,7 +115,8 @@ def test_ctrl_c_keeps_the_passes_so_far_and_stops_the_sequence(tmp_path):
     finally:
         proc.kill()
     assert proc.returncode == 130, err
-    assert "stopping: the image keeps the passes rendered so far" in err
+    assert "stopping: the image keeps the passes merged so far" in err
+    assert "quekaro: Ctrl-C: 1 of 2 images written, the rest not rendered" in err and "Traceback" not in err
     report = json.loads((tmp_path / "cbox_0005.json").read_text())
     progressive = report["render_calls"]["progressive"]
     assert progressive["interrupted"] and progressive["reason"].startswith("Ctrl-C after ")

@@ -394,9 +394,7 @@ def mitsuba_log_level(name: str) -> Any:
 
 
 def _child_entry(fd: int) -> NoReturn:
-    """Entry point of the render process: fd is its end of the socket pair to the parent. A terminal's Ctrl-C
-    reaches the parent's whole process group: the parent decides (core.interrupt), the child ignores it."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    """Entry point of the render process: fd is its end of the socket pair to the parent."""
     _child_main(Connection(fd))
 
 
@@ -548,6 +546,10 @@ class RenderProcess:
         self.release()
         with contextlib.suppress(subprocess.TimeoutExpired):
             self._proc.wait(5)
+        self._kill()
+
+    def kill(self) -> None:
+        """End the child at once (Ctrl-C: a child rendering would read `release` only once its render ends)."""
         self._kill()
 
     def interrupt(self) -> None:

@@ -7,6 +7,7 @@ command imports the rest.
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -30,9 +31,16 @@ def spawn() -> Child:
     env = {**os.environ, "PYTHONPATH": path}
     code = f"import core.render.process as r; r._child_entry({theirs.fileno()})"
     proc = subprocess.Popen([sys.executable, "-c", code], pass_fds=(theirs.fileno(),), env=env,
-                            stdin=subprocess.DEVNULL, preexec_fn=die_with_parent)
+                            stdin=subprocess.DEVNULL, preexec_fn=_child_setup)
     theirs.close()
     return proc, Connection(ours.detach())
+
+
+def _child_setup() -> None:
+    """In the child before it runs Python: it dies with its parent, and ignores SIGINT from its start (Python
+    then keeps it ignored). A terminal's Ctrl-C reaches the whole process group: the parent decides."""
+    die_with_parent()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def start_early() -> None:
