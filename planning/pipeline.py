@@ -43,6 +43,7 @@ from planning.jobplan import plan_job_loaded, plan_params
 from planning.progressive import (
     BUDGET,
     ONE_PROCESS_PASSES,
+    TIME,
     Finish,
     Goal,
     PassDone,
@@ -247,13 +248,14 @@ def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
 
 @dataclass(frozen=True)
 class Progress:
-    """How far a job in one process is: units rendered, and samples (spp x pixels) rendered of all;
-    `pixels` the image's, so that samples / pixels is the mean spp rendered so far."""
+    """How far a job in one process is: units rendered, and samples (spp x pixels) rendered of all (None:
+    not known yet, a noise goal's); `pixels` the image's, so that samples / pixels is the mean spp rendered
+    so far."""
 
     units_done: int
     units_total: int
     samples_done: int
-    samples_total: int
+    samples_total: int | None
     pixels: int
 
 
@@ -382,7 +384,7 @@ class UnitRun:
         except Exception as exc:
             raise RenderError(f"{batch_name(batch)}: {type(exc).__name__}: {exc}") from exc
 
-    def _tell(self, done: int, samples_total: int) -> None:
+    def _tell(self, done: int, samples_total: int | None) -> None:
         if self.progress is not None:
             self.progress(Progress(done, len(self.plan.units), self.samples_done, samples_total,
                                    self.plan.width * self.plan.height))
@@ -403,7 +405,7 @@ class ProgressiveRun(UnitRun):
         instructions = machine.start()
         together = self._together([self._pass_job(PassOrder(u.index, 0, 1)) for u in self.plan.units])
         self.calls["calls"] = 0
-        self._tell(0, goal.spp_cap * self.plan.width * self.plan.height)  # rendering, no longer planning
+        self._bar(goal, budgets, 0.0, instructions[-1])  # rendering, no longer planning
         with first_ctrl_c_stops(self.worker.interrupt, STOPPING) as stop:
             while isinstance(instructions[-1], RenderRound):
                 orders = instructions[-1].orders
@@ -419,8 +421,7 @@ class ProgressiveRun(UnitRun):
                     instructions = self._stopped(machine, time.perf_counter() - start)
                 rounds += 1
                 self.samples_done = sum(m.spp * self.plan.units[u].rect.area for u, m in merged.items())
-                settled = len(self.plan.units) - len({o.unit for o in orders})
-                self._tell(settled, goal.spp_cap * self.plan.width * self.plan.height)
+                self._bar(goal, budgets, time.perf_counter() - start, instructions[-1])
         finish = instructions[-1]
         self.calls["progressive"] = {**goal.to_dict(), "reason": finish.reason, "rounds": rounds, "passes": passes,
                                      "seconds": time.perf_counter() - start, "interrupted": stop.is_set()}
@@ -428,6 +429,21 @@ class ProgressiveRun(UnitRun):
                                        "window_method": "passes"}) for u in self.plan.units]
         params = {u: self._record(u, merged[u], finish.units[u]) for u in merged}
         return composed(self.plan, self.plan.units, tiles, params)
+
+    def _bar(self, goal: Goal, budgets: list[int] | None, elapsed: float, decided: RenderRound | Finish) -> None:
+        """The bar after a round (`decided`: what comes next): the units no longer rendering, and the samples
+        the goal comes to: a budget job's, a time job's at this rate for its seconds, a noise job's unknown
+        (None) until it ends."""
+        units = self.plan.units
+        settled = len(units) - len({o.unit for o in decided.orders}) if isinstance(decided, RenderRound) else len(units)
+        total: int | None = None
+        if settled == len(units):
+            total = self.samples_done
+        elif goal.kind == BUDGET and budgets is not None:
+            total = sum(b * u.rect.area for b, u in zip(budgets, units, strict=True))
+        elif goal.kind == TIME and elapsed > 0 and self.samples_done:
+            total = max(self.samples_done, round(self.samples_done * goal.seconds / elapsed))
+        self._tell(settled, total)
 
     @staticmethod
     def _stopped(machine: Progressive, elapsed: float) -> list[Finish]:

@@ -142,3 +142,26 @@ def test_a_noise_or_time_goal_at_level_off_has_units_by_size(goal, units):
     assert said == ([f"units: 4 of about 256 px, not one: the {next(iter(goal))} goal gives each unit the samples "
                      "its own measured noise asks (one unit would hold the image to its mean)"]
                     if units == 4 else [])
+
+
+@pytest.mark.parametrize("goal", [{"progressive": True}, {"time": 1.5}, {"noise": 0.05}],
+                         ids=["budget", "time", "noise"])
+def test_the_bar_counts_toward_the_goal_and_ends_full(tmp_path, goal):
+    """The bar of a job in passes counted toward the spp cap: a time job's ETA read minutes for seconds, and
+    a finished noise job stopped at 2/4 units. A budget job counts its units' own samples, a time job its
+    samples at the rate so far for its seconds, a noise job no total until it ends; each ends full."""
+    from core.model.job import RenderOptions, SceneSpec
+    from planning.pipeline import render_job
+
+    seen = []
+    options = RenderOptions(level="off", spp=256, units=4, threads=2, **goal)
+    render_job(SceneSpec(SCENE, {"res": "64"}), options, tmp_path / "b.exr", progress=seen.append)
+    *during, last = seen
+    assert (last.units_done, last.samples_done) == (4, last.samples_total), last
+    totals = {p.samples_total for p in during}
+    if "progressive" in goal:
+        assert totals == {256 * 64 * 64}  # each unit's budget, from the first call
+    elif "time" in goal:
+        assert during[0].samples_total is None and all(p.samples_total >= p.samples_done for p in during[1:])
+    else:
+        assert totals == {None}
