@@ -30,6 +30,7 @@ from master.auction import (
     SendToAgent,
     Tick,
     TileStored,
+    pass_origin,
 )
 from planning.progressive import BUDGET, Goal
 
@@ -199,9 +200,9 @@ class _Sim:
 
     def _merged(self, tile: TileStored) -> PassMerged:
         """What the master tells the auction once it merged a pass (the samples so far of its unit)."""
-        units = self.auction.job_passes(tile.job_id)
-        self.merged[tile.index % units] = self.merged.get(tile.index % units, 0) + tile.figures.spp
-        return PassMerged(tile.job_id, tile.index, self.merged[tile.index % units], tile.figures.seconds, None)
+        unit, _ = pass_origin(tile.index, self.auction.job_passes(tile.job_id))
+        self.merged[unit] = self.merged.get(unit, 0) + tile.figures.spp
+        return PassMerged(tile.job_id, tile.index, self.merged[unit], tile.figures.seconds, None)
 
     def _status(self, job_id: str) -> str:
         return self.auction.job_status(job_id)
@@ -241,5 +242,5 @@ class _Sim:
         """A unit's render seconds at speed 1; a pass's, its share of its unit's."""
         if not job.passes:
             return self.costs[unit.index] if self.costs else unit.cost
-        template = unit.index % self.auction.job_passes(job.job_id)
+        template, _ = pass_origin(unit.index, self.auction.job_passes(job.job_id))
         return (self.costs[template] if self.costs else unit.cost * PASS_SPP) * (unit.spp or 1) / PASS_SPP

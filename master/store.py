@@ -438,7 +438,7 @@ class JobStore:
         if planned is not None:  # the units its plan made: pass k of unit u is row k n + u, u's rectangle and
             first: dict[int, WorkUnit] = {}  # features at the pass's spp; a withdrawn pass's row is gone, so
             for unit in units:  # each unit is read from its first row left (each keeps a pass done)
-                first.setdefault(unit.index % len(planned), unit)
+                first.setdefault(au.pass_origin(unit.index, len(planned))[0], unit)
             units = [dataclasses.replace(first[i], index=i, spp=None) for i in sorted(first)]
         return JobPlan.from_dict(record.plan, SceneSpec(scene_path, record.spec.defines), units)
 

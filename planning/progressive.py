@@ -76,6 +76,11 @@ class Goal:
         return min(max(1, self.spp_cap // FIRST_SHARE), FIRST_SPP_MAX)
 
 
+def report_part(report: dict[str, Any]) -> dict[str, Any] | None:
+    """A job report's progressive part (`render_calls.progressive`), None for a job not in passes."""
+    return (report.get("render_calls") or {}).get("progressive")
+
+
 def describe(progressive: dict[str, Any]) -> str:
     """A report's progressive part (`render_calls.progressive`: the goal, why it stopped, its passes) in one
     line, as `quekaro render` and `quekaro result` print it."""

@@ -611,9 +611,9 @@ def _fetch(client: FarmClient, job_id: str, out: Path | None) -> None:
         target = folder / f"{name}.exr" if folder is not None else out
         written = client.result(job["job_id"], target)
         print(f"{written}  report: {written.with_suffix('.json')}")
-        calls = json.loads(written.with_suffix(".json").read_text()).get("render_calls") or {}
-        if calls.get("progressive"):
-            print(f"  {progressive.describe(calls['progressive'])}")
+        passes = progressive.report_part(json.loads(written.with_suffix(".json").read_text()))
+        if passes:
+            print(f"  {progressive.describe(passes)}")
 
 
 def _result_folder(out: Path, several: bool) -> Path | None:

@@ -255,7 +255,7 @@ def render_one(spec: SceneSpec, options: RenderOptions, out: Path, args: argpars
     with render_progress(spec.path.name, enabled=not args.no_progress) as progress:
         report = render_job(spec, options, out, progress=progress)
     print_report(report, out)
-    if ((report.get("render_calls") or {}).get("progressive") or {}).get("interrupted"):
+    if (progressive.report_part(report) or {}).get("interrupted"):
         raise Stopped  # its image is written; the scenes and frames after it are not rendered
     if args.report_accuracy:
         add_accuracy(report, spec, out, time.perf_counter() - started + startup, args)
@@ -323,8 +323,8 @@ def print_report(report: dict, out: Path) -> None:
         print(f"  - {reason}")
     if report.get("adaptive"):
         print(f"adaptive: {budgets.describe(report['adaptive'])}")
-    if (report.get("render_calls") or {}).get("progressive"):
-        print(progressive.describe(report["render_calls"]["progressive"]))
+    if passes := progressive.report_part(report):
+        print(progressive.describe(passes))
     print(f"png: {report['image']['png']}  report: {out.with_suffix('.json')}")
     for line in report["image"].get("lossy", []):
         print(f"note: {line}")

@@ -26,7 +26,7 @@ from master.auction import pass_origin
 from master.job_api import JobService, agent_rows, job_summary, sequence_summary, unit_story
 from master.store import JobRecord, UnitRecord
 from planning.pipeline import AOV_PASS_FILE
-from planning.progressive import describe
+from planning.progressive import describe, report_part
 
 ACCURACY_NOTE = ("The farm keeps no per-job accuracy report yet (no reference render is made for a job; "
                  "`quekaro bench accuracy` measures levels against references): shown is what the job's "
@@ -194,7 +194,7 @@ def report_view(service: WebService, job_id: str) -> dict[str, Any]:
                 "accuracy": None, "accuracy_note": ACCURACY_NOTE}
     report = json.loads(path.read_text())
     keep = ("totals", "compose", "prepass", "effects", "user", "options", "image", "created", "finished")
-    progressive = (report.get("render_calls") or {}).get("progressive")
+    progressive = report_part(report)
     return {"job_id": job_id, "available": True, **{k: report.get(k) for k in keep},
             "passes": describe(progressive) if progressive else None,
             "accuracy": report.get("accuracy"), "accuracy_note": None if report.get("accuracy") else ACCURACY_NOTE}
