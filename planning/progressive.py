@@ -28,6 +28,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from core.model.job import RenderOptions
+from core.wording import count
 
 FIRST_PASSES = 4  # passes before a unit's noise is first estimated
 # A budget job's passes per unit: halves, the last two equal (16 spp: 8, 4, 2, 1, 1). Simulated on bench
@@ -88,7 +89,8 @@ def describe(progressive: dict[str, Any]) -> str:
     goal = ("each unit's own samples" if kind == BUDGET else
             f"relative error {progressive['noise']:g} a unit, at most {cap} spp" if kind == NOISE else
             f"{progressive['time']:g} s of rendering, at most {cap} spp")
-    return f"passes: {goal}; stopped: {progressive.get('reason') or 'not yet'} ({progressive['passes']} passes)"
+    passes = count(progressive["passes"], "pass", "passes")
+    return f"passes: {goal}; stopped: {progressive.get('reason') or 'not yet'} ({passes})"
 
 
 def budget_passes(budget: int, parts: int = BUDGET_PASSES, least: int = 1) -> list[int]:
@@ -422,7 +424,7 @@ class Progressive:
         if self.goal.kind == NOISE:  # it ends when each unit is under the error or at the cap
             met, units = sum(self._met(u) for u in self.units), len(self.units)
             above = f", the other {units - met} at the cap of {self.goal.spp_cap} spp" if met < units else ""
-            return f"{met} of {units} units under relative error {self.goal.noise:g}{above}"
+            return f"{met} of {count(units, 'unit')} under relative error {self.goal.noise:g}{above}"
         noisy = any(u.spp < self.goal.spp_cap and u.variance > 0 for u in self.units)
         if elapsed >= self.goal.seconds or noisy:  # noisy: what is left buys no unit another sample
             return f"the {self.goal.seconds:g} s of rendering are spent ({elapsed:.1f} s)"

@@ -27,6 +27,7 @@ from core.model.job import IMAGE_SUFFIXES, JobSpec, SceneSpec
 from core.model.units import SLOTS
 from core.scene.bundle import make_bundle
 from core.scene.scene import check_parameters, parse_defines, referenced_files
+from core.wording import count
 from farm.client import FarmClient
 from farm.local import LocalFarm, stop_farm
 from planning import budgets, progressive
@@ -247,8 +248,8 @@ def run_demo(args: argparse.Namespace) -> int:
     print(f"image:  {out.resolve()}\npng:    {out.with_suffix('.png').resolve()}\n"
           f"report: {out.with_suffix('.json').resolve()}")
     # totals.seconds is the whole job, upload to composed image (as `quekaro render`'s is the whole run)
-    print(f"{totals['units']} units, {totals['seconds']:.1f} s for the job (upload to image), render seconds on "
-          f"agents {totals['render_seconds']:.1f}, pre-pass {totals['prepass_seconds']:.2f} s")
+    print(f"{count(totals['units'], 'unit')}, {totals['seconds']:.1f} s for the job (upload to image), render "
+          f"seconds on agents {totals['render_seconds']:.1f}, pre-pass {totals['prepass_seconds']:.2f} s")
     return 0
 
 

@@ -22,6 +22,7 @@ from core.model.integrators import CATALOGUE
 from core.model.job import IMAGE_SUFFIXES, RenderOptions, SceneSpec
 from core.model.levels import LEVELS, canonical
 from core.scene.scene import check_parameters, parse_defines
+from core.wording import count
 from fuzzy.engine import DEFUZZIFIERS
 from planning import budgets, progressive
 from planning.accuracy import REF_SPP, Asked, accuracy_report, default_cache, reference_path
@@ -316,7 +317,7 @@ def render_progress(name: str, enabled: bool = True) -> Iterator[Callable[[Rende
 def print_report(report: dict, out: Path) -> None:
     totals, effects = report["totals"], report["effects"]
     print(f"{report['image']['file']}  ({report['image']['width']}x{report['image']['height']}, "
-          f"{len(report['image']['channels'])} channels, {totals['units']} units, {totals['seconds']:.2f} s, "
+          f"{len(report['image']['channels'])} channels, {count(totals['units'], 'unit')}, {totals['seconds']:.2f} s, "
           f"pre-pass {totals['prepass_seconds']:.2f} s)")
     print(f"effects: {effects['variant']} / {effects['integrator']} / max_depth {effects['max_depth']}")
     for reason in effects["reasons"]:

@@ -29,4 +29,6 @@ def test_two_emulated_agents_finish_a_job_and_json_is_the_whole_stdout(tmp_path:
     assert row["report_units"] == row["report_emulated_units"] == row["units"]  # every tile emulated
     assert 0 < row["efficiency"] <= 1.0 + 1e-9 and row["makespan_s"] > 0 and row["sim_makespan_s"] > 0
     assert row["heavy_modules"] == []  # an emulated agent loads no Mitsuba or Dr.Jit
+    # Units sampled on their cores alone render fewer samples: the simulated schedule is no slower.
+    assert row["sim_cores_efficiency"] >= row["sim_efficiency"] * (1 - 1e-9)
     assert hosts.format_report(result) in out.read_text()

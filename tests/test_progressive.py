@@ -273,6 +273,7 @@ def test_a_reports_progressive_part_reads_as_one_line_for_each_goal():
         "passes: relative error 0.05 a unit, at most 64 spp; stopped: 2 of 2 units under relative error 0.05 (9 passes)"
     assert describe({**part, "goal": TIME, "time": 3.0, "reason": None}).startswith(
         "passes: 3 s of rendering, at most 64 spp; stopped: not yet")
+    assert describe({**part, "goal": BUDGET, "passes": 1}).endswith("(1 pass)")  # not "1 passes"
 
 
 def test_a_time_goal_with_too_little_left_for_a_sample_says_its_time_is_spent():
