@@ -154,7 +154,8 @@ class EmulatedWorker:
         emu = self.emulation
         abort = abort or threading.Event()
         window = job.window
-        planned = emu.costs.seconds(window, job.spp, job.width, job.height, emu.factor)
+        sampled = job.unit if job.spill else window  # a spilling pass draws its samples on its unit alone
+        planned = emu.costs.seconds(sampled, job.spp, job.width, job.height, emu.factor)
         with self._lock:
             start = time.perf_counter()
             if timeout is not None and planned > timeout and not abort.wait(timeout):
@@ -179,6 +180,8 @@ class EmulatedWorker:
             pixels = np.concatenate([pixels, np.full((*pixels.shape[:2], 1), job.spp, np.float32)], axis=-1)
             channels = (*channels, WEIGHT)
             meta["pass"] = job.pass_index
+        if job.spill:
+            meta["spill"] = True
         return Tile(pixels, window, job.unit, meta, channels)
 
 

@@ -395,7 +395,7 @@ class RenderAgent:
             max_depth=params.depth, spp=params.spp, seed=award.seed, width=job.width, height=job.height,
             unit=unit.rect, band=params.band, threads=self.state.threads_for(job), job_id=job.job_id,
             unit_index=unit.index, sensor=job.sensor, first=job.first_spp,
-            pass_index=unit.index if job.passes else None)
+            pass_index=unit.index if job.passes else None, spill=job.spill)
 
     def _render_tiles(self, requests: list[RenderRequest], timeout: float, abort: threading.Event | None,
                       may_batch: bool) -> list[Tile | Exception]:

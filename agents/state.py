@@ -700,7 +700,7 @@ class AgentState:
     def batches(self, job: m.JobInfo) -> bool:
         """Whether the job's units render in batches here (`batched`, and a batch above 1): the render step
         then renders them on the whole film (core.render.batch), else each on its window."""
-        return self.batch > 1 and batched(job.level, job.first_spp, job.passes)
+        return self.batch > 1 and batched(job.level, job.first_spp, job.passes, job.spill)
 
     def _kernel(self, job: m.JobInfo, unit: WorkUnit, params: Params) -> tuple[Any, ...]:
         """What the render process compiles for the unit: a batch's kernel is the whole film's (one per

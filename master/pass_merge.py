@@ -123,7 +123,8 @@ def _merge(unit: int, passes: list[Any]) -> UnitPasses:
 
 def _merged_source(unit: int, passes: list[Any]) -> TileSource:
     first = tile_source(passes[0].tile_path)
-    channels = tuple(c for c in first.channels if c != WEIGHT)
+    # A spill pass's merged tile keeps its weight, by which composition adds it up (UnitPasses.tile).
+    channels = first.channels if first.meta.get("spill") else tuple(c for c in first.channels if c != WEIGHT)
     return TileSource(first.rect, first.core, channels, lambda: _merge(unit, passes).tile({"unit_index": unit}),
                       {"unit_index": unit})
 

@@ -324,7 +324,7 @@ class MasterService:
             defines=dict(defines), variant=plan.effects.variant, integrator=plan.effects.override,
             sensor=plan.options.sensor, rules_sha256=plan.rules_sha256, defuzzifier=plan.options.defuzzifier,
             min_band=plan.reach, first_spp=plan.first_spp, rfilter=plan.spec.rfilter,
-            passes=plan.options.in_passes, threads=threads,
+            passes=plan.options.in_passes, spill=plan.spill, threads=threads,
         )
 
     async def submit(self, bundle: bytes | Path, spec: JobSpec) -> str:

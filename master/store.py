@@ -555,12 +555,13 @@ class JobStore:
         the ETA counts down between tiles. A progressive job counts the units of its image, not its passes
         (`_unit_progress`), and says how far its passes are (`PassProgress`)."""
         record = self.job(job_id)
-        rows = self._row_progress(job_id, now)
         planned = record.planned_units
+        rows = self._row_progress(job_id, now, None if planned is None else len(planned))
         return rows if planned is None else self._unit_progress(record, len(planned), rows, now)
 
-    def _row_progress(self, job_id: str, now: float | None) -> Progress:
-        """Progress counted over the job's unit rows (a progressive job's rows are its passes)."""
+    def _row_progress(self, job_id: str, now: float | None, units: int | None = None) -> Progress:
+        """Progress counted over the job's unit rows (a progressive job's rows are its passes: `units` the
+        units of its image)."""
         db = self.db
         counts = dict(
             db.execute("SELECT status, COUNT(*) FROM units WHERE job_id = ? GROUP BY status", (job_id,))
@@ -583,7 +584,7 @@ class JobStore:
             eta = max(0.0, left * per_work - self._rendered_so_far(job_id, per_work, now)) / max(1, busy)
         elif left == 0:
             eta = 0.0
-        retried, last = self._retries(job_id)
+        retried, last = self._retries(job_id, units)
         return Progress(counts.get(UnitStatus.DONE, 0), total, counts.get(UnitStatus.FAILED, 0), busy, eta,
                         retried, last)
 
@@ -639,15 +640,19 @@ class JobStore:
         spent = max(0.0, now - first) if first is not None and now is not None else 0.0
         return max(goal.seconds - spent, rows_eta or 0.0), False
 
-    def _retries(self, job_id: str) -> tuple[int, str | None]:
+    def _retries(self, job_id: str, units: int | None = None) -> tuple[int, str | None]:
         """How many attempts of the job ended without a tile (an agent that failed, died or lied), and
-        the latest: a user sees that a job went on after an agent was lost, and why."""
+        the latest: a user sees that a job went on after an agent was lost, and why. A progressive job's
+        (of `units` units) names the unit and its pass, not the pass's row."""
         retried = "FROM attempts WHERE job_id = ? AND outcome IN ('failed', 'requeued')"
         (count,) = self.db.execute(f"SELECT COUNT(*) {retried}", (job_id,)).fetchone()
         if not count:
             return 0, None
         index, agent, outcome, reason = self.db.execute(
             f"SELECT idx, agent, outcome, reason {retried} ORDER BY id DESC LIMIT 1", (job_id,)).fetchone()
+        if units is not None:
+            unit, pass_index = au.pass_origin(index, units)
+            index = f"{unit}, pass {pass_index}"
         return count, f"unit {index} {outcome}: {reason}" if reason else f"unit {index} {outcome} on {agent}"
 
     def _rendered_so_far(self, job_id: str, per_work: float, now: float | None) -> float:

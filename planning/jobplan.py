@@ -24,7 +24,7 @@ from core.model import integrators
 from core.model.job import RGB, Effects, ImageFile, JobPlan, RenderOptions, SceneSpec
 from core.model.levels import OFF
 from core.model.units import WorkUnit
-from core.render.per_pixel import check_renderable
+from core.render.per_pixel import check_renderable, spill_problem
 from core.render.process import build_integrator
 from core.rules.outputs import LS_MAX
 from core.rules.unit_params import Planner, RenderParams, adaptive_params
@@ -218,7 +218,8 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
                                "their summed spp would be (the independent sampler loses nothing)")
     if options.level == "off":
         # The rules need no features at level off, so the pre-pass would be pure overhead.
-        return dataclasses.replace(plan, units=_plain_units(width, height, target))
+        units = _plain_units(width, height, target)
+        return dataclasses.replace(plan, units=units, spill=_spills(options, effects, loaded, len(units)))
     if options.adaptive:
         _check_adaptive(spec, loaded, options.sensor)
     radiance = _radiance_at(plan)
@@ -226,6 +227,18 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     if options.adaptive:
         return _adaptive(plan, cmap, min_units)
     return _with_depth_floors(plan, cmap, seed, loaded, radiance, floors)
+
+
+def _spills(options: RenderOptions, effects: Effects, loaded: Any, units: int) -> bool:
+    """Whether a level-off job's passes draw their samples on their units alone (JobPlan.spill): in passes,
+    over several units, with the scene's own integrator, not denoised (its AOV pass blends), where
+    render_core renders the scene so (core.render.per_pixel.spill_problem); the reason goes in the effects."""
+    if not options.in_passes or units < 2 or options.integrator or options.denoise \
+            or spill_problem(loaded, options.sensor):
+        return False
+    effects.reasons.append("bands: each unit's samples are drawn on its own pixels and its band takes their "
+                           "filter's spill, so no pixel is sampled twice (the tiles add up to one render's image)")
+    return True
 
 
 def _sampler_default(loaded: Any, sensor: int, effects: Effects) -> int:

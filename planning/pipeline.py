@@ -23,7 +23,7 @@ import numpy as np
 
 from core.errors import QuekaroError, RenderError, SceneError
 from core.files import staged_together, written_atomically
-from core.image.compose import TileSource, compose_planar
+from core.image.compose import TileSource, compose_planar, image_channels
 from core.image.denoise import AOV_SPP, AOVS, DENOISER_CHANNELS, QUALITY, denoise_planar
 from core.image.film import display_rgb, film_output
 from core.image.imageio import write_image, write_png_planar
@@ -167,7 +167,7 @@ def composed(plan: JobPlan, units: Sequence[WorkUnit], tiles: Iterable[Tile | Ti
     """The tiles of the plan's `units` blended into one image, with the units' report lines."""
     tiles = list(tiles)
     image, compose_report = compose_planar(tiles, plan.width, plan.height, reach=plan.reach)
-    channels = tuple(tiles[0].channels) if tiles else ("R", "G", "B")
+    channels = image_channels(tiles[0].channels) if tiles else ("R", "G", "B")
     records = (unit_record(units[int(t.meta["unit_index"])], t, params[int(t.meta["unit_index"])]) for t in tiles)
     return Composed(image, channels, compose_report.to_dict(), sorted(records, key=lambda u: u["index"]))
 
@@ -360,6 +360,8 @@ class UnitRun:
             problem = "level off renders each unit with Mitsuba's own render call"
         elif self.plan.first_spp is not None:
             problem = "an adaptive job's units each place their own samples in two passes"
+        elif self.plan.spill:
+            problem = "each pass draws on its own unit, its band taking the spill (a batch's film would mix them)"
         elif len(jobs) < 2:
             problem = "one unit"
         else:
@@ -466,7 +468,8 @@ class ProgressiveRun(UnitRun):
         base = unit_job(self.plan, unit, self.chosen[order.unit], self.job_id, self.threads)
         # The least band, as a farm's agents render a pass (core.rules.unit_params.adaptive_params).
         return dataclasses.replace(base, spp=order.spp, seed=unit_seed(self.job_id, unit.index, order.pass_index),
-                                   band=self.plan.reach, first=None, pass_index=order.pass_index)
+                                   band=self.plan.reach, first=None, pass_index=order.pass_index,
+                                   spill=self.plan.spill)
 
     def _render_round(self, orders: Sequence[PassOrder], together: bool, stop: threading.Event) -> Iterator[Tile]:
         """The round's passes, batch by batch, in batches where the scene allows (a batch holds one pass of a

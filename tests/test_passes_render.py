@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 from render_check import by_name, compare, reference_renders
 
+from core.image.compose import compose, image_channels
 from core.image.metrics import RELMSE_EPSILON
-from core.image.passes import WEIGHT, UnitPasses
-from core.model.geometry import Rect
+from core.image.passes import WEIGHT, UnitPasses, merge_pass
+from core.model.geometry import Rect, filter_reach
 from core.model.job import SceneSpec
 from core.model.seeds import unit_seed
 from core.render.batch import render_batch_here
@@ -76,3 +77,34 @@ def test_passes_merged_are_one_render_at_the_summed_spp(tmp_path, rfilter, batch
     assert 0.8 < merged.variance().mean() / true.mean() < 1.2
     mean = ref[..., :3].mean(axis=0)
     assert 0.8 < merged.relmse() / float(np.mean(true / (mean * mean + RELMSE_EPSILON))) < 1.2
+
+
+FILTER_RADII = {"gaussian": 2.0, "box": 0.5, "tent": 1.0}  # Mitsuba's defaults
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rfilter", ["gaussian", "box", "tent"])
+def test_units_whose_passes_spill_add_up_to_one_render(tmp_path, rfilter):
+    """Four units, each in its own passes (16 spp each, split unlike), every sample drawn on its unit alone
+    and its band holding the spill (RenderRequest.spill): their merged tiles, added up by composition, are
+    one Mitsuba render at 16 spp, seams included."""
+    scene = _scene(tmp_path, rfilter)
+    ref, names = reference_renders(scene, "llvm_ad_rgb", 16)
+    reach = filter_reach(FILTER_RADII[rfilter])
+    units = [Rect(0, 0, 24, 20), Rect(24, 0, 24, 20), Rect(0, 20, 24, 20), Rect(24, 20, 24, 20)]
+    splits = [(4, 8, 4), (8, 8), (16,), (2, 2, 4, 8)]
+    tiles = []
+    with RenderProcess() as worker:
+        for index, (unit, spps) in enumerate(zip(units, splits, strict=True)):
+            sums: dict[int, UnitPasses] = {}
+            for k, spp in enumerate(spps):
+                request = RenderRequest(SceneSpec(scene, {}), "llvm_ad_rgb", None, None, spp,
+                                        unit_seed("s", index, k), W, H, unit, band=reach, threads=2, job_id="s",
+                                        unit_index=index, pass_index=k, spill=True)
+                merge_pass(sums, index, worker.render(request, timeout=300))
+            tiles.append(sums[index].tile({"unit_index": index}))
+    assert all(t.channels[-1] == WEIGHT and t.meta["spill"] for t in tiles)
+    image, report = compose(tiles, W, H, reach=reach)
+    verdict = compare(by_name(image, image_channels(tiles[0].channels), names), ref)
+    assert verdict.passed, f"{rfilter}: {verdict}"
+    assert report.filled == 0 and report.uncovered == 0

@@ -195,3 +195,12 @@ def test_the_job_api_status_and_watch_show_units_and_passes_apart(tmp_path: Path
     assert cmd_farm.watch(Client(), JOB, poll_s=0.01) == 0
     out = capsys.readouterr().out
     assert f"0/{N} units" in out and f"1/{5 * N} passes, 2 spp" in out, out
+
+
+def test_a_requeued_pass_is_named_by_its_unit_and_pass_not_its_row(tmp_path: Path) -> None:
+    store = new_job(tmp_path / "jobs.sqlite", progressive=True)
+    order(store, [(0, 0, 8), (2, 1, 8)])  # pass 1 of unit 2 is row 1 N + 2 = 6
+    token = render(store, 6, 101.0, None)
+    store.apply([au.UnitRequeued(JOB, 6, AGENT, token, f"agent {AGENT} lost")], 102.0)
+    progress = store.progress(JOB, 102.0)
+    assert progress.retried == 1 and progress.last_retry == f"unit 2, pass 1 requeued: agent {AGENT} lost"

@@ -3,9 +3,18 @@ passes are auctioned as units, and idle agents take extra passes of the units sl
 
 from __future__ import annotations
 
+import dataclasses
+import random
+
 import pytest
+from auction_support import register, tile
+from test_auction import ONE_A_ROUND, events, info, round_trip, specs
 
 from bench.simulate import simulate
+from core.image.passes import WEIGHT
+from core.model.status import JobStatus
+from master import auction as au
+from planning.progressive import TIME, Goal
 
 SPEEDS = [1.5, 0.5, 1.25, 0.75]  # bench.hosts' mixed speeds
 
@@ -34,3 +43,23 @@ def test_a_job_in_passes_renders_its_samples_once_on_alike_agents(agents):
     assert result.makespan >= sum(costs) / agents - 1e-6  # no agent renders faster than its speed
     # with equal agents few passes need a copy: the work done is the job's, and at most 10 % more
     assert sum(costs) - 1e-6 <= work_done(result, [1.0] * agents) <= 1.1 * sum(costs)
+
+
+def test_a_time_goal_counts_its_seconds_from_its_first_award_not_its_submission():
+    """A job queued while no agent could take it (a sequence's later frame behind the earlier ones): its
+    2 s of rendering start at its first award, 100 s after it was submitted. Counted from the submission,
+    its first merged passes ended it at once ("the 2 s of rendering are spent"), with a few spp a unit."""
+    a = au.Auction(ONE_A_ROUND, rng=random.Random(3))
+    job = dataclasses.replace(info(), passes=True, level="off")
+    a.handle(au.JobSubmitted(job, specs([1.0, 2.0]), goal=Goal(TIME, 64, seconds=2.0)), 0.0)
+    register(a, "A", 100.0)
+    now, out = 100.0, []
+    while now < 101.0 and not events(out, au.PassesSettled):
+        for award in round_trip(a, now).values():
+            unit = award.message.unit
+            out += tile(a, award.message, 0.01, now + 0.01, channels=("R", "G", "B", WEIGHT), depth=8, spp=unit.spp)
+            out += a.handle(au.PassMerged(job.job_id, unit.index, unit.spp, 0.01, 0.5 / unit.spp), now + 0.02)
+            a.validate()
+        now += 0.05
+    assert not events(out, au.PassesSettled), events(out, au.PassesSettled)
+    assert a.job_status(job.job_id) == JobStatus.RUNNING

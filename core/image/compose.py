@@ -2,7 +2,10 @@
 
 A tile weighs 1 on its core, falls linearly across its band, and weighs 0 on the band's outer `reach`
 pixels, whose truncated filter is not Mitsuba's (`tile_weight`, `blend_weights`). A pixel is the weighted
-mean of the tiles that cover it. Entry points: `compose` and `compose_planar` (the image, a band of rows
+mean of the tiles that cover it. Tiles whose samples were drawn on their cores alone (their last channel
+`WEIGHT`: the filter's weight per sample a pixel, their bands the samples' spill) add up instead: a pixel
+is the sum of their values times that weight over the sum of the weights, the image one render of all the
+cores gives. Entry points: `compose` and `compose_planar` (the image, a band of rows
 at a time), `compose_shrunk` (a preview); `ComposeReport` counts what was more than plain blending.
 """
 
@@ -16,6 +19,10 @@ import numpy as np
 
 from core.errors import TileError
 from core.model.geometry import Rect
+
+# A pass tile's last channel: the film's filter weight sum per pixel (core.image.passes); a merged unit's
+# tile that adds up ends with it too, as the weight per sample a pixel.
+WEIGHT = "quekaro.weight"
 
 
 class TileLike(Protocol):
@@ -130,7 +137,7 @@ def compose_planar(tiles: Iterable[TileLike | TileSource], width: int, height: i
     tiles of one row of units: well under twice the output image for any size."""
     report = ComposeReport()
     chosen = _dedupe([_as_source(t) for t in tiles], width, height, report)
-    depth = len(chosen[0].channels) if chosen else 3
+    depth = len(image_channels(chosen[0].channels)) if chosen else 3
     image = np.zeros((depth, height, width), dtype=np.float32)
     covered = np.zeros((height, width), dtype=bool)
     has = np.zeros((height, width), dtype=bool)
@@ -156,7 +163,7 @@ def compose_shrunk(tiles: Iterable[TileLike | TileSource], width: int, height: i
         raise ValueError(f"compose_shrunk: factor {factor} and planes {planes} must be at least 1")
     report = ComposeReport()
     chosen = _dedupe([_as_source(t) for t in tiles], width, height, report)
-    depth = min(planes, len(chosen[0].channels)) if chosen else planes
+    depth = min(planes, len(image_channels(chosen[0].channels))) if chosen else planes
     out = np.zeros((depth, -(-height // factor), -(-width // factor)), dtype=np.float32)
     band_rows = factor * max(1, 32 // factor)  # float64 sums of a band: small, as the image is large
     for y0, mean, has, _ in _blended_bands(chosen, width, height, depth, band_rows, reach, report):
@@ -220,7 +227,10 @@ def _accumulate(tile: TileLike, y0: int, y1: int, acc: np.ndarray, wsum: np.ndar
     rows = slice(top - rect.y, bottom - rect.y)
     pixels = np.asarray(tile.pixels[rows, :, :acc.shape[0]], dtype=np.float64)
     finite = np.all(np.isfinite(pixels), axis=2)
-    placed = tile_weight(rect, tile.core, reach, image, rows)
+    if adds_up(tile.channels):
+        placed = np.asarray(tile.pixels[rows, :, -1], dtype=np.float64)
+    else:
+        placed = tile_weight(rect, tile.core, reach, image, rows)
     w = placed * finite
     cols = slice(rect.x, rect.x1)
     acc[:, top - y0:bottom - y0, cols] += np.moveaxis(np.where(finite[..., None], pixels, 0.0) * w[..., None], 2, 0)
@@ -252,6 +262,16 @@ def _validate(tile: TileSource, width: int, height: int) -> None:
         raise TileError(f"{where}: rectangle {rect.as_list()} lies outside the {width}x{height} image")
     if core.intersect(rect) != core or core.area == 0:
         raise TileError(f"{where}: core is empty or not inside the rendered rectangle {rect.as_list()}")
+
+
+def adds_up(channels: Sequence[str]) -> bool:
+    """Whether tiles of these channels add up (their last is `WEIGHT`) rather than blend across bands."""
+    return bool(channels) and channels[-1] == WEIGHT
+
+
+def image_channels(channels: Sequence[str]) -> tuple[str, ...]:
+    """A tile's channels that the image has: all but a `WEIGHT` last."""
+    return tuple(channels[:-1] if adds_up(channels) else channels)
 
 
 def _channels(tile: TileLike) -> tuple[str, ...]:

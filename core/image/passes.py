@@ -15,11 +15,11 @@ from typing import Any
 import numpy as np
 
 from core.errors import TileError
+from core.image.compose import WEIGHT
 from core.image.metrics import RELMSE_EPSILON
 from core.image.tiles import Tile
 from core.model.geometry import Rect
 
-WEIGHT = "quekaro.weight"  # a pass tile's last channel: the film's filter weight sum per pixel
 MIN_PASSES = 2  # a variance from fewer passes is unknown
 # A pixel's variance is unknown (0) where one pass holds all but this share of its squared weight: the
 # spread's expanded form is exact to ~1e-16 of sum W^2 L^2, so below it rounding would pass for noise
@@ -33,7 +33,8 @@ def split_weight(tile: Tile) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
         raise TileError(f"unit {tile.meta.get('unit_index', '?')}: a pass tile ends with channel {WEIGHT!r}, "
                         f"this one with {tile.channels[-1]!r}")
     weight = tile.pixels[..., -1].astype(np.float64)
-    if not np.isfinite(weight).all() or (weight < 0).any():
+    # A spill pass's band may weigh less than nothing: the lobes of a filter such as Lanczos reach it alone.
+    if not np.isfinite(weight).all() or ((weight < 0).any() and not tile.meta.get("spill")):
         raise TileError(f"unit {tile.meta.get('unit_index', '?')}: a pass tile's weights are negative or not finite")
     return tile.pixels[..., :-1].astype(np.float64), weight, tile.channels[:-1]
 
@@ -57,6 +58,7 @@ class UnitPasses:
     passes: int = 0
     spp: int = 0
     seconds: float = 0.0
+    spill: bool = False  # its passes drew samples on the core alone (RenderRequest.spill): the tile adds up
 
     @classmethod
     def first(cls, tile: Tile) -> UnitPasses:
@@ -65,18 +67,18 @@ class UnitPasses:
         h, w = weight.shape
         made = cls(tuple(tile.rect.as_list()), tuple(tile.core.as_list()), channels,
                    np.zeros_like(values), np.zeros((h, w)), np.zeros((h, w, 3)), np.zeros((h, w, 3)),
-                   np.zeros((h, w)))
+                   np.zeros((h, w)), spill=bool(tile.meta.get("spill")))
         made.add(tile)
         return made
 
     def add(self, tile: Tile) -> None:
         """Merge one more pass of this unit (same window, same channels)."""
         values, weight, channels = split_weight(tile)
-        shape = (tuple(tile.rect.as_list()), tuple(tile.core.as_list()), channels)
-        if shape != (self.window, self.core, self.channels):
+        shape = (tuple(tile.rect.as_list()), tuple(tile.core.as_list()), channels, bool(tile.meta.get("spill")))
+        if shape != (self.window, self.core, self.channels, self.spill):
             raise TileError(f"unit {tile.meta.get('unit_index', '?')}: a pass of window {tile.rect} and "
-                            f"{len(channels)} channels does not match the unit's others ({self.window}, "
-                            f"{len(self.channels)} channels)")
+                            f"{len(channels)} channels (spill {shape[3]}) does not match the unit's others "
+                            f"({self.window}, {len(self.channels)} channels, spill {self.spill})")
         w = weight[..., None]
         colour = values[..., :3]
         self.sum += w * values
@@ -145,8 +147,14 @@ class UnitPasses:
                 "relative_error_estimate": None if relmse is None else relmse ** 0.5}
 
     def tile(self, meta: dict) -> Tile:
-        """The merged unit as an ordinary tile (the film's channels, no weight)."""
-        return Tile(self.pixels(), Rect(*self.window), Rect(*self.core), meta, self.channels)
+        """The merged unit as a tile: the film's channels; where its passes spill (`spill`), then the weight
+        per sample a pixel (`WEIGHT`: the weight over the unit's spp), by which composition adds the tiles
+        that overlap, so that units of unequal spp weigh each sample by the density it was drawn at."""
+        if not self.spill:
+            return Tile(self.pixels(), Rect(*self.window), Rect(*self.core), meta, self.channels)
+        density = (self.weight / max(self.spp, 1)).astype(np.float32)[..., None]
+        return Tile(np.concatenate([self.pixels(), density], axis=-1), Rect(*self.window), Rect(*self.core),
+                    {**meta, "spill": True}, (*self.channels, WEIGHT))
 
 
 def merge_pass(sums: dict[int, UnitPasses], unit: int, tile: Tile) -> UnitPasses:

@@ -381,6 +381,10 @@ class JobPlan:
     # The channels every tile carries (core.image.film.film_channels: R, G, B, the film's alpha, the AOVs
     # the integrator adds), which a master holds each uploaded tile to; None in plans stored before.
     channels: tuple[str, ...] | None = None
+    # A progressive job at level off whose scene render_counts renders as Mitsuba does: each pass draws its
+    # samples on its unit alone, its band holding their spill, and the units' tiles add up (no sample
+    # drawn twice; core.render.per_pixel.render_core). Otherwise a band is rendered again by each unit.
+    spill: bool = False
 
     @property
     def reach(self) -> int:
@@ -409,7 +413,7 @@ class JobPlan:
                 "bundle_sha256": self.bundle_sha256, "rules_sha256": self.rules_sha256,
                 "filter_radius": self.filter_radius, "first_spp": self.first_spp, "shares": dict(self.shares),
                 "colour": list(self.colour), "image_file": self.image_file.to_dict(),
-                "channels": None if self.channels is None else list(self.channels),
+                "channels": None if self.channels is None else list(self.channels), "spill": self.spill,
                 **({"rfilter": self.spec.rfilter} if self.spec.rfilter else {})}  # the store keeps the path apart
 
     @classmethod
@@ -431,6 +435,7 @@ class JobPlan:
                        None if data.get("first_spp") is None else int(data["first_spp"]),
                        dict(data.get("shares") or {}), tuple(str(c) for c in data.get("colour", RGB)),
                        ImageFile.from_dict(data.get("image_file")),
-                       None if data.get("channels") is None else tuple(str(c) for c in data["channels"]))
+                       None if data.get("channels") is None else tuple(str(c) for c in data["channels"]),
+                       bool(data.get("spill", False)))
         except (KeyError, TypeError, ValueError) as exc:
             raise QuekaroError(f"stored job plan is malformed: {type(exc).__name__}: {exc}") from exc

@@ -34,8 +34,9 @@ from fuzzy.engine import DEFUZZIFIERS
 # awards of one job to one agent in one message (Awards), and no inform from agents (the upload answers);
 # 5: progressive jobs (JobInfo.passes: a unit is a pass, at its spp, its tile carrying the film's weights);
 # 6: a pass of a progressive job at a rule level carries its unit's depth (WorkUnit.depth); 7: a job's
-# threads per agent (JobInfo.threads, `submit -t`) and an agent's host (Register.host)
-PROTOCOL_VERSION = 7
+# threads per agent (JobInfo.threads, `submit -t`) and an agent's host (Register.host); 8: a progressive
+# job's passes that spill (JobInfo.spill)
+PROTOCOL_VERSION = 8
 ONTOLOGY = "quekaro-render"
 PROTOCOL = "fipa-contract-net"
 # Prosody drops a sender whose stanza exceeds 256 KiB (docs/design.md section 4): stay well below it.
@@ -98,6 +99,9 @@ class JobInfo:
     # its own spp, its unit's depth (at a rule level) or the job's, and min_band, its tile carrying the
     # film's weights (core.image.passes). No agent's rules choose: the master's plan did.
     passes: bool = False
+    # A progressive job's passes draw their samples on their unit alone, the band holding the spill
+    # (JobPlan.spill, core.render.per_pixel.render_core); each renders in a call of its own.
+    spill: bool = False
     # Dr.Jit threads each agent renders the job on (`submit -t`), at most its own --threads; None: its own.
     threads: int | None = constrained(lo=1, hi=4096, default=None)
 

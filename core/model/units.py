@@ -17,11 +17,11 @@ SLOTS = 8
 SPP_MAX = 1 << 20  # most samples per pixel a job asks for and a unit renders (the job's and messages' limit)
 
 
-def batched(level: str, first_spp: int | None, passes: bool = False) -> bool:
+def batched(level: str, first_spp: int | None, passes: bool = False, spill: bool = False) -> bool:
     """Whether a job's units render in batches on an agent: at a rule level, not as two-pass (adaptive)
-    units; a progressive job's passes at any level. Level off is otherwise plain Mitsuba's render call, one
-    a unit."""
-    return first_spp is None and (passes or level != "off")
+    units; a progressive job's passes at any level, unless they spill (one film would mix their spills).
+    Level off is otherwise plain Mitsuba's render call, one a unit."""
+    return first_spp is None and not spill and (passes or level != "off")
 
 
 def batch_size(slots: int) -> int:

@@ -3,6 +3,8 @@
 
 Mitsuba's `render` gives every pixel the same spp; `render_counts` draws `counts[p]` samples in pixel p
 and returns the image, statistically Mitsuba's, with each pixel's sample moments (a `WindowRender`).
+`render_core` draws a fixed spp in a unit of the window and none around it, for windows that overlap to
+add up (a progressive job's passes at level off).
 `check_renderable` refuses, with the reason, the scenes it cannot render as Mitsuba does.
 """
 
@@ -20,6 +22,10 @@ from core.image.metrics import RELMSE_EPSILON
 
 # Mitsuba and Dr.Jit are imported where used (core.render.process explains why).
 
+# Filters that never weigh a sample below zero: a spilling window's band (render_core) then holds its
+# samples' sums exactly. With negative lobes (Lanczos, Mitchell, Catmull-Rom) a band pixel can weigh less
+# than zero, where Mitsuba's film develops it to 0 and the sums it held are lost.
+SPILL_FILTERS = ("GaussianFilter", "BoxFilter", "TentFilter")
 SAMPLERS = ("IndependentSampler",)  # samplers whose samples do not depend on a fixed spp per pixel
 # The wavefront is padded with masked lanes (no radiance, zero weight, left out of the moments) to a
 # multiple of this: with Dr.Jit 1.5's LLVM backend the render kernel faulted (SIGSEGV in a worker thread)
@@ -139,6 +145,71 @@ def render_counts(scene: Any, counts: np.ndarray, seed: int, sensor: int = 0, in
     sums = _moments(rgb, pixel, width * height, live) if moments else (None, None)
     film.put_block(block)
     return _result(film, counts, *sums, weights=weights)
+
+
+def render_core(scene: Any, core: tuple[int, int, int, int], spp: int, seed: int, sensor: int = 0,
+                integrator: Any = None) -> tuple[np.ndarray, tuple[str, ...], np.ndarray]:
+    """Render `spp` samples in each pixel of `core` (x, y, w, h within the film's window) and none around
+    it: the window's pixels around the core hold only the spill of the core's samples through the filter.
+    Returns the window's developed pixels (H x W x C), their channel names and the film's raw weight sum
+    per pixel (H x W, float32; one sample at its pixel's centre weighs the filter's peak).
+
+    Every sample is splatted with weight 1, as Mitsuba's render splats it, so the sums of windows that
+    overlap (each pixel's value times its weight, added over the windows, over the weights added) are the
+    image one render of all their cores gives (core.image.compose: a pixel by a core's border draws on the
+    neighbour's samples as in an image rendered whole), with no sample drawn twice."""
+    import drjit as dr
+    import mitsuba as mi
+
+    problem = spill_problem(scene, sensor, integrator)
+    if problem:
+        raise RenderError(problem)
+    cam = scene.sensors()[sensor]
+    film = cam.film()
+    integ = integrator if integrator is not None else scene.integrator()
+    width, height = (int(v) for v in film.crop_size())
+    x, y, w, h = core
+    if spp < 1 or w < 1 or h < 1 or x < 0 or y < 0 or x + w > width or y + h > height:
+        raise RenderError(f"core {list(core)} at {spp} spp does not fit the film window {width}x{height}")
+    total = w * h * spp
+    if padded(total) >= 2**32:
+        raise RenderError(f"{total} samples in one wavefront (at most 2^32 - {LANE_MULTIPLE}, padded)")
+    film.prepare(integ.aov_names())
+    block = film.create_block()
+    lanes = padded(total)
+    sampler = cam.sampler().clone()
+    sampler.set_sample_count(spp)
+    sampler.set_samples_per_wavefront(1)
+    sampler.seed(seed, lanes)
+    lane = dr.arange(mi.UInt32, lanes)
+    live = lane < dr.opaque(mi.UInt32, total)
+    k = dr.minimum(lane // dr.opaque(mi.UInt32, spp), dr.opaque(mi.UInt32, w * h - 1))  # the core's pixel
+    row = k // dr.opaque(mi.UInt32, w)
+    pixel = (row + dr.opaque(mi.UInt32, y)) * dr.opaque(mi.UInt32, width) + k - row * dr.opaque(mi.UInt32, w) \
+        + dr.opaque(mi.UInt32, x)
+    pos, pos_f, ray, ray_weight = _sample_rays(cam, film, sampler, pixel, width)
+    if ray.has_differentials:
+        ray.scale_differential(dr.rsqrt(dr.opaque(mi.Float, spp)))
+    spec, valid, aovs = integ.sample(scene, sampler, ray, cam.get_medium(), live)
+    splat = mi.Vector2f(pos) if film.rfilter().is_box_filter() else pos_f
+    _put(block, film, splat, ray_weight * spec, ray.wavelengths, mi.Float(1.0), dr.select(valid, 1.0, 0.0), aovs,
+         live)
+    film.put_block(block)
+    pixels, names = film_channels(film)
+    return pixels, names, film_weight(film)
+
+
+def spill_problem(scene: Any, sensor: int = 0, integrator: Any = None) -> str | None:
+    """Why `render_core` cannot render the scene so that its windows add up, or None: what
+    `check_renderable` refuses, or a filter with negative lobes (SPILL_FILTERS)."""
+    try:
+        check_renderable(scene, sensor, integrator)
+    except RenderError as exc:
+        return str(exc)
+    kind = scene.sensors()[sensor].film().rfilter().class_name()
+    if kind not in SPILL_FILTERS:
+        return f"filter {kind} weighs some samples below zero: a band pixel's sums would be lost"
+    return None
 
 
 def counts_problem(counts: np.ndarray, width: int, height: int, window: str = "the film window") -> str | None:

@@ -36,6 +36,7 @@ from core.model.geometry import Rect
 from core.model.job import SceneSpec
 from core.render import spawn as child
 from core.render.adaptive import render_adaptive
+from core.render.per_pixel import render_core
 from core.scene import scene
 from core.scene.scene import sensor_of
 
@@ -59,7 +60,8 @@ class RenderRequest:
     jobs) renders the window in two passes, `first` samples per pixel and then the rest of a mean of `spp`
     where the first pass's noise is (core.render.adaptive.render_adaptive, statistically Mitsuba's image).
     `aovs` renders those AOVs alone (Mitsuba's aov integrator, no colour): a denoised job's pass for its
-    denoiser (core.image.denoise.AOVS).
+    denoiser (core.image.denoise.AOVS). `spill` (a pass only) draws the samples on the unit alone, its band
+    holding their filter's spill (core.render.per_pixel.render_core): overlapping tiles then add up.
     """
 
     scene: SceneSpec
@@ -80,6 +82,7 @@ class RenderRequest:
     first: int | None = None
     aovs: str | None = None
     pass_index: int | None = None
+    spill: bool = False
 
     def __post_init__(self) -> None:
         _check_job(self)
@@ -96,7 +99,7 @@ class RenderRequest:
             "height": self.height, "unit": self.unit.as_list(), "band": self.band,
             "threads": self.threads, "job_id": self.job_id, "unit_index": self.unit_index,
             "extra": dict(self.extra), "sensor": self.sensor, "first": self.first, "aovs": self.aovs,
-            "pass_index": self.pass_index,
+            "pass_index": self.pass_index, "spill": self.spill,
         }
 
     @classmethod
@@ -111,7 +114,7 @@ class RenderRequest:
                 job_id=str(data.get("job_id", "")), unit_index=int(data.get("unit_index", -1)),
                 extra=dict(data.get("extra") or {}), sensor=int(data.get("sensor", 0)),
                 first=_opt_int(data.get("first")), aovs=data.get("aovs"),
-                pass_index=_opt_int(data.get("pass_index")),
+                pass_index=_opt_int(data.get("pass_index")), spill=bool(data.get("spill", False)),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise RenderError(f"malformed unit job ({type(exc).__name__}: {exc})") from exc
@@ -129,6 +132,8 @@ def _check_job(job: RenderRequest) -> None:
         problems.append(f"first={job.first} (the first pass's spp: must be in 1..spp={job.spp})")
     if job.pass_index is not None and (job.pass_index < 0 or job.first is not None or job.aovs is not None):
         problems.append(f"pass_index={job.pass_index} (a pass is >= 0, and neither two-pass nor an AOV pass)")
+    if job.spill and job.pass_index is None:
+        problems.append("spill without pass_index (only a pass's tile is merged by its weights)")
     if job.max_depth is not None and job.max_depth < -1:
         problems.append(f"max_depth={job.max_depth} (must be >= -1)")
     if job.sensor < 0:
@@ -333,7 +338,7 @@ def unit_meta(job: RenderRequest, sensor: Any, seconds: float, load_s: float, no
         "nonfinite": nonfinite, "spp": spp, "depth": job.max_depth, "integrator": job.integrator,
         "variant": mi.variant(), "seed": job.seed, "band": job.band, "window_method": method,
         "pid": os.getpid(), "sensor": job.sensor, "filter_radius": float(sensor.film().rfilter().radius()),
-        **({} if job.pass_index is None else {"pass": job.pass_index}),
+        **({} if job.pass_index is None else {"pass": job.pass_index}), **({"spill": True} if job.spill else {}),
     }
 
 
@@ -365,6 +370,11 @@ def _render_window(scene: Any, film: Any, job: RenderRequest,
     two-pass adaptive render (its pixels come sanitised: their non-finite count is in the dict)."""
     import mitsuba as mi
 
+    if job.spill:
+        window = job.window
+        core = (job.unit.x - window.x, job.unit.y - window.y, job.unit.w, job.unit.h)
+        pixels, channels, _ = render_core(scene, core, job.spp, job.seed, job.sensor, integrator)
+        return pixels, channels, {}
     if job.first is None:
         mi.render(scene, sensor=job.sensor, integrator=integrator, spp=job.spp, seed=job.seed)
         return (*film_channels(film), {})

@@ -937,7 +937,7 @@ class Auction:
     def _batch(job: Job, slots: int) -> int:
         """Units of `job` an agent with `slots` renders in one call and wins in one round: `batch_size`, or
         one where its units render one a call (level off, two-pass units)."""
-        return batch_size(slots) if batched(job.info.level, job.info.first_spp, job.info.passes) else 1
+        return batch_size(slots) if batched(job.info.level, job.info.first_spp, job.info.passes, job.info.spill) else 1
 
     def _queueing(self, job: Job, open_units: int) -> bool:
         """Whether units of `job` may be queued behind others: only while the farm's `open_units` are at
@@ -1166,6 +1166,8 @@ class Auction:
         self._set_unit(job, unit, UnitStatus.AWARDED)
         unit.agent, unit.token, unit.conversation = agent, f"{self.rng.getrandbits(128):032x}", self._new_id()
         unit.attempts += 1
+        if job.passes is not None and job.passes.started is None:
+            job.passes.started = now  # its time goal's clock starts
         start = self._available(self._agents[agent], now)  # after the units it holds already
         unit.awarded_at, unit.estimate = now, estimate
         job.set_deadline(unit, start + estimate * self.config.render_factor + self.config.render_slack_s)
@@ -1196,7 +1198,7 @@ class Auction:
             job.passes = PassBook.open(goal, resumed.templates, self._now - resumed.elapsed, self.config.pass_samples)
             return self._follow(job, job.passes.machine.resume(list(resumed.so_far), resumed.elapsed), "a round")
         job.clear()
-        job.passes = PassBook.open(goal, units, self._now, self.config.pass_samples)
+        job.passes = PassBook.open(goal, units, None, self.config.pass_samples)
         return self._follow(job, job.passes.machine.start(), "a round")
 
     def _on_pass_merged(self, merged: PassMerged, now: float) -> list[Instruction]:
@@ -1206,7 +1208,8 @@ class Auction:
             return [_ignored(None, "no running progressive job of that id", merged.job_id, merged.index)]
         book = job.passes
         unit, pass_index = book.origin(merged.index)
-        done = PassDone(unit, pass_index, merged.spp, merged.seconds, merged.relmse, now - book.started,
+        elapsed = 0.0 if book.started is None else now - book.started
+        done = PassDone(unit, pass_index, merged.spp, merged.seconds, merged.relmse, elapsed,
                         max(1, self.live_agents()))
         return self._follow(job, book.machine.handle(done), "a round")
 

@@ -3,7 +3,7 @@
 Pass `k` of unit `u` (of a job of `n` units) is the work unit of index k n + u: the unit's rectangle and
 features at the pass's spp, seeded by that index, so that the contract net, the store and the agents
 handle a pass as any unit. `PassBook` is what the auction keeps of the job: the decisions
-(planning.progressive.Progressive), the units the passes copy, and when the first pass was ordered.
+(planning.progressive.Progressive), the units the passes copy, and when its first pass was awarded.
 """
 
 from __future__ import annotations
@@ -29,17 +29,22 @@ class ResumedPasses:
 class PassBook:
     machine: Progressive
     units: tuple[WorkUnit, ...]
-    started: float
+    # When its first pass was awarded (None: not yet): a time goal's seconds count from there, not from the
+    # submission, so that a job queued behind others (a sequence's later frames) gets its time.
+    started: float | None
 
     @classmethod
-    def open(cls, goal: Goal, units: tuple[WorkUnit, ...], now: float, pass_samples: int = 1) -> PassBook:
-        """The job's book; a budget job's passes hold at least `pass_samples` samples each where their unit
-        has them (planning.progressive.budget_passes)."""
+    def open(cls, goal: Goal, units: tuple[WorkUnit, ...], started: float | None,
+             pass_samples: int = 1) -> PassBook:
+        """The job's book (`started`: None for a new job, when a resumed one's passes began); a budget job's
+        passes hold at least `pass_samples` samples each where their unit has them
+        (planning.progressive.budget_passes)."""
         if [u.index for u in units] != list(range(len(units))):
             raise ValueError("a progressive job's units are indexed 0 .. n - 1")
         # A budget job's units render their own samples where the plan's rules pinned them (a rule level).
         budgets = [u.spp for u in units] if goal.kind == BUDGET and None not in {u.spp for u in units} else None
-        return cls(Progressive(goal, [u.rect.area for u in units], budgets, pass_samples=pass_samples), units, now)
+        return cls(Progressive(goal, [u.rect.area for u in units], budgets, pass_samples=pass_samples), units,
+                   started)
 
     def pass_unit(self, order: PassOrder) -> WorkUnit:
         """The work unit that renders `order`: its unit's, at the pass's spp (and the unit's pinned depth)."""
