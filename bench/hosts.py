@@ -319,18 +319,20 @@ class StoreView:
     finished: float
     attempts: list[dict[str, Any]]
     results: list[dict[str, Any]]
+    spill: bool = False  # its passes drew samples on their units alone (JobPlan.spill)
 
     @classmethod
     def read(cls, home: Path, job_id: str) -> StoreView:
         with sqlite3.connect(f"file:{home / 'jobs.sqlite'}?mode=ro", uri=True) as db:
             db.row_factory = sqlite3.Row
-            job = db.execute("SELECT created, finished FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            job = db.execute("SELECT created, finished, plan FROM jobs WHERE id = ?", (job_id,)).fetchone()
             attempts = db.execute("SELECT agent, idx, started, finished, outcome, seconds FROM attempts "
                                   "WHERE job_id = ? ORDER BY started", (job_id,)).fetchall()
             results = db.execute("SELECT r.idx, r.tile_path, r.params, r.recorded, u.x, u.y, u.w, u.h FROM "
                                  "results r JOIN units u ON u.job_id = r.job_id AND u.idx = r.idx "
                                  "WHERE r.job_id = ? ORDER BY r.idx", (job_id,)).fetchall()
-        return cls(job["created"], job["finished"], [dict(a) for a in attempts], [dict(r) for r in results])
+        return cls(job["created"], job["finished"], [dict(a) for a in attempts], [dict(r) for r in results],
+                   bool(json.loads(job["plan"]).get("spill")))
 
     @property
     def first_award(self) -> float:
@@ -345,8 +347,11 @@ class StoreView:
             seen.setdefault(rect, rect.window(int(json.loads(r["params"])["band"]), width, height))
         return list(seen.values())
 
-    def cores(self) -> list[Rect]:
-        """Each unit's own rectangle, without its band (a progressive job's units once)."""
+    def sampled(self, width: int, height: int) -> list[Rect]:
+        """Where each unit draws its samples: its own rectangle where the job's passes spill, else its
+        window (a progressive job's units once)."""
+        if not self.spill:
+            return self.windows(width, height)
         return list(dict.fromkeys(Rect(r["x"], r["y"], r["w"], r["h"]) for r in self.results))
 
 
@@ -407,7 +412,7 @@ def run_count(n: int, job: BenchJob, costs: CostMap, costs_path: Path, root: Pat
         workdirs = [farm.workdir(i) for i in range(n)]
         store = StoreView.read(farm.home, measured["job_id"])
         row = _row(n, speeds, job, store, measured, stanzas(workdirs, measured["submitted"], store.finished))
-        row.update(up_s=up_s, settle_s=settle_s, busy_at_submit=busy,
+        row.update(up_s=up_s, settle_s=settle_s, busy_at_submit=busy, spill=store.spill,
                    latency_s=award_latency(workdirs, farm.jids, store.attempts), delivery_s=delivery(store.results))
     row.update(predict(costs, job, store, speeds, row["latency_s"], row["delivery_s"]))
     row["sim_error"] = row["sim_makespan_s"] / row["makespan_s"] - 1
@@ -439,22 +444,23 @@ def _row(n: int, speeds: list[float], job: BenchJob, store: StoreView, measured:
          counted: dict[str, Any]) -> dict[str, Any]:
     """One agent count's figures: the makespan from the first award to the job's end as the store records
     them (submit to end beside it), efficiency T1 / (capacity x makespan), the master's CPU (/proc: user +
-    system) and memory, and the XMPP stanzas per unit counted by every agent (both directions, with and
-    without heartbeats)."""
+    system) and memory, and the XMPP stanzas per tile (a unit, or a pass of one) counted by every agent (both
+    directions, with and without heartbeats)."""
     makespan = store.finished - store.first_award
-    units = len(store.results)
+    tiles = len(store.results)
     total = sum(counted["counts"].values())
     beats = sum(v for k, v in counted["counts"].items() if k.endswith("heartbeat"))
     capacity = sum(speeds)
     return {
-        "agents": n, "capacity": capacity, "units": units, "attempts": len(store.attempts),
+        "agents": n, "capacity": capacity, "units": len(store.sampled(job.width, job.height)), "tiles": tiles,
+        "attempts": len(store.attempts),
         "requeued": sum(a["outcome"] != "done" for a in store.attempts),
         "makespan_s": makespan, "submit_to_done_s": store.finished - measured["submitted"],
         "efficiency": job.t1 / (capacity * makespan),
         "master_cpu_s": measured["master_cpu_s"], "master_cores": measured["master_cpu_s"] / makespan,
         "master_peak_mib": measured["master_peak_mib"], "agent_rss_mib": measured["agent_rss_mib"],
         "agents_rss_total_mib": measured["agents_rss_total_mib"],
-        "stanzas": total, "stanzas_per_unit": total / units, "stanzas_per_unit_no_heartbeat": (total - beats) / units,
+        "stanzas": total, "stanzas_per_tile": total / tiles, "stanzas_per_tile_no_heartbeat": (total - beats) / tiles,
         "stanza_counts": counted["counts"], "heavy_modules": counted["heavy_modules"],
         "summaries_missing": counted["summaries_missing"],
         "report_units": measured["report_units"], "report_emulated_units": measured["report_emulated_units"],
@@ -468,21 +474,18 @@ def predict(costs: CostMap, job: BenchJob, store: StoreView, speeds: list[float]
     delivery, the mean over SIM_SEEDS seeds of the auction's random tie-breaks. The agents bid as real ones
     do at level off: the unit's pixel count times a per-job rate (`bids`); `sim_exact_*` is the simulator
     with exact bids, as `bench scaling` runs it."""
-    unit_s = [costs.seconds(w, job.spp, job.width, job.height) for w in store.windows(job.width, job.height)]
-    core_s = [costs.seconds(c, job.spp, job.width, job.height) for c in store.cores()]
+    unit_s = [costs.seconds(w, job.spp, job.width, job.height) for w in store.sampled(job.width, job.height)]
     passes = bool(job.options.get("progressive"))
 
-    def makespan(seconds: list[float], estimates: list[float] | None) -> float:
+    def makespan(estimates: list[float] | None) -> float:
         return statistics.mean(
-            simulate(seconds, speeds, latency=latency, config=UNBATCHED_AUCTION, seed=s, heartbeat_s=HEARTBEAT_S,
+            simulate(unit_s, speeds, latency=latency, config=UNBATCHED_AUCTION, seed=s, heartbeat_s=HEARTBEAT_S,
                      delivery=delivery_s, estimates=estimates, passes=passes).makespan for s in range(SIM_SEEDS))
 
-    sim, exact = makespan(unit_s, bids(store.windows(1 << 16, 1 << 16), unit_s)), makespan(unit_s, None)
-    cores = makespan(core_s, bids(store.cores(), core_s))
+    sim, exact = makespan(bids(store.sampled(1 << 16, 1 << 16), unit_s)), makespan(None)
     capacity = sum(speeds)
     return {"sim_makespan_s": sim, "sim_efficiency": job.t1 / (capacity * sim), "sim_exact_makespan_s": exact,
-            "sim_exact_efficiency": job.t1 / (capacity * exact), "units_seconds": sum(unit_s),
-            "sim_cores_efficiency": job.t1 / (capacity * cores)}
+            "sim_exact_efficiency": job.t1 / (capacity * exact), "units_seconds": sum(unit_s)}
 
 
 def bids(rects: list[Rect], unit_s: list[float]) -> list[float]:
@@ -552,15 +555,16 @@ def progress(text: str) -> None:
 
 
 def row_line(r: dict[str, Any]) -> str:
-    return (f"| {r['agents']} | {r['units']} | {r['makespan_s']:.1f} | {r['efficiency']:.3f} | "
+    return (f"| {r['agents']} | {r['units']} ({r['tiles']}) | {r['makespan_s']:.1f} | {r['efficiency']:.3f} | "
             f"{r['sim_makespan_s']:.1f} | {r['sim_efficiency']:.3f} | {100 * r['sim_error']:+.1f} % | "
             f"{r['master_cpu_s']:.1f} s ({r['master_cores']:.2f}) | {r['master_peak_mib']:.0f} | "
-            f"{r['stanzas_per_unit']:.1f} ({r['stanzas_per_unit_no_heartbeat']:.1f}) | "
+            f"{r['stanzas_per_tile']:.1f} ({r['stanzas_per_tile_no_heartbeat']:.1f}) | "
             f"{1000 * r['latency_s']:.1f} / {1000 * r['delivery_s']:.0f} | {r['agent_rss_mib']:.0f} |")
 
 
-HEAD = ("| agents | units | makespan s | efficiency | simulated s | sim. eff. | sim. vs emul. | master CPU (cores) "
-        "| master peak MiB | stanzas/unit (no heartbeats) | award latency ms / delivery ms | agent RSS MiB |")
+HEAD = ("| agents | units (tiles) | makespan s | efficiency | simulated s | sim. eff. | sim. vs emul. "
+        "| master CPU (cores) | master peak MiB | stanzas/tile (no heartbeats) | award latency ms / delivery ms "
+        "| agent RSS MiB |")
 
 
 def format_report(result: dict[str, Any]) -> str:
@@ -578,10 +582,9 @@ def format_report(result: dict[str, Any]) -> str:
         f"machine: {result['cpus']} CPUs (shared), load average {result['load'][0]:.2f} at the end",
         "", HEAD, "|" + "---|" * 12, *(row_line(r) for r in rows), "",
     ]
-    lines += [f"N={r['agents']}: efficiency's bound from the units' bands (T1 over their windows' seconds) "
-              f"{result['t1_s'] / r['units_seconds']:.3f}, simulated with no band samples (each unit sampled on its "
-              f"core, its filter's spill added on the master; not built) {r['sim_cores_efficiency']:.3f}; "
-              f"load average {r['load_before']:.2f} at submit (CPUs "
+    lines += [f"N={r['agents']}: efficiency's bound from the samples the units draw (T1 over their seconds; "
+              f"{'bands spill, not sampled' if r.get('spill') else 'bands sampled'}) "
+              f"{result['t1_s'] / r['units_seconds']:.3f}; load average {r['load_before']:.2f} at submit (CPUs "
               f"{100 * r.get('busy_at_submit', float('nan')):.0f} % busy after {r.get('settle_s', 0):.0f} s of "
               f"settling), submit to done "
               f"{r['submit_to_done_s']:.1f} s, simulated with exact bids {r['sim_exact_makespan_s']:.1f} s, "
