@@ -37,6 +37,7 @@ from core.model.job import RAW_SUFFIX, JobSpec
 from master import sessions
 from master.auction import Auction
 from master.http_guard import Refusal, bearer_token, disk_full, json_error, read_body_chunks
+from master.pass_merge import read_verdicts
 from master.store import JobRecord, JobStore, StoreError
 from planning import budgets
 
@@ -57,6 +58,7 @@ class JobService(Protocol):
     async def cancel(self, job_id: str) -> bool: ...
     async def requeue(self, job_id: str) -> str | None: ...
     async def ensure_assembled(self, job_id: str) -> Path: ...
+    def job_dir(self, job_id: str) -> Path: ...
     def result_path(self, job_id: str) -> Path: ...
     def result_image(self, job_id: str) -> Path: ...
 
@@ -176,7 +178,8 @@ def attachment(record: JobRecord, suffix: str) -> dict[str, str]:
 def job_summary(service: JobService, job_id: str) -> dict[str, Any]:
     """Status and progress of one job, as the CLI shows it. A progressive job's units are its image's (done:
     their goal met), its passes apart (`passes`: done, ordered, mean spp so far, goal; None for a job not
-    in passes); `eta_at_least`: the ETA counts only the passes ordered so far."""
+    in passes; `stopped`: why its passes ended, once they have); `eta_at_least`: the ETA counts only the
+    passes ordered so far."""
     record = service.store.job(job_id)
     shares = record.plan.get("shares") or None
     progress = service.store.progress(job_id, time.time())  # the store's times are wall-clock
@@ -189,7 +192,8 @@ def job_summary(service: JobService, job_id: str) -> dict[str, Any]:
         "created": record.created, "finished": record.finished, "level": record.plan["options"]["level"],
         "units_done": progress.done, "units_total": progress.total, "units_failed": progress.failed,
         "agents_busy": progress.agents_busy, "eta_s": progress.eta_s, "eta_at_least": progress.eta_at_least,
-        "passes": None if passes is None else dataclasses.asdict(passes),
+        "passes": None if passes is None else {**dataclasses.asdict(passes),
+                                               "stopped": read_verdicts(service.job_dir(job_id))[0]},
         "attempts_retried": progress.retried, "last_retry": progress.last_retry,
         "result_ready": service.result_path(job_id).with_suffix(".json").exists(),
         "effects": record.plan.get("effects", {}), "adaptive": shares,

@@ -219,7 +219,7 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     if options.level == "off":
         # The rules need no features at level off, so the pre-pass would be pure overhead.
         units = _plain_units(width, height, target)
-        return dataclasses.replace(plan, units=units, spill=_spills(options, effects, loaded, len(units)))
+        return dataclasses.replace(plan, units=units, spill=_spills(options, effects, loaded, len(units), farm))
     if options.adaptive:
         _check_adaptive(spec, loaded, options.sensor)
     radiance = _radiance_at(plan)
@@ -229,11 +229,13 @@ def _plan(spec: SceneSpec, options: RenderOptions, seed: int, min_units: int, ef
     return _with_depth_floors(plan, cmap, seed, loaded, radiance, floors)
 
 
-def _spills(options: RenderOptions, effects: Effects, loaded: Any, units: int) -> bool:
-    """Whether a level-off job's passes draw their samples on their units alone (JobPlan.spill): in passes,
-    over several units, with the scene's own integrator, not denoised (its AOV pass blends), where
-    render_core renders the scene so (core.render.per_pixel.spill_problem); the reason goes in the effects."""
-    if not options.in_passes or units < 2 or options.integrator or options.denoise \
+def _spills(options: RenderOptions, effects: Effects, loaded: Any, units: int, farm: bool) -> bool:
+    """Whether a level-off job's passes draw their samples on their units alone (JobPlan.spill): a farm's
+    job in passes, over several units, with the scene's own integrator, not denoised (its AOV pass blends),
+    where render_core renders the scene so (core.render.per_pixel.spill_problem); the reason goes in the
+    effects. In one process a round's passes render in one call that samples each pixel once already
+    (core.render.batch), and one call a pass measured slower there."""
+    if not farm or not options.in_passes or units < 2 or options.integrator or options.denoise \
             or spill_problem(loaded, options.sensor):
         return False
     effects.reasons.append("bands: each unit's samples are drawn on its own pixels and its band takes their "

@@ -395,6 +395,8 @@ def _print_job(job: dict, lead: str = "") -> None:
           f"{_passes_text(job)}  agents busy {job['agents_busy']}  ETA {eta}  {job['scene']}{_name_text(job)}"
           + (f"  error: {without_locations(job['error'])}" if job.get("error") else "")
           + (f"  PAUSED: {job['paused']}" if job.get("paused") else ""))
+    if (job.get("passes") or {}).get("stopped"):
+        print(f"  stopped: {job['passes']['stopped']}")
     if job.get("attempts_retried"):
         print(f"  {job['attempts_retried']} attempt(s) ended without a tile, their units auctioned again; "
               f"latest: {job['last_retry']}")
@@ -455,8 +457,11 @@ def _passes_text(job: dict) -> str:
 
 
 def _eta_text(job: dict, unit: str) -> str:
-    """The ETA in whole seconds; "at least" where it counts only the passes ordered so far (a noise goal)."""
-    return ("at least " if job.get("eta_at_least") else "") + f"{job['eta_s']:.0f}{unit}"
+    """The ETA in whole seconds; "at least" where it counts only the passes ordered so far (a noise goal),
+    and "unknown" once those are rendered: the noise decides what comes next."""
+    if job.get("eta_at_least"):
+        return f"at least {job['eta_s']:.0f}{unit}" if job["eta_s"] >= 0.5 else "unknown"
+    return f"{job['eta_s']:.0f}{unit}"
 
 
 def _print_unit(client, args: argparse.Namespace) -> int:

@@ -14,10 +14,11 @@ from core.image.compose import compose, image_channels
 from core.image.metrics import RELMSE_EPSILON
 from core.image.passes import WEIGHT, UnitPasses, merge_pass
 from core.model.geometry import Rect, filter_reach
-from core.model.job import SceneSpec
+from core.model.job import RenderOptions, SceneSpec
 from core.model.seeds import unit_seed
 from core.render.batch import render_batch_here
 from core.render.process import RenderProcess, RenderRequest
+from planning.jobplan import plan_job
 
 SCENES = Path(__file__).resolve().parent / "compat" / "scenes"
 W, H = 48, 40
@@ -108,3 +109,26 @@ def test_units_whose_passes_spill_add_up_to_one_render(tmp_path, rfilter):
     verdict = compare(by_name(image, image_channels(tiles[0].channels), names), ref)
     assert verdict.passed, f"{rfilter}: {verdict}"
     assert report.filled == 0 and report.uncovered == 0
+
+
+def test_a_farms_level_off_job_in_passes_spills_where_the_film_adds_up(tmp_path):
+    """JobPlan.spill: a farm's level-off job in passes over several units; not in one process (a round
+    renders in one call there), not at a rule level, and not where the tiles could not add up: a filter
+    with negative lobes, a stratified sampler, a user's integrator. The plan says why it spills."""
+    cbox = Path(__file__).resolve().parent.parent / "scenes" / "cbox.xml"
+    stratified = tmp_path / "stratified.xml"
+    stratified.write_text(cbox.read_text().replace('<sampler type="independent">', '<sampler type="stratified">'))
+
+    def spills(scene: Path, farm: bool = True, **options) -> bool:
+        opts = RenderOptions(**{"level": "off", "spp": 16, "progressive": True, "threads": 1, "units": 4, **options})
+        plan = plan_job(SceneSpec(scene, {"res": "64"} if "rgba" not in scene.name else {}), opts, farm=farm)
+        said = any(r.startswith("bands: each unit's samples are drawn on its own pixels") for r in plan.effects.reasons)
+        assert said == plan.spill
+        return plan.spill
+
+    assert spills(cbox)
+    assert not spills(cbox, farm=False)
+    assert not spills(cbox, level="S")
+    assert not spills(cbox, integrator="path")
+    assert not spills(stratified)
+    assert spills(_scene(tmp_path, "gaussian")) and not spills(_scene(tmp_path, "lanczos"))

@@ -16,6 +16,7 @@ from core.model.job import Effects, JobPlan, JobSpec, RenderOptions, SceneSpec
 from core.model.units import WorkUnit
 from master import auction as au
 from master.job_api import job_summary
+from master.pass_merge import write_verdicts
 from master.store import JobStore
 from planning.progressive import budget_passes
 from quekaro import cmd_farm
@@ -175,13 +176,14 @@ def test_a_time_jobs_eta_is_its_time_left_from_the_first_award(tmp_path: Path) -
 def test_the_job_api_status_and_watch_show_units_and_passes_apart(tmp_path: Path, capsys) -> None:
     store = budget_job(tmp_path / "jobs.sqlite")
     render(store, 0, 101.0, 8.0)
-    service = SimpleNamespace(store=store, paused=None,
+    service = SimpleNamespace(store=store, paused=None, job_dir=lambda job_id: tmp_path / job_id,
                               result_path=lambda job_id: tmp_path / job_id / "result.exr")
     job = job_summary(service, JOB)
     assert (job["units_done"], job["units_total"], job["eta_at_least"]) == (0, N, False)
-    assert job["passes"] == {"done": 1, "ordered": 5 * N, "spp_mean": 2.0, "goal": "budget"}
+    assert job["passes"] == {"done": 1, "ordered": 5 * N, "spp_mean": 2.0, "goal": "budget", "stopped": None}
     assert cmd_farm._passes_text(job) == f", 1/{5 * N} passes, 2 spp"
     assert cmd_farm._eta_text({**job, "eta_s": 12.4, "eta_at_least": True}, " s") == "at least 12 s"
+    assert cmd_farm._eta_text({**job, "eta_s": 0.0, "eta_at_least": True}, " s") == "unknown"  # not "at least 0 s"
     plain = {**job, "passes": None, "eta_s": 12.4, "eta_at_least": False}
     assert cmd_farm._passes_text(plain) == "" and cmd_farm._eta_text(plain, " s") == "12 s"
 
@@ -204,3 +206,15 @@ def test_a_requeued_pass_is_named_by_its_unit_and_pass_not_its_row(tmp_path: Pat
     store.apply([au.UnitRequeued(JOB, 6, AGENT, token, f"agent {AGENT} lost")], 102.0)
     progress = store.progress(JOB, 102.0)
     assert progress.retried == 1 and progress.last_retry == f"unit 2, pass 1 requeued: agent {AGENT} lost"
+
+
+def test_status_says_why_a_job_in_passes_stopped(tmp_path: Path, capsys) -> None:
+    store = budget_job(tmp_path / "jobs.sqlite")
+    (tmp_path / JOB).mkdir()
+    write_verdicts(tmp_path / JOB, au.PassesSettled(JOB, "every unit has its samples (3.0 s)", {0: "budget"}))
+    service = SimpleNamespace(store=store, paused=None, job_dir=lambda job_id: tmp_path / job_id,
+                              result_path=lambda job_id: tmp_path / job_id / "result.exr")
+    job = job_summary(service, JOB)
+    assert job["passes"]["stopped"] == "every unit has its samples (3.0 s)"
+    cmd_farm._print_job(job)
+    assert "  stopped: every unit has its samples (3.0 s)" in capsys.readouterr().out.splitlines()
