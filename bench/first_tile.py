@@ -2,7 +2,7 @@
 award (issue 61's target: within TARGET_S).
 
 A local farm of `--agents` agents renders, in each of `--rounds` rounds, a whole-unit job and a progressive
-(`--progressive`: the units' own samples in halving passes) job of one scene, one job at a time, each twice:
+(`--progressive`: the units' own samples in passes, a small first one) job of one scene, one job at a time, each twice:
 once with its preview (GET /ui/api/jobs/JOB/preview.png, the page's live image) polled every `--poll` s,
 once with the preview fetched as the page's script fetches it, on each event of its stream
 (/ui/events?job=JOB) with a new tile count. One job is watched one way only: the master composes a job's
@@ -378,5 +378,5 @@ def _call_spp(args: argparse.Namespace, mode: str) -> str:
     if args.level != "off":
         return ""
     if mode == "passes":
-        return f" of {budget_passes(args.spp)[0]} spp (a budget's first pass, the largest, alone in its call)"
+        return f" of {budget_passes(args.spp)[0]} spp (a budget's first pass, its smallest, alone in its call)"
     return f" of {args.spp} spp"

@@ -48,7 +48,7 @@ class SimResult:
 # The simulated agents render a unit a call, as the farm's did before its agents rendered units in batches:
 # 2 slots (one unit a round and a call), the setting the scaling and hosts figures were measured with.
 UNBATCHED_AUCTION = Config(slots=2)
-PASS_SPP = 16  # a progressive job's samples per unit: its budget, in planning.progressive's halving passes
+PASS_SPP = 16  # a progressive job's samples per unit: its budget, in planning.progressive's budget passes
 PASS_CHANNELS = ("R", "G", "B", WEIGHT)
 
 

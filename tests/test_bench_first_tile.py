@@ -39,7 +39,7 @@ def test_the_summary_takes_the_steady_rounds_and_judges_the_pages_figure():
     assert result["meets_target"] == {"whole": True, "passes": False}
     text = format_report(args_of(), result)
     assert "whole  page 1.60 s (met)" in text and "passes page 2.60 s (missed)" in text, text
-    assert ("4 unit(s) of 8 spp (a budget's first pass, the largest, alone in its call), rendered 0.40 s "
+    assert ("4 unit(s) of 1 spp (a budget's first pass, its smallest, alone in its call), rendered 0.40 s "
             "(predicted 0.20 s") in text
     assert "1 unit(s) of 16 spp, rendered 0.40 s" in text and "page shows it 1.10 s later" in text, text
     assert len(text.splitlines()) == 2 + 2 + len(runs) + 2 + 2 * 2

@@ -76,10 +76,10 @@ def test_equal_weights_give_the_sample_variance_over_k() -> None:
     np.testing.assert_allclose(merged.variance(), np.var(values, ddof=1) / 3, rtol=1e-12)
 
 
-# Pass sizes as the jobs order them: equal, a budget's halving passes (budget_passes(16)), a noise goal's
-# first passes then doubling ones (planning.progressive), and a mixed one.
-PASS_SIZES = {"equal": [4] * 6, "halving": [8, 4, 2, 1, 1], "doubling": [8, 8, 8, 8, 32, 64],
-              "mixed": [1, 2, 3, 1, 2, 3, 1, 2]}
+# Pass sizes as the jobs order them: equal, a budget's (budget_passes(16): a small first pass, then halving
+# ones), halving alone, a noise goal's first passes then doubling ones (planning.progressive), and a mixed one.
+PASS_SIZES = {"equal": [4] * 6, "budget": [1, 7, 4, 2, 2], "halving": [8, 4, 2, 1, 1],
+              "doubling": [8, 8, 8, 8, 32, 64], "mixed": [1, 2, 3, 1, 2, 3, 1, 2]}
 
 
 @pytest.mark.parametrize("sizes", PASS_SIZES.values(), ids=PASS_SIZES.keys())

@@ -61,7 +61,7 @@ def land(store: JobStore, index: int, token: str, seconds: float, now: float) ->
 
 
 def budget_job(path: Path) -> JobStore:
-    """16 spp a unit in passes of 8, 4, 2, 1, 1, all ordered at once (planning.progressive)."""
+    """16 spp a unit in passes of 1, 7, 4, 2, 2, all ordered at once (planning.progressive)."""
     store = new_job(path, progressive=True)
     sizes = budget_passes(SPP)
     order(store, [(u, k, s) for k, s in enumerate(sizes) for u in range(N)])
@@ -94,7 +94,8 @@ def test_a_withdrawn_pass_leaves_the_store_and_its_unit_done_by_the_pass_that_st
     store.apply([au.PassesWithdrawn(JOB, (1,), 1, "its unit has the samples its round asks from another pass")],
                 122.5)
     p = store.progress(JOB, 123.0)
-    assert p.passes.spp_mean == (SPP + sizes[0]) / N  # unit 0's 16 and unit 1's 8 spp over 4 equal units
+    # unit 0's 16 spp and unit 1's first pass over 4 equal units, to a tenth as the page writes it
+    assert p.passes.spp_mean == round((SPP + sizes[0]) / N, 1)
     plan = store.plan(JOB, Path("scene.xml"))  # as a restarted master and the assembly read it: every unit
     assert [(u.index, u.rect) for u in plan.units] == [(u.index, u.rect) for u in units()]
 
@@ -110,7 +111,7 @@ def test_a_budget_jobs_unit_is_done_once_every_pass_of_it_is_done(tmp_path: Path
     p = store.progress(JOB, 120.0)
     assert (p.done, p.total, p.failed) == (1, N, 0)
     assert (p.passes.done, p.passes.ordered, p.passes.goal) == (len(sizes) + 3, N * len(sizes), "budget")
-    assert p.passes.spp_mean == pytest.approx((SPP + 3 * sizes[0]) / N)
+    assert p.passes.spp_mean == round((SPP + 3 * sizes[0]) / N, 1)
     left = 3 * (SPP - sizes[0])  # seconds of the passes not rendered, at one second per spp
     assert p.eta_s == pytest.approx(left) and not p.eta_at_least
     # unit 1's passes done while an idle agent's extra pass of it is out: done once that one lands too
@@ -180,8 +181,10 @@ def test_the_job_api_status_and_watch_show_units_and_passes_apart(tmp_path: Path
                               result_path=lambda job_id: tmp_path / job_id / "result.exr")
     job = job_summary(service, JOB)
     assert (job["units_done"], job["units_total"], job["eta_at_least"]) == (0, N, False)
-    assert job["passes"] == {"done": 1, "ordered": 5 * N, "spp_mean": 2.0, "goal": "budget", "stopped": None}
-    assert cmd_farm._passes_text(job) == f", 1/{5 * N} passes, 2 spp"
+    first = budget_passes(SPP)[0] / N  # pass 0 of unit 0 done, over the 4 units
+    assert job["passes"] == {"done": 1, "ordered": 5 * N, "spp_mean": round(first, 1), "goal": "budget",
+                             "stopped": None}
+    assert cmd_farm._passes_text(job) == f", 1/{5 * N} passes, {round(first, 1)} spp"
     assert cmd_farm._eta_text({**job, "eta_s": 12.4, "eta_at_least": True}, " s") == "at least 12 s"
     assert cmd_farm._eta_text({**job, "eta_s": 0.0, "eta_at_least": True}, " s") == "unknown"  # not "at least 0 s"
     plain = {**job, "passes": None, "eta_s": 12.4, "eta_at_least": False}
@@ -196,7 +199,7 @@ def test_the_job_api_status_and_watch_show_units_and_passes_apart(tmp_path: Path
 
     assert cmd_farm.watch(Client(), JOB, poll_s=0.01) == 0
     out = capsys.readouterr().out
-    assert f"0/{N} units" in out and f"1/{5 * N} passes, 2 spp" in out, out
+    assert f"0/{N} units" in out and f"1/{5 * N} passes, {round(first, 1)} spp" in out, out
 
 
 def test_a_requeued_pass_is_named_by_its_unit_and_pass_not_its_row(tmp_path: Path) -> None:

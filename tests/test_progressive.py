@@ -172,14 +172,14 @@ def test_a_round_decides_only_when_every_unit_has_what_it_asked_and_idle_workers
 
 
 def test_a_pass_that_lands_short_of_its_round_withdraws_nothing():
-    """A budget of 16 in passes 8, 4, 2, 1, 1: landings short of it withdraw nothing; an extra pass for the
+    """A budget of 16 in passes 1, 7, 4, 2, 2: landings short of it withdraw nothing; an extra pass for the
     last one, landing first, withdraws that one."""
     machine = Progressive(Goal(BUDGET, 16), [10])
     orders = machine.start()[0].orders
-    assert [o.spp for o in orders] == [8, 4, 2, 1, 1]
+    assert [o.spp for o in orders] == [1, 7, 4, 2, 2]
     assert [machine.handle(PassLanded(0, o.pass_index)) for o in orders[:-1]] == [[]] * 4
     [extra] = machine.handle(Idle(2))
-    assert extra.orders == (PassOrder(0, 5, 1),)
+    assert extra.orders == (PassOrder(0, 5, 2),)
     assert machine.handle(PassLanded(0, 5)) == [Withdraw((orders[-1],))]
     assert sum(machine.units[0].landed.values()) == 16
 
@@ -232,8 +232,10 @@ def test_a_budget_job_renders_each_units_own_samples_in_passes_and_ends_when_all
     machine = Progressive(Goal(BUDGET, 64), [10, 10, 10], budgets=[64, 10, 3])
     [first] = machine.start()
     by_unit = {u: [o.spp for o in first.orders if o.unit == u] for u in range(3)}
-    assert by_unit == {0: [32, 16, 8, 4, 4], 1: [5, 2, 1, 1, 1], 2: [1, 1, 1]}
-    assert [budget_passes(b) for b in (1, 2, 16, 17)] == [[1], [1, 1], [8, 4, 2, 1, 1], [8, 4, 2, 1, 2]]
+    assert by_unit == {0: [2, 31, 15, 8, 8], 1: [1, 4, 2, 1, 2], 2: [1, 1, 1]}
+    # a small first pass (1/32 of the budget: the whole image shows early), then the rest halving
+    assert [budget_passes(b) for b in (1, 2, 16, 17, 1024)] == [
+        [1], [1, 1], [1, 7, 4, 2, 2], [1, 8, 4, 2, 2], [32, 496, 248, 124, 124]]
     out = run_round(machine, first.orders, [1.0] * 3, [0.01] * 3, 2.0)
     assert out == [Finish("every unit has its samples (2.0 s)", {0: "budget", 1: "budget", 2: "budget"})]
     with pytest.raises(ValueError, match="budgets"):
@@ -243,24 +245,25 @@ def test_a_budget_job_renders_each_units_own_samples_in_passes_and_ends_when_all
 def test_a_budget_pass_holds_at_least_the_samples_asked_where_its_unit_has_them():
     """A farm's passes hold at least `pass_samples` samples (master.auction Config.pass_samples): a small
     unit renders whole in one pass, a large one halves down to that size, the budget always met."""
-    assert budget_passes(64, 5, 8) == [32, 16, 8, 8] and budget_passes(64, 5, 16) == [32, 16, 16]
+    assert budget_passes(64, 5, 8) == [8, 28, 14, 14] and budget_passes(64, 5, 16) == [16, 24, 24]
     assert budget_passes(11, 5, 65) == [11] and budget_passes(16, 5, 1) == budget_passes(16)
     # cbox 512 px at level VB on a farm: 90 px units of 11 spp (89 k samples) are one pass each; a
-    # 32768-pixel unit of 64 spp halves to 8 spp (2^18 samples); a large unit keeps its five passes.
+    # 32768-pixel unit of 64 spp has passes of at least 8 spp (2^18 samples); a large unit keeps its five.
     machine = Progressive(Goal(BUDGET, 64), [8100, 32768, 600 * 600], budgets=[11, 64, 64], pass_samples=1 << 18)
     [first] = machine.start()
     by_unit = {u: [o.spp for o in first.orders if o.unit == u] for u in range(3)}
-    assert by_unit == {0: [11], 1: [32, 16, 8, 8], 2: [32, 16, 8, 4, 4]}
+    assert by_unit == {0: [11], 1: [8, 28, 14, 14], 2: [2, 31, 15, 8, 8]}
     out = run_round(machine, first.orders, [1.0] * 3, [0.01] * 3, 2.0)
     assert out == [Finish("every unit has its samples (2.0 s)", {0: "budget", 1: "budget", 2: "budget"})]
 
 
 def test_in_two_parts_a_budget_renders_in_two_passes_a_unit_as_one_process_does():
-    """No agents' tail to shorten in one process: the fewest passes between which the noise is estimated."""
-    assert [budget_passes(b, 2) for b in (1, 2, 16, 17)] == [[1], [1, 1], [8, 8], [8, 9]]
+    """No agents' tail to shorten in one process: the fewest passes between which the noise is estimated, the
+    first small (a Ctrl-C keeps the image from then on)."""
+    assert [budget_passes(b, 2) for b in (1, 2, 16, 17, 64)] == [[1], [1, 1], [1, 15], [1, 16], [2, 62]]
     machine = Progressive(Goal(BUDGET, 64), [10, 10], budgets=[64, 5], budget_parts=2)
     [first] = machine.start()
-    assert [(o.unit, o.spp) for o in first.orders] == [(0, 32), (1, 2), (0, 32), (1, 3)]  # pass by pass
+    assert [(o.unit, o.spp) for o in first.orders] == [(0, 2), (1, 1), (0, 62), (1, 4)]  # pass by pass
     out = run_round(machine, first.orders, [1.0] * 2, [0.01] * 2, 1.0)
     assert out == [Finish("every unit has its samples (1.0 s)", {0: "budget", 1: "budget"})]
 
