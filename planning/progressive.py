@@ -102,6 +102,8 @@ def budget_passes(budget: int, parts: int = BUDGET_PASSES, least: int = 1) -> li
     """A budget's passes: at most `parts`, none below `least` spp where the budget allows; the first
     1/FIRST_PART of it, the rest halving, the last taking what is left (64: 2, 31, 15, 8, 8; in two parts
     2, 62; at least 8: 8, 28, 14, 14)."""
+    if budget <= 0:
+        return []
     first = min(budget, max(least, budget // FIRST_PART, 1))
     if parts <= 1 or first >= budget:
         return [budget]

@@ -234,8 +234,8 @@ def test_a_budget_job_renders_each_units_own_samples_in_passes_and_ends_when_all
     by_unit = {u: [o.spp for o in first.orders if o.unit == u] for u in range(3)}
     assert by_unit == {0: [2, 31, 15, 8, 8], 1: [1, 4, 2, 1, 2], 2: [1, 1, 1]}
     # a small first pass (1/32 of the budget: the whole image shows early), then the rest halving
-    assert [budget_passes(b) for b in (1, 2, 16, 17, 1024)] == [
-        [1], [1, 1], [1, 7, 4, 2, 2], [1, 8, 4, 2, 2], [32, 496, 248, 124, 124]]
+    assert [budget_passes(b) for b in (0, 1, 2, 16, 17, 1024)] == [
+        [], [1], [1, 1], [1, 7, 4, 2, 2], [1, 8, 4, 2, 2], [32, 496, 248, 124, 124]]  # 0: a resumed unit's none left
     out = run_round(machine, first.orders, [1.0] * 3, [0.01] * 3, 2.0)
     assert out == [Finish("every unit has its samples (2.0 s)", {0: "budget", 1: "budget", 2: "budget"})]
     with pytest.raises(ValueError, match="budgets"):

@@ -60,7 +60,8 @@ def test_a_budget_job_lacking_passes_orders_them_with_new_indices():
            UnitSoFar()]
     [round_] = machine.resume(had, 2.0)
     by_unit = {u: [(o.pass_index, o.spp) for o in round_.orders if o.unit == u] for u in (0, 1)}
-    assert by_unit == {0: [(5, 2), (6, 1), (7, 1)], 1: [(0, 4), (1, 2), (2, 1), (3, 1)]}  # 16 - 8 - 4 out; 8
+    # 16 - 8 - 4 out; 8: each in budget_passes (a small first, then halving)
+    assert by_unit == {0: [(5, 1), (6, 1), (7, 1), (8, 1)], 1: [(0, 1), (1, 3), (2, 2), (3, 1), (4, 1)]}
     assert [u.target for u in machine.units] == [16, 8]
 
 
