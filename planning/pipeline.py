@@ -360,8 +360,6 @@ class UnitRun:
             problem = "level off renders each unit with Mitsuba's own render call"
         elif self.plan.first_spp is not None:
             problem = "an adaptive job's units each place their own samples in two passes"
-        elif self.plan.spill:
-            problem = "each pass draws on its own unit, its band taking the spill (a batch's film would mix them)"
         elif len(jobs) < 2:
             problem = "one unit"
         else:
@@ -468,8 +466,7 @@ class ProgressiveRun(UnitRun):
         base = unit_job(self.plan, unit, self.chosen[order.unit], self.job_id, self.threads)
         # The least band, as a farm's agents render a pass (core.rules.unit_params.adaptive_params).
         return dataclasses.replace(base, spp=order.spp, seed=unit_seed(self.job_id, unit.index, order.pass_index),
-                                   band=self.plan.reach, first=None, pass_index=order.pass_index,
-                                   spill=self.plan.spill)
+                                   band=self.plan.reach, first=None, pass_index=order.pass_index)
 
     def _render_round(self, orders: Sequence[PassOrder], together: bool, stop: threading.Event) -> Iterator[Tile]:
         """The round's passes, batch by batch, in batches where the scene allows (a batch holds one pass of a

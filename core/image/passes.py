@@ -33,8 +33,7 @@ def split_weight(tile: Tile) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
         raise TileError(f"unit {tile.meta.get('unit_index', '?')}: a pass tile ends with channel {WEIGHT!r}, "
                         f"this one with {tile.channels[-1]!r}")
     weight = tile.pixels[..., -1].astype(np.float64)
-    # A spill pass's band may weigh less than nothing: the lobes of a filter such as Lanczos reach it alone.
-    if not np.isfinite(weight).all() or ((weight < 0).any() and not tile.meta.get("spill")):
+    if not np.isfinite(weight).all() or (weight < 0).any():
         raise TileError(f"unit {tile.meta.get('unit_index', '?')}: a pass tile's weights are negative or not finite")
     return tile.pixels[..., :-1].astype(np.float64), weight, tile.channels[:-1]
 

@@ -148,11 +148,11 @@ def render_counts(scene: Any, counts: np.ndarray, seed: int, sensor: int = 0, in
 
 
 def render_core(scene: Any, core: tuple[int, int, int, int], spp: int, seed: int, sensor: int = 0,
-                integrator: Any = None) -> tuple[np.ndarray, tuple[str, ...], np.ndarray]:
+                integrator: Any = None) -> tuple[np.ndarray, tuple[str, ...]]:
     """Render `spp` samples in each pixel of `core` (x, y, w, h within the film's window) and none around
     it: the window's pixels around the core hold only the spill of the core's samples through the filter.
-    Returns the window's developed pixels (H x W x C), their channel names and the film's raw weight sum
-    per pixel (H x W, float32; one sample at its pixel's centre weighs the filter's peak).
+    Returns the window's developed pixels (H x W x C) and their channel names; the film keeps the raw
+    weight sum per pixel (core.image.film.film_weight).
 
     Every sample is splatted with weight 1, as Mitsuba's render splats it, so the sums of windows that
     overlap (each pixel's value times its weight, added over the windows, over the weights added) are the
@@ -195,8 +195,7 @@ def render_core(scene: Any, core: tuple[int, int, int, int], spp: int, seed: int
     _put(block, film, splat, ray_weight * spec, ray.wavelengths, mi.Float(1.0), dr.select(valid, 1.0, 0.0), aovs,
          live)
     film.put_block(block)
-    pixels, names = film_channels(film)
-    return pixels, names, film_weight(film)
+    return film_channels(film)
 
 
 def spill_problem(scene: Any, sensor: int = 0, integrator: Any = None) -> str | None:

@@ -373,7 +373,7 @@ def _render_window(scene: Any, film: Any, job: RenderRequest,
     if job.spill:
         window = job.window
         core = (job.unit.x - window.x, job.unit.y - window.y, job.unit.w, job.unit.h)
-        pixels, channels, _ = render_core(scene, core, job.spp, job.seed, job.sensor, integrator)
+        pixels, channels = render_core(scene, core, job.spp, job.seed, job.sensor, integrator)
         return pixels, channels, {}
     if job.first is None:
         mi.render(scene, sensor=job.sensor, integrator=integrator, spp=job.spp, seed=job.seed)
