@@ -159,15 +159,17 @@ class FarmClient:
     def agents(self) -> list[dict[str, Any]]:
         return list(self._json("GET", "/api/agents")["agents"])
 
-    def result(self, job_id: str, out: Path) -> Path:
+    def result(self, job_id: str, out: Path, partial: bool = False) -> Path:
         """Download the composed image and its report (which names the image as written here), and write
         the tonemapped PNG beside them; return the image's path: `out` with the suffix of the film's file
-        format (.exr, .pfm, .rgbe), as Mitsuba names its output."""
+        format (.exr, .pfm, .rgbe), as Mitsuba names its output. `partial`: a failed or cancelled job's
+        tiles so far (the master's 409 otherwise)."""
         out = Path(out)
-        body, headers = self._exchange("GET", f"/api/jobs/{job_id}/result")
+        query = "?partial=1" if partial else ""
+        body, headers = self._exchange("GET", f"/api/jobs/{job_id}/result{query}")
         name = headers.get_filename() or ""
         out = out.with_suffix(Path(name).suffix or out.suffix or ".exr")
-        report = json.loads(self._request("GET", f"/api/jobs/{job_id}/report"))
+        report = json.loads(self._request("GET", f"/api/jobs/{job_id}/report{query}"))
         if isinstance(report.get("image"), dict):  # the files written here, not the master's own
             report["image"]["file"] = str(out.resolve())
             report["image"]["png"] = str(out.with_suffix(".png").resolve())

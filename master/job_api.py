@@ -5,8 +5,9 @@ Every route needs the farm's admin token (`Authorization: Bearer ...`):
                                    becomes one job per frame, sharing a sequence id (`seq-...`)
     GET  /api/jobs[?sequence=SEQ]  every job (or a sequence's, in frame order) with its progress
     GET  /api/jobs/{job}           one job: status, progress, agents busy, ETA, error; a sequence id: its frames
-    GET  /api/jobs/{job}/result    the composed image, EXR unless the film asks otherwise (409 until done)
-    GET  /api/jobs/{job}/report    the JSON report
+    GET  /api/jobs/{job}/result    the composed image, EXR unless the film asks otherwise (409 until done);
+                                   ?partial=1: a failed or cancelled job's tiles so far (SCENE.partial.exr)
+    GET  /api/jobs/{job}/report    the JSON report (?partial=1: the partial image's)
     GET  /api/jobs/{job}/units/{n} one unit: status, agent, attempts, and its story
     POST /api/jobs/{job}/cancel    cancel the job (a sequence id: every frame)
     POST /api/jobs/{job}/requeue   a failed or cancelled job runs again, its done units kept (a sequence id:
@@ -58,9 +59,11 @@ class JobService(Protocol):
     async def cancel(self, job_id: str) -> bool: ...
     async def requeue(self, job_id: str) -> str | None: ...
     async def ensure_assembled(self, job_id: str) -> Path: ...
+    async def ensure_partial(self, job_id: str) -> Path: ...
     def job_dir(self, job_id: str) -> Path: ...
     def result_path(self, job_id: str) -> Path: ...
-    def result_image(self, job_id: str) -> Path: ...
+    def result_image(self, job_id: str, partial: bool = False) -> Path: ...
+    def partial_path(self, job_id: str) -> Path: ...
 
 MAX_BUNDLE_BYTES = 1 << 30
 SERVICE_KEY = web.AppKey("quekaro_master", object)
@@ -283,14 +286,19 @@ async def _finished_result(request: web.Request) -> tuple[JobService, JobRecord]
         record = service.store.job(job_id)
     except StoreError as exc:
         return json_error(404, str(exc))
-    if record.status != "done":
-        return json_error(409, f"job {job_id} is {record.status}" + (f": {record.error}" if record.error else ""))
+    partial = _partial(request)
+    if record.status != "done" and not (partial and record.status in ("failed", "cancelled")):
+        ended = record.status != "running"
+        return json_error(409, f"job {job_id} is {record.status}" + (f": {record.error}" if record.error else "")
+                          + ("; ?partial=1 gives its tiles so far" if ended else ""))
     try:
-        await service.ensure_assembled(job_id)
+        await (service.ensure_assembled(job_id) if record.status == "done" else service.ensure_partial(job_id))
     except Exception as exc:
         if disk_full(exc):
             raise Refusal(507, "disk full on the master: the job's image is composed once space is freed; "
                                "ask again then") from exc
+        if isinstance(exc, QuekaroError) and record.status != "done":  # requeued while asked
+            return json_error(409, str(exc))
         raise
     return service, record
 
@@ -309,25 +317,38 @@ async def job_raw(request: web.Request) -> web.StreamResponse:
     return await _finished_file(request, "raw")
 
 
-def result_file(service: JobService, job_id: str, kind: str) -> Path:
-    """A done job's file of `kind`: its composed image, raw image, JSON report or PNG."""
+def result_file(service: JobService, job_id: str, kind: str, partial: bool = False) -> Path:
+    """A done job's file of `kind`: its composed image, raw image, JSON report or PNG; `partial`: those of
+    the image of a job that ended without finishing (`ensure_partial`; it has no raw image)."""
     if kind == "image":
-        return service.result_image(job_id)
-    return service.result_path(job_id).with_suffix({"raw": RAW_SUFFIX, "report": ".json", "png": ".png"}[kind])
+        return service.result_image(job_id, partial)
+    stem = service.partial_path(job_id) if partial else service.result_path(job_id)
+    return stem.with_suffix({"raw": RAW_SUFFIX, "report": ".json", "png": ".png"}[kind])
 
 
 async def _finished_file(request: web.Request, kind: str) -> web.StreamResponse:
-    """A finished job's file of `kind` (`result_file`), named as `download_name` names it."""
+    """A finished job's file of `kind` (`result_file`), named as `download_name` names it; a partial one's
+    SCENE.partial.exr."""
     found = await _finished_result(request)
     if isinstance(found, web.Response):
         return found
     service, record = found
-    path = result_file(service, record.id, kind)
+    partial = record.status != "done"  # _finished_result lets it through only where ?partial=1 asks
+    path = result_file(service, record.id, kind, partial)
     if not path.exists():
-        why = "was not denoised: its image is the raw one" if kind == "raw" else f"has no {path.name}"
+        why = ("was not denoised: its image is the raw one" if not partial else "did not finish: its partial image "
+               "is not denoised") if kind == "raw" else f"has no {path.name}"
         return json_error(404, f"job {record.id} {why}")
     suffix = RAW_SUFFIX if kind == "raw" else path.suffix
-    return web.FileResponse(path, headers=attachment(record, suffix))
+    return web.FileResponse(path, headers=attachment(record, (".partial" if partial else "") + suffix))
+
+
+def _partial(request: web.Request) -> bool:
+    """The query's `partial` (0 or 1): whether a job that ended without finishing may give its tiles so far."""
+    value = request.query.get("partial", "0")
+    if value not in ("0", "1"):
+        raise Refusal(400, f"partial: {value[:20]!r} is not 0 or 1")
+    return value == "1"
 
 
 async def cancel_jobs(service: JobService, job_id: str) -> dict[str, Any]:

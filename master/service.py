@@ -298,9 +298,14 @@ class MasterService:
         """result.exr: its report (.json) and preview (.png) beside it; the image itself is `result_image`."""
         return self.job_dir(job_id) / "result.exr"
 
-    def result_image(self, job_id: str) -> Path:
-        """The job's composed image: result.exr, or result.pfm / result.rgbe where the film asks for them."""
-        stem = self.result_path(job_id)
+    def partial_path(self, job_id: str) -> Path:
+        """partial.exr: the image of a job that ended without finishing, its tiles so far (`assemble_partial`)."""
+        return self.job_dir(job_id) / "partial.exr"
+
+    def result_image(self, job_id: str, partial: bool = False) -> Path:
+        """The job's composed image: result.exr, or result.pfm / result.rgbe where the film asks for them;
+        `partial`: partial.exr ... (`assemble_partial`)."""
+        stem = self.partial_path(job_id) if partial else self.result_path(job_id)
         paths = [stem.with_suffix(suffix) for suffix in IMAGE_SUFFIXES]
         return next((path for path in paths if path.exists()), stem)
 
@@ -647,9 +652,9 @@ class MasterService:
     def _drop_result(self, job_id: str) -> None:
         """A job runs again (a unit retried, a job requeued): its composed image, report and preview go, composed
         again at its end (a stale image must not be served meanwhile)."""
-        stem = self.result_path(job_id)
-        for suffix in (*IMAGE_SUFFIXES, RAW_SUFFIX, ".json", ".png"):
-            stem.with_suffix(suffix).unlink(missing_ok=True)
+        for stem in (self.result_path(job_id), self.partial_path(job_id)):
+            for suffix in (*IMAGE_SUFFIXES, RAW_SUFFIX, ".json", ".png"):
+                stem.with_suffix(suffix).unlink(missing_ok=True)
 
     async def _assemble(self, job_id: str) -> dict[str, Any]:
         """The job's image, after its AOV pass where it is denoised, composed in a thread."""
@@ -667,6 +672,19 @@ class MasterService:
             self._assembling[job_id] = task
         return task
 
+    async def ensure_partial(self, job_id: str) -> Path:
+        """The report path of the image of a job that ended without finishing (`assemble_partial`), composed
+        once: a requeue removes it (`_drop_result`)."""
+        report = self.partial_path(job_id).with_suffix(".json")
+        key = f"{job_id} partial"
+        task = self._assembling.get(key)
+        if not report.exists() and (task is None or task.done()):
+            task = asyncio.get_running_loop().create_task(asyncio.to_thread(self.assemble_partial, job_id), name=key)
+            self._assembling[key] = task
+        if not report.exists():
+            await asyncio.shield(task)
+        return report
+
     async def ensure_assembled(self, job_id: str) -> Path:
         """The job's report path, once its image and report are written (assembling them if needed)."""
         report = self.result_path(job_id).with_suffix(".json")
@@ -680,13 +698,36 @@ class MasterService:
     def assemble(self, job_id: str, aov_pass: np.ndarray | None = None) -> dict[str, Any]:
         """Compose the job's tiles into result.exr/.png/.json (again, if asked: it is deterministic);
         `aov_pass`: a denoised job's, which the image is denoised with."""
-        with JobStore(self.store.path) as store:  # a connection of this thread's own
+        record, results, plan = self._stored(job_id)
+        return self._compose(record, results, plan, self.result_path(job_id), {}, aov_pass)
+
+    def assemble_partial(self, job_id: str) -> dict[str, Any]:
+        """Compose the tiles of a job that ended without finishing (failed, cancelled) into partial.exr/.png/
+        .json: the units without a tile black, and not denoised (a denoised job's AOV pass renders at its
+        end). The report's `partial` says what the image lacks."""
+        record, results, plan = self._stored(job_id)
+        if record.status not in (JobStatus.FAILED, JobStatus.CANCELLED) or not results:
+            raise QuekaroError(f"job {job_id} is {record.status}" + ("" if results else " and has no tile"))
+        plan = dataclasses.replace(plan, options=dataclasses.replace(plan.options, denoise=False))
+        units = len(plan.units)
+        done = {au.pass_origin(r.index, units)[0] if plan.options.in_passes else r.index for r in results}
+        partial = {"status": record.status.value, "error": record.error, "units": units,
+                   "units_missing": sorted(set(range(units)) - done),
+                   **({"passes": len(results)} if plan.options.in_passes else {})}
+        return self._compose(record, results, plan, self.partial_path(job_id), {"partial": partial}, None)
+
+    def _stored(self, job_id: str) -> tuple[JobRecord, list[Any], JobPlan]:
+        """The job's record, stored tiles and plan, read on a connection of this thread's own."""
+        with JobStore(self.store.path) as store:
             record = store.job(job_id)
-            results = store.results(job_id)
-            plan = store.plan(job_id, self.job_dir(job_id) / "scene" / record.scene)
+            return record, store.results(job_id), store.plan(job_id, self.job_dir(job_id) / "scene" / record.scene)
+
+    def _compose(self, record: JobRecord, results: list[Any], plan: JobPlan, out: Path, extra: dict[str, Any],
+                 aov_pass: np.ndarray | None) -> dict[str, Any]:
+        """The stored tiles of the job composed into `out` (.exr, .png, .json), `extra` in its report."""
+        job_id = record.id
         # Headers only: each tile's pixels are read while composition needs them. The store, not the
         # header, says which unit a tile is.
-        extra: dict[str, Any] = {}
         if plan.options.in_passes:  # every stored pass merged into its unit
             reason, verdicts = read_verdicts(self.job_dir(job_id))
             tiles, params = merged_units(results, len(plan.units), verdicts)
@@ -703,9 +744,9 @@ class MasterService:
         # totals.seconds as `quekaro render` counts it, the whole job: from its upload's arrival to its last
         # tile (the store's created and finished), then this assembly.
         ran = (record.finished or time.time()) - record.created
-        report = assemble(plan, tiles, params, self.result_path(job_id), started=time.perf_counter() - ran,
+        report = assemble(plan, tiles, params, out, started=time.perf_counter() - ran,
                           extra={"job_id": job_id, "scene": scene, "created": record.created,
-                                 "finished": record.finished, **extra}, aov_pass=aov_pass)
+                                 "finished": record.finished, **extra}, aov_pass=aov_pass, partial="partial" in extra)
         return report
 
 

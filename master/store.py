@@ -32,7 +32,7 @@ from core.model.status import (
 )
 from core.model.units import WorkUnit
 from master import auction as au
-from planning.progressive import BUDGET, NOISE, Goal
+from planning.progressive import BUDGET, NOISE, TIME, Goal
 
 SCHEMA_VERSION = 7
 # A unit row's WorkUnit.work in SQL ({t}: the table's alias and a dot, or nothing).
@@ -212,6 +212,7 @@ class PassProgress:
     ordered: int
     spp_mean: float
     goal: str
+    share: float = 0.0  # of the job done, 0..1: the passes' work (cost x spp) done over ordered; a time goal's seconds
 
 
 class JobStore:
@@ -596,7 +597,8 @@ class JobStore:
         done = self._units_met(record, units, goal)
         short = units - done if record.status in (JobStatus.FAILED, JobStatus.CANCELLED) else 0
         eta, at_least = self._pass_eta(record, goal, rows.eta_s, now)
-        passes = PassProgress(rows.done, rows.total, self._spp_mean(record.id, units), goal.kind)
+        passes = PassProgress(rows.done, rows.total, self._spp_mean(record.id, units), goal.kind,
+                              self._share(record, goal, now))
         return dataclasses.replace(rows, done=done, total=units, failed=short, eta_s=eta, eta_at_least=at_least,
                                    passes=passes)
 
@@ -626,6 +628,17 @@ class JobStore:
             (UnitStatus.DONE, job_id, units)).fetchone()
         return round((samples or 0) / area, 1) if area else 0.0
 
+    def _share(self, record: JobRecord, goal: Goal, now: float | None) -> float:
+        """How much of a progressive job is done, 0..1 (`PassProgress.share`): 1 once it is done."""
+        if record.status == JobStatus.DONE:
+            return 1.0
+        if goal.kind == TIME:
+            return round(min(1.0, self._spent(record.id, now) / goal.seconds), 3)
+        done, ordered = self.db.execute(
+            f"SELECT SUM(CASE WHEN status = ? THEN {_WORK.format(t='')} ELSE 0 END), SUM({_WORK.format(t='')})"
+            " FROM units WHERE job_id = ?", (UnitStatus.DONE, record.id)).fetchone()
+        return round(done / ordered, 3) if ordered else 0.0
+
     def _pass_eta(self, record: JobRecord, goal: Goal, rows_eta: float | None, now: float | None
                   ) -> tuple[float | None, bool]:
         """(ETA, whether it is only a lower bound). A budget job orders all its passes at once: the passes'
@@ -636,9 +649,12 @@ class JobStore:
             return rows_eta, False
         if goal.kind == NOISE:
             return rows_eta, True
-        first = self.db.execute("SELECT MIN(started) FROM attempts WHERE job_id = ?", (record.id,)).fetchone()[0]
-        spent = max(0.0, now - first) if first is not None and now is not None else 0.0
-        return max(goal.seconds - spent, rows_eta or 0.0), False
+        return max(goal.seconds - self._spent(record.id, now), rows_eta or 0.0), False
+
+    def _spent(self, job_id: str, now: float | None) -> float:
+        """Seconds from the job's first award to `now` (a time goal counts them); 0 before it, or without `now`."""
+        first = self.db.execute("SELECT MIN(started) FROM attempts WHERE job_id = ?", (job_id,)).fetchone()[0]
+        return max(0.0, now - first) if first is not None and now is not None else 0.0
 
     def _retries(self, job_id: str, units: int | None = None) -> tuple[int, str | None]:
         """How many attempts of the job ended without a tile (an agent that failed, died or lied), and

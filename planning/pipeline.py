@@ -139,13 +139,14 @@ def unit_record(unit: WorkUnit, tile: Tile | TileSource, params: dict[str, Any])
 
 
 def assemble(plan: JobPlan, tiles: Iterable[Tile | TileSource], params: dict[int, dict[str, Any]], out: Path,
-             started: float, extra: dict[str, Any] | None = None, aov_pass: np.ndarray | None = None
-             ) -> dict[str, Any]:
+             started: float, extra: dict[str, Any] | None = None, aov_pass: np.ndarray | None = None,
+             partial: bool = False) -> dict[str, Any]:
     """Compose the tiles (in memory, or sources read from their files as needed) and write OUT.exr,
-    OUT.png and OUT.json; return the report. `aov_pass`: a denoised job's (`denoiser_planes`).
+    OUT.png and OUT.json; return the report. `aov_pass`: a denoised job's (`denoiser_planes`); `partial`:
+    the tiles of a job that did not finish, pixels that none covers black.
 
     `started` is the job's start on the `time.perf_counter` clock (for the total seconds)."""
-    job = composed(plan, plan.units, tiles, params)
+    job = composed(plan, plan.units, tiles, params, partial)
     job.denoiser = aov_pass
     return write_outputs(plan, job, out, started, extra)
 
@@ -163,10 +164,11 @@ class Composed:
 
 
 def composed(plan: JobPlan, units: Sequence[WorkUnit], tiles: Iterable[Tile | TileSource],
-             params: dict[int, dict[str, Any]]) -> Composed:
-    """The tiles of the plan's `units` blended into one image, with the units' report lines."""
+             params: dict[int, dict[str, Any]], partial: bool = False) -> Composed:
+    """The tiles of the plan's `units` blended into one image, with the units' report lines (`partial`: some
+    units have none, their pixels black)."""
     tiles = list(tiles)
-    image, compose_report = compose_planar(tiles, plan.width, plan.height, reach=plan.reach)
+    image, compose_report = compose_planar(tiles, plan.width, plan.height, partial, reach=plan.reach)
     channels = image_channels(tiles[0].channels) if tiles else ("R", "G", "B")
     records = (unit_record(units[int(t.meta["unit_index"])], t, params[int(t.meta["unit_index"])]) for t in tiles)
     return Composed(image, channels, compose_report.to_dict(), sorted(records, key=lambda u: u["index"]))
@@ -257,6 +259,7 @@ class Progress:
     samples_done: int
     samples_total: int | None
     pixels: int
+    seconds_left: float | None = None  # a time goal's, as it is told: the ETA that rates cannot give yet
 
 
 def render_job(spec: SceneSpec, options: RenderOptions, out: Path, job_id: str | None = None,
@@ -384,10 +387,10 @@ class UnitRun:
         except Exception as exc:
             raise RenderError(f"{batch_name(batch)}: {type(exc).__name__}: {exc}") from exc
 
-    def _tell(self, done: int, samples_total: int | None) -> None:
+    def _tell(self, done: int, samples_total: int | None, seconds_left: float | None = None) -> None:
         if self.progress is not None:
             self.progress(Progress(done, len(self.plan.units), self.samples_done, samples_total,
-                                   self.plan.width * self.plan.height))
+                                   self.plan.width * self.plan.height, seconds_left))
 
 
 @dataclass
@@ -443,7 +446,8 @@ class ProgressiveRun(UnitRun):
             total = sum(b * u.rect.area for b, u in zip(budgets, units, strict=True))
         elif goal.kind == TIME and elapsed > 0 and self.samples_done:
             total = max(self.samples_done, round(self.samples_done * goal.seconds / elapsed))
-        self._tell(settled, total)
+        left = max(0.0, goal.seconds - elapsed) if goal.kind == TIME and settled < len(units) else None
+        self._tell(settled, total, left)
 
     @staticmethod
     def _stopped(machine: Progressive, elapsed: float) -> list[Finish]:

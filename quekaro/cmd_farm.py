@@ -9,6 +9,7 @@ import dataclasses
 import json
 import math
 import os
+import re
 import secrets
 import shutil
 import sys
@@ -16,6 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from core.data import DEMO_SCENE
@@ -142,7 +144,7 @@ def _register_client(sub: argparse._SubParsersAction) -> None:
                              "--threads; also the master's pre-pass (default: each agent's own)")
     submit.set_defaults(func=run_submit)
     status = sub.add_parser("status", help="jobs and their progress (one job or sequence if given)")
-    status.add_argument("job", nargs="?", help="a job id, or a sequence id (seq-...) for its frames")
+    status.add_argument("job", nargs="?", help="a job id, a sequence id (seq-...) for its frames, or a submit --name")
     status.add_argument("--unit", type=int, metavar="N",
                         help="one unit of JOB: its attempts and its story (what moved it, and when)")
     status.add_argument("--json", action="store_true")
@@ -150,19 +152,22 @@ def _register_client(sub: argparse._SubParsersAction) -> None:
     status.set_defaults(func=run_status)
     watch = sub.add_parser("watch", help="a live progress bar for a job or sequence: units done, agents busy, ETA "
                                          "(a plain line a change when not on a terminal)")
-    watch.add_argument("job", help="a job id, or a sequence id (seq-...)")
+    watch.add_argument("job", help="a job id, a sequence id (seq-...), or a submit --name")
     _add_farm_location(watch)
     watch.set_defaults(func=run_watch)
     result = sub.add_parser("result", help="download a finished job's image (and its report), or a sequence's")
-    result.add_argument("job", help="a job id, or a sequence id (seq-...) for every frame")
+    result.add_argument("job", help="a job id, a sequence id (seq-...) for every frame, or a submit --name")
     result.add_argument("-o", "--output", "--out", dest="out", type=Path,
                         help="output image file (its suffix is the film's file_format's: .exr, .pfm, .rgbe), or "
                              "a folder (default: this one) for SCENE.exr, a frame's SCENE_0001.exr; the PNG and "
                              "the report go beside it, replacing earlier ones as quekaro render does")
+    result.add_argument("--partial", action="store_true",
+                        help="a failed or cancelled job (or frame): the image of its tiles so far, the units "
+                             "without one black, as SCENE.partial.exr; a done job's is its whole image")
     _add_farm_location(result)
     result.set_defaults(func=run_result)
     cancel = sub.add_parser("cancel", help="cancel a job, or every frame of a sequence")
-    cancel.add_argument("job", help="a job id, or a sequence id (seq-...)")
+    cancel.add_argument("job", help="a job id, a sequence id (seq-...), or a submit --name")
     _add_farm_location(cancel)
     cancel.set_defaults(func=run_cancel)
     requeue = sub.add_parser("requeue", help="run a failed or cancelled job again, its done units kept; or every "
@@ -171,7 +176,7 @@ def _register_client(sub: argparse._SubParsersAction) -> None:
                                          "tiles, the others are rendered. A sequence id requeues each of its failed "
                                          "or cancelled frames (one frame alone: its job id). A running or done job "
                                          "is refused.")
-    requeue.add_argument("job", help="a job id, or a sequence id (seq-...)")
+    requeue.add_argument("job", help="a job id, a sequence id (seq-...), or a submit --name")
     _add_farm_location(requeue)
     requeue.set_defaults(func=run_requeue)
     agents = sub.add_parser("agents", help="the agents the master knows: state, speed, units done, last heard")
@@ -268,6 +273,20 @@ def _client(args: argparse.Namespace):
     return FarmClient.from_home(args.home, args.url, args.token_file, args.ca_file)
 
 
+JOB_ID = re.compile(r"[0-9a-f]{12}")  # as the master makes them (master.service)
+
+
+def _job_ref(client: FarmClient, text: str) -> str:
+    """A job or sequence id as given, or the id of the one job (a sequence's frames: the sequence) named
+    `text` by `submit --name`. Several named so are refused, naming their ids."""
+    if JOB_ID.fullmatch(text) or SEQUENCE_ID.fullmatch(text):
+        return text
+    named = sorted({j.get("sequence") or j["job_id"] for j in client.jobs() if j.get("name") == text})
+    if len(named) > 1:
+        raise QuekaroError(f"{len(named)} jobs are named {text!r}; give one's id: {', '.join(named)}")
+    return named[0] if named else text  # neither: the master says there is no such job
+
+
 def run_submit(args: argparse.Namespace) -> int:
     """One job per scene (its bundle carries the files it reads and the rule file), a frame range's one a
     frame (the master makes them), or with --sequence the scenes as one sequence's frames; with --wait,
@@ -353,6 +372,7 @@ def _bundle_bytes(scene: Path, defines: dict[str, str], frames: FrameRange | Non
 
 def run_status(args: argparse.Namespace) -> int:
     client = _client(args)
+    args.job = args.job and _job_ref(client, args.job)
     if args.unit is not None:
         return _print_unit(client, args)
     answer = client.status(args.job) if args.job else None
@@ -512,7 +532,8 @@ def print_effects(effects: dict) -> None:
 
 
 def run_watch(args: argparse.Namespace) -> int:
-    return watch(_client(args), args.job)
+    client = _client(args)
+    return watch(client, _job_ref(client, args.job))
 
 
 def progress_of(client, job_id: str) -> dict:
@@ -575,15 +596,14 @@ def _watch_lines(client, job_id: str, job: dict, poll_s: float) -> dict:
         job = progress_of(client, job_id)
 
 
-def _watch_bar(client, job_id: str, job: dict, poll_s: float) -> dict:
-    """A rich progress bar, a paused job's reason on a line of its own."""
-    passes = (TextColumn("{task.fields[passes]}"),) if job.get("passes") else ()  # a progressive job's
-    columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} units"),
-               *passes, TextColumn("agents busy {task.fields[busy]}"), TextColumn("ETA {task.fields[eta]}"),
-               TimeElapsedColumn())
-    with Progress(*columns, transient=False) as progress:
-        task = progress.add_task(job_id, total=job["units_total"], completed=job["units_done"],
-                                 busy=job["agents_busy"], eta="-", passes="")
+def _watch_bar(client, job_id: str, job: dict, poll_s: float, console: Console | None = None) -> dict:
+    """A rich progress bar, a paused job's reason on a line of its own. It fits 80 columns: a job's units,
+    or a progressive job's share of its work (`_bar_state`)."""
+    columns = (TextColumn("{task.description}"), BarColumn(bar_width=None), TextColumn("{task.percentage:>3.0f}%"),
+               TextColumn("{task.fields[count]}"), TextColumn("{task.fields[busy]} busy"),
+               TextColumn("ETA {task.fields[eta]}"), TimeElapsedColumn())
+    with Progress(*columns, transient=False, console=console) as progress:
+        task = progress.add_task(job_id, total=1, count="", busy=0, eta="-")
         said = None
         while True:
             eta = _eta_text(job, "s") if job.get("eta_s") is not None else "-"
@@ -591,35 +611,81 @@ def _watch_bar(client, job_id: str, job: dict, poll_s: float) -> dict:
                 said = job.get("paused") or None
                 progress.console.print(f"{job_id} paused: {said}" if said else f"{job_id} goes on")
             paused = " (paused)" if said else ""
-            progress.update(task, total=job["units_total"], completed=job["units_done"],
-                            busy=job["agents_busy"], eta=eta, passes=_passes_text(job).lstrip(", "),
-                            description=f"{job_id} {job['status']}{paused} {job.get('frames_text', '')}".rstrip())
+            completed, total, count = _bar_state(job)
+            progress.update(task, total=total, completed=completed, count=count, busy=job["agents_busy"], eta=eta,
+                            description=f"{job_id} {job['status']}{paused}")
             if job["status"] != "running":
                 return job
             time.sleep(poll_s)
             job = progress_of(client, job_id)
 
 
+def _bar_state(job: dict) -> tuple[float, float, str]:
+    """(completed, total, the count beside the bar): a job's units done of its units (a sequence's frames
+    beside); a progressive job's share of its work (its passes' cost x spp, or a time goal's seconds), its
+    units met and spp so far beside."""
+    units = job.get("frames_text", "").strip() or f"{job['units_done']}/{job['units_total']} units"
+    passes = job.get("passes")
+    if not passes:
+        return job["units_done"], max(1, job["units_total"]), units
+    spp = str(passes["spp_mean"]).removesuffix(".0")
+    return passes.get("share", 0.0), 1.0, f"{units} {spp} spp"
+
+
 def run_result(args: argparse.Namespace) -> int:
-    _fetch(_client(args), args.job, args.out)
-    return 0
+    client = _client(args)
+    return _fetch(client, _job_ref(client, args.job), args.out, args.partial)
 
 
-def _fetch(client: FarmClient, job_id: str, out: Path | None) -> None:
+def _fetch(client: FarmClient, job_id: str, out: Path | None, partial: bool = False) -> int:
     """Write a job's image (SCENE.exr, a frame's SCENE_0001.exr) to `out` (a file, or a folder: by default
-    this one), or every frame of a sequence into the folder `out`; print where each went."""
+    this one), or every frame of a sequence into the folder `out`; print where each went. `partial`: a job
+    that ended without finishing gives its tiles so far (SCENE.partial.exr). A sequence's frames without an
+    image are named and skipped (exit status 1)."""
     answer = client.status(job_id)
     frames = answer.get("frames")
     folder = _result_folder(out or Path("."), frames is not None)
+    skipped = []
     for job in frames if frames is not None else [answer]:
+        cut = partial and job["status"] in ("failed", "cancelled")
+        if job["status"] != "done" and not cut:
+            skipped.append(_no_image(job, partial))
+            continue
         name = Path(job["scene"]).stem
         name = name if job.get("frame") is None else frame_name(name, job["frame"])
-        target = folder / f"{name}.exr" if folder is not None else out
-        written = client.result(job["job_id"], target)
+        target = folder / f"{name}{'.partial' if cut else ''}.exr" if folder is not None else out
+        written = client.result(job["job_id"], target, cut)
+        report = json.loads(written.with_suffix(".json").read_text())
         print(f"{written}  report: {written.with_suffix('.json')}")
-        passes = progressive.report_part(json.loads(written.with_suffix(".json").read_text()))
+        passes = progressive.report_part(report)
         if passes:
             print(f"  {progressive.describe(passes)}")
+        if cut:
+            print(f"  {_partial_text(report['partial'])}")
+    if frames is None and skipped:
+        raise QuekaroError(skipped[0])
+    for line in skipped:
+        print(line, file=sys.stderr)
+    return 1 if skipped else 0
+
+
+def _no_image(job: dict, partial: bool) -> str:
+    """Why a job (a frame) has no image to fetch, and what gives one."""
+    status, error = job["status"], job.get("error") or ""
+    ended = status in ("failed", "cancelled")
+    said = error if error.startswith(status) else f"{status}: {error}" if error else status  # "cancelled by the user"
+    hint = "; --partial writes its tiles so far" if ended and not partial else "" if ended else ", no image yet"
+    frame = f"frame {job['frame']} " if job.get("frame") is not None else ""
+    return f"{frame}{job['job_id']}: {said}{hint}"
+
+
+def _partial_text(partial: dict) -> str:
+    """What a partial image lacks, in a line: `partial: cancelled; 3 of 8 units have no tile (black)`."""
+    missing = len(partial["units_missing"])
+    passes = f", from {count(partial['passes'], 'pass', 'passes')}" if "passes" in partial else ""
+    lack = f"{missing} of {count(partial['units'], 'unit')} have no tile (black)" if missing else \
+        f"every unit has a tile{passes}"
+    return f"partial: {partial['status']}; {lack}"
 
 
 def _result_folder(out: Path, several: bool) -> Path | None:
@@ -692,7 +758,8 @@ def follow_log(path: Path, lines: int, follow: bool, poll_s: float = 0.25) -> No
 
 
 def run_requeue(args: argparse.Namespace) -> int:
-    answer = _client(args).requeue(args.job)
+    client = _client(args)
+    answer = client.requeue(_job_ref(client, args.job))
     for job_id in answer["requeued"]:
         print(f"{job_id}: runs again (its done units kept)")
     for job_id, why in answer.get("refused", {}).items():
@@ -701,7 +768,9 @@ def run_requeue(args: argparse.Namespace) -> int:
 
 
 def run_cancel(args: argparse.Namespace) -> int:
-    cancelled = _client(args).cancel(args.job)
-    what = "every frame still running cancelled" if SEQUENCE_ID.fullmatch(args.job) else "cancelled"
-    print(f"{args.job}: {what if cancelled else 'had already ended'}")
+    client = _client(args)
+    job_id = _job_ref(client, args.job)
+    cancelled = client.cancel(job_id)
+    what = "every frame still running cancelled" if SEQUENCE_ID.fullmatch(job_id) else "cancelled"
+    print(f"{job_id}: {what if cancelled else 'had already ended'}")
     return 0

@@ -11,9 +11,11 @@ import tempfile
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from datetime import timedelta
 from pathlib import Path
 
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.progress import BarColumn, Progress, ProgressColumn, Task, TextColumn, TimeElapsedColumn
+from rich.text import Text
 
 from core.errors import QuekaroError, did_you_mean
 from core.image.imageio import read_image
@@ -296,6 +298,16 @@ def add_accuracy(report: dict, spec: SceneSpec, out: Path, wall: float, args: ar
         print(f"warning: {accuracy['reference_warning']}")
 
 
+class _Eta(ProgressColumn):
+    """The time left: a time goal's own, counting down as the bar refreshes; else rich's estimate from the
+    rate so far."""
+
+    def render(self, task: Task) -> Text:
+        ends_at = task.fields.get("ends_at")
+        left = max(0.0, ends_at - time.monotonic()) if ends_at is not None else task.time_remaining
+        return Text("-:--:--" if left is None else str(timedelta(seconds=round(left))), style="progress.remaining")
+
+
 @contextmanager
 def render_progress(name: str, enabled: bool = True) -> Iterator[Callable[[RenderProgress], None]]:
     """A rich progress bar over the samples rendered, with units done, mean spp done and the ETA."""
@@ -303,12 +315,13 @@ def render_progress(name: str, enabled: bool = True) -> Iterator[Callable[[Rende
         yield lambda _p: None
         return
     columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[units]} units"),
-               TextColumn("{task.fields[spp]} spp"), TimeRemainingColumn(), TimeElapsedColumn())
+               TextColumn("{task.fields[spp]} spp"), _Eta(), TimeElapsedColumn())
     with Progress(*columns, transient=False) as bar:
-        task = bar.add_task(f"{name} planning", total=None, units="-", spp="-")
+        task = bar.add_task(f"{name} planning", total=None, units="-", spp="-", ends_at=None)
 
         def update(p: RenderProgress) -> None:
-            bar.update(task, description=name, total=p.samples_total, completed=p.samples_done,
+            ends_at = None if p.seconds_left is None else time.monotonic() + p.seconds_left
+            bar.update(task, description=name, total=p.samples_total, completed=p.samples_done, ends_at=ends_at,
                        units=f"{p.units_done}/{p.units_total}", spp=f"{p.samples_done / max(1, p.pixels):.0f}")
 
         yield update

@@ -5,14 +5,21 @@ sequence id."""
 
 from __future__ import annotations
 
+import json
 import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
+import numpy as np
 import pytest
+from scipy.ndimage import binary_dilation
 
+from core.image.imageio import read_image
+from core.model.geometry import DEFAULT_FILTER_RADIUS, filter_reach
+from farm.client import FarmClient
 from farm.local import LocalFarm
 
 REPO = Path(__file__).resolve().parent.parent
@@ -77,13 +84,21 @@ def test_several_files_with_sequence_are_its_frames_in_order(home: Path, tmp_pat
 
 
 @pytest.mark.slow
-def test_several_scenes_say_which_id_is_which_and_status_shows_the_parameters(home: Path) -> None:
+def test_several_scenes_say_which_id_is_which_and_status_shows_the_parameters(home: Path, tmp_path: Path) -> None:
     sent = quekaro(home, "submit", str(CBOX), str(GLASS), *SMALL, "--spp", "2", "--name", "shot 1", "--wait")
     assert sent.returncode == 0, sent.stderr
     ids = [line.split("  ") for line in sent.stdout.splitlines() if line.endswith(".xml")]
     assert [scene for _id, scene in ids] == ["cbox.xml", "glass-corner.xml"], sent.stdout
     shown = quekaro(home, "status", ids[0][0]).stdout
     assert 'job: cbox.xml, level off, 2 spp, 16x16, -D res=16  "shot 1"' in shown, shown
+    both = quekaro(home, "status", "shot 1")  # a name stands for the id where one job has it
+    named = ", ".join(sorted(i for i, _ in ids))
+    assert both.returncode == 2 and f"2 jobs are named 'shot 1'; give one's id: {named}" in both.stderr, both.stderr
+    take = quekaro(home, "submit", str(CBOX), *SMALL, "--spp", "1", "--name", "take 7", "--wait")
+    assert take.returncode == 0, take.stderr
+    fetched = quekaro(home, "result", "take 7", cwd=tmp_path)
+    assert fetched.returncode == 0 and (tmp_path / "cbox.exr").is_file(), fetched.stderr
+    assert quekaro(home, "status", "take 7").stdout.startswith(take.stdout.splitlines()[0])
 
 
 @pytest.mark.slow
@@ -135,3 +150,58 @@ def test_ctrl_c_on_submit_wait_stops_the_watching_not_the_job(home: Path) -> Non
     status = quekaro(home, "status", job_id).stdout
     assert re.match(rf"{job_id}\s+(running|queued)", status), status  # the job goes on
     assert quekaro(home, "cancel", job_id).returncode == 0
+
+
+def _cancelled_after(home: Path, args: list[str], ready) -> str:
+    """A job submitted with `args`, cancelled once its status satisfies `ready`: its id."""
+    sent = quekaro(home, "submit", str(CBOX), *args)
+    assert sent.returncode == 0, sent.stderr
+    job_id = sent.stdout.strip()
+    client = FarmClient.from_home(home)
+    deadline = time.monotonic() + 120
+    while not ready(client.status(job_id)):
+        assert time.monotonic() < deadline, client.status(job_id)
+        time.sleep(0.05)
+    assert client.cancel(job_id) is True
+    return job_id
+
+
+@pytest.mark.slow
+def test_a_cancelled_job_gives_its_tiles_so_far_with_partial_black_where_no_unit_landed(home: Path,
+                                                                                        tmp_path: Path) -> None:
+    """`result` of a cancelled job refuses, saying --partial gives its tiles so far; with --partial it writes
+    SCENE.partial.exr: the units that landed as rendered, the others black, and the report names them."""
+    job_id = _cancelled_after(home, ["-D", "res=64", "--spp", "4000", "--units", "4"], lambda j: j["units_done"])
+    refused = quekaro(home, "result", job_id, cwd=tmp_path)
+    assert refused.returncode == 2, refused.stderr
+    assert f"{job_id}: cancelled by the user; --partial writes its tiles so far" in refused.stderr
+    fetched = quekaro(home, "result", job_id, "--partial", cwd=tmp_path)
+    assert fetched.returncode == 0 and fetched.stdout.startswith("cbox.partial.exr  report: cbox.partial.json")
+    report = json.loads((tmp_path / "cbox.partial.json").read_text())
+    missing = report["partial"]["units_missing"]
+    assert report["partial"]["status"] == "cancelled" and 1 <= len(missing) <= 3, report["partial"]
+    assert f"partial: cancelled; {len(missing)} of 4 units have no tile (black)" in fetched.stdout
+    image = read_image(tmp_path / "cbox.partial.exr")[..., :3]
+    landed = np.zeros(image.shape[:2], bool)
+    for unit in report["units"]:
+        x, y, w, h = unit["rect"]
+        landed[y:y + h, x:x + w] = True
+    assert sorted(u["index"] for u in report["units"]) == sorted(set(range(4)) - set(missing))
+    assert np.all(np.isfinite(image)) and (image[landed].max(axis=-1) > 0).mean() > 0.9  # cbox: lit everywhere
+    reach = max(u["band"] for u in report["units"]) + filter_reach(DEFAULT_FILTER_RADIUS)  # past its unit
+    far = ~binary_dilation(landed, iterations=reach)
+    assert far.any() and np.all(image[far] == 0)
+
+
+@pytest.mark.slow
+def test_a_cancelled_job_in_passes_gives_every_unit_from_its_passes_so_far(home: Path, tmp_path: Path) -> None:
+    """A budget job in passes, cancelled once each unit has a pass: its partial image has every unit."""
+    job_id = _cancelled_after(home, ["-D", "res=64", "--spp", "4096", "--units", "4", "--progressive"],
+                              lambda j: j["passes"]["done"] >= 4)
+    fetched = quekaro(home, "result", job_id, "--partial", "-o", str(tmp_path / "shot.exr"))
+    assert fetched.returncode == 0, fetched.stderr
+    report = json.loads((tmp_path / "shot.json").read_text())
+    assert report["partial"]["units_missing"] == [] and report["partial"]["passes"] >= 4
+    assert "partial: cancelled; every unit has a tile, from " in fetched.stdout, fetched.stdout
+    image = read_image(tmp_path / "shot.exr")[..., :3]
+    assert np.all(np.isfinite(image)) and (image.max(axis=-1) > 0).mean() > 0.9

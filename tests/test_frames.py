@@ -26,7 +26,7 @@ def test_a_plain_value_is_not_a_range(text):
 def test_a_bad_range_is_refused_naming_it(text, fault):
     with pytest.raises(QuekaroError, match=fault) as err:
         FrameRange.parse("frame", text)
-    assert "-D frame=" in str(err.value)
+    assert f"-D frame={text}:" in str(err.value)  # the value as the user gave it, not as a range reads it
 
 
 def test_frame_names_pad_to_four_digits_and_grow_past_them():

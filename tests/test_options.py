@@ -54,6 +54,14 @@ def test_a_new_job_at_level_off_refuses_what_it_would_ignore(options, match):
     RenderOptions.from_dict({**options, "level": "S"}).check_used()  # at a rule level they are used
 
 
+@pytest.mark.parametrize("tau", [1, 2, 5.0])
+def test_a_noise_goal_of_a_whole_relative_error_or_more_is_refused_as_a_likely_percentage(tau):
+    """--noise 2 (meaning 2 %?) asks for an error of 200 %, which the first pass meets: a new job is refused."""
+    with pytest.raises(QuekaroError, match=rf"--noise {tau:g}: a relative error of {tau * 100:g} %.*0.02 for 2 %"):
+        RenderOptions(noise=tau).check_used()
+    RenderOptions(noise=0.999).check_used()
+
+
 def test_good_options_round_trip():
     options = RenderOptions.from_dict({"level": "S", "spp": 16, "depth": -1, "units": 6, "sensor": 1})
     assert RenderOptions.from_dict(options.to_dict()) == options

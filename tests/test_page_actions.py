@@ -87,11 +87,17 @@ def test_a_cancelled_jobs_units_read_cancelled_its_partial_image_and_its_delete(
     units = browser.execute_script("return state.job.units.map((u) => u.status)")
     assert "cancelled" in units and "failed" not in units and "done" in units, units
     assert "partial" in browser.find_element(By.ID, "job-summary").text
-    [partial] = wait_until(lambda: rows(browser, "#downloads a[data-download]"), 20, "the partial image's link")
+    links = wait_until(lambda: rows(browser, "#downloads a[data-download]"), 20, "the partial image's links")
+    assert [link["data"]["download"] for link in links] == ["image", "png", "report"]
     status, headers, png = http("GET", f"{farm.url}/ui/api/jobs/{job_id}/download/png",
                                 headers={"Cookie": session_cookie(browser)})
     assert status == 200 and headers["Content-Disposition"] == 'attachment; filename="cbox.partial.png"'
-    assert Image.open(io.BytesIO(png)).size == (256, 256) and partial["data"]["download"] == "png"
+    assert Image.open(io.BytesIO(png)).size == (256, 256)
+    status, headers, exr = http("GET", f"{farm.url}/ui/api/jobs/{job_id}/download/image",
+                                headers={"Cookie": session_cookie(browser)})
+    assert status == 200 and headers["Content-Disposition"] == 'attachment; filename="cbox.partial.exr"'
+    (tmp_path / "partial.exr").write_bytes(exr)
+    assert read_image(tmp_path / "partial.exr").shape == (256, 256, 3)
     screenshot(browser, tmp_path, "cancelled-partial")
 
     browser.get(f"{farm.url}/ui/#/jobs")

@@ -6,10 +6,12 @@ tests/test_web_page.py)."""
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+from rich.console import Console
 
 from core.model.geometry import Rect
 from core.model.job import Effects, JobPlan, JobSpec, RenderOptions, SceneSpec
@@ -182,8 +184,9 @@ def test_the_job_api_status_and_watch_show_units_and_passes_apart(tmp_path: Path
     job = job_summary(service, JOB)
     assert (job["units_done"], job["units_total"], job["eta_at_least"]) == (0, N, False)
     first = budget_passes(SPP)[0] / N  # pass 0 of unit 0 done, over the 4 units
+    share = round(budget_passes(SPP)[0] / (N * SPP), 3)  # the samples done over the job's, its units alike in cost
     assert job["passes"] == {"done": 1, "ordered": 5 * N, "spp_mean": round(first, 1), "goal": "budget",
-                             "stopped": None}
+                             "share": share, "stopped": None}
     assert cmd_farm._passes_text(job) == f", 1/{5 * N} passes, {round(first, 1)} spp"
     assert cmd_farm._eta_text({**job, "eta_s": 12.4, "eta_at_least": True}, " s") == "at least 12 s"
     assert cmd_farm._eta_text({**job, "eta_s": 0.0, "eta_at_least": True}, " s") == "unknown"  # not "at least 0 s"
@@ -200,6 +203,20 @@ def test_the_job_api_status_and_watch_show_units_and_passes_apart(tmp_path: Path
     assert cmd_farm.watch(Client(), JOB, poll_s=0.01) == 0
     out = capsys.readouterr().out
     assert f"0/{N} units" in out and f"1/{5 * N} passes, {round(first, 1)} spp" in out, out
+    bar = io.StringIO()  # on a terminal of 80 columns: the bar's share is the work's, and it has room
+    Client.polls = 0
+    cmd_farm._watch_bar(Client(), JOB, job, 0.01, Console(file=bar, width=80, force_terminal=True, color_system=None))
+    last = bar.getvalue().split("\r")[-1]
+    shown = f"{share * 100:.0f}% 0/{N} units {round(first, 1)} spp"
+    assert shown in last and last.index(shown) - last.index("done") >= 20, last  # the bar between them
+
+
+def test_a_time_goals_share_is_its_seconds_spent(tmp_path: Path) -> None:
+    store = new_job(tmp_path / "jobs.sqlite", time=10.0)
+    order(store, [(u, 0, 4) for u in range(N)])
+    assert store.progress(JOB, 100.0).passes.share == 0.0  # no award yet: its clock has not started
+    render(store, 0, 101.0, 1.0)
+    assert store.progress(JOB, 105.0).passes.share == 0.4 and store.progress(JOB, 130.0).passes.share == 1.0
 
 
 def test_a_requeued_pass_is_named_by_its_unit_and_pass_not_its_row(tmp_path: Path) -> None:

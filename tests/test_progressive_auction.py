@@ -7,13 +7,15 @@ import dataclasses
 import random
 
 import pytest
-from auction_support import register, tile
-from test_auction import ONE_A_ROUND, events, info, round_trip, specs
+from auction_support import register, tick, tile
+from test_auction import ONE_A_ROUND, bid_all, events, info, round_trip, sends, specs
 
 from bench.simulate import simulate
 from core.image.passes import WEIGHT
+from core.model import messages as m
 from core.model.status import JobStatus
 from master import auction as au
+from master.web.logs import unit_lines
 from planning.progressive import TIME, Goal
 
 SPEEDS = [1.5, 0.5, 1.25, 0.75]  # bench.hosts' mixed speeds
@@ -63,3 +65,24 @@ def test_a_time_goal_counts_its_seconds_from_its_first_award_not_its_submission(
         now += 0.05
     assert not events(out, au.PassesSettled), events(out, au.PassesSettled)
     assert a.job_status(job.job_id) == JobStatus.RUNNING
+
+
+def test_a_passs_records_name_its_unit_and_pass_as_the_user_knows_them(tmp_path):
+    """A progressive job's unit rows are passes (row = pass x units + unit): the log's sentences say "unit 1,
+    pass 0", never the row's index, and the page's lines of one unit (master.web.logs.unit_lines) hold
+    every pass of it and none of another unit."""
+    a = au.Auction(ONE_A_ROUND, rng=random.Random(3))
+    job = dataclasses.replace(info(), passes=True, level="off")
+    a.handle(au.JobSubmitted(job, specs([1.0, 2.0]), goal=Goal(TIME, 64, seconds=2.0)), 0.0)
+    register(a, "A", 0.0)
+    bid_all(a, sends(tick(a, 0.0), m.CallForProposal), 0.0)
+    awarded = events(tick(a, 0.0), au.UnitAwarded)
+    assert awarded
+    for record in awarded:
+        unit, pass_index = record.index % 2, record.index // 2
+        assert record.sentence().startswith(f"unit {unit}, pass {pass_index} of job {job.job_id}: awarded to A")
+    (tmp_path / "logs").mkdir()
+    lines = ["unit 1, pass 0 of job j: awarded", "unit 1, pass 3 of job j: done", "unit 11, pass 0 of job j: x",
+             "unit 1 of job j: whole", "unit 1, pass 2 of job jj: other job"]
+    (tmp_path / "logs" / "master.log").write_text("\n".join(lines) + "\n")
+    assert unit_lines(tmp_path, "j", 1) == lines[:2] + lines[3:4]

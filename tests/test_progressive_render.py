@@ -165,3 +165,9 @@ def test_the_bar_counts_toward_the_goal_and_ends_full(tmp_path, goal):
         assert during[0].samples_total is None and all(p.samples_total >= p.samples_done for p in during[1:])
     else:
         assert totals == {None}
+    lefts = [p.seconds_left for p in during[1:]]  # a time goal's ETA is its own seconds left, not a rate's guess
+    if "time" in goal:
+        assert lefts and all(0 <= left <= 1.5 for left in lefts) and lefts == sorted(lefts, reverse=True), lefts
+        assert last.seconds_left is None
+    else:
+        assert {p.seconds_left for p in seen} == {None}

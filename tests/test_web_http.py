@@ -89,8 +89,11 @@ class FakeMaster:
     def result_path(self, job_id: str) -> Path:
         return self.job_dir(job_id) / "result.exr"
 
-    def result_image(self, job_id: str) -> Path:
-        return self.result_path(job_id)
+    def partial_path(self, job_id: str) -> Path:
+        return self.job_dir(job_id) / "partial.exr"
+
+    def result_image(self, job_id: str, partial: bool = False) -> Path:
+        return self.partial_path(job_id) if partial else self.result_path(job_id)
 
     async def retry_unit(self, job_id: str, index: int) -> str | None:
         """As the master's: the store's unit back to pending where it is done (the auction's decision is

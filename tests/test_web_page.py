@@ -131,13 +131,15 @@ def test_a_noise_jobs_eta_is_a_lower_bound_and_a_cancelled_progressive_job_says_
         tickEtas();
         const after = span.textContent;
         span.remove();
-        const passes = {done: 9, ordered: 30, spp_mean: 88.5, goal: "noise"};
+        const passes = {done: 9, ordered: 30, spp_mean: 88.5, goal: "noise", share: 0.625};
         const bar = progressBar({units_done: 2, units_total: 6, units_failed: 4, passes});
         const plain = progressBar({units_done: 2, units_total: 6, units_failed: 4, passes: null});
         return [before, after, bar.querySelector(".bar-text").textContent,
-                plain.querySelector(".bar-text").textContent, bar.querySelectorAll(".bar span").length];""")
+                plain.querySelector(".bar-text").textContent, bar.querySelectorAll(".bar span").length,
+                bar.querySelector(".bar-passes").style.width];""")
     assert shown == ["at least 1 min 40 s", "at least 1 min 10 s",
-                     "2/6 units, 9/30 passes, 88.5 spp, 4 left short of their goal", "2/6 units, 4 left unrendered", 2]
+                     "2/6 units, 9/30 passes, 88.5 spp, 4 left short of their goal", "2/6 units, 4 left unrendered", 2,
+                     "62.5%"]  # the passes' share of the job's work, not 9 of 30 passes
 
 
 def test_a_running_jobs_time_counts_up_between_events_and_an_ended_ones_stays(farm, browser):

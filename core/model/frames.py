@@ -29,15 +29,7 @@ class FrameRange:
     step: int = 1
 
     def __post_init__(self) -> None:
-        where = f"-D {self.define}={self.first}:{self.last}:{self.step}"
-        for name in ("first", "last", "step"):
-            value = getattr(self, name)
-            if type(value) is not int or not 0 <= value <= FRAME_MAX:
-                raise QuekaroError(f"{where}: {name} {value!r} is not a whole number in 0..{FRAME_MAX}")
-        if self.step < 1 or self.last < self.first:
-            raise QuekaroError(f"{where}: expected FIRST:LAST[:STEP] with FIRST <= LAST and STEP >= 1")
-        if len(self) > FRAMES_MAX:
-            raise QuekaroError(f"{where}: {len(self)} frames, over the {FRAMES_MAX} one sequence may hold")
+        _check(f"-D {self.define}={self.first}:{self.last}:{self.step}", self.first, self.last, self.step)
 
     def __len__(self) -> int:
         return (self.last - self.first) // self.step + 1
@@ -51,8 +43,9 @@ class FrameRange:
         match = _RANGE.fullmatch(text.strip())
         if match is None:
             return None
-        first, last, step = match.groups()
-        return cls(define, int(first), int(last), int(step or 1))
+        first, last, step = (int(match[1]), int(match[2]), int(match[3] or 1))
+        _check(f"-D {define}={text.strip()}", first, last, step)  # the error names the value as given
+        return cls(define, first, last, step)
 
     def to_dict(self) -> dict[str, Any]:
         return {"define": self.define, "first": self.first, "last": self.last, "step": self.step}
@@ -64,6 +57,18 @@ class FrameRange:
         if not isinstance(data["define"], str) or not data["define"]:
             raise QuekaroError("job field frames: define must name a scene parameter")
         return cls(data["define"], data["first"], data["last"], data["step"])
+
+
+def _check(where: str, first: Any, last: Any, step: Any) -> None:
+    """A range's numbers as `FrameRange` takes them; a QuekaroError naming `where` otherwise."""
+    for name, value in (("first", first), ("last", last), ("step", step)):
+        if type(value) is not int or not 0 <= value <= FRAME_MAX:
+            raise QuekaroError(f"{where}: {name} {value!r} is not a whole number in 0..{FRAME_MAX}")
+    if step < 1 or last < first:
+        raise QuekaroError(f"{where}: a frame range FIRST:LAST[:STEP] needs FIRST <= LAST and STEP >= 1")
+    frames = (last - first) // step + 1
+    if frames > FRAMES_MAX:
+        raise QuekaroError(f"{where}: {frames} frames, over the {FRAMES_MAX} one sequence may hold")
 
 
 def frame_name(stem: str, frame: int) -> str:

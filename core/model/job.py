@@ -161,6 +161,9 @@ class RenderOptions:
             raise QuekaroError(f"{' and '.join(ruled)}: level off applies no rules (every unit renders the "
                                f"user's spp and depth); give a rule level (--opt {'/'.join(RULE_LEVELS)}) or "
                                f"leave {' and '.join(ruled)} out")
+        if self.noise is not None and self.noise >= 1:
+            raise QuekaroError(f"--noise {self.noise:g}: a relative error of {self.noise * 100:g} %, which any image "
+                               "meets; give it as a fraction under 1 (0.02 for 2 %)")
 
     def overrides(self) -> dict[str, Any]:
         """The effect decisions the user forced (they win over the analysis)."""

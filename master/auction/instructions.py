@@ -58,7 +58,21 @@ class Record(Instruction):
 
 
 @dataclass(frozen=True)
-class UnitAwarded(Record):
+class UnitRecord(Record):
+    """A record of one unit's award; a progressive job's unit rows are passes, which `origin` names as the
+    user knows them, (unit, pass): its sentence says "unit 2, pass 3", not the row's index."""
+
+    origin: tuple[int, int] | None = field(default=None, kw_only=True)
+
+    def sentence(self) -> str:
+        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        if self.origin is not None:
+            values["index"] = "{}, pass {}".format(*self.origin)
+        return self.template.format(**values)
+
+
+@dataclass(frozen=True)
+class UnitAwarded(UnitRecord):
     template: ClassVar[str] = "unit {index} of job {job_id}: awarded to {agent}, estimate {estimate:.2f} s " \
                               "(try {attempt})"
     job_id: str
@@ -71,7 +85,7 @@ class UnitAwarded(Record):
 
 
 @dataclass(frozen=True)
-class UnitDone(Record):
+class UnitDone(UnitRecord):
     """The unit's tile is durable and its award's holder is done: the tile, the parameters it was rendered
     with (as the store keeps them), and the agent's record."""
 
@@ -96,7 +110,7 @@ class UnitDone(Record):
 
 
 @dataclass(frozen=True)
-class UnitFailed(Record):
+class UnitFailed(UnitRecord):
     """The unit failed on its agent (its report, or its render deadline passed): back to pending."""
 
     template: ClassVar[str] = "unit {index} of job {job_id}: {reason}; back to the auction"
@@ -110,7 +124,7 @@ class UnitFailed(Record):
 
 
 @dataclass(frozen=True)
-class UnitRequeued(Record):
+class UnitRequeued(UnitRecord):
     """The unit went back to pending without blaming its agent (lost, or the award never arrived)."""
 
     template: ClassVar[str] = "unit {index} of job {job_id}: back to the auction ({reason})"

@@ -113,6 +113,11 @@ def _batch_deadlines(job: Job, out: list[Instruction], wins: dict[str, list[Unit
             for c in out]
 
 
+def _origin(job: Job, index: int) -> tuple[int, int] | None:
+    """(unit, pass) of a progressive job's unit row `index`, as its records name it; None for a whole unit."""
+    return job.passes.origin(index) if job.passes is not None else None
+
+
 def _own_first(units: tuple[int, ...], agent: str, plan: dict[int, Placement], room: int) -> tuple[int, ...]:
     """The units offered to `agent`, those the projection places on it first where it may win several."""
     if room <= 1:
@@ -605,7 +610,7 @@ class Auction:
         out: list[Instruction] = [
             UnitDone(tile.job_id, tile.index, agent, unit.token, seconds=seconds, estimate=unit.estimate,
                      tile_path=tile.tile_path, tile_hash=tile.sha256, report=tile.stored(agent),
-                     credits=state.credits, on_time=on_time)]
+                     credits=state.credits, on_time=on_time, origin=_origin(job, tile.index))]
         self._clear_award(job, unit, UnitStatus.DONE)
         unit.delivered_by = agent
         if job.passes is not None:
@@ -1185,7 +1190,7 @@ class Auction:
             estimate_s=estimate,
         )
         record = UnitAwarded(job.info.job_id, unit.spec.index, agent, unit.token, estimate, unit.attempts,
-                            unit.deadline)
+                             unit.deadline, origin=_origin(job, unit.spec.index))
         return [SendToAgent(agent, award), record]
 
     # --- progressive jobs: passes as units (master.auction.passes) ---------------------------------------
@@ -1284,7 +1289,7 @@ class Auction:
         unit = job.units[key[1]]
         if unit.agent in self._agents:
             self._release(self._agents[unit.agent], key)
-        record = UnitRequeued(key[0], key[1], unit.agent, unit.token, reason)
+        record = UnitRequeued(key[0], key[1], unit.agent, unit.token, reason, origin=_origin(job, key[1]))
         self._clear_award(job, unit, UnitStatus.PENDING)
         return [record]
 
@@ -1300,7 +1305,8 @@ class Auction:
         unit.failures += 1
         unit.failed_on.add(agent)
         unit.last_reason = reason
-        out: list[Instruction] = [UnitFailed(key[0], key[1], agent, unit.token, reason, state.credits)]
+        out: list[Instruction] = [UnitFailed(key[0], key[1], agent, unit.token, reason, state.credits,
+                                             origin=_origin(job, key[1]))]
         self._clear_award(job, unit, UnitStatus.PENDING)
         job.failures_by_agent[agent] += 1
         if job.failures_by_agent[agent] >= self.config.blocklist_after and agent not in job.blocklist:

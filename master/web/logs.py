@@ -7,6 +7,7 @@ is read (`TAIL_BYTES`, `UNIT_BYTES`): a log of weeks is never read whole for a p
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 from core.logs import farm_logs
@@ -32,11 +33,12 @@ def tail(path: Path, lines: int) -> list[str]:
 
 
 def unit_lines(home: Path, job_id: str, index: int, limit: int = 200) -> list[str]:
-    """What the master's log says of one unit: its lines naming "unit N of job J" (the auction's records:
-    awards, failures with the agent's reason, requeues, done), the last `limit` of them."""
+    """What the master's log says of one unit: its lines naming "unit N of job J", or a progressive job's
+    "unit N, pass P of job J" (the auction's records: awards, failures with the agent's reason, requeues,
+    done), the last `limit` of them."""
     path = farm_logs(home).get("master")
     if path is None:
         return []
-    mark = f"unit {index} of job {job_id}:"
-    found = [line for line in _end_lines(path, UNIT_BYTES) if mark in line]
+    mark = re.compile(rf"unit {index}(, pass \d+)? of job {re.escape(job_id)}:")
+    found = [line for line in _end_lines(path, UNIT_BYTES) if mark.search(line)]
     return found[-limit:]

@@ -196,13 +196,13 @@ function render() {
 
 // A unit is "failed" in the store only when its job ended without it (cancelled or failed): it was left
 // unrendered, not broken (a unit whose render fails is retried elsewhere). A progressive job counts its
-// image's units (done: their goal met) and shows its passes apart, their share of the bar in a lighter
-// colour (a noise or time goal meets its units only at the job's end).
+// image's units (done: their goal met) and shows its passes apart, their share of the job's work in a
+// lighter colour (a noise or time goal meets its units only at the job's end).
 function progressBar(job) {
   const total = job.units_total || 0;
   const share = total ? (100 * job.units_done) / total : 0;
   const passes = job.passes;
-  const passShare = passes && passes.ordered ? (100 * passes.done) / passes.ordered : 0;
+  const passShare = passes ? 100 * passes.share : 0;  // the work done (a time goal's seconds), not the passes counted
   const left = passes ? "left short of their goal" : "left unrendered";
   return el("div", { class: "progress", dataset: passes ? { passesDone: String(passes.done), passesOrdered: String(passes.ordered) } : {} },
     el("div", { class: "bar" },
@@ -468,7 +468,8 @@ function renderDownloads(job) {
     fill(box, el("b", {}, "Download"), link("image", "image (EXR)"), link("png", "PNG"), link("report", "report (JSON)"),
       job.options && job.options.denoise ? link("raw", "raw image (EXR, with AOVs)") : null);
   } else if (job.partial) {
-    fill(box, el("b", {}, "Download"), link("png", "partial image (PNG: the tiles done, the rest black)"));
+    fill(box, el("b", {}, "Download"), link("image", "partial image (EXR: the tiles done, the rest black)"),
+      link("png", "PNG"), link("report", "report (JSON)"));
   } else {
     box.hidden = true;
     return;
