@@ -672,9 +672,10 @@ class JobStore:
         return count, f"unit {index} {outcome}: {reason}" if reason else f"unit {index} {outcome} on {agent}"
 
     def _rendered_so_far(self, job_id: str, per_work: float, now: float | None) -> float:
-        """Seconds the units of a job being rendered have rendered by `now`, each capped at its unit's work
-        x `per_work` (a unit over its time is not done sooner for it). An agent renders one unit at a time:
-        of the units it holds, the one awarded first is taken as rendering, the others as queued."""
+        """Seconds the units of a job being rendered have rendered by `now`, each render capped at its work
+        x `per_work` (a unit over its time is not done sooner for it). An agent renders one call at a time:
+        of the units it holds, those awarded first (together, in one round: one call renders them) are taken
+        as rendering, the others as queued."""
         if now is None:
             return 0.0
         running = self.db.execute(
@@ -683,9 +684,11 @@ class JobStore:
             " WHERE a.job_id = ? AND a.outcome = 'running' AND u.status = ? ORDER BY a.started",
             (job_id, UnitStatus.AWARDED),
         ).fetchall()
-        first = {}
+        first: dict[str, list[float]] = {}  # an agent's first call: [started, its units' work]
         for agent, started, work in running:
-            first.setdefault(agent, (started, work))
+            call = first.setdefault(agent, [started, 0.0])
+            if started == call[0]:
+                call[1] += work
         return sum(min(max(0.0, now - started), work * per_work) for started, work in first.values())
 
     # --- restart and the auction's events ------------------------------------------------------------

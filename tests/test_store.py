@@ -233,6 +233,23 @@ def test_the_eta_counts_down_the_unit_an_agent_renders_not_the_one_it_has_queued
     assert store.progress("job-1", 101.0 + cost[1] / 2).eta_s == pytest.approx(left - cost[1] / 2)
 
 
+def test_the_eta_counts_down_every_unit_of_the_call_an_agent_renders(tmp_path: Path) -> None:
+    """Units (a progressive job's passes) awarded to an agent in one round render in one call: the ETA counts
+    down their work together, not the first unit's alone (it stood still once that one's time was up)."""
+    store = new_store(tmp_path / "farm.db", n=3)
+    cost = {u.index: u.cost for u in store.units("job-1")}
+    store.record_award("job-1", 0, "A", "aa" * 16, 100.0, 1.0)
+    store.record_result("job-1", 0, "/t/0.exr", "00" * 32, {"spp": 16}, 101.0)
+    store.finish_attempt("aa" * 16, "done", 101.0, cost[0], {"spp": 16})  # one second per unit of cost
+    store.mark_done("job-1", 0, 101.0)
+    store.record_award("job-1", 1, "A", "bb" * 16, 101.0, 1.0)  # one call renders both
+    store.record_award("job-1", 2, "A", "cc" * 16, 101.0, 1.0)
+    left = cost[1] + cost[2]
+    later = 0.9 * left  # past unit 1's own time
+    assert later > cost[1] and store.progress("job-1", 101.0 + later).eta_s == pytest.approx(left - later)
+    assert store.progress("job-1", 101.0 + 2 * left).eta_s == pytest.approx(0.0)
+
+
 def test_cancel_ends_units_and_attempts(tmp_path: Path) -> None:
     store = new_store(tmp_path / "farm.db", n=2)
     store.record_award("job-1", 0, "A", "aa" * 16, 101.0, 2.0)
