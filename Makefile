@@ -44,9 +44,13 @@ setup: system-deps $(BIN)/quekaro
 demo: setup
 	$(BIN)/quekaro demo
 
+# The suite's files on TEST_WORKERS processes (pytest-xdist, a file's tests together on one: its farm is
+# made once). Most of the suite waits on farms, servers and browsers; two share this machine's two cores.
+TEST_WORKERS ?= 2
+
 test: setup
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=25
 
 lint: setup
 	$(BIN)/ruff check .
