@@ -474,6 +474,7 @@ def test_submitting_several_scenes_one_refused_still_submits_the_others(farm3, t
 
 
 @pytest.mark.slow
+@pytest.mark.alone  # its premise, agents sending faster than the old allowance, needs their CPUs
 def test_agents_rendering_tiny_units_are_not_refused_as_a_flood(tmp_path):
     """Units that render in milliseconds make each agent send a proposal (or a refusal) and an inform per
     unit, dozens a second for the whole job. The master's per-sender allowance must hold that: a proposal
