@@ -472,8 +472,12 @@ def _passes_text(job: dict) -> str:
     passes = job.get("passes")
     if not passes:
         return ""
-    spp = str(passes["spp_mean"]).removesuffix(".0")  # as the page writes it: 287.5, 288, 1048576
-    return f", {passes['done']}/{passes['ordered']} passes, {spp} spp"
+    return f", {passes['done']}/{passes['ordered']} passes, {_spp_text(passes)} spp"
+
+
+def _spp_text(passes: dict) -> str:
+    """The mean spp so far as the page writes it: 287.5, 288, 1048576."""
+    return str(passes["spp_mean"]).removesuffix(".0")
 
 
 def _eta_text(job: dict, unit: str) -> str:
@@ -628,8 +632,7 @@ def _bar_state(job: dict) -> tuple[float, float, str]:
     passes = job.get("passes")
     if not passes:
         return job["units_done"], max(1, job["units_total"]), units
-    spp = str(passes["spp_mean"]).removesuffix(".0")
-    return passes.get("share", 0.0), 1.0, f"{units} {spp} spp"
+    return passes.get("share", 0.0), 1.0, f"{units} {_spp_text(passes)} spp"
 
 
 def run_result(args: argparse.Namespace) -> int:

@@ -219,13 +219,19 @@ def test_auction_events_are_recorded(tmp_path: Path) -> None:
     assert store.progress("job-1").eta_s == 0.0
 
 
-def test_the_eta_counts_down_the_unit_an_agent_renders_not_the_one_it_has_queued(tmp_path: Path) -> None:
+def _first_unit_done(tmp_path: Path) -> tuple[JobStore, dict[int, float]]:
+    """A 3-unit job whose unit 0 agent A rendered at one second per unit of cost; the units' costs."""
     store = new_store(tmp_path / "farm.db", n=3)
     cost = {u.index: u.cost for u in store.units("job-1")}
     store.record_award("job-1", 0, "A", "aa" * 16, 100.0, 1.0)
     store.record_result("job-1", 0, "/t/0.exr", "00" * 32, {"spp": 16}, 101.0)
     store.finish_attempt("aa" * 16, "done", 101.0, cost[0], {"spp": 16})  # one second per unit of cost
     store.mark_done("job-1", 0, 101.0)
+    return store, cost
+
+
+def test_the_eta_counts_down_the_unit_an_agent_renders_not_the_one_it_has_queued(tmp_path: Path) -> None:
+    store, cost = _first_unit_done(tmp_path)
     store.record_award("job-1", 1, "A", "bb" * 16, 101.0, 1.0)  # rendering
     store.record_award("job-1", 2, "A", "cc" * 16, 101.0 + cost[1] / 4, 1.0)  # queued behind it
     left = cost[1] + cost[2]
@@ -236,12 +242,7 @@ def test_the_eta_counts_down_the_unit_an_agent_renders_not_the_one_it_has_queued
 def test_the_eta_counts_down_every_unit_of_the_call_an_agent_renders(tmp_path: Path) -> None:
     """Units (a progressive job's passes) awarded to an agent in one round render in one call: the ETA counts
     down their work together, not the first unit's alone (it stood still once that one's time was up)."""
-    store = new_store(tmp_path / "farm.db", n=3)
-    cost = {u.index: u.cost for u in store.units("job-1")}
-    store.record_award("job-1", 0, "A", "aa" * 16, 100.0, 1.0)
-    store.record_result("job-1", 0, "/t/0.exr", "00" * 32, {"spp": 16}, 101.0)
-    store.finish_attempt("aa" * 16, "done", 101.0, cost[0], {"spp": 16})  # one second per unit of cost
-    store.mark_done("job-1", 0, 101.0)
+    store, cost = _first_unit_done(tmp_path)
     store.record_award("job-1", 1, "A", "bb" * 16, 101.0, 1.0)  # one call renders both
     store.record_award("job-1", 2, "A", "cc" * 16, 101.0, 1.0)
     left = cost[1] + cost[2]
