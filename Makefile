@@ -45,13 +45,14 @@ demo: setup
 	$(BIN)/quekaro demo
 
 # The suite's files on TEST_WORKERS processes (pytest-xdist, a file's tests together on one: its farm is
-# made once). Most of the suite waits on farms, servers and browsers; two share this machine's two cores.
+# made once), in the order collected (tests/conftest.py: the longest files first). Most of the suite waits on
+# farms, servers and browsers; two share this machine's two cores.
 # Then the tests marked `alone`, with the machine to themselves.
 TEST_WORKERS ?= 2
 
 test: setup
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q -m "not alone" -n $(TEST_WORKERS) --dist loadfile --durations=25
+	$(BIN)/python -m pytest -q -m "not alone" -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder --durations=25
 	$(BIN)/python -m pytest -q -m alone --durations=5
 
 lint: setup

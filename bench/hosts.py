@@ -264,6 +264,11 @@ class EmulatedFarm:
             time.sleep(0.5)
         raise QuekaroError(f"the farm did not come up within {timeout:.0f} s (see {self.logs})")
 
+    def cpu_seconds(self) -> dict[str, float]:
+        """User + system CPU seconds so far of the master, the XMPP server and the agents (all together)."""
+        return {"master": proc_stat(self.master.pid)[1], "server": proc_stat(self.server.pid)[1],
+                "agents": sum(proc_stat(p.pid)[1] for p in self.agents)}
+
     def stop_agents(self) -> None:
         """SIGTERM every agent and wait: each writes its emulation.json as it stops."""
         stop_processes(self.agents, timeout=30.0)
@@ -278,15 +283,17 @@ class EmulatedFarm:
 # ---- what is measured --------------------------------------------------------------------------------
 
 
+def machine_ticks() -> tuple[int, int]:
+    """(busy, total) CPU ticks of the whole machine since boot (/proc/stat; idle and iowait are not busy)."""
+    values = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    return sum(values) - values[3] - values[4], sum(values)
+
+
 def cpu_busy(interval: float = 1.0) -> float:
-    """The share of the machine's CPU time spent busy over `interval` seconds (/proc/stat)."""
-    def sample() -> tuple[int, int]:
-        values = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
-        idle = values[3] + values[4]  # idle and iowait
-        return sum(values) - idle, sum(values)
-    busy0, total0 = sample()
+    """The share of the machine's CPU time spent busy over `interval` seconds."""
+    busy0, total0 = machine_ticks()
     time.sleep(interval)
-    busy1, total1 = sample()
+    busy1, total1 = machine_ticks()
     return (busy1 - busy0) / max(total1 - total0, 1)
 
 
@@ -423,18 +430,20 @@ def _run_job(farm: EmulatedFarm, client: FarmClient, job: BenchJob) -> dict[str,
     """Submit the job and wait for it, timing the master's CPU; then fetch its report."""
     pid = farm.master.pid
     load = os.getloadavg()[0]  # the machine is shared: what else ran is part of the figures
-    cpu0, submitted = proc_stat(pid)[1], time.time()
+    cpu0, ticks0, submitted = farm.cpu_seconds(), machine_ticks(), time.time()
     job_id = client.submit(job.bundle, job.defines, job.options)
     timeout = max(600.0, 4 * job.t1 / len(farm.agents))
     status = client.wait(job_id, timeout, poll=0.5, while_waiting=farm.check_alive)
-    cpu1 = proc_stat(pid)[1]
+    cpu1, ticks1 = farm.cpu_seconds(), machine_ticks()
     if status["status"] != "done":
         raise QuekaroError(f"benchmark job {job_id} {status['status']}: {status.get('error')}")
     agents_mib = [proc_memory(p.pid)["rss_mib"] for p in farm.agents]
     master_mem = proc_memory(pid)
     client.result(job_id, farm.root / "result.exr")
     report = json.loads((farm.root / "result.json").read_text())
-    return {"job_id": job_id, "submitted": submitted, "load_before": load, "master_cpu_s": cpu1 - cpu0,
+    return {"job_id": job_id, "submitted": submitted, "load_before": load,
+            "cpu_s": {k: cpu1[k] - cpu0[k] for k in cpu0}, "master_cpu_s": cpu1["master"] - cpu0["master"],
+            "busy_during": (ticks1[0] - ticks0[0]) / max(ticks1[1] - ticks0[1], 1),
             "master_peak_mib": master_mem["peak_mib"], "master_rss_mib": master_mem["rss_mib"],
             "agent_rss_mib": statistics.mean(agents_mib), "agents_rss_total_mib": sum(agents_mib),
             "report_units": len(report["units"]), "report_emulated_units": report["totals"].get("emulated_units", 0)}
@@ -465,6 +474,7 @@ def _row(n: int, speeds: list[float], job: BenchJob, store: StoreView, measured:
         "summaries_missing": counted["summaries_missing"],
         "report_units": measured["report_units"], "report_emulated_units": measured["report_emulated_units"],
         "job_id": measured["job_id"], "load_before": measured["load_before"],
+        "busy_during": measured["busy_during"], "cpu_s": measured["cpu_s"],
     }
 
 
@@ -586,7 +596,7 @@ def format_report(result: dict[str, Any]) -> str:
               f"{'bands spill, not sampled' if r.get('spill') else 'bands sampled'}) "
               f"{result['t1_s'] / r['units_seconds']:.3f}; load average {r['load_before']:.2f} at submit (CPUs "
               f"{100 * r.get('busy_at_submit', float('nan')):.0f} % busy after {r.get('settle_s', 0):.0f} s of "
-              f"settling), submit to done "
+              f"settling), {_cpu_text(r)}, submit to done "
               f"{r['submit_to_done_s']:.1f} s, simulated with exact bids {r['sim_exact_makespan_s']:.1f} s, "
               f"{r['attempts']} attempts "
               f"({r['requeued']} not done), agents up in {r['up_s']:.0f} s, agents' memory "
@@ -596,6 +606,13 @@ def format_report(result: dict[str, Any]) -> str:
     lines.append("")
     lines += targets(rows)
     return "\n".join(lines)
+
+
+def _cpu_text(r: dict[str, Any]) -> str:
+    """Where the machine's CPUs went from submit to done: its busy share, and the cores each part used."""
+    cores = {k: v / r["submit_to_done_s"] for k, v in r["cpu_s"].items()}
+    return (f"CPUs {100 * r['busy_during']:.0f} % busy during the job (cores: master {cores['master']:.2f}, "
+            f"Prosody {cores['server']:.2f}, agents {cores['agents']:.2f})")
 
 
 def targets(rows: list[dict[str, Any]]) -> list[str]:

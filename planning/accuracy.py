@@ -125,31 +125,46 @@ MAX_TIMING_SPP = 1 << 14
 
 
 def spp_timing(spec: Any, spp: int, threads: int, variant: str, asked: Asked = Asked()) -> tuple[float, float]:
-    """(t0, k) of t(spp) = t0 + k spp for the plain Mitsuba process, from the faster of two runs at two spp.
-    Render time is linear in spp (docs/design.md section 3), so the spp for a given time follows from the line."""
+    """(t0, k) of t(spp) = t0 + k spp for the plain Mitsuba process (`fit_spp_line`). Render time is linear
+    in spp (docs/design.md section 3), so the spp for a given time follows from the line."""
     size = ", ".join(f"{k}={v}" for k, v in spec.defines.items())
-    return fit_spp_line(lambda n: min(plain_render(spec, n, threads, variant, seed=s, asked=asked)[1] for s in (1, 2)),
+    seeds = iter(range(1, 1 << 20))
+    return fit_spp_line(lambda n: plain_render(spec, n, threads, variant, seed=next(seeds), asked=asked)[1],
                         spp, what=f"{spec.path.name} ({size})")
 
 
+#: How far one step may raise the high spp of `fit_spp_line`: at least 4x, at most 16x its span.
+GROWTH_STEPS = (4, 16)
+
+
 def fit_spp_line(seconds_at: Callable[[int], float], spp: int, what: str = "the scene") -> tuple[float, float]:
-    """(t0, k) through two timings, the higher spp raised 4x at a time until samples cost a measurable
-    share of its time (MIN_SPP_SHARE of t0, at least MIN_SPP_SECONDS); QuekaroError past MAX_TIMING_SPP."""
+    """(t0, k) through the faster of two timings at each of two spp. The higher spp grows until samples
+    cost a measurable share of its time (MIN_SPP_SHARE of t0, at least MIN_SPP_SECONDS): each step by
+    how far the last one fell short (GROWTH_STEPS), one timing a step, the second only near the goal.
+    QuekaroError past MAX_TIMING_SPP."""
     lo = max(1, spp // 4)
-    t_lo = seconds_at(lo)
+    t_lo = min(seconds_at(lo), seconds_at(lo))
+    needed = max(MIN_SPP_SECONDS, MIN_SPP_SHARE * t_lo)
     hi = max(spp, lo + 1)
     while True:
         t_hi = seconds_at(hi)
-        grown = t_hi - t_lo
-        if grown >= max(MIN_SPP_SECONDS, MIN_SPP_SHARE * t_lo):
-            k = grown / (hi - lo)
-            return max(t_lo - k * lo, 0.0), k
-        if hi * 4 > MAX_TIMING_SPP:
+        if t_hi - t_lo >= needed / 2:
+            t_hi = min(t_hi, seconds_at(hi))
+            if t_hi - t_lo >= needed:
+                k = (t_hi - t_lo) / (hi - lo)
+                return max(t_lo - k * lo, 0.0), k
+        if hi >= MAX_TIMING_SPP:
             raise QuekaroError(
                 f"{what}: a render at {hi} spp took {t_hi:.3f} s against {t_lo:.3f} s at {lo} spp; the cost "
                 f"of a sample is too small to time, so no uniform spp can be matched to a cell's time "
                 f"(a larger image: `quekaro bench accuracy --res`, or the scene's film size)")
-        hi *= 4
+        hi = min(MAX_TIMING_SPP, lo + round((hi - lo) * _growth(t_hi - t_lo, needed)))
+
+
+def _growth(grown: float, needed: float) -> float:
+    """The factor for the high spp's span: twice the goal over what the last span grew, within GROWTH_STEPS."""
+    low, high = GROWTH_STEPS
+    return min(high, max(low, 2 * needed / max(grown, 1e-9)))
 
 
 def default_cache() -> Path:

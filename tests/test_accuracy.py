@@ -40,17 +40,24 @@ def test_the_reference_cache_follows_xdg_cache_home(tmp_path, monkeypatch):
     assert accuracy.default_cache() == Path.home() / ".cache" / "quekaro"
 
 
-def test_spp_line_raises_the_high_count_until_samples_cost_measurable_time():
-    # 2 ms per spp on top of 0.1 s: at 4 spp the samples are noise, at 64 spp they are 0.128 s.
-    asked = []
+@pytest.mark.parametrize(("per_spp", "asked"), [
+    # 2 ms per spp on top of 0.1 s: at 4 spp the samples are noise (6 ms of the 51 needed), so the span grows
+    # by the most a step may (16x); at 49 spp they are 96 ms, timed twice, and the line is fit.
+    (0.002, [1, 1, 4, 49, 49]),
+    # 10 ms per spp: 30 ms of the 55 needed at 4 spp is near the goal, so timed twice; twice the goal over
+    # 30 ms is 3.7x, raised to the least step (4x): the span 3 becomes 12.
+    (0.01, [1, 1, 4, 4, 13, 13]),
+])
+def test_spp_line_raises_the_high_count_by_how_far_samples_fell_short_of_measurable(per_spp, asked):
+    timed = []
 
     def seconds_at(spp: int) -> float:
-        asked.append(spp)
-        return 0.1 + 0.002 * spp
+        timed.append(spp)
+        return 0.1 + per_spp * spp
 
     t0, k = accuracy.fit_spp_line(seconds_at, 4)
-    assert asked == [1, 4, 16, 64]
-    assert t0 == pytest.approx(0.1) and k == pytest.approx(0.002)
+    assert timed == asked
+    assert t0 == pytest.approx(0.1) and k == pytest.approx(per_spp)
 
 
 def test_spp_line_refuses_a_scene_whose_samples_cost_nothing_measurable():
