@@ -162,8 +162,8 @@ class FarmClient:
     def result(self, job_id: str, out: Path, partial: bool = False) -> Path:
         """Download the composed image and its report (which names the image as written here), and write
         the tonemapped PNG beside them; return the image's path: `out` with the suffix of the film's file
-        format (.exr, .pfm, .rgbe), as Mitsuba names its output. `partial`: a failed or cancelled job's
-        tiles so far (the master's 409 otherwise)."""
+        format (.exr, .pfm, .rgbe), as Mitsuba names its output. `partial`: the tiles so far of a job
+        running, failed or cancelled (the master's 409 otherwise), and the report of that image."""
         out = Path(out)
         query = "?partial=1" if partial else ""
         body, headers = self._exchange("GET", f"/api/jobs/{job_id}/result{query}")

@@ -6,7 +6,8 @@ Every route needs the farm's admin token (`Authorization: Bearer ...`):
     GET  /api/jobs[?sequence=SEQ]  every job (or a sequence's, in frame order) with its progress
     GET  /api/jobs/{job}           one job: status, progress, agents busy, ETA, error; a sequence id: its frames
     GET  /api/jobs/{job}/result    the composed image, EXR unless the film asks otherwise (409 until done);
-                                   ?partial=1: a failed or cancelled job's tiles so far (SCENE.partial.exr)
+                                   ?partial=1: the tiles so far of a job running, failed or cancelled
+                                   (SCENE.partial.exr), composed again as tiles land
     GET  /api/jobs/{job}/report    the JSON report (?partial=1: the partial image's)
     GET  /api/jobs/{job}/units/{n} one unit: status, agent, attempts, and its story
     POST /api/jobs/{job}/cancel    cancel the job (a sequence id: every frame)
@@ -59,7 +60,7 @@ class JobService(Protocol):
     async def cancel(self, job_id: str) -> bool: ...
     async def requeue(self, job_id: str) -> str | None: ...
     async def ensure_assembled(self, job_id: str) -> Path: ...
-    async def ensure_partial(self, job_id: str) -> Path: ...
+    async def ensure_partial(self, job_id: str, follow_tiles: bool = True) -> Path: ...
     def job_dir(self, job_id: str) -> Path: ...
     def result_path(self, job_id: str) -> Path: ...
     def result_image(self, job_id: str, partial: bool = False) -> Path: ...
@@ -276,7 +277,9 @@ async def job_status(request: web.Request) -> web.Response:
         return json_error(404, str(exc))
 
 
-async def _finished_result(request: web.Request) -> tuple[JobService, JobRecord] | web.Response:
+async def _served_result(request: web.Request, kind: str) -> tuple[JobService, JobRecord] | web.Response:
+    """The job whose file of `kind` is asked for, its image composed; or the error response. A running job's
+    partial image is composed again for its image, not for its report (it describes the image fetched)."""
     service = _service(request)
     job_id = request.match_info["job"]
     if SEQUENCE_ID.fullmatch(job_id):
@@ -286,54 +289,53 @@ async def _finished_result(request: web.Request) -> tuple[JobService, JobRecord]
         record = service.store.job(job_id)
     except StoreError as exc:
         return json_error(404, str(exc))
-    partial = _partial(request)
-    if record.status != "done" and not (partial and record.status in ("failed", "cancelled")):
-        ended = record.status != "running"
+    if record.status != "done" and not _partial(request):
         return json_error(409, f"job {job_id} is {record.status}" + (f": {record.error}" if record.error else "")
-                          + ("; ?partial=1 gives its tiles so far" if ended else ""))
+                          + "; ?partial=1 gives its tiles so far")
     try:
-        await (service.ensure_assembled(job_id) if record.status == "done" else service.ensure_partial(job_id))
+        await (service.ensure_assembled(job_id) if record.status == "done"
+               else service.ensure_partial(job_id, follow_tiles=kind == "image"))
     except Exception as exc:
         if disk_full(exc):
             raise Refusal(507, "disk full on the master: the job's image is composed once space is freed; "
                                "ask again then") from exc
-        if isinstance(exc, QuekaroError) and record.status != "done":  # requeued while asked
+        if isinstance(exc, QuekaroError) and record.status != "done":  # no tile yet; done or requeued meanwhile
             return json_error(409, str(exc))
         raise
     return service, record
 
 
 async def job_result(request: web.Request) -> web.StreamResponse:
-    """The composed image (`result_image`), 409 until the job is done."""
-    return await _finished_file(request, "image")
+    """The composed image (`result_image`), 409 until the job is done unless ?partial=1."""
+    return await _served_file(request, "image")
 
 
 async def job_report(request: web.Request) -> web.StreamResponse:
-    return await _finished_file(request, "report")
+    return await _served_file(request, "report")
 
 
 async def job_raw(request: web.Request) -> web.StreamResponse:
     """A denoised job's raw image with the denoiser's AOVs (result.raw.exr); 404 for a job not denoised."""
-    return await _finished_file(request, "raw")
+    return await _served_file(request, "raw")
 
 
 def result_file(service: JobService, job_id: str, kind: str, partial: bool = False) -> Path:
     """A done job's file of `kind`: its composed image, raw image, JSON report or PNG; `partial`: those of
-    the image of a job that ended without finishing (`ensure_partial`; it has no raw image)."""
+    the tiles so far of a job running or ended without finishing (`ensure_partial`; it has no raw image)."""
     if kind == "image":
         return service.result_image(job_id, partial)
     stem = service.partial_path(job_id) if partial else service.result_path(job_id)
     return stem.with_suffix({"raw": RAW_SUFFIX, "report": ".json", "png": ".png"}[kind])
 
 
-async def _finished_file(request: web.Request, kind: str) -> web.StreamResponse:
-    """A finished job's file of `kind` (`result_file`), named as `download_name` names it; a partial one's
-    SCENE.partial.exr."""
-    found = await _finished_result(request)
+async def _served_file(request: web.Request, kind: str) -> web.StreamResponse:
+    """A done job's file of `kind` (`result_file`), named as `download_name` names it; with ?partial=1 one
+    of a job not done: SCENE.partial.exr."""
+    found = await _served_result(request, kind)
     if isinstance(found, web.Response):
         return found
     service, record = found
-    partial = record.status != "done"  # _finished_result lets it through only where ?partial=1 asks
+    partial = record.status != "done"  # _served_result lets it through only where ?partial=1 asks
     path = result_file(service, record.id, kind, partial)
     if not path.exists():
         why = ("was not denoised: its image is the raw one" if not partial else "did not finish: its partial image "
@@ -344,7 +346,7 @@ async def _finished_file(request: web.Request, kind: str) -> web.StreamResponse:
 
 
 def _partial(request: web.Request) -> bool:
-    """The query's `partial` (0 or 1): whether a job that ended without finishing may give its tiles so far."""
+    """The query's `partial` (0 or 1): whether a job not done may give its tiles so far."""
     value = request.query.get("partial", "0")
     if value not in ("0", "1"):
         raise Refusal(400, f"partial: {value[:20]!r} is not 0 or 1")

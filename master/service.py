@@ -299,7 +299,7 @@ class MasterService:
         return self.job_dir(job_id) / "result.exr"
 
     def partial_path(self, job_id: str) -> Path:
-        """partial.exr: the image of a job that ended without finishing, its tiles so far (`assemble_partial`)."""
+        """partial.exr: the tiles so far of a job running or ended without finishing (`assemble_partial`)."""
         return self.job_dir(job_id) / "partial.exr"
 
     def result_image(self, job_id: str, partial: bool = False) -> Path:
@@ -653,11 +653,12 @@ class MasterService:
         """A job runs again (a unit retried, a job requeued): its composed image, report and preview go, composed
         again at its end (a stale image must not be served meanwhile)."""
         for stem in (self.result_path(job_id), self.partial_path(job_id)):
-            for suffix in (*IMAGE_SUFFIXES, RAW_SUFFIX, ".json", ".png"):
-                stem.with_suffix(suffix).unlink(missing_ok=True)
+            _drop_files(stem)
 
     async def _assemble(self, job_id: str) -> dict[str, Any]:
-        """The job's image, after its AOV pass where it is denoised, composed in a thread."""
+        """The job's image, after its AOV pass where it is denoised, composed in a thread; its partial image
+        (`assemble_partial`), if one was fetched while it ran, goes."""
+        _drop_files(self.partial_path(job_id))
         denoised = self.store.job(job_id).spec.options.denoise
         aov_pass = await self._aov_pass(job_id) if denoised else None
         return await asyncio.to_thread(self.assemble, job_id, aov_pass)
@@ -666,24 +667,43 @@ class MasterService:
         """Assemble the job's image, once at a time per job."""
         task = self._assembling.get(job_id)
         if task is None or task.done():
-            task = asyncio.get_running_loop().create_task(self._assemble(job_id), name=f"assemble {job_id}")
+            task = self._track(job_id, asyncio.get_running_loop().create_task(self._assemble(job_id),
+                                                                            name=f"assemble {job_id}"))
             task.add_done_callback(lambda t: t.cancelled() or t.exception() is None
                                    or log.error("job %s: assembling the image failed: %s", job_id, t.exception()))
-            self._assembling[job_id] = task
         return task
 
-    async def ensure_partial(self, job_id: str) -> Path:
-        """The report path of the image of a job that ended without finishing (`assemble_partial`), composed
-        once: a requeue removes it (`_drop_result`)."""
+    def _track(self, key: str, task: asyncio.Task) -> asyncio.Task:
+        """Hold `task` under `key` in `_assembling` while it runs: one composition at a time per key."""
+        def untrack(done: asyncio.Task) -> None:
+            if self._assembling.get(key) is done:
+                del self._assembling[key]
+        self._assembling[key] = task
+        task.add_done_callback(untrack)
+        return task
+
+    async def ensure_partial(self, job_id: str, follow_tiles: bool = True) -> Path:
+        """The report path of the partial image of a job running or ended without finishing
+        (`assemble_partial`), composed again where the job's status changed since, or tiles landed
+        (`follow_tiles`; not for the report of an image just fetched)."""
         report = self.partial_path(job_id).with_suffix(".json")
         key = f"{job_id} partial"
         task = self._assembling.get(key)
-        if not report.exists() and (task is None or task.done()):
-            task = asyncio.get_running_loop().create_task(asyncio.to_thread(self.assemble_partial, job_id), name=key)
-            self._assembling[key] = task
-        if not report.exists():
-            await asyncio.shield(task)
+        if task is None or task.done():
+            if self._partial_current(job_id, report, follow_tiles):
+                return report
+            task = self._track(key, asyncio.get_running_loop().create_task(
+                asyncio.to_thread(self.assemble_partial, job_id), name=key))
+        await asyncio.shield(task)
         return report
+
+    def _partial_current(self, job_id: str, report: Path, follow_tiles: bool) -> bool:
+        """Whether the partial image on disk shows the job as it is now: its status, and its tiles."""
+        if not report.exists():
+            return False
+        shown = json.loads(report.read_text()).get("partial", {})
+        return (shown.get("status") == self.store.job(job_id).status
+                and (not follow_tiles or shown.get("tiles") == len(self.store.results(job_id))))
 
     async def ensure_assembled(self, job_id: str) -> Path:
         """The job's report path, once its image and report are written (assembling them if needed)."""
@@ -702,18 +722,17 @@ class MasterService:
         return self._compose(record, results, plan, self.result_path(job_id), {}, aov_pass)
 
     def assemble_partial(self, job_id: str) -> dict[str, Any]:
-        """Compose the tiles of a job that ended without finishing (failed, cancelled) into partial.exr/.png/
-        .json: the units without a tile black, and not denoised (a denoised job's AOV pass renders at its
-        end). The report's `partial` says what the image lacks."""
+        """Compose the tiles so far of a job running or ended without finishing (failed, cancelled) into
+        partial.exr/.png/.json: the units without a tile black, and not denoised (a denoised job's AOV pass
+        renders at its end). The report's `partial` says what the image lacks and what it shows."""
         record, results, plan = self._stored(job_id)
-        if record.status not in (JobStatus.FAILED, JobStatus.CANCELLED) or not results:
-            raise QuekaroError(f"job {job_id} is {record.status}" + ("" if results else " and has no tile"))
+        if record.status == JobStatus.DONE or not results:
+            raise QuekaroError(f"job {job_id} is {record.status}" + ("" if results else " and has no tile yet"))
         plan = dataclasses.replace(plan, options=dataclasses.replace(plan.options, denoise=False))
         units = len(plan.units)
         done = {au.pass_origin(r.index, units)[0] if plan.options.in_passes else r.index for r in results}
         partial = {"status": record.status.value, "error": record.error, "units": units,
-                   "units_missing": sorted(set(range(units)) - done),
-                   **({"passes": len(results)} if plan.options.in_passes else {})}
+                   "units_missing": sorted(set(range(units)) - done), "tiles": len(results)}  # a unit's or a pass's
         return self._compose(record, results, plan, self.partial_path(job_id), {"partial": partial}, None)
 
     def _stored(self, job_id: str) -> tuple[JobRecord, list[Any], JobPlan]:
@@ -748,6 +767,12 @@ class MasterService:
                           extra={"job_id": job_id, "scene": scene, "created": record.created,
                                  "finished": record.finished, **extra}, aov_pass=aov_pass, partial="partial" in extra)
         return report
+
+
+def _drop_files(stem: Path) -> None:
+    """A composed image's files (`stem` with each suffix it may have) removed."""
+    for suffix in (*IMAGE_SUFFIXES, RAW_SUFFIX, ".json", ".png"):
+        stem.with_suffix(suffix).unlink(missing_ok=True)
 
 
 def _tile_channels(plan: JobPlan) -> tuple[str, ...] | None:

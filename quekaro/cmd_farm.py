@@ -162,8 +162,8 @@ def _register_client(sub: argparse._SubParsersAction) -> None:
                              "a folder (default: this one) for SCENE.exr, a frame's SCENE_0001.exr; the PNG and "
                              "the report go beside it, replacing earlier ones as quekaro render does")
     result.add_argument("--partial", action="store_true",
-                        help="a failed or cancelled job (or frame): the image of its tiles so far, the units "
-                             "without one black, as SCENE.partial.exr; a done job's is its whole image")
+                        help="a job (or frame) running, failed or cancelled: the image of its tiles so far, "
+                             "the units without one black, as SCENE.partial.exr; a done job's is its whole image")
     _add_farm_location(result)
     result.set_defaults(func=run_result)
     cancel = sub.add_parser("cancel", help="cancel a job, or every frame of a sequence")
@@ -643,28 +643,34 @@ def run_result(args: argparse.Namespace) -> int:
 def _fetch(client: FarmClient, job_id: str, out: Path | None, partial: bool = False) -> int:
     """Write a job's image (SCENE.exr, a frame's SCENE_0001.exr) to `out` (a file, or a folder: by default
     this one), or every frame of a sequence into the folder `out`; print where each went. `partial`: a job
-    that ended without finishing gives its tiles so far (SCENE.partial.exr). A sequence's frames without an
-    image are named and skipped (exit status 1)."""
+    running or ended without finishing gives its tiles so far (SCENE.partial.exr). A sequence's frames
+    without an image are named and skipped (exit status 1)."""
     answer = client.status(job_id)
     frames = answer.get("frames")
     folder = _result_folder(out or Path("."), frames is not None)
     skipped = []
     for job in frames if frames is not None else [answer]:
-        cut = partial and job["status"] in ("failed", "cancelled")
+        cut = partial and job["status"] != "done"
         if job["status"] != "done" and not cut:
-            skipped.append(_no_image(job, partial))
+            skipped.append(_no_image(job))
             continue
         name = Path(job["scene"]).stem
         name = name if job.get("frame") is None else frame_name(name, job["frame"])
         target = folder / f"{name}{'.partial' if cut else ''}.exr" if folder is not None else out
-        written = client.result(job["job_id"], target, cut)
+        try:
+            written = client.result(job["job_id"], target, cut)
+        except QuekaroError as exc:  # a frame without a tile yet
+            if frames is None:
+                raise
+            skipped.append(f"frame {job['frame']}: {exc}")
+            continue
         report = json.loads(written.with_suffix(".json").read_text())
         print(f"{written}  report: {written.with_suffix('.json')}")
         passes = progressive.report_part(report)
         if passes:
             print(f"  {progressive.describe(passes)}")
         if cut:
-            print(f"  {_partial_text(report['partial'])}")
+            print(f"  {_partial_text(report['partial'], bool(passes))}")
     if frames is None and skipped:
         raise QuekaroError(skipped[0])
     for line in skipped:
@@ -672,20 +678,18 @@ def _fetch(client: FarmClient, job_id: str, out: Path | None, partial: bool = Fa
     return 1 if skipped else 0
 
 
-def _no_image(job: dict, partial: bool) -> str:
+def _no_image(job: dict) -> str:
     """Why a job (a frame) has no image to fetch, and what gives one."""
     status, error = job["status"], job.get("error") or ""
-    ended = status in ("failed", "cancelled")
     said = error if error.startswith(status) else f"{status}: {error}" if error else status  # "cancelled by the user"
-    hint = "; --partial writes its tiles so far" if ended and not partial else "" if ended else ", no image yet"
     frame = f"frame {job['frame']} " if job.get("frame") is not None else ""
-    return f"{frame}{job['job_id']}: {said}{hint}"
+    return f"{frame}{job['job_id']}: {said}; --partial writes its tiles so far"
 
 
-def _partial_text(partial: dict) -> str:
+def _partial_text(partial: dict, in_passes: bool) -> str:
     """What a partial image lacks, in a line: `partial: cancelled; 3 of 8 units have no tile (black)`."""
     missing = len(partial["units_missing"])
-    passes = f", from {count(partial['passes'], 'pass', 'passes')}" if "passes" in partial else ""
+    passes = f", from {count(partial['tiles'], 'pass', 'passes')}" if in_passes else ""
     lack = f"{missing} of {count(partial['units'], 'unit')} have no tile (black)" if missing else \
         f"every unit has a tile{passes}"
     return f"partial: {partial['status']}; {lack}"

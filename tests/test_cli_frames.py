@@ -201,7 +201,48 @@ def test_a_cancelled_job_in_passes_gives_every_unit_from_its_passes_so_far(home:
     fetched = quekaro(home, "result", job_id, "--partial", "-o", str(tmp_path / "shot.exr"))
     assert fetched.returncode == 0, fetched.stderr
     report = json.loads((tmp_path / "shot.json").read_text())
-    assert report["partial"]["units_missing"] == [] and report["partial"]["passes"] >= 4
+    assert report["partial"]["units_missing"] == [] and report["partial"]["tiles"] >= 4
     assert "partial: cancelled; every unit has a tile, from " in fetched.stdout, fetched.stdout
     image = read_image(tmp_path / "shot.exr")[..., :3]
     assert np.all(np.isfinite(image)) and (image.max(axis=-1) > 0).mean() > 0.9
+
+
+@pytest.mark.slow
+def test_a_running_job_gives_its_tiles_so_far_composed_again_as_passes_land(home: Path, tmp_path: Path) -> None:
+    """`result` of a running job says --partial gives its tiles so far; --partial composes them then, and again
+    once more passes have landed (its report counts them, and describes the image fetched); once the job is
+    cancelled the image says so."""
+    sent = quekaro(home, "submit", str(CBOX), "-D", "res=64", "--time", "60", "--spp", "65536", "--units", "4")
+    assert sent.returncode == 0, sent.stderr
+    job_id = sent.stdout.strip()
+    client = FarmClient.from_home(home)
+
+    def passes_done_over(n: int) -> int:
+        deadline = time.monotonic() + 60
+        while (done := client.status(job_id)["passes"]["done"]) <= n:
+            assert time.monotonic() < deadline, client.status(job_id)
+            time.sleep(0.05)
+        return done
+
+    passes_done_over(3)
+    refused = quekaro(home, "result", job_id, cwd=tmp_path)
+    assert refused.returncode == 2 and f"{job_id}: running; --partial writes its tiles so far" in refused.stderr
+
+    def fetch(name: str) -> tuple[dict, np.ndarray]:
+        fetched = quekaro(home, "result", job_id, "--partial", "-o", str(tmp_path / name))
+        assert fetched.returncode == 0, fetched.stderr
+        report = json.loads((tmp_path / name).with_suffix(".json").read_text())
+        assert "partial" in report, fetched.stdout  # not the image of a job that ended meanwhile
+        report = report["partial"]
+        assert f"partial: {report['status']}; every unit has a tile, from " in fetched.stdout, fetched.stdout
+        return report, read_image(tmp_path / name)[..., :3]
+
+    first, first_image = fetch("first.exr")
+    assert first["status"] == "running" and first["units_missing"] == [] and first["tiles"] >= 4
+    passes_done_over(first["tiles"])
+    later, later_image = fetch("later.exr")
+    assert later["status"] == "running" and later["tiles"] > first["tiles"]
+    assert np.all(np.isfinite(later_image)) and np.any(later_image != first_image)  # more samples, composed again
+    assert client.cancel(job_id) is True
+    ended, _ = fetch("ended.exr")
+    assert ended["status"] == "cancelled" and ended["tiles"] >= later["tiles"]

@@ -66,8 +66,8 @@ def test_a_done_jobs_downloads_and_a_unit_rendered_again(farm, browser, tmp_path
                and len(rows(browser, "#downloads a[data-download]")) == 3, 60, "the job done again, its files again")
     browser.execute_script("loadUnit(0)")
     wait_until(lambda: len(rows(browser, "#attempts-table tr")) >= 3, 30, "the unit's second attempt")
-    log = browser.find_element(By.ID, "unit-log").text
-    assert f"unit 0 of job {job_id}" in log and "to be rendered again" in log, log
+    wait_until(lambda: (log := browser.find_element(By.ID, "unit-log").text)  # redrawn as the job polls
+               and f"unit 0 of job {job_id}" in log and "to be rendered again" in log, 30, "the retry in its log")
     screenshot(browser, tmp_path, "unit-retried")
 
 

@@ -134,24 +134,28 @@ def test_downloads_are_named_as_the_cli_names_them(tmp_path):
     run(tmp_path, scenario)
 
 
-def test_a_cancelled_jobs_partial_image_and_units_read_cancelled(tmp_path):
+def test_a_running_or_cancelled_jobs_partial_image_and_units_read_as_they_are(tmp_path):
     async def scenario(page: Page) -> None:
         cookie, _ = await page.session()
         url = f"{page.url}/ui/api/jobs/{JOB}/download/png"
+        view_url = f"{page.url}/ui/api/jobs/{JOB}"
+        early = await page.http.get(url, headers={"Cookie": cookie})
+        assert early.status == 409 and f"job {JOB} is running: it has no tile yet" in (await early.json())["error"]
         page.master.award(0)
         page.master.finish(0, value=0.5)
-        running = await page.http.get(url, headers={"Cookie": cookie})
-        assert running.status == 409 and "when it is done" in (await running.json())["error"]
-        page.master.store.cancel(JOB, time.time())
-        response = await page.http.get(url, headers={"Cookie": cookie})
-        assert response.status == 200
-        assert response.headers["Content-Disposition"] == 'attachment; filename="scene.partial.png"'
-        pixels = np.asarray(Image.open(io.BytesIO(await response.read())).convert("RGB"))
-        assert pixels.shape == (16, 32, 3)
-        assert pixels[:8, :16].min() > 100 and pixels[:, 16:].max() == 0 and pixels[8:].max() == 0
-        view = await (await page.http.get(f"{page.url}/ui/api/jobs/{JOB}", headers={"Cookie": cookie})).json()
-        assert view["partial"] is True
-        assert [u["status"] for u in view["units"]] == ["done", "cancelled", "cancelled", "cancelled"]
+        for ended in (False, True):
+            if ended:
+                page.master.store.cancel(JOB, time.time())
+            response = await page.http.get(url, headers={"Cookie": cookie})
+            assert response.status == 200
+            assert response.headers["Content-Disposition"] == 'attachment; filename="scene.partial.png"'
+            pixels = np.asarray(Image.open(io.BytesIO(await response.read())).convert("RGB"))
+            assert pixels.shape == (16, 32, 3)
+            assert pixels[:8, :16].min() > 100 and pixels[:, 16:].max() == 0 and pixels[8:].max() == 0
+            view = await (await page.http.get(view_url, headers={"Cookie": cookie})).json()
+            assert view["partial"] is True
+            others = "cancelled" if ended else "pending"
+            assert [u["status"] for u in view["units"]] == ["done", others, others, others]
 
     run(tmp_path, scenario)
 

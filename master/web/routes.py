@@ -10,7 +10,7 @@
     GET  /ui/api/jobs/{job}/preview.png     the image so far
     GET  /ui/api/jobs/{job}/report          a finished job's report
     GET  /ui/api/jobs/{job}/download/{kind} image (EXR), png, report (JSON) or raw (EXR), named as the CLI
-                                            names them; of a job that did not finish: its partial image's
+                                            names them; of a job not done: its partial image's
     POST /ui/api/jobs/{job}/cancel          (CSRF; a sequence id: every frame)
     POST /ui/api/jobs/{job}/requeue         a failed or cancelled job runs again (CSRF; a sequence id: every
                                             failed or cancelled frame)
@@ -289,7 +289,7 @@ DOWNLOADS = ("image", "png", "report", "raw")
 
 async def api_download(request: web.Request) -> web.StreamResponse:
     """A job's file to save, named as `quekaro result` names it (SCENE.exr, a frame's SCENE_0001.exr): a
-    done job's image, PNG, report or raw image; those of a job that ended without finishing are of its
+    done job's image, PNG, report or raw image; those of a job running or ended without finishing are of its
     partial image (its tiles so far, the rest black), named SCENE.partial.exr. 409 for what the job does not
     have yet."""
     state = _state(request)
@@ -298,15 +298,15 @@ async def api_download(request: web.Request) -> web.StreamResponse:
     if kind not in DOWNLOADS:
         raise web.HTTPNotFound(reason=f"no download {kind[:40]!r}: {', '.join(DOWNLOADS)}")
     partial = record.status != JobStatus.DONE
-    if record.status == JobStatus.RUNNING or (partial and (kind == "raw" or not service.store.results(record.id))):
-        why = ("its files are written when it is done" if record.status == JobStatus.RUNNING else
-               "its partial image is not denoised" if kind == "raw" else "it has no tile")
+    if partial and (kind == "raw" or not service.store.results(record.id)):
+        why = "its partial image is not denoised" if kind == "raw" else "it has no tile yet"
         raise web.HTTPConflict(reason=f"job {record.id} is {record.status}: {why}")
     if partial and kind == "png":  # the page's own preview, shrunk where the image is large
         return web.FileResponse(await _composed(state, record), headers=attachment(record, ".partial.png"))
     try:
-        await (service.ensure_partial(record.id) if partial else service.ensure_assembled(record.id))
-    except QuekaroError as exc:  # requeued while asked
+        await (service.ensure_partial(record.id, follow_tiles=kind == "image") if partial
+               else service.ensure_assembled(record.id))
+    except QuekaroError as exc:  # done or requeued meanwhile
         raise web.HTTPConflict(reason=str(exc)) from None
     path = result_file(service, record.id, kind, partial)
     if not path.is_file():

@@ -93,7 +93,7 @@ def _unit_row(unit: UnitRecord, params: dict[str, Any] | None, agent: str | None
 
 def job_view(service: WebService, job_id: str) -> dict[str, Any]:
     """One job and every unit of it, or a sequence and its frames' rows (raises StoreError for neither).
-    `partial`: a job that ended without finishing has tiles, its image shows them alone."""
+    `partial`: a job not done has tiles, its partial image shows them alone."""
     if SEQUENCE_ID.fullmatch(job_id):
         now = time.time()
         summary = sequence_summary(service, job_id)
@@ -107,9 +107,8 @@ def job_view(service: WebService, job_id: str) -> dict[str, Any]:
             for u in service.store.units(job_id)]
     planned = record.planned_units
     units = rows if planned is None else [_unit_of_passes(u, passes) for u, passes in _by_unit(rows, len(planned))]
-    ended = record.status in (JobStatus.CANCELLED, JobStatus.FAILED)
     return {**job_row(service, record, time.time()), "ranges": record.plan.get("ranges", {}),
-            "tiles": len(params), "partial": ended and bool(params), "units": units}
+            "tiles": len(params), "partial": record.status != JobStatus.DONE and bool(params), "units": units}
 
 
 def _by_unit(rows: list[dict[str, Any]], units: int) -> list[tuple[int, list[dict[str, Any]]]]:

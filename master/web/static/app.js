@@ -421,7 +421,7 @@ function renderJob() {
     + (job.sequence ? `, frame ${job.frame}` : "");
   const item = (label, value) => el("div", {}, el("b", {}, label), value);
   fill(document.getElementById("job-summary"),
-    item("state", badge(job.status)), job.partial ? item("image so far", badge("partial")) : null, item("level", job.level),
+    item("state", badge(job.status)), job.partial && job.status !== "running" ? item("image so far", badge("partial")) : null, item("level", job.level),
     job.sequence ? item("sequence", el("a", { href: `#/job/${job.sequence}` }, `${job.sequence}, frame ${job.frame}`)) : null,
     item("-D", definesText(job.defines) || "-"),
     item("progress", progressBar(job)),
@@ -458,8 +458,8 @@ function clearJob() {
   delete document.getElementById("job-view").dataset.status;
 }
 
-// A done job's files to save (named as `quekaro result` names them); a job that ended without finishing
-// offers its partial image.
+// A done job's files to save (named as `quekaro result` names them); a job running or ended without
+// finishing offers its partial image.
 function renderDownloads(job) {
   const box = document.getElementById("downloads");
   const base = `/ui/api/jobs/${encodeURIComponent(job.job_id)}/download`;
