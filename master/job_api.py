@@ -8,7 +8,7 @@ Every route needs the farm's admin token (`Authorization: Bearer ...`):
     GET  /api/jobs/{job}/result    the composed image, EXR unless the film asks otherwise (409 until done);
                                    ?partial=1: the tiles so far of a job running, failed or cancelled
                                    (SCENE.partial.exr), composed again as tiles land
-    GET  /api/jobs/{job}/report    the JSON report (?partial=1: the partial image's)
+    GET  /api/jobs/{job}/report    the JSON report (?partial=1: the partial image's, as last composed)
     GET  /api/jobs/{job}/units/{n} one unit: status, agent, attempts, and its story
     POST /api/jobs/{job}/cancel    cancel the job (a sequence id: every frame)
     POST /api/jobs/{job}/requeue   a failed or cancelled job runs again, its done units kept (a sequence id:
