@@ -442,7 +442,7 @@ def _run_job(farm: EmulatedFarm, client: FarmClient, job: BenchJob) -> dict[str,
     client.result(job_id, farm.root / "result.exr")
     report = json.loads((farm.root / "result.json").read_text())
     return {"job_id": job_id, "submitted": submitted, "load_before": load,
-            "cpu_s": {k: cpu1[k] - cpu0[k] for k in cpu0}, "master_cpu_s": cpu1["master"] - cpu0["master"],
+            "cpu_s": {k: cpu1[k] - cpu0[k] for k in cpu0},
             "busy_during": (ticks1[0] - ticks0[0]) / max(ticks1[1] - ticks0[1], 1),
             "master_peak_mib": master_mem["peak_mib"], "master_rss_mib": master_mem["rss_mib"],
             "agent_rss_mib": statistics.mean(agents_mib), "agents_rss_total_mib": sum(agents_mib),
@@ -466,7 +466,7 @@ def _row(n: int, speeds: list[float], job: BenchJob, store: StoreView, measured:
         "requeued": sum(a["outcome"] != "done" for a in store.attempts),
         "makespan_s": makespan, "submit_to_done_s": store.finished - measured["submitted"],
         "efficiency": job.t1 / (capacity * makespan),
-        "master_cpu_s": measured["master_cpu_s"], "master_cores": measured["master_cpu_s"] / makespan,
+        "master_cpu_s": measured["cpu_s"]["master"], "master_cores": measured["cpu_s"]["master"] / makespan,
         "master_peak_mib": measured["master_peak_mib"], "agent_rss_mib": measured["agent_rss_mib"],
         "agents_rss_total_mib": measured["agents_rss_total_mib"],
         "stanzas": total, "stanzas_per_tile": total / tiles, "stanzas_per_tile_no_heartbeat": (total - beats) / tiles,

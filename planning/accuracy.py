@@ -6,6 +6,7 @@ plain Mitsuba at the uniform spp that takes the same wall time (`uniform_at`, on
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import math
 import os
@@ -128,7 +129,7 @@ def spp_timing(spec: Any, spp: int, threads: int, variant: str, asked: Asked = A
     """(t0, k) of t(spp) = t0 + k spp for the plain Mitsuba process (`fit_spp_line`). Render time is linear
     in spp (docs/design.md section 3), so the spp for a given time follows from the line."""
     size = ", ".join(f"{k}={v}" for k, v in spec.defines.items())
-    seeds = iter(range(1, 1 << 20))
+    seeds = itertools.count(1)
     return fit_spp_line(lambda n: plain_render(spec, n, threads, variant, seed=next(seeds), asked=asked)[1],
                         spp, what=f"{spec.path.name} ({size})")
 
