@@ -144,6 +144,7 @@ class _Sim:
         self.holding: dict[str, set[tuple[str, int]]] = {name: set() for name in speeds}
         self.messages = 0
         self.timer = math.inf
+        self.tick_due = False  # a tick queued after the master's events of this instant (`run`)
         self.merged: dict[int, int] = {}  # a progressive job's samples merged per unit
         self.master_cpu_s = 0.0
 
@@ -178,7 +179,13 @@ class _Sim:
                 out = self.handle(stimulus, now)
                 if isinstance(stimulus, TileStored) and self.auction.merges_passes(stimulus.job_id):
                     out += self.handle(self._merged(stimulus), now)  # the master's merge, at once
-                self.deliver(out + self.handle(Tick(), now), now)
+                self.deliver(out, now)
+                if not self.tick_due:  # as the master: one tick after the events already waiting
+                    self.tick_due = True
+                    self.push(now, "tick", "", None)
+            elif kind == "tick":
+                self.tick_due = False
+                self.deliver(self.handle(Tick(), now), now)
             elif kind == "agent":
                 self.messages += 1
                 self.agent_receives(who, payload, now)

@@ -168,6 +168,7 @@ class MasterService:
         self._agent_re = re.compile(config.agent_pattern.format(domain=re.escape(config.domain)))
         self._unrecorded: list[au.Record] = []  # records the store could not write yet (`_record`)
         self._ticks = itertools.count(1)
+        self._tick_due: asyncio.Task | None = None  # the tick after the stimuli waiting (`_tick_soon`)
         self.shared_accounts = SharedAccounts()  # agent JIDs that several clients log in with
         self._allowed: set[str] = set()
         self._allow_stamp: tuple[int, int] | None = None
@@ -226,10 +227,11 @@ class MasterService:
             log.warning("job %s unit %d was done without its tile on disk: back to auction", job_id, index)
 
     async def stop(self) -> None:
-        if self._ticker:
-            self._ticker.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._ticker
+        for task in (self._ticker, self._tick_due):
+            if task:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
         if self.agent is not None:
             await self.agent.stop()
         if self._runner is not None:
@@ -519,14 +521,28 @@ class MasterService:
                                                   stimulus_id=f"{env.performative}-{msg.conversation}"))
 
     async def _handle(self, stimulus: au.Stimulus) -> list[au.Instruction]:
-        """The auction's answer to one stimulus, and to the tick that follows it at once (an agent that just
-        answered or finished may be free: waiting for the timer would idle it), carried out."""
+        """The auction's answer to one stimulus, carried out; a tick follows soon (`_tick_soon`)."""
         now = time.time()
         out = self.auction.handle(stimulus, now)
         out += self._drain_again(out, now)
-        out += self.auction.handle(au.Tick(stimulus_id=f"tick-after-{stimulus.stimulus_id}"), now)
         await self._execute(out)
+        self._tick_soon(stimulus.stimulus_id)
         return out
+
+    def _tick_soon(self, after: str) -> None:
+        """A tick once the stimuli already waiting for the lock are handled (asyncio's lock is first come,
+        first served): an agent that just answered or finished may be free, and waiting for the timer would
+        idle it; a burst of stimuli costs one tick, not one each."""
+        if self._tick_due is None:
+            self._tick_due = asyncio.get_running_loop().create_task(self._tick_after(after), name="tick soon")
+
+    async def _tick_after(self, after: str) -> None:
+        async with self._lock:
+            self._tick_due = None  # a stimulus handled from now on asks for a tick of its own
+            try:
+                await self._execute(self.auction.handle(au.Tick(stimulus_id=f"tick-after-{after}"), time.time()))
+            except Exception:  # one bad tick must not stop the master
+                log.exception("master tick failed")
 
     def _drain_again(self, out: list[au.Instruction], now: float) -> list[au.Instruction]:
         """An agent the store says the user drained, joining (after a master restart, or forgotten and back),

@@ -35,6 +35,8 @@ from master import auction as au
 from planning.progressive import BUDGET, NOISE, TIME, Goal
 
 SCHEMA_VERSION = 7
+# The auction's records that answer a user's command: committed to disk before the command is answered.
+USER_RECORDS = (au.JobCancelled, au.JobRequeued, au.UnitRetried, au.AgentDrained, au.AgentResumed)
 # A unit row's WorkUnit.work in SQL ({t}: the table's alias and a dot, or nothing).
 _WORK = "{t}cost * COALESCE({t}spp, 1)"
 _INSERT_UNIT = ("INSERT INTO units (job_id, idx, x, y, w, h, C, S, Nd, cost, status, spp, depth_floor, depth)"
@@ -219,8 +221,10 @@ class JobStore:
     """One SQLite file. Use one instance per thread; `readonly=True` for status readers such as the CLI.
 
     WAL mode, so the CLI reads status while the master writes; foreign keys on; a busy timeout rather
-    than "database is locked" errors; synchronous=FULL because a unit counts as done only once its tile
-    and the row saying so are both on disk. The schema version lives in `user_version`."""
+    than "database is locked" errors. Every commit is on disk when it returns (synchronous=FULL), but the
+    auction's own records (`apply`): a power cut may lose their last ones (the database stays whole), and
+    their units render again; a unit counts as done only once its tile is on disk. The schema version lives
+    in `user_version`."""
 
     def __init__(self, path: str | Path, readonly: bool = False, busy_timeout_s: float = 10.0) -> None:
         self.path = Path(path)
@@ -236,6 +240,7 @@ class JobStore:
             if not readonly:
                 self.db.execute("PRAGMA journal_mode = WAL")
                 self.db.execute("PRAGMA synchronous = FULL")
+            self._synchronous = "FULL"
             self._check_schema(readonly)
         except sqlite3.DatabaseError as exc:
             raise StoreError(f"{self.path}: not a usable job store: {exc}") from exc
@@ -353,9 +358,14 @@ class JobStore:
         return 7
 
     @contextmanager
-    def _tx(self) -> Iterator[sqlite3.Connection]:
-        """One write transaction: BEGIN IMMEDIATE takes the write lock up front (no upgrade deadlocks)."""
+    def _tx(self, synchronous: str = "FULL") -> Iterator[sqlite3.Connection]:
+        """One write transaction: BEGIN IMMEDIATE takes the write lock up front (no upgrade deadlocks); its
+        commit at SQLite's `synchronous` level (FULL: on disk when it returns). Inside another, it is part of
+        that one."""
         if not self.db.in_transaction:
+            if synchronous != self._synchronous:
+                self.db.execute(f"PRAGMA synchronous = {synchronous}")
+                self._synchronous = synchronous
             self.db.execute("BEGIN IMMEDIATE")
         try:
             yield self.db
@@ -753,11 +763,13 @@ class JobStore:
         return [(r["idx"], r["agent"], r["reason"]) for r in rows]
 
     def apply(self, instructions: Iterable[au.Instruction], now: float) -> None:
-        """Record the auction's records in one transaction (its other instructions are the I/O's business)."""
-        with self._tx() as db:
-            for item in instructions:
-                if isinstance(item, au.Record):
-                    self._apply(db, item, now)
+        """Record the auction's records in one transaction (its other instructions are the I/O's business),
+        without waiting for the disk unless one answers a user's command (USER_RECORDS)."""
+        records = [item for item in instructions if isinstance(item, au.Record)]
+        durable = any(isinstance(r, USER_RECORDS) for r in records)
+        with self._tx("FULL" if durable else "NORMAL") as db:
+            for item in records:
+                self._apply(db, item, now)
 
     def _apply(self, db: sqlite3.Connection, ev: au.Record, now: float) -> None:
         """One record: its unit, attempt or job; and the agent it names is seen now (with its credits, if the

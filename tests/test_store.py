@@ -219,6 +219,24 @@ def test_auction_events_are_recorded(tmp_path: Path) -> None:
     assert store.progress("job-1").eta_s == 0.0
 
 
+def test_the_auctions_own_records_commit_without_waiting_for_the_disk_a_users_command_with(tmp_path: Path) -> None:
+    """SQLite's synchronous level of each commit: FULL (on disk when it returns) for a job's creation and a
+    user's command (a cancel), NORMAL for the auction's own records (a power cut may lose the last ones:
+    their units render again)."""
+    level = {1: "NORMAL", 2: "FULL"}
+    store = new_store(tmp_path / "farm.db", n=2)
+    assert level[store.db.execute("PRAGMA synchronous").fetchone()[0]] == "FULL"
+    auction = au.Auction(ONE_A_ROUND, rng=random.Random(5))
+    submit(auction, info_of(store.job("job-1")), [u.unit() for u in store.units("job-1")])
+    store.apply(register(auction, "A", 100.0), 100.0)
+    play(auction, store, 101.0)
+    assert level[store.db.execute("PRAGMA synchronous").fetchone()[0]] == "NORMAL"
+    store.apply(cancel(auction, "job-1"), 102.0)
+    assert level[store.db.execute("PRAGMA synchronous").fetchone()[0]] == "FULL"
+    assert store.job("job-1").status == JobStatus.CANCELLED
+    assert level[JobStore(tmp_path / "farm.db").db.execute("PRAGMA synchronous").fetchone()[0]] == "FULL"
+
+
 def _first_unit_done(tmp_path: Path) -> tuple[JobStore, dict[int, float]]:
     """A 3-unit job whose unit 0 agent A rendered at one second per unit of cost; the units' costs."""
     store = new_store(tmp_path / "farm.db", n=3)

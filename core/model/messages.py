@@ -436,10 +436,10 @@ def encode(msg: Message) -> tuple[str, str]:
     """The (performative, JSON body) of a message, validated and size-checked as the receiver will."""
     if type(msg) not in KINDS.values():
         raise MessageError(f"not a message kind: {type(msg).__name__}")
-    data = {"v": PROTOCOL_VERSION, **_to_json(msg)}
-    body = json.dumps(data, separators=(",", ":"), allow_nan=False, ensure_ascii=False)
+    wire = _to_json(msg)
+    body = json.dumps({"v": PROTOCOL_VERSION, **wire}, separators=(",", ":"), allow_nan=False, ensure_ascii=False)
     _check_size(body)
-    check(msg)  # the sender is held to the same rules as any receiver
+    _check_value(type(msg), wire, "")  # the sender is held to the same rules as any receiver (`check`)
     return msg.performative, body
 
 
