@@ -483,19 +483,22 @@ def predict(costs: CostMap, job: BenchJob, store: StoreView, speeds: list[float]
     """The simulator's makespan for the same units (each one's time from the cost map), speeds, latency and
     delivery, the mean over SIM_SEEDS seeds of the auction's random tie-breaks. The agents bid as real ones
     do at level off: the unit's pixel count times a per-job rate (`bids`); `sim_exact_*` is the simulator
-    with exact bids, as `bench scaling` runs it."""
+    with exact bids, as `bench scaling` runs it; `sim_instant_efficiency`, with exact bids and messages and
+    tiles that take no time: the schedule's own bound, what the latencies measured leave of it is theirs."""
     unit_s = [costs.seconds(w, job.spp, job.width, job.height) for w in store.sampled(job.width, job.height)]
     passes = bool(job.options.get("progressive"))
 
-    def makespan(estimates: list[float] | None) -> float:
+    def makespan(estimates: list[float] | None, latency: float = latency, delivery: float = delivery_s) -> float:
         return statistics.mean(
             simulate(unit_s, speeds, latency=latency, config=UNBATCHED_AUCTION, seed=s, heartbeat_s=HEARTBEAT_S,
-                     delivery=delivery_s, estimates=estimates, passes=passes).makespan for s in range(SIM_SEEDS))
+                     delivery=delivery, estimates=estimates, passes=passes).makespan for s in range(SIM_SEEDS))
 
     sim, exact = makespan(bids(store.sampled(1 << 16, 1 << 16), unit_s)), makespan(None)
+    instant = makespan(None, latency=0.0, delivery=0.0)
     capacity = sum(speeds)
     return {"sim_makespan_s": sim, "sim_efficiency": job.t1 / (capacity * sim), "sim_exact_makespan_s": exact,
-            "sim_exact_efficiency": job.t1 / (capacity * exact), "units_seconds": sum(unit_s)}
+            "sim_exact_efficiency": job.t1 / (capacity * exact), "units_seconds": sum(unit_s),
+            "sim_instant_efficiency": job.t1 / (capacity * instant)}
 
 
 def bids(rects: list[Rect], unit_s: list[float]) -> list[float]:
@@ -598,6 +601,8 @@ def format_report(result: dict[str, Any]) -> str:
               f"{100 * r.get('busy_at_submit', float('nan')):.0f} % busy after {r.get('settle_s', 0):.0f} s of "
               f"settling), {_cpu_text(r)}, submit to done "
               f"{r['submit_to_done_s']:.1f} s, simulated with exact bids {r['sim_exact_makespan_s']:.1f} s, "
+              f"simulated with exact bids and instant messages and tiles: efficiency "
+              f"{r['sim_instant_efficiency']:.3f}, "
               f"{r['attempts']} attempts "
               f"({r['requeued']} not done), agents up in {r['up_s']:.0f} s, agents' memory "
               f"{r['agents_rss_total_mib'] / 1024:.2f} GiB in all, Mitsuba/Dr.Jit loaded by an agent: "

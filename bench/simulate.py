@@ -179,7 +179,7 @@ class _Sim:
                 out = self.handle(stimulus, now)
                 if isinstance(stimulus, TileStored) and self.auction.merges_passes(stimulus.job_id):
                     out += self.handle(self._merged(stimulus), now)  # the master's merge, at once
-                self.deliver(out, now)
+                self.send(out, now)  # the tick's `deliver` sets the timer
                 if not self.tick_due:  # as the master: one tick after the events already waiting
                     self.tick_due = True
                     self.push(now, "tick", "", None)
@@ -214,10 +214,15 @@ class _Sim:
     def _status(self, job_id: str) -> str:
         return self.auction.job_status(job_id)
 
-    def deliver(self, instructions: list[Instruction], now: float) -> None:
+    def send(self, instructions: list[Instruction], now: float) -> None:
+        """The master's messages, each to arrive a latency later."""
         for item in instructions:
             if isinstance(item, SendToAgent):
                 self.push(now + self.latency, "agent", item.to, item.message)
+
+    def deliver(self, instructions: list[Instruction], now: float) -> None:
+        """The master's messages sent, and its timer set for the auction's next deadline."""
+        self.send(instructions, now)
         due = self._master(self.auction.next_deadline)
         if due is not None and due < self.timer:
             self.timer = max(due, now)
