@@ -484,7 +484,7 @@ def predict(costs: CostMap, job: BenchJob, store: StoreView, speeds: list[float]
     delivery, the mean over SIM_SEEDS seeds of the auction's random tie-breaks. The agents bid as real ones
     do at level off: the unit's pixel count times a per-job rate (`bids`); `sim_exact_*` is the simulator
     with exact bids, as `bench scaling` runs it; `sim_instant_efficiency`, with exact bids and messages and
-    tiles that take no time: the schedule's own bound, what the latencies measured leave of it is theirs."""
+    tiles that take no time, is the schedule's own bound: the gap below it is the latencies'."""
     unit_s = [costs.seconds(w, job.spp, job.width, job.height) for w in store.sampled(job.width, job.height)]
     passes = bool(job.options.get("progressive"))
 

@@ -73,7 +73,7 @@ def mitsuba_verdict(image_file: Path, refs, names: tuple[str, ...]):
                                                                                  refs.mean(axis=0)))
 
 
-@pytest.mark.alone  # the images' build and a farm in containers: ~50 s alone after a code change
+@pytest.mark.alone  # the images' build and a farm in containers take every CPU
 def test_compose_up_renders_a_job_submitted_from_the_host(tmp_path: Path) -> None:
     require_docker()
     port = free_port()
